@@ -1,0 +1,61 @@
+"""The ``svelive`` command.
+
+Each verb is a small function over the library. Verbs of other parts of the
+product (capture, replay, service, calibration, benchmarks) live beside their
+code in a module with ``add_commands(subparsers)``, listed in COMMAND_MODULES.
+Every library error reaches the user as one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from svelive.errors import SveliveError
+
+#: Modules that add verbs of their own: each defines add_commands(subparsers).
+COMMAND_MODULES: tuple[str, ...] = (
+    "svelive.commands",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="svelive", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except SveliveError as exc:
+        print(f"svelive {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+def print_json(data: object) -> None:
+    """Print ``data`` as indented JSON (numpy scalars become numbers)."""
+    print(json.dumps(data, indent=2, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
+
+
+def existing_file(text: str) -> Path:
+    """argparse type: a path that must name an existing regular file."""
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file" if not path.exists() else f"{text}: not a file")
+    return path
+
+
+if __name__ == "__main__":
+    sys.exit(main())

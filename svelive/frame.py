@@ -1,0 +1,53 @@
+"""The two records that flow through the pipeline: a raw Frame in, an HdrFrame out."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from svelive.sensor import Sensor
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One mosaicked raw frame as a source delivers it. Treat as immutable.
+
+    Attributes:
+        raw: uint8 or uint16 array (H, W), the sensor values in DN.
+        frame_id: the source's frame counter (device frame id where the camera has one).
+        host_time_ns: host ``time.monotonic_ns()`` when the frame was received.
+        device_time_ns: the camera's own timestamp in ns, or None when it has none.
+        pixel_format: the wire format it was decoded from, e.g. ``"Mono12Packed"``.
+        sensor: bit depth, black and white level of the values in ``raw``.
+    """
+
+    raw: np.ndarray
+    frame_id: int
+    host_time_ns: int
+    device_time_ns: int | None = None
+    pixel_format: str = "Mono16"
+    sensor: Sensor = field(default_factory=Sensor)
+
+
+@dataclass(frozen=True)
+class HdrFrame:
+    """One reconstructed HDR frame, with where it came from and what it cost.
+
+    Attributes:
+        image: float32 (H, W), radiance in DN at relative exposure 1.
+        confidence: float32 (H, W) in [0, 1]; 0 where the value is only a lower bound.
+        motion: bool (H, W) or None, pixels flagged as moving.
+        frame_id, host_time_ns, device_time_ns: copied from the source Frame.
+        method: the reconstruction method's name.
+        timings_ms: per-stage durations, e.g. {"reconstruct": 12.3}.
+    """
+
+    image: np.ndarray
+    confidence: np.ndarray | None
+    frame_id: int
+    host_time_ns: int
+    device_time_ns: int | None = None
+    method: str = ""
+    motion: np.ndarray | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
