@@ -6,3 +6,8 @@ from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
 __all__ = ["Frame", "HdrFrame", "Pattern", "Sensor", "SveliveError"]
+
+from svelive.reconstruct import methods, reconstruct  # noqa: E402
+from svelive.simulate import SimulatedFrame, simulate  # noqa: E402
+
+__all__ += ["methods", "reconstruct", "simulate", "SimulatedFrame"]

@@ -31,7 +31,7 @@ PRESETS: dict[str, str] = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Pattern:
     """Relative exposures of the sensor's pixels.
 
@@ -62,6 +62,14 @@ class Pattern:
                 raise SveliveError("per-pixel exposure map must be finite and > 0 everywhere")
             pmap.setflags(write=False)
             object.__setattr__(self, "pixel_map", pmap)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Pattern):
+            return NotImplemented
+        return (np.array_equal(self.tile, other.tile) and self.pixel_map is other.pixel_map)
+
+    def __hash__(self) -> int:
+        return hash((self.tile.shape, self.tile.tobytes(), id(self.pixel_map)))
 
     # ----- construction -------------------------------------------------
     @classmethod

@@ -1,0 +1,236 @@
+"""Read a recording: metadata, the frame index, and any frame by number in constant time.
+
+Opening a recording checks its header, then takes the index from the footer of
+a cleanly closed file. Without one (the recorder was killed) or with a corrupt
+one, it rebuilds the index by scanning the fixed-stride record headers, stops at
+the first invalid one, and drops a torn last record (short, or its payload
+checksum fails). Every problem found is kept in :attr:`RecordingReader.warnings`
+and reported with ``warnings.warn``; frames that are readable stay readable.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from replay.container import (
+    FILE_HEADER, FOOTER, FOOTER_MAGIC, HEADER_ALIGN, INDEX_HEADER, INDEX_MAGIC, NO_TIME, RECORD_HEADER,
+    RECORD_MAGIC, Layout, RecordingError, crc32, decode_header,
+)
+from svelive.capture import formats
+from svelive.frame import Frame
+from svelive.sensor import Sensor
+
+
+class CorruptFrameError(RecordingError):
+    """One frame's checksum does not match: it was damaged after writing."""
+
+
+class RecordingReader:
+    """An open recording.
+
+    Attributes:
+        path: the file.
+        meta: the header's JSON metadata (width, height, dtype, pixel_format, pattern, sensor, ...).
+        layout: geometry (width, height, dtype, data offset, record size).
+        times: int64 (N, 3): frame_id, host_time_ns, device_time_ns (``NO_TIME`` when absent).
+        clean: True when the file was closed cleanly and its index was used.
+        warnings: human-readable problems found while opening.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.warnings: list[str] = []
+        if self.path.is_dir():
+            raise RecordingError(f"{self.path}: is a directory, not a recording")
+        try:
+            self._f = open(self.path, "rb", buffering=0)  # noqa: SIM115 - closed in close()
+        except FileNotFoundError:
+            raise RecordingError(f"{self.path}: no such recording") from None
+        except OSError as exc:
+            raise RecordingError(f"{self.path}: cannot open ({exc.strerror})") from None
+        try:
+            self._open()
+        except BaseException:
+            self._f.close()
+            raise
+
+    def _open(self) -> None:
+        size = os.fstat(self._f.fileno()).st_size
+        first = os.pread(self._f.fileno(), HEADER_ALIGN, 0)
+        if len(first) >= FILE_HEADER.size:
+            need = FILE_HEADER.size + FILE_HEADER.unpack_from(first)[2]
+            if need > len(first) and first[:8] == FILE_HEADER.unpack_from(first)[0] and need < 1 << 24:
+                first = os.pread(self._f.fileno(), need, 0)
+        self.meta, self.layout = decode_header(first, str(self.path))
+        try:
+            self.pixel_format = formats.lookup(self.meta.get("pixel_format", "")).name
+        except RecordingError:
+            raise RecordingError(f"{self.path}: unknown pixel format {self.meta.get('pixel_format')!r} "
+                                 "in the header") from None
+        try:
+            s = self.meta.get("sensor") or {}
+            self.sensor = Sensor(int(s.get("bits", 16 if self.layout.dtype == "uint16" else 8)),
+                                 float(s.get("black_level", 0.0)), s.get("white_level"), s.get("gain"),
+                                 s.get("read_noise"))
+        except (TypeError, ValueError) as exc:
+            raise RecordingError(f"{self.path}: sensor metadata is invalid ({exc})") from None
+        self.pattern: str | None = self.meta.get("pattern")
+        self._size = size
+        times = self._read_index(size)
+        self.clean = times is not None
+        if times is None:
+            times = self._scan(size)
+        self.times = times
+        self.times.setflags(write=False)
+        for w in self.warnings:
+            warnings.warn(w, stacklevel=3)
+
+    def _warn(self, text: str) -> None:
+        self.warnings.append(f"{self.path}: {text}")
+
+    def _read_index(self, size: int) -> np.ndarray | None:
+        lay = self.layout
+        fd = self._f.fileno()
+        if size < lay.data_offset + FOOTER.size:
+            return None
+        magic, offset, crc, _ = FOOTER.unpack(os.pread(fd, FOOTER.size, size - FOOTER.size))
+        if magic != FOOTER_MAGIC:
+            self._warn("no index (the recording was not closed cleanly); rebuilt it by scanning")
+            return None
+        if crc32(FOOTER_MAGIC + offset.to_bytes(8, "little")) != crc or offset < lay.data_offset \
+                or offset > size - FOOTER.size - INDEX_HEADER.size:
+            self._warn("corrupt index footer; rebuilt the index by scanning")
+            return None
+        imagic, count, icrc, _ = INDEX_HEADER.unpack(os.pread(fd, INDEX_HEADER.size, offset))
+        table_bytes = count * 24
+        ok = imagic == INDEX_MAGIC and offset + INDEX_HEADER.size + table_bytes + FOOTER.size == size \
+            and offset == lay.data_offset + count * lay.record_size
+        if ok:
+            raw = os.pread(fd, table_bytes, offset + INDEX_HEADER.size)
+            ok = len(raw) == table_bytes and crc32(raw) == icrc
+        if not ok:
+            self._warn("corrupt index; rebuilt it by scanning")
+            return None
+        return np.frombuffer(raw, dtype="<i8").reshape(count, 3).astype(np.int64)
+
+    def _scan(self, size: int) -> np.ndarray:
+        lay = self.layout
+        fd = self._f.fileno()
+        n_max = max(0, (size - lay.data_offset) // lay.record_size)
+        rows = []
+        for i in range(n_max):
+            head = os.pread(fd, RECORD_HEADER.size, lay.data_offset + i * lay.record_size)
+            parsed = self._parse_record_header(head, i)
+            if parsed is None:
+                self._warn(f"record {i} is damaged; kept the {i} frames before it")
+                break
+            rows.append(parsed)
+        else:
+            tail = size - lay.data_offset - n_max * lay.record_size
+            if tail > 0 and os.pread(fd, 4, lay.data_offset + n_max * lay.record_size) != INDEX_MAGIC:
+                self._warn(f"torn last frame ({tail} of {lay.record_size} bytes) skipped")
+        if rows:  # the last complete record may still be torn inside its payload
+            try:
+                self._payload(len(rows) - 1)
+            except CorruptFrameError:
+                rows.pop()
+                self._warn(f"torn last frame {len(rows)} (checksum mismatch) skipped")
+        return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+
+    def _parse_record_header(self, head: bytes, index: int) -> tuple[int, int, int] | None:
+        if len(head) != RECORD_HEADER.size:
+            return None
+        magic, hcrc, idx, fid, host, dev, plen, _ = RECORD_HEADER.unpack(head)
+        if magic != RECORD_MAGIC or crc32(head[8:]) != hcrc or idx != index or plen != self.layout.payload_size:
+            return None
+        return fid, host, dev
+
+    # ----- public --------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    @property
+    def frames(self) -> int:
+        """Number of replayable frames."""
+        return len(self)
+
+    @property
+    def duration_s(self) -> float:
+        """Time from the first to the last frame (device clock when every frame has one), seconds."""
+        t = self.timeline_ns()
+        return float(t[-1] - t[0]) / 1e9 if len(t) > 1 else 0.0
+
+    @property
+    def clock(self) -> str:
+        """"device" when every frame has a device timestamp, else "host"."""
+        dev = self.times[:, 2]
+        return "device" if len(dev) and bool(np.all(dev != NO_TIME)) else "host"
+
+    def timeline_ns(self) -> np.ndarray:
+        """int64 (N,) presentation times in ns: device timestamps if all frames have them, else host."""
+        return self.times[:, 2] if self.clock == "device" else self.times[:, 1]
+
+    def _payload(self, i: int) -> tuple[np.ndarray, tuple[int, int, int]]:
+        lay = self.layout
+        buf = bytearray(RECORD_HEADER.size + lay.payload_size)
+        n = os.preadv(self._f.fileno(), [buf], lay.data_offset + i * lay.record_size)
+        if n != len(buf):
+            raise CorruptFrameError(f"{self.path}: frame {i} is truncated")
+        head = bytes(buf[: RECORD_HEADER.size])
+        parsed = self._parse_record_header(head, i)
+        if parsed is None:
+            raise CorruptFrameError(f"{self.path}: frame {i} has a damaged record header")
+        body = memoryview(buf)[RECORD_HEADER.size:]
+        if crc32(body) != RECORD_HEADER.unpack(head)[7]:
+            raise CorruptFrameError(f"{self.path}: frame {i} checksum mismatch (damaged data)")
+        arr = np.frombuffer(buf, dtype=np.dtype(lay.dtype).newbyteorder("<"), offset=RECORD_HEADER.size,
+                            count=lay.width * lay.height).reshape(lay.height, lay.width)
+        return arr, parsed
+
+    def read(self, i: int) -> Frame:
+        """Frame ``i`` (0-based; negative counts from the end), checksum verified.
+
+        Returns a Frame whose ``raw`` is uint8/uint16 (H, W), with the recorded
+        frame id and timestamps. Raises CorruptFrameError when the data was damaged.
+        """
+        n = len(self)
+        if not -n <= i < n:
+            raise RecordingError(f"{self.path}: frame {i} out of range (the recording has {n} frames)")
+        i %= n
+        arr, (fid, host, dev) = self._payload(i)
+        if arr.dtype.byteorder not in ("=", "|"):
+            arr = arr.astype(arr.dtype.newbyteorder("="))
+        return Frame(raw=arr, frame_id=int(fid), host_time_ns=int(host),
+                     device_time_ns=None if dev == NO_TIME else int(dev),
+                     pixel_format=self.pixel_format, sensor=self.sensor)
+
+    def info(self) -> dict[str, Any]:
+        """A JSON-ready summary (what ``svelive replay-info`` prints)."""
+        lay = self.layout
+        t = self.timeline_ns()
+        return {
+            "path": str(self.path), "frames": len(self), "width": lay.width, "height": lay.height,
+            "dtype": lay.dtype, "pixel_format": self.pixel_format, "pattern": self.pattern,
+            "sensor": {"bits": self.sensor.bits, "black_level": self.sensor.black_level,
+                       "white_level": self.sensor.white_level, "gain": self.sensor.gain,
+                       "read_noise": self.sensor.read_noise},
+            "duration_s": round(self.duration_s, 6),
+            "fps": round((len(t) - 1) / self.duration_s, 3) if self.duration_s > 0 else None,
+            "clock": self.clock,
+            "closed_cleanly": self.clean, "source": self.meta.get("source"), "created": self.meta.get("created"),
+            "bytes": self._size, "warnings": list(self.warnings),
+        }
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> RecordingReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

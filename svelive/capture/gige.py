@@ -1,0 +1,333 @@
+"""GigE Vision cameras through Aravis 0.8 (PyGObject), as ``gige[:DEVICE_ID]``.
+
+DEVICE_ID is what ``arv-tool-0.8`` lists (e.g. ``Aravis-Fake-GV01``), a serial
+number, or the camera's IP address; without one the first camera found is used.
+
+Receiving: a pool of ``n_buffers`` numpy arrays, each wrapped by
+``Aravis.Buffer.new(size, address)`` so Aravis's stream thread writes packets
+straight into numpy memory; the arrays live as long as the stream. A completed
+buffer is decoded (:mod:`svelive.capture.formats`) into the Frame's own array,
+the one copy a frame gets, and the buffer goes straight back to the stream.
+Packet resend is enabled explicitly (``packet-resend = ALWAYS``). A buffer whose
+status is not SUCCESS (missing packets, timeout, size mismatch, ...) never
+becomes a Frame: it is counted in ``stats()["drops"]`` under the status name
+in lower case and re-queued.
+
+Liveness: when the device reports ``control-lost`` (heartbeat failure), or no
+frame has come for ``offline_after_s`` and a register read fails, the source
+reports offline, tears the stream down and reconnects with exponential backoff
+(``backoff_s`` doubling up to ``backoff_max_s``) inside the same iteration,
+reapplying the configuration. Frame ids stay increasing across reconnects and
+GEV 1.x 16-bit block-id wraps.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from svelive.capture import build_sensor, formats, make_config
+from svelive.capture.source import Source
+from svelive.errors import SveliveError
+from svelive.frame import Frame
+from svelive.sensor import Sensor
+
+
+def load_aravis() -> Any:
+    """The Aravis 0.8 GI module, or a one-line SveliveError naming what to install."""
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis
+    except (ImportError, ValueError) as exc:
+        raise SveliveError(
+            f"GigE needs Aravis 0.8 through PyGObject ({exc}); install the Debian packages gir1.2-aravis-0.8 "
+            "libgirepository1.0-dev libcairo2-dev pkg-config and pip install 'PyGObject<3.51'") from None
+    return Aravis
+
+
+@dataclass(frozen=True)
+class GigeConfig:
+    """Camera settings (None leaves the camera's own value) and stream behaviour.
+
+    Attributes:
+        pixel_format: GenICam PixelFormat name, e.g. "Mono12Packed".
+        width, height, offset_x, offset_y: region of interest in pixels.
+        fps: acquisition frame rate, frames per second.
+        exposure_us: exposure time in microseconds.
+        gain_db: analog gain in dB.
+        packet_size: GVSP packet size in bytes (None: negotiated automatically).
+        n_buffers: buffers in the receive pool.
+        packet_resend: ask the camera to resend lost packets.
+        offline_after_s: no frame for this long triggers a liveness check (0: never).
+        reconnect: reconnect after the camera is lost (else the iteration ends with an error).
+        backoff_s, backoff_max_s: first and largest wait between reconnection attempts.
+    """
+
+    pixel_format: str | None = None
+    width: int | None = None
+    height: int | None = None
+    offset_x: int | None = None
+    offset_y: int | None = None
+    fps: float | None = None
+    exposure_us: float | None = None
+    gain_db: float | None = None
+    packet_size: int | None = None
+    n_buffers: int = 8
+    packet_resend: bool = True
+    offline_after_s: float = 1.5
+    reconnect: bool = True
+    backoff_s: float = 0.25
+    backoff_max_s: float = 5.0
+
+
+#: Stream counters kept (Aravis names), summed over connections.
+STREAM_COUNTERS = ("n_completed_buffers", "n_failures", "n_underruns", "n_timeouts", "n_aborted",
+                   "n_missing_frames", "n_size_mismatch_errors", "n_received_packets", "n_missing_packets",
+                   "n_error_packets", "n_ignored_packets", "n_resend_requests", "n_resent_packets",
+                   "n_duplicated_packets", "n_transferred_bytes")
+
+
+class GigeSource(Source):
+    """A GigE Vision camera; see the module docstring."""
+
+    def __init__(self, spec: str, arg: str | None = None, *, pattern: str | None = None,
+                 sensor: Sensor | None = None, bits: int | None = None, black_level: float | None = None,
+                 white_level: float | None = None, **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor)
+        self.config: GigeConfig = make_config(GigeConfig, opts, spec)
+        if self.config.n_buffers < 2:
+            raise SveliveError(f"{spec}: n_buffers must be >= 2")
+        self.device_id = arg
+        self._sensor_opts = (sensor, bits, black_level, white_level)
+        self._aravis = load_aravis()
+        self._io = threading.Lock()  # serialises device calls between _next and _close
+        self._camera: Any = None
+        self._stream: Any = None
+        self._arrays: dict[Any, np.ndarray] = {}
+        self._lost = threading.Event()
+        self._counters = dict.fromkeys(STREAM_COUNTERS, 0)
+        self._last_frame_t = 0.0
+        self._next_attempt = 0.0
+        self._backoff = self.config.backoff_s
+        self._last_raw_id: int | None = None
+        self._last_id: int | None = None
+        self.camera_info: dict[str, Any] = {}
+
+    # ----- connection ------------------------------------------------------
+    def _open(self) -> None:
+        self._connect()
+
+    def _connect(self) -> None:
+        Ar = self._aravis
+        c = self.config
+        try:
+            Ar.update_device_list()
+            camera = Ar.Camera.new(self.device_id)
+        except Exception as exc:  # GLib.Error or TypeError (None returned)
+            what = f"GigE camera {self.device_id!r}" if self.device_id else "any GigE camera"
+            raise SveliveError(f"cannot open {what}: {_message(exc)}") from None
+        if camera is None:
+            raise SveliveError(f"no GigE camera {self.device_id or ''} found".replace("  ", " "))
+        try:
+            self._configure(camera)
+            pf_name = camera.get_pixel_format_as_string()
+            self._format = formats.lookup(pf_name)
+            self._pf_code = int(camera.get_pixel_format())
+            payload = int(camera.get_payload())
+            stream = camera.create_stream(None, None)
+            if stream is None:
+                raise SveliveError("could not create the stream")
+            if isinstance(stream, Ar.GvStream):
+                stream.set_property("packet-resend", Ar.GvStreamPacketResend.ALWAYS if c.packet_resend
+                                    else Ar.GvStreamPacketResend.NEVER)
+            arrays: dict[Any, np.ndarray] = {}
+            for _ in range(c.n_buffers):
+                arr = np.empty(payload, dtype=np.uint8)
+                buf = Ar.Buffer.new(payload, arr.ctypes.data)
+                arrays[buf] = arr
+                stream.push_buffer(buf)
+            device = camera.get_device()
+            self._lost.clear()
+            device.connect("control-lost", lambda *_: self._lost.set())
+            camera.start_acquisition()
+        except SveliveError:
+            raise
+        except Exception as exc:
+            raise SveliveError(f"{self.spec}: camera setup failed: {_message(exc)}") from None
+        self._camera, self._stream, self._arrays = camera, stream, arrays
+        self.sensor = build_sensor(*self._sensor_opts, default_bits=self._format.bits)
+        x, y, w, h = camera.get_region()
+        self.camera_info = {"device_id": camera.get_device_id(), "vendor": camera.get_vendor_name(),
+                            "model": camera.get_model_name(), "pixel_format": pf_name,
+                            "region": [x, y, w, h], "payload": payload}
+        self._last_frame_t = time.monotonic()
+        self._last_raw_id = None
+        self._backoff = c.backoff_s
+        self._set_online(True)
+
+    def _configure(self, camera: Any) -> None:
+        c = self.config
+        if c.pixel_format is not None:
+            available = list(camera.dup_available_pixel_formats_as_strings() or [])
+            if c.pixel_format not in available:
+                raise SveliveError(f"{self.spec}: pixel format {c.pixel_format!r} not offered by the camera; "
+                                   f"it has {', '.join(available)}")
+            formats.lookup(c.pixel_format)  # refuse formats we cannot unpack before streaming
+            camera.set_pixel_format_from_string(c.pixel_format)
+        if any(v is not None for v in (c.width, c.height, c.offset_x, c.offset_y)):
+            x, y, w, h = camera.get_region()
+            camera.set_region(c.offset_x if c.offset_x is not None else x, c.offset_y if c.offset_y is not None
+                              else y, c.width or w, c.height or h)
+        if c.fps is not None and camera.is_frame_rate_available():
+            camera.set_frame_rate(float(c.fps))
+        if c.exposure_us is not None and camera.is_exposure_time_available():
+            camera.set_exposure_time(float(c.exposure_us))
+        if c.gain_db is not None and camera.is_gain_available():
+            camera.set_gain(float(c.gain_db))
+        if c.packet_size is not None and camera.is_gv_device():
+            camera.gv_set_packet_size(int(c.packet_size))
+
+    def _teardown(self) -> None:
+        """Stop acquisition and free the stream, then the arrays (in that order). Holds self._io."""
+        camera, stream = self._camera, self._stream
+        self._camera = self._stream = None
+        if stream is not None:
+            for name in STREAM_COUNTERS:
+                try:
+                    self._counters[name] += int(stream.get_info_uint64_by_name(name))
+                except Exception:  # noqa: BLE001 - a counter this Aravis lacks
+                    pass
+        if camera is not None:
+            try:
+                camera.stop_acquisition()
+            except Exception:  # noqa: BLE001 - the camera may be gone already
+                pass
+        del camera, stream  # the stream's thread stops here, before the arrays go
+        self._arrays = {}
+
+    def _close(self) -> None:
+        with self._io:
+            self._teardown()
+
+    def _go_offline(self, reason: str) -> None:
+        self._set_online(False, reason)
+        self._teardown()
+        if not self.config.reconnect:
+            raise SveliveError(f"{self.spec}: camera lost ({reason})")
+        self._next_attempt = time.monotonic()
+
+    def _try_reconnect(self) -> bool:
+        now = time.monotonic()
+        if now < self._next_attempt:
+            self._wait(min(self._next_attempt - now, self.poll_s))
+            return False
+        try:
+            self._connect()
+        except SveliveError as exc:
+            self._error = str(exc)
+            self._next_attempt = time.monotonic() + self._backoff
+            self._backoff = min(self._backoff * 2, self.config.backoff_max_s)
+            return False
+        self._reconnects += 1
+        return True
+
+    def _alive(self) -> bool:
+        try:
+            self._camera.get_integer("Width")
+            return True
+        except Exception:  # noqa: BLE001 - GLib.Error on timeout
+            return False
+
+    # ----- frames ---------------------------------------------------------------
+    def _next(self) -> Frame | None:
+        with self._io:
+            if self._closing.is_set():
+                return None
+            if self._stream is None:
+                if not self._try_reconnect():
+                    return None
+            if self._lost.is_set():
+                self._go_offline("control lost (no heartbeat reply)")
+                return None
+            buf = self._stream.timeout_pop_buffer(int(self.poll_s * 1e6))
+            if buf is None:
+                stall = time.monotonic() - self._last_frame_t
+                if self.config.offline_after_s and stall > self.config.offline_after_s:
+                    if self._lost.is_set() or not self._alive():
+                        self._go_offline(f"no frame for {stall:.1f} s and no reply to a register read")
+                    else:
+                        self._last_frame_t = time.monotonic()  # alive, just slow or triggered
+                return None
+            try:
+                return self._decode(buf)
+            finally:
+                self._stream.push_buffer(buf)
+
+    def _decode(self, buf: Any) -> Frame | None:
+        Ar = self._aravis
+        host_ns = time.monotonic_ns()
+        status = buf.get_status()
+        if status != Ar.BufferStatus.SUCCESS:
+            self._drop(status.value_nick.replace("-", "_"))
+            return None
+        if buf.get_payload_type() not in (Ar.BufferPayloadType.IMAGE, Ar.BufferPayloadType.EXTENDED_CHUNK_DATA):
+            self._drop("not_image")
+            return None
+        if int(buf.get_image_pixel_format()) != self._pf_code:
+            self._drop("pixel_format_mismatch")
+            return None
+        arr = self._arrays[buf]
+        w, h = buf.get_image_width(), buf.get_image_height()
+        x_pad, _ = buf.get_image_padding()
+        stride = self._format.row_bytes(w) + x_pad if x_pad else None
+        try:
+            raw = formats.unpack(arr, w, h, self._format, stride, copy=True)
+        except SveliveError:
+            self._drop("size_mismatch")
+            return None
+        self._last_frame_t = time.monotonic()
+        ts = int(buf.get_timestamp())
+        return Frame(raw=raw, frame_id=self._unwrap(int(buf.get_frame_id())), host_time_ns=host_ns,
+                     device_time_ns=ts if ts else None, pixel_format=self._format.name, sensor=self.sensor)
+
+    def _unwrap(self, raw_id: int) -> int:
+        """Device frame id made monotonic across 16-bit wraps and reconnects."""
+        if self._last_raw_id is None:
+            fid = raw_id if self._last_id is None else self._last_id + 1
+        else:
+            d = raw_id - self._last_raw_id
+            if d <= 0:  # GEV 1.x block ids run 1..65535 and wrap; anything else is a restart
+                d = d + 65535 if self._last_raw_id <= 65535 and d > -65535 else 1
+            fid = self._last_id + d  # type: ignore[operator]
+        self._last_raw_id, self._last_id = raw_id, fid
+        return fid
+
+    def _extra_stats(self) -> dict[str, Any]:
+        counters = dict(self._counters)
+        stream = self._stream
+        if stream is not None:
+            for name in STREAM_COUNTERS:
+                try:
+                    counters[name] += int(stream.get_info_uint64_by_name(name))
+                except Exception:  # noqa: BLE001
+                    pass
+        return {"stream": counters, "camera": dict(self.camera_info)}
+
+    def stats(self) -> dict[str, Any]:
+        """Base stats plus ``stream`` (Aravis counters) and ``camera``; ``drops`` adds ``underrun``."""
+        out = super().stats()
+        underruns = out["stream"].get("n_underruns", 0)
+        if underruns:
+            out["drops"]["underrun"] = underruns
+            out["dropped"] += underruns
+        return out
+
+
+def _message(exc: BaseException) -> str:
+    return getattr(exc, "message", None) or str(exc) or type(exc).__name__

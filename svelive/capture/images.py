@@ -1,0 +1,127 @@
+"""Image-sequence source: 8/16-bit single-channel PNG, TIFF or PGM files in name order.
+
+Files are ordered by natural name order (``f2.png`` before ``f10.png``). Frames
+come at ``fps`` (None: as fast as they are read) and, with ``loop``, start
+again after the last. Every file must have the size and bit depth of the
+first; a colour or differently sized file is a one-line error naming it.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from svelive.capture import build_sensor, make_config
+from svelive.capture.source import EndOfStream, Source
+from svelive.errors import SveliveError
+from svelive.frame import Frame
+from svelive.sensor import Sensor
+
+EXTENSIONS = (".png", ".tif", ".tiff", ".pgm")
+
+
+@dataclass(frozen=True)
+class ImagesConfig:
+    """Options of the image-sequence source.
+
+    Attributes:
+        fps: delivery rate in frames per second; None or 0 for as fast as possible.
+        loop: start again after the last file.
+        pixel_format: name recorded in each Frame (default Mono8 or Mono16 by file depth).
+    """
+
+    fps: float | None = None
+    loop: bool = False
+    pixel_format: str | None = None
+
+
+def natural_key(path: str) -> list:
+    """Sort key: digit runs compare as numbers."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", os.path.basename(path))]
+
+
+def list_images(spec: str) -> list[str]:
+    """The image files named by a directory or a glob, in natural name order."""
+    p = Path(spec)
+    if p.is_dir():
+        files = [str(f) for f in p.iterdir() if f.suffix.lower() in EXTENSIONS and f.is_file()]
+        where = f"directory {spec}"
+    else:
+        files = [f for f in glob.glob(spec) if os.path.isfile(f)]
+        where = f"{spec!r}"
+    if not files:
+        raise SveliveError(f"no image files in {where} (looking for {', '.join(EXTENSIONS)})")
+    return sorted(files, key=natural_key)
+
+
+def read_image(path: str) -> np.ndarray:
+    """One single-channel image file as uint8 or uint16 (H, W)."""
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SveliveError(f"{path}: not a readable PNG, TIFF or PGM image")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim != 2:
+        raise SveliveError(f"{path}: has {img.shape[2]} channels; a raw SVE frame is a single-channel image")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise SveliveError(f"{path}: {img.dtype} samples; only 8- or 16-bit integer images are raw frames")
+    return img
+
+
+class ImageSequenceSource(Source):
+    """Frames from image files; see the module docstring."""
+
+    def __init__(self, spec: str, arg: str | None, *, pattern: str | None = None, sensor: Sensor | None = None,
+                 bits: int | None = None, black_level: float | None = None, white_level: float | None = None,
+                 **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor)
+        self.config: ImagesConfig = make_config(ImagesConfig, opts, spec)
+        self._glob = arg or ""
+        self._sensor_opts = (sensor, bits, black_level, white_level)
+        self._files: list[str] = []
+        self._pos = 0
+        self._n = 0
+        self._t0 = 0.0
+        self._shape: tuple[tuple[int, ...], np.dtype] | None = None
+
+    def _open(self) -> None:
+        self._files = list_images(self._glob)
+        first = read_image(self._files[0])
+        self._shape = (first.shape, first.dtype)
+        default_bits = 8 if first.dtype == np.uint8 else 16
+        self.sensor = build_sensor(*self._sensor_opts, default_bits=default_bits)
+        self._format = self.config.pixel_format or ("Mono8" if first.dtype == np.uint8 else "Mono16")
+        self._t0 = time.monotonic()
+
+    def _next(self) -> Frame | None:
+        if self._pos >= len(self._files):
+            if not self.config.loop:
+                raise EndOfStream
+            self._pos = 0
+        if self.config.fps:
+            due = self._t0 + self._n / self.config.fps
+            if not self._wait(due - time.monotonic()):
+                return None
+        path = self._files[self._pos]
+        img = read_image(path)
+        assert self._shape is not None
+        if (img.shape, img.dtype) != self._shape:
+            (h, w), dt = self._shape
+            raise SveliveError(f"{path}: is {img.shape[1]}x{img.shape[0]} {img.dtype} but the sequence started "
+                               f"with {w}x{h} {dt}")
+        self._pos += 1
+        frame = Frame(raw=img, frame_id=self._n, host_time_ns=time.monotonic_ns(), device_time_ns=None,
+                      pixel_format=self._format, sensor=self.sensor)
+        self._n += 1
+        return frame
+
+    def _extra_stats(self) -> dict[str, Any]:
+        return {"files": len(self._files), "position": self._pos}

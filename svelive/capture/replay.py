@@ -1,0 +1,109 @@
+"""``replay:PATH``: play an svelive recording back as a live source.
+
+Timing: ``speed`` 1.0 replays at the recorded timing (device clock when every
+frame has one, else the host clock), 2.0 twice as fast, 0 as fast as
+possible. ``loop`` starts again after the last frame, ``start`` is the first
+frame index (constant-time seek). Frames keep their recorded ``frame_id``
+(shifted by the recording's id span on each loop so ids keep increasing) and
+``device_time_ns``; ``host_time_ns`` is the delivery time. A frame whose
+checksum fails is dropped (cause ``checksum``) with a warning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+from replay import CorruptFrameError, RecordingReader
+from svelive.capture import make_config
+from svelive.capture.source import EndOfStream, Source
+from svelive.errors import SveliveError
+from svelive.frame import Frame
+from svelive.sensor import Sensor
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Options of the replay source.
+
+    Attributes:
+        speed: playback speed factor; 1.0 recorded timing, 0 as fast as possible.
+        loop: start again after the last frame.
+        start: index of the first frame played.
+    """
+
+    speed: float = 1.0
+    loop: bool = False
+    start: int = 0
+
+
+class ReplaySource(Source):
+    """Frames of a recording; see the module docstring."""
+
+    def __init__(self, spec: str, arg: str | None, *, pattern: str | None = None, sensor: Sensor | None = None,
+                 **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor)
+        self.config: ReplayConfig = make_config(ReplayConfig, opts, spec)
+        if self.config.speed < 0:
+            raise SveliveError(f"{spec}: speed must be >= 0 (0 = as fast as possible), got {self.config.speed}")
+        self._path = arg or ""
+        self._reader: RecordingReader | None = None
+        self._override = (pattern, sensor)
+
+    def _open(self) -> None:
+        self._reader = RecordingReader(self._path)
+        n = len(self._reader)
+        if n == 0:
+            self._reader.close()
+            raise SveliveError(f"{self._path}: the recording has no replayable frames")
+        if not -n <= self.config.start < n:
+            raise SveliveError(f"{self.spec}: start frame {self.config.start} out of range (0..{n - 1})")
+        self.pattern = self._override[0] or self._reader.pattern
+        self.sensor = self._override[1] or self._reader.sensor
+        self._timeline = self._reader.timeline_ns()
+        ids = self._reader.times[:, 0]
+        self._id_span = int(ids.max() - ids.min() + 1)
+        self._pos = self.config.start % n
+        self._loops = 0
+        self._anchor: tuple[float, int] | None = None  # (wall time, recorded time) of the pacing origin
+
+    def _close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+
+    def _next(self) -> Frame | None:
+        reader = self._reader
+        assert reader is not None
+        if self._pos >= len(reader):
+            if not self.config.loop:
+                raise EndOfStream
+            self._pos = 0
+            self._loops += 1
+            self._anchor = None
+        i = self._pos
+        if self.config.speed > 0:
+            t_rec = int(self._timeline[i])
+            if self._anchor is None:
+                self._anchor = (time.monotonic(), t_rec)
+            due = self._anchor[0] + (t_rec - self._anchor[1]) / 1e9 / self.config.speed
+            if not self._wait(min(due - time.monotonic(), self.poll_s)):
+                return None
+            if time.monotonic() < due:
+                return None
+        self._pos += 1
+        try:
+            rec = reader.read(i)
+        except CorruptFrameError as exc:
+            warnings.warn(str(exc), stacklevel=2)
+            self._drop("checksum")
+            return None
+        return dataclasses.replace(rec, frame_id=rec.frame_id + self._loops * self._id_span,
+                                   host_time_ns=time.monotonic_ns(), sensor=self.sensor)
+
+    def _extra_stats(self) -> dict[str, Any]:
+        r = self._reader
+        return {"position": getattr(self, "_pos", 0), "recording_frames": 0 if r is None else len(r),
+                "loops": getattr(self, "_loops", 0), "speed": self.config.speed}

@@ -1,0 +1,221 @@
+"""The one interface every frame source implements.
+
+A :class:`Source` is opened (or used as a context manager), iterated for
+:class:`svelive.frame.Frame` objects, and closed. ``close()`` may be called
+from any thread: an iteration in progress then ends within
+``Source.poll_s`` plus the time of one blocking camera call (bounded, 0.1 s
+by default), so a capture thread can be stopped cleanly. ``stats()`` is safe to
+call from any thread at any time.
+
+Subclasses implement ``_open()``, ``_close()`` and ``_next()``: ``_next`` returns
+a Frame, None when no frame is ready yet (it is called again unless the source
+is closing), or raises :class:`EndOfStream` when a finite source is exhausted.
+Subclasses count dropped frames with ``self._drop(cause)`` and report liveness
+with ``self._set_online(bool)``.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+from svelive.errors import SveliveError
+from svelive.frame import Frame
+from svelive.sensor import Sensor
+
+
+class EndOfStream(Exception):
+    """Raised by ``Source._next`` when a finite source has no more frames."""
+
+
+class Source:
+    """Base class of the frame sources (GigE, V4L2, image sequences, replay, demo).
+
+    Attributes:
+        spec: the spec string this source was opened from (e.g. ``"gige:GV01"``).
+        pattern: the exposure pattern's text form when the source knows it
+            (demo, replay, or given by the user), else None.
+        sensor: the sensor metadata of the frames it yields.
+        poll_s: longest time ``_next`` blocks before returning None.
+    """
+
+    poll_s: float = 0.1
+
+    def __init__(self, spec: str, *, pattern: str | None = None, sensor: Sensor | None = None) -> None:
+        self.spec = spec
+        self.pattern = pattern
+        self.sensor = sensor if sensor is not None else Sensor()
+        self._closing = threading.Event()
+        self._lock = threading.Lock()
+        self._opened = False
+        self._ended = False
+        self._online = False
+        self._delivered = 0
+        self._drops: dict[str, int] = {}
+        self._recent: collections.deque[int] = collections.deque(maxlen=64)
+        self._last: Frame | None = None
+        self._error: str | None = None
+        self._reconnects = 0
+
+    # ----- lifecycle ---------------------------------------------------
+    def open(self) -> Source:
+        """Connect to the source and start it. Idempotent; returns self."""
+        if self._closing.is_set():
+            raise SveliveError(f"{self.spec}: source was closed; open a new one")
+        if not self._opened:
+            self._open()
+            self._opened = True
+            self._set_online(True)
+        return self
+
+    def close(self) -> None:
+        """Stop the source and release it. Idempotent, callable from any thread."""
+        self._closing.set()
+        with self._lock:
+            if not self._opened:
+                return
+            self._opened = False
+        try:
+            self._close()
+        finally:
+            self._set_online(False)
+
+    @property
+    def closed(self) -> bool:
+        """True once close() was called."""
+        return self._closing.is_set()
+
+    def __enter__(self) -> Source:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[Frame]:
+        """Frames until the source ends or is closed (from any thread)."""
+        return self.frames()
+
+    def frames(self, limit: int | None = None, seconds: float | None = None) -> Iterator[Frame]:
+        """Iterate at most ``limit`` frames and for at most ``seconds`` (None: no limit).
+
+        The time limit holds even while no frame comes (the wait is checked every ``poll_s``).
+        """
+        deadline = None if seconds is None else time.monotonic() + seconds
+        n = 0
+        self.open()
+        while limit is None or n < limit:
+            if deadline is not None and time.monotonic() >= deadline:
+                return
+            frame = self._poll()
+            if frame is None:
+                if self._ended or self._closing.is_set():
+                    return
+                continue
+            n += 1
+            yield frame
+
+    def _poll(self) -> Frame | None:
+        """One call of _next with end and close handling; the frame is counted as delivered."""
+        if self._closing.is_set():
+            return None
+        try:
+            frame = self._next()
+        except EndOfStream:
+            self._ended = True
+            return None
+        except Exception:
+            if self._closing.is_set():  # the device went away under a close(): not an error
+                return None
+            raise
+        if frame is None or self._closing.is_set():
+            return None
+        self._deliver(frame)
+        return frame
+
+    def read(self, timeout: float = 5.0) -> Frame:
+        """The next frame; raises SveliveError when none comes within ``timeout`` seconds."""
+        for frame in self.frames(limit=1, seconds=timeout):
+            return frame
+        if self._ended:
+            raise SveliveError(f"{self.spec}: end of stream")
+        raise SveliveError(f"{self.spec}: no frame within {timeout:g} s")
+
+    # ----- statistics --------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        """Counters and state, a JSON-ready dict.
+
+        Keys: ``source`` (spec), ``state`` ("online", "offline", "ended", "closed"),
+        ``online`` (bool), ``frames`` (delivered), ``drops`` ({cause: count}),
+        ``dropped`` (total), ``fps`` (delivery rate over the last frames, 0 when
+        stalled), ``width``, ``height``, ``pixel_format``, ``last_frame_id``,
+        ``reconnects``, ``error`` (last error text or None), plus source-specific
+        keys from ``_extra_stats()``.
+        """
+        with self._lock:
+            recent = list(self._recent)
+            drops = dict(self._drops)
+            last = self._last
+            delivered = self._delivered
+        now = time.monotonic_ns()
+        fps = 0.0
+        if len(recent) >= 2:
+            span = recent[-1] - recent[0]
+            idle = now - recent[-1]
+            if span > 0 and idle < max(2e9, 3 * span / (len(recent) - 1)):
+                fps = (len(recent) - 1) / (span / 1e9)
+        if self._closing.is_set():
+            state = "closed"
+        elif self._ended:
+            state = "ended"
+        else:
+            state = "online" if self._online else "offline"
+        out: dict[str, Any] = {
+            "source": self.spec, "state": state, "online": self._online and state == "online",
+            "frames": delivered, "drops": drops, "dropped": sum(drops.values()), "fps": round(fps, 3),
+            "width": None if last is None else int(last.raw.shape[1]),
+            "height": None if last is None else int(last.raw.shape[0]),
+            "pixel_format": None if last is None else last.pixel_format,
+            "last_frame_id": None if last is None else last.frame_id,
+            "reconnects": self._reconnects, "error": self._error,
+        }
+        out.update(self._extra_stats())
+        return out
+
+    # ----- for subclasses ----------------------------------------------
+    def _open(self) -> None:
+        """Acquire the device or files; raise SveliveError with a one-line reason."""
+
+    def _close(self) -> None:
+        """Release what _open acquired. Called once, possibly from another thread."""
+
+    def _next(self) -> Frame | None:
+        """The next frame, None when none is ready within about ``poll_s``, or raise EndOfStream."""
+        raise NotImplementedError
+
+    def _extra_stats(self) -> dict[str, Any]:
+        """Source-specific statistics merged into stats()."""
+        return {}
+
+    def _drop(self, cause: str, n: int = 1) -> None:
+        with self._lock:
+            self._drops[cause] = self._drops.get(cause, 0) + n
+
+    def _set_online(self, online: bool, error: str | None = None) -> None:
+        self._online = online
+        if error is not None:
+            self._error = error
+
+    def _wait(self, seconds: float) -> bool:
+        """Sleep up to ``seconds`` unless closed meanwhile; True when the source is still open."""
+        if seconds > 0:
+            return not self._closing.wait(seconds)
+        return not self._closing.is_set()
+
+    def _deliver(self, frame: Frame) -> None:
+        with self._lock:
+            self._delivered += 1
+            self._recent.append(time.monotonic_ns())
+            self._last = frame

@@ -1,0 +1,154 @@
+"""What every reconstruction method receives and returns.
+
+A method is a function ``run(inp: SveInput, **options) -> Estimate``. The
+public :func:`svelive.reconstruct` prepares the SveInput (black level removed,
+exposures, censoring) once, so methods only do the reconstruction itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from svelive.pattern import Pattern
+from svelive.sensor import Sensor
+
+
+@dataclass(frozen=True)
+class SveInput:
+    """A raw SVE frame ready for reconstruction.
+
+    Attributes:
+        signal: float32 (H, W), raw minus black level, DN (may be slightly negative from noise).
+        exposure: float32 (H, W), relative exposure of every pixel (read-only).
+        censored: bool (H, W), readings at or above the sensor's censor level: they
+            only say "radiance at least signal / exposure".
+        pattern: the exposure pattern.
+        sensor: the sensor, with its noise model.
+        integral: True when every signal value is an integer (integer raw, integer black level).
+    """
+
+    signal: np.ndarray
+    exposure: np.ndarray
+    censored: np.ndarray
+    pattern: Pattern
+    sensor: Sensor
+    integral: bool = False
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.signal.shape  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A method's result.
+
+    Attributes:
+        image: float32 (H, W), radiance in DN at exposure 1, finite and >= 0.
+        lower_bound: bool (H, W), pixels where every sample the method used was
+            censored, so ``image`` is only the lower bound they imply.
+        variance: float32 (H, W) or None, the method's own predicted variance of
+            ``image`` (DN^2 at exposure 1) where it has one.
+    """
+
+    image: np.ndarray
+    lower_bound: np.ndarray
+    variance: np.ndarray | None = None
+
+
+@lru_cache(maxsize=16)
+def exposure_maps(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(exposure, 1 / exposure) of every pixel, float32 (H, W), read-only, cached per pattern and shape."""
+    exposure = pattern.exposure_map(shape)
+    inverse = (1.0 / exposure).astype(np.float32)
+    exposure.setflags(write=False)
+    inverse.setflags(write=False)
+    return exposure, inverse
+
+
+def binomial_kernel(size: int) -> np.ndarray:
+    """Normalised 1-D binomial kernel of ``size`` taps (a discrete Gaussian), float32."""
+    k = np.array([1.0], dtype=np.float64)
+    for _ in range(size - 1):
+        k = np.convolve(k, [1.0, 1.0])
+    return (k / k.sum()).astype(np.float32)
+
+
+def support_size(tile_length: int) -> int:
+    """Smallest odd, centred window length that holds every phase of a tile of this length."""
+    return tile_length + 1 if tile_length % 2 == 0 else tile_length
+
+
+def smooth(image: np.ndarray, kernel_y: np.ndarray, kernel_x: np.ndarray) -> np.ndarray:
+    """Separable filtering, float32, borders mirrored (exposure maps mirror with the data)."""
+    return cv2.sepFilter2D(image, cv2.CV_32F, kernel_x, kernel_y, borderType=cv2.BORDER_REFLECT_101)
+
+
+def censored_lower_bound(inp: SveInput, window: tuple[int, int]) -> np.ndarray:
+    """Largest lower bound that censored samples within ``window`` (rows, cols) imply, float32 (H, W)."""
+    bound = inp.signal / inp.exposure
+    bound *= inp.censored
+    return cv2.dilate(bound, np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
+
+
+def pad_same_phase(image: np.ndarray, period: tuple[int, int], before: tuple[int, int],
+                   after: tuple[int, int]) -> np.ndarray:
+    """Pad (H, W) by ``before``/``after`` (rows, cols) with pixels of the same tile phase.
+
+    Row -1 is filled with row ``th - 1``, row H with row ``H - th`` and so on, so a
+    window of the tile's size anywhere in the padded image still holds every
+    exposure of the tile. Frames smaller than a tile repeat their edge instead.
+    """
+    h, w = image.shape
+    (b0, b1), (a0, a1) = before, after
+    rows = _same_phase_index(h, period[0], b0, a0)
+    cols = _same_phase_index(w, period[1], b1, a1)
+    out = np.empty((h + b0 + a0, w + b1 + a1), image.dtype)
+    out[b0:b0 + h, b1:b1 + w] = image
+    pad_rows = np.r_[0:b0, b0 + h:b0 + h + a0]
+    out[pad_rows, b1:b1 + w] = image[rows[pad_rows]]
+    pad_cols = np.r_[0:b1, b1 + w:b1 + w + a1]
+    out[:, pad_cols] = out[:, b1 + cols[pad_cols]]
+    return out
+
+
+def _same_phase_index(n: int, period: int, before: int, after: int) -> np.ndarray:
+    index = np.arange(-before, n + after)
+    low = index < 0
+    index[low] += period * (-(index[low] // period))
+    high = index >= n
+    index[high] -= period * ((index[high] - n) // period + 1)
+    return np.clip(index, 0, n - 1)
+
+
+def in_strips(run, inp: SveInput, halo: int, rows: int = 64, **options) -> Estimate:
+    """Run a local method over horizontal strips of the frame and stitch the results.
+
+    ``run`` must only look ``halo`` rows up and down. Strips of a few dozen rows
+    keep the method's temporaries in cache and out of the page-fault path of
+    large allocations, which makes chains of numpy operations several times
+    faster; strips start on whole tiles so the pattern keeps its phase. The
+    result equals a whole-frame run.
+    """
+    th = inp.pattern.shape[0]
+    h = inp.shape[0]
+    halo = -(-halo // th) * th
+    rows = max(-(-rows // th) * th, th)
+    if h <= rows + 2 * halo or inp.pattern.pixel_map is not None:
+        return run(inp, **options)
+    parts = []
+    for top in range(0, h, rows):
+        start, stop = max(top - halo, 0), min(top + rows + halo, h)
+        piece = SveInput(inp.signal[start:stop], inp.exposure[start:stop], inp.censored[start:stop],
+                         inp.pattern, inp.sensor, inp.integral)
+        est = run(piece, **options)
+        keep = slice(top - start, top - start + min(rows, h - top))
+        parts.append((est.image[keep], est.lower_bound[keep], None if est.variance is None else est.variance[keep]))
+    image = np.concatenate([p[0] for p in parts])
+    lower = np.concatenate([p[1] for p in parts])
+    variance = None if parts[0][2] is None else np.concatenate([p[2] for p in parts])
+    return Estimate(image, lower, variance)

@@ -1,0 +1,92 @@
+"""Render raw SVE frames from linear HDR images with a physical sensor model.
+
+The model is the one of the method notes: a pixel of relative exposure e seeing
+radiance L (DN at exposure 1) collects Poisson(g e L) electrons, g electrons per
+DN; Gaussian read noise is added, then the black level, rounding to an integer
+and clipping to [0, white]. The ground truth is L itself, in the project's
+output unit, so it compares directly with any reconstruction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from svelive.errors import SveliveError
+from svelive.exr import read_luminance
+from svelive.pattern import Pattern
+from svelive.sensor import Sensor
+
+#: Shipped sample scenes (256x256 crops of the OpenEXR sample images, BSD licence).
+SAMPLE_SCENES = ("desk", "mttamwest", "cannon")
+
+
+@dataclass(frozen=True)
+class SimulatedFrame:
+    """A simulated raw frame and what it should reconstruct to.
+
+    Attributes:
+        raw: uint8 (bits <= 8) or uint16 (H, W), DN including the black level.
+        truth: float32 (H, W), radiance in DN at relative exposure 1.
+    """
+
+    raw: np.ndarray
+    truth: np.ndarray
+
+
+def sample_scene_path(name: str) -> Path:
+    """Path of a shipped sample scene (one of SAMPLE_SCENES)."""
+    if name not in SAMPLE_SCENES:
+        raise SveliveError(f"unknown sample scene {name!r}; choose from {', '.join(SAMPLE_SCENES)}")
+    return Path(str(resources.files("svelive") / "data" / f"{name}.exr"))
+
+
+def load_sample_scene(name: str) -> np.ndarray:
+    """Linear luminance of a shipped sample scene, float32 (256, 256), relative units."""
+    return read_luminance(sample_scene_path(name))
+
+
+def exposure_scale(radiance: np.ndarray, pattern: Pattern, sensor: Sensor, *,
+                   stops_below_fill: float = 0.0, percentile: float = 99.9) -> float:
+    """Factor that maps relative ``radiance`` to DN at exposure 1.
+
+    At ``stops_below_fill = 0`` the scene's brightest point (its ``percentile``
+    of luminance, robust to a few hot pixels) just fills the lowest exposure;
+    every stop more makes the scene twice as dim (a noise-limited scene at 5).
+    """
+    peak = float(np.percentile(radiance, percentile))
+    if not peak > 0:
+        raise SveliveError("the scene has no positive radiance to scale")
+    return sensor.range_dn / (peak * float(pattern.levels[0])) * 2.0 ** (-stops_below_fill)
+
+
+def simulate(radiance: np.ndarray, pattern: Pattern | str, sensor: Sensor, *,
+             seed: int | np.random.Generator = 0) -> SimulatedFrame:
+    """Render one raw SVE frame.
+
+    Args:
+        radiance: float (H, W), scene radiance in DN at relative exposure 1 (see
+            :func:`exposure_scale`); negative values are treated as 0.
+        pattern: exposure pattern (or its text form).
+        sensor: bit depth, black/white level, gain and read noise (unknown gain and
+            read noise take the sensor's defaults).
+        seed: seed or generator for the noise; equal seeds give equal frames.
+    """
+    pattern = Pattern.parse(pattern)
+    radiance = np.asarray(radiance, dtype=np.float32)
+    if radiance.ndim != 2:
+        raise SveliveError(f"radiance must be a 2-D luminance image, got shape {radiance.shape}")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    truth = np.clip(np.nan_to_num(radiance, nan=0.0, posinf=0.0), 0, None)
+    exposure = pattern.exposure_map(truth.shape)
+    gain = sensor.effective_gain
+    # Cap the mean so that Poisson stays in range; anything that large saturates anyway.
+    mean_electrons = np.minimum(truth * exposure * gain, 1e12)
+    electrons = rng.poisson(mean_electrons).astype(np.float64)
+    dn = electrons / gain + rng.normal(0.0, sensor.effective_read_noise, truth.shape) + sensor.black_level
+    dtype = np.uint8 if sensor.bits <= 8 else np.uint16
+    raw = np.clip(np.rint(dn), 0, sensor.white_level).astype(dtype)
+    return SimulatedFrame(raw=raw, truth=truth)
