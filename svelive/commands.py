@@ -3,7 +3,213 @@
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from svelive.atomic import write_bytes_atomic
+from svelive.errors import SveliveError
+from svelive.exr import read_luminance, write_exr
+from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, dynamic_range_db, dynamic_range_stops, \
+    unique_levels
+from svelive.reconstruct import methods, reconstruct
+from svelive.sensor import Sensor
+from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
+
+RAW_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    pass
+    p = sub.add_parser("info", help="dynamic range and quantisation levels of a pattern (paper sections 4-5)")
+    p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', or a preset: " + ", ".join(PRESETS))
+    p.add_argument("--bits", type=int, default=8, help="bit depth of the raw values (default 8)")
+    p.set_defaults(func=_info)
+
+    p = sub.add_parser("methods", help="list the reconstruction methods, the default first")
+    p.set_defaults(func=_methods)
+
+    p = sub.add_parser("simulate", help="render a raw SVE frame from a linear HDR EXR image")
+    p.add_argument("hdr", help="linear HDR EXR (luminance from Y or R, G, B)")
+    _add_pattern_sensor(p, bits_default=12)
+    p.add_argument("--full-well", type=float, default=10_000.0, help="full-well capacity, electrons")
+    p.add_argument("--read-noise-e", type=float, default=3.0, help="read noise, electrons")
+    p.add_argument("--stops-below-fill", type=float, default=0.0,
+                   help="0: the scene's brightest point just fills the lowest exposure; each stop halves the light")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--truth", type=Path, help="also write the ground truth (DN at exposure 1) to this EXR")
+    p.add_argument("-o", "--output", type=Path, required=True, help="raw frame: .png, .tif, .pgm or .npy")
+    p.set_defaults(func=_simulate)
+
+    p = sub.add_parser("reconstruct", help="reconstruct an HDR EXR from one raw SVE frame")
+    p.add_argument("raw", type=Path, help="8/16-bit single-channel PNG, TIFF, PGM or .npy")
+    _add_pattern_sensor(p, bits_default=None)
+    p.add_argument("--gain", type=float, help="electrons per DN (noise-aware methods)")
+    p.add_argument("--read-noise", type=float, help="read noise in DN (noise-aware methods)")
+    p.add_argument("--method", choices=methods(), help=f"default: {methods()[0]}")
+    p.add_argument("--confidence", action="store_true", help="also write a 'confidence' channel")
+    p.add_argument("--half", action="store_true", help="write half floats instead of float32")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output .exr")
+    p.set_defaults(func=_reconstruct)
+
+    p = sub.add_parser("demo", help="simulate and reconstruct a shipped sample scene, print its dynamic range")
+    p.add_argument("--scene", choices=SAMPLE_SCENES, default="desk")
+    p.add_argument("--pattern", default="1,4/16,64")
+    p.add_argument("--method", choices=methods())
+    p.add_argument("-o", "--output", type=Path, default=Path("svelive-demo.exr"))
+    p.set_defaults(func=_demo)
+
+
+def _add_pattern_sensor(p: argparse.ArgumentParser, bits_default: int | None) -> None:
+    p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', or a preset")
+    p.add_argument("--bits", type=int, default=bits_default,
+                   help="bit depth" + (f" (default {bits_default})" if bits_default else " (default: from the file's dtype)"))
+    p.add_argument("--black-level", type=float, default=0.0, help="DN (default 0)")
+    p.add_argument("--white-level", type=float, help="DN at or above which a pixel is saturated (default 2^bits - 1)")
+
+
+def _info(args: argparse.Namespace) -> int:
+    pattern = Pattern.parse(args.pattern)
+    if not 1 <= args.bits <= 16:
+        raise SveliveError(f"--bits must be 1..16, got {args.bits}")
+    levels = unique_levels(pattern, args.bits)
+    print(f"pattern            {pattern}  ({len(pattern.levels)} exposures, ratio {pattern.ratio:g})")
+    print(f"detector range     {20 * math.log10(2**args.bits - 1):.2f} dB for {args.bits} bits")
+    print(f"SVE dynamic range  {dynamic_range_db(pattern, args.bits):.2f} dB = "
+          f"{dynamic_range_stops(pattern, args.bits):.2f} stops (paper eq. 3)")
+    print(f"unique levels Q    {levels} (exact enumeration of the union of every exposure's levels)")
+    print(f"paper's figures    {PAPER_DR_DB} dB and Q = {PAPER_Q} for 8 bits, 4 exposures, ratio 4")
+    reference = Pattern.parse("nayar-r4")
+    ours = unique_levels(reference, 8)
+    if ours != PAPER_Q:
+        print(f"note               for the paper's case enumeration gives Q = {ours}, not {PAPER_Q}: "
+              f"256 levels of the highest exposure plus 192 new levels from each lower one (levels q/e that "
+              f"coincide count once); the paper's eq. 4 is garbled in the available text and its 869 "
+              f"could not be reproduced (see docs/method-notes.md)")
+    return 0
+
+
+def _methods(args: argparse.Namespace) -> int:
+    for i, name in enumerate(methods()):
+        print(f"{name}{'  (default)' if i == 0 else ''}")
+    return 0
+
+
+def read_raw(path: Path) -> np.ndarray:
+    """A mono 8/16-bit raw frame from PNG, TIFF, PGM or .npy, uint8 or uint16 (H, W)."""
+    if not path.exists():
+        raise SveliveError(f"{path}: no such file")
+    if not path.is_file():
+        raise SveliveError(f"{path}: not a file")
+    suffix = path.suffix.lower()
+    if suffix not in RAW_SUFFIXES:
+        raise SveliveError(f"{path}: unsupported raw format {suffix or '(none)'}; use {', '.join(RAW_SUFFIXES)}")
+    if suffix == ".npy":
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise SveliveError(f"{path}: not a readable .npy array ({exc})") from None
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise SveliveError(f"{path}: not a readable {suffix[1:].upper()} image")
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[:, :, 0]
+    if raw.ndim != 2:
+        raise SveliveError(f"{path}: expected a single-channel (mono) raw frame, got shape {raw.shape} "
+                           f"(a colour image?)")
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise SveliveError(f"{path}: raw values must be 8- or 16-bit unsigned integers, got {raw.dtype}")
+    return raw
+
+
+def write_raw(path: Path, raw: np.ndarray) -> None:
+    """Write a raw frame (uint8/uint16) as PNG, TIFF, PGM or .npy, atomically."""
+    suffix = path.suffix.lower()
+    if suffix not in RAW_SUFFIXES:
+        raise SveliveError(f"{path}: unsupported raw format {suffix or '(none)'}; use {', '.join(RAW_SUFFIXES)}")
+    if suffix == ".npy":
+        import io
+
+        buffer = io.BytesIO()
+        np.save(buffer, raw, allow_pickle=False)
+        data = buffer.getvalue()
+    else:
+        ok, encoded = cv2.imencode(suffix, raw)
+        if not ok:
+            raise SveliveError(f"{path}: could not encode the frame as {suffix[1:].upper()}")
+        data = encoded.tobytes()
+    write_bytes_atomic(path, data)
+
+
+def _sensor_from_args(args: argparse.Namespace, raw: np.ndarray | None = None) -> Sensor:
+    bits = args.bits if args.bits is not None else (8 if raw is None or raw.dtype == np.uint8 else 16)
+    return Sensor(bits=bits, black_level=args.black_level, white_level=args.white_level,
+                  gain=getattr(args, "gain", None), read_noise=getattr(args, "read_noise", None))
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    pattern = Pattern.parse(args.pattern)
+    if not args.hdr or not Path(args.hdr).is_file():
+        raise SveliveError(f"{args.hdr}: no such EXR file")
+    nominal = _sensor_from_args(args)
+    sensor = Sensor.from_full_well(nominal.bits, args.full_well, args.read_noise_e, nominal.black_level,
+                                   nominal.white_level)
+    scene = np.maximum(read_luminance(args.hdr), 0)
+    radiance = scene * exposure_scale(scene, pattern, sensor, stops_below_fill=args.stops_below_fill)
+    frame = simulate(radiance, pattern, sensor, seed=args.seed)
+    write_raw(args.output, frame.raw)
+    if args.truth:
+        write_exr(args.truth, {"Y": frame.truth}, {"pattern": str(pattern), "unit": "DN at exposure 1"})
+    print(f"wrote {args.output} ({frame.raw.shape[1]}x{frame.raw.shape[0]}, {sensor.bits}-bit, "
+          f"gain {sensor.gain:.3g} e-/DN, read noise {sensor.read_noise:.3g} DN)")
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    pattern = Pattern.parse(args.pattern)
+    raw = read_raw(args.raw)
+    sensor = _sensor_from_args(args, raw)
+    if raw.dtype == np.uint8 and sensor.bits > 8:
+        raise SveliveError(f"{args.raw}: 8-bit file but --bits {sensor.bits}")
+    th, tw = pattern.shape
+    if raw.shape[0] < th or raw.shape[1] < tw:
+        raise SveliveError(f"{args.raw}: frame {raw.shape[1]}x{raw.shape[0]} is smaller than the {tw}x{th} tile")
+    image, confidence = reconstruct(raw, pattern, method=args.method, black_level=sensor.black_level,
+                                    white_level=sensor.white_level, gain=args.gain, read_noise=args.read_noise,
+                                    return_confidence=True)
+    channels = {"Y": image}
+    if args.confidence:
+        channels["confidence"] = confidence
+    write_exr(args.output, channels, exr_attributes(pattern, args.method or methods()[0], sensor), half=args.half)
+    print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}, method {args.method or methods()[0]})")
+    return 0
+
+
+def exr_attributes(pattern: Pattern, method: str, sensor: Sensor) -> dict[str, object]:
+    """The header attributes every svelive EXR carries."""
+    return {"pattern": str(pattern), "method": method, "blackLevel": float(sensor.black_level),
+            "whiteLevel": float(sensor.white_level), "unit": "(raw - black) / exposure, DN at exposure 1"}
+
+
+def _demo(args: argparse.Namespace) -> int:
+    pattern = Pattern.parse(args.pattern)
+    sensor = Sensor.from_full_well(12, 10_000, 3)
+    scene = np.maximum(load_sample_scene(args.scene), 0)
+    frame = simulate(scene * exposure_scale(scene, pattern, sensor), pattern, sensor, seed=0)
+    method = args.method or methods()[0]
+    image, confidence = reconstruct(frame.raw, pattern, method=method, white_level=sensor.white_level,
+                                    gain=sensor.gain, read_noise=sensor.read_noise, return_confidence=True)
+    write_exr(args.output, {"Y": image, "confidence": confidence}, exr_attributes(pattern, method, sensor))
+    measured = image[confidence > 0.5]
+    low, high = np.percentile(measured, [0.1, 99.9]) if measured.size else (0.0, 0.0)
+    print(f"scene {args.scene}: {frame.raw.shape[1]}x{frame.raw.shape[0]} 12-bit SVE frame, pattern {pattern}, "
+          f"method {method}")
+    print(f"sensor range: one exposure {20 * math.log10(sensor.range_dn):.1f} dB, "
+          f"SVE {dynamic_range_db(pattern, 12):.1f} dB (theory)")
+    if low > 0:
+        print(f"reconstructed dynamic range (0.1-99.9 percentile, confidence > 0.5): "
+              f"{20 * math.log10(high / low):.1f} dB = {math.log2(high / low):.1f} stops")
+    print(f"wrote {args.output}")
+    return 0

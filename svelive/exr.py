@@ -11,6 +11,7 @@ from typing import Mapping
 import numpy as np
 import OpenEXR
 
+from svelive.atomic import atomic_path
 from svelive.errors import SveliveError
 
 #: Rec. 709 / sRGB primaries: luminance from linear RGB.
@@ -53,27 +54,10 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attri
     the same directory and renamed. String, int and float attributes are stored as
     header attributes; anything else as its ``str()``.
     """
-    path = Path(path)
     exr = _build(channels, attributes, half, compression)
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise SveliveError(f"{path}: directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    os.close(fd)
-    try:
-        exr.write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    with atomic_path(path) as tmp:
+        exr.write(str(tmp))
+    return Path(path)
 
 
 def exr_bytes(channels: Mapping[str, np.ndarray], attributes: Mapping[str, object] | None = None,
