@@ -148,7 +148,7 @@ class DemoSource(Source):
         raw = self._render(scene_t)
         frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(),
                       device_time_ns=int(round(scene_t * 1e9)),
-                      pixel_format="Mono8" if raw.dtype == np.uint8 else f"Mono{max(self.sensor.bits, 10)}",
+                      pixel_format=_mono_name(self.sensor.bits),
                       sensor=self.sensor)
         self._n += 1
         return frame
@@ -156,3 +156,8 @@ class DemoSource(Source):
     def _extra_stats(self) -> dict[str, Any]:
         c = self.config
         return {"scene": c.scene, "pattern": self.pattern, "target_fps": c.fps}
+
+
+def _mono_name(bits: int) -> str:
+    """The narrowest unpacked Mono format holding ``bits``-bit values."""
+    return next(f"Mono{b}" for b in (8, 10, 12, 14, 16) if bits <= b)

@@ -14,11 +14,16 @@ becomes a Frame: it is counted in ``stats()["drops"]`` under the status name
 in lower case and re-queued.
 
 Liveness: when the device reports ``control-lost`` (heartbeat failure), or no
-frame has come for ``offline_after_s`` and a register read fails, the source
+frame has come for ``offline_after_s`` (at least five frame periods), the source
 reports offline, tears the stream down and reconnects with exponential backoff
 (``backoff_s`` doubling up to ``backoff_max_s``) inside the same iteration,
 reapplying the configuration. Frame ids stay increasing across reconnects and
 GEV 1.x 16-bit block-id wraps.
+
+``close()`` from another thread ends an iteration within ``poll_s`` (0.1 s)
+while the camera streams; during a reconnection attempt to an absent camera the
+iterating thread returns when Aravis gives up (about 1 s by name, 2.5 s by IP
+address), while ``close()`` itself returns at once.
 """
 
 from __future__ import annotations
@@ -64,7 +69,8 @@ class GigeConfig:
         packet_size: GVSP packet size in bytes (None: negotiated automatically).
         n_buffers: buffers in the receive pool.
         packet_resend: ask the camera to resend lost packets.
-        offline_after_s: no frame for this long triggers a liveness check (0: never).
+        offline_after_s: no frame for this long (and at least 5 frame periods) means the camera
+            is lost: the source reports offline and reconnects (0: never, for triggered cameras).
         reconnect: reconnect after the camera is lost (else the iteration ends with an error).
         backoff_s, backoff_max_s: first and largest wait between reconnection attempts.
     """
@@ -127,11 +133,12 @@ class GigeSource(Source):
         Ar = self._aravis
         c = self.config
         try:
-            Ar.update_device_list()
             camera = Ar.Camera.new(self.device_id)
         except Exception as exc:  # GLib.Error or TypeError (None returned)
-            what = f"GigE camera {self.device_id!r}" if self.device_id else "any GigE camera"
-            raise SveliveError(f"cannot open {what}: {_message(exc)}") from None
+            camera = self._open_by_serial()
+            if camera is None:
+                what = f"GigE camera {self.device_id!r}" if self.device_id else "any GigE camera"
+                raise SveliveError(f"cannot open {what}: {_message(exc)}") from None
         if camera is None:
             raise SveliveError(f"no GigE camera {self.device_id or ''} found".replace("  ", " "))
         try:
@@ -160,16 +167,42 @@ class GigeSource(Source):
             raise
         except Exception as exc:
             raise SveliveError(f"{self.spec}: camera setup failed: {_message(exc)}") from None
-        self._camera, self._stream, self._arrays = camera, stream, arrays
+        with self._io:
+            if self._closing.is_set():  # closed while connecting: drop what was built
+                _stop(camera)
+                del stream, camera
+                return
+            self._camera, self._stream, self._arrays = camera, stream, arrays
         self.sensor = build_sensor(*self._sensor_opts, default_bits=self._format.bits)
         x, y, w, h = camera.get_region()
         self.camera_info = {"device_id": camera.get_device_id(), "vendor": camera.get_vendor_name(),
                             "model": camera.get_model_name(), "pixel_format": pf_name,
                             "region": [x, y, w, h], "payload": payload}
+        self._offline_after = c.offline_after_s
+        if c.offline_after_s and camera.is_frame_rate_available():
+            try:  # at least five frame periods
+                self._offline_after = max(c.offline_after_s, 5.0 / float(camera.get_frame_rate()))
+            except Exception:  # noqa: BLE001 - a camera without a readable rate
+                pass
         self._last_frame_t = time.monotonic()
         self._last_raw_id = None
         self._backoff = c.backoff_s
         self._set_online(True)
+
+    def _open_by_serial(self) -> Any:
+        """Open the camera whose serial number, physical id or address is ``device_id`` (None if none)."""
+        Ar = self._aravis
+        if not self.device_id:
+            return None
+        try:
+            Ar.update_device_list()
+            for i in range(Ar.get_n_devices()):
+                keys = (Ar.get_device_serial_nbr(i), Ar.get_device_physical_id(i), Ar.get_device_address(i))
+                if self.device_id in keys:
+                    return Ar.Camera.new(Ar.get_device_id(i))
+        except Exception:  # noqa: BLE001 - reported by the caller as "cannot open"
+            return None
+        return None
 
     def _configure(self, camera: Any) -> None:
         c = self.config
@@ -203,11 +236,7 @@ class GigeSource(Source):
                     self._counters[name] += int(stream.get_info_uint64_by_name(name))
                 except Exception:  # noqa: BLE001 - a counter this Aravis lacks
                     pass
-        if camera is not None:
-            try:
-                camera.stop_acquisition()
-            except Exception:  # noqa: BLE001 - the camera may be gone already
-                pass
+        _stop(camera)
         del camera, stream  # the stream's thread stops here, before the arrays go
         self._arrays = {}
 
@@ -237,32 +266,21 @@ class GigeSource(Source):
         self._reconnects += 1
         return True
 
-    def _alive(self) -> bool:
-        try:
-            self._camera.get_integer("Width")
-            return True
-        except Exception:  # noqa: BLE001 - GLib.Error on timeout
-            return False
-
-    # ----- frames ---------------------------------------------------------------
     def _next(self) -> Frame | None:
-        with self._io:
-            if self._closing.is_set():
+        if self._stream is None:  # offline: one reconnection attempt, without holding the lock
+            if self._closing.is_set() or not self._try_reconnect():
                 return None
-            if self._stream is None:
-                if not self._try_reconnect():
-                    return None
+        with self._io:
+            if self._closing.is_set() or self._stream is None:
+                return None
             if self._lost.is_set():
                 self._go_offline("control lost (no heartbeat reply)")
                 return None
             buf = self._stream.timeout_pop_buffer(int(self.poll_s * 1e6))
             if buf is None:
                 stall = time.monotonic() - self._last_frame_t
-                if self.config.offline_after_s and stall > self.config.offline_after_s:
-                    if self._lost.is_set() or not self._alive():
-                        self._go_offline(f"no frame for {stall:.1f} s and no reply to a register read")
-                    else:
-                        self._last_frame_t = time.monotonic()  # alive, just slow or triggered
+                if self._offline_after and stall > self._offline_after:
+                    self._go_offline(f"no frame for {stall:.1f} s")
                 return None
             try:
                 return self._decode(buf)
@@ -327,6 +345,15 @@ class GigeSource(Source):
             out["drops"]["underrun"] = underruns
             out["dropped"] += underruns
         return out
+
+
+def _stop(camera: Any) -> None:
+    """Stop acquisition, ignoring a camera that is already gone."""
+    if camera is not None:
+        try:
+            camera.stop_acquisition()
+        except Exception:  # noqa: BLE001 - GLib.Error from a lost device
+            pass
 
 
 def _message(exc: BaseException) -> str:
