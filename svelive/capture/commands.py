@@ -1,0 +1,191 @@
+"""CLI verbs of the capture layer: ``record``, ``replay-info``, ``export``.
+
+Import from an image sequence is ``svelive record --source images:DIR -o OUT``:
+every source records the same way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from replay import RecordingReader, RecordingWriter, WriterConfig
+from svelive.capture import open_source
+from svelive.errors import SveliveError
+from svelive.frame import Frame
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:
+    """Add the capture verbs to the ``svelive`` parser."""
+    p = sub.add_parser("record", help="record raw frames from a source into a crash-safe recording",
+                       description="Record raw frames losslessly with pattern, sensor metadata and timestamps. "
+                                   "Import an image sequence with --source images:DIR.")
+    add_source_arguments(p)
+    p.add_argument("-o", "--output", required=True, type=Path, help="recording file to create (.sverec)")
+    limit = p.add_mutually_exclusive_group()
+    limit.add_argument("--frames", type=int, help="stop after N frames")
+    limit.add_argument("--seconds", type=float, help="stop after S seconds")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing recording")
+    p.add_argument("--sync-every", type=int, default=0, metavar="N",
+                   help="fdatasync every N frames (survives power loss; default 0: only a process kill)")
+    p.add_argument("--queue", type=int, default=64, metavar="N",
+                   help="frames buffered between capture and disk before frames are dropped (default 64)")
+    p.set_defaults(func=_record)
+
+    p = sub.add_parser("replay-info", help="print a recording's summary as JSON")
+    p.add_argument("path", type=Path)
+    p.set_defaults(func=_replay_info)
+
+    p = sub.add_parser("export", help="export a recording's frames as 8/16-bit PNG files")
+    p.add_argument("path", type=Path)
+    p.add_argument("--png", required=True, type=Path, metavar="DIR", help="output folder (created)")
+    p.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
+    p.add_argument("--end", type=int, help="stop before this frame index (default: all)")
+    p.add_argument("--every", type=int, default=1, help="export every N-th frame (default 1)")
+    p.set_defaults(func=_export)
+
+
+def add_source_arguments(p: argparse.ArgumentParser) -> None:
+    """The --source option and the common source options (shared with other verbs)."""
+    p.add_argument("--source", required=True, metavar="SPEC",
+                   help="gige[:DEVICE_ID], v4l2:/dev/videoN, images:GLOB_OR_DIR, replay:PATH or demo")
+    p.add_argument("--pattern", help="exposure pattern text or preset stored with the frames (e.g. 1,4/16,64)")
+    p.add_argument("--bits", type=int, help="sensor bit depth (default: the pixel format's)")
+    p.add_argument("--black-level", type=float, help="sensor black level, DN")
+    p.add_argument("--white-level", type=float, help="sensor white level, DN")
+    p.add_argument("--pixel-format", help="camera pixel format (e.g. Mono12Packed, Y16)")
+    p.add_argument("--width", type=int, help="frame width / ROI width, pixels")
+    p.add_argument("--height", type=int, help="frame height / ROI height, pixels")
+    p.add_argument("--fps", type=float, help="frame rate (cameras, images, demo)")
+    p.add_argument("--speed", type=float, help="replay speed factor (0: as fast as possible)")
+    p.add_argument("--loop", action="store_true", default=None, help="loop images or replay")
+    p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other source option, e.g. exposure_us=5000 (repeatable)")
+
+
+def parse_opts(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings into a dict, values as int, float, bool or text."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise SveliveError(f"--opt {item!r}: expected KEY=VALUE")
+        value: Any = text
+        if text.lower() in ("true", "false"):
+            value = text.lower() == "true"
+        else:
+            for cast in (int, float):
+                try:
+                    value = cast(text)
+                    break
+                except ValueError:
+                    pass
+        out[key.strip().replace("-", "_")] = value
+    return out
+
+
+def source_from_args(args: argparse.Namespace) -> Any:
+    """Build the Source the common arguments describe."""
+    opts = {"pattern": args.pattern, "bits": args.bits, "black_level": args.black_level,
+            "white_level": args.white_level, "pixel_format": args.pixel_format, "width": args.width,
+            "height": args.height, "fps": args.fps, "speed": args.speed, "loop": args.loop}
+    opts.update(parse_opts(args.opt))
+    return open_source(args.source, **opts)
+
+
+def _record(args: argparse.Namespace) -> int:
+    if args.frames is not None and args.frames <= 0:
+        raise SveliveError("--frames must be > 0")
+    if args.seconds is not None and args.seconds <= 0:
+        raise SveliveError("--seconds must be > 0")
+    source = source_from_args(args)
+    writer = RecordingWriter(args.output, pattern=args.pattern, source=args.source,
+                             config=WriterConfig(overwrite=args.overwrite, sync_every=args.sync_every))
+    frames: queue.Queue[Frame | None] = queue.Queue(maxsize=max(1, args.queue))
+    failure: list[BaseException] = []
+    dropped = 0
+
+    def write_loop() -> None:
+        while (frame := frames.get()) is not None:
+            if failure:
+                continue
+            try:
+                writer.append(frame)
+            except BaseException as exc:  # noqa: BLE001 - reported by the main thread
+                failure.append(exc)
+
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    thread = threading.Thread(target=write_loop, name="recorder", daemon=True)
+    t0 = time.monotonic()
+    interrupted = False
+    try:
+        with source:
+            if writer.pattern is None:
+                writer.pattern = source.pattern
+            thread.start()
+            try:
+                for frame in source.frames(limit=args.frames, seconds=args.seconds):
+                    if failure:
+                        break
+                    try:
+                        frames.put_nowait(frame)
+                    except queue.Full:
+                        dropped += 1
+            except KeyboardInterrupt:
+                interrupted = True
+            stats = source.stats()
+    finally:
+        if thread.is_alive():
+            frames.put(None)
+            thread.join()
+        writer.close()
+        signal.signal(signal.SIGTERM, previous)
+    if failure:
+        raise failure[0] if isinstance(failure[0], SveliveError) else SveliveError(str(failure[0]))
+    summary = {"output": str(args.output), "frames": writer.frames, "seconds": round(time.monotonic() - t0, 3),
+               "dropped_by_recorder": dropped, "source_drops": stats["drops"], "interrupted": interrupted}
+    from svelive.cli import print_json
+
+    print_json(summary)
+    if writer.frames == 0:
+        raise SveliveError(f"{args.source}: no frame was recorded, so no file was written")
+    return 0
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _replay_info(args: argparse.Namespace) -> int:
+    from svelive.cli import print_json
+
+    with RecordingReader(args.path) as reader:
+        print_json(reader.info())
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from svelive.commands import write_raw
+
+    if args.every < 1:
+        raise SveliveError("--every must be >= 1")
+    out: Path = args.png
+    if out.exists() and not out.is_dir():
+        raise SveliveError(f"{out}: exists and is not a folder")
+    with RecordingReader(args.path) as reader:
+        end = len(reader) if args.end is None else min(args.end, len(reader))
+        if not 0 <= args.start < max(end, 1):
+            raise SveliveError(f"--start {args.start} is outside the recording's {len(reader)} frames")
+        out.mkdir(parents=True, exist_ok=True)
+        n = 0
+        for i in range(args.start, end, args.every):
+            write_raw(out / f"frame_{i:06d}.png", reader.read(i).raw)
+            n += 1
+    print(f"exported {n} frames to {out}", file=sys.stderr)
+    return 0
