@@ -85,8 +85,10 @@ class Pattern:
             values = []
             for item in row.split(","):
                 try:
-                    v = float(Fraction(item.strip()))
-                except (ValueError, ZeroDivisionError):
+                    v = float(item.strip())
+                    if not math.isfinite(v):
+                        raise ValueError
+                except ValueError:
                     raise SveliveError(
                         f"pattern {spec!r}: {item.strip()!r} in row {r + 1} is not a number "
                         f"(write rows separated by '/', values by ',', or a preset: {', '.join(PRESETS)})"

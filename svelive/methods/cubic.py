@@ -1,7 +1,9 @@
 """``cubic``: the paper's section 6.2, off-grid unknowns solved through cubic convolution.
 
-1. Discard censored (saturated) and too-dark readings (below ``dark_level`` DN,
-   by default twice the read noise).
+1. Discard censored (saturated) and too-dark readings: those whose expected
+   signal, predicted from their 3x3 neighbourhood, is below ``dark_level`` DN
+   (by default twice the read noise). Judging the prediction, not the reading,
+   avoids selecting readings by their own noise (an upward bias in the dark).
 2. Normalise the rest by exposure: x = s / e.
 3. The unknowns are off-grid values O at the centre of every 2x2 pixel group.
    On-grid values follow from the off-grid ones by cubic convolution (eq. 5),
@@ -33,7 +35,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.methods.base import Estimate, SveInput
+from svelive.methods.base import Estimate, SveInput, smooth
 
 FULL = (1 << 16) - 1
 
@@ -74,6 +76,20 @@ def centre_coefficients(code: int, literal: bool = False) -> np.ndarray:
     return coefficients.astype(np.float32)
 
 
+def local_radiance(inp: SveInput) -> np.ndarray:
+    """Shot-noise estimate sum(s) / sum(e) of the other uncensored readings in 3x3, float32 (H, W).
+
+    Deciding "too dark" from this prediction, which leaves the reading itself
+    out, keeps the discard from selecting readings by their own noise (that
+    would bias dark regions upwards).
+    """
+    valid = (~inp.censored).astype(np.float32)
+    box = np.ones(3, np.float32)
+    signal = smooth(inp.signal * valid, box, box) - inp.signal * valid
+    exposure = smooth(inp.exposure * valid, box, box) - inp.exposure * valid
+    return signal / np.maximum(exposure, 1e-30)
+
+
 def run(inp: SveInput, *, dark_level: float | None = None, literal: bool = False) -> Estimate:
     h, w = inp.shape
     if dark_level is None:
@@ -82,7 +98,7 @@ def run(inp: SveInput, *, dark_level: float | None = None, literal: bool = False
     measured = ~inp.censored
     radiance = np.pad(inp.signal / inp.exposure, pad, mode="symmetric").astype(np.float32)
     keep_measured = np.pad(measured, pad, mode="symmetric")
-    keep = np.pad(measured & (inp.signal >= dark_level), pad, mode="symmetric")
+    keep = np.pad(measured & (inp.exposure * local_radiance(inp) >= dark_level), pad, mode="symmetric")
     oh, ow = h + 3, w + 3  # off-grid lattice: point (a, b) has on-grid neighbours padded[a:a+4, b:b+4]
 
     def codes(mask: np.ndarray) -> np.ndarray:

@@ -1,0 +1,24 @@
+"""Shared fixtures: simulated frames of the shipped real HDR crops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from svelive import Pattern, Sensor, simulate
+from svelive.simulate import exposure_scale, load_sample_scene
+
+
+@pytest.fixture(scope="session")
+def sensor12() -> Sensor:
+    return Sensor.from_full_well(12, 10_000, 3)
+
+
+@pytest.fixture(scope="session")
+def scenes() -> dict[str, np.ndarray]:
+    return {name: np.maximum(load_sample_scene(name), 0) for name in ("desk", "mttamwest", "cannon")}
+
+
+def simulated(scene: np.ndarray, pattern: str, sensor: Sensor, stops_below_fill: float = 0.0, seed: int = 1):
+    radiance = scene * exposure_scale(scene, Pattern.parse(pattern), sensor, stops_below_fill=stops_below_fill)
+    return simulate(radiance, pattern, sensor, seed=seed)

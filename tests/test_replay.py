@@ -1,0 +1,237 @@
+"""The recording container: round trip, seeking, timing, crash safety and bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from replay import CorruptFrameError, RecordingError, RecordingReader, RecordingWriter
+from replay.container import FOOTER, RECORD_HEADER
+from svelive.capture import open_source
+from svelive.cli import main
+from svelive.frame import Frame
+from svelive.sensor import Sensor
+
+SENSOR = Sensor(bits=12, black_level=64)
+
+
+def make_frames(n: int, h: int = 24, w: int = 32, dt_ms: float = 20.0) -> list[Frame]:
+    rng = np.random.default_rng(1)
+    return [Frame(raw=rng.integers(0, 4096, (h, w), dtype=np.uint16), frame_id=100 + i,
+                  host_time_ns=int(1e9 + i * dt_ms * 1e6), device_time_ns=int(5e9 + i * dt_ms * 1e6),
+                  pixel_format="Mono12", sensor=SENSOR) for i in range(n)]
+
+
+def write(path: Path, frames: list[Frame], pattern: str = "1,4/16,64") -> None:
+    with RecordingWriter(path, pattern=pattern, source="test") as w:
+        for f in frames:
+            w.append(f)
+
+
+def test_round_trip_metadata_and_constant_time_seek(tmp_path: Path) -> None:
+    frames = make_frames(12)
+    path = tmp_path / "a.sverec"
+    write(path, frames)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a clean file gives no warning
+        r = RecordingReader(path)
+    assert r.clean and len(r) == 12 and r.pattern == "1,4/16,64" and r.sensor == SENSOR
+    for i in (7, 0, 11, -1, 3):  # any order
+        got = r.read(i)
+        want = frames[i]
+        np.testing.assert_array_equal(got.raw, want.raw)
+        assert (got.frame_id, got.host_time_ns, got.device_time_ns, got.pixel_format) == \
+            (want.frame_id, want.host_time_ns, want.device_time_ns, "Mono12")
+    info = r.info()
+    assert info["frames"] == 12 and info["clock"] == "device" and info["duration_s"] == pytest.approx(0.22)
+    with pytest.raises(RecordingError, match="out of range"):
+        r.read(12)
+    r.close()
+
+
+def test_uint8_and_no_device_clock(tmp_path: Path) -> None:
+    frames = [Frame(raw=np.full((5, 7), i, np.uint8), frame_id=i, host_time_ns=i * 10**9, pixel_format="Mono8",
+                    sensor=Sensor(bits=8)) for i in range(3)]
+    write(tmp_path / "b.sverec", frames, pattern=None)
+    with RecordingReader(tmp_path / "b.sverec") as r:
+        assert r.read(2).raw.dtype == np.uint8 and r.read(2).raw[0, 0] == 2 and r.read(1).device_time_ns is None
+        assert r.clock == "host" and r.duration_s == 2.0 and r.pattern is None
+
+
+def test_replay_source_timing_speed_and_loop(tmp_path: Path) -> None:
+    path = tmp_path / "t.sverec"
+    write(path, make_frames(6, dt_ms=40))
+    with open_source(f"replay:{path}") as s:  # recorded timing: 5 intervals of 40 ms
+        t = time.monotonic()
+        got = list(s.frames(seconds=5))
+        assert len(got) == 6 and 0.18 < time.monotonic() - t < 0.5
+        assert s.pattern == "1,4/16,64" and s.stats()["state"] == "ended"
+    with open_source(f"replay:{path}", speed=4.0) as s:
+        t = time.monotonic()
+        assert len(list(s)) == 6 and time.monotonic() - t < 0.15
+    with open_source(f"replay:{path}", speed=0, loop=True, start=4) as s:
+        ids = [f.frame_id for f in s.frames(limit=9)]
+    assert ids == [104, 105, 106, 107, 108, 109, 110, 111, 112]  # ids keep increasing over loops
+
+
+def test_torn_and_damaged_frames(tmp_path: Path) -> None:
+    path = tmp_path / "c.sverec"
+    frames = make_frames(5)
+    write(path, frames)
+    data = path.read_bytes()
+    with RecordingReader(path) as r:
+        record, start = r.layout.record_size, r.layout.data_offset
+    # a recorder killed mid-frame: no index, last record cut short
+    (tmp_path / "torn.sverec").write_bytes(data[: start + 3 * record + record // 2])
+    with pytest.warns(UserWarning, match="torn last frame"):
+        r = RecordingReader(tmp_path / "torn.sverec")
+    assert len(r) == 3 and not r.clean
+    np.testing.assert_array_equal(r.read(2).raw, frames[2].raw)
+    r.close()
+    # a complete-length last record whose payload was not fully written
+    bad = bytearray(data[: start + 4 * record])
+    bad[start + 3 * record + RECORD_HEADER.size + 100] ^= 0xFF
+    (tmp_path / "torn2.sverec").write_bytes(bad)
+    with pytest.warns(UserWarning, match="checksum mismatch"), RecordingReader(tmp_path / "torn2.sverec") as r2:
+        assert len(r2) == 3
+    # damage inside an indexed file: that frame raises, the replay source skips it and counts it
+    bad = bytearray(data)
+    bad[start + 1 * record + RECORD_HEADER.size + 5] ^= 0x01
+    (tmp_path / "rot.sverec").write_bytes(bad)
+    with RecordingReader(tmp_path / "rot.sverec") as r, pytest.raises(CorruptFrameError, match="frame 1 checksum"):
+        r.read(1)
+    with pytest.warns(UserWarning, match="frame 1 checksum"), open_source(f"replay:{tmp_path / 'rot.sverec'}",
+                                                                        speed=0) as s:
+        assert [f.frame_id for f in s] == [100, 102, 103, 104] and s.stats()["drops"] == {"checksum": 1}
+
+
+def test_corrupt_index_is_rebuilt(tmp_path: Path) -> None:
+    path = tmp_path / "d.sverec"
+    write(path, make_frames(4))
+    data = bytearray(path.read_bytes())
+    data[-FOOTER.size - 10] ^= 0xFF  # inside the index table
+    path.write_bytes(data)
+    with pytest.warns(UserWarning, match="corrupt index"):
+        r = RecordingReader(path)
+    assert len(r) == 4 and r.read(3).frame_id == 103
+    r.close()
+    data[-16] ^= 0xFF  # and the footer's index offset too
+    path.write_bytes(data)
+    with pytest.warns(UserWarning, match="corrupt index footer"), RecordingReader(path) as r:
+        assert len(r) == 4
+
+
+def test_bad_files_give_one_line_errors(tmp_path: Path) -> None:
+    path = tmp_path / "e.sverec"
+    write(path, make_frames(2))
+    data = path.read_bytes()
+    cases = {
+        "magic": (b"GARBAGE!" + data[8:], "not an svelive recording"),
+        "short": (data[:10], "too short|truncated"),
+        "header": (data[:40] + bytes([data[40] ^ 1]) + data[41:], "header checksum"),
+        "empty": (b"", "too short"),
+    }
+    for name, (blob, message) in cases.items():
+        p = tmp_path / f"{name}.sverec"
+        p.write_bytes(blob)
+        with pytest.raises(RecordingError, match=message):
+            RecordingReader(p)
+    with pytest.raises(RecordingError, match="is a directory"):
+        RecordingReader(tmp_path)
+    with pytest.raises(RecordingError, match="no such recording"):
+        RecordingReader(tmp_path / "missing.sverec")
+    # unknown pixel format in a (validly checksummed) header
+    from replay.container import encode_header
+
+    head = encode_header({"width": 4, "height": 2, "dtype": "uint16", "pixel_format": "Weird42"})
+    (tmp_path / "fmt.sverec").write_bytes(head)
+    with pytest.raises(RecordingError, match="unknown pixel format 'Weird42'"):
+        RecordingReader(tmp_path / "fmt.sverec")
+
+
+def test_writer_refuses_changing_frames_and_keeps_what_it_has(tmp_path: Path) -> None:
+    path = tmp_path / "f.sverec"
+    frames = make_frames(3)
+    with RecordingWriter(path) as w:
+        w.append(frames[0])
+        w.append(frames[1])
+        with pytest.raises(RecordingError, match="is 16x8 uint16 but the recording is 32x24"):
+            w.append(Frame(raw=np.zeros((8, 16), np.uint16), frame_id=9, host_time_ns=0, pixel_format="Mono12"))
+        with pytest.raises(RecordingError, match="is Mono16 but the recording is Mono12"):
+            w.append(Frame(raw=frames[2].raw, frame_id=9, host_time_ns=0, pixel_format="Mono16"))
+    with RecordingReader(path) as r:
+        assert len(r) == 2
+    with pytest.raises(RecordingError, match="already exists"):
+        RecordingWriter(path)
+    with pytest.raises(RecordingError, match="is a directory"):
+        RecordingWriter(tmp_path)
+    with pytest.raises(RecordingError, match="does not exist"):
+        RecordingWriter(tmp_path / "no" / "x.sverec")
+    RecordingWriter(tmp_path / "none.sverec").close()
+    assert not (tmp_path / "none.sverec").exists()  # no frame, no file
+
+
+def test_kill_9_mid_recording_keeps_every_complete_frame(tmp_path: Path) -> None:
+    out = tmp_path / "killed.sverec"
+    cmd = [sys.executable, "-m", "svelive.cli", "record", "--source", "demo", "--width", "320", "--height", "240",
+           "--fps", "100", "-o", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 40 * 160_000):
+            time.sleep(0.05)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    assert proc.returncode == -signal.SIGKILL
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = RecordingReader(out)
+    assert not r.clean and any("not closed cleanly" in str(w.message) for w in caught)
+    n = len(r)
+    assert n >= 35
+    size = out.stat().st_size
+    assert n == (size - r.layout.data_offset) // r.layout.record_size or \
+        n == (size - r.layout.data_offset) // r.layout.record_size - 1  # a torn last one is dropped
+    ids = [r.read(i).frame_id for i in range(n)]  # every kept frame reads back with a valid checksum
+    assert ids == list(range(n))
+    r.close()
+    assert main(["replay-info", str(out)]) == 0
+
+
+def test_cli_record_replay_info_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rec = tmp_path / "r.sverec"
+    assert main(["record", "--source", "demo", "--width", "64", "--height", "48", "--fps", "0", "--frames", "5",
+                 "-o", str(rec)]) == 0
+    capsys.readouterr()
+    assert main(["replay-info", str(rec)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 5 and info["pattern"] == "1,4/16,64" and info["pixel_format"] == "Mono12"
+    assert main(["export", str(rec), "--png", str(tmp_path / "png")]) == 0
+    assert sorted(p.name for p in (tmp_path / "png").iterdir())[:2] == ["frame_000000.png", "frame_000001.png"]
+    # import the exported sequence back: same pixels
+    rec2 = tmp_path / "r2.sverec"
+    assert main(["record", "--source", f"images:{tmp_path / 'png'}", "--pattern", "1,4/16,64", "--bits", "12",
+                 "-o", str(rec2)]) == 0
+    with RecordingReader(rec) as a, RecordingReader(rec2) as b:
+        assert len(b) == 5 and b.sensor.bits == 12
+        for i in range(5):
+            np.testing.assert_array_equal(a.read(i).raw, b.read(i).raw)
+    capsys.readouterr()
+    assert main(["replay-info", str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+
+
+def test_writer_refuses_unknown_pixel_format(tmp_path: Path) -> None:
+    with RecordingWriter(tmp_path / "u.sverec") as w, pytest.raises(RecordingError, match="unknown pixel format"):
+        w.append(Frame(raw=np.zeros((2, 2), np.uint8), frame_id=0, host_time_ns=0, pixel_format="Weird42"))
+    assert not (tmp_path / "u.sverec").exists()
