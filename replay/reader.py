@@ -22,6 +22,7 @@ from replay.container import (
     RECORD_MAGIC, Layout, RecordingError, crc32, decode_header,
 )
 from svelive.capture import formats
+from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.sensor import Sensor
 
@@ -69,7 +70,7 @@ class RecordingReader:
         self.meta, self.layout = decode_header(first, str(self.path))
         try:
             self.pixel_format = formats.lookup(self.meta.get("pixel_format", "")).name
-        except RecordingError:
+        except SveliveError:
             raise RecordingError(f"{self.path}: unknown pixel format {self.meta.get('pixel_format')!r} "
                                  "in the header") from None
         try:

@@ -22,6 +22,8 @@ from replay.container import (
     FOOTER, FOOTER_MAGIC, INDEX_HEADER, INDEX_MAGIC, NO_TIME, RECORD_ALIGN, RECORD_HEADER, RECORD_MAGIC,
     Layout, RecordingError, crc32, encode_header,
 )
+from svelive.capture import formats
+from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.sensor import Sensor
 
@@ -87,6 +89,10 @@ class RecordingWriter:
         raw = frame.raw
         if raw.ndim != 2 or raw.dtype not in (np.uint8, np.uint16):
             raise RecordingError(f"frames must be uint8 or uint16 (H, W), got {raw.dtype} {raw.shape}")
+        try:
+            formats.lookup(frame.pixel_format)
+        except SveliveError as exc:
+            raise RecordingError(f"{self.path}: {exc}") from None
         h, w = raw.shape
         meta = {
             "format": "svelive-recording", "width": w, "height": h, "dtype": raw.dtype.name,
