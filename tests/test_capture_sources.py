@@ -1,0 +1,112 @@
+"""Image-sequence, demo and V4L2 sources, spec parsing, and closing from another thread."""
+
+from __future__ import annotations
+
+import glob
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from svelive.capture import open_source, parse_spec
+from svelive.errors import SveliveError
+
+
+def write_sequence(folder: Path, n: int, dtype: type = np.uint16) -> list[np.ndarray]:
+    folder.mkdir(exist_ok=True)
+    imgs = []
+    for i in range(n):
+        img = ((np.arange(12 * 16).reshape(12, 16) * 37 + i * 1000) % 4096).astype(dtype)
+        cv2.imwrite(str(folder / f"f{i}.png"), img)  # f10 sorts after f9: natural order
+        imgs.append(img)
+    return imgs
+
+
+def test_spec_parsing() -> None:
+    assert parse_spec("gige") == ("gige", None) and parse_spec("gige:GV01") == ("gige", "GV01")
+    assert parse_spec("images:/a/*.png") == ("images", "/a/*.png") and parse_spec("demo") == ("demo", None)
+    for bad, msg in [("", "empty"), ("usb:3", "unknown source"), ("v4l2", "needs an argument"),
+                     ("replay:", "needs an argument")]:
+        with pytest.raises(SveliveError, match=msg):
+            parse_spec(bad)
+
+
+def test_image_sequence_order_pacing_and_loop(tmp_path: Path) -> None:
+    imgs = write_sequence(tmp_path / "seq", 11)
+    with open_source(f"images:{tmp_path / 'seq'}") as s:
+        got = list(s)
+        assert s.stats()["state"] == "ended" and s.stats()["frames"] == 11
+    assert len(got) == 11 and all(np.array_equal(g.raw, i) for g, i in zip(got, imgs))
+    assert got[0].raw.dtype == np.uint16 and got[0].pixel_format == "Mono16"
+    with open_source(f"images:{tmp_path / 'seq'}/f1*.png", fps=50, loop=True, bits=12) as s:
+        t = time.monotonic()
+        got = list(s.frames(limit=6))
+        elapsed = time.monotonic() - t
+    assert [g.frame_id for g in got] == list(range(6)) and got[0].sensor.bits == 12
+    assert np.array_equal(got[2].raw, imgs[1])  # f1, f10 then loop to f1
+    assert 0.08 < elapsed < 0.5  # 5 intervals of 20 ms
+
+
+def test_image_sequence_bad_input(tmp_path: Path) -> None:
+    with pytest.raises(SveliveError, match="no image files"):
+        open_source(f"images:{tmp_path}").open()
+    write_sequence(tmp_path / "s", 2)
+    cv2.imwrite(str(tmp_path / "s" / "f2.png"), np.zeros((5, 5), np.uint16))
+    with pytest.raises(SveliveError, match="f2.png: is 5x5 uint16 but the sequence started with 16x12"):
+        list(open_source(f"images:{tmp_path / 's'}"))
+    cv2.imwrite(str(tmp_path / "c.png"), np.zeros((4, 4, 3), np.uint8))
+    with pytest.raises(SveliveError, match="3 channels"):
+        open_source(f"images:{tmp_path / 'c.png'}").open()
+    (tmp_path / "x.png").write_bytes(b"not a png")
+    with pytest.raises(SveliveError, match="not a readable"):
+        open_source(f"images:{tmp_path / 'x.png'}").open()
+    with pytest.raises(SveliveError, match="unknown option"):
+        open_source("images:x", speed=2)
+
+
+def test_demo_renders_moving_hdr_scene_at_rate() -> None:
+    with open_source("demo", width=320, height=180, fps=30) as s:
+        t = time.monotonic()
+        frames = list(s.frames(limit=16))
+        elapsed = time.monotonic() - t
+        stats = s.stats()
+    assert 0.4 < elapsed < 1.5 and stats["fps"] == pytest.approx(30, rel=0.2)
+    raw = frames[0].raw
+    assert raw.shape == (180, 320) and raw.dtype == np.uint16 and frames[0].pixel_format == "Mono12"
+    assert s.pattern == "1,4/16,64" and frames[0].sensor.bits == 12
+    assert raw.max() == 4095 and np.percentile(raw, 5) < 200  # saturated highlights and dark shadows
+    assert np.abs(frames[-1].raw.astype(int) - raw.astype(int)).mean() > 5  # it moves
+    long_px = raw[1::2, 1::2]  # exposure 64 of the tile 1,4/16,64
+    assert (long_px == 4095).mean() > (raw[0::2, 0::2] == 4095).mean()
+
+
+def test_close_from_another_thread_ends_iteration_quickly(tmp_path: Path) -> None:
+    write_sequence(tmp_path / "seq", 2)
+    for spec, opts in [("demo", {"width": 64, "height": 48, "fps": 2}),
+                       (f"images:{tmp_path / 'seq'}", {"fps": 0.5, "loop": True})]:
+        source = open_source(spec, **opts)
+        got: list[int] = []
+        th = threading.Thread(target=lambda: got.extend(f.frame_id for f in source))
+        th.start()
+        time.sleep(0.3)
+        t = time.monotonic()
+        source.close()
+        th.join(2)
+        assert not th.is_alive() and time.monotonic() - t < 0.5
+        assert source.stats()["state"] == "closed" and got == [0]
+
+
+@pytest.mark.skipif(not glob.glob("/dev/video*"), reason="no /dev/video* device on this machine")
+def test_v4l2_device_delivers_raw_frames() -> None:
+    device = sorted(glob.glob("/dev/video*"))[0]
+    with open_source(f"v4l2:{device}", pixel_format="GREY") as s:
+        frame = s.read(timeout=5)
+    assert frame.raw.ndim == 2 and frame.raw.dtype in (np.uint8, np.uint16)
+
+
+def test_v4l2_missing_device_is_a_clear_error() -> None:
+    with pytest.raises(SveliveError, match="no such V4L2 device"):
+        open_source("v4l2:/dev/video-does-not-exist").open()
