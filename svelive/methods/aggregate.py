@@ -17,7 +17,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.methods.base import Estimate, SveInput, pad_same_phase, support_size
+from svelive.methods.base import Estimate, SveInput, in_strips, pad_same_phase, support_size
 
 
 def effective_response(exposures: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -57,6 +57,10 @@ def _lookup_table(tile_bytes: bytes, tile_shape: tuple[int, int], full_scale: fl
 
 
 def run(inp: SveInput) -> Estimate:
+    return in_strips(_run, inp, halo=inp.pattern.shape[0] + 1)
+
+
+def _run(inp: SveInput) -> Estimate:
     th, tw = inp.pattern.shape
     h, w = inp.shape
     full_scale = inp.sensor.range_dn
