@@ -1,0 +1,170 @@
+"""GigE Vision through Aravis against the real fake camera (arv-fake-gv-camera-0.8) on 127.0.0.1.
+
+The fixture starts the camera process itself and stops it by its pid. Where
+Aravis or the fake camera is missing these tests skip, except under CI=true,
+where they fail: CI must install aravis-tools and gir1.2-aravis-0.8.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from svelive.errors import SveliveError
+
+FAKE = "arv-fake-gv-camera-0.8"
+ADDRESS = "127.0.0.1"
+
+
+def _aravis_available() -> str | None:
+    if shutil.which(FAKE) is None:
+        return f"{FAKE} not installed (Debian package aravis-tools)"
+    try:
+        from svelive.capture.gige import load_aravis
+
+        load_aravis()
+    except SveliveError as exc:
+        return str(exc)
+    return None
+
+
+_MISSING = _aravis_available()
+if _MISSING and os.environ.get("CI") != "true":
+    pytestmark = pytest.mark.skip(reason=_MISSING)
+
+
+class FakeCamera:
+    """One arv-fake-gv-camera-0.8 process on 127.0.0.1, stopped by its pid."""
+
+    def __init__(self, serial: str, loss_per_thousand: int = 0) -> None:
+        self.args = [FAKE, "-i", ADDRESS, "-s", serial] + (["-r", str(loss_per_thousand)] if loss_per_thousand else [])
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> None:
+        assert _MISSING is None, _MISSING
+        self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        from svelive.capture.gige import load_aravis
+
+        aravis = load_aravis()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:  # wait until it answers on GVCP
+            try:
+                aravis.Camera.new(ADDRESS)
+                return
+            except Exception:  # noqa: BLE001 - not up yet
+                time.sleep(0.2)
+        raise AssertionError("the fake camera did not come up within 10 s")
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+        self.proc = None
+
+
+@pytest.fixture
+def camera() -> Iterator[FakeCamera]:
+    cam = FakeCamera("SVETEST")
+    cam.start()
+    yield cam
+    cam.stop()
+
+
+@pytest.fixture
+def lossy_camera() -> Iterator[FakeCamera]:
+    cam = FakeCamera("SVELOSSY", loss_per_thousand=20)
+    cam.start()
+    yield cam
+    cam.stop()
+
+
+def ramp_is_consistent(raw: np.ndarray, step: int, modulus: int) -> bool:
+    """The fake camera's diagonal ramp: +step per pixel right and down (mod modulus) everywhere."""
+    r = raw.astype(np.int64)
+    return bool(np.all((r[:, 1:] - r[:, :-1]) % modulus == step) and np.all((r[1:, :] - r[:-1, :]) % modulus == step))
+
+
+@pytest.mark.parametrize("pixel_format, dtype", [("Mono8", np.uint8), ("Mono16", np.uint16),
+                                                 ("BayerRG8", np.uint8)])
+def test_acquisition_in_each_format(camera: FakeCamera, pixel_format: str, dtype: type) -> None:
+    from svelive.capture import open_source
+
+    with open_source(f"gige:{ADDRESS}", pixel_format=pixel_format, width=160, height=120, fps=50) as s:
+        frames = list(s.frames(limit=15, seconds=10))
+        stats = s.stats()
+    assert len(frames) == 15
+    assert all(f.raw.shape == (120, 160) and f.raw.dtype == dtype and f.pixel_format == pixel_format
+               for f in frames)
+    ids = [f.frame_id for f in frames]
+    assert all(b > a for a, b in zip(ids, ids[1:]))  # increasing, also across the 16-bit wrap
+    assert all(f.device_time_ns for f in frames) and frames[0].sensor.bits == (16 if dtype == np.uint16 else 8)
+    if pixel_format == "Mono8":
+        assert all(ramp_is_consistent(f.raw, 1, 255) for f in frames)
+    assert stats["stream"]["n_completed_buffers"] >= 15 and stats["camera"]["model"] == "Fake"
+    assert stats["fps"] == pytest.approx(50, rel=0.3) and stats["drops"] == {}
+
+
+def test_packet_loss_only_complete_frames_come_out(lossy_camera: FakeCamera) -> None:
+    from svelive.capture import open_source
+
+    with open_source(f"gige:{ADDRESS}", pixel_format="Mono8", width=256, height=64, fps=100) as s:
+        frames = list(s.frames(limit=25, seconds=15))
+        stats = s.stats()
+    assert len(frames) >= 10
+    assert all(ramp_is_consistent(f.raw, 1, 255) for f in frames)  # no frame with holes or stale packets
+    assert stats["dropped"] > 0 and set(stats["drops"]) <= {"timeout", "missing_packets", "underrun"}
+    assert stats["stream"]["n_missing_packets"] > 0 and stats["stream"]["n_resend_requests"] > 0
+
+
+def test_camera_killed_and_restarted_is_reconnected(camera: FakeCamera) -> None:
+    from svelive.capture import open_source
+
+    source = open_source(f"gige:{ADDRESS}", pixel_format="Mono8", width=64, height=48, fps=30,
+                         offline_after_s=0.5, backoff_max_s=0.5)
+    ids: list[int] = []
+    thread = threading.Thread(target=lambda: ids.extend(f.frame_id for f in source.frames(seconds=25)))
+    thread.start()
+    try:
+        deadline = time.monotonic() + 5
+        while len(ids) < 10 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(ids) >= 10
+        camera.stop()
+        deadline = time.monotonic() + 6
+        while source.stats()["online"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stats = source.stats()
+        assert stats["state"] == "offline" and "no frame" in stats["error"]
+        before = len(ids)
+        camera.start()
+        deadline = time.monotonic() + 10
+        while len(ids) < before + 10 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stats = source.stats()
+        assert len(ids) >= before + 10 and stats["online"] and stats["reconnects"] >= 1
+        assert all(b > a for a, b in zip(ids, ids[1:]))
+    finally:
+        t = time.monotonic()
+        source.close()
+        thread.join(5)
+    assert not thread.is_alive() and time.monotonic() - t < 3
+
+
+def test_bad_settings_are_one_line_errors(camera: FakeCamera) -> None:
+    from svelive.capture import open_source
+
+    with pytest.raises(SveliveError, match="pixel format 'Mono12Packed' not offered by the camera; it has .*Mono8"):
+        open_source(f"gige:{ADDRESS}", pixel_format="Mono12Packed").open()
+    with pytest.raises(SveliveError, match="unknown option"):
+        open_source(f"gige:{ADDRESS}", shutter=3)
+    t = time.monotonic()
+    with pytest.raises(SveliveError, match="cannot open GigE camera 'NoSuchCamera-42'"):
+        open_source("gige:NoSuchCamera-42").open()
+    assert time.monotonic() - t < 5
