@@ -86,7 +86,7 @@ def _info(args: argparse.Namespace) -> int:
         print(f"note               for the paper's case enumeration gives Q = {ours}, not {PAPER_Q}: "
               f"256 levels of the highest exposure plus 192 new levels from each lower one (levels q/e that "
               f"coincide count once); the paper's eq. 4 is garbled in the available text and its 869 "
-              f"could not be reproduced (see docs/method-notes.md)")
+              f"could not be reproduced (see docs/methods.md)")
     return 0
 
 
