@@ -11,3 +11,5 @@ from svelive.reconstruct import methods, reconstruct  # noqa: E402
 from svelive.simulate import SimulatedFrame, simulate  # noqa: E402
 
 __all__ += ["methods", "reconstruct", "simulate", "SimulatedFrame"]
+from svelive.reconstructor import Reconstructor, reconstruct_sequence  # noqa: E402
+__all__ += ["Reconstructor", "reconstruct_sequence"]

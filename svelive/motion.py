@@ -1,0 +1,366 @@
+"""Per-pixel motion robustness: exposure consistency within a frame, motion-safe fusion across frames.
+
+Both tests ask the same question of the Poisson-Gaussian noise model
+(sensor.py): do two estimates of one pixel's radiance differ by more than
+their noise allows, ``(a - b)^2 > k^2 (var_a + var_b)``? Where they do, the
+scene moved, and the pixel falls back to the information that is right for a
+moving scene.
+
+- Within a frame (``integration`` exposure timing, where long exposures
+  integrate over a longer time than short ones): the frame's estimate is
+  compared with the interpolation of the shortest exposure's uncensored
+  samples alone; flagged pixels, widened by ``widen`` pixels, take the
+  shortest exposure's estimate, which integrates over the shortest time.
+- Across frames: a per-pixel recursive average (equal weights over the last
+  ``max_history`` frames at most) fuses the frame estimates where the scene
+  is static; a pixel whose new estimate disagrees with its history is reset
+  to the new estimate at once, so moving objects leave no trail. Global
+  brightness changes (lights switched, mains flicker) are first divided out
+  with a robust global ratio, so they do not reset every pixel.
+
+Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from svelive.errors import SveliveError
+from svelive.methods.base import SveInput, binomial_kernel, smooth, support_size
+from svelive.pattern import Pattern
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Thresholds of the motion tests.
+
+    Attributes:
+        temporal_sigmas: k of the frame-to-history test; 4 gives a Gaussian
+            false-alarm rate of 6e-5 per pixel before widening.
+        consistency_sigmas: k of the within-frame exposure-consistency test.
+        max_history: frames a static pixel averages at most (the memory of the
+            recursive average once full: its weight for a new frame is 1 / max_history).
+        widen: pixels by which flagged areas grow (a square of 2 widen + 1).
+        detail_sigmas: how far beyond its noise a pixel's own fused readings must
+            differ from the smooth estimate before they sharpen it (:func:`sharpen`).
+        compensate_illumination: divide out a global brightness ratio between
+            history and frame before testing.
+    """
+
+    temporal_sigmas: float = 4.0
+    consistency_sigmas: float = 4.0
+    max_history: int = 8
+    widen: int = 1
+    detail_sigmas: float = 3.0
+    compensate_illumination: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("temporal_sigmas", "consistency_sigmas", "detail_sigmas"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise SveliveError(f"motion config: {name} must be > 0, got {value}")
+        if int(self.max_history) < 1:
+            raise SveliveError(f"motion config: max_history must be >= 1, got {self.max_history}")
+        if not 0 <= int(self.widen) <= 16:
+            raise SveliveError(f"motion config: widen must be 0..16 pixels, got {self.widen}")
+
+
+@dataclass(frozen=True)
+class TemporalState:
+    """The per-pixel history of one stream. Arrays are never modified after creation.
+
+    Attributes:
+        mean: float32 (H, W), fused radiance, DN at exposure 1.
+        own: float32 (H, W), fused radiance of each pixel's own readings (s / e;
+            the frame's estimate where the reading was censored).
+        weight: float32 (H, W), 1 / n with n = min(frames since the pixel's last
+            reset, max_history): the weight its last frame had, and the variance
+            of its mean over one frame's variance (conservative once n is capped).
+        bound: bool (H, W), the mean is only a lower bound (all samples censored).
+    """
+
+    mean: np.ndarray
+    own: np.ndarray
+    weight: np.ndarray
+    bound: np.ndarray
+
+
+@dataclass(frozen=True)
+class FrameEstimate:
+    """What one frame contributes to the history.
+
+    Attributes:
+        image, variance: float32 (H, W), the single-frame estimate (DN) and its variance (DN^2).
+        bound: bool (H, W), ``image`` is only a lower bound there.
+        own: float32 (H, W), each pixel's own reading s / e (``image`` where censored).
+        own_slope, own_floor: float32 (H, W), the own reading's one-frame variance
+            is ``own_slope * L + own_floor`` at radiance L (1 / (e g) and sigma^2 / e^2).
+    """
+
+    image: np.ndarray
+    variance: np.ndarray
+    bound: np.ndarray
+    own: np.ndarray
+    own_slope: np.ndarray
+    own_floor: np.ndarray
+
+
+@dataclass(frozen=True)
+class Fused:
+    """One frame's output of :func:`fuse`.
+
+    Attributes:
+        image, variance: float32 (H, W), the output radiance and its variance.
+        motion: bool (H, W), pixels whose history was reset because the scene moved
+            (widened), or that the within-frame test flagged.
+        history: float32 (H, W), 1 / n, n = frames in each pixel's mean (min(frames since reset, max_history)).
+        illumination_ratio: the global brightness ratio divided out (frame / history).
+        state: the history to pass with the next frame.
+    """
+
+    image: np.ndarray
+    variance: np.ndarray
+    motion: np.ndarray
+    history: np.ndarray
+    illumination_ratio: float
+    state: TemporalState
+
+
+def _widen(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """Dilate a bool (H, W) mask by a (2 pixels + 1)^2 square."""
+    if pixels <= 0:
+        return mask
+    kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
+    return cv2.dilate(mask.view(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE).view(bool)
+
+
+def disagree(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray, sigmas: float) -> np.ndarray:
+    """bool (H, W): ``(a - b)^2 > sigmas^2 (var_a + var_b)``, the noise-model test of two float32 estimates."""
+    diff = a - b
+    diff *= diff
+    tolerance = var_a + var_b
+    tolerance *= np.float32(sigmas * sigmas)
+    return diff > tolerance
+
+
+# ----- within one frame -----------------------------------------------------
+
+def _window_kernels(pattern: Pattern) -> tuple[np.ndarray, np.ndarray]:
+    """The binomial (rows, columns) kernels of a window holding every phase of the tile."""
+    th, tw = pattern.shape
+    return binomial_kernel(support_size(th)), binomial_kernel(support_size(tw))
+
+
+@lru_cache(maxsize=8)
+def _shortest_layout(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """For the shortest exposure level: (mask float32, window sum of squared kernel weights), read-only."""
+    mask = (pattern.level_index_map(shape) == 0).astype(np.float32)
+    ky, kx = _window_kernels(pattern)
+    squares = smooth(mask, ky * ky, kx * kx)
+    for array in (mask, squares):
+        array.setflags(write=False)
+    return mask, squares
+
+
+def shortest_exposure_estimate(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Radiance from the shortest exposure's uncensored samples alone, as the ``weighted`` method interpolates one level.
+
+    A binomial window holding every phase of the tile averages the level's
+    uncensored readings s / e; the variance is the noise model's at that
+    radiance divided by the effective number of samples in the window.
+
+    Returns:
+        (estimate float32 (H, W) DN at exposure 1, variance float32 (H, W) DN^2,
+        valid bool (H, W): the window held at least one uncensored sample).
+    """
+    if inp.pattern.pixel_map is not None:
+        raise SveliveError("the exposure-consistency test needs a nominal tile, not a per-pixel exposure map")
+    mask, squares = _shortest_layout(inp.pattern, inp.shape)
+    ky, kx = _window_kernels(inp.pattern)
+    exposure = float(inp.pattern.levels[0])
+    weights = mask * ~inp.censored
+    weight_sum = smooth(weights, ky, kx)
+    estimate = smooth(inp.signal * weights, ky, kx)
+    valid = weight_sum > 1e-6
+    np.divide(estimate, weight_sum * np.float32(exposure), out=estimate, where=valid)
+    np.maximum(estimate, 0, out=estimate)
+    if inp.censored.any():
+        squares = smooth(weights, ky * ky, kx * kx)
+    effective = weight_sum * weight_sum / np.maximum(squares, 1e-12)  # (sum w)^2 / sum w^2
+    sensor = inp.sensor
+    variance = estimate * np.float32(exposure / sensor.effective_gain) + np.float32(sensor.floor_variance)
+    variance /= np.maximum(effective, 1e-6) * np.float32(exposure * exposure)
+    variance[~valid] = np.inf
+    return estimate, variance, valid
+
+
+def exposure_consistency(image: np.ndarray, variance: np.ndarray, inp: SveInput,
+                         config: MotionConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Within-frame test: where the frame's estimate disagrees with the shortest exposure's, use the latter.
+
+    Args:
+        image, variance: float32 (H, W), a single-frame estimate and its variance (DN, DN^2).
+        inp: the prepared raw frame it came from.
+
+    Returns:
+        (image, variance, flagged): new float32 arrays, and bool (H, W) the widened
+        flagged area where the shortest exposure's estimate was substituted.
+    """
+    short, short_var, valid = shortest_exposure_estimate(inp)
+    flagged = disagree(image, variance, short, short_var, config.consistency_sigmas)
+    flagged &= valid
+    flagged = _widen(flagged, config.widen) & valid
+    image = np.where(flagged, short, image)
+    variance = np.where(flagged, short_var, variance)
+    return image, variance, flagged
+
+
+# ----- across frames ----------------------------------------------------------
+
+def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.ndarray, bound: np.ndarray,
+                       step: int = 8) -> float:
+    """Robust global brightness ratio frame / history: the median of image / mean over well-measured pixels.
+
+    Subsampled every ``step`` pixels; pixels count when both values are at least
+    3 noise standard deviations (the frame's) above 0 and neither is a lower bound. Returns 1
+    when fewer than 64 pixels qualify.
+    """
+    a = image[::step, ::step]
+    b = state.mean[::step, ::step]
+    var = variance[::step, ::step]
+    good = (a * a > 9 * var) & (b * b > 9 * var)
+    good &= ~(bound[::step, ::step] | state.bound[::step, ::step])
+    if np.count_nonzero(good) < 64:
+        return 1.0
+    ratio = float(np.median(a[good] / b[good]))
+    return ratio if np.isfinite(ratio) and ratio > 0 else 1.0
+
+
+#: Rows per strip of the per-pixel passes: small enough for the temporaries to stay in cache.
+STRIP_ROWS = 64
+
+#: Global brightness ratios closer to 1 than this are not divided out (far below any noise).
+RATIO_TOLERANCE = 2e-3
+
+
+def start(frame: FrameEstimate) -> TemporalState:
+    """A history holding one frame."""
+    return TemporalState(frame.image, frame.own, np.ones(frame.image.shape, np.float32), frame.bound)
+
+
+def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig,
+         moving: np.ndarray | None = None, detail: bool = True) -> Fused:
+    """Fuse one frame into the per-pixel history.
+
+    Args:
+        state: the history, or None to start one (also when the frame size changed).
+        frame: this frame's estimates; its arrays are not modified.
+        moving: bool (H, W) or None, pixels already known to move (within-frame test).
+        detail: where a pixel has history (2 frames or more), move the output towards
+            its own fused readings as far as they exceed their noise (:func:`sharpen`
+            at ``config.detail_sigmas``).
+
+    With w = 1 / n the history's weight state, a pixel is reset to the frame's
+    estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it
+    (widened by ``config.widen``), where ``moving`` is set, and where either the
+    history or the frame is only a lower bound (a bound cannot be averaged).
+    Elsewhere it takes the running mean with weight 1 / min(n + 1, max_history).
+    The history's variance is taken as the frame's variance v times w, as for a
+    static scene with stationary noise. The test compares smooth estimates,
+    whose loss of resolution is the same in every frame of a static scene and
+    so cancels. Work is done in strips of STRIP_ROWS rows to stay in cache.
+    """
+    image, variance, bound = frame.image, frame.variance, frame.bound
+    if state is None or state.mean.shape != image.shape:
+        fresh = start(frame)
+        motion = np.zeros(image.shape, bool) if moving is None else moving
+        return Fused(image, variance, motion, fresh.weight, 1.0, fresh)
+    ratio = illumination_ratio(state, image, variance, bound) if config.compensate_illumination else 1.0
+    scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else None
+    h = image.shape[0]
+    strips = [slice(top, min(top + STRIP_ROWS, h)) for top in range(0, h, STRIP_ROWS)]
+    inv_k2 = np.float32(1.0 / config.temporal_sigmas ** 2)
+
+    flagged = np.empty(image.shape, bool)
+    for rows in strips:
+        mean = state.mean[rows] if scale is None else state.mean[rows] * scale
+        diff = image[rows] - mean
+        diff *= diff
+        diff *= inv_k2
+        tolerance = state.weight[rows] + np.float32(1)
+        tolerance *= variance[rows]
+        np.greater(diff, tolerance, out=flagged[rows])
+    either_bound = bound | state.bound
+    flagged &= ~either_bound
+    motion = _widen(flagged, config.widen)
+    if moving is not None:
+        motion = motion | moving
+    reset = motion | either_bound
+
+    fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
+    weight = np.empty_like(image)
+    out = np.empty_like(image) if detail else fused
+    floor_weight, detail_k2 = np.float32(1.0 / config.max_history), np.float32(config.detail_sigmas ** 2)
+    for rows in strips:
+        w = state.weight[rows] + np.float32(1)  # 1/n -> 1/(n + 1), capped, 1 where reset
+        np.divide(state.weight[rows], w, out=w)
+        np.maximum(w, floor_weight, out=w)
+        np.maximum(w, reset[rows], out=w)
+        weight[rows] = w
+        fused[rows] = _running_mean(state.mean[rows], image[rows], w, scale)
+        own[rows] = _running_mean(state.own[rows], frame.own[rows], w, scale)
+        np.multiply(variance[rows], w, out=fused_var[rows])
+        if detail:
+            threshold = frame.own_slope[rows] * fused[rows]
+            threshold += frame.own_floor[rows]
+            threshold *= w
+            threshold *= detail_k2
+            with np.errstate(divide="ignore"):
+                threshold /= w < 1  # infinite where the pixel has no history: nothing to sharpen
+            out[rows] = sharpen(fused[rows], own[rows], threshold)
+    return Fused(out, fused_var, motion, weight, ratio, TemporalState(fused, own, weight, bound))
+
+
+def _running_mean(mean: np.ndarray, new: np.ndarray, weight: np.ndarray, scale: np.float32 | None) -> np.ndarray:
+    """scale mean + weight (new - scale mean), float32; equals ``new`` where weight is 1."""
+    if scale is not None:
+        mean = mean * scale
+    out = new - mean
+    out *= weight
+    out += mean
+    return out
+
+
+def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray) -> np.ndarray:
+    """Move a smooth estimate towards each pixel's own readings where they differ beyond noise.
+
+    ``out = mean + w (own - mean)``, ``w = max(0, 1 - threshold / (own - mean)^2)``: a
+    non-negative garrote. The smooth estimate ``mean`` has lost resolution (a bias
+    b); the pixel's own readings have none but carry noise of variance
+    var_own. With ``threshold = var_own`` this is the positive-part James-Stein
+    estimate of the MSE-optimal weight b^2 / (b^2 + var_own); the caller passes
+    ``sigmas^2 var_own`` (a significance level like the motion test's), because
+    the James-Stein weight lets noise through where a few DN of noise are a
+    large relative error (dark regions; measured in docs/motion.md).
+
+    Args:
+        mean, own, threshold: float32 arrays of one shape (DN, DN, DN^2); an
+            infinite threshold keeps ``mean``.
+
+    Returns:
+        float32, a new array, >= 0.
+    """
+    diff = own - mean
+    weight = diff * diff
+    np.maximum(weight, np.float32(1e-30), out=weight)
+    np.divide(threshold, weight, out=weight)
+    np.subtract(1, weight, out=weight)
+    np.maximum(weight, 0, out=weight)
+    diff *= weight
+    diff += mean
+    np.maximum(diff, 0, out=diff)
+    return diff

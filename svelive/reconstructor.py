@@ -1,0 +1,250 @@
+"""The stateful per-stream reconstruction: raw SVE frames in, motion-robust HDR frames out.
+
+``Reconstructor(pattern, ...).process(raw)`` runs a single-frame method
+(svelive.reconstruct), then the motion tests of svelive.motion: the
+within-frame exposure-consistency test (on by default for ``integration``
+exposure timing) and the temporal fusion that cuts noise where the scene is
+static and resets a pixel's history the moment it moves.
+"""
+
+from __future__ import annotations
+
+import inspect
+import threading
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from functools import cached_property, lru_cache
+
+import numpy as np
+
+from svelive.errors import SveliveError
+from svelive.methods import DEFAULT_METHOD, METHODS
+from svelive.methods.base import Estimate, SveInput, exposure_maps, smooth, support_size
+from svelive.motion import FrameEstimate, MotionConfig, TemporalState, exposure_consistency, fuse
+from svelive.pattern import Pattern
+from svelive.reconstruct import prepare, run_method, sensor_for
+from svelive.sensor import Sensor
+
+EXPOSURE_TIMINGS = ("mask", "integration")
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """One reconstructed frame of a stream.
+
+    Attributes:
+        image: float32 (H, W), radiance in DN at relative exposure 1, finite and >= 0.
+        motion: bool (H, W), pixels flagged as moving (history reset or within-frame inconsistency).
+        variance: float32 (H, W), predicted noise variance of ``image``, DN^2 at exposure 1
+            (of the fused smooth estimate where detail sharpening moved a pixel).
+        lower_bound: bool (H, W), ``image`` is only the lower bound saturated samples imply.
+        weight: float32 (H, W), 1 / n, n = frames fused into each pixel (1 without temporal fusion).
+        moving_fraction: fraction of pixels in ``motion``.
+        illumination_ratio: global brightness ratio (frame / history) divided out before the temporal test.
+        method: the single-frame method used.
+        frame_index: 0 for the first frame the Reconstructor processed (after a reset too).
+        timings_ms: {"method": ..., "motion": ...}, wall time of the two stages.
+
+    ``confidence`` and ``frames_fused`` are computed on first access.
+    """
+
+    image: np.ndarray
+    motion: np.ndarray
+    variance: np.ndarray
+    lower_bound: np.ndarray
+    weight: np.ndarray
+    moving_fraction: float
+    illumination_ratio: float
+    method: str
+    frame_index: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @cached_property
+    def confidence(self) -> np.ndarray:
+        """float32 (H, W) in [0, 1]: SNR / (1 + SNR) = L / (L + sigma), 0 where ``image`` is a lower bound."""
+        sigma = np.sqrt(self.variance)
+        sigma += self.image
+        confidence = np.divide(self.image, sigma, out=np.zeros_like(sigma), where=sigma > 0)
+        confidence[self.lower_bound] = 0
+        return confidence
+
+    @cached_property
+    def frames_fused(self) -> np.ndarray:
+        """float32 (H, W), frames fused into each pixel (1 / weight)."""
+        return np.reciprocal(self.weight)
+
+
+def predicted_variance(image: np.ndarray, inp: SveInput) -> np.ndarray:
+    """Noise variance (DN^2, float32 (H, W)) of an inverse-variance combination of one tile's uncensored readings.
+
+    For methods that return no variance of their own: the information of every
+    uncensored pixel, e^2 / (e L / g + sigma^2) at the estimate L, averaged over a
+    window holding every phase of the tile, times the tile's pixel count.
+    """
+    sensor = inp.sensor
+    th, tw = inp.pattern.shape
+    ones_y, ones_x = np.ones(support_size(th), np.float32), np.ones(support_size(tw), np.float32)
+    per_pixel = inp.exposure * image
+    per_pixel *= np.float32(1.0 / sensor.effective_gain)
+    per_pixel += np.float32(sensor.floor_variance)
+    np.divide(inp.exposure * inp.exposure, per_pixel, out=per_pixel)
+    per_pixel[inp.censored] = 0
+    per_tile = smooth(per_pixel, ones_y, ones_x)
+    per_tile *= np.float32(th * tw / (ones_y.size * ones_x.size))
+    return np.reciprocal(np.maximum(per_tile, np.float32(1e-30)))
+
+
+@lru_cache(maxsize=8)
+def own_reading_noise(pattern: Pattern, shape: tuple[int, int], sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
+    """(slope, floor), float32 (H, W), read-only: a pixel's own estimate s / e has variance slope * L + floor."""
+    _, inverse = exposure_maps(pattern, shape)
+    slope = inverse * np.float32(1.0 / sensor.effective_gain)
+    floor = inverse * inverse * np.float32(sensor.floor_variance)
+    slope.setflags(write=False)
+    floor.setflags(write=False)
+    return slope, floor
+
+
+def own_readings(inp: SveInput, image: np.ndarray) -> np.ndarray:
+    """Each pixel's own radiance reading s / e, float32 (H, W); ``image`` where the reading is censored."""
+    _, inverse = exposure_maps(inp.pattern, inp.shape)
+    own = inp.signal * inverse
+    np.copyto(own, image, where=inp.censored)
+    return own
+
+
+class Reconstructor:
+    """Motion-robust reconstruction of one stream of raw SVE frames.
+
+    Args:
+        pattern: the exposure pattern or its text form.
+        method: single-frame method name (None: the default); changeable between
+            frames through the ``method`` attribute (the history restarts then).
+        temporal: fuse consecutive frames where the scene is static.
+        exposure_timing: ``"mask"`` when all exposures integrate over the same
+            time (neutral-density mask, gain), ``"integration"`` when exposures
+            are different integration times ending together.
+        consistency: run the within-frame exposure-consistency test; None means
+            on for ``integration`` timing, off for ``mask``.
+        black_level, white_level, gain, read_noise: the sensor, as for svelive.reconstruct.
+        motion_config: thresholds (svelive.motion.MotionConfig).
+        detail: with temporal fusion, sharpen static pixels that have history
+            towards their own fused readings (svelive.motion.sharpen).
+        **method_options: passed to the method.
+
+    ``process`` is meant for one worker thread; ``method``, ``reset()`` and
+    ``state()`` may be called from any thread.
+    """
+
+    def __init__(self, pattern: Pattern | str, *, method: str | None = None, temporal: bool = True,
+                 exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
+                 white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
+                 motion_config: MotionConfig | None = None, detail: bool = True, **method_options) -> None:
+        if exposure_timing not in EXPOSURE_TIMINGS:
+            raise SveliveError(f"exposure timing must be one of {', '.join(EXPOSURE_TIMINGS)}, got {exposure_timing!r}")
+        self.pattern = Pattern.parse(pattern)
+        self.temporal = bool(temporal)
+        self.exposure_timing = exposure_timing
+        self.consistency = exposure_timing == "integration" if consistency is None else bool(consistency)
+        if self.consistency and self.pattern.pixel_map is not None:
+            raise SveliveError("the exposure-consistency test needs a nominal tile, not a per-pixel exposure map")
+        self.sensor_levels = dict(black_level=black_level, white_level=white_level, gain=gain, read_noise=read_noise)
+        self.motion_config = motion_config or MotionConfig()
+        self.detail = bool(detail)
+        self.method_options = dict(method_options)
+        self._lock = threading.Lock()
+        self._method = self._checked(method)
+        self._history: TemporalState | None = None
+        self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
+        self._frames = 0
+        self._last_moving = 0.0
+        self._sensors: dict[np.dtype, object] = {}
+
+    @staticmethod
+    def _checked(method: str | None) -> str:
+        name = DEFAULT_METHOD if method is None else method
+        if name not in METHODS:
+            raise SveliveError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
+        return name
+
+    @property
+    def method(self) -> str:
+        """The single-frame method; setting it restarts the history with the next frame."""
+        return self._method
+
+    @method.setter
+    def method(self, name: str | None) -> None:
+        name = self._checked(name)
+        with self._lock:
+            if name != self._method:
+                self._method = name
+                self._history = None
+                self._generation += 1
+
+    def reset(self) -> None:
+        """Forget the history: the next frame is processed as the first of a stream."""
+        with self._lock:
+            self._history = None
+            self._generation += 1
+            self._frames = 0
+
+    def state(self) -> dict[str, object]:
+        """JSON-ready state: method, temporal, exposure_timing, consistency, frames, moving_fraction."""
+        with self._lock:
+            return {"method": self._method, "temporal": self.temporal, "exposure_timing": self.exposure_timing,
+                    "consistency": self.consistency, "frames": self._frames,
+                    "moving_fraction": self._last_moving}
+
+    def _estimate(self, raw: np.ndarray, method: str) -> tuple[SveInput, Estimate]:
+        raw = np.asarray(raw)
+        sensor = self._sensors.get(raw.dtype)
+        if sensor is None:
+            sensor = self._sensors[raw.dtype] = sensor_for(raw, **self.sensor_levels)
+        inp = prepare(raw, self.pattern, sensor)
+        options = dict(self.method_options)
+        if "return_variance" in inspect.signature(METHODS[method]).parameters:
+            options["return_variance"] = True
+        estimate = run_method(inp, method, **options)
+        variance = estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
+        return inp, Estimate(estimate.image, estimate.lower_bound, variance)
+
+    def process(self, raw: np.ndarray) -> SequenceResult:
+        """Reconstruct the next raw frame of the stream (uint8/uint16 (H, W), black level included)."""
+        with self._lock:
+            method, history, index, generation = self._method, self._history, self._frames, self._generation
+        t0 = time.perf_counter()
+        inp, est = self._estimate(raw, method)
+        t1 = time.perf_counter()
+        image, variance = est.image, est.variance
+        moving = None
+        if self.consistency:
+            image, variance, moving = exposure_consistency(image, variance, inp, self.motion_config)
+        if self.temporal:
+            slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor)
+            frame = FrameEstimate(image, variance, est.lower_bound, own_readings(inp, image), slope, floor)
+            fused = fuse(history, frame, self.motion_config, moving, detail=self.detail)
+            image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
+            ratio, history = fused.illumination_ratio, fused.state
+        else:
+            motion = np.zeros(image.shape, bool) if moving is None else moving
+            weight, ratio = np.ones(image.shape, np.float32), 1.0
+        moving_fraction = float(np.count_nonzero(motion)) / motion.size
+        t2 = time.perf_counter()
+        with self._lock:
+            if self._generation == generation:
+                self._history = history if self.temporal else None
+                self._frames = index + 1
+            self._last_moving = moving_fraction
+        return SequenceResult(image, motion, variance, est.lower_bound, weight, moving_fraction, ratio,
+                              method, index, {"method": (t1 - t0) * 1e3, "motion": (t2 - t1) * 1e3})
+
+
+def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, **kwargs) -> Iterator[SequenceResult]:
+    """Reconstruct an iterable of raw frames (arrays, or objects with a ``raw`` array such as svelive.Frame).
+
+    Keyword arguments are those of :class:`Reconstructor`. Yields one SequenceResult per frame, lazily.
+    """
+    reconstructor = Reconstructor(pattern, **kwargs)
+    for frame in frames:
+        yield reconstructor.process(getattr(frame, "raw", frame))
