@@ -70,12 +70,15 @@ def exposure_maps(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray,
     return exposure, inverse
 
 
+@lru_cache(maxsize=8)
 def binomial_kernel(size: int) -> np.ndarray:
-    """Normalised 1-D binomial kernel of ``size`` taps (a discrete Gaussian), float32."""
+    """Normalised 1-D binomial kernel of ``size`` taps (a discrete Gaussian), float32, read-only."""
     k = np.array([1.0], dtype=np.float64)
     for _ in range(size - 1):
         k = np.convolve(k, [1.0, 1.0])
-    return (k / k.sum()).astype(np.float32)
+    k = (k / k.sum()).astype(np.float32)
+    k.setflags(write=False)
+    return k
 
 
 def support_size(tile_length: int) -> int:
