@@ -1,0 +1,84 @@
+"""The ``svelive serve`` verb: the live HDR service."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import sys
+
+from svelive.errors import SveliveError
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve", help="serve live HDR video over HTTP (MJPEG preview, EXR snapshots, state)",
+        description="Reconstruct a live SVE source and serve it: viewer page at /, MJPEG at /stream.mjpg, "
+                    "/snapshot.jpg, /snapshot.exr, /api/state, PUT /api/settings, /healthz. Every option can "
+                    "also come from SVELIVE_<NAME> (e.g. SVELIVE_PORT) or a TOML/JSON config file; "
+                    "precedence: command line > environment > config file > defaults.")
+    # Defaults are None: "not given", so that the environment and the config file can fill them.
+    p.add_argument("--config", metavar="PATH", help="TOML or JSON settings file (or SVELIVE_CONFIG)")
+    p.add_argument("--source", help="source spec: demo (default), gige[:ID], v4l2:/dev/videoN, images:GLOB, replay:PATH")
+    p.add_argument("--source-option", dest="source_options", action="append", metavar="KEY=VALUE",
+                   help="source option, repeatable (e.g. fps=30, width=1920)")
+    p.add_argument("--pattern", help="exposure pattern, e.g. 1,4/16,64 (default: the source's own)")
+    p.add_argument("--black-level", type=float)
+    p.add_argument("--white-level", type=float)
+    p.add_argument("--method", help="reconstruction method (see `svelive methods`)")
+    p.add_argument("--no-temporal", dest="temporal", action="store_const", const=False,
+                   help="reconstruct every frame on its own (no temporal fusion)")
+    p.add_argument("--host", help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="TCP port (default 8000)")
+    p.add_argument("--token", help="require Authorization: Bearer TOKEN (or ?token=) on every endpoint but /healthz")
+    p.add_argument("--cors-origin", dest="cors_origins", action="append", metavar="ORIGIN",
+                   help="allow this origin by CORS, repeatable (default: no CORS)")
+    p.add_argument("--jpeg-quality", type=int, help="preview JPEG quality 10..100 (default 80)")
+    p.add_argument("--preview-width", type=int, help="downscale previews wider than this (default 0: full size)")
+    p.add_argument("--queue", type=int, help="capture hand-off depth in frames, 1..8 (default 2)")
+    p.add_argument("--exposure-ev", type=float, help="preview exposure compensation in stops (default 0)")
+    p.add_argument("--key", type=float, help="preview middle grey 0.01..0.9 (default 0.18)")
+    p.add_argument("--white-percentile", type=float, help="radiance percentile shown as white (default 99.5)")
+    p.add_argument("--adapt-s", type=float, help="preview adaptation time constant in s (default 0.2)")
+    p.add_argument("--log-level", help="uvicorn log level (default info)")
+    p.set_defaults(func=cmd_serve)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from svelive.capture import open_source
+
+    from service.app import create_app
+    from service.pipeline import Pipeline
+    from service.settings import resolve
+
+    cli = {k: v for k, v in vars(args).items() if k not in ("func", "command", "config")}
+    if cli["source_options"] is not None:
+        cli["source_options"] = ",".join(cli["source_options"])
+    settings = resolve(cli, config=args.config)
+    config, server = settings.pipeline, settings.server
+    # build (not open) the source once, so a bad spec or option fails now with one line
+    open_source(config.source, pattern=config.pattern, black_level=config.black_level,
+                white_level=config.white_level, **config.source_options)
+    if server.token is None and not is_loopback(server.host):
+        print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
+              "this address can watch", file=sys.stderr)
+    app = create_app(Pipeline(config), server)
+    shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
+    print(f"svelive serve: {config.source} on http://{shown}:{server.port}/", file=sys.stderr, flush=True)
+    try:
+        uvicorn.run(app, host=server.host, port=server.port, log_level=server.log_level,
+                    timeout_graceful_shutdown=2, access_log=server.log_level in ("debug", "trace"))
+    except OSError as exc:
+        raise SveliveError(f"cannot listen on {server.host}:{server.port}: {exc.strerror or exc}") from None
+    return 0
+
+
+def is_loopback(host: str) -> bool:
+    """True for localhost and loopback addresses."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
