@@ -7,13 +7,14 @@ from __future__ import annotations
 
 from typing import Callable
 
-from svelive.methods import aggregate, cubic, weighted
+from svelive.methods import adaptive, aggregate, cubic, weighted
 from svelive.methods.base import Estimate, SveInput
 
 METHODS: dict[str, Callable[..., Estimate]] = {
     "weighted": weighted.run,
     "aggregate": aggregate.run,
     "cubic": cubic.run,
+    "adaptive": adaptive.run,
 }
 
 DEFAULT_METHOD = next(iter(METHODS))

@@ -1,0 +1,175 @@
+"""``adaptive``: each pixel's own reading where it measures the scene, its neighbours where they agree with it.
+
+Every uncensored pixel i gives an unbiased reading x_i = s_i / e_i of the
+radiance at its own position, with the variance of the Poisson-Gaussian model
+(sensor.py) v_i = (e_i L / g + sigma^2) / e_i^2, evaluated at a pilot L0 (the
+shot-noise maximum-likelihood sum(s) / sum(e) over the window). Per pixel p:
+
+1. Neighbour estimate m: the inverse-variance mean of the readings in a
+   binomial window around p *without p itself*, m = sum G_i w_i x_i / sum G_i w_i
+   (w_i = 1 / v_i), with variance v_m = sum G^2 / sum G_i w_i. Its error is
+   noise plus the bias of structure inside the window (an edge, texture).
+2. Local evidence of that bias: the residuals r_i = x_i - m_i of the pixels
+   around p. For a flat scene E[r^2] = v_i + v_m; the excess is the squared
+   bias. b^2 is its inverse-variance weighted mean over the window (weights
+   1 / (v_i + v_m)^2, the inverse variance of r^2), floored at 0.
+3. The result is the minimum-mean-square combination of p's own reading and m:
+   L = (x_p / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)).
+   In flat regions b^2 ~ 0 and the window is averaged with noise-optimal
+   weights; where the neighbours disagree with the pixel beyond their noise
+   (edges, texture) b^2 grows and a well-exposed pixel keeps its own reading at
+   full resolution; a noisy reading (short exposure, low light) counts for
+   little either way. Nothing is a tuned threshold: every quantity is a
+   variance of the noise model or a moment of the local residuals.
+
+Censoring. A censored reading only says L >= T_k = censor / e_k. Its pixel
+takes the inverse-variance mean of the neighbours whose readings are
+consistent with that bound (x_i + 2 sqrt(v_i) >= T_k), and at least T_k; where
+no neighbour is consistent it is the bound itself. Uncensored neighbours of a
+censored pixel of lower or equal exposure are the dark side of an edge (they
+survived where a shorter exposure saturated), so they are left out of the
+neighbour estimates m (each still gives its own pixel's reading). Where the
+window holds no uncensored reading, the result is the lower bound the censored
+pixels imply, flagged in ``lower_bound``.
+
+Cost. Per-pixel weights make the cost independent of the number of exposure
+levels: two separable windows for the pilot, two for m, two for b^2. The
+censored-pixel step runs only for the levels, and the strips of the frame,
+that actually hold censored pixels, so a scene whose range fits in the
+unsaturated exposures does not pay for it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from svelive.methods.base import (Estimate, SveInput, binomial_kernel, censored_lower_bound, in_strips,
+                                  smooth, support_size)
+
+#: Significance, in standard deviations of a reading, of "consistent with a censored bound".
+CONSISTENT_SIGMA = 2.0
+TINY = 1e-12  # floor of sums of inverse variances (real ones exceed 1e-7)
+BIG = 1e30  # exposure given to censored pixels when looking for uncensored ones
+
+
+def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Binomial (rows, cols) kernels, float32: the tile's support, at least 3 taps so every pixel has neighbours."""
+    th, tw = pattern_shape
+    return binomial_kernel(max(support_size(th), 3)), binomial_kernel(max(support_size(tw), 3))
+
+
+def run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
+    ky, kx = kernels(inp.pattern.shape)
+    halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
+    return in_strips(_run, inp, halo, rows=128, return_variance=return_variance)
+
+
+def own_share(inp: SveInput) -> np.ndarray:
+    """The per-pixel choice: weight of the pixel's own reading in the result, float32 (H, W) in [0, 1].
+
+    1 means the pixel's own reading alone (full resolution), 0 means its
+    neighbours alone (censored pixels, or readings far noisier than the
+    neighbourhood's average); in between, the noise-optimal blend.
+    """
+    return _solve(inp, want_share=True)[3]
+
+
+def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
+    image, lower, variance, _ = _solve(inp, want_variance=return_variance)
+    return Estimate(image, lower, variance)
+
+
+def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False):
+    """Core of the method on a whole frame or strip: (image, lower_bound, variance or None, share or None)."""
+    ky, kx = kernels(inp.pattern.shape)
+    f32 = np.float32
+    tiny = f32(TINY)
+    gain_inv, floor = f32(1.0 / inp.sensor.effective_gain), f32(inp.sensor.floor_variance)
+    e, s, censored = inp.exposure, inp.signal, inp.censored
+    any_censored = bool(censored.any())
+    valid = (~censored).view(np.uint8).astype(f32) if any_censored else np.ones_like(s)
+
+    # Pilot: shot-noise ML radiance over the window.
+    exposure_sum = smooth(e * valid if any_censored else e, ky, kx)
+    pilot = smooth(s * valid if any_censored else s, ky, kx)
+    np.divide(pilot, np.maximum(exposure_sum, tiny), out=pilot)
+    np.maximum(pilot, 0, out=pilot)
+
+    # Inverse variance of every reading at its pilot; 0 for censored readings.
+    w = pilot * e
+    w *= gain_inv
+    w += floor
+    np.divide(e * e * valid if any_censored else e * e, w, out=w)
+    x = s / e
+
+    # Neighbour estimate without the pixel itself; no neighbours: m = 0 with a huge variance.
+    centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
+    wn = w
+    if any_censored:
+        censored_exposure = e + valid * f32(BIG)
+        lowest = cv2.erode(censored_exposure, np.ones((len(ky), len(kx)), np.uint8),
+                           borderType=cv2.BORDER_REFLECT_101)
+        wn = w * np.greater(lowest, e)
+    wx = wn * x
+    sum_w = smooth(wn, ky, kx)
+    sum_w -= centre * wn
+    np.maximum(sum_w, tiny, out=sum_w)
+    m = smooth(wx, ky, kx)
+    m -= centre * wx
+    m /= sum_w
+    var_m = np.divide(f32((ky * ky).sum() * (kx * kx).sum()), sum_w, out=sum_w)
+
+    # Squared bias of m from the residuals around p, each weighted by the inverse variance of r^2.
+    var_r = np.divide(f32(1.0), np.maximum(w, tiny))  # own variance; censored: ~1 / tiny, no evidence
+    var_r += var_m
+    d = x - m
+    excess = d * d
+    excess -= var_r
+    q = np.multiply(var_r, var_r, out=var_r)
+    np.divide(f32(1.0), q, out=q)
+    excess *= q
+    excess = smooth(excess, ky, kx)
+    excess /= np.maximum(smooth(q, ky, kx), tiny)
+    np.maximum(excess, 0, out=excess)
+    excess += var_m  # squared bias + variance of m
+
+    # Minimum-mean-square blend of the own reading and the neighbour estimate: m + (x - m) w / (w + 1 / excess).
+    weight_m = np.divide(f32(1.0), excess, out=excess)
+    total = weight_m + w
+    share = np.divide(w, total, out=weight_m)
+    d *= share
+    image = np.add(m, d, out=m)
+
+    if any_censored:
+        _censored_pixels(inp, image, x, w, ky, kx)
+    np.maximum(image, 0, out=image)
+    variance = np.divide(f32(1.0), total) if want_variance else None
+    lower = exposure_sum <= 0
+    if lower.any():
+        bound = censored_lower_bound(inp, (len(ky), len(kx)))
+        np.copyto(image, bound, where=lower)
+        if variance is not None:  # a bound is known to within itself: relative error 1
+            np.copyto(variance, bound * bound, where=lower)
+    return image, lower, variance, share if want_share else None
+
+
+def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndarray,
+                     ky: np.ndarray, kx: np.ndarray) -> None:
+    """Replace ``image`` at censored pixels by the mean of the neighbours consistent with their bound, in place.
+
+    A censored pixel of level k gets max(mean, bound); with no consistent neighbour, the bound.
+    """
+    reach = np.divide(np.float32(CONSISTENT_SIGMA), np.sqrt(np.maximum(w, np.float32(TINY))))
+    reach += x  # x + 2 sigma; censored readings have w = 0 and drop out below
+    index = inp.pattern.level_index_map(inp.shape)  # nominal levels, also under a calibrated pixel map
+    for k, level in enumerate(inp.pattern.levels):
+        at = inp.censored & (index == k)
+        if not at.any():
+            continue
+        consistent = w * np.greater_equal(reach, np.float32(inp.sensor.censor_level / level))
+        total = smooth(consistent, ky, kx)
+        mean = smooth(consistent * x, ky, kx)
+        mean /= np.maximum(total, np.float32(TINY))
+        np.maximum(mean, x, out=mean)
+        np.copyto(image, mean, where=at)
