@@ -81,12 +81,14 @@ class TemporalState:
             reset, max_history): the weight its last frame had, and the variance
             of its mean over one frame's variance (conservative once n is capped).
         bound: bool (H, W), the mean is only a lower bound (all samples censored).
+        censored: bool (H, W), the last frame's censored readings.
     """
 
     mean: np.ndarray
     own: np.ndarray
     weight: np.ndarray
     bound: np.ndarray
+    censored: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,7 @@ class FrameEstimate:
     Attributes:
         image, variance: float32 (H, W), the single-frame estimate (DN) and its variance (DN^2).
         bound: bool (H, W), ``image`` is only a lower bound there.
+        censored: bool (H, W), readings at or above the censor level.
         own: float32 (H, W), each pixel's own reading s / e (``image`` where censored).
         own_slope, own_floor: float32 (H, W), the own reading's one-frame variance
             is ``own_slope * L + own_floor`` at radiance L (1 / (e g) and sigma^2 / e^2).
@@ -104,6 +107,7 @@ class FrameEstimate:
     image: np.ndarray
     variance: np.ndarray
     bound: np.ndarray
+    censored: np.ndarray
     own: np.ndarray
     own_slope: np.ndarray
     own_floor: np.ndarray
@@ -128,6 +132,17 @@ class Fused:
     history: np.ndarray
     illumination_ratio: float
     state: TemporalState
+
+
+def _grow(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:
+    """Dilate a bool (H, W) mask by a centred (rows, cols) window."""
+    return cv2.dilate(mask.view(np.uint8), np.ones(window, np.uint8), borderType=cv2.BORDER_REPLICATE).view(bool)
+
+
+def _confirmed(flagged: np.ndarray) -> np.ndarray:
+    """bool (H, W): flagged pixels with at least one flagged 8-neighbour."""
+    counts = cv2.boxFilter(flagged.view(np.uint8), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return flagged & (counts >= 2)
 
 
 def _widen(mask: np.ndarray, pixels: int) -> np.ndarray:
@@ -249,25 +264,30 @@ RATIO_TOLERANCE = 2e-3
 
 def start(frame: FrameEstimate) -> TemporalState:
     """A history holding one frame."""
-    return TemporalState(frame.image, frame.own, np.ones(frame.image.shape, np.float32), frame.bound)
+    return TemporalState(frame.image, frame.own, np.ones(frame.image.shape, np.float32), frame.bound, frame.censored)
 
 
-def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig,
+def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
          moving: np.ndarray | None = None, detail: bool = True) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
         state: the history, or None to start one (also when the frame size changed).
         frame: this frame's estimates; its arrays are not modified.
+        pattern_shape: the exposure tile's shape (rows, cols).
         moving: bool (H, W) or None, pixels already known to move (within-frame test).
         detail: where a pixel has history (2 frames or more), move the output towards
             its own fused readings as far as they exceed their noise (:func:`sharpen`
             at ``config.detail_sigmas``).
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
-    estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it
-    (widened by ``config.widen``), where ``moving`` is set, and where either the
-    history or the frame is only a lower bound (a bound cannot be averaged).
+    estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it,
+    where ``moving`` is set, where either the history or the frame is only a
+    lower bound (a bound cannot be averaged), and within a tile window of a
+    reading that crossed the censor level. Flagged pixels count as motion when
+    a neighbour is flagged too (every estimate spreads over a window, so does
+    any real change; isolated flags are mostly noise); motion is widened by
+    ``config.widen`` and reset too.
     Elsewhere it takes the running mean with weight 1 / min(n + 1, max_history).
     The history's variance is taken as the frame's variance v times w, as for a
     static scene with stationary noise. The test compares smooth estimates,
@@ -294,12 +314,16 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         tolerance = state.weight[rows] + np.float32(1)
         tolerance *= variance[rows]
         np.greater(diff, tolerance, out=flagged[rows])
-    either_bound = bound | state.bound
-    flagged &= ~either_bound
-    motion = _widen(flagged, config.widen)
+    # A reading that crossed the censor level changes which exposures a method
+    # uses nearby, and so its resolution loss: not evidence of motion, but not
+    # averageable either.
+    window = tuple(support_size(n) for n in pattern_shape)
+    unstable = _grow(frame.censored ^ state.censored, window) | bound | state.bound
+    flagged &= ~unstable
+    motion = _widen(_confirmed(flagged), config.widen)
     if moving is not None:
         motion = motion | moving
-    reset = motion | either_bound
+    reset = motion | flagged | unstable
 
     fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     weight = np.empty_like(image)
@@ -322,7 +346,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             with np.errstate(divide="ignore"):
                 threshold /= w < 1  # infinite where the pixel has no history: nothing to sharpen
             out[rows] = sharpen(fused[rows], own[rows], threshold)
-    return Fused(out, fused_var, motion, weight, ratio, TemporalState(fused, own, weight, bound))
+    return Fused(out, fused_var, motion, weight, ratio, TemporalState(fused, own, weight, bound, frame.censored))
 
 
 def _running_mean(mean: np.ndarray, new: np.ndarray, weight: np.ndarray, scale: np.float32 | None) -> np.ndarray:

@@ -222,8 +222,8 @@ class Reconstructor:
             image, variance, moving = exposure_consistency(image, variance, inp, self.motion_config)
         if self.temporal:
             slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor)
-            frame = FrameEstimate(image, variance, est.lower_bound, own_readings(inp, image), slope, floor)
-            fused = fuse(history, frame, self.motion_config, moving, detail=self.detail)
+            frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, own_readings(inp, image), slope, floor)
+            fused = fuse(history, frame, self.motion_config, self.pattern.shape, moving, detail=self.detail)
             image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
         else:

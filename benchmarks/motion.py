@@ -1,0 +1,188 @@
+"""Motion robustness targets (issue 5): temporal fusion gain, moving regions, ghosting, integration timing, cost.
+
+    python benchmarks/motion.py [--quick] [--figure docs/motion-trail.png]
+
+Real HDR content from ../shared/data (not shipped). 12-bit sensor, 10 000 e- full
+well, 3 e- read noise, pattern 1,4/16,64, default method. PU21-PSNR is computed
+over a region (static or moving pixels of the ground-truth motion mask) with
+the display scaling of the whole frame's truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from svelive import Pattern, Sensor  # noqa: E402
+from svelive.exr import read_luminance  # noqa: E402
+from svelive.metrics import PU21_PEAK, display_scale, pu21_encode  # noqa: E402
+from svelive.reconstructor import Reconstructor  # noqa: E402
+from svelive.scenes import load_beachball, moving_disc, panning, placed_frames, render_sequence, static  # noqa: E402
+from svelive.simulate import exposure_scale  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+PATTERN = "1,4/16,64"
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
+KW = dict(white_level=SENSOR.white_level, gain=SENSOR.gain, read_noise=SENSOR.read_noise)
+
+
+def region_pu21(test: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
+    """PU21-PSNR (dB) over ``region`` only, display scaling from the whole truth."""
+    if not region.any():
+        return float("nan")
+    s = display_scale(truth)
+    err = pu21_encode(test[region] * s) - pu21_encode(truth[region] * s)
+    mse = float(np.mean(err * err))
+    return float("inf") if mse == 0 else 10 * np.log10(PU21_PEAK**2 / mse)
+
+
+def scaled(image: np.ndarray, stops: float) -> np.ndarray:
+    return image * exposure_scale(image, Pattern.parse(PATTERN), SENSOR, stops_below_fill=stops)
+
+
+def run(frames, **kw):
+    """Fused and single-frame results of a rendered sequence: list of (frame, fused, single)."""
+    fused, single = Reconstructor(PATTERN, **KW, **kw), Reconstructor(PATTERN, temporal=False, **KW, **kw)
+    return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
+
+
+def static_gain(name: str, stops: float, n: int, crop: int) -> tuple[float, float, float]:
+    image = np.maximum(read_luminance(DATA / "hdr" / name), 0)
+    h, w = image.shape
+    image = image[(h - min(h, crop)) // 2:][:crop, (w - min(w, crop)) // 2:][:, :crop]
+    out = run(render_sequence(static(scaled(image, stops)), n, PATTERN, SENSOR, seed=1))
+    f, fused, single = out[-1]
+    everywhere = np.ones(f.truth.shape, bool)
+    false_alarm = float(np.mean([r.moving_fraction for _, r, _ in out[1:]]))
+    return region_pu21(single.image, f.truth, everywhere), region_pu21(fused.image, f.truth, everywhere), false_alarm
+
+
+def moving_case(label: str, scene, n: int, timing: str = "mask") -> dict[str, float]:
+    out = run(render_sequence(scene, n, PATTERN, SENSOR, timing=timing, seed=3), exposure_timing=timing)
+    res = {}
+    moving = [f.motion for f, _, _ in out]
+    trail_f, trail_s, mov_f, mov_s, st_f, st_s = [], [], [], [], [], []
+    for i, (f, fused, single) in enumerate(out[2:], start=2):
+        # Trail: pixels that moved in the last 3 frames but are static now.
+        trail = np.any(moving[max(0, i - 3):i], axis=0) & ~f.motion
+        trail_f.append(region_pu21(fused.image, f.truth, trail))
+        trail_s.append(region_pu21(single.image, f.truth, trail))
+        mov_f.append(region_pu21(fused.image, f.truth, f.motion))
+        mov_s.append(region_pu21(single.image, f.truth, f.motion))
+        st_f.append(region_pu21(fused.image, f.truth, ~f.motion))
+        st_s.append(region_pu21(single.image, f.truth, ~f.motion))
+    res = {k: float(np.nanmean(v)) for k, v in dict(moving_fused=mov_f, moving_single=mov_s, trail_fused=trail_f,
+                                                     trail_single=trail_s, static_fused=st_f,
+                                                     static_single=st_s).items()}
+    res["moving_fraction_gt"] = float(np.mean([m.mean() for m in moving]))
+    res["flagged_fraction"] = float(np.mean([r.moving_fraction for _, r, _ in out[1:]]))
+    print(f"{label:34s} moving {res['moving_single']:6.2f} -> {res['moving_fused']:6.2f} dB | "
+          f"trail {res['trail_single']:6.2f} -> {res['trail_fused']:6.2f} dB | static {res['static_single']:6.2f} -> "
+          f"{res['static_fused']:6.2f} dB | gt moving {100 * res['moving_fraction_gt']:.1f}% flagged "
+          f"{100 * res['flagged_fraction']:.1f}%")
+    return res
+
+
+def integration_edge(scene, n: int) -> None:
+    frames = list(render_sequence(scene, n, PATTERN, SENSOR, timing="integration", seed=5))
+    with_c = Reconstructor(PATTERN, temporal=False, exposure_timing="integration", **KW)
+    without = Reconstructor(PATTERN, temporal=False, exposure_timing="integration", consistency=False, **KW)
+    a = [region_pu21(with_c.process(f.raw).image, f.truth, f.motion) for f in frames]
+    b = [region_pu21(without.process(f.raw).image, f.truth, f.motion) for f in frames]
+    print(f"integration timing, moving edges: PU21 without consistency {np.mean(b):6.2f} dB, "
+          f"with {np.mean(a):6.2f} dB")
+
+
+def cost(repeats: int) -> None:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from speed import test_frame
+
+    raw, sensor = test_frame(PATTERN)
+    kw = dict(white_level=sensor.white_level, gain=sensor.gain, read_noise=sensor.read_noise)
+    for label, opts in [("temporal + detail (mask)", {}), ("temporal, no detail", dict(detail=False)),
+                        ("temporal + consistency (integration)", dict(exposure_timing="integration")),
+                        ("single frame, no motion stage", dict(temporal=False))]:
+        r = Reconstructor(PATTERN, **kw, **opts)
+        method, motion = [], []
+        for _ in range(repeats + 1):
+            res = r.process(raw)
+            method.append(res.timings_ms["method"])
+            motion.append(res.timings_ms["motion"])
+        print(f"1920x1200 {label:38s} method {np.median(method[1:]):6.1f} ms, motion stage "
+              f"{np.median(motion[1:]):6.1f} ms (median of {repeats})")
+
+
+def trail_figure(path: Path, scene, n: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = run(render_sequence(scene, n, PATTERN, SENSOR, seed=7))
+    f, fused, single = out[-1]
+    s = display_scale(f.truth)
+    tone = lambda x: pu21_encode(x * s) / PU21_PEAK  # noqa: E731
+    err = lambda x: np.abs(pu21_encode(x * s) - pu21_encode(f.truth * s))  # noqa: E731
+    panels = [("ground truth", tone(f.truth)), ("fused (8 frames)", tone(fused.image)),
+              ("single frame", tone(single.image)), ("|error| fused, PU21", err(fused.image)),
+              ("|error| single, PU21", err(single.image)), ("motion mask (flagged)", fused.motion)]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 8))
+    vmax = float(np.percentile(err(single.image), 99.5))
+    for ax, (title, img) in zip(axes.flat, panels):
+        ax.imshow(img, cmap="gray" if "error" not in title else "magma",
+                  vmax=vmax if "error" in title else None)
+        ax.set_title(title)
+        ax.axis("off")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    print(f"figure written to {path}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller crops and fewer repeats")
+    parser.add_argument("--figure", type=Path, help="write the trail figure (frame, truth, error maps) here")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    crop, repeats = (256, 3) if args.quick else (512, 7)
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; pattern {PATTERN}, "
+          f"12-bit, 10000 e- full well, 3 e- read noise; 8 frames")
+    print("## static scenes: PU21-PSNR single frame -> fused after 8 frames; mean flagged fraction (false alarms)")
+    for stops in (5, 0):
+        for name in ("Desk.exr", "MtTamWest.exr", "Bonita.exr", "Garden.exr", "Cannon.exr", "BrightRings.exr"):
+            single, fused, fa = static_gain(name, stops, 8, crop)
+            print(f"{stops} stops below fill {name:16s} {single:6.2f} -> {fused:6.2f} dB ({fused - single:+.2f}), "
+                  f"false alarms {100 * fa:.3f}%")
+    print("## moving scenes (mask timing unless stated): PU21 over ground-truth moving / trail / static pixels, "
+          "single -> fused")
+    mt = np.maximum(read_luminance(DATA / "hdr" / "MtTamWest.exr"), 0)
+    desk = np.maximum(read_luminance(DATA / "hdr" / "Desk.exr"), 0)
+    moving_case("pan 3 px/frame MtTamWest (all move)", panning(scaled(mt, 0), (crop, crop), (0.0, 3.0), (100, 100)), 8)
+    dark = scaled(desk, 5)[:crop, :crop]
+    disc = moving_disc(dark, float(np.percentile(dark, 99.9)) * 4, crop / 10, (crop / 2, crop / 5), (0.0, crop / 16))
+    moving_case("bright disc over dark Desk, 5 stops", disc, 8)
+    frames, shape = load_beachball(DATA / "beachball", scale=0.25)
+    peak = max(float(np.percentile(f[0], 99.9)) for f in frames)
+    ball = placed_frames([(f * (SENSOR.range_dn / peak), o) for f, o in frames], shape, background=2.0)
+    moving_case("Beachball (data windows placed)", ball, 8)
+    moving_case("Beachball, integration timing", ball, 8, timing="integration")
+    integration_edge(disc, 8)
+    integration_edge(panning(scaled(mt, 0), (crop, crop), (0.0, 3.0), (100, 100)), 6)
+    cost(repeats)
+    if args.figure:
+        trail_figure(args.figure, disc, 8)
+
+
+if __name__ == "__main__":
+    main()
