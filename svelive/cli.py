@@ -22,6 +22,7 @@ from svelive.errors import SveliveError
 COMMAND_MODULES: tuple[str, ...] = (
     "svelive.commands",
     "svelive.capture.commands",
+    "svelive.motion_commands",
     "service.commands",
 )
 
