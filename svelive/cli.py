@@ -21,6 +21,7 @@ from svelive.errors import SveliveError
 #: Modules that add verbs of their own: each defines add_commands(subparsers).
 COMMAND_MODULES: tuple[str, ...] = (
     "svelive.commands",
+    "svelive.calibrate.commands",
     "svelive.capture.commands",
     "svelive.motion_commands",
     "service.commands",

@@ -1,0 +1,10 @@
+"""Calibration from data: the camera's response, the exposure mask, the noise model."""
+
+from svelive.calibrate.mask import MaskConfig, MaskEstimate, estimate_mask, load_mask, save_mask
+from svelive.calibrate.noise import NoiseModel, estimate_noise
+from svelive.calibrate.response import (CURVES, Response, ResponseFitConfig, calibrate_frame, fit_response,
+                                        linearise, load_response, save_response, simulate_nonlinear)
+
+__all__ = ["CURVES", "MaskConfig", "MaskEstimate", "NoiseModel", "Response", "ResponseFitConfig",
+           "calibrate_frame", "estimate_mask", "estimate_noise", "fit_response", "linearise", "load_mask",
+           "load_response", "save_mask", "save_response", "simulate_nonlinear"]

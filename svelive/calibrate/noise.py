@@ -1,0 +1,250 @@
+"""The sensor's noise model from data: gain (electrons per DN) and read noise (DN).
+
+The model is Poisson-Gaussian: a raw reading with expected signal ``s`` DN above
+black has variance ``a s + b`` DN^2, with ``a = 1 / gain`` and
+``b = read_noise^2 + 1/12`` (the 1/12 is uniform quantisation). The variance is
+measured against the signal in bins and the line is fitted by weighted least
+squares, from either
+
+- a pair of frames of the same static scene or flat field (the pixel-wise
+  difference removes the scene, whatever its texture, vignetting or mask), or
+- one frame of a static scene: the residual of every pixel against the mean of
+  its four nearest neighbours of the same exposure (same tile position) holds
+  noise plus whatever texture the scene has there; a median absolute deviation
+  per signal bin ignores the textured minority.
+"""
+
+from __future__ import annotations
+
+import math
+from statistics import NormalDist
+from dataclasses import dataclass
+
+import numpy as np
+
+from svelive.errors import SveliveError
+from svelive.pattern import Pattern
+from svelive.sensor import Sensor
+
+#: Variance of uniform quantisation to integers, DN^2.
+QUANTISATION_VARIANCE = 1.0 / 12.0
+#: MAD to standard deviation for a normal distribution.
+MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True)
+class NoiseCurve:
+    """Measured noise variance against signal, one entry per signal bin.
+
+    Attributes:
+        signal: float64 (B,), mean signal above black of the bin, DN.
+        variance: float64 (B,), noise variance of one reading there, DN^2.
+        count: int64 (B,), number of samples in the bin.
+    """
+
+    signal: np.ndarray
+    variance: np.ndarray
+    count: np.ndarray
+
+    def at(self, signal: np.ndarray | float) -> np.ndarray:
+        """Variance (DN^2) at ``signal`` (DN), linearly interpolated between bins, float64."""
+        return np.interp(signal, self.signal, self.variance)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Fitted Poisson-Gaussian noise model.
+
+    Attributes:
+        gain: electrons per DN (1 / slope).
+        read_noise: read noise, DN (standard deviation, quantisation excluded).
+        slope: a in variance = a * signal + b, DN^2 per DN.
+        intercept: b, DN^2.
+        signal_range: (low, high) signal above black covered by the data, DN.
+        samples: number of pixel samples used.
+        method: "pair" or "single-frame".
+        residual_rms: rms relative deviation of the bins from the fitted line.
+    """
+
+    gain: float
+    read_noise: float
+    slope: float
+    intercept: float
+    signal_range: tuple[float, float]
+    samples: int
+    method: str
+    residual_rms: float
+
+    def to_dict(self) -> dict:
+        return {"gain": self.gain, "read_noise": self.read_noise, "slope": self.slope,
+                "intercept": self.intercept, "signal_range": list(self.signal_range),
+                "samples": self.samples, "method": self.method, "residual_rms": self.residual_rms}
+
+    def sensor(self, base: Sensor) -> Sensor:
+        """``base`` with this gain and read noise."""
+        return Sensor(base.bits, base.black_level, base.white_level, self.gain, self.read_noise)
+
+
+def _check_frame(raw: np.ndarray, name: str) -> np.ndarray:
+    raw = np.asarray(raw)
+    if raw.ndim != 2 or raw.size == 0:
+        raise SveliveError(f"{name} must be a non-empty single-channel 2-D array, got shape {raw.shape}")
+    if raw.dtype.kind not in "uif":
+        raise SveliveError(f"{name} has unsupported dtype {raw.dtype}")
+    return raw.astype(np.float64)
+
+
+def _bin_statistics(signal: np.ndarray, values: np.ndarray, statistic, bins: int,
+                    min_count: int) -> NoiseCurve:
+    """Bins of equal sample count over ``signal``; ``statistic(values_in_bin)`` gives the variance."""
+    order = np.argsort(signal, kind="stable")
+    n = order.size
+    nbins = max(1, min(bins, n // min_count))
+    edges = np.linspace(0, n, nbins + 1).astype(np.int64)
+    s, v, c = [], [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        idx = order[lo:hi]
+        if idx.size < min_count:
+            continue
+        s.append(float(np.mean(signal[idx])))
+        v.append(float(statistic(values[idx])))
+        c.append(idx.size)
+    return NoiseCurve(np.array(s), np.array(v), np.array(c, dtype=np.int64))
+
+
+def noise_curve_pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, *, bins: int = 32,
+                     min_count: int = 200) -> NoiseCurve:
+    """Noise variance against signal from two frames of the same static scene.
+
+    Args:
+        raw1, raw2: (H, W) raw frames, DN including black, same shape.
+        sensor: black and white level (gain and read noise are not used).
+    A global brightness change between the frames (flicker) is removed first.
+    """
+    a = _check_frame(raw1, "first frame")
+    b = _check_frame(raw2, "second frame")
+    if a.shape != b.shape:
+        raise SveliveError(f"the two frames differ in size: {a.shape[1]}x{a.shape[0]} and {b.shape[1]}x{b.shape[0]}")
+    black, white = float(sensor.black_level), float(sensor.white_level)
+    valid = (a < white) & (b < white) & (a > 0) & (b > 0)
+    sa, sb = a[valid] - black, b[valid] - black
+    if sa.size < min_count or not sb.sum() > 0:
+        raise SveliveError(f"only {sa.size} pixels are neither saturated nor black in both frames; "
+                           "use frames exposed well below saturation")
+    k = float(sa.sum() / sb.sum())
+    diff = sa - k * sb
+    scale = 1.0 + k * k
+    curve = _bin_statistics(0.5 * (sa + k * sb), diff, lambda d: np.var(d) / scale, bins, min_count)
+    return curve
+
+
+def _chi2_quantile(q: float, dof: int) -> float:
+    """Quantile of chi-square with ``dof`` degrees of freedom (Wilson-Hilferty approximation)."""
+    z = NormalDist().inv_cdf(q)
+    t = 2.0 / (9.0 * dof)
+    return dof * (1.0 - t + z * math.sqrt(t)) ** 3
+
+
+def noise_curve_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *, bins: int = 24,
+                      window: int = 3, quantile: float = 0.1, min_count: int = 50) -> NoiseCurve:
+    """Noise variance against signal from one frame of a static scene.
+
+    Every sub-image of one tile position (one exposure) is cut into 2x2 blocks;
+    the block's second difference ``(x00 - x01 - x10 + x11) / 2`` cancels any
+    locally bilinear scene and has the variance of one reading where the scene
+    is smooth. Over ``window`` x ``window`` blocks the mean square of these
+    differences is sigma^2 chi^2_n / n (n = window^2) on smooth areas and larger
+    on textured ones, so per signal bin the ``quantile`` of the window values,
+    divided by the same quantile of chi^2_n / n, estimates sigma^2 as long as that
+    fraction of the bin's windows is smooth. Windows with a clipped reading are
+    left out.
+
+    Args:
+        raw: (H, W) raw frame, DN including black.
+        pattern: exposure pattern (its tile says which pixels share an exposure).
+        sensor: black and white level.
+    """
+    x = _check_frame(raw, "raw frame")
+    pattern = Pattern.parse(pattern)
+    th, tw = pattern.shape
+    black, white = float(sensor.black_level), float(sensor.white_level)
+    span = 2 * window
+    signals, energies = [], []
+    for a in range(th):
+        for b in range(tw):
+            sub = x[a::th, b::tw]
+            ny, nx = sub.shape[0] // span, sub.shape[1] // span
+            if ny < 1 or nx < 1:
+                continue
+            cells = sub[:ny * span, :nx * span].reshape(ny, window, 2, nx, window, 2)
+            d = 0.5 * (cells[:, :, 0, :, :, 0] - cells[:, :, 0, :, :, 1]
+                       - cells[:, :, 1, :, :, 0] + cells[:, :, 1, :, :, 1])
+            clipped = ((cells >= white) | (cells <= 0)).any(axis=(1, 2, 4, 5))
+            keep = ~clipped
+            energies.append((d * d).mean(axis=(1, 3))[keep])
+            signals.append(cells.mean(axis=(1, 2, 4, 5))[keep] - black)
+    if not signals:
+        raise SveliveError(f"frame {x.shape[1]}x{x.shape[0]} is too small for noise estimation with a "
+                           f"{tw}x{th} tile (need {span} tiles each way)")
+    s = np.concatenate(signals)
+    e = np.concatenate(energies)
+    if s.size < 3 * min_count:
+        raise SveliveError(f"only {s.size} unclipped {span}x{span}-tile windows; use a larger frame exposed "
+                           "below saturation")
+    dof = window * window
+    correction = _chi2_quantile(quantile, dof) / dof
+    return _bin_statistics(s, e, lambda v: np.quantile(v, quantile) / correction, bins, min_count)
+
+
+def fit_noise_model(curve: NoiseCurve, method: str, *, robust: bool = False,
+                    outlier_factor: float = 1.3) -> NoiseModel:
+    """Fit variance = a * signal + b to a noise curve by weighted least squares.
+
+    The weights are the inverse standard deviation of each bin's variance estimate,
+    ``sqrt((n - 1) / 2) / variance``, iterated with the fitted variance. With
+    ``robust``, bins above ``outlier_factor`` times the line are dropped (texture
+    only ever inflates a single-frame estimate).
+    """
+    s, v, n = curve.signal, curve.variance, curve.count.astype(np.float64)
+    if s.size < 3:
+        raise SveliveError(f"only {s.size} signal bins have enough samples; use larger frames or more area below saturation")
+    lo, hi = float(s.min()), float(s.max())
+    if not hi - lo >= 0.5 * hi:
+        raise SveliveError(f"the data covers signals only from {lo:.1f} to {hi:.1f} DN; the slope needs a wider "
+                           "range: use flats at several brightness levels or a scene with dark and bright areas")
+    model_v = np.maximum(v, QUANTISATION_VARIANCE)
+    A = np.stack([s, np.ones_like(s)], axis=1)
+    inlier = np.ones(s.size, bool)
+    for _ in range(6):
+        # Bins short of smooth areas read high, never low: drop those well above the line and refit.
+        w = np.sqrt(np.maximum(n - 1, 1) / 2.0) / np.maximum(model_v, QUANTISATION_VARIANCE) * inlier
+        coef, *_ = np.linalg.lstsq(A * w[:, None], v * w, rcond=None)
+        model_v = np.maximum(A @ coef, QUANTISATION_VARIANCE)
+        if robust:
+            inlier = v <= outlier_factor * model_v
+    slope, intercept = float(coef[0]), float(coef[1])
+    if not slope > 0:
+        raise SveliveError("the noise does not grow with the signal in this data (slope <= 0); use frames with "
+                           "a wide range of brightness and no motion between them")
+    resid = float(np.sqrt(np.mean(((v - model_v) / model_v)[inlier] ** 2)))
+    read_var = intercept - QUANTISATION_VARIANCE
+    return NoiseModel(gain=1.0 / slope, read_noise=math.sqrt(max(read_var, 0.0)), slope=slope,
+                      intercept=intercept, signal_range=(lo, hi), samples=int(n.sum()), method=method,
+                      residual_rms=resid)
+
+
+def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | str | None = None) -> NoiseModel:
+    """Gain and read noise from two frames of a static scene, or from one frame (needs ``pattern``).
+
+    Args:
+        frames: one or two (H, W) raw frames, DN including black.
+        sensor: black and white level.
+        pattern: the exposure pattern, required for a single frame.
+    """
+    if len(frames) == 2:
+        return fit_noise_model(noise_curve_pair(frames[0], frames[1], sensor), "pair")
+    if len(frames) == 1:
+        if pattern is None:
+            raise SveliveError("noise from a single frame needs the exposure pattern (--pattern)")
+        return fit_noise_model(noise_curve_frame(frames[0], pattern, sensor), "single-frame", robust=True)
+    raise SveliveError(f"noise estimation takes one frame of a static scene or a pair of frames, got {len(frames)}")

@@ -1,0 +1,616 @@
+"""The camera's response function from one SVE frame (paper section 8; Mitsunaga and Nayar 1999).
+
+Brightness ``M`` (raw minus black, divided by white minus black: 0..1) relates to
+scaled linear radiance ``I`` by the inverse response ``I = f(M) = sum c_n M^n``,
+normalised by ``f(1) = 1``. Neighbouring pixels of an SVE frame see the scene
+with known exposure ratios, so where the scene is locally constant the means of
+the exposure sub-images over a small window obey ``f(M_l) = R_lk f(M_k)``,
+``R_lk = e_l / e_k``: a linear least-squares problem in the ``c_n``.
+
+Steps (:func:`fit_response`):
+
+1. Per exposure level, mean and variance of its readings over windows of
+   ``window`` x ``window`` tiles; windows with a clipped reading are dropped.
+2. The noise variance at each brightness is measured from the frame itself
+   (:func:`svelive.calibrate.noise.noise_curve_frame`); a window is "locally
+   constant" when its variance is what noise alone would give at the
+   ``flat_quantile`` level of a chi-square test.
+3. Every pair of flat levels at a location gives one equation, weighted by the
+   inverse standard deviation of its residual (propagated through ``f'``).
+4. The degree is the lowest one whose error on held-out locations (spatial
+   folds, so held-out windows do not share pixels with training ones) is within
+   one standard error of the best degree's (the one-standard-error rule), among
+   degrees whose curve is monotone on [0, 1].
+5. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
+   fitted curve and the fit repeated; the ratio of the extreme exposures is kept
+   at its nominal value because ``f^g`` with ratios ``R^g`` fits the same data
+   for any ``g`` (the exponential ambiguity of ratio-based calibration).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+from numpy.polynomial import polynomial as P
+
+from svelive.calibrate.noise import QUANTISATION_VARIANCE, _chi2_quantile, noise_curve_frame
+from svelive.errors import SveliveError
+from svelive.pattern import Pattern
+from svelive.sensor import Sensor
+
+
+@dataclass(frozen=True)
+class Response:
+    """A fitted inverse response ``I = f(M)``.
+
+    Attributes:
+        coefficients: c_0 first; f(M) = sum c_n M^n with f(1) = 1.
+        domain: (low, high) brightness range the polynomial takes; inputs are clipped to it.
+        black_level, white_level: DN; M = (raw - black) / (white - black).
+        stats: fit statistics (measured range, samples, held-out errors per degree, ...).
+    """
+
+    coefficients: tuple[float, ...]
+    domain: tuple[float, float] = (0.0, 1.0)
+    black_level: float = 0.0
+    white_level: float = 255.0
+    stats: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def degree(self) -> int:
+        return len(self.coefficients) - 1
+
+    def __call__(self, brightness: np.ndarray | float) -> np.ndarray:
+        """Linear radiance I (float64, f(1) = 1) of normalised brightness M."""
+        m = np.clip(np.asarray(brightness, dtype=np.float64), *self.domain)
+        return P.polyval(m, np.asarray(self.coefficients))
+
+    def to_dict(self) -> dict:
+        return {"degree": self.degree, "coefficients": list(self.coefficients), "domain": list(self.domain),
+                "black_level": self.black_level, "white_level": self.white_level, "stats": self.stats}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Response:
+        try:
+            coefficients = tuple(float(c) for c in data["coefficients"])
+            domain = tuple(float(d) for d in data.get("domain", (0.0, 1.0)))
+            black = float(data.get("black_level", 0.0))
+            white = float(data["white_level"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SveliveError(f"response data is missing or has a bad field: {exc}") from None
+        if not coefficients or len(domain) != 2 or not domain[0] < domain[1]:
+            raise SveliveError("response needs at least one coefficient and a domain [low, high] with low < high")
+        if "degree" in data and int(data["degree"]) != len(coefficients) - 1:
+            raise SveliveError(f"response degree {data['degree']} does not match its {len(coefficients)} coefficients")
+        if not white > black:
+            raise SveliveError(f"response white level {white:g} must be above its black level {black:g}")
+        return cls(coefficients, domain, black, white, dict(data.get("stats", {})))
+
+
+@dataclass(frozen=True)
+class ResponseFitConfig:
+    """Options of :func:`fit_response`.
+
+    Attributes:
+        max_degree: highest polynomial degree tried (1..10).
+        window: side of the local window, in tiles (odd, >= 3).
+        flat_quantile: a window is flat when its variance is below this quantile
+            of what noise alone would give.
+        folds: number of spatial folds for the held-out degree choice.
+        fold_block: side, in windows, of the square blocks assigned to one fold.
+        min_locations: fewest flat locations with two or more usable exposures.
+        min_span: least width of the measured brightness range.
+        refine_ratios: re-estimate the intermediate exposure ratios from the data.
+        max_uncertainty: largest standard error of the fitted curve on the measured
+            range (fraction of full scale) accepted; above it the frame is refused.
+        seed: seed of the fold assignment.
+    """
+
+    max_degree: int = 6
+    window: int = 3
+    flat_quantile: float = 0.95
+    folds: int = 5
+    fold_block: int = 8
+    min_locations: int = 100
+    min_span: float = 0.3
+    refine_ratios: bool = False
+    max_uncertainty: float = 0.01
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class _Pairs:
+    """Ratio equations f(m_hi) - R f(m_lo) = 0 of flat locations (one entry per level pair)."""
+
+    m_lo: np.ndarray      # float64 (P,), normalised brightness of the lower exposure
+    m_hi: np.ndarray      # float64 (P,)
+    var_lo: np.ndarray    # float64 (P,), variance of m_lo (a window mean)
+    var_hi: np.ndarray
+    k_lo: np.ndarray      # int (P,), level index of the lower exposure
+    k_hi: np.ndarray
+    location: np.ndarray  # int (P,), index of the location
+    fold: np.ndarray      # int (P,), spatial fold of the location
+
+
+def _window_sums(sub: np.ndarray, window: int) -> np.ndarray:
+    """Sum over window x window neighbourhoods, valid part only, float64."""
+    s = cv2.boxFilter(sub, cv2.CV_64F, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    r = window // 2
+    return s[r:s.shape[0] - r, r:s.shape[1] - r]
+
+
+def level_window_statistics(raw: np.ndarray, pattern: Pattern, sensor: Sensor, window: int):
+    """Per exposure level, a plane fitted to its readings over windows of ``window`` x ``window`` tiles.
+
+    Within a window the readings of one level are fitted by ``M = a + b_y dy + b_x dx``
+    (dy, dx in pixels from the window's centre, the same point for every level),
+    so the levels are compared at one point even though their pixels are offset
+    and the scene has a gradient there.
+
+    Returns (value, residual_var, var_factor, count, usable): value = a, the
+    level's brightness at the centre, and residual_var, the variance of the
+    readings about the plane (n - 3 degrees of freedom), both float64 (K, Y, X)
+    with Y x X window positions, one per tile; var_factor (K,) turns one reading's
+    variance into the variance of ``value``; count (K,) readings per window;
+    usable bool (K, Y, X): no reading in the window is clipped at 0 or at white.
+    """
+    th, tw = pattern.shape
+    ny, nx = raw.shape[0] // th, raw.shape[1] // tw
+    if ny < window or nx < window:
+        raise SveliveError(f"frame {raw.shape[1]}x{raw.shape[0]} holds fewer than {window}x{window} tiles of {tw}x{th}")
+    x = raw[:ny * th, :nx * tw].astype(np.float64)
+    scale = 1.0 / sensor.range_dn
+    level_idx = np.searchsorted(pattern.levels, pattern.tile)
+    K = pattern.levels.size
+    r = window // 2
+    out_shape = (ny - 2 * r, nx - 2 * r)
+    # window centre tile index of every output position, and tile offsets within a window
+    ci = np.arange(r, ny - r, dtype=np.float64)[:, None]
+    cj = np.arange(r, nx - r, dtype=np.float64)[None, :]
+    offsets = np.arange(-r, r + 1, dtype=np.float64)
+    b = np.zeros((K, 3) + out_shape)
+    s2 = np.zeros((K,) + out_shape)
+    G = np.zeros((K, 3, 3))
+    clipped = np.zeros((K,) + out_shape)
+    count = np.zeros(K, dtype=np.int64)
+    jj, ii = np.meshgrid(np.arange(nx, dtype=np.float64), np.arange(ny, dtype=np.float64))
+    for a in range(th):
+        for c in range(tw):
+            k = level_idx[a, c]
+            sub = x[a::th, c::tw]
+            m = (sub - sensor.black_level) * scale
+            sum_m = _window_sums(m, window)
+            oy, ox = a - (th - 1) / 2.0, c - (tw - 1) / 2.0
+            # sum of m * dy with dy = (row - centre row) * th + oy, likewise dx
+            b[k, 0] += sum_m
+            b[k, 1] += th * (_window_sums(m * ii, window) - ci * sum_m) + oy * sum_m
+            b[k, 2] += tw * (_window_sums(m * jj, window) - cj * sum_m) + ox * sum_m
+            s2[k] += _window_sums(m * m, window)
+            dy = (th * offsets + oy)[:, None] * np.ones(window)[None, :]
+            dx = np.ones(window)[:, None] * (tw * offsets + ox)[None, :]
+            basis = np.stack([np.ones_like(dy), dy, dx]).reshape(3, -1)
+            G[k] += basis @ basis.T
+            clipped[k] += _window_sums(((sub <= 0) | (sub >= sensor.white_level)).astype(np.float64), window)
+            count[k] += window * window
+    value = np.zeros((K,) + out_shape)
+    residual_var = np.zeros((K,) + out_shape)
+    var_factor = np.zeros(K)
+    for k in range(K):
+        G_inv = np.linalg.inv(G[k])
+        coef = np.einsum("ij,j...->i...", G_inv, b[k])
+        value[k] = coef[0]
+        rss = s2[k] - np.einsum("i...,i...->...", coef, b[k])
+        residual_var[k] = np.maximum(rss, 0.0) / (count[k] - 3)
+        var_factor[k] = G_inv[0, 0]
+    return value, residual_var, var_factor, count, clipped == 0
+
+
+def _noise_variance_fn(raw: np.ndarray, pattern: Pattern, sensor: Sensor) -> Callable[[np.ndarray], np.ndarray]:
+    """Noise variance of one reading in normalised brightness, as a function of brightness."""
+    curve = noise_curve_frame(raw, pattern, sensor)
+    r = sensor.range_dn
+    floor = QUANTISATION_VARIANCE / r**2
+    sig = curve.signal / r
+    var = np.maximum(curve.variance / r**2, floor)
+    return lambda m: np.interp(m, sig, var)
+
+
+def _too_few(found: int, needed: int) -> str:
+    return (f"only {found} locally constant regions show two or more exposures unclipped (need {needed}): "
+            "use a frame of a still scene with large smooth areas (walls, sky, a grey card) from dark to "
+            "bright, exposed so that the lowest exposure is not saturated")
+
+
+def _collect_pairs(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: ResponseFitConfig) -> _Pairs:
+    mean, var, var_factor, count, usable = level_window_statistics(raw, pattern, sensor, cfg.window)
+    unclipped = int(np.sum(usable.sum(axis=0) >= 2))
+    if unclipped < cfg.min_locations:
+        raise SveliveError(_too_few(unclipped, cfg.min_locations))
+    noise_var = _noise_variance_fn(raw, pattern, sensor)
+    K = mean.shape[0]
+    flat = np.zeros_like(usable)
+    var_mean = np.zeros_like(mean)
+    for k in range(K):
+        dof = int(count[k]) - 3
+        limit = _chi2_quantile(cfg.flat_quantile, dof) / dof
+        nv = noise_var(mean[k])
+        flat[k] = usable[k] & (var[k] <= nv * limit)
+        var_mean[k] = nv * var_factor[k]
+    Y, X = mean.shape[1:]
+    loc = np.arange(Y * X).reshape(Y, X)
+    rng = np.random.default_rng(cfg.seed)
+    by, bx = -(-Y // cfg.fold_block), -(-X // cfg.fold_block)
+    block_fold = rng.permutation(by * bx) % cfg.folds
+    yy, xx = np.mgrid[0:Y, 0:X]
+    fold = block_fold[(yy // cfg.fold_block) * bx + xx // cfg.fold_block]
+    parts = []
+    for lo in range(K):
+        for hi in range(lo + 1, K):
+            sel = flat[lo] & flat[hi]
+            parts.append((mean[lo][sel], mean[hi][sel], var_mean[lo][sel], var_mean[hi][sel],
+                          np.full(sel.sum(), lo), np.full(sel.sum(), hi), loc[sel], fold[sel]))
+    cols = [np.concatenate([p[i] for p in parts]) for i in range(8)]
+    return _Pairs(*cols)
+
+
+def _design(pairs: _Pairs, exposures: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of f(m_hi) / R - f(m_lo) = 0 with c_0 eliminated by f(1) = 1: A c_{1..N} = y."""
+    inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
+    n = np.arange(1, degree + 1)
+    A = (pairs.m_hi[:, None] ** n - 1.0) * inv_r[:, None] - (pairs.m_lo[:, None] ** n - 1.0)
+    y = inv_r - 1.0
+    return A, -y
+
+
+def _coefficients(c_rest: np.ndarray) -> np.ndarray:
+    return np.concatenate([[1.0 - c_rest.sum()], c_rest])
+
+
+def _residual_sigma(pairs: _Pairs, exposures: np.ndarray, coef: np.ndarray | None,
+                    min_slope: float = 0.01) -> np.ndarray:
+    """Standard deviation of each equation's residual; slopes from ``coef`` (None: a linear f).
+
+    Propagating the brightness noise through f' makes the normalised residual
+    independent of the scale of f, so a curve cannot lower it by flattening
+    where the data are; the floor keeps a flat stretch from taking all the weight.
+    """
+    inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
+    if coef is None:
+        d_lo = d_hi = 1.0
+    else:
+        der = P.polyder(coef)
+        d_lo = np.maximum(P.polyval(pairs.m_lo, der), min_slope)
+        d_hi = np.maximum(P.polyval(pairs.m_hi, der), min_slope)
+    return np.sqrt((d_hi * inv_r) ** 2 * pairs.var_hi + d_lo**2 * pairs.var_lo)
+
+
+def _solve(pairs: _Pairs, exposures: np.ndarray, degree: int, sel: np.ndarray | None = None,
+           iterations: int = 4) -> np.ndarray:
+    """Weighted least squares, reweighted with the slope of the previous solution."""
+    A, y = _design(pairs, exposures, degree)
+    sub = slice(None) if sel is None else sel
+    A, y = A[sub], y[sub]
+    coef = None
+    for _ in range(iterations):
+        w = 1.0 / _residual_sigma(_subset(pairs, sub), exposures, coef)
+        c_rest, *_ = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)
+        coef = _coefficients(c_rest)
+    return coef
+
+
+def _subset(pairs: _Pairs, sel) -> _Pairs:
+    return _Pairs(*(getattr(pairs, f)[sel] for f in pairs.__dataclass_fields__))
+
+
+def _monotone(coef: np.ndarray, measured: tuple[float, float], tolerance: float = 1e-3,
+              outside_tolerance: float = 0.01) -> bool:
+    """True when f is non-decreasing on the measured range (to ``tolerance`` of full scale)
+    and nearly so (``outside_tolerance``) where it extrapolates, on the rest of [0, 1]."""
+    grid = np.linspace(0.0, 1.0, 1025)
+    f = P.polyval(grid, coef)
+    drop = np.maximum.accumulate(f) - f
+    inside = (grid >= measured[0]) & (grid <= measured[1])
+    inside_drop = P.polyval(grid[inside], coef)
+    inside_drop = np.maximum.accumulate(inside_drop) - inside_drop
+    return bool(inside_drop.max(initial=0.0) <= tolerance and drop.max() <= outside_tolerance)
+
+
+def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int, folds: int) -> tuple[float, float]:
+    """Mean and standard error over locations of the held-out squared normalised residual."""
+    A, y = _design(pairs, exposures, degree)
+    loss = np.zeros(pairs.m_lo.size)
+    for f in range(folds):
+        test = pairs.fold == f
+        if not test.any():
+            continue
+        coef = _solve(pairs, exposures, degree, ~test)
+        sigma = _residual_sigma(_subset(pairs, test), exposures, coef)
+        loss[test] = ((A[test] @ coef[1:] - y[test]) / sigma) ** 2
+    _, inverse = np.unique(pairs.location, return_inverse=True)
+    per_location = np.bincount(inverse, weights=loss)
+    return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size))
+
+
+def _curve_uncertainty(weighted_design: np.ndarray, scale: float, measured: tuple[float, float]) -> float:
+    """Largest standard error of f over the measured range (fraction of full scale), from the
+    least-squares covariance of the coefficients scaled by the reduced chi-square."""
+    normal = weighted_design.T @ weighted_design
+    try:
+        cov = np.linalg.inv(normal) * scale
+    except np.linalg.LinAlgError:
+        return math.inf
+    m = np.linspace(measured[0], measured[1], 257)
+    n = np.arange(1, weighted_design.shape[1] + 1)
+    basis = m[:, None] ** n - 1.0
+    var = np.einsum("ij,jk,ik->i", basis, cov, basis)
+    return float(np.sqrt(np.max(np.maximum(var, 0.0))))
+
+
+def _refine_exposures(pairs: _Pairs, exposures: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Exposures re-estimated from f(m_hi) / f(m_lo), with the extreme ratio kept nominal."""
+    f_lo, f_hi = P.polyval(pairs.m_lo, coef), P.polyval(pairs.m_hi, coef)
+    ok = (f_lo > 0.01) & (f_hi > 0.01)
+    K = exposures.size
+    if not ok.any():
+        return exposures
+    # log e_hi - log e_lo = log(f_hi / f_lo), least squares with log e_0 fixed
+    A = np.zeros((int(ok.sum()), K))
+    rows = np.arange(A.shape[0])
+    A[rows, pairs.k_hi[ok]] += 1.0
+    A[rows, pairs.k_lo[ok]] -= 1.0
+    b = np.log(f_hi[ok] / f_lo[ok])
+    observed = np.unique(np.concatenate([pairs.k_lo[ok], pairs.k_hi[ok]]))
+    if 0 not in observed or K - 1 not in observed:
+        return exposures
+    log_e, *_ = np.linalg.lstsq(A[:, 1:], b, rcond=None)
+    log_e = np.concatenate([[0.0], log_e])
+    nominal = np.log(exposures / exposures[0])
+    if not log_e[-1] > 0:
+        return exposures
+    log_e *= nominal[-1] / log_e[-1]
+    return exposures[0] * np.exp(log_e)
+
+
+def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
+                 config: ResponseFitConfig = ResponseFitConfig()) -> Response:
+    """Fit the inverse response polynomial to one raw SVE frame.
+
+    Args:
+        raw: (H, W) uint8/uint16 raw frame, DN including black, of a static scene
+            with smooth areas spanning dark to bright.
+        pattern: the exposure pattern with its nominal exposures.
+        sensor: bit depth, black and white level.
+        config: fit options.
+
+    Returns:
+        The Response; ``stats`` holds the measured brightness range, the number of
+        locations and equations, the held-out error of every degree tried and the
+        exposures used.
+    """
+    raw = np.asarray(raw)
+    if raw.ndim != 2 or raw.size == 0:
+        raise SveliveError(f"raw frame must be a non-empty single-channel 2-D array, got shape {raw.shape}")
+    if raw.dtype.kind not in "ui":
+        raise SveliveError(f"response calibration takes the camera's integer raw values, got {raw.dtype}")
+    if not 1 <= config.max_degree <= 10:
+        raise SveliveError(f"max degree must be 1..10, got {config.max_degree}")
+    if config.window < 3 or config.window % 2 == 0:
+        raise SveliveError(f"window must be odd and >= 3 tiles, got {config.window}")
+    pattern = Pattern.parse(pattern)
+    if pattern.levels.size < 2:
+        raise SveliveError("the pattern has one exposure only; response calibration needs two or more")
+    pairs = _collect_pairs(raw, pattern, sensor, config)
+    n_locations = int(np.unique(pairs.location).size)
+    if n_locations < config.min_locations:
+        raise SveliveError(_too_few(n_locations, config.min_locations))
+    # any increasing response reads a brighter value at the higher exposure; on data that is not an
+    # SVE frame of this pattern (wrong pattern, pure texture or noise) that fails at many locations
+    lit = pairs.m_hi > 3.0 * np.sqrt(pairs.var_hi)
+    flipped = float(np.mean(pairs.m_hi[lit] <= pairs.m_lo[lit])) if lit.any() else 0.0
+    if flipped > 0.1:
+        raise SveliveError(
+            f"at {flipped:.0%} of the constant regions the higher exposure reads darker than the lower one: "
+            "this is not an SVE frame of this pattern (check --pattern and the tile origin) or the scene moved")
+    used = np.concatenate([pairs.m_lo, pairs.m_hi])
+    measured = (float(np.min(used)), float(np.max(used)))
+    if measured[1] - measured[0] < config.min_span:
+        raise SveliveError(
+            f"the constant regions only cover brightness {measured[0]:.2f}..{measured[1]:.2f} of full scale "
+            f"(need a span of {config.min_span:.2f}): use a scene with smooth areas over a wider range of brightness")
+    exposures = pattern.levels.astype(np.float64)
+    iterations = 8 if config.refine_ratios else 1
+    for _ in range(iterations):
+        scores = {}
+        fits = {}
+        for d in range(1, config.max_degree + 1):
+            coef = _solve(pairs, exposures, d)
+            if not _monotone(coef, measured):
+                continue
+            mean, se = _held_out(pairs, exposures, d, config.folds)
+            scores[d] = (mean, se)
+            fits[d] = coef
+        if not scores:
+            raise SveliveError("no polynomial degree gives a monotone response on this data; use a frame with "
+                               "more smooth areas, or check the pattern and the black and white levels")
+        best = min(scores, key=lambda d: scores[d][0])
+        degree = min(d for d in scores if scores[d][0] <= scores[best][0] + scores[best][1])
+        coef = fits[degree]
+        if not config.refine_ratios:
+            break
+        new = _refine_exposures(pairs, exposures, coef)
+        converged = np.max(np.abs(np.log(new / exposures))) < 1e-4
+        exposures = new
+        if converged:
+            break
+    A, y = _design(pairs, exposures, degree)
+    sigma = _residual_sigma(pairs, exposures, coef)
+    chi2 = float(np.mean(((A @ coef[1:] - y) / sigma) ** 2))
+    uncertainty = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), measured)
+    if uncertainty > config.max_uncertainty:
+        raise SveliveError(
+            f"the frame does not pin the response down (standard error up to {uncertainty:.1%} of full scale, "
+            f"allowed {config.max_uncertainty:.1%}): use a frame of a still scene with large smooth areas from "
+            "dark to bright and little noise")
+    stats = {
+        "measured_range": list(measured),
+        "locations": n_locations,
+        "equations": int(pairs.m_lo.size),
+        "held_out_error": {str(d): {"mean": m, "standard_error": s} for d, (m, s) in scores.items()},
+        "reduced_chi2": chi2,
+        "curve_uncertainty": uncertainty,
+        "exposures": exposures.tolist(),
+        "nominal_exposures": pattern.levels.tolist(),
+        "pattern": str(pattern),
+    }
+    return Response(tuple(float(c) for c in coef), (0.0, 1.0), float(sensor.black_level),
+                    float(sensor.white_level), stats)
+
+
+def linearise(raw: np.ndarray, response: Response, sensor: Sensor | None = None) -> np.ndarray:
+    """A raw frame mapped through the inverse response back to linear DN, float32 (H, W).
+
+    ``out = black + f(M) (white - black)`` with ``M = (raw - black) / (white - black)``:
+    the same black and white level as the raw frame, so the result goes straight
+    into :func:`svelive.reconstruct` (with the same levels); readings at or above
+    white stay at white (saturated), linear values are clipped to [black, white].
+
+    Args:
+        raw: (H, W) raw frame, DN including black.
+        response: the inverse response.
+        sensor: black and white level; None takes the ones stored in the response.
+    """
+    raw = np.asarray(raw)
+    if raw.ndim != 2:
+        raise SveliveError(f"raw frame must be a single-channel 2-D array, got shape {raw.shape}")
+    black = response.black_level if sensor is None else float(sensor.black_level)
+    white = response.white_level if sensor is None else float(sensor.white_level)
+    if raw.dtype.kind in "ui" and raw.dtype.itemsize <= 2:
+        # one evaluation per possible code; the running maximum keeps the map monotone where a
+        # polynomial wiggles slightly outside its measured range
+        codes = np.arange(np.iinfo(raw.dtype).max + 1, dtype=np.float64)
+        lut = np.maximum.accumulate(np.clip(response((codes - black) / (white - black)), 0.0, 1.0))
+        lut = (black + lut * (white - black)).astype(np.float32)
+        lut[codes >= white] = white
+        return lut[raw]
+    m = (raw.astype(np.float64) - black) / (white - black)
+    out = black + np.clip(response(m), 0.0, 1.0) * (white - black)
+    out[raw >= white] = white
+    return out.astype(np.float32)
+
+
+def calibrate_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *, max_degree: int = 6,
+                    points: int = 65) -> dict:
+    """Response calibration of a live raw frame, for the service: the response file's
+    content plus ``curve``, ``points`` samples {"brightness": [...], "linear": [...]}
+    of I = f(M) over [0, 1] for plotting. Raises SveliveError when the frame cannot
+    calibrate (too few constant regions, too narrow a brightness range)."""
+    response = fit_response(raw, pattern, sensor, ResponseFitConfig(max_degree=max_degree))
+    m = np.linspace(0.0, 1.0, points)
+    data = response.to_dict()
+    data["curve"] = {"brightness": m.tolist(), "linear": np.clip(response(m), 0.0, 1.0).tolist()}
+    return data
+
+
+def save_response(response: Response, path: str | os.PathLike) -> Path:
+    """Write ``response`` as JSON, atomically (temporary file, then rename)."""
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise SveliveError(f"{path}: directory {directory} does not exist")
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(response.to_dict(), fh, indent=2)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_response(path: str | os.PathLike) -> Response:
+    """Read a response written by :func:`save_response` (``svelive calibrate response``)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        raise SveliveError(f"{path}: cannot read response file ({exc.strerror})") from None
+    except json.JSONDecodeError as exc:
+        raise SveliveError(f"{path}: not a response JSON file ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(data, dict):
+        raise SveliveError(f"{path}: a response file holds a JSON object")
+    try:
+        return Response.from_dict(data)
+    except SveliveError as exc:
+        raise SveliveError(f"{path}: {exc}") from None
+
+
+# ----- known response curves, for simulating non-linear cameras -------------
+
+@dataclass(frozen=True)
+class ResponseCurve:
+    """A known camera response: ``forward`` maps linear I in [0, 1] to brightness M in [0, 1],
+    ``inverse`` maps back; both increasing with f(0) = 0, f(1) = 1."""
+
+    name: str
+    forward: Callable[[np.ndarray], np.ndarray]
+    inverse: Callable[[np.ndarray], np.ndarray]
+
+
+def _bisect_inverse(forward: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+    grid = np.linspace(0.0, 1.0, 20001)
+    values = forward(grid)
+    return lambda m: np.interp(m, values, grid)
+
+
+#: Inverse of the "polynomial" camera: I = 0.1 M + 0.3 M^2 + 0.6 M^3.
+POLY3 = (0.0, 0.1, 0.3, 0.6)
+
+
+def _s_curve(i: np.ndarray) -> np.ndarray:
+    # film-like: flat toe and shoulder, steep middle; monotone since 0.6 < 1
+    return i - 0.6 * np.sin(2 * np.pi * i) / (2 * np.pi)
+
+
+CURVES: dict[str, ResponseCurve] = {
+    "linear": ResponseCurve("linear", lambda i: np.asarray(i, np.float64), lambda m: np.asarray(m, np.float64)),
+    "gamma2.2": ResponseCurve("gamma2.2", lambda i: np.power(np.clip(i, 0, 1), 1 / 2.2),
+                              lambda m: np.power(np.clip(m, 0, 1), 2.2)),
+    "poly3": ResponseCurve("poly3", _bisect_inverse(lambda m: P.polyval(m, POLY3)),
+                           lambda m: P.polyval(np.asarray(m, np.float64), POLY3)),
+    "s-curve": ResponseCurve("s-curve", _s_curve, _bisect_inverse(_s_curve)),
+}
+
+
+def simulate_nonlinear(radiance: np.ndarray, pattern: Pattern | str, sensor: Sensor, curve: ResponseCurve, *,
+                       seed: int = 0) -> np.ndarray:
+    """Raw SVE frame of a camera with response ``curve``, uint8/uint16 (H, W).
+
+    The light is collected and made noisy linearly (the sensor's gain and read
+    noise, :func:`svelive.simulate.simulate` at 16 bits of the same full well),
+    then the response maps it to brightness and the ADC quantises to the
+    sensor's bits.
+
+    Args:
+        radiance: float (H, W), radiance in DN (of ``sensor``) at exposure 1.
+    """
+    from svelive.simulate import simulate
+
+    full_well = sensor.effective_gain * sensor.range_dn
+    read_e = sensor.effective_read_noise * sensor.effective_gain
+    fine = Sensor.from_full_well(16, full_well, read_e)
+    scale = fine.range_dn / sensor.range_dn
+    linear = simulate(np.asarray(radiance, np.float32) * scale, pattern, fine, seed=seed).raw
+    m = curve.forward(np.clip(linear / fine.range_dn, 0.0, 1.0))
+    dn = np.rint(float(sensor.black_level) + m * sensor.range_dn)
+    dtype = np.uint8 if sensor.bits <= 8 else np.uint16
+    return np.clip(dn, 0, sensor.white_level).astype(dtype)

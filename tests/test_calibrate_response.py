@@ -1,0 +1,154 @@
+"""Response calibration from one SVE frame: known curves recovered, degree chosen, bad input refused."""
+
+import json
+
+import numpy as np
+import pytest
+
+from svelive import Pattern, Sensor, SveliveError
+from svelive.calibrate import (CURVES, Response, calibrate_frame, fit_response, linearise, load_response,
+                               save_response, simulate_nonlinear)
+from svelive.cli import main
+from svelive.simulate import exposure_scale, load_sample_scene
+
+PATTERN = Pattern.parse("1,4/16,64")
+
+
+def chart_scene(n: int = 256, patch: int = 16, stops: float = 10.0, seed: int = 0) -> np.ndarray:
+    """A calibration chart: flat patches of log-uniform radiance over ``stops`` stops, mild shading."""
+    rng = np.random.default_rng(seed)
+    k = n // patch
+    img = np.kron(2.0 ** rng.uniform(-stops, 0, (k, k)), np.ones((patch, patch)))
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    return (img * (1 - 0.2 * ((xx - 0.5) ** 2 + (yy - 0.5) ** 2))).astype(np.float32)
+
+
+def max_error(response: Response, curve) -> float:
+    lo, hi = response.stats["measured_range"]
+    m = np.linspace(lo, hi, 1000)
+    return float(np.max(np.abs(response(m) - curve.inverse(m))))
+
+
+@pytest.mark.parametrize("bits", [12, 8])
+@pytest.mark.parametrize("name", ["linear", "gamma2.2", "poly3", "s-curve"])
+def test_known_curve_recovered_on_chart(name, bits):
+    sensor = Sensor.from_full_well(bits, 10000, 3)
+    scene = chart_scene()
+    scene *= sensor.range_dn / scene.max()
+    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES[name], seed=1)
+    response = fit_response(raw, PATTERN, sensor)
+    lo, hi = response.stats["measured_range"]
+    assert hi - lo > 0.9
+    assert max_error(response, CURVES[name]) < 0.02
+    if name == "linear":
+        assert response.degree == 1
+    if name == "poly3":
+        assert response.degree == 3
+
+
+@pytest.mark.parametrize("scene_name", ["desk", "cannon"])
+@pytest.mark.parametrize("name,degree", [("linear", 1), ("poly3", 3)])
+def test_degree_on_sample_scenes(scene_name, name, degree):
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = load_sample_scene(scene_name)
+    raw = simulate_nonlinear(scene * exposure_scale(scene, PATTERN, sensor), PATTERN, sensor, CURVES[name], seed=2)
+    response = fit_response(raw, PATTERN, sensor)
+    assert response.degree == degree
+    assert max_error(response, CURVES[name]) < 0.02
+
+
+def test_gamma_on_sample_scene_within_two_percent():
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = load_sample_scene("desk")
+    raw = simulate_nonlinear(scene * exposure_scale(scene, PATTERN, sensor), PATTERN, sensor,
+                             CURVES["gamma2.2"], seed=3)
+    assert max_error(fit_response(raw, PATTERN, sensor), CURVES["gamma2.2"]) < 0.02
+
+
+def test_linearise_restores_linear_frame_and_reconstruction():
+    from svelive import reconstruct
+    from svelive.metrics import log_psnr
+
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = load_sample_scene("mttamwest")
+    radiance = scene * exposure_scale(scene, PATTERN, sensor, stops_below_fill=1)
+    raw = simulate_nonlinear(radiance, PATTERN, sensor, CURVES["gamma2.2"], seed=4)
+    response = fit_response(raw, PATTERN, sensor)
+    linear = linearise(raw, response, sensor)
+    assert linear.dtype == np.float32 and linear.shape == raw.shape
+    assert np.all(linear[raw >= sensor.white_level] == sensor.white_level)
+    plain = reconstruct(raw, PATTERN, white_level=sensor.white_level)
+    fixed = reconstruct(linear, PATTERN, white_level=sensor.white_level)
+    assert log_psnr(fixed, radiance) > log_psnr(plain, radiance) + 6.0
+
+
+def test_linearise_float_matches_integer_path():
+    response = Response((0.0, 0.2, 0.8), white_level=4095.0)
+    raw = np.arange(0, 4096, 7, dtype=np.uint16).reshape(1, -1)
+    a = linearise(raw, response)
+    b = linearise(raw.astype(np.float32), response)
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-3)
+    m = raw[0].astype(np.float64) / 4095
+    np.testing.assert_allclose(a[0], 4095 * (0.2 * m + 0.8 * m * m), rtol=1e-5, atol=1e-3)
+
+
+def test_save_load_roundtrip_and_bad_file(tmp_path):
+    response = Response((0.01, 0.5, 0.49), (0.0, 1.0), 64.0, 4095.0, {"locations": 3})
+    path = save_response(response, tmp_path / "r.json")
+    back = load_response(path)
+    assert back.coefficients == response.coefficients and back.black_level == 64.0
+    data = json.loads(path.read_text())
+    assert data["degree"] == 2 and data["coefficients"][0] == 0.01 and data["domain"] == [0.0, 1.0]
+    (tmp_path / "bad.json").write_text('{"coefficients": [0, 1]}')
+    with pytest.raises(SveliveError, match="white_level"):
+        load_response(tmp_path / "bad.json")
+    (tmp_path / "junk.json").write_text("not json")
+    with pytest.raises(SveliveError, match="not a response JSON"):
+        load_response(tmp_path / "junk.json")
+
+
+def test_featureless_or_narrow_frames_refused():
+    sensor = Sensor(bits=12)
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 4096, (128, 128)).astype(np.uint16)
+    with pytest.raises(SveliveError, match="not an SVE frame"):
+        fit_response(noise, PATTERN, sensor)
+    bright = chart_scene(128, 16, stops=1.0) * 3000 + 1100  # every exposure but the lowest saturates
+    raw = simulate_nonlinear(bright, PATTERN, Sensor.from_full_well(12, 10000, 3), CURVES["linear"], seed=0)
+    with pytest.raises(SveliveError, match="locally constant regions"):
+        fit_response(raw, PATTERN, sensor)
+    flat = np.full((128, 128), 5.0, np.float32)  # readings 5..320 DN: 8% of full scale
+    raw = simulate_nonlinear(flat, PATTERN, Sensor.from_full_well(12, 10000, 3), CURVES["linear"], seed=0)
+    with pytest.raises(SveliveError, match="brightness"):
+        fit_response(raw, PATTERN, sensor)
+    with pytest.raises(SveliveError, match="two or more"):
+        fit_response(raw, Pattern.parse("1"), sensor)
+
+
+def test_calibrate_frame_for_service():
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene(128, 16)
+    scene *= sensor.range_dn / scene.max()
+    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES["poly3"], seed=5)
+    data = calibrate_frame(raw, PATTERN, sensor, points=33)
+    assert data["degree"] == 3
+    curve = data["curve"]
+    assert len(curve["brightness"]) == 33 and np.all(np.diff(curve["linear"]) >= 0)
+    json.dumps(data)
+
+
+def test_cli_response(tmp_path, capsys):
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene(128, 16)
+    scene *= sensor.range_dn / scene.max()
+    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES["gamma2.2"], seed=6)
+    np.save(tmp_path / "raw.npy", raw)
+    out = tmp_path / "response.json"
+    assert main(["calibrate", "response", str(tmp_path / "raw.npy"), "--pattern", "1,4/16,64", "--bits", "12",
+                 "-o", str(out)]) == 0
+    assert max_error(load_response(out), CURVES["gamma2.2"]) < 0.02
+    np.save(tmp_path / "noise.npy", np.random.default_rng(0).integers(0, 4096, (64, 64)).astype(np.uint16))
+    assert main(["calibrate", "response", str(tmp_path / "noise.npy"), "--pattern", "1,4/16,64", "--bits", "12",
+                 "-o", str(tmp_path / "n.json")]) == 2
+    assert "error:" in capsys.readouterr().err
+    assert not (tmp_path / "n.json").exists()
