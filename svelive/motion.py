@@ -47,6 +47,7 @@ class MotionConfig:
         widen: pixels by which flagged areas grow (a square of 2 widen + 1).
         detail_sigmas: how far beyond its noise a pixel's own fused readings must
             differ from the smooth estimate before they sharpen it (:func:`sharpen`).
+        global_motion: fraction of moving pixels above which the whole history restarts.
         compensate_illumination: divide out a global brightness ratio between
             history and frame before testing.
     """
@@ -56,6 +57,7 @@ class MotionConfig:
     max_history: int = 8
     widen: int = 1
     detail_sigmas: float = 3.0
+    global_motion: float = 0.5
     compensate_illumination: bool = True
 
     def __post_init__(self) -> None:
@@ -213,25 +215,42 @@ def shortest_exposure_estimate(inp: SveInput) -> tuple[np.ndarray, np.ndarray, n
     return estimate, variance, valid
 
 
+@dataclass(frozen=True)
+class Inconsistency:
+    """The within-frame test's finding: where to rely on the shortest exposure, and its estimate.
+
+    Attributes:
+        flagged: bool (H, W), widened pixels whose estimate disagrees with the shortest exposure's.
+        image, variance: float32 (H, W), the shortest exposure's estimate and variance.
+    """
+
+    flagged: np.ndarray
+    image: np.ndarray
+    variance: np.ndarray
+
+    def apply(self, image: np.ndarray, variance: np.ndarray, where: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(image, variance, used): the shortest exposure's values where flagged (and ``where``), new arrays."""
+        used = self.flagged if where is None else self.flagged & where
+        return np.where(used, self.image, image), np.where(used, self.variance, variance), used
+
+
 def exposure_consistency(image: np.ndarray, variance: np.ndarray, inp: SveInput,
-                         config: MotionConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Within-frame test: where the frame's estimate disagrees with the shortest exposure's, use the latter.
+                         config: MotionConfig) -> Inconsistency:
+    """Within-frame test: where does the frame's estimate disagree with the shortest exposure's beyond noise?
+
+    The estimates interpolate different pixels, so at static fine texture they
+    also disagree (spatial aliasing, not in the noise model): a caller with a
+    history applies the finding only where the temporal test saw motion.
 
     Args:
         image, variance: float32 (H, W), a single-frame estimate and its variance (DN, DN^2).
         inp: the prepared raw frame it came from.
-
-    Returns:
-        (image, variance, flagged): new float32 arrays, and bool (H, W) the widened
-        flagged area where the shortest exposure's estimate was substituted.
     """
     short, short_var, valid = shortest_exposure_estimate(inp)
     flagged = disagree(image, variance, short, short_var, config.consistency_sigmas)
     flagged &= valid
     flagged = _widen(flagged, config.widen) & valid
-    image = np.where(flagged, short, image)
-    variance = np.where(flagged, short_var, variance)
-    return image, variance, flagged
+    return Inconsistency(flagged, short, short_var)
 
 
 # ----- across frames ----------------------------------------------------------
@@ -268,26 +287,30 @@ def start(frame: FrameEstimate) -> TemporalState:
 
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
-         moving: np.ndarray | None = None, detail: bool = True) -> Fused:
+         inconsistency: Inconsistency | None = None, detail: bool = True) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
         state: the history, or None to start one (also when the frame size changed).
         frame: this frame's estimates; its arrays are not modified.
         pattern_shape: the exposure tile's shape (rows, cols).
-        moving: bool (H, W) or None, pixels already known to move (within-frame test).
+        inconsistency: the within-frame test's finding, or None; applied to the
+            output where the history is reset (everywhere on a stream's first
+            frame), never to the history, which keeps estimates of one kind so
+            that static texture, where the test also fires, keeps fusing.
         detail: where a pixel has history (2 frames or more), move the output towards
             its own fused readings as far as they exceed their noise (:func:`sharpen`
             at ``config.detail_sigmas``).
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it,
-    where ``moving`` is set, where either the history or the frame is only a
+    where either the history or the frame is only a
     lower bound (a bound cannot be averaged), and within a tile window of a
     reading that crossed the censor level. Flagged pixels count as motion when
     a neighbour is flagged too (every estimate spreads over a window, so does
     any real change; isolated flags are mostly noise); motion is widened by
-    ``config.widen`` and reset too.
+    ``config.widen`` and reset too. When more than ``config.global_motion`` of
+    the frame moves, the camera moved: every pixel is reset.
     Elsewhere it takes the running mean with weight 1 / min(n + 1, max_history).
     The history's variance is taken as the frame's variance v times w, as for a
     static scene with stationary noise. The test compares smooth estimates,
@@ -296,8 +319,10 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
     if state is None or state.mean.shape != image.shape:
+        motion = np.zeros(image.shape, bool)
         fresh = start(frame)
-        motion = np.zeros(image.shape, bool) if moving is None else moving
+        if inconsistency is not None:
+            image, variance, motion = inconsistency.apply(image, variance)
         return Fused(image, variance, motion, fresh.weight, 1.0, fresh)
     ratio = illumination_ratio(state, image, variance, bound) if config.compensate_illumination else 1.0
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else None
@@ -321,8 +346,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     unstable = _grow(frame.censored ^ state.censored, window) | bound | state.bound
     flagged &= ~unstable
     motion = _widen(_confirmed(flagged), config.widen)
-    if moving is not None:
-        motion = motion | moving
+    if np.count_nonzero(motion) > config.global_motion * motion.size:
+        motion[:] = True  # the camera moved: what was not flagged moved below the noise
     reset = motion | flagged | unstable
 
     fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
@@ -346,7 +371,11 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             with np.errstate(divide="ignore"):
                 threshold /= w < 1  # infinite where the pixel has no history: nothing to sharpen
             out[rows] = sharpen(fused[rows], own[rows], threshold)
-    return Fused(out, fused_var, motion, weight, ratio, TemporalState(fused, own, weight, bound, frame.censored))
+    state = TemporalState(fused, own, weight, bound, frame.censored)
+    if inconsistency is not None:  # output only: the history keeps estimates of one kind
+        out, fused_var, used = inconsistency.apply(out, fused_var, reset)
+        motion = motion | used
+    return Fused(out, fused_var, motion, weight, ratio, state)
 
 
 def _running_mean(mean: np.ndarray, new: np.ndarray, weight: np.ndarray, scale: np.float32 | None) -> np.ndarray:

@@ -217,17 +217,17 @@ class Reconstructor:
         inp, est = self._estimate(raw, method)
         t1 = time.perf_counter()
         image, variance = est.image, est.variance
-        moving = None
-        if self.consistency:
-            image, variance, moving = exposure_consistency(image, variance, inp, self.motion_config)
+        inconsistency = exposure_consistency(image, variance, inp, self.motion_config) if self.consistency else None
         if self.temporal:
             slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor)
             frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, own_readings(inp, image), slope, floor)
-            fused = fuse(history, frame, self.motion_config, self.pattern.shape, moving, detail=self.detail)
+            fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail)
             image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
         else:
-            motion = np.zeros(image.shape, bool) if moving is None else moving
+            motion = np.zeros(image.shape, bool)
+            if inconsistency is not None:
+                image, variance, motion = inconsistency.apply(image, variance)
             weight, ratio = np.ones(image.shape, np.float32), 1.0
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
         t2 = time.perf_counter()
