@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import cv2
@@ -13,7 +12,7 @@ import numpy as np
 
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
 from svelive.calibrate.noise import estimate_noise
-from svelive.calibrate.response import ResponseFitConfig, fit_response, save_response
+from svelive.calibrate.response import ResponseFitConfig, fit_response, save_response, write_json
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
@@ -48,21 +47,6 @@ def sensor_from_args(raw: np.ndarray, args: argparse.Namespace) -> Sensor:
     return sensor
 
 
-def _write_json(data: dict, path: Path) -> None:
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise SveliveError(f"{path}: directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _response(args: argparse.Namespace) -> int:
     raw = read_raw(args.raw)
     sensor = sensor_from_args(raw, args)
@@ -93,7 +77,7 @@ def _noise(args: argparse.Namespace) -> int:
     model = estimate_noise(frames, sensor, pattern)
     data = model.to_dict()
     if args.output:
-        _write_json(data, args.output)
+        write_json(data, args.output)
     print(json.dumps(data, indent=2))
     return 0
 

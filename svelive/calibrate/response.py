@@ -519,8 +519,8 @@ def calibrate_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *, 
     return data
 
 
-def save_response(response: Response, path: str | os.PathLike) -> Path:
-    """Write ``response`` as JSON, atomically (temporary file, then rename)."""
+def write_json(data: dict, path: str | os.PathLike) -> Path:
+    """Write ``data`` as indented JSON, atomically (temporary file in the same directory, then rename)."""
     path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
@@ -528,13 +528,18 @@ def save_response(response: Response, path: str | os.PathLike) -> Path:
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w") as fh:
-            json.dump(response.to_dict(), fh, indent=2)
+            json.dump(data, fh, indent=2)
             fh.write("\n")
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def save_response(response: Response, path: str | os.PathLike) -> Path:
+    """Write ``response`` as JSON, atomically."""
+    return write_json(response.to_dict(), path)
 
 
 def load_response(path: str | os.PathLike) -> Response:
