@@ -47,6 +47,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     _add_pattern_sensor(p, bits_default=None)
     p.add_argument("--gain", type=float, help="electrons per DN (noise-aware methods)")
     p.add_argument("--read-noise", type=float, help="read noise in DN (noise-aware methods)")
+    p.add_argument("--response", type=Path, help="response JSON (svelive calibrate response): linearise first")
+    p.add_argument("--mask", type=Path, help="mask .npz (svelive calibrate mask): per-pixel exposures")
     p.add_argument("--method", choices=methods(), help=f"default: {methods()[0]}")
     p.add_argument("--confidence", action="store_true", help="also write a 'confidence' channel")
     p.add_argument("--half", action="store_true", help="write half floats instead of float32")
@@ -176,6 +178,12 @@ def _reconstruct(args: argparse.Namespace) -> int:
     th, tw = pattern.shape
     if raw.shape[0] < th or raw.shape[1] < tw:
         raise SveliveError(f"{args.raw}: frame {raw.shape[1]}x{raw.shape[0]} is smaller than the {tw}x{th} tile")
+    if args.mask:
+        from svelive.calibrate import load_mask
+        pattern = pattern.with_pixel_map(load_mask(args.mask))
+    if args.response:
+        from svelive.calibrate import linearise, load_response
+        raw = linearise(raw, load_response(args.response), sensor)
     image, confidence = reconstruct(raw, pattern, method=args.method, black_level=sensor.black_level,
                                     white_level=sensor.white_level, gain=args.gain, read_noise=args.read_noise,
                                     return_confidence=True)

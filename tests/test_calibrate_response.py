@@ -152,3 +152,22 @@ def test_cli_response(tmp_path, capsys):
                  "-o", str(tmp_path / "n.json")]) == 2
     assert "error:" in capsys.readouterr().err
     assert not (tmp_path / "n.json").exists()
+
+
+def test_cli_reconstruct_with_response(tmp_path):
+    from svelive.exr import read_exr
+
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene(128, 16)
+    scene *= sensor.range_dn / scene.max()
+    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES["gamma2.2"], seed=7)
+    np.save(tmp_path / "raw.npy", raw)
+    resp = tmp_path / "r.json"
+    save_response(fit_response(raw, PATTERN, sensor), resp)
+    args = ["reconstruct", str(tmp_path / "raw.npy"), "--pattern", "1,4/16,64", "--bits", "12"]
+    assert main(args + ["-o", str(tmp_path / "plain.exr")]) == 0
+    assert main(args + ["--response", str(resp), "-o", str(tmp_path / "lin.exr")]) == 0
+    plain = read_exr(tmp_path / "plain.exr")[0]["Y"]
+    lin = read_exr(tmp_path / "lin.exr")[0]["Y"]
+    err = [float(np.median(np.abs(np.log2(np.maximum(img, 1e-3) / np.maximum(scene, 1e-3))))) for img in (plain, lin)]
+    assert err[1] < 0.1 < err[0]

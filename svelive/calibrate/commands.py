@@ -4,37 +4,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
 from svelive.calibrate.noise import estimate_noise
 from svelive.calibrate.response import ResponseFitConfig, fit_response, save_response, write_json
+from svelive.commands import read_raw
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
-
-
-def read_raw(path: str | os.PathLike) -> np.ndarray:
-    """A raw frame from .npy or a single-channel 8/16-bit PNG, TIFF or PGM file, (H, W)."""
-    path = Path(path)
-    if path.suffix.lower() == ".npy":
-        try:
-            raw = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise SveliveError(f"{path}: not a readable .npy array ({exc})") from None
-    else:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise SveliveError(f"{path}: not a readable .npy, PNG, TIFF or PGM file")
-    if raw.ndim != 2:
-        raise SveliveError(f"{path}: shape {raw.shape}; a raw SVE frame is a single-channel 2-D image")
-    if raw.dtype not in (np.uint8, np.uint16):
-        raise SveliveError(f"{path}: {raw.dtype} samples; raw frames are 8- or 16-bit integers")
-    return raw
 
 
 def sensor_from_args(raw: np.ndarray, args: argparse.Namespace) -> Sensor:
