@@ -102,8 +102,9 @@ class FrameEstimate:
         bound: bool (H, W), ``image`` is only a lower bound there.
         censored: bool (H, W), readings at or above the censor level.
         own: float32 (H, W), each pixel's own reading s / e (``image`` where censored).
-        own_slope, own_floor: float32 (H, W), the own reading's one-frame variance
-            is ``own_slope * L + own_floor`` at radiance L (1 / (e g) and sigma^2 / e^2).
+        own_slope, own_floor: float32 (H, W), the detail threshold for one frame,
+            ``own_slope * L + own_floor`` at radiance L: the own reading's variance
+            (1 / (e g) and sigma^2 / e^2) times detail_sigmas^2.
     """
 
     image: np.ndarray
@@ -353,24 +354,23 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     weight = np.empty_like(image)
     out = np.empty_like(image) if detail else fused
-    floor_weight, detail_k2 = np.float32(1.0 / config.max_history), np.float32(config.detail_sigmas ** 2)
+    floor_weight = np.float32(1.0 / config.max_history)
     for rows in strips:
-        w = state.weight[rows] + np.float32(1)  # 1/n -> 1/(n + 1), capped, 1 where reset
+        w = weight[rows]  # 1/n -> 1/(n + 1), capped, 1 where reset
+        np.add(state.weight[rows], np.float32(1), out=w)
         np.divide(state.weight[rows], w, out=w)
         np.maximum(w, floor_weight, out=w)
         np.maximum(w, reset[rows], out=w)
-        weight[rows] = w
-        fused[rows] = _running_mean(state.mean[rows], image[rows], w, scale)
-        own[rows] = _running_mean(state.own[rows], frame.own[rows], w, scale)
+        _running_mean(state.mean[rows], image[rows], w, scale, out=fused[rows])
+        _running_mean(state.own[rows], frame.own[rows], w, scale, out=own[rows])
         np.multiply(variance[rows], w, out=fused_var[rows])
         if detail:
             threshold = frame.own_slope[rows] * fused[rows]
             threshold += frame.own_floor[rows]
             threshold *= w
-            threshold *= detail_k2
             with np.errstate(divide="ignore"):
                 threshold /= w < 1  # infinite where the pixel has no history: nothing to sharpen
-            out[rows] = sharpen(fused[rows], own[rows], threshold)
+            sharpen(fused[rows], own[rows], threshold, out=out[rows])
     state = TemporalState(fused, own, weight, bound, frame.censored)
     if inconsistency is not None:  # output only: the history keeps estimates of one kind
         out, fused_var, used = inconsistency.apply(out, fused_var, reset)
@@ -378,17 +378,17 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     return Fused(out, fused_var, motion, weight, ratio, state)
 
 
-def _running_mean(mean: np.ndarray, new: np.ndarray, weight: np.ndarray, scale: np.float32 | None) -> np.ndarray:
-    """scale mean + weight (new - scale mean), float32; equals ``new`` where weight is 1."""
+def _running_mean(mean: np.ndarray, new: np.ndarray, weight: np.ndarray, scale: np.float32 | None,
+                  out: np.ndarray) -> None:
+    """out = scale mean + weight (new - scale mean), float32; equals ``new`` where weight is 1."""
     if scale is not None:
         mean = mean * scale
-    out = new - mean
+    np.subtract(new, mean, out=out)
     out *= weight
     out += mean
-    return out
 
 
-def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray) -> np.ndarray:
+def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Move a smooth estimate towards each pixel's own readings where they differ beyond noise.
 
     ``out = mean + w (own - mean)``, ``w = max(0, 1 - threshold / (own - mean)^2)``: a
@@ -401,19 +401,20 @@ def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray) -> np.ndar
     large relative error (dark regions; measured in docs/motion.md).
 
     Args:
-        mean, own, threshold: float32 arrays of one shape (DN, DN, DN^2); an
-            infinite threshold keeps ``mean``.
+        mean, own, threshold: float32 arrays of one shape (DN, DN, DN^2); the
+            threshold must be > 0, an infinite one keeps ``mean``.
+        out: where to write the result (a new array when None).
 
     Returns:
-        float32, a new array, >= 0.
+        float32, >= 0.
     """
     diff = own - mean
     weight = diff * diff
-    np.maximum(weight, np.float32(1e-30), out=weight)
-    np.divide(threshold, weight, out=weight)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.divide(threshold, weight, out=weight)  # inf where own == mean: weight 0 below
     np.subtract(1, weight, out=weight)
     np.maximum(weight, 0, out=weight)
     diff *= weight
-    diff += mean
-    np.maximum(diff, 0, out=diff)
-    return diff
+    out = np.add(diff, mean, out=out)
+    np.maximum(out, 0, out=out)
+    return out

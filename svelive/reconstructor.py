@@ -96,11 +96,12 @@ def predicted_variance(image: np.ndarray, inp: SveInput) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def own_reading_noise(pattern: Pattern, shape: tuple[int, int], sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
-    """(slope, floor), float32 (H, W), read-only: a pixel's own estimate s / e has variance slope * L + floor."""
+def own_reading_noise(pattern: Pattern, shape: tuple[int, int], sensor: Sensor,
+                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(slope, floor), float32 (H, W), read-only: a pixel's own estimate s / e has variance slope * L + floor, times ``scale``."""
     _, inverse = exposure_maps(pattern, shape)
-    slope = inverse * np.float32(1.0 / sensor.effective_gain)
-    floor = inverse * inverse * np.float32(sensor.floor_variance)
+    slope = inverse * np.float32(scale / sensor.effective_gain)
+    floor = inverse * inverse * np.float32(scale * sensor.floor_variance)
     slope.setflags(write=False)
     floor.setflags(write=False)
     return slope, floor
@@ -219,7 +220,7 @@ class Reconstructor:
         image, variance = est.image, est.variance
         inconsistency = exposure_consistency(image, variance, inp, self.motion_config) if self.consistency else None
         if self.temporal:
-            slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor)
+            slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
             frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, own_readings(inp, image), slope, floor)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail)
             image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
