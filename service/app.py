@@ -13,6 +13,7 @@ import asyncio
 import hmac
 import itertools
 import os
+import socket
 import time
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -183,6 +184,26 @@ def process_stats() -> dict[str, float]:
     times = os.times()
     return {"rss_mb": round(rss_pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1),
             "cpu_s": round(times.user + times.system, 2)}
+
+
+def listen_socket(settings: ServerSettings) -> socket.socket:
+    """The bound, listening server socket; accepted client sockets inherit its send buffer size.
+
+    A bounded send buffer keeps a slow client's backlog in the kernel small, so
+    it skips to the newest frame instead of watching old video.
+    """
+    family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if settings.send_buffer_kb:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, settings.send_buffer_kb * 1024)
+        sock.bind((settings.host, settings.port))
+        sock.listen(128)
+    except OSError as exc:
+        sock.close()
+        raise SveliveError(f"cannot listen on {settings.host}:{settings.port}: {exc.strerror or exc}") from None
+    return sock
 
 
 def viewer_html() -> str:

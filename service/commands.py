@@ -39,6 +39,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--key", type=float, help="preview middle grey 0.01..0.9 (default 0.18)")
     p.add_argument("--white-percentile", type=float, help="radiance percentile shown as white (default 99.5)")
     p.add_argument("--adapt-s", type=float, help="preview adaptation time constant in s (default 0.2)")
+    p.add_argument("--send-buffer-kb", type=int, help="kernel send buffer per client in KiB (default 256; 0: system)")
     p.add_argument("--log-level", help="uvicorn log level (default info)")
     p.set_defaults(func=cmd_serve)
 
@@ -48,7 +49,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from svelive.capture import open_source
 
-    from service.app import create_app
+    from service.app import create_app, listen_socket
     from service.pipeline import Pipeline
     from service.settings import resolve
 
@@ -64,13 +65,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)
     app = create_app(Pipeline(config), server)
+    sock = listen_socket(server)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
     print(f"svelive serve: {config.source} on http://{shown}:{server.port}/", file=sys.stderr, flush=True)
     try:
-        uvicorn.run(app, host=server.host, port=server.port, log_level=server.log_level,
-                    timeout_graceful_shutdown=2, access_log=server.log_level in ("debug", "trace"))
-    except OSError as exc:
-        raise SveliveError(f"cannot listen on {server.host}:{server.port}: {exc.strerror or exc}") from None
+        uvicorn.Server(uvicorn.Config(app, log_level=server.log_level, timeout_graceful_shutdown=2,
+                                      access_log=server.log_level in ("debug", "trace"))).run(sockets=[sock])
+    finally:
+        sock.close()
     return 0
 
 

@@ -39,6 +39,8 @@ class ServerSettings:
         token: bearer token required by every endpoint but /healthz; None: open.
         cors_origins: origins allowed by CORS; empty: no CORS headers at all.
         log_level: uvicorn log level.
+        send_buffer_kb: kernel send buffer per client connection (KiB, Linux doubles it);
+            bounds how much old video a slow client can have queued; 0: the system's autotuning.
     """
 
     host: str = "127.0.0.1"
@@ -46,6 +48,7 @@ class ServerSettings:
     token: str | None = None
     cors_origins: tuple[str, ...] = ()
     log_level: str = "info"
+    send_buffer_kb: int = 256
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -58,6 +61,8 @@ class ServerSettings:
         if self.token is not None and not (1 <= len(self.token) <= MAX_TOKEN_LENGTH and self.token.isprintable()
                                            and " " not in self.token):
             raise SveliveError(f"token must be 1..{MAX_TOKEN_LENGTH} printable characters without spaces")
+        if not 0 <= self.send_buffer_kb <= 65536:
+            raise SveliveError(f"send buffer must be 0..65536 KiB, got {self.send_buffer_kb}")
         if self.log_level not in ("critical", "error", "warning", "info", "debug", "trace"):
             raise SveliveError(f"log level must be critical, error, warning, info, debug or trace, got {self.log_level!r}")
 
