@@ -1,0 +1,91 @@
+"""Service settings precedence and validation, the newest-frame hand-off, and the serve verb's errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from svelive.errors import SveliveError
+
+from service.pipeline import NewestSlot, no_signal_image, opencv_threads
+from service.settings import resolve
+
+
+def test_precedence_cli_over_env_over_file_over_defaults(tmp_path):
+    config = tmp_path / "svelive.toml"
+    config.write_text('[serve]\nport = 9001\njpeg_quality = 60\nmethod = "aggregate"\nkey = 0.25\n'
+                      'source-options = { fps = 12, width = 320 }\n')
+    env = {"SVELIVE_CONFIG": str(config), "SVELIVE_PORT": "9002", "SVELIVE_JPEG_QUALITY": "70",
+           "SVELIVE_TOKEN": "abc"}
+    settings = resolve({"port": 9003, "method": None}, env)
+    assert settings.server.port == 9003  # CLI
+    assert settings.pipeline.jpeg_quality == 70 and settings.server.token == "abc"  # environment
+    assert settings.pipeline.method == "aggregate" and settings.pipeline.tone.key == 0.25  # file
+    assert settings.pipeline.source_options == {"fps": 12, "width": 320}
+    assert settings.server.host == "127.0.0.1" and settings.pipeline.source == "demo"  # defaults
+    assert resolve({}, {}).server.port == 8000 and resolve({}, {}).server.token is None
+    assert settings.public()["server"]["token"] == "***"
+
+
+@pytest.mark.parametrize("cli, env, word", [
+    ({"port": 70000}, {}, "port"),
+    ({}, {"SVELIVE_PORT": "eighty"}, "SVELIVE_PORT"),
+    ({"host": "example.com"}, {}, "host"),
+    ({"method": "magic"}, {}, "unknown method"),
+    ({"jpeg_quality": 101}, {}, "JPEG quality"),
+    ({"pattern": "1,0/2,4"}, {}, "pattern"),
+    ({"key": 5.0}, {}, "key"),
+    ({"token": "has space"}, {}, "token"),
+    ({"source_options": "fps"}, {}, "KEY=VALUE"),
+    ({}, {"SVELIVE_TEMPORAL": "maybe"}, "SVELIVE_TEMPORAL"),
+])
+def test_bad_settings_are_one_line_errors(cli, env, word):
+    with pytest.raises(SveliveError, match=word) as info:
+        resolve(cli, env)
+    assert "\n" not in str(info.value)
+
+
+def test_bad_config_file(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("prot = 80\n")
+    with pytest.raises(SveliveError, match="unknown setting 'prot'"):
+        resolve({}, {}, config=path)
+    with pytest.raises(SveliveError, match="does not exist"):
+        resolve({}, {"SVELIVE_CONFIG": str(tmp_path / "missing.toml")})
+
+
+def test_newest_slot_keeps_the_newest_and_counts_drops():
+    slot = NewestSlot(capacity=2)
+    assert [slot.put(i) for i in range(5)] == [0, 0, 1, 1, 1]
+    assert slot.dropped == 3
+    assert [slot.get(0.01), slot.get(0.01), slot.get(0.01)] == [3, 4, None]
+    # a waiting reader wakes on put and on close
+    got = []
+    reader = threading.Thread(target=lambda: got.append(slot.get(5)))
+    reader.start()
+    slot.put("x")
+    reader.join(5)
+    assert got == ["x"]
+    reader = threading.Thread(target=lambda: got.append(slot.get(5)))
+    reader.start()
+    slot.close()
+    reader.join(5)
+    assert not reader.is_alive() and got == ["x", None]
+
+
+def test_helpers():
+    assert opencv_threads(2) == 1 and opencv_threads(8) == 7 and opencv_threads(1) == 1
+    image = no_signal_image(320, 180)
+    assert image.shape == (180, 320) and image.max() > image.min()  # the text is drawn
+
+
+def test_serve_rejects_bad_options_with_one_line_and_status_2():
+    for args, word in ((["--source", "nosuch:thing"], "unknown source"), (["--port", "99999"], "port"),
+                       (["--source-option", "colour=red"], "colour")):
+        proc = subprocess.run([sys.executable, "-m", "svelive.cli", "serve", *args], capture_output=True,
+                              text=True, timeout=60)
+        assert proc.returncode == 2, proc.stderr
+        assert word in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr

@@ -1,0 +1,57 @@
+"""The viewer page in a real headless Chromium (Debian's /usr/bin/chromium through Playwright)."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.test_service_helpers import ServerThread, make_camera
+
+CHROMIUM = os.environ.get("SVELIVE_CHROMIUM", "/usr/bin/chromium")
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+playwright_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright (uses /usr/bin/chromium)")
+if not Path(CHROMIUM).exists():
+    pytest.skip(f"no Chromium at {CHROMIUM} (apt-get install chromium)", allow_module_level=True)
+
+
+@pytest.mark.parametrize("token", [None, "view-token"])
+def test_viewer_loads_shows_live_video_and_state(tmp_path, token):
+    camera = make_camera(fps=15.0)
+    with ServerThread(camera, token=token) as srv, playwright_api.sync_playwright() as pw:
+        context = pw.chromium.launch_persistent_context(
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=FLAGS,
+            viewport={"width": 900, "height": 600})
+        try:
+            page = context.new_page()
+            page.set_default_timeout(15_000)
+            page.goto(srv.url + "/" + (f"?token={token}" if token else ""))
+            page.wait_for_function("document.getElementById('live').naturalWidth > 0")
+            assert page.evaluate("document.getElementById('live').naturalWidth") == 224
+            page.wait_for_function("document.getElementById('status').textContent === 'online'")
+            page.wait_for_function("/^\\d+/.test(document.getElementById('frame').textContent)")
+            first_id = int(page.text_content("#frame").split()[0])
+            first = page.locator("#live").screenshot()
+            page.wait_for_function(f"parseInt(document.getElementById('frame').textContent) > {first_id + 5}")
+            deadline = time.monotonic() + 10
+            while page.locator("#live").screenshot() == first:  # the <img> really shows new frames
+                assert time.monotonic() < deadline, "the live image never changed"
+                time.sleep(0.2)
+            assert "weighted" in page.eval_on_selector("#method", "s => [...s.options].map(o => o.value).join()")
+            # a control round trip: the exposure slider PUTs the setting
+            page.eval_on_selector("#ev", "e => { e.value = '2'; e.dispatchEvent(new Event('change')); }")
+            deadline = time.monotonic() + 5
+            while srv.pipeline.settings()["tone"]["exposure_ev"] != 2.0:
+                assert time.monotonic() < deadline, "the exposure control did not reach the server"
+                time.sleep(0.1)
+            shot = tmp_path / "viewer.png"
+            page.screenshot(path=str(shot))
+            assert shot.stat().st_size > 10_000
+            if os.environ.get("SVELIVE_VIEWER_SCREENSHOT"):
+                page.screenshot(path=os.environ["SVELIVE_VIEWER_SCREENSHOT"])
+        finally:
+            context.close()
