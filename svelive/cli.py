@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "svelive.capture.commands",
     "svelive.motion_commands",
     "service.commands",
+    "svelive.bench.commands",
 )
 
 

@@ -62,7 +62,7 @@ def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 def run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     ky, kx = kernels(inp.pattern.shape)
     halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
-    return in_strips(_run, inp, halo, rows=128, return_variance=return_variance)
+    return in_strips(_run, inp, halo, rows=64, return_variance=return_variance)
 
 
 def own_share(inp: SveInput) -> np.ndarray:
@@ -141,11 +141,11 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     d *= share
     image = np.add(m, d, out=m)
 
+    lower = exposure_sum <= 0
     if any_censored:
-        _censored_pixels(inp, image, x, w, ky, kx)
+        lower |= _censored_pixels(inp, image, x, w, ky, kx)  # there, image = m (w = 0)
     np.maximum(image, 0, out=image)
     variance = np.divide(f32(1.0), total) if want_variance else None
-    lower = exposure_sum <= 0
     if lower.any():
         bound = censored_lower_bound(inp, (len(ky), len(kx)))
         np.copyto(image, bound, where=lower)
@@ -155,21 +155,35 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
 
 
 def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndarray,
-                     ky: np.ndarray, kx: np.ndarray) -> None:
-    """Replace ``image`` at censored pixels by the mean of the neighbours consistent with their bound, in place.
+                     ky: np.ndarray, kx: np.ndarray) -> np.ndarray:
+    """Set ``image`` at censored pixels, in place; returns the pixels left as bounds only, bool (H, W).
 
-    A censored pixel of level k gets max(mean, bound); with no consistent neighbour, the bound.
+    ``image`` holds the neighbour estimate m there. A censored pixel takes
+    max(m, its bound x); where some neighbour is inconsistent with the bound
+    (the dark side of an edge, a few pixels per edge) it takes instead
+    the inverse-variance mean of the neighbours consistent with the bound
+    (x_i + 2 sigma_i >= bound), at least the bound; with no consistent neighbour
+    it is returned for the caller to give it the largest bound of its window.
     """
-    reach = np.divide(np.float32(CONSISTENT_SIGMA), np.sqrt(np.maximum(w, np.float32(TINY))))
-    reach += x  # x + 2 sigma; censored readings have w = 0 and drop out below
+    f32 = np.float32
+    reach = np.divide(f32(CONSISTENT_SIGMA), np.sqrt(np.maximum(w, f32(TINY))))
+    reach += x  # censored readings have w = 0: an infinite reach, never inconsistent
+    np.maximum(image, x, out=image, where=inp.censored)
+    lowest = cv2.erode(reach, np.ones((len(ky), len(kx)), np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    violated = inp.censored & (lowest < x)  # some neighbour is inconsistent with the bound
+    bound_only = np.zeros(inp.shape, bool)
+    if not violated.any():
+        return bound_only
     index = inp.pattern.level_index_map(inp.shape)  # nominal levels, also under a calibrated pixel map
     for k, level in enumerate(inp.pattern.levels):
-        at = inp.censored & (index == k)
+        at = violated & (index == k)
         if not at.any():
             continue
-        consistent = w * np.greater_equal(reach, np.float32(inp.sensor.censor_level / level))
+        consistent = w * np.greater_equal(reach, f32(inp.sensor.censor_level / level))
         total = smooth(consistent, ky, kx)
         mean = smooth(consistent * x, ky, kx)
-        mean /= np.maximum(total, np.float32(TINY))
+        mean /= np.maximum(total, f32(TINY))
         np.maximum(mean, x, out=mean)
         np.copyto(image, mean, where=at)
+        bound_only |= at & (total <= 0)
+    return bound_only

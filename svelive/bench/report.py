@@ -1,0 +1,132 @@
+"""Writing benchmark results: results.json, results.csv, the speed/accuracy chart, a Markdown table.
+
+Files are written to a temporary name and renamed, so a reader never sees half
+a file. matplotlib (the optional extra ``bench``) is imported only to draw.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from svelive.errors import SveliveError
+
+REALTIME_MS = 33.0  # 30 frames per second
+BUDGET_MS = 25.0  # the reconstruction's share of a frame
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same directory and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, data: object) -> None:
+    write_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
+
+
+def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
+    """One line per row, columns in the rows' key order."""
+    if not rows:
+        raise SveliveError("no benchmark results to write")
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: f"{v:.4g}" if isinstance(v, float) else v for k, v in row.items()})
+    write_atomic(path, text.getvalue().encode())
+
+
+def _pyplot():
+    try:
+        import matplotlib
+    except ImportError:
+        raise SveliveError("the chart needs matplotlib: pip install 'svelive[bench]'") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: Path) -> None:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    write_atomic(path, buffer.getvalue())
+
+
+def plot_speed_accuracy(summary: list[dict[str, object]], path: Path, default: str | None = None) -> None:
+    """Mean PU21-PSNR against median time per frame (log x), Pareto front, 33 ms and 25 ms marks, bracketing line."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    pts = sorted(((s["ms_per_frame"], s["pu21_psnr"], s["method"], s["pareto"]) for s in summary))
+    for t, a, name, on in pts:
+        ax.scatter([t], [a], s=60 if name == default else 36, marker="*" if name == default else "o",
+                   color="tab:red" if on else "tab:blue", zorder=3)
+        ax.annotate(name + (" (default)" if name == default else ""), (t, a), textcoords="offset points",
+                    xytext=(6, 4), fontsize=8)
+    front = [(t, a) for t, a, _, on in pts if on]
+    ax.step([p[0] for p in front], [p[1] for p in front], where="post", color="tab:red", lw=1,
+            label="Pareto front")
+    ref = float(sum(s["reference_pu21_psnr"] for s in summary) / len(summary))
+    ax.axhline(ref, color="tab:green", ls="--", lw=1, label=f"bracketing reference ({ref:.1f} dB)")
+    ax.axvline(REALTIME_MS, color="grey", ls=":", lw=1, label="real time, 33 ms")
+    ax.axvline(BUDGET_MS, color="black", ls=":", lw=1, label="budget, 25 ms")
+    ax.set_xscale("log")
+    ax.set_xlabel("time per 1920x1200 frame, one thread (ms, median)")
+    ax.set_ylabel("PU21-PSNR (dB), mean over images, patterns, noise levels")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def plot_curves(sweeps: list[dict[str, object]], path: Path) -> None:
+    """One panel per stability sweep: error against difficulty, one line per method."""
+    plt = _pyplot()
+    n = len(sweeps)
+    cols = 3
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    for ax, sweep in zip(axes.ravel(), sweeps):
+        for method, errors in sweep["errors"].items():
+            ax.plot(sweep["difficulty"], errors, marker=".", label=method)
+        ax.set_title(sweep["title"], fontsize=9)
+        ax.set_xlabel(sweep["axis"], fontsize=8)
+        ax.set_ylabel(sweep["error"], fontsize=8)
+        if sweep.get("log_y"):
+            ax.set_yscale("log")
+        ax.grid(True, alpha=0.3)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    axes.ravel()[0].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def markdown_table(summary: list[dict[str, object]]) -> str:
+    """The summary as a Markdown table, fastest first."""
+    head = ("| method | ms / frame | PU21-PSNR | bright | dim | log-PSNR | mu-law PSNR | p99 error (stops)"
+            " | below bracketing (dB) | Pareto |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---|\n")
+    lines = []
+    for s in sorted(summary, key=lambda s: s["ms_per_frame"]):
+        lines.append(f"| {s['method']} | {s['ms_per_frame']:.1f} | {s['pu21_psnr']:.2f} | {_f(s['pu21_psnr_bright'])} |"
+                     f" {_f(s['pu21_psnr_dim'])} | {s['log_psnr']:.2f} | {s['mu_law_psnr']:.2f} |"
+                     f" {s['error_stops_p99']:.3f} | {s['below_reference_db']:.2f} | {'yes' if s['pareto'] else ''} |")
+    return head + "\n".join(lines) + "\n"
+
+
+def _f(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"

@@ -1,0 +1,121 @@
+"""The benchmark pieces: baseline, bracketing reference, runner, writers, CLI errors (small frames only)."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from svelive import Pattern, Sensor, simulate
+from svelive.bench import report
+from svelive.bench.reference import bracketing_merge, bracketing_reference
+from svelive.bench.runner import BenchConfig, Setting, pareto_front, run_benchmark
+from svelive.cli import main
+from svelive.exr import write_exr
+from svelive.methods import baseline
+from svelive.metrics import pu21_psnr
+from svelive.reconstruct import prepare
+from svelive.simulate import exposure_scale, load_sample_scene
+
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    points = [(10.0, 30.0), (20.0, 29.0), (5.0, 25.0), (40.0, 35.0), (10.0, 30.0)]
+    flags = pareto_front(points)
+    # (20, 29) is slower and worse than (10, 30); equal points do not dominate each other
+    assert flags == [True, False, True, True, True]
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
+def test_baseline_upsampling_places_each_phase_where_it_was_sampled(pattern):
+    # bilinear interpolation reproduces a linear ramp exactly away from the borders
+    p = Pattern.parse(pattern)
+    th, tw = p.shape
+    y, x = np.mgrid[0:40, 0:48].astype(np.float32)
+    ramp = 3.0 * x + 2.0 * y
+    for py in range(th):
+        for px in range(tw):
+            up = baseline.upsample_phase(np.ascontiguousarray(ramp[py::th, px::tw]), (py, px), (th, tw), ramp.shape)
+            inner = (slice(th, -th), slice(tw, -tw))
+            np.testing.assert_allclose(up[inner], ramp[inner], atol=1e-3)
+
+
+def test_baseline_flat_field_and_all_saturated_bound():
+    frame = simulate(np.full((64, 64), 200.0, np.float32), "1,4/16,64", SENSOR, seed=3)
+    est = baseline.run(prepare(frame.raw, "1,4/16,64", SENSOR))
+    assert np.mean(est.image) == pytest.approx(200.0, rel=0.01)
+    saturated = np.full((8, 8), 4095, np.uint16)
+    est = baseline.run(prepare(saturated, "1,4/16,64", SENSOR))
+    assert est.lower_bound.all() and np.allclose(est.image, 4095.0)
+
+
+def test_bracketing_merge_is_inverse_variance_and_skips_censored():
+    exposures = [1.0, 8.0]
+    signals = [np.full((4, 4), 100.0, np.float32), np.full((4, 4), 800.0, np.float32)]
+    merged = bracketing_merge(signals, exposures, SENSOR)
+    np.testing.assert_allclose(merged, 100.0, rtol=1e-6)
+    signals[1][:] = SENSOR.white_level  # censored: only the short exposure counts
+    signals[0][:] = 600.0
+    np.testing.assert_allclose(bracketing_merge(signals, exposures, SENSOR), 600.0, rtol=1e-6)
+
+
+def test_bracketing_reference_beats_every_sve_method_on_a_bright_real_scene():
+    scene = np.maximum(load_sample_scene("desk"), 0)
+    pattern = "1,4/16,64"
+    radiance = scene * exposure_scale(scene, Pattern.parse(pattern), SENSOR)
+    frame = simulate(radiance, pattern, SENSOR, seed=2)
+    ref = pu21_psnr(bracketing_reference(radiance, pattern, SENSOR, seed=2), frame.truth)
+    inp = prepare(frame.raw, pattern, SENSOR)
+    for name in ("weighted", "aggregate", "adaptive", "baseline"):
+        assert pu21_psnr(Setting(name, name).run(inp).image, frame.truth) < ref, name
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    data = tmp_path_factory.mktemp("hdr")
+    write_exr(data / "Cannon.exr", {"Y": load_sample_scene("cannon")[:64, :96]})
+    config = BenchConfig(patterns=("1,2/4,8",), noise_levels=("bright", "dim"), repeats=1)
+    settings = [Setting("aggregate", "aggregate"), Setting("adaptive", "adaptive")]
+    return run_benchmark(data, config, settings, log=lambda line: None)
+
+
+def test_runner_rows_cover_every_setting_and_condition(small_run):
+    rows = small_run["rows"]
+    assert {(r["method"], r["noise"]) for r in rows} == {(m, n) for m in ("aggregate", "adaptive")
+                                                        for n in ("bright", "dim")}
+    for r in rows:
+        assert r["ms_per_frame"] > 0 and np.isfinite(r["pu21_psnr"]) and r["error_stops_p99"] >= 0
+        assert r["below_reference_db"] == pytest.approx(r["reference_pu21_psnr"] - r["pu21_psnr"])
+    summary = {s["method"]: s for s in small_run["summary"]}
+    mine = [r["pu21_psnr"] for r in rows if r["method"] == "adaptive"]
+    assert summary["adaptive"]["pu21_psnr"] == pytest.approx(np.mean(mine))
+    assert any(s["pareto"] for s in small_run["summary"])
+
+
+def test_writers_produce_readable_files(small_run, tmp_path):
+    report.write_json(tmp_path / "results.json", small_run)
+    report.write_csv(tmp_path / "results.csv", small_run["rows"])
+    assert json.loads((tmp_path / "results.json").read_text())["rows"] == json.loads(json.dumps(small_run["rows"]))
+    with open(tmp_path / "results.csv") as f:
+        lines = list(csv.DictReader(f))
+    assert len(lines) == len(small_run["rows"]) and lines[0]["method"] == small_run["rows"][0]["method"]
+    assert "| adaptive |" in report.markdown_table(small_run["summary"])
+    assert [p.name for p in tmp_path.iterdir()] and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_chart_is_a_png(small_run, tmp_path):
+    pytest.importorskip("matplotlib")
+    report.plot_speed_accuracy(small_run["summary"], tmp_path / "chart.png", "adaptive")
+    assert (tmp_path / "chart.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_bench_errors_are_one_line(tmp_path, capsys):
+    missing = tmp_path / "nothing"
+    assert main(["bench", "-o", str(tmp_path / "out"), "--data", str(missing), "--no-chart"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "nothing" in err and "no such directory" in err
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    assert main(["bench", "-o", str(a_file), "--no-chart"]) == 2
+    assert "not a directory" in capsys.readouterr().err
