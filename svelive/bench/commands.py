@@ -14,7 +14,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                        description="Run every reconstruction method over real HDR images (simulated SVE frames, "
                                    "patterns 1,4/16,64 1,2/4,8 1/1/8/8, a bright and a dim scene) and the "
                                    "stability sweeps; write results.json, results.csv, speed_accuracy.png, "
-                                   "stability.json, stability.png and summary.md to DIR.")
+                                   "stability.json, stability.png, adaptive_choice.png and summary.md to DIR.")
     p.add_argument("--quick", action="store_true", help="three images and fewer timing runs (a couple of minutes)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR", help="directory for the results")
     p.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -22,6 +22,19 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-chart", action="store_true", help="skip the PNG charts (no matplotlib needed)")
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
     p.set_defaults(func=cmd_bench)
+
+
+def choice_map_example(pattern: str = "1,2/4,8"):
+    """(truth, own-reading share, title) of the adaptive method on the shipped ``desk`` crop, bright, seed 0."""
+    from svelive.bench.scenes import BENCH_SENSOR, Condition
+    from svelive.methods.adaptive import own_share
+    from svelive.reconstruct import prepare
+    from svelive.simulate import load_sample_scene, simulate
+
+    scene = load_sample_scene("desk")
+    frame = simulate(Condition(pattern, "bright").radiance(scene), pattern, BENCH_SENSOR, seed=0)
+    share = own_share(prepare(frame.raw, pattern, BENCH_SENSOR))
+    return frame.truth, share, f"adaptive: per-pixel choice, shipped 'desk' crop, pattern {pattern}, bright"
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -46,6 +59,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     report.write_atomic(out / "summary.md", table.encode())
     if not args.no_chart:
         report.plot_speed_accuracy(results["summary"], out / "speed_accuracy.png", results["default_method"])
+    if not args.no_chart:
+        truth, share, title = choice_map_example()
+        report.plot_choice_map(truth, share, out / "adaptive_choice.png", title)
     if not args.no_stability:
         sweeps = run_stability()
         report.write_json(out / "stability.json", sweeps)

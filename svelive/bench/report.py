@@ -13,6 +13,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from svelive.errors import SveliveError
 
 REALTIME_MS = 33.0  # 30 frames per second
@@ -83,6 +85,13 @@ def plot_speed_accuracy(summary: list[dict[str, object]], path: Path, default: s
     ax.axvline(REALTIME_MS, color="grey", ls=":", lw=1, label="real time, 33 ms")
     ax.axvline(BUDGET_MS, color="black", ls=":", lw=1, label="budget, 25 ms")
     ax.set_xscale("log")
+    from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
+
+    lo, hi = ax.get_xlim()
+    ax.xaxis.set_major_locator(FixedLocator([t for t in (5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000)
+                                             if lo <= t <= hi]))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("time per 1920x1200 frame, one thread (ms, median)")
     ax.set_ylabel("PU21-PSNR (dB), mean over images, patterns, noise levels")
     ax.grid(True, which="both", alpha=0.3)
@@ -130,3 +139,21 @@ def markdown_table(summary: list[dict[str, object]]) -> str:
 
 def _f(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
+
+
+def plot_choice_map(truth: np.ndarray, share: np.ndarray, path: Path, title: str) -> None:
+    """Scene (log2 radiance) beside the adaptive method's per-pixel weight of the pixel's own reading."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.4))
+    shown = axes[0].imshow(np.log2(np.maximum(truth, 1e-3)), cmap="gray")
+    axes[0].set_title("scene, log2 radiance", fontsize=9)
+    fig.colorbar(shown, ax=axes[0], fraction=0.046)
+    shown = axes[1].imshow(share, cmap="viridis", vmin=0, vmax=1)
+    axes[1].set_title("own reading's weight (1: full resolution, 0: neighbours)", fontsize=9)
+    fig.colorbar(shown, ax=axes[1], fraction=0.046)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(title, fontsize=10)
+    save_figure(fig, path)
+    plt.close(fig)
