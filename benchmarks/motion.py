@@ -1,6 +1,6 @@
 """Motion robustness targets (issue 5): temporal fusion gain, moving regions, ghosting, integration timing, cost.
 
-    python benchmarks/motion.py [--quick] [--figure docs/motion-trail.png]
+    python benchmarks/motion.py [--quick] [--cost-only] [--figure docs/motion-trail.png]
 
 Real HDR content from ../shared/data (not shipped). 12-bit sensor, 10 000 e- full
 well, 3 e- read noise, pattern 1,4/16,64, default method. PU21-PSNR is computed
@@ -14,7 +14,6 @@ import argparse
 import os
 import platform
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -158,9 +157,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller crops and fewer repeats")
     parser.add_argument("--figure", type=Path, help="write the trail figure (frame, truth, error maps) here")
+    parser.add_argument("--cost-only", action="store_true", help="only the 1920x1200 cost per frame")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     crop, repeats = (256, 3) if args.quick else (512, 7)
+    if args.cost_only:
+        cost(15)
+        return
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; pattern {PATTERN}, "
           f"12-bit, 10000 e- full well, 3 e- read noise; 8 frames")
     print("## static scenes: PU21-PSNR single frame -> fused after 8 frames; mean flagged fraction (false alarms)")

@@ -343,9 +343,17 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # A reading that crossed the censor level changes which exposures a method
     # uses nearby, and so its resolution loss: not evidence of motion, but not
     # averageable either.
+    # A lower bound still proves motion one way: a frame's bound far above the
+    # history, or a history's bound far above the frame.
     window = tuple(support_size(n) for n in pattern_shape)
+    either_bound = bound ^ state.bound
+    if either_bound.any():
+        brighter = image > (state.mean if scale is None else state.mean * scale)
+        proven = flagged & either_bound & (brighter == bound)
     unstable = _grow(frame.censored ^ state.censored, window) | bound | state.bound
     flagged &= ~unstable
+    if either_bound.any():
+        flagged |= proven
     motion = _widen(_confirmed(flagged), config.widen)
     if np.count_nonzero(motion) > config.global_motion * motion.size:
         motion[:] = True  # the camera moved: what was not flagged moved below the noise
