@@ -34,7 +34,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="allow this origin by CORS, repeatable (default: no CORS)")
     p.add_argument("--jpeg-quality", type=int, help="preview JPEG quality 10..100 (default 80)")
     p.add_argument("--preview-width", type=int, help="downscale previews wider than this (default 0: full size)")
-    p.add_argument("--queue", type=int, help="capture hand-off depth in frames, 1..8 (default 2)")
+    p.add_argument("--queue", type=int, help="capture hand-off depth in frames, 1..8 (default 1)")
     p.add_argument("--exposure-ev", type=float, help="preview exposure compensation in stops (default 0)")
     p.add_argument("--key", type=float, help="preview middle grey 0.01..0.9 (default 0.18)")
     p.add_argument("--white-percentile", type=float, help="radiance percentile shown as white (default 99.5)")

@@ -80,7 +80,7 @@ class PipelineConfig:
     white_level: float | None = None
     method: str | None = None
     temporal: bool = True
-    queue: int = 2
+    queue: int = 1
     tone: ToneSettings = field(default_factory=ToneSettings)
     jpeg_quality: int = 80
     preview_width: int = 0
