@@ -19,7 +19,7 @@ import numpy as np
 
 from replay.container import (
     FILE_HEADER, FOOTER, FOOTER_MAGIC, HEADER_ALIGN, INDEX_HEADER, INDEX_MAGIC, NO_TIME, RECORD_HEADER,
-    RECORD_MAGIC, Layout, RecordingError, crc32, decode_header,
+    RECORD_MAGIC, RecordingError, crc32, decode_header,
 )
 from svelive.capture import formats
 from svelive.errors import SveliveError

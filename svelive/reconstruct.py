@@ -8,7 +8,7 @@ import numpy as np
 
 from svelive.errors import SveliveError
 from svelive.methods import DEFAULT_METHOD, METHODS
-from svelive.methods.base import Estimate, SveInput, exposure_maps
+from svelive.methods.base import Estimate, SveInput, exposure_maps, smooth, support_size
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
@@ -48,28 +48,43 @@ def prepare(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor) -> SveInput
                     integral=integral)
 
 
-def confidence_map(estimate: Estimate, inp: SveInput) -> np.ndarray:
-    """Confidence in [0, 1], float32 (H, W): SNR / (1 + SNR) of the estimate, 0 where it is only a lower bound.
+def predicted_variance(image: np.ndarray, inp: SveInput) -> np.ndarray:
+    """Noise variance (DN^2 at exposure 1, float32 (H, W)) the sensor model predicts for ``image``.
 
-    Methods without a variance of their own get the variance the noise model
-    predicts for an inverse-variance combination of one tile's uncensored readings.
+    For methods without a variance of their own: the inverse-variance
+    combination of one tile's uncensored readings, i.e. the information
+    e^2 / (e L / g + sigma^2) of every uncensored pixel at the estimate L,
+    averaged over a window holding every phase of the tile, times the tile's size.
     """
-    image = estimate.image
-    variance = estimate.variance
-    if variance is None:
-        from svelive.methods.base import smooth, support_size
+    sensor = inp.sensor
+    th, tw = inp.pattern.shape
+    ones_y, ones_x = np.ones(support_size(th), np.float32), np.ones(support_size(tw), np.float32)
+    per_pixel = inp.exposure * image
+    per_pixel *= np.float32(1.0 / sensor.effective_gain)
+    per_pixel += np.float32(sensor.floor_variance)
+    np.divide(inp.exposure * inp.exposure, per_pixel, out=per_pixel)
+    per_pixel[inp.censored] = 0
+    per_tile = smooth(per_pixel, ones_y, ones_x)
+    per_tile *= np.float32(th * tw / (ones_y.size * ones_x.size))
+    return np.reciprocal(np.maximum(per_tile, np.float32(1e-30)))
 
-        th, tw = inp.pattern.shape
-        ones_y = np.ones(support_size(th), np.float32)
-        ones_x = np.ones(support_size(tw), np.float32)
-        e = inp.exposure
-        information = np.where(inp.censored, 0, e * e / (e * image / inp.sensor.effective_gain + inp.sensor.floor_variance))
-        information = smooth(information.astype(np.float32), ones_y, ones_x) * (th * tw / (ones_y.size * ones_x.size))
-        variance = 1.0 / np.maximum(information, 1e-30)
-    snr = image / np.sqrt(np.maximum(variance, 1e-30))
-    confidence = snr / (1.0 + snr)
-    confidence[estimate.lower_bound] = 0
-    return np.nan_to_num(confidence, nan=0.0, posinf=1.0).astype(np.float32)
+
+def confidence_from_variance(image: np.ndarray, variance: np.ndarray, lower_bound: np.ndarray) -> np.ndarray:
+    """Confidence in [0, 1], float32 (H, W): SNR / (1 + SNR) = L / (L + sigma), 0 where ``image`` is a lower bound."""
+    sigma = np.sqrt(np.maximum(variance, 0)).astype(np.float32)
+    sigma += image
+    confidence = np.divide(image, sigma, out=np.zeros_like(sigma), where=sigma > 0)
+    confidence[lower_bound] = 0
+    return confidence
+
+
+def confidence_map(estimate: Estimate, inp: SveInput) -> np.ndarray:
+    """Confidence of a method's estimate (see :func:`confidence_from_variance`).
+
+    Uses the method's own variance where it has one, else :func:`predicted_variance`.
+    """
+    variance = estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
+    return confidence_from_variance(estimate.image, variance, estimate.lower_bound)
 
 
 def reconstruct(raw: np.ndarray, pattern: Pattern | str, *, method: str | None = None, black_level: float = 0,

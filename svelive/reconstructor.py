@@ -20,10 +20,10 @@ import numpy as np
 
 from svelive.errors import SveliveError
 from svelive.methods import DEFAULT_METHOD, METHODS
-from svelive.methods.base import Estimate, SveInput, exposure_maps, smooth, support_size
+from svelive.methods.base import Estimate, SveInput, exposure_maps
 from svelive.motion import FrameEstimate, MotionConfig, TemporalState, exposure_consistency, fuse
 from svelive.pattern import Pattern
-from svelive.reconstruct import prepare, run_method, sensor_for
+from svelive.reconstruct import confidence_from_variance, predicted_variance, prepare, run_method, sensor_for
 from svelive.sensor import Sensor
 
 EXPOSURE_TIMINGS = ("mask", "integration")
@@ -63,36 +63,12 @@ class SequenceResult:
     @cached_property
     def confidence(self) -> np.ndarray:
         """float32 (H, W) in [0, 1]: SNR / (1 + SNR) = L / (L + sigma), 0 where ``image`` is a lower bound."""
-        sigma = np.sqrt(self.variance)
-        sigma += self.image
-        confidence = np.divide(self.image, sigma, out=np.zeros_like(sigma), where=sigma > 0)
-        confidence[self.lower_bound] = 0
-        return confidence
+        return confidence_from_variance(self.image, self.variance, self.lower_bound)
 
     @cached_property
     def frames_fused(self) -> np.ndarray:
         """float32 (H, W), frames fused into each pixel (1 / weight)."""
         return np.reciprocal(self.weight)
-
-
-def predicted_variance(image: np.ndarray, inp: SveInput) -> np.ndarray:
-    """Noise variance (DN^2, float32 (H, W)) of an inverse-variance combination of one tile's uncensored readings.
-
-    For methods that return no variance of their own: the information of every
-    uncensored pixel, e^2 / (e L / g + sigma^2) at the estimate L, averaged over a
-    window holding every phase of the tile, times the tile's pixel count.
-    """
-    sensor = inp.sensor
-    th, tw = inp.pattern.shape
-    ones_y, ones_x = np.ones(support_size(th), np.float32), np.ones(support_size(tw), np.float32)
-    per_pixel = inp.exposure * image
-    per_pixel *= np.float32(1.0 / sensor.effective_gain)
-    per_pixel += np.float32(sensor.floor_variance)
-    np.divide(inp.exposure * inp.exposure, per_pixel, out=per_pixel)
-    per_pixel[inp.censored] = 0
-    per_tile = smooth(per_pixel, ones_y, ones_x)
-    per_tile *= np.float32(th * tw / (ones_y.size * ones_x.size))
-    return np.reciprocal(np.maximum(per_tile, np.float32(1e-30)))
 
 
 @lru_cache(maxsize=8)
