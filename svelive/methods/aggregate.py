@@ -56,8 +56,9 @@ def _lookup_table(tile_bytes: bytes, tile_shape: tuple[int, int], full_scale: fl
     return table
 
 
-def run(inp: SveInput) -> Estimate:
-    return in_strips(_run, inp, halo=inp.pattern.shape[0] + 1)
+def run(inp: SveInput, *, workers: int = 1) -> Estimate:
+    """``workers``: threads to spread the frame's strips over (the result does not depend on it)."""
+    return in_strips(_run, inp, halo=inp.pattern.shape[0] + 1, workers=workers)
 
 
 def _run(inp: SveInput) -> Estimate:

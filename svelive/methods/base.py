@@ -7,6 +7,7 @@ exposures, censoring) once, so methods only do the reconstruction itself.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -128,14 +129,16 @@ def _same_phase_index(n: int, period: int, before: int, after: int) -> np.ndarra
     return np.clip(index, 0, n - 1)
 
 
-def in_strips(run, inp: SveInput, halo: int, rows: int = 64, **options) -> Estimate:
+def in_strips(run, inp: SveInput, halo: int, rows: int = 64, workers: int = 1, **options) -> Estimate:
     """Run a local method over horizontal strips of the frame and stitch the results.
 
     ``run`` must only look ``halo`` rows up and down. Strips of a few dozen rows
     keep the method's temporaries in cache and out of the page-fault path of
     large allocations, which makes chains of numpy operations several times
     faster; strips start on whole tiles so the pattern keeps its phase. The
-    result equals a whole-frame run.
+    result equals a whole-frame run. With ``workers`` > 1 the strips run on that
+    many threads (numpy and OpenCV release the GIL), for real-time use on
+    several cores.
     """
     th = inp.pattern.shape[0]
     h = inp.shape[0]
@@ -143,14 +146,21 @@ def in_strips(run, inp: SveInput, halo: int, rows: int = 64, **options) -> Estim
     rows = max(-(-rows // th) * th, th)
     if h <= rows + 2 * halo or inp.pattern.pixel_map is not None:
         return run(inp, **options)
-    parts = []
-    for top in range(0, h, rows):
+
+    def strip(top: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         start, stop = max(top - halo, 0), min(top + rows + halo, h)
         piece = SveInput(inp.signal[start:stop], inp.exposure[start:stop], inp.censored[start:stop],
                          inp.pattern, inp.sensor, inp.integral)
         est = run(piece, **options)
         keep = slice(top - start, top - start + min(rows, h - top))
-        parts.append((est.image[keep], est.lower_bound[keep], None if est.variance is None else est.variance[keep]))
+        return est.image[keep], est.lower_bound[keep], None if est.variance is None else est.variance[keep]
+
+    tops = range(0, h, rows)
+    if workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            parts = list(pool.map(strip, tops))
+    else:
+        parts = [strip(top) for top in tops]
     image = np.concatenate([p[0] for p in parts])
     lower = np.concatenate([p[1] for p in parts])
     variance = None if parts[0][2] is None else np.concatenate([p[2] for p in parts])

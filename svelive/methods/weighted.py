@@ -54,9 +54,10 @@ def _level_layout(pattern: Pattern, shape: tuple[int, int]) -> list[tuple[float,
     return layout
 
 
-def run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
+def run(inp: SveInput, *, return_variance: bool = False, workers: int = 1) -> Estimate:
+    """``workers``: threads to spread the frame's strips over (the result does not depend on it)."""
     halo = max(support_size(s) for s in inp.pattern.shape)
-    return in_strips(_run, inp, halo, rows=96, return_variance=return_variance)
+    return in_strips(_run, inp, halo, rows=96, workers=workers, return_variance=return_variance)
 
 
 def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
