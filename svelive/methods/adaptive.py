@@ -80,49 +80,63 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     return Estimate(image, lower, variance)
 
 
+def _at_least(a: np.ndarray, floor: float) -> np.ndarray:
+    """max(a, floor) in place (cv2: numpy's scalar maximum is several times slower), returns ``a``."""
+    if a.size < 16:  # cv2 would read a scalar beside a tiny array as a 4-vector
+        return np.maximum(a, np.float32(floor), out=a)
+    return cv2.max(a, float(floor), dst=a)
+
+
 def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False):
     """Core of the method on a whole frame or strip: (image, lower_bound, variance or None, share or None)."""
     ky, kx = kernels(inp.pattern.shape)
     f32 = np.float32
-    tiny = f32(TINY)
     gain_inv, floor = f32(1.0 / inp.sensor.effective_gain), f32(inp.sensor.floor_variance)
     e, s, censored = inp.exposure, inp.signal, inp.censored
     any_censored = bool(censored.any())
-    valid = (~censored).view(np.uint8).astype(f32) if any_censored else np.ones_like(s)
+    if any_censored:
+        s = s.copy()
+        np.copyto(s, 0, where=censored)
+        e_valid = e.copy()
+        np.copyto(e_valid, 0, where=censored)
+    else:
+        e_valid = e
 
     # Pilot: shot-noise ML radiance over the window.
-    exposure_sum = smooth(e * valid if any_censored else e, ky, kx)
-    pilot = smooth(s * valid if any_censored else s, ky, kx)
-    np.divide(pilot, np.maximum(exposure_sum, tiny), out=pilot)
-    np.maximum(pilot, 0, out=pilot)
+    exposure_sum = smooth(e_valid, ky, kx)
+    pilot = smooth(s, ky, kx)
+    pilot /= _at_least(exposure_sum.copy(), TINY)
+    _at_least(pilot, 0.0)
 
     # Inverse variance of every reading at its pilot; 0 for censored readings.
     w = pilot * e
     w *= gain_inv
     w += floor
-    np.divide(e * e * valid if any_censored else e * e, w, out=w)
-    x = s / e
+    np.divide(e * e_valid, w, out=w)
+    x = inp.signal / e
 
     # Neighbour estimate without the pixel itself; no neighbours: m = 0 with a huge variance.
     centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
     wn = w
     if any_censored:
-        censored_exposure = e + valid * f32(BIG)
+        censored_exposure = np.full_like(e, BIG)
+        np.copyto(censored_exposure, e, where=censored)
         lowest = cv2.erode(censored_exposure, np.ones((len(ky), len(kx)), np.uint8),
                            borderType=cv2.BORDER_REFLECT_101)
-        wn = w * np.greater(lowest, e)
+        wn = w.copy()
+        np.copyto(wn, 0, where=lowest <= e)
     wx = wn * x
     sum_w = smooth(wn, ky, kx)
     sum_w -= centre * wn
-    np.maximum(sum_w, tiny, out=sum_w)
+    _at_least(sum_w, TINY)
     m = smooth(wx, ky, kx)
     m -= centre * wx
     m /= sum_w
     var_m = np.divide(f32((ky * ky).sum() * (kx * kx).sum()), sum_w, out=sum_w)
 
     # Squared bias of m from the residuals around p, each weighted by the inverse variance of r^2.
-    var_r = np.divide(f32(1.0), np.maximum(w, tiny))  # own variance; censored: ~1 / tiny, no evidence
-    var_r += var_m
+    var_p = np.divide(f32(1.0), _at_least(w.copy(), TINY))  # censored: ~1 / tiny, so no evidence
+    var_r = var_p + var_m
     d = x - m
     excess = d * d
     excess -= var_r
@@ -130,8 +144,8 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     np.divide(f32(1.0), q, out=q)
     excess *= q
     excess = smooth(excess, ky, kx)
-    excess /= np.maximum(smooth(q, ky, kx), tiny)
-    np.maximum(excess, 0, out=excess)
+    excess /= _at_least(smooth(q, ky, kx), TINY)
+    _at_least(excess, 0.0)
     excess += var_m  # squared bias + variance of m
 
     # Minimum-mean-square blend of the own reading and the neighbour estimate: m + (x - m) w / (w + 1 / excess).
@@ -143,8 +157,8 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
 
     lower = exposure_sum <= 0
     if any_censored:
-        lower |= _censored_pixels(inp, image, x, w, ky, kx)  # there, image = m (w = 0)
-    np.maximum(image, 0, out=image)
+        lower |= _censored_pixels(inp, image, x, w, var_p, ky, kx)  # there, image = m (w = 0)
+    _at_least(image, 0.0)
     variance = np.divide(f32(1.0), total) if want_variance else None
     if lower.any():
         bound = censored_lower_bound(inp, (len(ky), len(kx)))
@@ -154,36 +168,41 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     return image, lower, variance, share if want_share else None
 
 
-def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndarray,
+def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndarray, var_p: np.ndarray,
                      ky: np.ndarray, kx: np.ndarray) -> np.ndarray:
     """Set ``image`` at censored pixels, in place; returns the pixels left as bounds only, bool (H, W).
 
-    ``image`` holds the neighbour estimate m there. A censored pixel takes
-    max(m, its bound x); where some neighbour is inconsistent with the bound
-    (the dark side of an edge, a few pixels per edge) it takes instead
-    the inverse-variance mean of the neighbours consistent with the bound
-    (x_i + 2 sigma_i >= bound), at least the bound; with no consistent neighbour
-    it is returned for the caller to give it the largest bound of its window.
+    A censored pixel takes the plain (equal-weight) window mean of the
+    uncensored neighbours consistent with its bound (x_i + 2 sigma_i >= bound),
+    and at least the bound. Equal weights, because noise weights at each
+    neighbour's own radiance favour the darker neighbours, and next to a
+    censored pixel the surviving ones are the darker ones. With no consistent
+    neighbour the pixel is returned for the caller to give it the largest bound
+    of its window.
     """
     f32 = np.float32
-    reach = np.divide(f32(CONSISTENT_SIGMA), np.sqrt(np.maximum(w, f32(TINY))))
-    reach += x  # censored readings have w = 0: an infinite reach, never inconsistent
-    np.maximum(image, x, out=image, where=inp.censored)
-    lowest = cv2.erode(reach, np.ones((len(ky), len(kx)), np.uint8), borderType=cv2.BORDER_REFLECT_101)
-    violated = inp.censored & (lowest < x)  # some neighbour is inconsistent with the bound
+    censored = inp.censored
+    reach = np.sqrt(var_p)
+    reach *= f32(CONSISTENT_SIGMA)
+    reach += x  # censored readings have var_p ~ 1 / tiny: an infinite reach, excluded by w > 0 below
+    valid = (w > 0).astype(f32)
+    rows = np.flatnonzero(censored.any(axis=1))
+    ry = len(ky) // 2
+    band = slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, inp.shape[0]))  # the rows the sums need
+    e = inp.exposure[band]
+    index = inp.pattern.level_index_map(inp.shape)[band] if inp.pattern.pixel_map is not None else None
     bound_only = np.zeros(inp.shape, bool)
-    if not violated.any():
-        return bound_only
-    index = inp.pattern.level_index_map(inp.shape)  # nominal levels, also under a calibrated pixel map
-    for k, level in enumerate(inp.pattern.levels):
-        at = violated & (index == k)
+    for k, level in enumerate(inp.pattern.levels.tolist()):
+        at = censored[band] & ((e == f32(level)) if index is None else (index == k))
         if not at.any():
             continue
-        consistent = w * np.greater_equal(reach, f32(inp.sensor.censor_level / level))
+        consistent = valid[band].copy()
+        np.copyto(consistent, 0, where=reach[band] < f32(inp.sensor.censor_level / level))
         total = smooth(consistent, ky, kx)
-        mean = smooth(consistent * x, ky, kx)
-        mean /= np.maximum(total, f32(TINY))
-        np.maximum(mean, x, out=mean)
-        np.copyto(image, mean, where=at)
-        bound_only |= at & (total <= 0)
+        consistent *= x[band]
+        mean = smooth(consistent, ky, kx)
+        mean /= _at_least(total.copy(), TINY)
+        np.maximum(mean, x[band], out=mean)
+        np.copyto(image[band], mean, where=at)
+        bound_only[band] |= at & (total <= 0)
     return bound_only
