@@ -129,8 +129,9 @@ def run_method(inp: SveInput, method: str | None = None, **options) -> Estimate:
                            f" (it takes: {', '.join(sorted(accepted)) or 'none'})")
     estimate = run(inp, **options)
     image = estimate.image
-    # Methods promise finite, non-negative float32; check cheaply, repair only when broken.
-    if image.dtype != np.float32 or not np.isfinite(image.sum(dtype=np.float64)) or image.min() < 0:
+    # Methods promise finite, non-negative float32 (the tests hold them to it); one cheap
+    # reduction catches NaN and inf, which propagate into the sum, and repairs them.
+    if image.dtype != np.float32 or not np.isfinite(image.sum()):
         image = np.nan_to_num(image.astype(np.float32), nan=0.0, posinf=np.finfo(np.float32).max, neginf=0.0)
         np.maximum(image, 0, out=image)
     return Estimate(image, estimate.lower_bound, estimate.variance)
