@@ -23,6 +23,8 @@ Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -288,7 +290,8 @@ def start(frame: FrameEstimate) -> TemporalState:
 
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
-         inconsistency: Inconsistency | None = None, detail: bool = True) -> Fused:
+         inconsistency: Inconsistency | None = None, detail: bool = True, workers: int = 1,
+         strip_rows: int = STRIP_ROWS) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
@@ -302,6 +305,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         detail: where a pixel has history (2 frames or more), move the output towards
             its own fused readings as far as they exceed their noise (:func:`sharpen`
             at ``config.detail_sigmas``).
+        workers: threads over which the strips are spread (numpy and OpenCV release
+            the GIL); the result does not depend on it.
+        strip_rows: rows per strip; the result does not depend on it either.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it,
@@ -316,7 +322,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     The history's variance is taken as the frame's variance v times w, as for a
     static scene with stationary noise. The test compares smooth estimates,
     whose loss of resolution is the same in every frame of a static scene and
-    so cancels. Work is done in strips of STRIP_ROWS rows to stay in cache.
+    so cancels.
+
+    Work is done in strips of ``strip_rows`` rows, small enough for the
+    temporaries to stay in cache, in two passes: the tests (each strip reads a
+    halo of rows around it for the neighbourhood operations, so strips join
+    without a seam), then, once the frame's share of moving pixels is known,
+    the update. The global brightness ratio is measured first, on a subsample.
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
     if state is None or state.mean.shape != image.shape:
@@ -328,57 +340,75 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     ratio = illumination_ratio(state, image, variance, bound) if config.compensate_illumination else 1.0
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else None
     h = image.shape[0]
-    strips = [slice(top, min(top + STRIP_ROWS, h)) for top in range(0, h, STRIP_ROWS)]
+    rows = max(1, int(strip_rows))
+    strips = [slice(top, min(top + rows, h)) for top in range(0, h, rows)]
+    window = tuple(support_size(n) for n in pattern_shape)
+    # rows a strip's motion mask depends on: censor changes grow by window // 2, then
+    # confirmation looks 1 row further, widening ``widen`` more
+    halo = window[0] // 2 + 1 + int(config.widen)
     inv_k2 = np.float32(1.0 / config.temporal_sigmas ** 2)
+    motion = np.empty(image.shape, bool)
+    reset = np.empty(image.shape, bool)
 
-    flagged = np.empty(image.shape, bool)
-    for rows in strips:
-        mean = state.mean[rows] if scale is None else state.mean[rows] * scale
-        diff = image[rows] - mean
+    def test(core: slice) -> int:
+        """Motion and reset masks of the strip's rows; returns its count of moving pixels."""
+        top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
+        ext, keep = slice(top, stop), slice(core.start - top, core.stop - top)
+        mean = state.mean[ext] if scale is None else state.mean[ext] * scale
+        diff = image[ext] - mean
         diff *= diff
         diff *= inv_k2
-        tolerance = state.weight[rows] + np.float32(1)
-        tolerance *= variance[rows]
-        np.greater(diff, tolerance, out=flagged[rows])
-    # A reading that crossed the censor level changes which exposures a method
-    # uses nearby, and so its resolution loss: not evidence of motion, but not
-    # averageable either.
-    # A lower bound still proves motion one way: a frame's bound far above the
-    # history, or a history's bound far above the frame.
-    window = tuple(support_size(n) for n in pattern_shape)
-    either_bound = bound ^ state.bound
-    if either_bound.any():
-        brighter = image > (state.mean if scale is None else state.mean * scale)
-        proven = flagged & either_bound & (brighter == bound)
-    unstable = _grow(frame.censored ^ state.censored, window) | bound | state.bound
-    flagged &= ~unstable
-    if either_bound.any():
-        flagged |= proven
-    motion = _widen(_confirmed(flagged), config.widen)
-    if np.count_nonzero(motion) > config.global_motion * motion.size:
-        motion[:] = True  # the camera moved: what was not flagged moved below the noise
-    reset = motion | flagged | unstable
+        tolerance = state.weight[ext] + np.float32(1)
+        tolerance *= variance[ext]
+        flagged = diff > tolerance
+        # A reading that crossed the censor level changes which exposures a method
+        # uses nearby, and so its resolution loss: not evidence of motion, but not
+        # averageable either. A lower bound still proves motion one way: a frame's
+        # bound far above the history, or a history's bound far above the frame.
+        either_bound = bound[ext] ^ state.bound[ext]
+        proven = flagged & either_bound & ((image[ext] > mean) == bound[ext]) if either_bound.any() else None
+        unstable = _grow(frame.censored[ext] ^ state.censored[ext], window)
+        unstable |= bound[ext]
+        unstable |= state.bound[ext]
+        flagged &= ~unstable
+        if proven is not None:
+            flagged |= proven
+        moving = _widen(_confirmed(flagged), config.widen)[keep]
+        motion[core] = moving
+        np.logical_or(flagged[keep], unstable[keep], out=reset[core])
+        return int(np.count_nonzero(moving))
 
     fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     weight = np.empty_like(image)
     out = np.empty_like(image) if detail else fused
     floor_weight = np.float32(1.0 / config.max_history)
-    for rows in strips:
-        w = weight[rows]  # 1/n -> 1/(n + 1), capped, 1 where reset
-        np.add(state.weight[rows], np.float32(1), out=w)
-        np.divide(state.weight[rows], w, out=w)
+
+    def update(core: slice) -> None:
+        w = weight[core]  # 1/n -> 1/(n + 1), capped, 1 where reset
+        np.add(state.weight[core], np.float32(1), out=w)
+        np.divide(state.weight[core], w, out=w)
         np.maximum(w, floor_weight, out=w)
-        np.maximum(w, reset[rows], out=w)
-        _running_mean(state.mean[rows], image[rows], w, scale, out=fused[rows])
-        _running_mean(state.own[rows], frame.own[rows], w, scale, out=own[rows])
-        np.multiply(variance[rows], w, out=fused_var[rows])
+        np.maximum(w, reset[core], out=w)
+        _running_mean(state.mean[core], image[core], w, scale, out=fused[core])
+        _running_mean(state.own[core], frame.own[core], w, scale, out=own[core])
+        np.multiply(variance[core], w, out=fused_var[core])
         if detail:
-            threshold = frame.own_slope[rows] * fused[rows]
-            threshold += frame.own_floor[rows]
+            threshold = frame.own_slope[core] * fused[core]
+            threshold += frame.own_floor[core]
             threshold *= w
             with np.errstate(divide="ignore"):
                 threshold /= w < 1  # infinite where the pixel has no history: nothing to sharpen
-            sharpen(fused[rows], own[rows], threshold, out=out[rows])
+            sharpen(fused[core], own[core], threshold, out=out[core])
+
+    with ThreadPoolExecutor(max_workers=workers) if workers > 1 else nullcontext() as pool:
+        run = pool.map if pool is not None else map
+        moving = sum(run(test, strips))
+        if moving > config.global_motion * motion.size:
+            motion[:] = True  # the camera moved: what was not flagged moved below the noise
+            reset[:] = True
+        else:
+            reset |= motion
+        list(run(update, strips))
     state = TemporalState(fused, own, weight, bound, frame.censored)
     if inconsistency is not None:  # output only: the history keeps estimates of one kind
         out, fused_var, used = inconsistency.apply(out, fused_var, reset)

@@ -108,6 +108,9 @@ class Reconstructor:
         motion_config: thresholds (svelive.motion.MotionConfig).
         detail: with temporal fusion, sharpen static pixels that have history
             towards their own fused readings (svelive.motion.sharpen).
+        workers: threads for one frame: the strips of the method (where it takes
+            a ``workers`` option) and of the motion stage are spread over them.
+            The results do not depend on it; 1 keeps everything on the caller's thread.
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread; ``method``, ``reset()`` and
@@ -117,7 +120,10 @@ class Reconstructor:
     def __init__(self, pattern: Pattern | str, *, method: str | None = None, temporal: bool = True,
                  exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
-                 motion_config: MotionConfig | None = None, detail: bool = True, **method_options) -> None:
+                 motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
+                 **method_options) -> None:
+        if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
+            raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
         if exposure_timing not in EXPOSURE_TIMINGS:
             raise SveliveError(f"exposure timing must be one of {', '.join(EXPOSURE_TIMINGS)}, got {exposure_timing!r}")
         self.pattern = Pattern.parse(pattern)
@@ -129,6 +135,7 @@ class Reconstructor:
         self.sensor_levels = dict(black_level=black_level, white_level=white_level, gain=gain, read_noise=read_noise)
         self.motion_config = motion_config or MotionConfig()
         self.detail = bool(detail)
+        self.workers = workers
         self.method_options = dict(method_options)
         self._lock = threading.Lock()
         self._method = self._checked(method)
@@ -180,8 +187,11 @@ class Reconstructor:
             sensor = self._sensors[raw.dtype] = sensor_for(raw, **self.sensor_levels)
         inp = prepare(raw, self.pattern, sensor)
         options = dict(self.method_options)
-        if "return_variance" in inspect.signature(METHODS[method]).parameters:
+        parameters = inspect.signature(METHODS[method]).parameters
+        if "return_variance" in parameters:
             options["return_variance"] = True
+        if "workers" in parameters and "workers" not in options:
+            options["workers"] = self.workers
         estimate = run_method(inp, method, **options)
         variance = estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
         return inp, Estimate(estimate.image, estimate.lower_bound, variance)
@@ -198,7 +208,8 @@ class Reconstructor:
         if self.temporal:
             slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
             frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, own_readings(inp, image), slope, floor)
-            fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail)
+            fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
+                         workers=self.workers)
             image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
         else:
