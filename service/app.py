@@ -29,7 +29,7 @@ from starlette.concurrency import run_in_threadpool
 from svelive.errors import SveliveError
 from svelive.exr import exr_bytes
 
-from service.pipeline import EncodedFrame, LatencyWindow, Pipeline, RateMeter
+from service.pipeline import CalibrationBusy, EncodedFrame, LatencyWindow, Pipeline, RateMeter
 from service.settings import MAX_TOKEN_LENGTH, ServerSettings
 
 BOUNDARY = "svelive-frame"
@@ -177,6 +177,14 @@ class SettingsUpdate(BaseModel):
     tone: ToneUpdate | None = None
 
 
+class CalibrateRequest(BaseModel):
+    """Body of POST /api/calibrate/response (optional)."""
+
+    model_config = ConfigDict(extra="forbid")
+    max_degree: int = Field(6, ge=1, le=10)
+    apply: bool = False
+
+
 def process_stats() -> dict[str, float]:
     """Resident memory (MB) and CPU time (s) of this process."""
     with open("/proc/self/statm") as f:
@@ -236,6 +244,10 @@ def create_app(pipeline: Pipeline, settings: ServerSettings, *, manage_pipeline:
     @app.exception_handler(SveliveError)
     async def bad_value(request: Request, exc: SveliveError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=422)
+
+    @app.exception_handler(CalibrationBusy)
+    async def busy(request: Request, exc: CalibrationBusy) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=409)
 
     @app.get("/healthz")
     async def healthz() -> dict[str, Any]:
@@ -321,10 +333,30 @@ def create_app(pipeline: Pipeline, settings: ServerSettings, *, manage_pipeline:
         tone = update.tone.model_dump(exclude_none=True) if update.tone else None
         return pipeline.update_settings(method=update.method, jpeg_quality=update.jpeg_quality, tone=tone)
 
+    @app.post("/api/calibrate/response")
+    async def calibrate_response(request: CalibrateRequest | None = None) -> Any:
+        # seconds of numpy at full HD: in a worker thread, so the streams keep flowing
+        request = request or CalibrateRequest()
+        data = await run_in_threadpool(pipeline.calibrate_response, request.max_degree, request.apply)
+        if data is None:
+            return JSONResponse({"detail": "no frame yet"}, status_code=503)
+        return JSONResponse(data, headers=NO_STORE)
+
+    @app.get("/api/calibrate/response")
+    async def last_calibration() -> Any:
+        data = pipeline.last_calibration()
+        if data is None:
+            return JSONResponse({"detail": "no calibration yet"}, status_code=404)
+        return JSONResponse(data, headers=NO_STORE)
+
+    @app.delete("/api/calibrate/response")
+    async def reset_response() -> dict[str, Any]:
+        return {"response": pipeline.reset_response()}
+
     app.add_middleware(TokenGuard, token=settings.token)
     if settings.cors_origins:  # outermost, so that it answers preflight requests (they carry no token)
         from fastapi.middleware.cors import CORSMiddleware
 
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins),
-                           allow_methods=["GET", "PUT"], allow_headers=["Authorization", "Content-Type"])
+                           allow_methods=["GET", "PUT", "POST", "DELETE"], allow_headers=["Authorization", "Content-Type"])
     return app

@@ -6,14 +6,12 @@ import argparse
 import ipaddress
 import sys
 
-from svelive.errors import SveliveError
-
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "serve", help="serve live HDR video over HTTP (MJPEG preview, EXR snapshots, state)",
         description="Reconstruct a live SVE source and serve it: viewer page at /, MJPEG at /stream.mjpg, "
-                    "/snapshot.jpg, /snapshot.exr, /api/state, PUT /api/settings, /healthz. Every option can "
+                    "/snapshot.jpg, /snapshot.exr, /api/state, PUT /api/settings, POST /api/calibrate/response, /healthz. Every option can "
                     "also come from SVELIVE_<NAME> (e.g. SVELIVE_PORT) or a TOML/JSON config file; "
                     "precedence: command line > environment > config file > defaults.")
     # Defaults are None: "not given", so that the environment and the config file can fill them.
@@ -27,6 +25,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", help="reconstruction method (see `svelive methods`)")
     p.add_argument("--no-temporal", dest="temporal", action="store_const", const=False,
                    help="reconstruct every frame on its own (no temporal fusion)")
+    p.add_argument("--response", metavar="JSON",
+                   help="response file (svelive calibrate response): linearise every frame before reconstruction")
+    p.add_argument("--mask", metavar="NPZ",
+                   help="mask file (svelive calibrate mask): the per-pixel exposure map of the sensor")
+    p.add_argument("--workers", type=int, help="threads per frame for the reconstruction (default 0: one per core)")
     p.add_argument("--host", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (default 8000)")
     p.add_argument("--token", help="require Authorization: Bearer TOKEN (or ?token=) on every endpoint but /healthz")

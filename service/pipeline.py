@@ -29,6 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from svelive.calibrate import Response, calibrate_frame, linearise, load_mask, load_response
 from svelive.capture import Source, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame, HdrFrame
@@ -64,6 +65,11 @@ class PipelineConfig:
         black_level, white_level: DN overrides of the source's sensor; None keeps it.
         method: reconstruction method name; None for the default.
         temporal: use temporal fusion where the reconstructor offers it.
+        response: path of a response JSON (``svelive calibrate response``): every frame
+            is linearised through it before reconstruction; None: the camera is linear.
+        mask: path of a mask file (``svelive calibrate mask``): its per-pixel exposure
+            map replaces the nominal tile's exposures; None: the nominal pattern.
+        workers: threads the reconstruction spreads one frame over; 0: one per core.
         queue: frames the capture -> reconstruction hand-off holds (1..8).
         tone: preview tone-mapping parameters.
         jpeg_quality: preview JPEG quality, 10..100.
@@ -80,6 +86,9 @@ class PipelineConfig:
     white_level: float | None = None
     method: str | None = None
     temporal: bool = True
+    response: str | None = None
+    mask: str | None = None
+    workers: int = 0
     queue: int = 1
     tone: ToneSettings = field(default_factory=ToneSettings)
     jpeg_quality: int = 80
@@ -93,6 +102,8 @@ class PipelineConfig:
             Pattern.parse(self.pattern)
         check_method(self.method)
         check_jpeg_quality(self.jpeg_quality)
+        if not 0 <= self.workers <= 64:
+            raise SveliveError(f"workers must be 0..64 (0: one per core), got {self.workers}")
         if not 1 <= self.queue <= 8:
             raise SveliveError(f"queue must hold 1..8 frames, got {self.queue}")
         if not 0 <= self.preview_width <= 16384:
@@ -112,6 +123,10 @@ def check_jpeg_quality(quality: int) -> None:
     """Raise SveliveError unless ``quality`` is an integer JPEG quality in 10..100."""
     if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 10 <= quality <= 100:
         raise SveliveError(f"JPEG quality must be an integer 10..100, got {quality!r}")
+
+
+class CalibrationBusy(SveliveError):
+    """A calibration was asked while another one runs."""
 
 
 class NewestSlot:
@@ -204,36 +219,38 @@ class LatencyWindow:
 class FrameReconstructor:
     """The one adapter between the pipeline and the reconstruction library.
 
-    Uses the stateful ``svelive.reconstructor.Reconstructor`` (temporal fusion,
-    motion mask) when the library has it, else single-frame reconstruction.
+    Linearises raw frames through a calibrated response when there is one
+    (``svelive.calibrate.linearise``), then runs the stateful
+    ``svelive.reconstructor.Reconstructor`` (temporal fusion, motion mask).
+    ``pattern`` may carry a calibrated per-pixel exposure map.
     """
 
-    def __init__(self, pattern: Pattern, sensor: Sensor, method: str | None, temporal: bool) -> None:
-        self.pattern, self.sensor, self.method, self.temporal = pattern, sensor, method, temporal
-        self.name = method or method_names()[0]
-        try:
-            from svelive.reconstructor import Reconstructor
-        except ModuleNotFoundError as exc:
-            if exc.name != "svelive.reconstructor":
-                raise
-            self._stateful = None
-        else:
-            self._stateful = Reconstructor(pattern, method=method, temporal=temporal,
-                                           black_level=sensor.black_level, white_level=sensor.white_level,
-                                           gain=sensor.gain, read_noise=sensor.read_noise)
+    def __init__(self, pattern: Pattern, sensor: Sensor, method: str | None, temporal: bool,
+                 response: Response | None = None, workers: int = 1) -> None:
+        from svelive.reconstructor import Reconstructor
 
-    def matches(self, pattern: Pattern, sensor: Sensor, method: str | None, temporal: bool) -> bool:
-        return (pattern, sensor, method, temporal) == (self.pattern, self.sensor, self.method, self.temporal)
+        self.pattern, self.sensor, self.method, self.temporal = pattern, sensor, method, temporal
+        self.response = response
+        self.name = method or method_names()[0]
+        self._stateful = Reconstructor(pattern, method=method, temporal=temporal, black_level=sensor.black_level,
+                                       white_level=sensor.white_level, gain=sensor.gain,
+                                       read_noise=sensor.read_noise, workers=workers)
+
+    def matches(self, pattern: Pattern, sensor: Sensor, method: str | None, temporal: bool,
+                response: Response | None = None) -> bool:
+        return (pattern, sensor, method, temporal) == (self.pattern, self.sensor, self.method, self.temporal) \
+            and response is self.response
 
     def __call__(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """(image float32 (H, W) radiance, confidence or None, motion bool (H, W) or None) of a raw frame."""
-        if self._stateful is not None:
-            result = self._stateful.process(raw)
-            return result.image, getattr(result, "confidence", None), getattr(result, "motion", None)
-        from svelive.reconstruct import prepare, run_method
+        """(image float32 (H, W) radiance, None, motion bool (H, W)) of a raw frame.
 
-        estimate = run_method(prepare(raw, self.pattern, self.sensor), self.method)
-        return estimate.image, None, None
+        The confidence map (None here) is not computed: nothing in the service uses
+        it, and at 1920x1200 it costs several ms per frame.
+        """
+        if self.response is not None:
+            raw = linearise(raw, self.response, self.sensor)
+        result = self._stateful.process(raw)
+        return result.image, None, result.motion
 
 
 @dataclass(frozen=True)
@@ -349,6 +366,15 @@ class Pipeline:
                         ("queue", "reconstruct", "arrival_to_hdr", "encode", "arrival_to_jpeg")}
         self._threads: list[threading.Thread] = []
         self._started_ns = time.monotonic_ns()
+        self._newest_raw: tuple[Frame, str] | None = None
+        # the configured response and mask are read now, so a bad file fails before serving
+        self._configured_response = load_response(config.response) if config.response else None
+        self._response = self._configured_response
+        self._response_origin = config.response
+        self._pixel_map = load_mask(config.mask) if config.mask else None
+        self._calibration: dict[str, Any] | None = None
+        self._calibrating = threading.Lock()
+        self.workers = config.workers or os.cpu_count() or 1
 
     # ----- lifecycle ---------------------------------------------------
     def start(self) -> Pipeline:
@@ -403,6 +429,7 @@ class Pipeline:
                 for frame in source:
                     self.captured.tick(frame.host_time_ns)
                     self._last_frame_ns = frame.host_time_ns
+                    self._newest_raw = (frame, self._pattern_text)
                     if self._slot.put((frame, self._pattern_text)):
                         self._count_drop("reconstruct_busy")
                     self._source_stats = source.stats()
@@ -443,6 +470,7 @@ class Pipeline:
     # ----- reconstruction ----------------------------------------------
     def _reconstruct_loop(self) -> None:
         adapter: FrameReconstructor | None = None
+        patterns: dict[str, Pattern] = {}  # one Pattern per text: a per-pixel map is compared by identity
         seq = 0
         while not self._stop.is_set():
             item = self._slot.get(timeout=0.2)
@@ -451,11 +479,18 @@ class Pipeline:
             frame, pattern_text = item
             frame: Frame
             start_ns = time.monotonic_ns()
-            method = self._method
+            method, response = self._method, self._response
             try:
-                pattern = Pattern.parse(pattern_text)
-                if adapter is None or not adapter.matches(pattern, frame.sensor, method, self.config.temporal):
-                    adapter = FrameReconstructor(pattern, frame.sensor, method, self.config.temporal)
+                pattern = patterns.get(pattern_text)
+                if pattern is None:
+                    pattern = Pattern.parse(pattern_text)
+                    if self._pixel_map is not None:
+                        pattern = pattern.with_pixel_map(self._pixel_map)
+                    patterns = {pattern_text: pattern}
+                if adapter is None or not adapter.matches(pattern, frame.sensor, method, self.config.temporal,
+                                                          response):
+                    adapter = FrameReconstructor(pattern, frame.sensor, method, self.config.temporal, response,
+                                                 self.workers)
                 image, confidence, motion = adapter(frame.raw)
             except Exception as exc:
                 self._reconstruct_error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
@@ -585,6 +620,58 @@ class Pipeline:
             finally:
                 self._snapshot_waiters -= 1
 
+    # ----- calibration -------------------------------------------------
+    def latest_raw(self) -> tuple[Frame, str] | None:
+        """The newest captured raw frame and its pattern text, or None before the first."""
+        return self._newest_raw
+
+    def calibrate_response(self, max_degree: int = 6, apply: bool = False) -> dict[str, Any] | None:
+        """Fit the camera's response to the newest raw frame (``svelive.calibrate.calibrate_frame``).
+
+        Runs on the caller's thread (seconds at full HD: call it off the event loop).
+        With ``apply`` the response linearises every frame from the next one on (in
+        memory: a restart goes back to the configured ``response``). Returns the
+        response JSON with ``curve``, ``frame_id`` and ``applied``; None when no
+        frame has arrived yet. Raises SveliveError when the frame cannot calibrate
+        (the response in use is kept) and CalibrationBusy while another runs.
+        """
+        if not 1 <= max_degree <= 10:
+            raise SveliveError(f"max_degree must be 1..10, got {max_degree}")
+        item = self._newest_raw
+        if item is None:
+            return None
+        if not self._calibrating.acquire(blocking=False):
+            raise CalibrationBusy("a response calibration is already running")
+        try:
+            frame, pattern_text = item
+            data = calibrate_frame(frame.raw, Pattern.parse(pattern_text), frame.sensor, max_degree=max_degree)
+        finally:
+            self._calibrating.release()
+        data.update(frame_id=frame.frame_id, applied=bool(apply))
+        self._calibration = data
+        if apply:
+            with self._cond:
+                self._response, self._response_origin = Response.from_dict(data), "calibrated live"
+        return data
+
+    def last_calibration(self) -> dict[str, Any] | None:
+        """The result of the last successful calibrate_response, or None."""
+        return self._calibration
+
+    def reset_response(self) -> dict[str, Any]:
+        """Go back to the configured response (the ``response`` file, or none); returns response_state()."""
+        with self._cond:
+            self._response, self._response_origin = self._configured_response, self.config.response
+        return self.response_state()
+
+    def response_state(self) -> dict[str, Any] | None:
+        """The response in use: origin (file path or "calibrated live"), degree, coefficients, domain; None if linear."""
+        response, origin = self._response, self._response_origin
+        if response is None:
+            return None
+        return {"origin": origin, "degree": response.degree, "coefficients": list(response.coefficients),
+                "domain": list(response.domain)}
+
     # ----- settings ----------------------------------------------------
     def settings(self) -> dict[str, Any]:
         """The settings that can be changed at run time."""
@@ -648,6 +735,9 @@ class Pipeline:
             "methods": method_names(),
             "temporal": self.config.temporal,
             "motion_fraction": self._motion_fraction,
+            "response": self.response_state(),
+            "mask": self.config.mask,
+            "workers": self.workers,
             "reconstruct_error": self._reconstruct_error,
             "pattern": self._pattern_text,
             "sensor": None if latest is None else {"bits": latest.sensor.bits,

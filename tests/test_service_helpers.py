@@ -58,6 +58,16 @@ def make_camera(fps: float = 20.0, n: int = 6, shape: tuple[int, int] = (192, 22
     return Camera(fps=fps, raws=raws)
 
 
+def chart_raws(curve: str = "gamma2.2", n: int = 2, shape: tuple[int, int] = (192, 224)) -> list[np.ndarray]:
+    """n raw frames of a grey-patch chart (10 stops) seen through a camera with a non-linear response ``curve``."""
+    from svelive.calibrate import CURVES, simulate_nonlinear
+
+    rng = np.random.default_rng(5)
+    patches = np.kron(2.0 ** rng.uniform(-10, 0, (shape[0] // 16, shape[1] // 16)), np.ones((16, 16)))
+    scene = (patches * SENSOR.range_dn / patches.max()).astype(np.float32)
+    return [simulate_nonlinear(scene, PATTERN, SENSOR, CURVES[curve], seed=i) for i in range(n)]
+
+
 class SimSource(Source):
     """A Source over a Camera: frames at camera.fps, cycling through camera.raws."""
 

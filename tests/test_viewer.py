@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
-from tests.test_service_helpers import ServerThread, make_camera
+from tests.test_service_helpers import Camera, ServerThread, chart_raws, make_camera
 
 CHROMIUM = os.environ.get("SVELIVE_CHROMIUM", "/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -19,39 +20,70 @@ if not Path(CHROMIUM).exists():
     pytest.skip(f"no Chromium at {CHROMIUM} (apt-get install chromium)", allow_module_level=True)
 
 
+@contextmanager
+def browser_page(tmp_path: Path, height: int, timeout_ms: int):
+    """A page of a fresh headless Chromium (viewport 900 x ``height``), closed afterwards."""
+    with playwright_api.sync_playwright() as pw:
+        context = pw.chromium.launch_persistent_context(
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=FLAGS,
+            viewport={"width": 900, "height": height})
+        try:
+            page = context.new_page()
+            page.set_default_timeout(timeout_ms)
+            yield page
+        finally:
+            context.close()
+
+
 @pytest.mark.parametrize("token", [None, "view-token"])
 def test_viewer_loads_shows_live_video_and_state(tmp_path, token):
     camera = make_camera(fps=15.0)
-    with ServerThread(camera, token=token) as srv, playwright_api.sync_playwright() as pw:
-        context = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=FLAGS,
-            viewport={"width": 900, "height": 600})
-        try:
-            page = context.new_page()
-            page.set_default_timeout(15_000)
-            page.goto(srv.url + "/" + (f"?token={token}" if token else ""))
-            page.wait_for_function("document.getElementById('live').naturalWidth > 0")
-            assert page.evaluate("document.getElementById('live').naturalWidth") == 224
-            page.wait_for_function("document.getElementById('status').textContent === 'online'")
-            page.wait_for_function("/^\\d+/.test(document.getElementById('frame').textContent)")
-            first_id = int(page.text_content("#frame").split()[0])
-            first = page.locator("#live").screenshot()
-            page.wait_for_function(f"parseInt(document.getElementById('frame').textContent) > {first_id + 5}")
-            deadline = time.monotonic() + 10
-            while page.locator("#live").screenshot() == first:  # the <img> really shows new frames
-                assert time.monotonic() < deadline, "the live image never changed"
-                time.sleep(0.2)
-            assert "weighted" in page.eval_on_selector("#method", "s => [...s.options].map(o => o.value).join()")
-            # a control round trip: the exposure slider PUTs the setting
-            page.eval_on_selector("#ev", "e => { e.value = '2'; e.dispatchEvent(new Event('change')); }")
-            deadline = time.monotonic() + 5
-            while srv.pipeline.settings()["tone"]["exposure_ev"] != 2.0:
-                assert time.monotonic() < deadline, "the exposure control did not reach the server"
-                time.sleep(0.1)
-            shot = tmp_path / "viewer.png"
-            page.screenshot(path=str(shot))
-            assert shot.stat().st_size > 10_000
-            if os.environ.get("SVELIVE_VIEWER_SCREENSHOT"):
-                page.screenshot(path=os.environ["SVELIVE_VIEWER_SCREENSHOT"])
-        finally:
-            context.close()
+    with ServerThread(camera, token=token) as srv, browser_page(tmp_path, 600, 15_000) as page:
+        page.goto(srv.url + "/" + (f"?token={token}" if token else ""))
+        page.wait_for_function("document.getElementById('live').naturalWidth > 0")
+        assert page.evaluate("document.getElementById('live').naturalWidth") == 224
+        page.wait_for_function("document.getElementById('status').textContent === 'online'")
+        page.wait_for_function("/^\\d+/.test(document.getElementById('frame').textContent)")
+        first_id = int(page.text_content("#frame").split()[0])
+        first = page.locator("#live").screenshot()
+        page.wait_for_function(f"parseInt(document.getElementById('frame').textContent) > {first_id + 5}")
+        deadline = time.monotonic() + 10
+        while page.locator("#live").screenshot() == first:  # the <img> really shows new frames
+            assert time.monotonic() < deadline, "the live image never changed"
+            time.sleep(0.2)
+        assert "weighted" in page.eval_on_selector("#method", "s => [...s.options].map(o => o.value).join()")
+        # a control round trip: the exposure slider PUTs the setting
+        page.eval_on_selector("#ev", "e => { e.value = '2'; e.dispatchEvent(new Event('change')); }")
+        deadline = time.monotonic() + 5
+        while srv.pipeline.settings()["tone"]["exposure_ev"] != 2.0:
+            assert time.monotonic() < deadline, "the exposure control did not reach the server"
+            time.sleep(0.1)
+        shot = tmp_path / "viewer.png"
+        page.screenshot(path=str(shot))
+        assert shot.stat().st_size > 10_000
+        if os.environ.get("SVELIVE_VIEWER_SCREENSHOT"):
+            page.screenshot(path=os.environ["SVELIVE_VIEWER_SCREENSHOT"])
+
+
+def test_viewer_calibrates_the_response_and_plots_the_curve(tmp_path):
+    camera = Camera(fps=10.0, raws=chart_raws("gamma2.2"))
+    with ServerThread(camera) as srv, browser_page(tmp_path, 700, 60_000) as page:
+        page.goto(srv.url + "/")
+        page.wait_for_function("document.getElementById('status').textContent === 'online'")
+        assert page.get_attribute("#curve-path", "d") == ""
+        page.check("#cal-apply")
+        page.click("#calibrate")
+        page.wait_for_function("document.getElementById('curve-path').getAttribute('d').length > 0")
+        info = page.text_content("#cal-info")
+        assert "degree" in info and "applied" in info, info
+        # 65 points of the curve, inside the plot; it bows below the diagonal, as gamma 2.2's inverse does
+        points = [tuple(map(float, p.split(","))) for p in
+                  page.get_attribute("#curve-path", "d")[1:].split(" L")]
+        assert len(points) == 65
+        middle = points[32]  # M = 0.5: I = 0.5^2.2 = 0.22, i.e. y = 160 - 150 * 0.22
+        assert abs(middle[1] - (160 - 150 * 0.5 ** 2.2)) < 150 * 0.02, middle
+        page.wait_for_function("document.getElementById('response').textContent.includes('calibrated live')")
+        assert srv.pipeline.response_state()["origin"] == "calibrated live"
+        shot = tmp_path / "calibration.png"
+        page.screenshot(path=str(shot))
+        assert shot.stat().st_size > 10_000
