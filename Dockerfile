@@ -1,33 +1,50 @@
-# svelive: live HDR video service for SVE cameras.
-#   docker build -t svelive .                      (online: wheels from PyPI)
-#   docker build --build-arg WHEELS=wheels -t svelive .   (offline: wheels in ./wheels)
-#   docker run --rm -p 127.0.0.1:8000:8000 svelive  -> http://127.0.0.1:8000/
-FROM debian:bookworm-slim
+# svelive: live HDR video service for SVE cameras. See docs/container.md.
+#   docker build -t svelive .                                  (online: wheels from PyPI)
+#   docker build --build-arg WHEELS=wheels -t svelive .        (offline: wheels in ./wheels)
+#   docker run --rm -p 127.0.0.1:8000:8000 svelive             -> http://127.0.0.1:8000/
+# Debian's python3 (3.11) so that Debian's PyGObject (python3-gi) and the Aravis
+# typelib match the interpreter; everything else comes from wheels.
 
-# Aravis (GigE Vision) through PyGObject from Debian; Python 3.11.
+FROM debian:bookworm-slim AS build
 RUN apt-get update \
- && apt-get install -y --no-install-recommends \
-      python3 python3-venv python3-gi gir1.2-aravis-0.8 ca-certificates \
+ && apt-get install -y --no-install-recommends python3 python3-venv ca-certificates \
  && rm -rf /var/lib/apt/lists/*
-
+# WHEELS: a folder of the build context holding every dependency as a wheel (and
+# setuptools, the project's build backend); empty: pip fetches them from PyPI.
 ARG WHEELS=
-WORKDIR /src
 COPY . /src
-# --system-site-packages: the venv sees Debian's python3-gi (Aravis bindings)
+# --system-site-packages: the venv sees Debian's python3-gi (installed in the runtime stage).
+# pip and setuptools are needed only here: leave them out of the runtime venv.
 RUN python3 -m venv --system-site-packages /opt/svelive \
  && if [ -n "$WHEELS" ]; then \
       /opt/svelive/bin/pip install --no-cache-dir --no-index --find-links "/src/$WHEELS" /src; \
     else \
       /opt/svelive/bin/pip install --no-cache-dir /src; \
     fi \
- && rm -rf /src \
- && useradd --system --no-create-home svelive
+ && /opt/svelive/bin/pip uninstall --yes setuptools pip
 
-ENV PATH=/opt/svelive/bin:$PATH PYTHONUNBUFFERED=1
+FROM debian:bookworm-slim
+# Runtime only: the interpreter, PyGObject and the Aravis 0.8 typelib (GigE Vision cameras).
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends python3 python3-gi gir1.2-aravis-0.8 \
+ && rm -rf /var/lib/apt/lists/* \
+ && useradd --system --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin svelive
+COPY --from=build /opt/svelive /opt/svelive
+
+LABEL org.opencontainers.image.title="svelive" \
+      org.opencontainers.image.description="HDR video service for cameras with spatially varying pixel exposures (SVE)" \
+      org.opencontainers.image.licenses="BSD-3-Clause"
+# Every `svelive serve` setting is also SVELIVE_<NAME> (docs/service.md); the command line wins
+# over the environment, so the default command names no option and `-e SVELIVE_PORT=...` works.
+# 0.0.0.0 inside the container is needed for port publishing: publish on the host's loopback
+# (-p 127.0.0.1:8000:8000) or set SVELIVE_TOKEN before exposing it further.
+ENV PATH=/opt/svelive/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    SVELIVE_HOST=0.0.0.0 \
+    SVELIVE_PORT=8000
 USER svelive
 WORKDIR /tmp
 EXPOSE 8000
-HEALTHCHECK --interval=30s --timeout=5s CMD python3 -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"
-# Inside the container 0.0.0.0 is needed for the port mapping; publish it on the host's loopback
-# (-p 127.0.0.1:8000:8000) or set SVELIVE_TOKEN before exposing it further.
-CMD ["svelive", "serve", "--host", "0.0.0.0", "--port", "8000"]
+HEALTHCHECK --interval=30s --timeout=5s --start-period=20s \
+  CMD python3 -c "import os, urllib.request as u; u.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('SVELIVE_PORT', '8000'), timeout=4)"
+CMD ["svelive", "serve"]
