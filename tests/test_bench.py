@@ -115,6 +115,11 @@ def test_cli_bench_errors_are_one_line(tmp_path, capsys):
     assert main(["bench", "-o", str(tmp_path / "out"), "--data", str(missing), "--no-chart"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "nothing" in err and "no such directory" in err
+    data = tmp_path / "hdr"
+    data.mkdir()
+    write_exr(data / "Other.exr", {"Y": load_sample_scene("desk")[:16, :16]})
+    assert main(["bench", "--quick", "-o", str(tmp_path / "out"), "--data", str(data), "--no-chart"]) == 2
+    assert "holds none of the images Cannon, Desk, MtTamWest" in capsys.readouterr().err
     a_file = tmp_path / "file"
     a_file.write_text("x")
     assert main(["bench", "-o", str(a_file), "--no-chart"]) == 2

@@ -18,9 +18,10 @@ SENSOR = Sensor.from_full_well(12, 10_000, 3)
 KNOWN_CLIFFS = {
     ("edge", "weighted"): "once every level has a censored pixel in the window it returns the uncensored "
                           "pixels' mean, the dark side's value, even where the pixel's own reading is censored",
-    ("edge", "cubic"): "the local solve, left with the dark side's readings, ignores the censored bright side",
+    ("edge", "cubic"): "once the long exposure is discarded on the bright side the under-determined local "
+                       "solve rings (cubic.py's documented weakness near discarded readings)",
     ("low_light", "baseline"): "hat weights vanish at black: the merge keeps the noisiest exposures",
-    ("low_light", "cubic"): "the dark discard (2x read noise) removes the long exposures' noisy readings",
+    ("low_light", "cubic"): "the dark discard (2x read noise) keeps only the upper tail of the noise: a bias up",
 }
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from svelive.bench.reference import bracketing_reference
 from svelive.bench.scenes import BENCH_SENSOR, NOISE_LEVELS, PATTERNS, Condition, find_images, load_scene
+from svelive.errors import SveliveError
 from svelive.methods import DEFAULT_METHOD, METHODS, baseline
 from svelive.methods.base import Estimate, SveInput
 from svelive.metrics import error_stops_p99, log_psnr, mu_law_psnr, pu21_psnr
@@ -145,6 +146,8 @@ def run_benchmark(data_dir: Path, config: BenchConfig, settings: list[Setting] |
     if config.images:
         wanted = {name.lower() for name in config.images}
         paths = [p for p in paths if p.stem.lower() in wanted]
+        if not paths:
+            raise SveliveError(f"{data_dir}: holds none of the images {', '.join(config.images)}")
     rows: list[Row] = []
     for path in paths:
         scene = load_scene(path)
