@@ -74,3 +74,13 @@ def test_more_accurate_than_the_paper_methods_on_the_shipped_crops(scenes):
                     scores[method].append(pu21_psnr(run_method(inp, method).image, frame.truth))
     means = {m: float(np.mean(v)) for m, v in scores.items()}
     assert means["adaptive"] >= max(means["aggregate"], means["cubic"]) + 2.0, means
+
+
+def test_threads_do_not_change_the_result(scenes):
+    frame = simulated(scenes["mttamwest"], "1,4/16,64", SENSOR)
+    inp = prepare(np.tile(frame.raw, (2, 1)), "1,4/16,64", SENSOR)  # 512 rows: several strips
+    one = run_method(inp, "adaptive", return_variance=True)
+    two = run_method(inp, "adaptive", return_variance=True, workers=2)
+    np.testing.assert_array_equal(one.image, two.image)
+    np.testing.assert_array_equal(one.variance, two.variance)
+    np.testing.assert_array_equal(one.lower_bound, two.lower_bound)
