@@ -19,24 +19,27 @@ shot-noise maximum-likelihood sum(s) / sum(e) over the window). Per pixel p:
    weights; where the neighbours disagree with the pixel beyond their noise
    (edges, texture) b^2 grows and a well-exposed pixel keeps its own reading at
    full resolution; a noisy reading (short exposure, low light) counts for
-   little either way. Nothing is a tuned threshold: every quantity is a
+   little either way. No threshold is tuned to images: every quantity is a
    variance of the noise model or a moment of the local residuals.
 
 Censoring. A censored reading only says L >= T_k = censor / e_k. Its pixel
-takes the inverse-variance mean of the neighbours whose readings are
-consistent with that bound (x_i + 2 sqrt(v_i) >= T_k), and at least T_k; where
-no neighbour is consistent it is the bound itself. Uncensored neighbours of a
-censored pixel of lower or equal exposure are the dark side of an edge (they
-survived where a shorter exposure saturated), so they are left out of the
-neighbour estimates m (each still gives its own pixel's reading). Where the
-window holds no uncensored reading, the result is the lower bound the censored
-pixels imply, flagged in ``lower_bound``.
+takes the plain (equal-weight) window mean of the uncensored neighbours whose
+readings are consistent with that bound (x_i + 2 sqrt(v_i) >= T_k: a 2-sigma
+test, the one fixed significance level of the method), and at least T_k.
+Equal weights there, because next to a censored pixel the surviving readings
+are the darker ones, and noise weights at their own radiance would favour
+them further. An uncensored pixel next to a censored pixel of lower or equal
+exposure is the dark side of an edge (it survived where a shorter exposure
+saturated), so it is left out of its neighbours' estimates m (it still gives
+its own pixel's reading). Where a censored pixel has no consistent neighbour,
+or the window holds no uncensored reading, the result is the largest lower
+bound the window's censored pixels imply, flagged in ``lower_bound``.
 
 Cost. Per-pixel weights make the cost independent of the number of exposure
 levels: two separable windows for the pilot, two for m, two for b^2. The
-censored-pixel step runs only for the levels, and the strips of the frame,
-that actually hold censored pixels, so a scene whose range fits in the
-unsaturated exposures does not pay for it.
+censored-pixel step (one more pair of windows per level) runs only for the
+levels, and the rows of each strip, that actually hold censored pixels, so a
+scene whose range fits in the unsaturated exposures does not pay for it.
 """
 
 from __future__ import annotations
