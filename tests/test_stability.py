@@ -16,8 +16,6 @@ SENSOR = Sensor.from_full_well(12, 10_000, 3)
 
 # (sweep, method): cliffs the sweeps found and that are not fixed in that method (docs/stability.md).
 KNOWN_CLIFFS = {
-    ("edge", "weighted"): "once every level has a censored pixel in the window it returns the uncensored "
-                          "pixels' mean, the dark side's value, even where the pixel's own reading is censored",
     ("edge", "cubic"): "once the long exposure is discarded on the bright side the under-determined local "
                        "solve rings (cubic.py's documented weakness near discarded readings)",
     ("low_light", "baseline"): "hat weights vanish at black: the merge keeps the noisiest exposures",

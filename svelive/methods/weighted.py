@@ -17,7 +17,8 @@ with n_k the level's share of the window. Two rules keep it unbiased:
   darker neighbour never counts for more than a brighter one.
 L0 is the shot-noise maximum-likelihood estimate over the same window,
 sum(s) / sum(e) over uncensored pixels. Where every level has a censored pixel
-in the window, L0 itself is the result (it still uses every uncensored pixel);
+in the window, L0 itself is the result (it still uses every uncensored pixel),
+raised to a censored pixel's own bound where it is lower;
 where the window holds nothing uncensored, the result is the lower bound the
 censored pixels imply. Nothing is tuned to an image: weights come from the
 noise model, exclusions from the censoring alone.
@@ -104,6 +105,12 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     image *= np.float32(gain)
     np.divide(numerator, denominator, out=image, where=usable)
     np.maximum(image, 0, out=image)
+    if not usable.all():
+        # Fallback pixels (every level censored somewhere in the window) hold L0, which
+        # only the uncensored, darker side of an edge informs; a censored pixel there
+        # knows it is at least its own bound, so it keeps that.
+        where = np.nonzero(~usable & censored)
+        image[where] = np.maximum(image[where], inp.signal[where] / inp.exposure[where])
 
     variance = None
     if information is not None:
