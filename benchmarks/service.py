@@ -1,6 +1,7 @@
 """The live service under load: replayed 1920x1200 12-bit frames at 30 fps, 10 MJPEG clients.
 
-    python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted] [--no-temporal]
+    python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
+                                 [--no-temporal] [--workers N]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit, pattern 1,4/16,64) at
@@ -75,7 +76,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24):
     return Replay
 
 
-def serve(port: int, fps: float, method: str | None, temporal: bool) -> None:
+def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int) -> None:
     """Child process: the service over the replay source."""
     import uvicorn
 
@@ -84,7 +85,7 @@ def serve(port: int, fps: float, method: str | None, temporal: bool) -> None:
     from service.settings import ServerSettings
 
     factory = replay_source_factory(fps, 1920, 1200)
-    pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal), factory)
+    pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
     print("ready", flush=True)
@@ -171,13 +172,14 @@ def main() -> None:
     parser.add_argument("--idle-s", type=float, default=15.0)
     parser.add_argument("--method", default=None)
     parser.add_argument("--no-temporal", action="store_true", help="single-frame reconstruction (no fusion)")
+    parser.add_argument("--workers", type=int, default=0, help="reconstruction threads per frame (0: one per core)")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.serve_port:
-        serve(args.serve_port, args.fps, args.method, not args.no_temporal)
+        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers)
         return
     port = free_port()
-    cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps)]
+    cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers)]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -206,7 +208,8 @@ def main() -> None:
         child.terminate()
         child.wait(15)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; 1920x1200 12-bit replay at "
-          f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, {args.clients} clients, {args.minutes:g} min")
+          f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, "
+          f"{args.clients} clients, {args.minutes:g} min")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames encoded, "
           f"fps {idle['fps']}")
     print(f"{args.clients} clients: fps captured {load['fps_mean']['captured']}, reconstructed "

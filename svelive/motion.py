@@ -388,7 +388,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         np.add(state.weight[core], np.float32(1), out=w)
         np.divide(state.weight[core], w, out=w)
         np.maximum(w, floor_weight, out=w)
-        np.maximum(w, reset[core], out=w)
+        np.copyto(w, np.float32(1), where=reset[core])
         _running_mean(state.mean[core], image[core], w, scale, out=fused[core])
         _running_mean(state.own[core], frame.own[core], w, scale, out=own[core])
         np.multiply(variance[core], w, out=fused_var[core])
@@ -396,9 +396,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             threshold = frame.own_slope[core] * fused[core]
             threshold += frame.own_floor[core]
             threshold *= w
-            with np.errstate(divide="ignore"):
-                threshold /= w < 1  # infinite where the pixel has no history: nothing to sharpen
             sharpen(fused[core], own[core], threshold, out=out[core])
+            # a pixel without history (reset, or max_history 1) has nothing to sharpen with
+            np.copyto(out[core], fused[core], where=reset[core] if floor_weight < 1 else True)
 
     with ThreadPoolExecutor(max_workers=workers) if workers > 1 else nullcontext() as pool:
         run = pool.map if pool is not None else map
