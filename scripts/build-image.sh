@@ -2,7 +2,7 @@
 # Build the svelive container image with Podman on a Debian 12 machine that has
 # no Docker engine and no image registry, then smoke-test it (docs/container.md).
 #
-#   scripts/build-image.sh [all|base|wheels|build|smoke|clean]     (as root; default: all)
+#   scripts/build-image.sh [all|base|wheels|build|online|smoke|clean]     (as root; default: all)
 #
 #   base    debian:bookworm-slim made locally: debootstrap --variant=minbase, slimmed like
 #           the official image, imported as localhost/debian:bookworm and tagged
@@ -10,6 +10,8 @@
 #   wheels  the wheelhouse: every dependency as a cp311 manylinux x86_64 wheel, plus the
 #           build backend, downloaded on the host (pip in the build cannot verify TLS here)
 #   build   podman build --isolation chroot --build-arg WHEELS=wheels (the offline path)
+#   online  podman build of the default online path as $IMAGE-online (pip given the host's CA
+#           bundle through build-time volumes); not part of `all`
 #   smoke   unpack the image into a directory, run its CMD with its ENV, USER and WORKDIR in
 #           a chroot (podman run cannot start containers here), fetch /healthz, /api/state
 #           and /snapshot.jpg, run the HEALTHCHECK command, stop the server
@@ -140,11 +142,29 @@ build() {
     cp -al "$WORK/wheels" "$REPO/wheels" 2>/dev/null || cp -r "$WORK/wheels" "$REPO/wheels"
     log "podman build $IMAGE"
     local start=$SECONDS
-    podman build --isolation chroot --format docker --build-arg WHEELS=wheels -t "$IMAGE" "$REPO"
+    # --format docker keeps HEALTHCHECK; --layers=false leaves no cache images on a shared machine.
+    podman build --isolation chroot --format docker --layers=false --pull=never \
+        --build-arg WHEELS=wheels -t "$IMAGE" "$REPO"
     echo "build took $((SECONDS - start)) s"
     rm -rf --one-file-system "$REPO/wheels"
     trap - EXIT
     podman images --filter reference="$IMAGE" --filter reference=docker.io/library/debian:bookworm-slim
+}
+
+online() {
+    # The Dockerfile's default path (pip fetches from PyPI). pip in the build cannot verify
+    # this machine's TLS interception with its own CA list, so give it the host's bundle
+    # through build-time volumes (nothing of it stays in the image; the Dockerfile is unchanged).
+    need podman
+    local conf="$WORK/pip.conf"
+    mkdir -p "$WORK"
+    printf '[global]\ncert = /etc/ssl/certs/host-ca.crt\n' > "$conf"
+    log "podman build $IMAGE-online (online pip)"
+    local start=$SECONDS
+    podman build --isolation chroot --format docker --layers=false --pull=never \
+        -v "$conf:/etc/pip.conf:ro" -v /etc/ssl/certs/ca-certificates.crt:/etc/ssl/certs/host-ca.crt:ro \
+        -t "$IMAGE-online" "$REPO"
+    echo "build took $((SECONDS - start)) s; smoke-test it with IMAGE=$IMAGE-online $0 smoke"
 }
 
 free_port() {
@@ -175,6 +195,9 @@ smoke() {
     cid=$(podman create --no-healthcheck "$IMAGE")   # no systemd here for health timers
     podman export "$cid" | tar -C "$root" -x
     podman rm "$cid" >/dev/null
+    echo "unpacked: $(du -sh "$root" | cut -f1); the largest parts:"
+    du -s "$root/opt/svelive/lib/python3.11/site-packages"/* "$root/usr/lib/x86_64-linux-gnu"/libicu* \
+        "$root/usr/lib/python3.11" | sort -n | tail -6 | awk '{printf "  %4d MB  %s\n", $1 / 1024, $2}' | sed "s|$root||"
     # What a container runtime would provide: /proc and the basic device nodes.
     mkdir -p "$root/proc" "$root/dev"
     mount -t proc proc "$root/proc"
@@ -266,8 +289,9 @@ case "${1:-all}" in
     base) base ;;
     wheels) wheels ;;
     build) build ;;
+    online) online ;;
     smoke) smoke ;;
     clean) clean ;;
     all) base; wheels; build; smoke ;;
-    *) echo "usage: $0 [all|base|wheels|build|smoke|clean]" >&2; exit 2 ;;
+    *) echo "usage: $0 [all|base|wheels|build|online|smoke|clean]" >&2; exit 2 ;;
 esac
