@@ -256,7 +256,11 @@ print("python", sys.version.split()[0], "| numpy", numpy.__version__, "| cv2", c
         sleep 0.5
     done
     if [ -z "$ok" ]; then
-        echo "the server did not answer /healthz within ${STARTUP_TIMEOUT} s; its log:" >&2
+        if kill -0 "$server" 2>/dev/null; then
+            echo "the server did not answer /healthz within ${STARTUP_TIMEOUT} s; its log:" >&2
+        else
+            echo "the server exited before answering /healthz; its log:" >&2
+        fi
         cat "$WORK/serve.log" >&2
         exit 1
     fi
