@@ -113,10 +113,11 @@ def pad_same_phase(image: np.ndarray, period: tuple[int, int], before: tuple[int
     cols = _same_phase_index(w, period[1], b1, a1)
     out = np.empty((h + b0 + a0, w + b1 + a1), image.dtype)
     out[b0:b0 + h, b1:b1 + w] = image
-    pad_rows = np.r_[0:b0, b0 + h:b0 + h + a0]
-    out[pad_rows, b1:b1 + w] = image[rows[pad_rows]]
-    pad_cols = np.r_[0:b1, b1 + w:b1 + w + a1]
-    out[:, pad_cols] = out[:, b1 + cols[pad_cols]]
+    # A few pad rows and columns: copying them one slice at a time beats fancy indexing.
+    for r in (*range(b0), *range(b0 + h, b0 + h + a0)):
+        out[r, b1:b1 + w] = image[rows[r]]
+    for c in (*range(b1), *range(b1 + w, b1 + w + a1)):
+        out[:, c] = out[:, b1 + cols[c]]
     return out
 
 
