@@ -47,7 +47,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from svelive.methods.base import (Estimate, SveInput, binomial_kernel, censored_lower_bound, in_strips,
+from svelive.methods.base import (Estimate, SveInput, at_least, binomial_kernel, censored_lower_bound, in_strips,
                                   smooth, support_size)
 
 #: Significance, in standard deviations of a reading, of "consistent with a censored bound".
@@ -84,13 +84,6 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     return Estimate(image, lower, variance)
 
 
-def _at_least(a: np.ndarray, floor: float) -> np.ndarray:
-    """max(a, floor) in place (cv2: numpy's scalar maximum is several times slower), returns ``a``."""
-    if a.size < 16:  # cv2 would read a scalar beside a tiny array as a 4-vector
-        return np.maximum(a, np.float32(floor), out=a)
-    return cv2.max(a, float(floor), dst=a)
-
-
 def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False):
     """Core of the method on a whole frame or strip: (image, lower_bound, variance or None, share or None)."""
     ky, kx = kernels(inp.pattern.shape)
@@ -109,8 +102,8 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     # Pilot: shot-noise ML radiance over the window.
     exposure_sum = smooth(e_valid, ky, kx)
     pilot = smooth(s, ky, kx)
-    pilot /= _at_least(exposure_sum.copy(), TINY)
-    _at_least(pilot, 0.0)
+    pilot /= at_least(exposure_sum.copy(), TINY)
+    at_least(pilot, 0.0)
 
     # Inverse variance of every reading at its pilot; 0 for censored readings.
     w = pilot * e
@@ -132,14 +125,14 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     wx = wn * x
     sum_w = smooth(wn, ky, kx)
     sum_w -= centre * wn
-    _at_least(sum_w, TINY)
+    at_least(sum_w, TINY)
     m = smooth(wx, ky, kx)
     m -= centre * wx
     m /= sum_w
     var_m = np.divide(f32((ky * ky).sum() * (kx * kx).sum()), sum_w, out=sum_w)
 
     # Squared bias of m from the residuals around p, each weighted by the inverse variance of r^2.
-    var_p = np.divide(f32(1.0), _at_least(w.copy(), TINY))  # censored: ~1 / tiny, so no evidence
+    var_p = np.divide(f32(1.0), at_least(w.copy(), TINY))  # censored: ~1 / tiny, so no evidence
     var_r = var_p + var_m
     d = x - m
     excess = d * d
@@ -148,8 +141,8 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     np.divide(f32(1.0), q, out=q)
     excess *= q
     excess = smooth(excess, ky, kx)
-    excess /= _at_least(smooth(q, ky, kx), TINY)
-    _at_least(excess, 0.0)
+    excess /= at_least(smooth(q, ky, kx), TINY)
+    at_least(excess, 0.0)
     excess += var_m  # squared bias + variance of m
 
     # Minimum-mean-square blend of the own reading and the neighbour estimate: m + (x - m) w / (w + 1 / excess).
@@ -162,7 +155,7 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     lower = exposure_sum <= 0
     if any_censored:
         lower |= _censored_pixels(inp, image, x, w, var_p, ky, kx)  # there, image = m (w = 0)
-    _at_least(image, 0.0)
+    at_least(image, 0.0)
     variance = np.divide(f32(1.0), total) if want_variance else None
     if lower.any():
         bound = censored_lower_bound(inp, (len(ky), len(kx)))
@@ -205,7 +198,7 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndar
         total = smooth(consistent, ky, kx)
         consistent *= x[band]
         mean = smooth(consistent, ky, kx)
-        mean /= _at_least(total.copy(), TINY)
+        mean /= at_least(total.copy(), TINY)
         np.maximum(mean, x[band], out=mean)
         np.copyto(image[band], mean, where=at)
         bound_only[band] |= at & (total <= 0)

@@ -31,7 +31,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.methods.base import (Estimate, SveInput, binomial_kernel, censored_lower_bound, in_strips,
+from svelive.methods.base import (Estimate, SveInput, at_least, binomial_kernel, censored_lower_bound, in_strips,
                                   smooth, support_size)
 from svelive.pattern import Pattern
 
@@ -73,8 +73,8 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     exposure_sum = smooth(inp.exposure * valid, ky, kx)
     has_data = exposure_sum > 0
     first = smooth(inp.signal * valid, ky, kx)
-    first /= np.maximum(exposure_sum, 1e-30)
-    np.maximum(first, 0, out=first)
+    first /= at_least(exposure_sum.copy(), 1e-30)
+    at_least(first, 0.0)
     first *= np.float32(1.0 / gain)  # the weights below need L0 / g only
 
     radiance = inp.signal / inp.exposure
@@ -93,13 +93,11 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
         if level_censored is not None and level_censored.any():
             near = cv2.dilate(level_censored.view(np.uint8), cross, borderType=cv2.BORDER_REFLECT_101)
             np.copyto(weight, 0, where=near.view(bool))
-        interpolated = smooth(radiance * mask, ky, kx)
-        interpolated *= weight
-        numerator += interpolated
+        cv2.accumulateProduct(smooth(radiance * mask, ky, kx), weight, numerator)
         weight *= share
         denominator += weight
         if information is not None:
-            information += weight * (effective / share)
+            cv2.accumulateProduct(weight, effective / share, information)
     usable = denominator > 0
     image = first
     image *= np.float32(gain)
