@@ -1,11 +1,13 @@
 """The live service under load: replayed 1920x1200 12-bit frames at 30 fps, 10 MJPEG clients.
 
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
-                                 [--no-temporal] [--workers N]
+                                 [--no-temporal] [--workers N] [--scene pan|static]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit, pattern 1,4/16,64) at
-the target rate, then, from this process:
+the target rate (``--scene pan``: the demo's camera pans, so every frame moves
+and temporal fusion restarts each frame; ``static``: the same view, new noise in
+every frame, so fusion runs on every pixel), then, from this process:
 
 1. no client for ``--idle-s`` s: the server's CPU use (encoding is off when nobody watches);
 2. ``--clients`` MJPEG clients for ``--minutes`` minutes: captured / reconstructed /
@@ -40,13 +42,16 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 
 
-def replay_source_factory(fps: float, width: int, height: int, n: int = 24):
-    """A factory of Sources replaying n pre-rendered demo frames at ``fps`` (fresh timestamps)."""
+def replay_source_factory(fps: float, width: int, height: int, n: int = 24, static: bool = False):
+    """A factory of Sources replaying n pre-rendered demo frames at ``fps`` (fresh timestamps).
+
+    ``static``: the demo's pan is stopped (a still view, independent noise in every frame).
+    """
     from svelive.capture import Source
     from svelive.capture.demo import DemoSource
     from svelive.frame import Frame
 
-    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=n / fps * 4)
+    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9 if static else n / fps * 4)
     raws = [f.raw for f in demo.frames(limit=n)]
     demo.close()
 
@@ -76,7 +81,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24):
     return Replay
 
 
-def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int) -> None:
+def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool) -> None:
     """Child process: the service over the replay source."""
     import uvicorn
 
@@ -84,7 +89,7 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     from service.pipeline import Pipeline, PipelineConfig
     from service.settings import ServerSettings
 
-    factory = replay_source_factory(fps, 1920, 1200)
+    factory = replay_source_factory(fps, 1920, 1200, static=static)
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
@@ -173,13 +178,16 @@ def main() -> None:
     parser.add_argument("--method", default=None)
     parser.add_argument("--no-temporal", action="store_true", help="single-frame reconstruction (no fusion)")
     parser.add_argument("--workers", type=int, default=0, help="reconstruction threads per frame (0: one per core)")
+    parser.add_argument("--scene", choices=("pan", "static"), default="pan",
+                        help="pan: the whole view moves every frame; static: a still view (default pan)")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.serve_port:
-        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers)
+        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static")
         return
     port = free_port()
-    cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers)]
+    cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
+           "--scene", args.scene]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -208,7 +216,7 @@ def main() -> None:
         child.terminate()
         child.wait(15)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; 1920x1200 12-bit replay at "
-          f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, "
+          f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, {args.scene} scene, "
           f"{args.clients} clients, {args.minutes:g} min")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames encoded, "
           f"fps {idle['fps']}")

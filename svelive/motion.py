@@ -24,7 +24,6 @@ Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -382,6 +381,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     weight = np.empty_like(image)
     out = np.empty_like(image) if detail else fused
     floor_weight = np.float32(1.0 / config.max_history)
+    executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+    run = executor.map if executor is not None else map
 
     def update(core: slice) -> None:
         w = weight[core]  # 1/n -> 1/(n + 1), capped, 1 where reset
@@ -400,15 +401,21 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             # a pixel without history (reset, or max_history 1) has nothing to sharpen with
             np.copyto(out[core], fused[core], where=reset[core] if floor_weight < 1 else True)
 
-    with ThreadPoolExecutor(max_workers=workers) if workers > 1 else nullcontext() as pool:
-        run = pool.map if pool is not None else map
+    try:
         moving = sum(run(test, strips))
         if moving > config.global_motion * motion.size:
-            motion[:] = True  # the camera moved: what was not flagged moved below the noise
-            reset[:] = True
-        else:
-            reset |= motion
+            # the camera moved: what was not flagged moved below the noise; every pixel
+            # restarts from this frame, as a stream's first frame does
+            fresh = start(frame)
+            motion[:] = True
+            if inconsistency is not None:
+                image, variance, _ = inconsistency.apply(image, variance)
+            return Fused(image, variance, motion, fresh.weight, ratio, fresh)
+        reset |= motion
         list(run(update, strips))
+    finally:
+        if executor is not None:
+            executor.shutdown()
     state = TemporalState(fused, own, weight, bound, frame.censored)
     if inconsistency is not None:  # output only: the history keeps estimates of one kind
         out, fused_var, used = inconsistency.apply(out, fused_var, reset)
