@@ -30,7 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="svelive", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="svelive", description="HDR video from spatially varying exposure (SVE) cameras.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_commands(sub)
