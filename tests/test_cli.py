@@ -51,7 +51,7 @@ def test_simulate_then_reconstruct(raw_png, tmp_path):
     assert out.returncode == 0, out.stderr
     channels, header = read_exr(tmp_path / "hdr.exr")
     truth, _ = read_exr(tmp_path / "truth.exr")
-    assert header["method"] == "weighted" and header["blackLevel"] == 64 and header["whiteLevel"] == 4095
+    assert header["method"] == "adaptive" and header["blackLevel"] == 64 and header["whiteLevel"] == 4095
     ratio = np.median(channels["Y"] / np.maximum(truth["Y"], 1e-6))
     assert ratio == pytest.approx(1.0, abs=0.02)
     assert channels["confidence"].min() >= 0 and channels["confidence"].max() <= 1

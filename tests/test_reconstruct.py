@@ -14,8 +14,8 @@ METHODS = svelive.methods()
 
 def test_methods_lists_default_first():
     names = svelive.methods()
-    assert names[0] == "weighted"
-    assert {"aggregate", "cubic"} <= set(names)
+    assert names[0] == "adaptive"
+    assert {"weighted", "aggregate", "cubic"} <= set(names)
 
 
 # cubic at 3 DN is covered by test_cubic_dark_discard_bias (a measured, documented bias)

@@ -11,10 +11,10 @@ from svelive.methods import adaptive, aggregate, cubic, weighted
 from svelive.methods.base import Estimate, SveInput
 
 METHODS: dict[str, Callable[..., Estimate]] = {
+    "adaptive": adaptive.run,
     "weighted": weighted.run,
     "aggregate": aggregate.run,
     "cubic": cubic.run,
-    "adaptive": adaptive.run,
 }
 
 DEFAULT_METHOD = next(iter(METHODS))
