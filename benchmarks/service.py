@@ -1,7 +1,7 @@
 """The live service under load: replayed 1920x1200 12-bit frames at 30 fps, 10 MJPEG clients.
 
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
-                                 [--no-temporal] [--workers N] [--scene pan|static]
+                                 [--no-temporal] [--workers N] [--scene pan|static] [--size 1920x1200]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit, pattern 1,4/16,64) at
@@ -81,7 +81,8 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
     return Replay
 
 
-def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool) -> None:
+def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
+          size: tuple[int, int]) -> None:
     """Child process: the service over the replay source."""
     import uvicorn
 
@@ -89,7 +90,7 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     from service.pipeline import Pipeline, PipelineConfig
     from service.settings import ServerSettings
 
-    factory = replay_source_factory(fps, 1920, 1200, static=static)
+    factory = replay_source_factory(fps, size[0], size[1], static=static)
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
@@ -180,14 +181,16 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=0, help="reconstruction threads per frame (0: one per core)")
     parser.add_argument("--scene", choices=("pan", "static"), default="pan",
                         help="pan: the whole view moves every frame; static: a still view (default pan)")
+    parser.add_argument("--size", default="1920x1200", help="frame size WxH (default 1920x1200)")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    size = tuple(int(v) for v in args.size.lower().split("x"))
     if args.serve_port:
-        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static")
+        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
-           "--scene", args.scene]
+           "--scene", args.scene, "--size", args.size]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -215,7 +218,7 @@ def main() -> None:
     finally:
         child.terminate()
         child.wait(15)
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; 1920x1200 12-bit replay at "
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {args.size} 12-bit replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, {args.scene} scene, "
           f"{args.clients} clients, {args.minutes:g} min")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames encoded, "
@@ -227,6 +230,7 @@ def main() -> None:
           f"p95 {load['latency_client_ms']['p95']} ms (n={load['latency_client_ms']['n']})")
     print(f"server stages: {json.dumps(load['latency_server_ms'])}")
     print(f"drops: {json.dumps(load['drops'])}")
+    print("RSS samples (s, MB): " + ", ".join(f"{t:.0f}: {m}" for t, m in load["rss_mb"]["samples"][5::6]))
     print(f"RSS after first minute {load['rss_mb']['after_first_minute']} MB, at end {load['rss_mb']['end']} MB, "
           f"growth {load['rss_mb']['growth_percent']} %")
 
