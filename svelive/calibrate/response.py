@@ -39,6 +39,7 @@ from typing import Callable
 
 import cv2
 import numpy as np
+from numpy.polynomial import legendre as L
 from numpy.polynomial import polynomial as P
 
 from svelive.calibrate.noise import QUANTISATION_VARIANCE, _chi2_quantile, noise_curve_frame
@@ -223,6 +224,32 @@ def _noise_variance_fn(raw: np.ndarray, pattern: Pattern, sensor: Sensor) -> Cal
     return lambda m: np.interp(m, sig, var)
 
 
+def quantisation_bias_variance(sigma_dn: np.ndarray) -> np.ndarray:
+    """Variance (DN^2) of the expected rounding error of a reading whose analog noise is ``sigma_dn`` DN.
+
+    Rounding to integers adds the error e(x) = x - round(x); averaged over the noise
+    its expectation is sum_k (-1)^(k+1) sin(2 pi k x) exp(-2 pi^2 k^2 sigma^2) / (pi k),
+    whose variance over x is sum_k exp(-4 pi^2 k^2 sigma^2) / (2 pi^2 k^2): 1/12 without
+    noise, negligible above about 0.5 DN. This part is the same for every reading of a
+    constant area, so averaging a window does not reduce it.
+    """
+    k = np.arange(1, 9, dtype=np.float64)
+    s2 = np.asarray(sigma_dn, np.float64)[..., None] ** 2
+    return np.sum(np.exp(-4.0 * np.pi**2 * k**2 * s2) / (2.0 * np.pi**2 * k**2), axis=-1)
+
+
+def _window_mean_variance(reading_var: np.ndarray, var_factor: float, range_dn: float) -> np.ndarray:
+    """Variance of a level's window value (normalised brightness^2) from one reading's variance.
+
+    The analog noise and the independent part of the rounding error average down by
+    ``var_factor``; the rounding bias shared by a constant window does not.
+    """
+    q = QUANTISATION_VARIANCE
+    var_dn = reading_var * range_dn**2
+    bias = quantisation_bias_variance(np.sqrt(np.maximum(var_dn - q, 0.0)))
+    return ((var_dn - bias) * var_factor + bias) / range_dn**2
+
+
 def _too_few(found: int, needed: int) -> str:
     return (f"only {found} locally constant regions show two or more exposures unclipped (need {needed}): "
             "use a frame of a still scene with large smooth areas (walls, sky, a grey card) from dark to "
@@ -243,7 +270,7 @@ def _collect_pairs(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: Respo
         limit = _chi2_quantile(cfg.flat_quantile, dof) / dof
         nv = noise_var(mean[k])
         flat[k] = usable[k] & (var[k] <= nv * limit)
-        var_mean[k] = nv * var_factor[k]
+        var_mean[k] = _window_mean_variance(nv, var_factor[k], sensor.range_dn)
     Y, X = mean.shape[1:]
     loc = np.arange(Y * X).reshape(Y, X)
     rng = np.random.default_rng(cfg.seed)
@@ -293,16 +320,36 @@ def _residual_sigma(pairs: _Pairs, exposures: np.ndarray, coef: np.ndarray | Non
 
 
 def _solve(pairs: _Pairs, exposures: np.ndarray, degree: int, sel: np.ndarray | None = None,
-           iterations: int = 4) -> np.ndarray:
-    """Weighted least squares, reweighted with the slope of the previous solution."""
-    A, y = _design(pairs, exposures, degree)
-    sub = slice(None) if sel is None else sel
-    A, y = A[sub], y[sub]
+           iterations: int = 3) -> np.ndarray:
+    """Power-series coefficients (c_0 first, f(1) = 1) minimising the normalised ratio residuals.
+
+    The residuals ``f(m_hi) / R - f(m_lo)`` are linear in f, but with f(1) = 1 imposed
+    where there are no data, least squares drifts towards a curve that is nearly
+    flat (small) where the data are. Instead the shape is found scale-free: the
+    Rayleigh quotient ``sum (r_i / s_i)^2 / sum ((f(m_lo)^2 + (f(m_hi)/R)^2) / s_i^2)``
+    is minimised (smallest generalised eigenvector, Legendre basis on [0, 1] for
+    conditioning), then scaled to f(1) = 1. The standard deviations ``s_i`` come from
+    the previous iteration's slope (a straight line first) and stay fixed within one
+    solve, so the problem is a plain quadratic one.
+    """
+    sub = _subset(pairs, slice(None) if sel is None else sel)
+    inv_r = exposures[sub.k_lo] / exposures[sub.k_hi]
+    v_lo = L.legvander(2.0 * sub.m_lo - 1.0, degree)
+    v_hi = L.legvander(2.0 * sub.m_hi - 1.0, degree) * inv_r[:, None]
     coef = None
     for _ in range(iterations):
-        w = 1.0 / _residual_sigma(_subset(pairs, sub), exposures, coef)
-        c_rest, *_ = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)
-        coef = _coefficients(c_rest)
+        w = 1.0 / _residual_sigma(sub, exposures, coef)
+        a = (v_hi - v_lo) * w[:, None]
+        b_lo, b_hi = v_lo * w[:, None], v_hi * w[:, None]
+        num = a.T @ a
+        den = b_lo.T @ b_lo + b_hi.T @ b_hi
+        den += 1e-12 * np.trace(den) * np.eye(degree + 1)
+        chol_inv = np.linalg.inv(np.linalg.cholesky(den))
+        _, vectors = np.linalg.eigh(chol_inv @ num @ chol_inv.T)
+        leg = chol_inv.T @ vectors[:, 0]
+        leg /= L.legval(1.0, leg)
+        coef = L.Legendre(leg, domain=[0.0, 1.0]).convert(kind=P.Polynomial).coef
+        coef = np.pad(coef, (0, degree + 1 - coef.size))
     return coef
 
 
