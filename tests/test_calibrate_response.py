@@ -171,3 +171,29 @@ def test_cli_reconstruct_with_response(tmp_path):
     lin = read_exr(tmp_path / "lin.exr")[0]["Y"]
     err = [float(np.median(np.abs(np.log2(np.maximum(img, 1e-3) / np.maximum(scene, 1e-3))))) for img in (plain, lin)]
     assert err[1] < 0.1 < err[0]
+
+
+S_CURVE_FAILS = {"desk": 0.038, "mttamwest": 0.035, "cannon": 0.035}
+
+
+def _sample_case(scene_name: str, name: str):
+    marks = []
+    if name == "s-curve":
+        marks.append(pytest.mark.xfail(strict=True, reason=(
+            f"S-curve on the {scene_name} crop: max error {S_CURVE_FAILS[scene_name]:.1%} on the measured range "
+            "(the shoulder is extrapolated from few constant regions; see docs/calibration.md)")))
+    return pytest.param(scene_name, name, marks=marks)
+
+
+@pytest.mark.parametrize("scene_name,name", [_sample_case(s, n) for s in ("desk", "mttamwest", "cannon")
+                                             for n in ("linear", "gamma2.2", "poly3", "s-curve")])
+def test_known_curve_recovered_on_sample_scenes(scene_name, name):
+    """Real photographs: within 2% of full scale on the range the fit reports as measured."""
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = load_sample_scene(scene_name)
+    raw = simulate_nonlinear(scene * exposure_scale(scene, PATTERN, sensor), PATTERN, sensor, CURVES[name], seed=2)
+    response = fit_response(raw, PATTERN, sensor)
+    lo, hi = response.stats["measured_range"]
+    assert hi - lo >= 0.45
+    assert response.stats["curve_uncertainty"] <= 0.01
+    assert max_error(response, CURVES[name]) < 0.02

@@ -110,8 +110,11 @@ class ResponseFitConfig:
         min_locations: fewest flat locations with two or more usable exposures.
         min_span: least width of the measured brightness range.
         refine_ratios: re-estimate the intermediate exposure ratios from the data.
-        max_uncertainty: largest standard error of the fitted curve on the measured
-            range (fraction of full scale) accepted; above it the frame is refused.
+        max_uncertainty: largest standard error of the fitted curve (fraction of full
+            scale) inside the measured range.
+        coverage_bins, coverage_count: the measured range is made of brightness bins
+            (``coverage_bins`` over [0, 1]) each holding at least ``coverage_count``
+            ends of equations; a gap in the data ends it.
         seed: seed of the fold assignment.
     """
 
@@ -124,6 +127,8 @@ class ResponseFitConfig:
     min_span: float = 0.3
     refine_ratios: bool = False
     max_uncertainty: float = 0.01
+    coverage_bins: int = 16
+    coverage_count: int = 1
     seed: int = 0
 
 
@@ -386,19 +391,43 @@ def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int, folds: int) -> 
     return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size))
 
 
-def _curve_uncertainty(weighted_design: np.ndarray, scale: float, measured: tuple[float, float]) -> float:
-    """Largest standard error of f over the measured range (fraction of full scale), from the
-    least-squares covariance of the coefficients scaled by the reduced chi-square."""
+def _curve_uncertainty(weighted_design: np.ndarray, scale: float, grid: np.ndarray) -> np.ndarray:
+    """Standard error of f at every brightness of ``grid`` (fraction of full scale), from the
+    least-squares covariance of the coefficients (f(1) = 1 eliminated) scaled by the reduced
+    chi-square. Only noise: it does not see a wrong model, hence also the coverage test."""
     normal = weighted_design.T @ weighted_design
     try:
         cov = np.linalg.inv(normal) * scale
     except np.linalg.LinAlgError:
-        return math.inf
-    m = np.linspace(measured[0], measured[1], 257)
+        return np.full(grid.shape, math.inf)
     n = np.arange(1, weighted_design.shape[1] + 1)
-    basis = m[:, None] ** n - 1.0
-    var = np.einsum("ij,jk,ik->i", basis, cov, basis)
-    return float(np.sqrt(np.max(np.maximum(var, 0.0))))
+    basis = grid[:, None] ** n - 1.0
+    return np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", basis, cov, basis), 0.0))
+
+
+def _pinned_range(pairs: _Pairs, uncertainty: np.ndarray, grid: np.ndarray, max_uncertainty: float,
+                  bins: int, min_count: int) -> tuple[float, float]:
+    """Longest brightness interval on which the curve is pinned down by data: every one of
+    ``bins`` equal bins in it holds at least ``min_count`` equation ends, and the standard
+    error stays within ``max_uncertainty``. (0, 0) when there is none."""
+    ends = np.concatenate([pairs.m_lo, pairs.m_hi])
+    count = np.bincount(np.clip((ends * bins).astype(np.int64), 0, bins - 1), minlength=bins)
+    worst = np.zeros(bins)
+    np.maximum.at(worst, np.clip((grid * bins).astype(np.int64), 0, bins - 1), uncertainty)
+    good = (count >= min_count) & (worst <= max_uncertainty)
+    best, start = (0, 0), None
+    for i, g in enumerate(np.append(good, False)):
+        if g and start is None:
+            start = i
+        elif not g and start is not None:
+            if i - start > best[1] - best[0]:
+                best = (start, i)
+            start = None
+    if best == (0, 0):
+        return 0.0, 0.0
+    lo = max(best[0] / bins, float(ends.min()))
+    hi = min(best[1] / bins, float(ends.max()))
+    return lo, hi
 
 
 def _refine_exposures(pairs: _Pairs, exposures: np.ndarray, coef: np.ndarray) -> np.ndarray:
@@ -500,14 +529,22 @@ def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
     A, y = _design(pairs, exposures, degree)
     sigma = _residual_sigma(pairs, exposures, coef)
     chi2 = float(np.mean(((A @ coef[1:] - y) / sigma) ** 2))
-    uncertainty = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), measured)
-    if uncertainty > config.max_uncertainty:
+    grid = np.linspace(0.0, 1.0, 513)
+    profile = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), grid)
+    pinned = _pinned_range(pairs, profile, grid, config.max_uncertainty, config.coverage_bins,
+                           config.coverage_count)
+    if pinned[1] - pinned[0] < config.min_span:
         raise SveliveError(
-            f"the frame does not pin the response down (standard error up to {uncertainty:.1%} of full scale, "
-            f"allowed {config.max_uncertainty:.1%}): use a frame of a still scene with large smooth areas from "
-            "dark to bright and little noise")
+            f"the frame pins the response down only on brightness {pinned[0]:.2f}..{pinned[1]:.2f} "
+            f"(need a span of {config.min_span:.2f} with standard error under {config.max_uncertainty:.1%} and "
+            "constant regions at every level): use a frame of a still scene with large smooth areas from dark "
+            "to bright and little noise")
+    inside = (grid >= pinned[0]) & (grid <= pinned[1])
+    uncertainty = float(profile[inside].max())
     stats = {
-        "measured_range": list(measured),
+        "measured_range": list(pinned),
+        "data_range": list(measured),
+        "uncertainty": {"brightness": grid[::16].tolist(), "standard_error": profile[::16].tolist()},
         "locations": n_locations,
         "equations": int(pairs.m_lo.size),
         "held_out_error": {str(d): {"mean": m, "standard_error": s} for d, (m, s) in scores.items()},
