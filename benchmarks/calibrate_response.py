@@ -1,6 +1,6 @@
 """Response calibration: one 8-bit SVE frame (svelive) against OpenCV's Debevec on a 4-exposure 8-bit stack.
 
-Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest]
+Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings]
 Both see the same scene through the same known response (CURVES) and sensor noise;
 the error is the largest |f_fit(M) - f_true(M)| over the brightness range each
 method measured (Debevec's curve is scaled so f(255) = 1, like ours).
@@ -33,7 +33,7 @@ def debevec_error(radiance: np.ndarray, levels: np.ndarray, sensor: Sensor, curv
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default="../shared/data/hdr")
-    ap.add_argument("--scenes", default="Cannon,MtTamWest,Desk")
+    ap.add_argument("--scenes", default="Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings")
     args = ap.parse_args()
     sensor = Sensor.from_full_well(8, 10000, 3)
     pattern = Pattern.parse("1,4/16,64")
