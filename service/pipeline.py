@@ -658,7 +658,7 @@ class Pipeline:
         """The result of the last successful calibrate_response, or None."""
         return self._calibration
 
-    def reset_response(self) -> dict[str, Any]:
+    def reset_response(self) -> dict[str, Any] | None:
         """Go back to the configured response (the ``response`` file, or none); returns response_state()."""
         with self._cond:
             self._response, self._response_origin = self._configured_response, self.config.response
@@ -666,7 +666,8 @@ class Pipeline:
 
     def response_state(self) -> dict[str, Any] | None:
         """The response in use: origin (file path or "calibrated live"), degree, coefficients, domain; None if linear."""
-        response, origin = self._response, self._response_origin
+        with self._cond:
+            response, origin = self._response, self._response_origin
         if response is None:
             return None
         return {"origin": origin, "degree": response.degree, "coefficients": list(response.coefficients),
