@@ -231,10 +231,18 @@ class FrameReconstructor:
 
         self.pattern, self.sensor, self.method, self.temporal = pattern, sensor, method, temporal
         self.response = response
-        self.name = method or method_names()[0]
         self._stateful = Reconstructor(pattern, method=method, temporal=temporal, black_level=sensor.black_level,
                                        white_level=sensor.white_level, gain=sensor.gain,
                                        read_noise=sensor.read_noise, workers=workers)
+
+    @property
+    def name(self) -> str:
+        """The method really in use (with temporal fusion the default differs; see svelive.reconstructor)."""
+        return self._stateful.method
+
+    def close(self) -> None:
+        """Stop the reconstructor's worker threads."""
+        self._stateful.close()
 
     def matches(self, pattern: Pattern, sensor: Sensor, method: str | None, temporal: bool,
                 response: Response | None = None) -> bool:
@@ -472,48 +480,56 @@ class Pipeline:
         adapter: FrameReconstructor | None = None
         patterns: dict[str, Pattern] = {}  # one Pattern per text: a per-pixel map is compared by identity
         seq = 0
-        while not self._stop.is_set():
-            item = self._slot.get(timeout=0.2)
-            if item is None:
-                continue
-            frame, pattern_text = item
-            frame: Frame
-            start_ns = time.monotonic_ns()
-            method, response = self._method, self._response
-            try:
-                pattern = patterns.get(pattern_text)
-                if pattern is None:
-                    pattern = Pattern.parse(pattern_text)
-                    if self._pixel_map is not None:
-                        pattern = pattern.with_pixel_map(self._pixel_map)
-                    patterns = {pattern_text: pattern}
-                if adapter is None or not adapter.matches(pattern, frame.sensor, method, self.config.temporal,
-                                                          response):
-                    adapter = FrameReconstructor(pattern, frame.sensor, method, self.config.temporal, response,
-                                                 self.workers)
-                image, confidence, motion = adapter(frame.raw)
-            except Exception as exc:
-                self._reconstruct_error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-                self._count_drop("reconstruct_error")
-                adapter = None
-                continue
-            done_ns = time.monotonic_ns()
-            self._reconstruct_error = None
-            timings = {"queue": (start_ns - frame.host_time_ns) / 1e6, "reconstruct": (done_ns - start_ns) / 1e6}
-            hdr = HdrFrame(image=image, confidence=confidence, frame_id=frame.frame_id,
-                           host_time_ns=frame.host_time_ns, device_time_ns=frame.device_time_ns,
-                           method=adapter.name, motion=motion, timings_ms=timings)
-            if motion is not None:
-                self._motion_fraction = float(np.count_nonzero(motion)) / motion.size
-            seq += 1
-            published = Published(hdr, seq, pattern_text, frame.sensor, done_ns)
-            self.reconstructed.tick(done_ns)
-            self.latency["queue"].add(timings["queue"])
-            self.latency["reconstruct"].add(timings["reconstruct"])
-            self.latency["arrival_to_hdr"].add((done_ns - frame.host_time_ns) / 1e6)
-            with self._cond:
-                self._latest = published
-                self._cond.notify_all()
+        try:
+            while not self._stop.is_set():
+                item = self._slot.get(timeout=0.2)
+                if item is None:
+                    continue
+                frame, pattern_text = item
+                frame: Frame
+                start_ns = time.monotonic_ns()
+                method, response = self._method, self._response
+                try:
+                    pattern = patterns.get(pattern_text)
+                    if pattern is None:
+                        pattern = Pattern.parse(pattern_text)
+                        if self._pixel_map is not None:
+                            pattern = pattern.with_pixel_map(self._pixel_map)
+                        patterns = {pattern_text: pattern}
+                    if adapter is None or not adapter.matches(pattern, frame.sensor, method, self.config.temporal,
+                                                              response):
+                        if adapter is not None:
+                            adapter.close()
+                        adapter = FrameReconstructor(pattern, frame.sensor, method, self.config.temporal, response,
+                                                     self.workers)
+                    image, confidence, motion = adapter(frame.raw)
+                except Exception as exc:
+                    self._reconstruct_error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                    self._count_drop("reconstruct_error")
+                    if adapter is not None:
+                        adapter.close()
+                    adapter = None
+                    continue
+                done_ns = time.monotonic_ns()
+                self._reconstruct_error = None
+                timings = {"queue": (start_ns - frame.host_time_ns) / 1e6, "reconstruct": (done_ns - start_ns) / 1e6}
+                hdr = HdrFrame(image=image, confidence=confidence, frame_id=frame.frame_id,
+                               host_time_ns=frame.host_time_ns, device_time_ns=frame.device_time_ns,
+                               method=adapter.name, motion=motion, timings_ms=timings)
+                if motion is not None:
+                    self._motion_fraction = float(np.count_nonzero(motion)) / motion.size
+                seq += 1
+                published = Published(hdr, seq, pattern_text, frame.sensor, done_ns)
+                self.reconstructed.tick(done_ns)
+                self.latency["queue"].add(timings["queue"])
+                self.latency["reconstruct"].add(timings["reconstruct"])
+                self.latency["arrival_to_hdr"].add((done_ns - frame.host_time_ns) / 1e6)
+                with self._cond:
+                    self._latest = published
+                    self._cond.notify_all()
+        finally:
+            if adapter is not None:
+                adapter.close()
 
     def latest(self) -> Published | None:
         """The newest reconstructed frame (an immutable record), or None before the first."""

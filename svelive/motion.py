@@ -23,7 +23,7 @@ Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from svelive.errors import SveliveError
-from svelive.methods.base import SveInput, binomial_kernel, smooth, support_size
+from svelive.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size
 from svelive.pattern import Pattern
 
 
@@ -290,7 +290,7 @@ def start(frame: FrameEstimate) -> TemporalState:
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
          inconsistency: Inconsistency | None = None, detail: bool = True, workers: int = 1,
-         strip_rows: int = STRIP_ROWS) -> Fused:
+         strip_rows: int = STRIP_ROWS, executor: Executor | None = None) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
@@ -308,6 +308,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             the GIL); the result does not depend on it.
         strip_rows: rows per strip (with workers > 1, at least the frame's height over
             2 workers); the result does not depend on it either.
+        executor: a pool of ``workers`` threads the caller keeps across frames
+            (svelive.methods.base.map_on); None: one is made for this call.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it,
@@ -387,8 +389,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     weight = np.empty_like(image)
     out = np.empty_like(image) if detail else fused
     floor_weight = np.float32(1.0 / config.max_history)
-    executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
-    run = executor.map if executor is not None else map
+
+    def run(function, items) -> list:
+        return map_on(executor if executor is not None else workers, function, items)
 
     def update(core: slice) -> None:
         w = weight[core]  # 1/n -> 1/(n + 1), capped, 1 where reset
@@ -407,21 +410,17 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             # a pixel without history (reset, or max_history 1) has nothing to sharpen with
             np.copyto(out[core], fused[core], where=reset[core] if floor_weight < 1 else True)
 
-    try:
-        moving = sum(run(test, strips))
-        if moving > config.global_motion * motion.size:
-            # the camera moved: what was not flagged moved below the noise; every pixel
-            # restarts from this frame, as a stream's first frame does
-            fresh = start(frame)
-            motion[:] = True
-            if inconsistency is not None:
-                image, variance, _ = inconsistency.apply(image, variance)
-            return Fused(image, variance, motion, fresh.weight, ratio, fresh)
-        reset |= motion
-        list(run(update, strips))
-    finally:
-        if executor is not None:
-            executor.shutdown()
+    moving = sum(run(test, strips))
+    if moving > config.global_motion * motion.size:
+        # the camera moved: what was not flagged moved below the noise; every pixel
+        # restarts from this frame, as a stream's first frame does
+        fresh = start(frame)
+        motion[:] = True
+        if inconsistency is not None:
+            image, variance, _ = inconsistency.apply(image, variance)
+        return Fused(image, variance, motion, fresh.weight, ratio, fresh)
+    reset |= motion
+    run(update, strips)
     state = TemporalState(fused, own, weight, bound, frame.censored)
     if inconsistency is not None:  # output only: the history keeps estimates of one kind
         out, fused_var, used = inconsistency.apply(out, fused_var, reset)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import inspect
 import threading
+from concurrent.futures import ThreadPoolExecutor
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -25,6 +26,16 @@ from svelive.motion import FrameEstimate, MotionConfig, TemporalState, exposure_
 from svelive.pattern import Pattern
 from svelive.reconstruct import confidence_from_variance, predicted_variance, prepare, run_method, sensor_for
 from svelive.sensor import Sensor
+
+#: The single-frame method temporal fusion uses unless told otherwise. The
+#: temporal test compares each new estimate with the history against the
+#: estimate's noise; ``adaptive`` (the single-frame default) reports a
+#: mean-square error that includes its local bias term and keeps each pixel's own
+#: reading at edges, so a camera pan is flagged on only 32-47 % of the pixels and
+#: the rest fuses with history from elsewhere (docs/motion.md). ``weighted``'s
+#: estimate is smooth and its variance is noise only; fusion and the detail
+#: step recover the resolution where the scene is static.
+TEMPORAL_METHOD = "weighted"
 
 EXPOSURE_TIMINGS = ("mask", "integration")
 
@@ -96,8 +107,9 @@ class Reconstructor:
 
     Args:
         pattern: the exposure pattern or its text form.
-        method: single-frame method name (None: the default); changeable between
-            frames through the ``method`` attribute (the history restarts then).
+        method: single-frame method name; changeable between frames through the
+            ``method`` attribute (the history restarts then). None: the library's
+            default for single frames, but TEMPORAL_METHOD with temporal fusion.
         temporal: fuse consecutive frames where the scene is static.
         exposure_timing: ``"mask"`` when all exposures integrate over the same
             time (neutral-density mask, gain), ``"integration"`` when exposures
@@ -136,6 +148,8 @@ class Reconstructor:
         self.motion_config = motion_config or MotionConfig()
         self.detail = bool(detail)
         self.workers = workers
+        # one pool for the stream's whole life: a pool per frame costs thread start-ups and grows memory
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="svelive-strip") if workers > 1 else None
         self.method_options = dict(method_options)
         self._lock = threading.Lock()
         self._method = self._checked(method)
@@ -145,9 +159,10 @@ class Reconstructor:
         self._last_moving = 0.0
         self._sensors: dict[np.dtype, object] = {}
 
-    @staticmethod
-    def _checked(method: str | None) -> str:
-        name = DEFAULT_METHOD if method is None else method
+    def _checked(self, method: str | None) -> str:
+        if method is None:
+            method = TEMPORAL_METHOD if self.temporal else DEFAULT_METHOD
+        name = method
         if name not in METHODS:
             raise SveliveError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
         return name
@@ -165,6 +180,18 @@ class Reconstructor:
                 self._method = name
                 self._history = None
                 self._generation += 1
+
+    def close(self) -> None:
+        """Stop the stream's pool of worker threads (with ``workers`` > 1); later frames make a pool per frame."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False)
+
+    def __enter__(self) -> Reconstructor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def reset(self) -> None:
         """Forget the history: the next frame is processed as the first of a stream."""
@@ -191,7 +218,7 @@ class Reconstructor:
         if "return_variance" in parameters:
             options["return_variance"] = True
         if "workers" in parameters and "workers" not in options:
-            options["workers"] = self.workers
+            options["workers"] = self._pool if self._pool is not None else self.workers
         estimate = run_method(inp, method, **options)
         variance = estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
         return inp, Estimate(estimate.image, estimate.lower_bound, variance)
@@ -209,7 +236,7 @@ class Reconstructor:
             slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
             frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, own_readings(inp, image), slope, floor)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
-                         workers=self.workers)
+                         workers=self.workers, executor=self._pool)
             image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
         else:

@@ -35,7 +35,9 @@ def region_pu21(test: np.ndarray, truth: np.ndarray, region: np.ndarray) -> floa
 
 
 def fused_and_single(frames, **kw):
-    fused, single = Reconstructor(PATTERN, **KW, **kw), Reconstructor(PATTERN, temporal=False, **KW, **kw)
+    # "single frame" = the same method without fusion: what fusion adds or costs
+    fused = Reconstructor(PATTERN, **KW, **kw)
+    single = Reconstructor(PATTERN, temporal=False, method=fused.method, **KW, **kw)
     return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
 
 

@@ -133,7 +133,7 @@ def test_ten_clients_and_a_slow_one_do_not_hurt_reconstruction_or_leak(server):
     for t in threads:
         t.start()
     try:
-        start = server.wait_for(lambda s: s["clients"] == 11)
+        start = server.wait_for(lambda s: s["clients"] == 11 and s["watchers"] == 11)  # both are counted, not at once
         time.sleep(1.0)  # let buffers and caches reach their working size
         warm = server.state()
         time.sleep(3.0)

@@ -44,6 +44,8 @@ scene whose range fits in the unsaturated exposures does not pay for it.
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
+
 import cv2
 import numpy as np
 
@@ -62,8 +64,8 @@ def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return binomial_kernel(max(support_size(th), 3)), binomial_kernel(max(support_size(tw), 3))
 
 
-def run(inp: SveInput, *, return_variance: bool = False, workers: int = 1) -> Estimate:
-    """``workers``: threads to spread the frame's strips over (the result does not depend on it)."""
+def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1) -> Estimate:
+    """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
     ky, kx = kernels(inp.pattern.shape)
     halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
     return in_strips(_run, inp, halo, rows=64, workers=workers, return_variance=return_variance)

@@ -12,6 +12,8 @@ Uses the nominal tile: a calibrated per-pixel exposure map is ignored here.
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
+
 from functools import lru_cache
 
 import cv2
@@ -56,8 +58,8 @@ def _lookup_table(tile_bytes: bytes, tile_shape: tuple[int, int], full_scale: fl
     return table
 
 
-def run(inp: SveInput, *, workers: int = 1) -> Estimate:
-    """``workers``: threads to spread the frame's strips over (the result does not depend on it)."""
+def run(inp: SveInput, *, workers: int | Executor = 1) -> Estimate:
+    """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
     return in_strips(_run, inp, halo=inp.pattern.shape[0] + 1, workers=workers)
 
 

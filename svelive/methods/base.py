@@ -7,7 +7,7 @@ exposures, censoring) once, so methods only do the reconstruction itself.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -137,16 +137,31 @@ def _same_phase_index(n: int, period: int, before: int, after: int) -> np.ndarra
     return np.clip(index, 0, n - 1)
 
 
-def in_strips(run, inp: SveInput, halo: int, rows: int = 64, workers: int = 1, **options) -> Estimate:
+def map_on(workers: int | Executor, function, items) -> list:
+    """``[function(i) for i in items]``, on threads where ``workers`` asks for them.
+
+    ``workers`` is a thread count (1: the caller's thread; more: a pool made for
+    this call) or an Executor the caller keeps for many calls, which a real-time
+    stream should do: a pool per frame costs thread start-ups, and new threads
+    make the allocator grow new arenas. numpy and OpenCV release the GIL, so
+    strips of one frame run in parallel.
+    """
+    if isinstance(workers, Executor):
+        return list(workers.map(function, items))
+    if workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return list(pool.map(function, items))
+    return [function(i) for i in items]
+
+
+def in_strips(run, inp: SveInput, halo: int, rows: int = 64, workers: int | Executor = 1, **options) -> Estimate:
     """Run a local method over horizontal strips of the frame and stitch the results.
 
     ``run`` must only look ``halo`` rows up and down. Strips of a few dozen rows
     keep the method's temporaries in cache and out of the page-fault path of
     large allocations, which makes chains of numpy operations several times
     faster; strips start on whole tiles so the pattern keeps its phase. The
-    result equals a whole-frame run. With ``workers`` > 1 the strips run on that
-    many threads (numpy and OpenCV release the GIL), for real-time use on
-    several cores.
+    result equals a whole-frame run. ``workers``: see :func:`map_on`.
     """
     th = inp.pattern.shape[0]
     h = inp.shape[0]
@@ -163,12 +178,7 @@ def in_strips(run, inp: SveInput, halo: int, rows: int = 64, workers: int = 1, *
         keep = slice(top - start, top - start + min(rows, h - top))
         return est.image[keep], est.lower_bound[keep], None if est.variance is None else est.variance[keep]
 
-    tops = range(0, h, rows)
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            parts = list(pool.map(strip, tops))
-    else:
-        parts = [strip(top) for top in tops]
+    parts = map_on(workers, strip, range(0, h, rows))
     image = np.concatenate([p[0] for p in parts])
     lower = np.concatenate([p[1] for p in parts])
     variance = None if parts[0][2] is None else np.concatenate([p[2] for p in parts])

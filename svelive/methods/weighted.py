@@ -26,6 +26,8 @@ noise model, exclusions from the censoring alone.
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
+
 from functools import lru_cache
 
 import cv2
@@ -55,8 +57,8 @@ def _level_layout(pattern: Pattern, shape: tuple[int, int]) -> list[tuple[float,
     return layout
 
 
-def run(inp: SveInput, *, return_variance: bool = False, workers: int = 1) -> Estimate:
-    """``workers``: threads to spread the frame's strips over (the result does not depend on it)."""
+def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1) -> Estimate:
+    """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
     halo = max(support_size(s) for s in inp.pattern.shape)
     return in_strips(_run, inp, halo, rows=96, workers=workers, return_variance=return_variance)
 
