@@ -73,13 +73,9 @@ def _run(inp: SveInput) -> Estimate:
 
     # Box of the tile's size whose centre lies +0.5 px (along even dimensions) from the anchor pixel.
     ay, ax = (th - 1) // 2, (tw - 1) // 2
-    if h % th == 0 and w % tw == 0:  # whole tiles: wrapping around keeps the tile phase
-        box_sum = cv2.boxFilter(signal, cv2.CV_32F, (tw, th), anchor=(ax, ay), normalize=False,
-                                borderType=cv2.BORDER_WRAP)
-    else:
-        padded = pad_same_phase(signal, (th, tw), (ay, ax), (th - 1 - ay, tw - 1 - ax))
-        box_sum = cv2.boxFilter(padded, cv2.CV_32F, (tw, th), anchor=(0, 0), normalize=False,
-                                borderType=cv2.BORDER_CONSTANT)[:h, :w]
+    padded = pad_same_phase(signal, (th, tw), (ay, ax), (th - 1 - ay, tw - 1 - ax))
+    box_sum = cv2.boxFilter(padded, cv2.CV_32F, (tw, th), anchor=(0, 0), normalize=False,
+                            borderType=cv2.BORDER_CONSTANT)[:h, :w]
     if inp.integral and float(full_scale).is_integer():
         # Integer readings: the box sum is an exact integer, so the inversion is a table look-up.
         table = _lookup_table(inp.pattern.tile.tobytes(), inp.pattern.shape, full_scale)

@@ -128,13 +128,16 @@ def pad_same_phase(image: np.ndarray, period: tuple[int, int], before: tuple[int
     return out
 
 
+@lru_cache(maxsize=64)
 def _same_phase_index(n: int, period: int, before: int, after: int) -> np.ndarray:
     index = np.arange(-before, n + after)
     low = index < 0
     index[low] += period * (-(index[low] // period))
     high = index >= n
     index[high] -= period * ((index[high] - n) // period + 1)
-    return np.clip(index, 0, n - 1)
+    index = np.clip(index, 0, n - 1)
+    index.setflags(write=False)
+    return index
 
 
 def map_on(workers: int | Executor, function, items) -> list:
