@@ -51,8 +51,7 @@ def scaled(image: np.ndarray, stops: float) -> np.ndarray:
 
 def run(frames, **kw):
     """Fused and single-frame results of a rendered sequence: list of (frame, fused, single)."""
-    # single frame = the same method without fusion (what fusion adds); the single-frame
-    # default (adaptive) is reported beside it in static_gain
+    # single frame = the same method without fusion: what fusion adds or costs
     fused = Reconstructor(PATTERN, **KW, **kw)
     single = Reconstructor(PATTERN, temporal=False, method=fused.method, **KW, **kw)
     return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
