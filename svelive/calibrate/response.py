@@ -15,16 +15,25 @@ Steps (:func:`fit_response`):
    (:func:`svelive.calibrate.noise.noise_curve_frame`); a window is "locally
    constant" when its variance is what noise alone would give at the
    ``flat_quantile`` level of a chi-square test.
-3. Every pair of flat levels at a location gives one equation, weighted by the
-   inverse standard deviation of its residual (propagated through ``f'``).
+3. Every pair of flat levels at a location gives ``f(M_hi) / R - f(M_lo) = 0``,
+   normalised by the window values' noise (including the rounding bias a
+   constant window shares) propagated through ``f'`` of the previous pass.
+   The curve's shape is solved scale-free in a Legendre basis on [0, 1] (the
+   smallest generalised eigenvector of the normalised residuals against the
+   equations' scale), then scaled to ``f(1) = 1``: imposing ``f(1) = 1`` inside
+   the least squares drifts where ``M = 1`` has no data.
 4. The degree is the lowest one whose error on held-out locations (spatial
    folds, so held-out windows do not share pixels with training ones) is within
    one standard error of the best degree's (the one-standard-error rule), among
-   degrees whose curve is monotone on [0, 1].
-5. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
+   degrees whose curve is monotone on the measured range.
+5. The measured range is the longest brightness interval with data in every
+   1/16 of full scale and a standard error of ``f`` (from the fit's covariance)
+   under 1 %: gaps in the data end it.
+6. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
    fitted curve and the fit repeated; the ratio of the extreme exposures is kept
    at its nominal value because ``f^g`` with ratios ``R^g`` fits the same data
    for any ``g`` (the exponential ambiguity of ratio-based calibration).
+docs/calibration.md has the details and the measured accuracy.
 """
 
 from __future__ import annotations
