@@ -64,8 +64,8 @@ def _noise(args: argparse.Namespace) -> int:
 
 def _levels(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bits", type=int, help="bit depth of the raw values (default: 8 or 16 by file)")
-    p.add_argument("--black", type=float, default=0.0, help="black level, DN (default 0)")
-    p.add_argument("--white", type=float, help="white level, DN (default 2^bits - 1)")
+    p.add_argument("--black-level", dest="black", type=float, default=0.0, help="black level, DN (default 0)")
+    p.add_argument("--white-level", dest="white", type=float, help="white level, DN (default 2^bits - 1)")
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
