@@ -18,12 +18,12 @@ from svelive.sensor import Sensor
 
 
 def sensor_from_args(raw: np.ndarray, args: argparse.Namespace) -> Sensor:
-    """Sensor levels from --bits/--black/--white, the bit depth defaulting to the container's."""
+    """Sensor levels from --bits/--black-level/--white-level, the bit depth defaulting to the container's."""
     bits = args.bits if args.bits is not None else (8 if raw.dtype == np.uint8 else 16)
     sensor = Sensor(bits=bits, black_level=args.black, white_level=args.white)
     if raw.max() > sensor.white_level:
         raise SveliveError(f"the frame has values up to {int(raw.max())}, above the white level "
-                           f"{sensor.white_level:g} of {bits} bits: pass the right --bits or --white")
+                           f"{sensor.white_level:g} of {bits} bits: pass the right --bits or --white-level")
     return sensor
 
 
