@@ -67,9 +67,12 @@ def _run(inp: SveInput) -> Estimate:
     th, tw = inp.pattern.shape
     h, w = inp.shape
     full_scale = inp.sensor.range_dn
-    signal = np.clip(inp.signal, 0.0, full_scale)
+    # Not clipped at 0: negative readings (noise below black) keep the box mean unbiased;
+    # the inversion maps any mean below 0 to 0 and any above full scale to saturation.
+    signal = inp.signal
     if h < th or w < tw:  # no whole tile to aggregate: each pixel on its own
-        return Estimate((signal / inp.exposure).astype(np.float32), inp.censored.copy())
+        own = np.clip(signal, 0.0, full_scale) / inp.exposure
+        return Estimate(own.astype(np.float32), inp.censored.copy())
 
     # Box of the tile's size whose centre lies +0.5 px (along even dimensions) from the anchor pixel.
     ay, ax = (th - 1) // 2, (tw - 1) // 2
@@ -91,6 +94,9 @@ def _run(inp: SveInput) -> Estimate:
     # Where every pixel of the window is saturated the inversion already returned the
     # radiance at which the lowest exposure saturates: the lower bound the frame implies.
     window = (support_size(th), support_size(tw))
-    all_censored = cv2.erode(inp.censored.view(np.uint8), np.ones(window, np.uint8),
-                             borderType=cv2.BORDER_REFLECT_101).view(bool)
+    if inp.censored.any():
+        all_censored = cv2.erode(inp.censored.view(np.uint8), np.ones(window, np.uint8),
+                                 borderType=cv2.BORDER_REFLECT_101).view(bool)
+    else:
+        all_censored = np.zeros(inp.shape, bool)
     return Estimate(image, all_censored)
