@@ -1,8 +1,42 @@
-"""The live pipeline (moving into one module per stage)."""
+"""The live pipeline: capture thread -> newest-frame hand-off -> reconstruction -> preview encoder.
 
-from service.pipeline.pipeline import (CalibrationBusy, EncodedFrame, FrameReconstructor, LatencyWindow, NewestSlot,
-                                       Pipeline, PipelineConfig, Published, RateMeter, no_signal_image,
-                                       opencv_threads)
+    capture thread ──(Frame)──> NewestSlot ──> reconstruction thread ──> latest Published (HdrFrame)
+                                (drops the oldest)                            │
+                                                        encoder thread <──────┘  (only while someone
+                                                        tone map + JPEG          watches or a snapshot
+                                                          │                      is asked)
+                                                          └──> listeners (the HTTP fan-out)
 
-__all__ = ["CalibrationBusy", "EncodedFrame", "FrameReconstructor", "LatencyWindow", "NewestSlot", "Pipeline",
-           "PipelineConfig", "Published", "RateMeter", "no_signal_image", "opencv_threads"]
+Each stage keeps only the newest item, so a slow stage skips frames instead
+of building a queue; every skipped frame is counted by cause. Frame arrival
+timestamps (``Frame.host_time_ns``, the monotonic clock) travel with the frames,
+so the latency of every stage is measured against the frame's arrival.
+numpy and OpenCV release the GIL, so the reconstruction and encoder threads run
+on separate cores; OpenCV's own pool is limited (see :func:`opencv_threads`) so
+that together they do not oversubscribe the machine.
+
+One role per module:
+
+- ``config``: PipelineConfig and the checks of the run-time settings;
+- ``meters``: NewestSlot (the hand-off), RateMeter, LatencyWindow, DropCounter;
+- ``frames``: the records handed on, Published and EncodedFrame;
+- ``capture``: CaptureStage (source, reconnects, online/offline);
+- ``reconstruction``: FrameReconstructor (the adapter to svelive) and ReconstructionStage;
+- ``encoder``: EncoderStage (tone map + JPEG, no-signal frames, listeners, watchers, snapshots);
+- ``calibration``: Calibration (response in use, live response calibration, mask) and CalibrationBusy;
+- ``pipeline``: Pipeline, which wires the stages and assembles ``state()`` and ``settings()``.
+"""
+
+from service.pipeline.calibration import Calibration, CalibrationBusy
+from service.pipeline.capture import CaptureStage
+from service.pipeline.config import FALLBACK_PATTERN, PipelineConfig, check_jpeg_quality, check_method
+from service.pipeline.encoder import EncoderStage, encode_jpeg, no_signal_image
+from service.pipeline.frames import EncodedFrame, Published, monotonic_to_wall
+from service.pipeline.meters import WINDOW, DropCounter, LatencyWindow, NewestSlot, RateMeter
+from service.pipeline.pipeline import Pipeline, opencv_threads
+from service.pipeline.reconstruction import FrameReconstructor, ReconstructionStage
+
+__all__ = ["FALLBACK_PATTERN", "WINDOW", "Calibration", "CalibrationBusy", "CaptureStage", "DropCounter",
+           "EncodedFrame", "EncoderStage", "FrameReconstructor", "LatencyWindow", "NewestSlot", "Pipeline",
+           "PipelineConfig", "Published", "RateMeter", "ReconstructionStage", "check_jpeg_quality", "check_method",
+           "encode_jpeg", "monotonic_to_wall", "no_signal_image", "opencv_threads"]

@@ -1,0 +1,87 @@
+"""What the pipeline reconstructs and how: :class:`PipelineConfig` and the checks of its run-time settings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from svelive.errors import SveliveError
+from svelive.pattern import Pattern
+from svelive.reconstruct import methods as method_names
+from svelive.tonemap import ToneSettings
+
+#: Pattern used when neither the settings nor the source name one.
+FALLBACK_PATTERN = "1,4/16,64"
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """What the pipeline reconstructs and how.
+
+    Attributes:
+        source: source spec (see svelive.capture), e.g. ``"demo"`` or ``"gige:GV01"``.
+        source_options: extra keyword options for ``open_source`` (e.g. fps, width).
+        pattern: exposure pattern text; None: the source's own, else FALLBACK_PATTERN.
+        black_level, white_level: DN overrides of the source's sensor; None keeps it.
+        method: reconstruction method name; None for the default.
+        temporal: use temporal fusion where the reconstructor offers it.
+        response: path of a response JSON (``svelive calibrate response``): every frame
+            is linearised through it before reconstruction; None: the camera is linear.
+        mask: path of a mask file (``svelive calibrate mask``): its per-pixel exposure
+            map replaces the nominal tile's exposures; None: the nominal pattern.
+        workers: threads the reconstruction spreads one frame over; 0: one per core.
+        queue: frames the capture -> reconstruction hand-off holds (1..8).
+        tone: preview tone-mapping parameters.
+        jpeg_quality: preview JPEG quality, 10..100.
+        preview_width: downscale previews wider than this (pixels); 0 keeps full size.
+        offline_after_s: no frame for this long means the source is offline.
+        retry_s: wait before reopening a source that failed or went away.
+        no_signal_fps: rate of "no signal" frames sent while the source is offline.
+    """
+
+    source: str = "demo"
+    source_options: dict[str, Any] = field(default_factory=dict)
+    pattern: str | None = None
+    black_level: float | None = None
+    white_level: float | None = None
+    method: str | None = None
+    temporal: bool = True
+    response: str | None = None
+    mask: str | None = None
+    workers: int = 0
+    queue: int = 1
+    tone: ToneSettings = field(default_factory=ToneSettings)
+    jpeg_quality: int = 80
+    preview_width: int = 0
+    offline_after_s: float = 2.0
+    retry_s: float = 1.0
+    no_signal_fps: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.pattern is not None:
+            Pattern.parse(self.pattern)
+        check_method(self.method)
+        check_jpeg_quality(self.jpeg_quality)
+        if not 0 <= self.workers <= 64:
+            raise SveliveError(f"workers must be 0..64 (0: one per core), got {self.workers}")
+        if not 1 <= self.queue <= 8:
+            raise SveliveError(f"queue must hold 1..8 frames, got {self.queue}")
+        if not 0 <= self.preview_width <= 16384:
+            raise SveliveError(f"preview width must be 0..16384 pixels, got {self.preview_width}")
+        for name in ("offline_after_s", "retry_s", "no_signal_fps"):
+            if not 0 < getattr(self, name) <= 3600:
+                raise SveliveError(f"{name} must be in (0, 3600], got {getattr(self, name)}")
+
+
+def check_method(method: str | None) -> None:
+    """Raise SveliveError unless ``method`` is None or a known reconstruction method."""
+    if method is not None and method not in method_names():
+        raise SveliveError(f"unknown method {method!r}; choose from {', '.join(method_names())}")
+
+
+def check_jpeg_quality(quality: int) -> None:
+    """Raise SveliveError unless ``quality`` is an integer JPEG quality in 10..100."""
+    if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 10 <= quality <= 100:
+        raise SveliveError(f"JPEG quality must be an integer 10..100, got {quality!r}")

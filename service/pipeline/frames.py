@@ -1,0 +1,64 @@
+"""The records the stages hand on: :class:`Published` (reconstructed) and :class:`EncodedFrame` (preview JPEG)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from svelive.frame import HdrFrame
+from svelive.sensor import Sensor
+
+
+@dataclass(frozen=True)
+class Published:
+    """One reconstructed frame as the pipeline publishes it.
+
+    Attributes:
+        hdr: the HdrFrame (timings_ms holds "queue" and "reconstruct").
+        seq: the pipeline's own counter of published frames.
+        pattern: the exposure pattern's text form.
+        sensor: the sensor the raw frame came from.
+        published_ns: monotonic time it was published.
+    """
+
+    hdr: HdrFrame
+    seq: int
+    pattern: str
+    sensor: Sensor
+    published_ns: int
+
+    @property
+    def wall_time(self) -> float:
+        """The frame's arrival time as Unix seconds (for X-Timestamp and EXR attributes)."""
+        return monotonic_to_wall(self.hdr.host_time_ns)
+
+
+def monotonic_to_wall(monotonic_ns: int) -> float:
+    """Unix time in seconds of a ``time.monotonic_ns()`` reading."""
+    return (time.time_ns() - time.monotonic_ns() + monotonic_ns) / 1e9
+
+
+@dataclass(frozen=True)
+class EncodedFrame:
+    """One preview JPEG, shared by every client.
+
+    Attributes:
+        seq: the encoder's counter (increases by one per JPEG, no-signal ones included).
+        jpeg: the JPEG file.
+        signal: False for a "no signal" placeholder.
+        frame_id: the source frame id (None for no-signal frames).
+        hdr_seq: the Published.seq it was made from (-1 for no-signal frames).
+        host_time_ns: arrival time of the source frame (its creation time for no-signal frames).
+        wall_time: the same as Unix seconds.
+        width, height: pixels.
+    """
+
+    seq: int
+    jpeg: bytes
+    signal: bool
+    frame_id: int | None
+    hdr_seq: int
+    host_time_ns: int
+    wall_time: float
+    width: int
+    height: int

@@ -1,0 +1,120 @@
+"""Hand-off and measurement between the pipeline's threads: the newest-item slot, rates, latencies, drops.
+
+Every class here is thread-safe: one thread writes, any thread reads.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+#: Samples kept per latency / rate window.
+WINDOW = 256
+
+
+class NewestSlot:
+    """Bounded hand-off between two threads that keeps the newest items and drops the oldest.
+
+    ``put`` never blocks; ``get`` blocks up to a timeout. ``dropped`` counts the
+    items pushed out unread.
+    """
+
+    def __init__(self, capacity: int = 1) -> None:
+        self._items: collections.deque = collections.deque()
+        self._capacity = capacity
+        self._cond = threading.Condition()
+        self._closed = False
+        self.dropped = 0
+
+    def put(self, item: Any) -> int:
+        """Add ``item``; returns how many old items were dropped to make room (0 or 1)."""
+        with self._cond:
+            dropped = 0
+            while len(self._items) >= self._capacity:
+                self._items.popleft()
+                dropped += 1
+            self._items.append(item)
+            self.dropped += dropped
+            self._cond.notify()
+            return dropped
+
+    def get(self, timeout: float) -> Any | None:
+        """The oldest item still held, or None after ``timeout`` seconds or once closed."""
+        with self._cond:
+            if not self._items and not self._closed:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def close(self) -> None:
+        """Wake any waiting ``get``; later gets return what is left, then None."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+class RateMeter:
+    """Events per second over the last WINDOW events (0 when the last one is older than ``stale_s``)."""
+
+    def __init__(self, stale_s: float = 2.0) -> None:
+        self._times: collections.deque[int] = collections.deque(maxlen=WINDOW)
+        self._lock = threading.Lock()
+        self.count = 0
+        self.stale_s = stale_s
+
+    def tick(self, now_ns: int | None = None) -> None:
+        with self._lock:
+            self._times.append(time.monotonic_ns() if now_ns is None else now_ns)
+            self.count += 1
+
+    def rate(self) -> float:
+        with self._lock:
+            times = list(self._times)
+        if len(times) < 2 or (time.monotonic_ns() - times[-1]) / 1e9 > self.stale_s:
+            return 0.0
+        # over the last two seconds at most, so a rate change shows quickly
+        recent = [t for t in times if times[-1] - t <= 2e9]
+        if len(recent) < 2:
+            return 0.0
+        return (len(recent) - 1) / ((recent[-1] - recent[0]) / 1e9)
+
+
+class LatencyWindow:
+    """Recent durations in ms of one stage, summarised as p50 / p95 / max."""
+
+    def __init__(self) -> None:
+        self._values: collections.deque[float] = collections.deque(maxlen=WINDOW)
+        self._lock = threading.Lock()
+
+    def add(self, ms: float) -> None:
+        with self._lock:
+            self._values.append(ms)
+
+    def summary(self) -> dict[str, float] | None:
+        with self._lock:
+            values = np.array(self._values, dtype=np.float64)
+        if values.size == 0:
+            return None
+        p50, p95 = np.percentile(values, [50, 95])
+        return {"p50": round(float(p50), 2), "p95": round(float(p95), 2), "max": round(float(values.max()), 2),
+                "n": int(values.size)}
+
+
+class DropCounter:
+    """Frames dropped by each stage, counted by cause (``reconstruct_busy``, ``encoder_busy``, ...)."""
+
+    def __init__(self) -> None:
+        self._counts: collections.Counter = collections.Counter()
+        self._lock = threading.Lock()
+
+    def count(self, cause: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[cause] += n
+
+    def snapshot(self) -> dict[str, int]:
+        """The counts so far, by cause, in the order the causes first occurred."""
+        with self._lock:
+            return dict(self._counts)
