@@ -37,6 +37,11 @@ from svelive.sensor import Sensor
 #: step recover the resolution where the scene is static.
 TEMPORAL_METHOD = "weighted"
 
+
+def default_method(temporal: bool) -> str:
+    """The method a Reconstructor uses when none is named: TEMPORAL_METHOD with fusion, else the library default."""
+    return TEMPORAL_METHOD if temporal else DEFAULT_METHOD
+
 EXPOSURE_TIMINGS = ("mask", "integration")
 
 
@@ -161,7 +166,7 @@ class Reconstructor:
 
     def _checked(self, method: str | None) -> str:
         if method is None:
-            method = TEMPORAL_METHOD if self.temporal else DEFAULT_METHOD
+            method = default_method(self.temporal)
         name = method
         if name not in METHODS:
             raise SveliveError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")

@@ -15,6 +15,7 @@ from svelive.capture import Source, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.reconstruct import methods as method_names
+from svelive.reconstructor import default_method
 
 from service.pipeline.calibration import Calibration
 from service.pipeline.capture import CaptureStage
@@ -153,7 +154,7 @@ class Pipeline:
     # ----- settings ----------------------------------------------------
     def settings(self) -> dict[str, Any]:
         """The settings that can be changed at run time."""
-        return {"method": self.reconstruction.method or method_names()[0], "jpeg_quality": self.encoder.jpeg_quality,
+        return {"method": self.reconstruction.method or default_method(self.config.temporal), "jpeg_quality": self.encoder.jpeg_quality,
                 "tone": dict(vars(self.encoder.tone))}
 
     def update_settings(self, method: str | None = None, jpeg_quality: int | None = None,
@@ -207,7 +208,7 @@ class Pipeline:
             "drops": drops,
             "dropped": sum(drops.values()),
             "latency_ms": {name: window.summary() for name, window in self.latency.items()},
-            "method": self.reconstruction.method or method_names()[0],
+            "method": self.reconstruction.method or default_method(self.config.temporal),
             "methods": method_names(),
             "temporal": self.config.temporal,
             "motion_fraction": self.reconstruction.motion_fraction,
