@@ -89,3 +89,15 @@ def test_serve_rejects_bad_options_with_one_line_and_status_2():
                               text=True, timeout=60)
         assert proc.returncode == 2, proc.stderr
         assert word in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_state_names_the_method_really_in_use():
+    from service.pipeline import Pipeline, PipelineConfig
+    from svelive.reconstructor import Reconstructor
+
+    for temporal in (True, False):
+        pipeline = Pipeline(PipelineConfig(temporal=temporal))
+        used = Reconstructor("1,4/16,64", temporal=temporal).method
+        assert pipeline.settings()["method"] == used
+        assert pipeline.state()["method"] == used
+    assert Reconstructor("1,4/16,64", temporal=True).method != Reconstructor("1,4/16,64", temporal=False).method
