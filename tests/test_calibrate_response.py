@@ -125,11 +125,17 @@ def test_featureless_or_narrow_frames_refused():
         fit_response(raw, Pattern.parse("1"), sensor)
 
 
-def test_calibrate_frame_for_service():
+
+def chart_frame(curve: str, seed: int) -> tuple[Sensor, np.ndarray, np.ndarray]:
+    """A 12-bit sensor, a 128x128 grey chart filling its range (DN) and its raw frame through a known curve."""
     sensor = Sensor.from_full_well(12, 10000, 3)
     scene = chart_scene(128, 16)
     scene *= sensor.range_dn / scene.max()
-    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES["poly3"], seed=5)
+    return sensor, scene, simulate_nonlinear(scene, PATTERN, sensor, CURVES[curve], seed=seed)
+
+
+def test_calibrate_frame_for_service():
+    sensor, _, raw = chart_frame("poly3", seed=5)
     data = calibrate_frame(raw, PATTERN, sensor, points=33)
     assert data["degree"] == 3
     curve = data["curve"]
@@ -138,10 +144,7 @@ def test_calibrate_frame_for_service():
 
 
 def test_cli_response(tmp_path, capsys):
-    sensor = Sensor.from_full_well(12, 10000, 3)
-    scene = chart_scene(128, 16)
-    scene *= sensor.range_dn / scene.max()
-    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES["gamma2.2"], seed=6)
+    sensor, _, raw = chart_frame("gamma2.2", seed=6)
     np.save(tmp_path / "raw.npy", raw)
     out = tmp_path / "response.json"
     assert main(["calibrate", "response", str(tmp_path / "raw.npy"), "--pattern", "1,4/16,64", "--bits", "12",
@@ -157,10 +160,7 @@ def test_cli_response(tmp_path, capsys):
 def test_cli_reconstruct_with_response(tmp_path):
     from svelive.exr import read_exr
 
-    sensor = Sensor.from_full_well(12, 10000, 3)
-    scene = chart_scene(128, 16)
-    scene *= sensor.range_dn / scene.max()
-    raw = simulate_nonlinear(scene, PATTERN, sensor, CURVES["gamma2.2"], seed=7)
+    sensor, scene, raw = chart_frame("gamma2.2", seed=7)
     np.save(tmp_path / "raw.npy", raw)
     resp = tmp_path / "r.json"
     save_response(fit_response(raw, PATTERN, sensor), resp)
