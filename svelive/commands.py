@@ -15,7 +15,7 @@ from svelive.exr import read_luminance, write_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, dynamic_range_db, dynamic_range_stops, \
     unique_levels
 from svelive.reconstruct import methods, reconstruct
-from svelive.sensor import Sensor
+from svelive.sensor import Sensor, container_bits
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
@@ -146,7 +146,7 @@ def write_raw(path: Path, raw: np.ndarray) -> None:
 
 
 def _sensor_from_args(args: argparse.Namespace, raw: np.ndarray | None = None) -> Sensor:
-    bits = args.bits if args.bits is not None else (8 if raw is None or raw.dtype == np.uint8 else 16)
+    bits = args.bits if args.bits is not None else (8 if raw is None else container_bits(raw.dtype))
     return Sensor(bits=bits, black_level=args.black_level, white_level=args.white_level,
                   gain=getattr(args, "gain", None), read_noise=getattr(args, "read_noise", None))
 

@@ -10,7 +10,7 @@ from svelive.errors import SveliveError
 from svelive.methods import DEFAULT_METHOD, METHODS
 from svelive.methods.base import Estimate, SveInput, exposure_maps, smooth, support_size
 from svelive.pattern import Pattern
-from svelive.sensor import Sensor
+from svelive.sensor import Sensor, container_bits
 
 
 def methods() -> list[str]:
@@ -21,7 +21,7 @@ def methods() -> list[str]:
 def sensor_for(raw: np.ndarray, black_level: float = 0, white_level: float | None = None,
                gain: float | None = None, read_noise: float | None = None) -> Sensor:
     """The Sensor a raw array implies: bit depth from its dtype unless the white level says more."""
-    bits = 8 if raw.dtype == np.uint8 else 16
+    bits = container_bits(raw.dtype)
     if white_level is not None and white_level > 2**bits - 1:
         raise SveliveError(f"white level {white_level:g} exceeds the {raw.dtype} range")
     return Sensor(bits=bits, black_level=float(black_level), white_level=white_level, gain=gain,

@@ -23,6 +23,11 @@ DEFAULT_FULL_WELL_E = 10_000.0
 DEFAULT_READ_NOISE_E = 3.0
 
 
+def container_bits(dtype: np.dtype) -> int:
+    """Bit depth a raw array's dtype implies when nothing else says: 8 for uint8, else 16."""
+    return 8 if np.dtype(dtype) == np.uint8 else 16
+
+
 @dataclass(frozen=True)
 class Sensor:
     """Static description of a sensor.

@@ -14,12 +14,12 @@ from svelive.calibrate.response import ResponseFitConfig, fit_response, save_res
 from svelive.commands import read_raw
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
-from svelive.sensor import Sensor
+from svelive.sensor import Sensor, container_bits
 
 
 def sensor_from_args(raw: np.ndarray, args: argparse.Namespace) -> Sensor:
     """Sensor levels from --bits/--black-level/--white-level, the bit depth defaulting to the container's."""
-    bits = args.bits if args.bits is not None else (8 if raw.dtype == np.uint8 else 16)
+    bits = args.bits if args.bits is not None else container_bits(raw.dtype)
     sensor = Sensor(bits=bits, black_level=args.black, white_level=args.white)
     if raw.max() > sensor.white_level:
         raise SveliveError(f"the frame has values up to {int(raw.max())}, above the white level "

@@ -23,7 +23,7 @@ from svelive.capture import build_sensor, make_config
 from svelive.capture.source import EndOfStream, Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.sensor import Sensor, container_bits
 
 EXTENSIONS = (".png", ".tif", ".tiff", ".pgm")
 
@@ -96,7 +96,7 @@ class ImageSequenceSource(Source):
         self._files = list_images(self._glob)
         first = read_image(self._files[0])
         self._shape = (first.shape, first.dtype)
-        default_bits = 8 if first.dtype == np.uint8 else 16
+        default_bits = container_bits(first.dtype)
         self.sensor = build_sensor(*self._sensor_opts, default_bits=default_bits)
         self._format = self.config.pixel_format or ("Mono8" if first.dtype == np.uint8 else "Mono16")
         self._t0 = time.monotonic()
