@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from svelive.atomic import write_bytes_atomic
 from svelive.errors import SveliveError
 
 
@@ -56,7 +57,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     report.write_json(out / "results.json", results)
     report.write_csv(out / "results.csv", results["rows"])
     table = report.markdown_table(results["summary"])
-    report.write_atomic(out / "summary.md", table.encode())
+    write_bytes_atomic(out / "summary.md", table.encode())
     if not args.no_chart:
         report.plot_speed_accuracy(results["summary"], out / "speed_accuracy.png", results["default_method"])
     if not args.no_chart:

@@ -9,33 +9,19 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from svelive.atomic import write_bytes_atomic
 from svelive.errors import SveliveError
 
 REALTIME_MS = 33.0  # 30 frames per second
 BUDGET_MS = 25.0  # the reconstruction's share of a frame
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same directory and a rename."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_json(path: Path, data: object) -> None:
-    write_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
+    write_bytes_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
 
 
 def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
@@ -47,7 +33,7 @@ def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
     writer.writeheader()
     for row in rows:
         writer.writerow({k: f"{v:.4g}" if isinstance(v, float) else v for k, v in row.items()})
-    write_atomic(path, text.getvalue().encode())
+    write_bytes_atomic(path, text.getvalue().encode())
 
 
 def _pyplot():
@@ -64,7 +50,7 @@ def _pyplot():
 def save_figure(fig, path: Path) -> None:
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
-    write_atomic(path, buffer.getvalue())
+    write_bytes_atomic(path, buffer.getvalue())
 
 
 def plot_speed_accuracy(summary: list[dict[str, object]], path: Path, default: str | None = None) -> None:

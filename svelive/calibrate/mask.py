@@ -18,13 +18,13 @@ in those units, is the per-pixel exposure map for
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.polynomial import polynomial as P
 
+from svelive.atomic import atomic_path
 from svelive.errors import SveliveError
 from svelive.sensor import Sensor
 
@@ -175,22 +175,12 @@ def estimate_mask(flats: list[np.ndarray], tile: tuple[int, int], sensor: Sensor
 
 
 def save_mask(mask: MaskEstimate, path: str | os.PathLike) -> Path:
-    """Write ``mask`` as .npz (temporary file, then rename)."""
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise SveliveError(f"{path}: directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".npz")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, pixel_map=mask.pixel_map, tile_exposures=mask.tile_exposures,
+    """Write ``mask`` as .npz (temporary file, then rename: svelive.atomic)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, pixel_map=mask.pixel_map, tile_exposures=mask.tile_exposures,
                             vignetting=mask.vignetting, deviation=mask.deviation,
                             flat_levels=mask.flat_levels, coverage=mask.coverage)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return Path(path)
 
 
 def load_mask(path: str | os.PathLike) -> np.ndarray:

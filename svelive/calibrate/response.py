@@ -41,7 +41,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -52,6 +51,7 @@ from numpy.polynomial import legendre as L
 from numpy.polynomial import polynomial as P
 
 from svelive.calibrate.noise import QUANTISATION_VARIANCE, _chi2_quantile, noise_curve_frame
+from svelive.atomic import write_bytes_atomic
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
@@ -613,21 +613,8 @@ def calibrate_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *, 
 
 
 def write_json(data: dict, path: str | os.PathLike) -> Path:
-    """Write ``data`` as indented JSON, atomically (temporary file in the same directory, then rename)."""
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise SveliveError(f"{path}: directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``data`` as indented JSON, atomically (svelive.atomic)."""
+    return write_bytes_atomic(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def save_response(response: Response, path: str | os.PathLike) -> Path:
