@@ -83,8 +83,12 @@ def confidence_map(estimate: Estimate, inp: SveInput) -> np.ndarray:
 
     Uses the method's own variance where it has one, else :func:`predicted_variance`.
     """
-    variance = estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
-    return confidence_from_variance(estimate.image, variance, estimate.lower_bound)
+    return confidence_from_variance(estimate.image, estimate_variance(estimate, inp), estimate.lower_bound)
+
+
+def estimate_variance(estimate: Estimate, inp: SveInput) -> np.ndarray:
+    """The method's own variance of its estimate where it has one, else :func:`predicted_variance`."""
+    return estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
 
 
 def reconstruct(raw: np.ndarray, pattern: Pattern | str, *, method: str | None = None, black_level: float = 0,

@@ -24,7 +24,7 @@ from svelive.methods import DEFAULT_METHOD, METHODS
 from svelive.methods.base import Estimate, SveInput, exposure_maps
 from svelive.motion import FrameEstimate, MotionConfig, TemporalState, exposure_consistency, fuse
 from svelive.pattern import Pattern
-from svelive.reconstruct import confidence_from_variance, predicted_variance, prepare, run_method, sensor_for
+from svelive.reconstruct import confidence_from_variance, estimate_variance, prepare, run_method, sensor_for
 from svelive.sensor import Sensor
 
 #: The single-frame method temporal fusion uses unless told otherwise. The
@@ -225,7 +225,7 @@ class Reconstructor:
         if "workers" in parameters and "workers" not in options:
             options["workers"] = self._pool if self._pool is not None else self.workers
         estimate = run_method(inp, method, **options)
-        variance = estimate.variance if estimate.variance is not None else predicted_variance(estimate.image, inp)
+        variance = estimate_variance(estimate, inp)
         return inp, Estimate(estimate.image, estimate.lower_bound, variance)
 
     def process(self, raw: np.ndarray) -> SequenceResult:
