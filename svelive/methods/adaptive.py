@@ -40,17 +40,27 @@ levels: two separable windows for the pilot, two for m, two for b^2. The
 censored-pixel step (one more pair of windows per level) runs only for the
 levels, and the rows of each strip, that actually hold censored pixels, so a
 scene whose range fits in the unsaturated exposures does not pay for it.
+Without censored pixels the pilot's exposure window is the same for every
+strip of a frame (strips start on whole tiles), so it is computed once per
+pattern and strip shape. Between the windows the per-pixel arithmetic runs as
+compiled kernels (svelive.jit), one pass each: weights (w, x, w x), residuals
+(m, v_m and the two terms whose windows give b^2), blend (the result); and,
+only where pixels are censored, consistency with each level's bound and the
+fill of that level's censored pixels.
 """
 
 from __future__ import annotations
 
 from concurrent.futures import Executor
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from svelive.methods.base import (Estimate, SveInput, at_least, binomial_kernel, censored_lower_bound, in_strips,
+from svelive.jit import flat, kernel
+from svelive.methods.base import (Estimate, SveInput, binomial_kernel, censored_lower_bound, in_strips,
                                   smooth, support_size)
+from svelive.pattern import Pattern
 
 #: Significance, in standard deviations of a reading, of "consistent with a censored bound".
 CONSISTENT_SIGMA = 2.0
@@ -92,83 +102,148 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     f32 = np.float32
     gain_inv, floor = f32(1.0 / inp.sensor.effective_gain), f32(inp.sensor.floor_variance)
     e, s, censored = inp.exposure, inp.signal, inp.censored
+    shape = inp.shape
     any_censored = bool(censored.any())
+    w, x, wx = (np.empty(shape, f32) for _ in range(3))
+
+    # Pilot, inverse variances w of the readings (0 where censored), and the neighbours' weights wn.
     if any_censored:
-        s = s.copy()
-        np.copyto(s, 0, where=censored)
-        e_valid = e.copy()
-        np.copyto(e_valid, 0, where=censored)
-    else:
-        e_valid = e
-
-    # Pilot: shot-noise ML radiance over the window.
-    exposure_sum = smooth(e_valid, ky, kx)
-    pilot = smooth(s, ky, kx)
-    pilot /= at_least(exposure_sum.copy(), TINY)
-    at_least(pilot, 0.0)
-
-    # Inverse variance of every reading at its pilot; 0 for censored readings.
-    w = pilot * e
-    w *= gain_inv
-    w += floor
-    np.divide(e * e_valid, w, out=w)
-    x = inp.signal / e
-
-    # Neighbour estimate without the pixel itself; no neighbours: m = 0 with a huge variance.
-    centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
-    wn = w
-    if any_censored:
-        censored_exposure = np.full_like(e, BIG)
-        np.copyto(censored_exposure, e, where=censored)
+        s_valid, e_valid, censored_exposure = (np.empty(shape, f32) for _ in range(3))
+        _split_censored(*flat(s, e, censored, s_valid, e_valid, censored_exposure))
+        exposure_sum = smooth(e_valid, ky, kx)
+        lower = exposure_sum <= 0
         lowest = cv2.erode(censored_exposure, np.ones((len(ky), len(kx)), np.uint8),
                            borderType=cv2.BORDER_REFLECT_101)
-        wn = w.copy()
-        np.copyto(wn, 0, where=lowest <= e)
-    wx = wn * x
-    sum_w = smooth(wn, ky, kx)
-    sum_w -= centre * wn
-    at_least(sum_w, TINY)
-    m = smooth(wx, ky, kx)
-    m -= centre * wx
-    m /= sum_w
-    var_m = np.divide(f32((ky * ky).sum() * (kx * kx).sum()), sum_w, out=sum_w)
+        wn = np.empty(shape, f32)
+        _weights_censored(*flat(smooth(s_valid, ky, kx), exposure_sum, s, e, censored, lowest, w, x, wn, wx),
+                          gain_inv, floor)
+    else:
+        exposure_sum, no_exposure, first_tile = _exposure_sum(inp.pattern, shape)
+        if not np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):
+            exposure_sum, no_exposure = smooth(e, ky, kx), None  # not the pattern's phase: compute it here
+        lower = exposure_sum <= 0 if no_exposure is None else no_exposure.copy()
+        wn = w
+        _weights(*flat(smooth(s, ky, kx), exposure_sum, s, e, w, x, wx), gain_inv, floor)
 
-    # Squared bias of m from the residuals around p, each weighted by the inverse variance of r^2.
-    var_p = np.divide(f32(1.0), at_least(w.copy(), TINY))  # censored: ~1 / tiny, so no evidence
-    var_r = var_p + var_m
-    d = x - m
-    excess = d * d
-    excess -= var_r
-    q = np.multiply(var_r, var_r, out=var_r)
-    np.divide(f32(1.0), q, out=q)
-    excess *= q
-    excess = smooth(excess, ky, kx)
-    excess /= at_least(smooth(q, ky, kx), TINY)
-    at_least(excess, 0.0)
-    excess += var_m  # squared bias + variance of m
+    # Neighbour estimate m and its variance (written over the window sums they come from); the terms of b^2.
+    centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
+    kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
+    var_m, m = smooth(wn, ky, kx), smooth(wx, ky, kx)
+    excess_q, q = wx, np.empty(shape, f32)
+    _residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
 
-    # Minimum-mean-square blend of the own reading and the neighbour estimate: m + (x - m) w / (w + 1 / excess).
-    weight_m = np.divide(f32(1.0), excess, out=excess)
-    total = weight_m + w
-    share = np.divide(w, total, out=weight_m)
-    d *= share
-    image = np.add(m, d, out=m)
+    # Minimum-mean-square blend of the own reading and the neighbour estimate.
+    image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
+    _blend(*flat(image, total, var_m, m, w, x))
 
-    lower = exposure_sum <= 0
     if any_censored:
-        lower |= _censored_pixels(inp, image, x, w, var_p, ky, kx)  # there, image = m (w = 0)
-    at_least(image, 0.0)
+        lower |= _censored_pixels(inp, image, w, x, ky, kx)
     variance = np.divide(f32(1.0), total) if want_variance else None
     if lower.any():
         bound = censored_lower_bound(inp, (len(ky), len(kx)))
         np.copyto(image, bound, where=lower)
         if variance is not None:  # a bound is known to within itself: relative error 1
             np.copyto(variance, bound * bound, where=lower)
-    return image, lower, variance, share if want_share else None
+    return image, lower, variance, np.divide(w, total) if want_share else None
 
 
-def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndarray, var_p: np.ndarray,
-                     ky: np.ndarray, kx: np.ndarray) -> np.ndarray:
+@lru_cache(maxsize=16)
+def _exposure_sum(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Window sum of the exposure map, where it is <= 0, and the map's first tile; float32, bool, float32; read-only.
+
+    Strips start on whole tiles, so every strip of one height shares them
+    (the first tile tells a caller whether its exposures have that phase).
+    """
+    ky, kx = kernels(pattern.shape)
+    exposure = pattern.exposure_map(shape)
+    exposure_sum = smooth(exposure, ky, kx)
+    no_exposure = exposure_sum <= 0
+    first_tile = exposure[:pattern.shape[0], :pattern.shape[1]].copy()
+    for array in (exposure_sum, no_exposure, first_tile):
+        array.setflags(write=False)
+    return exposure_sum, no_exposure, first_tile
+
+
+@kernel
+def _split_censored(s, e, censored, s_valid, e_valid, censored_exposure):
+    """Readings and exposures with censored pixels zeroed; exposure of censored pixels, BIG elsewhere."""
+    zero, big = np.float32(0.0), np.float32(BIG)
+    for k in range(s.size):
+        c = censored[k]
+        s_valid[k] = zero if c else s[k]
+        e_valid[k] = zero if c else e[k]
+        censored_exposure[k] = e[k] if c else big
+
+
+@kernel
+def _inverse_variance(signal_sum, exposure_sum, e, e_valid, gain_inv, floor):
+    """w = e e_valid / (e L0 / g + sigma^2) at the pilot L0 = max(sum s / sum e, 0): 0 where e_valid = 0."""
+    pilot = max(signal_sum / max(exposure_sum, np.float32(TINY)), np.float32(0.0))
+    return e * e_valid / (pilot * e * gain_inv + floor)
+
+
+@kernel
+def _weights(signal_sum, exposure_sum, s, e, w, x, wx, gain_inv, floor):
+    """Frame without censored pixels: w of every reading, x = s / e, and w x."""
+    for k in range(w.size):
+        wk = _inverse_variance(signal_sum[k], exposure_sum[k], e[k], e[k], gain_inv, floor)
+        xk = s[k] / e[k]
+        w[k] = wk
+        x[k] = xk
+        wx[k] = wk * xk
+
+
+@kernel
+def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor):
+    """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x."""
+    zero = np.float32(0.0)
+    for k in range(w.size):
+        wk = _inverse_variance(signal_sum[k], exposure_sum[k], e[k], zero if censored[k] else e[k], gain_inv, floor)
+        xk = s[k] / e[k]
+        w[k] = wk
+        x[k] = xk
+        wnk = zero if lowest[k] <= e[k] else wk
+        wn[k] = wnk
+        wx[k] = wnk * xk
+
+
+@kernel
+def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
+    """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r).
+
+    ``var_m`` and ``m`` come in holding the window sums of wn and wn x, and
+    leave holding v_m and m (the sums without the centre pixel).
+    """
+    one, tiny = np.float32(1.0), np.float32(TINY)
+    for k in range(w.size):
+        sum_w = max(var_m[k] - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
+        mk = (m[k] - centre * (wn[k] * x[k])) / sum_w
+        var_mk = kernel_square / sum_w
+        var_r = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
+        d = x[k] - mk
+        qk = one / (var_r * var_r)
+        m[k] = mk
+        var_m[k] = var_mk
+        excess_q[k] = (d * d - var_r) * qk
+        q[k] = qk
+
+
+@kernel
+def _blend(image, total, var_m, m, w, x):
+    """The result max(m + (x - m) w / total, 0), total = w + 1 / (b^2 + v_m), b^2 = max(sum excess_q / sum q, 0).
+
+    ``image`` and ``total`` come in holding the window sums of excess_q and q.
+    """
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    for k in range(w.size):
+        excess = max(image[k] / max(total[k], tiny), zero) + var_m[k]
+        t = one / excess + w[k]
+        image[k] = max(m[k] + (x[k] - m[k]) * (w[k] / t), zero)
+        total[k] = t
+
+
+def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarray, ky: np.ndarray,
+                     kx: np.ndarray) -> np.ndarray:
     """Set ``image`` at censored pixels, in place; returns the pixels left as bounds only, bool (H, W).
 
     A censored pixel takes the plain (equal-weight) window mean of the
@@ -181,27 +256,53 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, x: np.ndarray, w: np.ndar
     """
     f32 = np.float32
     censored = inp.censored
-    reach = np.sqrt(var_p)
-    reach *= f32(CONSISTENT_SIGMA)
-    reach += x  # censored readings have var_p ~ 1 / tiny: an infinite reach, excluded by w > 0 below
-    valid = (w > 0).astype(f32)
     rows = np.flatnonzero(censored.any(axis=1))
     ry = len(ky) // 2
     band = slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, inp.shape[0]))  # the rows the sums need
-    e = inp.exposure[band]
-    index = inp.pattern.level_index_map(inp.shape)[band] if inp.pattern.pixel_map is not None else None
+    shape = (band.stop - band.start, inp.shape[1])
+    x = x[band]
+    reach, consistent, consistent_x = (np.empty(shape, f32) for _ in range(3))
+    _reach(*flat(w[band], x, reach))
+    levels = inp.pattern.levels.tolist()
+    if inp.pattern.pixel_map is None:
+        key, values = inp.exposure[band], [f32(level) for level in levels]
+    else:
+        key, values = inp.pattern.level_index_map(inp.shape)[band], list(range(len(levels)))
+    at_censored = key[censored[band]]
     bound_only = np.zeros(inp.shape, bool)
-    for k, level in enumerate(inp.pattern.levels.tolist()):
-        at = censored[band] & ((e == f32(level)) if index is None else (index == k))
-        if not at.any():
+    for value, level in zip(values, levels):
+        if not (at_censored == value).any():
             continue
-        consistent = valid[band].copy()
-        np.copyto(consistent, 0, where=reach[band] < f32(inp.sensor.censor_level / level))
-        total = smooth(consistent, ky, kx)
-        consistent *= x[band]
-        mean = smooth(consistent, ky, kx)
-        mean /= at_least(total.copy(), TINY)
-        np.maximum(mean, x[band], out=mean)
-        np.copyto(image[band], mean, where=at)
-        bound_only[band] |= at & (total <= 0)
+        _consistent(*flat(reach, x, consistent, consistent_x), f32(inp.sensor.censor_level / level))
+        _fill_censored(*flat(censored[band], key, smooth(consistent, ky, kx), smooth(consistent_x, ky, kx), x,
+                             image[band], bound_only[band]), value)
     return bound_only
+
+
+@kernel
+def _reach(w, x, reach):
+    """Upper reach x + 2 sqrt(v_p) of every reading; -inf where w = 0 (censored: no reading to count)."""
+    tiny, sigma, none = np.float32(TINY), np.float32(CONSISTENT_SIGMA), np.float32(-np.inf)
+    for k in range(w.size):
+        reach[k] = np.sqrt(np.float32(1.0) / max(w[k], tiny)) * sigma + x[k] if w[k] > 0 else none
+
+
+@kernel
+def _consistent(reach, x, consistent, consistent_x, bound):
+    """1 for readings consistent with ``bound`` (reach >= bound), else 0; and that times x."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for k in range(x.size):
+        c = zero if reach[k] < bound else one
+        consistent[k] = c
+        consistent_x[k] = c * x[k]
+
+
+@kernel
+def _fill_censored(censored, key, total, sum_x, x, image, bound_only, value):
+    """At this level's censored pixels (key == value): image = max(mean of consistent x, x); flag empty windows."""
+    tiny = np.float32(TINY)
+    for k in range(x.size):
+        if censored[k] and key[k] == value:
+            image[k] = max(sum_x[k] / max(total[k], tiny), x[k])
+            if total[k] <= 0:
+                bound_only[k] = True

@@ -1,0 +1,93 @@
+"""The adaptive method's compiled kernels against a plain-numpy statement of its formulas (module docstring)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from svelive import Sensor, simulate
+from svelive.methods import adaptive
+from svelive.methods.base import censored_lower_bound, smooth
+from svelive.reconstruct import prepare, run_method
+
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
+
+
+def _reference(inp):
+    """(image, lower_bound, variance) of the adaptive method, whole frame, one numpy expression per formula."""
+    f32 = np.float32
+    ky, kx = adaptive.kernels(inp.pattern.shape)
+    window = (len(ky), len(kx))
+    centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
+    kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
+    tiny = f32(adaptive.TINY)
+    s, e, censored = inp.signal, inp.exposure, inp.censored
+    x = s / e
+    e_valid = np.where(censored, f32(0), e)
+
+    # pilot L0 = sum s / sum e over the uncensored readings; w = 1 / v at L0 (0 for censored readings)
+    exposure_sum = smooth(e_valid, ky, kx)
+    pilot = np.maximum(smooth(np.where(censored, f32(0), s), ky, kx) / np.maximum(exposure_sum, tiny), f32(0))
+    gain_inv = f32(1 / inp.sensor.effective_gain)
+    w = e * e_valid / (pilot * e * gain_inv + f32(inp.sensor.floor_variance))
+
+    # m: neighbours without the pixel itself, leaving out the dark side of an edge
+    lowest_censored = cv2.erode(np.where(censored, e, f32(adaptive.BIG)), np.ones(window, np.uint8),
+                                borderType=cv2.BORDER_REFLECT_101)
+    wn = np.where(lowest_censored <= e, f32(0), w)
+    sum_w = np.maximum(smooth(wn, ky, kx) - centre * wn, tiny)
+    wx = wn * x
+    m = (smooth(wx, ky, kx) - centre * wx) / sum_w
+    var_m = kernel_square / sum_w
+
+    # b^2: residual excess over its noise, weights 1 / (v_p + v_m)^2
+    var_r = f32(1) / np.maximum(w, tiny) + var_m
+    q = f32(1) / (var_r * var_r)
+    bias2 = np.maximum(smooth(q * ((x - m) ** 2 - var_r), ky, kx) / np.maximum(smooth(q, ky, kx), tiny), f32(0))
+
+    # L = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2))
+    weight_m = f32(1) / (var_m + bias2)
+    total = w + weight_m
+    image = (w * x + weight_m * m) / total
+    variance = f32(1) / total
+
+    # censored pixels: plain mean of the consistent uncensored neighbours, at least the own bound
+    lower = exposure_sum <= 0
+    reach = x + f32(adaptive.CONSISTENT_SIGMA) * np.sqrt(f32(1) / np.maximum(w, tiny))
+    for level in inp.pattern.levels:
+        at = censored & (e == f32(level))
+        consistent = ((w > 0) & (reach >= f32(inp.sensor.censor_level / level))).astype(f32)
+        count = smooth(consistent, ky, kx)
+        mean = np.maximum(smooth(consistent * x, ky, kx) / np.maximum(count, tiny), x)
+        image = np.where(at, mean, image)
+        lower |= at & (count <= 0)
+    image = np.maximum(image, f32(0))
+    bound = censored_lower_bound(inp, window)
+    return np.where(lower, bound, image), lower, np.where(lower, bound * bound, variance)
+
+
+def _frame(pattern, shape, seed):
+    """A textured scene whose bright blob saturates some exposures, censored only in the middle rows."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    truth = cv2.GaussianBlur(rng.uniform(2, 60, shape).astype(np.float32), (0, 0), 1.5)
+    points = rng.random(shape) < 0.02
+    points[:h // 4] = False
+    truth[points] *= 8  # isolated bright points: edges for b^2, some saturated
+    yy, xx = np.mgrid[:h, :w]
+    truth += 900 * np.exp(-((yy - h / 2) ** 2 / (0.01 * h * h) + (xx - w / 3) ** 2 / (0.02 * w * w)))
+    return simulate(truth, pattern, SENSOR, seed=seed).raw
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,2,4/8,16,32/1,4,64"])
+@pytest.mark.parametrize("shape", [(37, 41), (300, 50)])  # one strip, and strips with and without censored pixels
+def test_kernels_agree_with_the_numpy_formulas(pattern, shape):
+    inp = prepare(_frame(pattern, shape, seed=5), pattern, SENSOR)
+    assert 0.005 < inp.censored.mean() < 0.5
+    if shape[0] > 100:
+        assert not inp.censored[:60].any()  # whole strips without censored pixels
+    image, lower, variance = _reference(inp)
+    est = run_method(inp, "adaptive", return_variance=True)
+    np.testing.assert_array_equal(est.lower_bound, lower)
+    # float32 rounding: the kernels order a few operations differently from this statement of the formulas
+    np.testing.assert_allclose(est.image, image, rtol=1e-5, atol=1e-5 * float(image.max()))
+    np.testing.assert_allclose(est.variance, variance, rtol=1e-5)
