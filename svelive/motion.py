@@ -23,14 +23,16 @@ Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
 
 from svelive.errors import SveliveError
+from svelive.jit import flat, kernel
 from svelive.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size
 from svelive.pattern import Pattern
 
@@ -102,19 +104,46 @@ class FrameEstimate:
         image, variance: float32 (H, W), the single-frame estimate (DN) and its variance (DN^2).
         bound: bool (H, W), ``image`` is only a lower bound there.
         censored: bool (H, W), readings at or above the censor level.
-        own: float32 (H, W), each pixel's own reading s / e (``image`` where censored).
-        own_slope, own_floor: float32 (H, W), the detail threshold for one frame,
-            ``own_slope * L + own_floor`` at radiance L: the own reading's variance
-            (1 / (e g) and sigma^2 / e^2) times detail_sigmas^2.
+        signal: float32 (H, W), the readings s (DN above black).
+        inverse: float32 (P, W), 1 / e by row phase: pixel (r, c) has ``inverse[r % P, c]``
+            (P: the tile's rows, or H for a per-pixel exposure map). Rows rather than a
+            whole map, so that the per-pixel pass reads a few rows that stay in cache.
+        own_slope, own_floor: float32 (P, W), by row phase likewise, the detail threshold
+            for one frame, ``own_slope * L + own_floor`` at radiance L: the own reading's
+            variance (1 / (e g) and sigma^2 / e^2) times detail_sigmas^2.
     """
 
     image: np.ndarray
     variance: np.ndarray
     bound: np.ndarray
     censored: np.ndarray
-    own: np.ndarray
+    signal: np.ndarray
+    inverse: np.ndarray
     own_slope: np.ndarray
     own_floor: np.ndarray
+
+    @cached_property
+    def own(self) -> np.ndarray:
+        """float32 (H, W), each pixel's own reading s / e (``image`` where censored), computed on first use."""
+        own = np.empty(self.image.shape, np.float32)
+        _own_rows(self.signal, self.inverse, self.censored, self.image, own)
+        return own
+
+
+@kernel
+def _own_reading(signal, inverse, censored, image):
+    """A pixel's own reading s / e, or the frame's estimate where the reading is censored."""
+    return image if censored else signal * inverse
+
+
+@kernel
+def _own_rows(signal, inverse, censored, image, out):
+    """out = own readings, (H, W) arrays with ``inverse`` by row phase (P, W)."""
+    period = inverse.shape[0]
+    for r in range(out.shape[0]):
+        p = r % period
+        for c in range(out.shape[1]):
+            out[r, c] = _own_reading(signal[r, c], inverse[p, c], censored[r, c], image[r, c])
 
 
 @dataclass(frozen=True)
@@ -143,18 +172,22 @@ def _grow(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:
     return cv2.dilate(mask.view(np.uint8), np.ones(window, np.uint8), borderType=cv2.BORDER_REPLICATE).view(bool)
 
 
+#: The 8 neighbours of a pixel, as a dilation kernel.
+_RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)
+
+
 def _confirmed(flagged: np.ndarray) -> np.ndarray:
-    """bool (H, W): flagged pixels with at least one flagged 8-neighbour."""
-    counts = cv2.boxFilter(flagged.view(np.uint8), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    return flagged & (counts >= 2)
+    """bool (H, W): flagged pixels with at least one flagged 8-neighbour (none beyond the border)."""
+    mask = flagged.view(np.uint8)
+    return cv2.bitwise_and(mask, cv2.dilate(mask, _RING)).view(bool)
 
 
 def _widen(mask: np.ndarray, pixels: int) -> np.ndarray:
     """Dilate a bool (H, W) mask by a (2 pixels + 1)^2 square."""
     if pixels <= 0:
         return mask
-    kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
-    return cv2.dilate(mask.view(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE).view(bool)
+    square = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
+    return cv2.dilate(mask.view(np.uint8), square, borderType=cv2.BORDER_REPLICATE).view(bool)
 
 
 def disagree(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray, sigmas: float) -> np.ndarray:
@@ -265,18 +298,32 @@ def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.nda
     3 noise standard deviations (the frame's) above 0 and neither is a lower bound. Returns 1
     when fewer than 64 pixels qualify.
     """
-    a = image[::step, ::step]
-    b = state.mean[::step, ::step]
-    var = variance[::step, ::step]
-    good = (a * a > 9 * var) & (b * b > 9 * var)
-    good &= ~(bound[::step, ::step] | state.bound[::step, ::step])
-    if np.count_nonzero(good) < 64:
+    h, w = image.shape
+    ratios = np.empty(-(-h // step) * -(-w // step), np.float32)
+    count = _subsampled_ratios(image, state.mean, variance, bound, state.bound, step, ratios)
+    if count < 64:
         return 1.0
-    ratio = float(np.median(a[good] / b[good]))
+    ratio = float(np.median(ratios[:count]))
     return ratio if np.isfinite(ratio) and ratio > 0 else 1.0
 
 
-#: Rows per strip of the per-pixel passes: small enough for the temporaries to stay in cache.
+@kernel
+def _subsampled_ratios(image, mean, variance, bound, old_bound, step, out):
+    """Writes image / mean of the well-measured pixels of every ``step``-th row and column
+    (row-major) to ``out``; returns their count."""
+    nine = np.float32(9)
+    count = 0
+    for i in range(0, image.shape[0], step):
+        for j in range(0, image.shape[1], step):
+            a, b, v = image[i, j], mean[i, j], nine * variance[i, j]
+            if a * a > v and b * b > v and not (bound[i, j] or old_bound[i, j]):
+                out[count] = a / b
+                count += 1
+    return count
+
+
+#: Rows per strip of the per-pixel passes: small enough for a strip's arrays to stay in cache
+#: from its test to its update.
 STRIP_ROWS = 64
 
 #: Global brightness ratios closer to 1 than this are not divided out (far below any noise).
@@ -304,10 +351,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         detail: where a pixel has history (2 frames or more), move the output towards
             its own fused readings as far as they exceed their noise (:func:`sharpen`
             at ``config.detail_sigmas``).
-        workers: threads over which the strips are spread (numpy and OpenCV release
-            the GIL); the result does not depend on it.
-        strip_rows: rows per strip (with workers > 1, at least the frame's height over
-            2 workers); the result does not depend on it either.
+        workers: threads over which the strips are spread (the kernels and OpenCV
+            release the GIL); the result does not depend on it.
+        strip_rows: rows per strip; the result does not depend on it either.
         executor: a pool of ``workers`` threads the caller keeps across frames
             (svelive.methods.base.map_on); None: one is made for this call.
 
@@ -326,11 +372,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     whose loss of resolution is the same in every frame of a static scene and
     so cancels.
 
-    Work is done in strips of ``strip_rows`` rows, small enough for the
-    temporaries to stay in cache, in two passes: the tests (each strip reads a
-    halo of rows around it for the neighbourhood operations, so strips join
-    without a seam), then, once the frame's share of moving pixels is known,
-    the update. The global brightness ratio is measured first, on a subsample.
+    Work is done in strips of ``strip_rows`` rows, small enough for a strip's
+    arrays to stay in cache from its test to its update: each strip is tested
+    (reading a halo of rows around it for the neighbourhood operations, so strips
+    join without a seam), then updated at once unless the moving pixels found so
+    far already exceed ``config.global_motion`` of the frame; from then on the
+    frame restarts whatever the other strips hold, so they are skipped. The
+    global brightness ratio is measured first, on a subsample.
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
     if state is None or state.mean.shape != image.shape:
@@ -340,14 +388,10 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             image, variance, motion = inconsistency.apply(image, variance)
         return Fused(image, variance, motion, fresh.weight, 1.0, fresh)
     ratio = illumination_ratio(state, image, variance, bound) if config.compensate_illumination else 1.0
-    scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else None
+    # mean * 1 is exact: one kernel with and without a brightness correction
+    scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
     h = image.shape[0]
     rows = max(1, int(strip_rows))
-    if workers > 1:
-        # two strips per thread: each numpy call then works long enough between the threads'
-        # hand-offs of the GIL, which cost more than the cache misses of large strips (measured:
-        # 64-row strips on 2 threads took longer than 1 thread; 300-row strips 20 % less)
-        rows = max(rows, -(-h // (2 * workers)))
     strips = [slice(top, min(top + rows, h)) for top in range(0, h, rows)]
     window = tuple(support_size(n) for n in pattern_shape)
     # rows a strip's motion mask depends on: censor changes grow by window // 2, then
@@ -361,28 +405,23 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         """Motion and reset masks of the strip's rows; returns its count of moving pixels."""
         top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
         ext, keep = slice(top, stop), slice(core.start - top, core.stop - top)
-        mean = state.mean[ext] if scale is None else state.mean[ext] * scale
-        diff = image[ext] - mean
-        diff *= diff
-        diff *= inv_k2
-        tolerance = state.weight[ext] + np.float32(1)
-        tolerance *= variance[ext]
-        flagged = diff > tolerance
         # A reading that crossed the censor level changes which exposures a method
         # uses nearby, and so its resolution loss: not evidence of motion, but not
-        # averageable either. A lower bound still proves motion one way: a frame's
-        # bound far above the history, or a history's bound far above the frame.
-        either_bound = bound[ext] ^ state.bound[ext]
-        proven = flagged & either_bound & ((image[ext] > mean) == bound[ext]) if either_bound.any() else None
-        unstable = _grow(frame.censored[ext] ^ state.censored[ext], window)
-        unstable |= bound[ext]
-        unstable |= state.bound[ext]
-        flagged &= ~unstable
-        if proven is not None:
-            flagged |= proven
-        moving = _widen(_confirmed(flagged), config.widen)[keep]
+        # averageable either (grown by a tile window).
+        changed = np.not_equal(frame.censored[ext], state.censored[ext])
+        grown = _grow(changed, window) if changed.any() else changed
+        flagged = np.empty(changed.shape, bool)
+        count = _test_rows(image[ext], state.mean[ext], state.weight[ext], variance[ext], bound[ext],
+                           state.bound[ext], grown, scale, inv_k2, flagged, reset[core], keep.start)
+        if count == 0:  # nothing flagged near the strip: nothing to confirm or widen
+            motion[core] = False
+            return 0
+        confirmed = _confirmed(flagged)
+        if not confirmed.any():  # isolated flags only (noise)
+            motion[core] = False
+            return 0
+        moving = _widen(confirmed, config.widen)[keep]
         motion[core] = moving
-        np.logical_or(flagged[keep], unstable[keep], out=reset[core])
         return int(np.count_nonzero(moving))
 
     fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
@@ -390,37 +429,36 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     out = np.empty_like(image) if detail else fused
     floor_weight = np.float32(1.0 / config.max_history)
 
-    def run(function, items) -> list:
-        return map_on(executor if executor is not None else workers, function, items)
-
     def update(core: slice) -> None:
-        w = weight[core]  # 1/n -> 1/(n + 1), capped, 1 where reset
-        np.add(state.weight[core], np.float32(1), out=w)
-        np.divide(state.weight[core], w, out=w)
-        np.maximum(w, floor_weight, out=w)
-        np.copyto(w, np.float32(1), where=reset[core])
-        _running_mean(state.mean[core], image[core], w, scale, out=fused[core])
-        _running_mean(state.own[core], frame.own[core], w, scale, out=own[core])
-        np.multiply(variance[core], w, out=fused_var[core])
-        if detail:
-            threshold = frame.own_slope[core] * fused[core]
-            threshold += frame.own_floor[core]
-            threshold *= w
-            sharpen(fused[core], own[core], threshold, out=out[core])
-            # a pixel without history (reset, or max_history 1) has nothing to sharpen with
-            np.copyto(out[core], fused[core], where=reset[core] if floor_weight < 1 else True)
+        _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
+                     frame.signal[core], frame.censored[core], variance[core], frame.inverse, frame.own_slope,
+                     frame.own_floor, floor_weight, scale, detail, reset[core], weight[core], fused[core], own[core],
+                     fused_var[core], out[core])
 
-    moving = sum(run(test, strips))
-    if moving > config.global_motion * motion.size:
+    limit = config.global_motion * motion.size
+    lock = threading.Lock()
+    moved = [0]  # moving pixels of the strips tested so far
+
+    def strip(core: slice) -> None:
+        with lock:
+            if moved[0] > limit:  # the frame restarts: nothing to do
+                return
+        count = test(core)
+        with lock:
+            moved[0] += count
+            restarts = moved[0] > limit
+        if not restarts:
+            update(core)
+
+    map_on(executor if executor is not None else workers, strip, strips)
+    if moved[0] > limit:
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
         fresh = start(frame)
-        motion[:] = True
+        motion = np.ones(image.shape, bool)
         if inconsistency is not None:
             image, variance, _ = inconsistency.apply(image, variance)
         return Fused(image, variance, motion, fresh.weight, ratio, fresh)
-    reset |= motion
-    run(update, strips)
     state = TemporalState(fused, own, weight, bound, frame.censored)
     if inconsistency is not None:  # output only: the history keeps estimates of one kind
         out, fused_var, used = inconsistency.apply(out, fused_var, reset)
@@ -428,14 +466,79 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     return Fused(out, fused_var, motion, weight, ratio, state)
 
 
-def _running_mean(mean: np.ndarray, new: np.ndarray, weight: np.ndarray, scale: np.float32 | None,
-                  out: np.ndarray) -> None:
-    """out = scale mean + weight (new - scale mean), float32; equals ``new`` where weight is 1."""
-    if scale is not None:
-        mean = mean * scale
-    np.subtract(new, mean, out=out)
-    out *= weight
-    out += mean
+@kernel
+def _test_pixel(x, mean, weight, variance, bound, old_bound, grown, scale, inv_k2):
+    """(flagged, unstable) of one pixel: see :func:`fuse` (scale: the brightness ratio applied to the history)."""
+    m = mean * scale
+    d = x - m
+    flagged = d * d * inv_k2 > (weight + np.float32(1)) * variance
+    # A lower bound still proves motion one way: a frame's bound far above the
+    # history, or a history's bound far above the frame.
+    proven = flagged and bound != old_bound and (x > m) == bound
+    unstable = grown or bound or old_bound
+    return (flagged and not unstable) or proven, unstable
+
+
+@kernel
+def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, inv_k2, flagged, reset, first):
+    """The noise test of a strip with its halo, (R, W) arrays: writes ``flagged`` and, for rows
+    ``first:first + len(reset)``, ``reset`` (flagged or unstable); returns the count flagged."""
+    count = 0
+    for r in range(image.shape[0]):
+        core = first <= r < first + reset.shape[0]
+        for c in range(image.shape[1]):
+            f, unstable = _test_pixel(image[r, c], mean[r, c], weight[r, c], variance[r, c], bound[r, c],
+                                      old_bound[r, c], grown[r, c], scale, inv_k2)
+            flagged[r, c] = f
+            count += f
+            if core:
+                reset[r - first, c] = f or unstable
+    return count
+
+
+@kernel
+def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, variance, inverse,
+                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, fused_var, out):
+    """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
+
+    (R, W) arrays but for inverse, own_slope and own_floor, which are (P, W) by row
+    phase (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least
+    ``floor_weight``, 1 where reset), the fused image, own readings and variance and,
+    with ``detail``, the sharpened output.
+    """
+    one = np.float32(1)
+    history = floor_weight < one  # else no pixel has history to sharpen with
+    period = inverse.shape[0]
+    for r in range(image.shape[0]):
+        p = (first_row + r) % period
+        for c in range(image.shape[1]):
+            restart = reset[r, c] or motion[r, c]
+            reset[r, c] = restart
+            w = one if restart else _maximum(old_weight[r, c] / (old_weight[r, c] + one), floor_weight)
+            weight[r, c] = w
+            x = image[r, c]
+            f = _running_mean(old_mean[r, c], x, w, scale)
+            fused[r, c] = f
+            o = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x), w, scale)
+            own[r, c] = o
+            fused_var[r, c] = variance[r, c] * w
+            if detail:
+                # a pixel without history (reset, or max_history 1) has nothing to sharpen with
+                sharp = history and not restart
+                out[r, c] = _sharpened(f, o, (own_slope[p, c] * f + own_floor[p, c]) * w) if sharp else f
+
+
+@kernel
+def _running_mean(mean, new, weight, scale):
+    """scale mean + weight (new - scale mean), float32; equals ``new`` where weight is 1."""
+    mean = mean * scale
+    return (new - mean) * weight + mean
+
+
+@kernel
+def _maximum(a, b):
+    """max(a, b) with numpy's NaN propagation from ``a``."""
+    return b if a < b else a
 
 
 def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -458,13 +561,24 @@ def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray, out: np.nd
     Returns:
         float32, >= 0.
     """
-    diff = own - mean
-    weight = diff * diff
-    with np.errstate(divide="ignore", invalid="ignore"):
-        np.divide(threshold, weight, out=weight)  # inf where own == mean: weight 0 below
-    np.subtract(1, weight, out=weight)
-    np.maximum(weight, 0, out=weight)
-    diff *= weight
-    out = np.add(diff, mean, out=out)
-    np.maximum(out, 0, out=out)
+    mean, own, threshold = (np.ascontiguousarray(a, np.float32) for a in np.broadcast_arrays(mean, own, threshold))
+    result = np.empty(mean.shape, np.float32)
+    _sharpen_pass(*flat(mean, own, threshold, result))
+    if out is None:
+        return result
+    out[...] = result
     return out
+
+
+@kernel
+def _sharpen_pass(mean, own, threshold, out):
+    for k in range(mean.size):
+        out[k] = _sharpened(mean[k], own[k], threshold[k])
+
+
+@kernel
+def _sharpened(mean, own, threshold):
+    """:func:`sharpen` of one pixel."""
+    diff = own - mean
+    weight = _maximum(np.float32(1) - threshold / (diff * diff), np.float32(0))  # 0 where own == mean
+    return _maximum(diff * weight + mean, np.float32(0))

@@ -88,23 +88,21 @@ class SequenceResult:
 
 
 @lru_cache(maxsize=8)
-def own_reading_noise(pattern: Pattern, shape: tuple[int, int], sensor: Sensor,
-                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """(slope, floor), float32 (H, W), read-only: a pixel's own estimate s / e has variance slope * L + floor, times ``scale``."""
+def own_reading_rows(pattern: Pattern, shape: tuple[int, int], sensor: Sensor,
+                     scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(inverse, slope, floor), float32 (P, W) by row phase, read-only (svelive.motion.FrameEstimate).
+
+    Pixel (r, c) has exposure 1 / ``inverse[r % P, c]`` and its own estimate s / e has variance
+    ``slope * L + floor`` at radiance L, times ``scale``. P is the tile's rows, or H for a per-pixel map.
+    """
     _, inverse = exposure_maps(pattern, shape)
+    period = shape[0] if pattern.pixel_map is not None else min(pattern.shape[0], shape[0])
+    inverse = np.ascontiguousarray(inverse[:period])
     slope = inverse * np.float32(scale / sensor.effective_gain)
     floor = inverse * inverse * np.float32(scale * sensor.floor_variance)
-    slope.setflags(write=False)
-    floor.setflags(write=False)
-    return slope, floor
-
-
-def own_readings(inp: SveInput, image: np.ndarray) -> np.ndarray:
-    """Each pixel's own radiance reading s / e, float32 (H, W); ``image`` where the reading is censored."""
-    _, inverse = exposure_maps(inp.pattern, inp.shape)
-    own = inp.signal * inverse
-    np.copyto(own, image, where=inp.censored)
-    return own
+    for array in (inverse, slope, floor):
+        array.setflags(write=False)
+    return inverse, slope, floor
 
 
 class Reconstructor:
@@ -238,8 +236,8 @@ class Reconstructor:
         image, variance = est.image, est.variance
         inconsistency = exposure_consistency(image, variance, inp, self.motion_config) if self.consistency else None
         if self.temporal:
-            slope, floor = own_reading_noise(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
-            frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, own_readings(inp, image), slope, floor)
+            rows = own_reading_rows(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
+            frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, inp.signal, *rows)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
                          workers=self.workers, executor=self._pool)
             image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history

@@ -13,8 +13,8 @@ from svelive import Pattern, Sensor, SveliveError
 from svelive.cli import main
 from svelive.exr import read_exr
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode, pu21_psnr
-from svelive.motion import MotionConfig, disagree, sharpen
-from svelive.reconstructor import Reconstructor, reconstruct_sequence
+from svelive.motion import FrameEstimate, MotionConfig, disagree, sharpen
+from svelive.reconstructor import Reconstructor, own_reading_rows, reconstruct_sequence
 from svelive.scenes import mains_flicker, modulated, moving_disc, panning, render_sequence, static
 from svelive.simulate import exposure_scale, load_sample_scene
 
@@ -65,6 +65,26 @@ def test_sharpen_keeps_smooth_within_noise_and_follows_strong_detail():
     assert out[0] == 100 and out[1] == 100  # |diff| <= 3 sigma: unchanged
     assert 199 < out[2] <= 200  # 100 sigma: the pixel's own value
     assert out[3] == 100  # infinite threshold: no history, no detail
+
+
+@pytest.mark.parametrize("shape", [(7, 9), (1, 5)])
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_frame_rows_by_phase_give_every_pixel_its_own_reading_and_noise(shape, per_pixel):
+    rng = np.random.default_rng(4)
+    pattern = Pattern.parse(PATTERN)
+    if per_pixel:
+        calibrated = pattern.exposure_map(shape) * rng.uniform(0.9, 1.1, shape).astype(np.float32)
+        pattern = pattern.with_pixel_map(calibrated)
+    exposure = pattern.exposure_map(shape)
+    signal = rng.uniform(0, 4095, shape).astype(np.float32)
+    censored = signal > 3500
+    image = rng.uniform(0, 100, shape).astype(np.float32)
+    inverse, slope, floor = own_reading_rows(pattern, shape, SENSOR, 9.0)
+    frame = FrameEstimate(image, image, censored, censored, signal, inverse, slope, floor)
+    np.testing.assert_allclose(frame.own, np.where(censored, image, signal / exposure), rtol=1e-6)
+    rows = np.arange(shape[0]) % inverse.shape[0]
+    np.testing.assert_allclose(slope[rows], 9.0 / (exposure * SENSOR.effective_gain), rtol=1e-6)
+    np.testing.assert_allclose(floor[rows], 9.0 * SENSOR.floor_variance / exposure**2, rtol=1e-6)
 
 
 def test_config_rejects_bad_values():
