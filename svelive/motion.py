@@ -147,24 +147,56 @@ def _own_rows(signal, inverse, censored, image, out):
 
 
 @dataclass(frozen=True)
+class OutputVariance:
+    """The variance of a fused output, computed when called (float32 (H, W), DN^2).
+
+    The frame's variance times the weight of its frame in each pixel's mean,
+    ``weight`` (the history's variance for a static scene with stationary noise;
+    None: the frame's as it is), and the shortest exposure's where
+    ``replaced = (used, variance)`` says the within-frame test's finding was applied.
+    A whole-frame array the live path never reads: computing it on demand saves writing it.
+    """
+
+    frame: np.ndarray
+    weight: np.ndarray | None = None
+    replaced: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __call__(self) -> np.ndarray:
+        variance = self.frame
+        if self.weight is not None:
+            variance = np.empty(self.frame.shape, np.float32)
+            np.multiply(self.frame, self.weight, out=variance)
+        if self.replaced is not None:
+            used, replacement = self.replaced
+            variance = np.where(used, replacement, variance)
+        return variance
+
+
+@dataclass(frozen=True)
 class Fused:
     """One frame's output of :func:`fuse`.
 
     Attributes:
-        image, variance: float32 (H, W), the output radiance and its variance.
+        image: float32 (H, W), the output radiance.
         motion: bool (H, W), pixels whose history was reset because the scene moved
             (widened), or that the within-frame test flagged.
         history: float32 (H, W), 1 / n, n = frames in each pixel's mean (min(frames since reset, max_history)).
         illumination_ratio: the global brightness ratio divided out (frame / history).
         state: the history to pass with the next frame.
+        variance_of: the output's variance, on demand; ``variance`` calls it on first access.
     """
 
     image: np.ndarray
-    variance: np.ndarray
     motion: np.ndarray
     history: np.ndarray
     illumination_ratio: float
     state: TemporalState
+    variance_of: OutputVariance
+
+    @cached_property
+    def variance(self) -> np.ndarray:
+        """float32 (H, W), the output's variance (:class:`OutputVariance`)."""
+        return self.variance_of()
 
 
 def _grow(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:
@@ -263,10 +295,16 @@ class Inconsistency:
     image: np.ndarray
     variance: np.ndarray
 
-    def apply(self, image: np.ndarray, variance: np.ndarray, where: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def apply(self, image: np.ndarray, variance: np.ndarray,
+              where: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(image, variance, used): the shortest exposure's values where flagged (and ``where``), new arrays."""
+        image, used = self.apply_image(image, where)
+        return image, np.where(used, self.variance, variance), used
+
+    def apply_image(self, image: np.ndarray, where: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(image, used): :meth:`apply` without the variance (:class:`OutputVariance` takes ``used``)."""
         used = self.flagged if where is None else self.flagged & where
-        return np.where(used, self.image, image), np.where(used, self.variance, variance), used
+        return np.where(used, self.image, image), used
 
 
 def exposure_consistency(image: np.ndarray, variance: np.ndarray, inp: SveInput,
@@ -382,11 +420,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
     if state is None or state.mean.shape != image.shape:
-        motion = np.zeros(image.shape, bool)
-        fresh = start(frame)
-        if inconsistency is not None:
-            image, variance, motion = inconsistency.apply(image, variance)
-        return Fused(image, variance, motion, fresh.weight, 1.0, fresh)
+        return _restart(frame, inconsistency, 1.0, np.zeros(image.shape, bool))
     ratio = illumination_ratio(state, image, variance, bound) if config.compensate_illumination else 1.0
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
@@ -424,16 +458,15 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         motion[core] = moving
         return int(np.count_nonzero(moving))
 
-    fused, own, fused_var = np.empty_like(image), np.empty_like(image), np.empty_like(image)
-    weight = np.empty_like(image)
+    fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     out = np.empty_like(image) if detail else fused
     floor_weight = np.float32(1.0 / config.max_history)
 
     def update(core: slice) -> None:
         _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
-                     frame.signal[core], frame.censored[core], variance[core], frame.inverse, frame.own_slope,
+                     frame.signal[core], frame.censored[core], frame.inverse, frame.own_slope,
                      frame.own_floor, floor_weight, scale, detail, reset[core], weight[core], fused[core], own[core],
-                     fused_var[core], out[core])
+                     out[core])
 
     limit = config.global_motion * motion.size
     lock = threading.Lock()
@@ -454,16 +487,25 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     if moved[0] > limit:
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
-        fresh = start(frame)
-        motion = np.ones(image.shape, bool)
-        if inconsistency is not None:
-            image, variance, _ = inconsistency.apply(image, variance)
-        return Fused(image, variance, motion, fresh.weight, ratio, fresh)
+        return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     state = TemporalState(fused, own, weight, bound, frame.censored)
+    replaced = None
     if inconsistency is not None:  # output only: the history keeps estimates of one kind
-        out, fused_var, used = inconsistency.apply(out, fused_var, reset)
+        out, used = inconsistency.apply_image(out, reset)
         motion = motion | used
-    return Fused(out, fused_var, motion, weight, ratio, state)
+        replaced = (used, inconsistency.variance)
+    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, replaced))
+
+
+def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: float, motion: np.ndarray) -> Fused:
+    """Every pixel restarts from this frame (a stream's first frame, or the camera moved); motion: the mask to report."""
+    fresh = start(frame)
+    image, replaced = frame.image, None
+    if inconsistency is not None:
+        image, used = inconsistency.apply_image(image)
+        motion = motion | used
+        replaced = (used, inconsistency.variance)
+    return Fused(image, motion, fresh.weight, ratio, fresh, OutputVariance(frame.variance, None, replaced))
 
 
 @kernel
@@ -497,14 +539,14 @@ def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, in
 
 
 @kernel
-def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, variance, inverse,
-                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, fused_var, out):
+def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
+                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, out):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
     (R, W) arrays but for inverse, own_slope and own_floor, which are (P, W) by row
     phase (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least
-    ``floor_weight``, 1 where reset), the fused image, own readings and variance and,
-    with ``detail``, the sharpened output.
+    ``floor_weight``, 1 where reset), the fused image and own readings and, with
+    ``detail``, the sharpened output.
     """
     one = np.float32(1)
     history = floor_weight < one  # else no pixel has history to sharpen with
@@ -521,7 +563,6 @@ def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal
             fused[r, c] = f
             o = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x), w, scale)
             own[r, c] = o
-            fused_var[r, c] = variance[r, c] * w
             if detail:
                 # a pixel without history (reset, or max_history 1) has nothing to sharpen with
                 sharp = history and not restart

@@ -13,7 +13,7 @@ import inspect
 import threading
 from concurrent.futures import ThreadPoolExecutor
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
@@ -22,7 +22,7 @@ import numpy as np
 from svelive.errors import SveliveError
 from svelive.methods import DEFAULT_METHOD, METHODS
 from svelive.methods.base import Estimate, SveInput, exposure_maps
-from svelive.motion import FrameEstimate, MotionConfig, TemporalState, exposure_consistency, fuse
+from svelive.motion import FrameEstimate, MotionConfig, OutputVariance, TemporalState, exposure_consistency, fuse
 from svelive.pattern import Pattern
 from svelive.reconstruct import confidence_from_variance, estimate_variance, prepare, run_method, sensor_for
 from svelive.sensor import Sensor
@@ -52,8 +52,7 @@ class SequenceResult:
     Attributes:
         image: float32 (H, W), radiance in DN at relative exposure 1, finite and >= 0.
         motion: bool (H, W), pixels flagged as moving (history reset or within-frame inconsistency).
-        variance: float32 (H, W), predicted noise variance of ``image``, DN^2 at exposure 1
-            (of the fused smooth estimate where detail sharpening moved a pixel).
+        variance_of: computes ``variance`` (svelive.motion.OutputVariance).
         lower_bound: bool (H, W), ``image`` is only the lower bound saturated samples imply.
         weight: float32 (H, W), 1 / n, n = frames fused into each pixel (1 without temporal fusion).
         moving_fraction: fraction of pixels in ``motion``.
@@ -62,12 +61,14 @@ class SequenceResult:
         frame_index: 0 for the first frame the Reconstructor processed (after a reset too).
         timings_ms: {"method": ..., "motion": ...}, wall time of the two stages.
 
-    ``confidence`` and ``frames_fused`` are computed on first access.
+    ``variance`` (float32 (H, W), predicted noise variance of ``image``, DN^2 at exposure 1;
+    of the fused smooth estimate where detail sharpening moved a pixel), ``confidence``
+    and ``frames_fused`` are computed on first access.
     """
 
     image: np.ndarray
     motion: np.ndarray
-    variance: np.ndarray
+    variance_of: Callable[[], np.ndarray] = field(repr=False)
     lower_bound: np.ndarray
     weight: np.ndarray
     moving_fraction: float
@@ -75,6 +76,11 @@ class SequenceResult:
     method: str
     frame_index: int
     timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @cached_property
+    def variance(self) -> np.ndarray:
+        """float32 (H, W), DN^2: the predicted noise variance of ``image``."""
+        return self.variance_of()
 
     @cached_property
     def confidence(self) -> np.ndarray:
@@ -240,12 +246,13 @@ class Reconstructor:
             frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, inp.signal, *rows)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
                          workers=self.workers, executor=self._pool)
-            image, variance, motion, weight = fused.image, fused.variance, fused.motion, fused.history
+            image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
         else:
             motion = np.zeros(image.shape, bool)
             if inconsistency is not None:
                 image, variance, motion = inconsistency.apply(image, variance)
+            variance_of = OutputVariance(variance)
             weight, ratio = np.ones(image.shape, np.float32), 1.0
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
         t2 = time.perf_counter()
@@ -254,7 +261,7 @@ class Reconstructor:
                 self._history = history if self.temporal else None
                 self._frames = index + 1
             self._last_moving = moving_fraction
-        return SequenceResult(image, motion, variance, est.lower_bound, weight, moving_fraction, ratio,
+        return SequenceResult(image, motion, variance_of, est.lower_bound, weight, moving_fraction, ratio,
                               method, index, {"method": (t1 - t0) * 1e3, "motion": (t2 - t1) * 1e3})
 
 
