@@ -1,21 +1,37 @@
 """Response calibration: one 8-bit SVE frame (svelive) against OpenCV's Debevec on a 4-exposure 8-bit stack.
 
 Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings]
+       [--curves linear,gamma2.2,poly3,s-curve] [--diagnose]
 Both see the same scene through the same known response (CURVES) and sensor noise;
 the error is the largest |f_fit(M) - f_true(M)| over the brightness range each
 method measured (Debevec's curve is scaled so f(255) = 1, like ours).
+
+``--diagnose`` (no Debevec) separates the fit's two error sources, per scene and curve:
+- ``noise-free``: the same locations and weights, but every equation made exact
+  (the brighter exposure's value replaced by the one the true curve predicts from
+  the darker one), refitted at the chosen degree: the error that remains is the
+  estimator's and the polynomial's, not the noise's;
+- ``dchi2 periodic`` / ``dchi2 smooth``: change of the fit's chi-square (residuals
+  normalised by the noise propagated through the slope) when the true curve is
+  deformed by ``f (1 + 0.05 (sin(2 pi log_4 f + pi/2) - 1))`` (which every equation
+  between exposures whose ratio is a power of 4 satisfies exactly) or by the smooth
+  ``f (1 + 0.2 M (1 - M))`` (about as large); with the frame's exposures 1, 4, 16, 64
+  the first is invisible to the data and the second is not.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import cv2
 import numpy as np
+from numpy.polynomial import polynomial as P
 
 from svelive import Pattern, Sensor
-from svelive.calibrate import CURVES, fit_response, simulate_nonlinear
+from svelive.calibrate import CURVES, ResponseFitConfig, fit_response, simulate_nonlinear
+from svelive.calibrate import response as response_module
 from svelive.exr import read_luminance
 from svelive.simulate import exposure_scale
 
@@ -30,19 +46,67 @@ def debevec_error(radiance: np.ndarray, levels: np.ndarray, sensor: Sensor, curv
     return float(np.max(np.abs(f[used] - curve.inverse(codes[used] / 255.0))))
 
 
+def chi_square(pairs, exposures: np.ndarray, f) -> float:
+    """Sum of the squared ratio residuals f(m_hi)/R - f(m_lo), normalised by the window noise through f'."""
+    inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
+
+    def slope(m: np.ndarray) -> np.ndarray:
+        lo, hi = np.maximum(m - 1e-6, 0.0), np.minimum(m + 1e-6, 1.0)
+        return (f(hi) - f(lo)) / (hi - lo)
+
+    r = f(pairs.m_hi) * inv_r - f(pairs.m_lo)
+    s2 = (slope(pairs.m_hi) * inv_r) ** 2 * pairs.var_hi + slope(pairs.m_lo) ** 2 * pairs.var_lo
+    return float(np.sum(r * r / s2))
+
+
+def diagnose(raw: np.ndarray, pattern: Pattern, sensor: Sensor, curve) -> str:
+    """One table row: the fit's error on the frame and on noise-free equations, and the chi-square
+    change of a periodic (ratio-invisible) and of a smooth deformation of the true curve."""
+    r = fit_response(raw, pattern, sensor)
+    lo, hi = r.stats["measured_range"]
+    m = np.linspace(lo, hi, 1000)
+    exposures = np.asarray(r.stats["exposures"])
+    pairs = response_module._collect_pairs(raw, pattern, sensor, ResponseFitConfig())
+    inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
+    exact = dataclasses.replace(pairs, m_hi=curve.forward(np.clip(curve.inverse(pairs.m_lo) / inv_r, 0.0, 1.0)))
+    coef = response_module._solve(exact, exposures, r.degree)
+    f = curve.inverse
+    periodic = lambda x: f(x) * (1 + 0.05 * (np.sin(2 * np.pi * np.log(np.maximum(f(x), 1e-12)) / np.log(4) + np.pi / 2) - 1))
+    smooth = lambda x: f(x) * (1 + 0.2 * x * (1 - x))
+    grid = np.linspace(0.0, 1.0, 1001)
+    base = chi_square(pairs, exposures, f)
+    return (f"{r.degree} | {np.max(np.abs(r(m) - f(m))):.4f} | {np.max(np.abs(P.polyval(m, coef) - f(m))):.4f} | "
+            f"{pairs.m_lo.size} | {base:.0f} | "
+            f"{np.max(np.abs(periodic(grid) - f(grid))):.3f}: {chi_square(pairs, exposures, periodic) - base:+.0f} | "
+            f"{np.max(np.abs(smooth(grid) - f(grid))):.3f}: {chi_square(pairs, exposures, smooth) - base:+.0f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default="../shared/data/hdr")
     ap.add_argument("--scenes", default="Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings")
+    ap.add_argument("--curves", default=",".join(CURVES))
+    ap.add_argument("--diagnose", action="store_true", help="error sources instead of the Debevec comparison")
     args = ap.parse_args()
     sensor = Sensor.from_full_well(8, 10000, 3)
     pattern = Pattern.parse("1,4/16,64")
-    print("scene | curve | SVE degree | SVE max error | SVE range | SVE s | Debevec max error | Debevec s")
+    if args.diagnose:
+        print("scene | curve | degree | error | error on noise-free equations | equations | chi2 | "
+              "periodic deformation: size: dchi2 | smooth deformation: size: dchi2")
+    else:
+        print("scene | curve | SVE degree | SVE max error | SVE range | SVE s | Debevec max error | Debevec s")
     for scene_name in args.scenes.split(","):
         scene = read_luminance(f"{args.data}/{scene_name}.exr")
         radiance = scene * exposure_scale(scene, pattern, sensor)
-        for name, curve in CURVES.items():
+        for name in args.curves.split(","):
+            curve = CURVES[name]
             raw = simulate_nonlinear(radiance, pattern, sensor, curve, seed=1)
+            if args.diagnose:
+                try:
+                    print(f"{scene_name} | {name} | {diagnose(raw, pattern, sensor, curve)}", flush=True)
+                except Exception as exc:  # report, keep going
+                    print(f"{scene_name} | {name} | refused: {exc}", flush=True)
+                continue
             t = time.perf_counter()
             try:
                 r = fit_response(raw, pattern, sensor)
@@ -55,7 +119,7 @@ def main() -> None:
             t = time.perf_counter()
             deb = debevec_error(radiance, pattern.levels, sensor, curve, seed=10)
             t_deb = time.perf_counter() - t
-            print(f"{scene_name} | {name} | {sve} | {t_sve:.2f} | {deb:.4f} | {t_deb:.2f}")
+            print(f"{scene_name} | {name} | {sve} | {t_sve:.2f} | {deb:.4f} | {t_deb:.2f}", flush=True)
 
 
 if __name__ == "__main__":
