@@ -8,6 +8,7 @@ import pytest
 from svelive import Pattern, Sensor, SveliveError
 from svelive.calibrate import (CURVES, Response, calibrate_frame, fit_response, linearise, load_response,
                                save_response, simulate_nonlinear)
+from svelive.calibrate.response import common_ratio
 from svelive.cli import main
 from svelive.simulate import exposure_scale, load_sample_scene
 
@@ -150,11 +151,21 @@ def test_cli_response(tmp_path, capsys):
     assert main(["calibrate", "response", str(tmp_path / "raw.npy"), "--pattern", "1,4/16,64", "--bits", "12",
                  "-o", str(out)]) == 0
     assert max_error(load_response(out), CURVES["gamma2.2"]) < 0.02
+    assert json.loads(out.read_text())["stats"]["common_ratio"] == 4
+    assert "power of 4" in capsys.readouterr().err
     np.save(tmp_path / "noise.npy", np.random.default_rng(0).integers(0, 4096, (64, 64)).astype(np.uint16))
     assert main(["calibrate", "response", str(tmp_path / "noise.npy"), "--pattern", "1,4/16,64", "--bits", "12",
                  "-o", str(tmp_path / "n.json")]) == 2
     assert "error:" in capsys.readouterr().err
     assert not (tmp_path / "n.json").exists()
+
+
+@pytest.mark.parametrize("levels, ratio", [([1, 4, 16, 64], 4), ([8, 1, 2, 4], 2), ([1, 8], 8), ([1, 4, 8], 2),
+                                           ([1, 1.5, 2.25], 1.5), ([1, 3, 10, 64], None), ([1, 2, 3], None),
+                                           ([5], None)])
+def test_common_ratio(levels, ratio):
+    """The log-periodic ambiguity exists exactly when every exposure ratio is a power of one number."""
+    assert common_ratio(np.array(levels, float)) == ratio
 
 
 def test_cli_reconstruct_with_response(tmp_path):

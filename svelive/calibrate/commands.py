@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,12 @@ def _response(args: argparse.Namespace) -> int:
     lo, hi = response.stats["measured_range"]
     print(f"degree {response.degree}, measured brightness {lo:.3f}..{hi:.3f}, "
           f"{response.stats['locations']} constant regions -> {args.output}")
+    ratio = response.stats["common_ratio"]
+    if ratio is not None:
+        print(f"note: every exposure ratio of this pattern is a power of {ratio:g}, so the frame cannot tell the "
+              f"curve from one with a ripple periodic in log{ratio:g}(I); the polynomial fit settles it, which "
+              "suits smooth curves but can be off by a few % of full scale on S-shaped (film) curves "
+              "(docs/calibration.md)", file=sys.stderr)
     return 0
 
 

@@ -464,6 +464,32 @@ def _refine_exposures(pairs: _Pairs, exposures: np.ndarray, coef: np.ndarray) ->
     return exposures[0] * np.exp(log_e)
 
 
+def common_ratio(exposures: np.ndarray, max_power: int = 12, tolerance: float = 1e-3) -> float | None:
+    """The ratio R of which every exposure ratio is an integer power, or None when there is none.
+
+    Ratio equations then hold equally for ``f`` and for ``f(M) p(log_R f(M))`` with
+    any p periodic of period 1 (a log-periodic ripple), so one frame cannot tell
+    them apart: only the polynomial model does, well for curves a low-degree
+    polynomial follows, by several % for S-shaped film curves (docs/calibration.md).
+    Two exposure levels always have one. Found as the largest R = r^(1/k),
+    r the smallest ratio and k <= ``max_power``, whose powers give every ratio
+    within ``tolerance`` (relative, in the logarithm).
+
+    Args:
+        exposures: (N,) positive exposure levels, any order.
+    """
+    logs = np.log(np.unique(np.asarray(exposures, np.float64)))
+    steps = logs[1:] - logs[0]
+    if steps.size == 0:
+        return None
+    for k in range(1, max_power + 1):
+        unit = steps[0] / k
+        powers = steps / unit
+        if np.all(np.abs(powers - np.round(powers)) <= tolerance * np.maximum(powers, 1.0)):
+            return float(f"{np.exp(unit):.6g}")
+    return None
+
+
 def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
                  config: ResponseFitConfig = ResponseFitConfig()) -> Response:
     """Fit the inverse response polynomial to one raw SVE frame.
@@ -562,6 +588,7 @@ def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
         "exposures": exposures.tolist(),
         "nominal_exposures": pattern.levels.tolist(),
         "pattern": str(pattern),
+        "common_ratio": common_ratio(pattern.levels),
     }
     return Response(tuple(float(c) for c in coef), (0.0, 1.0), float(sensor.black_level),
                     float(sensor.white_level), stats)
