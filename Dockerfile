@@ -22,6 +22,10 @@ RUN python3 -m venv --system-site-packages /opt/svelive \
       /opt/svelive/bin/pip install --no-cache-dir /src; \
     fi \
  && /opt/svelive/bin/pip uninstall --yes setuptools pip
+# Compile the numba kernels once here (a few seconds) so that the first live frame does not;
+# numba reuses this cache on a CPU like the build machine's and recompiles into it otherwise.
+ENV NUMBA_CACHE_DIR=/opt/svelive/numba-cache
+RUN /opt/svelive/bin/python -c "from svelive.reconstructor import warm_up; warm_up()"
 
 FROM debian:bookworm-slim
 # Runtime only: the interpreter, PyGObject and the Aravis 0.8 typelib (GigE Vision cameras).
@@ -30,6 +34,7 @@ RUN apt-get update \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin svelive
 COPY --from=build /opt/svelive /opt/svelive
+RUN chown -R svelive /opt/svelive/numba-cache
 
 LABEL org.opencontainers.image.title="svelive" \
       org.opencontainers.image.description="HDR video service for cameras with spatially varying pixel exposures (SVE)" \
@@ -40,6 +45,7 @@ LABEL org.opencontainers.image.title="svelive" \
 # (-p 127.0.0.1:8000:8000) or set SVELIVE_TOKEN before exposing it further.
 ENV PATH=/opt/svelive/bin:$PATH \
     PYTHONUNBUFFERED=1 \
+    NUMBA_CACHE_DIR=/opt/svelive/numba-cache \
     SVELIVE_HOST=0.0.0.0 \
     SVELIVE_PORT=8000
 USER svelive

@@ -273,3 +273,28 @@ def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, *
     reconstructor = Reconstructor(pattern, **kwargs)
     for frame in frames:
         yield reconstructor.process(getattr(frame, "raw", frame))
+
+
+def warm_up(methods: Iterable[str] | None = None) -> None:
+    """Compile, or load from numba's disk cache, every kernel a stream of these methods runs.
+
+    A kernel compiles on its first call (about a second each on a fresh
+    machine); a service or an image build calls this once so that no live
+    frame waits for it. Runs a few tiny synthetic frames (with saturated pixels,
+    so the censored paths run too) through a temporal Reconstructor per method,
+    and the preview tone map. ``methods``: default every method but ``cubic``
+    (numpy only). The frames are uint16; other raw types are converted to float32
+    before any kernel, so they need nothing more.
+    """
+    from svelive.tonemap import ToneMapper  # only the preview uses it
+
+    rng = np.random.default_rng(0)
+    scene = rng.uniform(0, 200, (24, 32))  # still, so that frames after the first fuse with the history
+    frames = [np.clip(rng.normal(scene, 3), 0, 4095).astype(np.uint16) for _ in range(3)]
+    for frame in frames:
+        frame[:2, :4] = 4095
+    for method in methods if methods is not None else [m for m in METHODS if m != "cubic"]:
+        reconstructor = Reconstructor("1,4/16,64", method=method, white_level=4095)
+        for frame in frames:
+            result = reconstructor.process(frame)
+    ToneMapper()(result.image, 0)
