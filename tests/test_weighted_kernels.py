@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, simulate
-from svelive.methods.base import binomial_kernel, censored_lower_bound, smooth, support_size
+from svelive.methods import weighted
+from svelive.methods.base import SveInput, binomial_kernel, censored_lower_bound, smooth, support_size
 from svelive.reconstruct import prepare, run_method
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
@@ -71,8 +72,13 @@ def _check(inp):
     assert plain.variance is None
 
 
-# 2x2, a 4-row tile and a 3x3 tile (its window misses a row of the tile at the frame's edges)
-PATTERNS = ["1,4/16,64", "1/1/8/8", "1,2,4/8,16,32/64,128,256"]
+PATTERNS = [
+    # summed the polyphase way: 2x2, four levels; a checkerboard (a level on two phases); 2x1 and 1x2
+    "1,4/16,64", "1,16/16,1", "1/16", "1,16",
+    # the general way: a level on 3 of 4 phases, a 4-row tile, a 3x3 tile (its window misses a row
+    # of the tile at the frame's edges)
+    "1,1/1,4", "1/1/8/8", "1,2,4/8,16,32/64,128,256",
+]
 
 
 @pytest.mark.parametrize("pattern", PATTERNS)
@@ -86,12 +92,29 @@ def test_kernels_agree_with_the_numpy_formulas(pattern, shape):
 
 
 @pytest.mark.parametrize("pattern", PATTERNS)
-@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (2, 7), (3, 5), (8, 1)])
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (2, 2), (2, 7), (3, 5), (7, 2), (8, 1)])
 def test_tiny_frames_agree_with_the_numpy_formulas(pattern, shape):
     # some levels have no pixel in any window here
     rng = np.random.default_rng(3)
     raw = rng.integers(0, 4096, shape).astype(np.uint16)
     _check(prepare(raw, pattern, SENSOR))
+
+
+@pytest.mark.parametrize("pattern", PATTERNS)
+@pytest.mark.parametrize("shape", [(2, 2), (5, 3), (2, 9), (9, 2), (6, 7)])
+def test_censored_edges_and_corners_agree_with_the_numpy_formulas(pattern, shape):
+    rng = np.random.default_rng(8)
+    raw = rng.integers(0, 4096, shape)
+    raw[rng.random(shape) < 0.25] = 4095  # censored pixels of every level on every edge and corner
+    _check(prepare(raw.astype(np.uint16), pattern, SENSOR))
+
+
+def test_float_raw_and_inexact_exposures_agree_with_the_numpy_formulas():
+    # exposures not powers of 2 and a non-integer raw: s / e and the sums round differently
+    # from the numpy statement, by float32 rounding only
+    raw = _frame("1,3/9,27", (150, 45), seed=9).astype(np.float32)
+    raw += np.random.default_rng(9).uniform(-0.5, 0.5, raw.shape).astype(np.float32)
+    _check(prepare(raw, "1,3/9,27", SENSOR))
 
 
 def test_saturated_and_black_frames_agree_with_the_numpy_formulas():
@@ -111,6 +134,49 @@ def test_pixel_map_agrees_with_the_numpy_formulas():
         _check(inp)
 
 
+@pytest.mark.parametrize("pattern, shape, polyphase", [
+    ("1,4/16,64", (37, 41), True), ("1,16/16,1", (37, 41), True), ("1/16", (9, 1), True), ("1,16", (1, 9), True),
+    ("4", (1, 1), True),
+    ("1,4/16,64", (1, 9), False), ("1,4/16,64", (9, 1), False),  # one row or column: it reflects onto itself
+    ("1/16", (1, 9), False), ("1,1/1,4", (37, 41), False), ("1/1/8/8", (37, 41), False),
+    ("1,2,4/8,16,32/64,128,256", (37, 41), False),
+])
+def test_polyphase_sums_exactly_where_they_are_exact(pattern, shape, polyphase):
+    assert weighted._level_layout(Pattern.parse(pattern), shape).polyphase == polyphase
+
+
+# tiles of at most 2x2 on frames up to a few pixels wide, where they take the polyphase way
+POLYPHASE = [(pattern, shape)
+             for pattern in ["1,4/16,64", "64,1/16,4", "1,16/16,1", "1,1/16,16", "1/16", "1,16", "4", "4,4/4,4"]
+             for shape in [(2, 2), (2, 5), (5, 2), (3, 3), (6, 7), (1, 6), (6, 1)]
+             if weighted._polyphase(Pattern.parse(pattern), shape)]
+
+
+@pytest.mark.parametrize("pattern, shape", POLYPHASE)
+def test_polyphase_planes_are_the_levels_window_sums(pattern, shape):
+    """Each plane times its scale is, at every pixel, the window sum of s over the level it names."""
+    pattern = Pattern.parse(pattern)
+    layout = weighted._level_layout(pattern, shape)
+    assert layout.polyphase
+    rng = np.random.default_rng(10)
+    s = rng.uniform(0, 100, shape).astype(np.float32)
+    s[rng.random(shape) < 0.2] = np.inf  # censored: makes the sum of its level +inf
+    th, tw = pattern.shape
+    ky, kx = binomial_kernel(support_size(th)), binomial_kernel(support_size(tw))
+    index = pattern.level_index_map(shape)
+    expected = np.stack([smooth(np.where(index == k, s, np.float32(0)), ky, kx) for k in range(len(pattern.levels))])
+    planes = weighted._group_sums(weighted._neighbour_sums(s, pattern.shape), layout.groups, pattern.shape)
+    phases = np.arange(shape[0]) % layout.exposures.shape[1]
+    level = np.searchsorted(pattern.levels, layout.exposures[:, phases])  # the level each plane names
+    for p, plane in enumerate(planes):
+        np.testing.assert_allclose(plane * layout.scales[p], np.take_along_axis(expected, level[p:p + 1], 0)[0],
+                                   rtol=1e-6, atol=1e-5)
+    # every level with a pixel in the window is named by exactly one plane
+    for k in range(len(pattern.levels)):
+        present = smooth((index == k).astype(np.float32), ky, kx) > 0
+        np.testing.assert_array_equal((level == k).sum(axis=0)[present], 1)
+
+
 def test_strips_on_threads_equal_one_thread():
     inp = prepare(_frame("1,4/16,64", (301, 50), seed=6), "1,4/16,64", SENSOR)
     one = run_method(inp, "weighted", return_variance=True)
@@ -118,3 +184,12 @@ def test_strips_on_threads_equal_one_thread():
     np.testing.assert_array_equal(one.image, two.image)
     np.testing.assert_array_equal(one.lower_bound, two.lower_bound)
     np.testing.assert_array_equal(one.variance, two.variance)
+
+
+def test_read_only_signal_gives_the_same_result():
+    # the polyphase way sums the signal itself where a strip has no censored pixel
+    inp = prepare(_frame("1,4/16,64", (301, 50), seed=11), "1,4/16,64", SENSOR)
+    signal = inp.signal.copy()
+    signal.setflags(write=False)
+    frozen = SveInput(signal, inp.exposure, inp.censored, inp.pattern, inp.sensor, inp.integral)
+    np.testing.assert_array_equal(run_method(frozen, "weighted").image, run_method(inp, "weighted").image)
