@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import threading
 from concurrent.futures import Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
 import cv2
@@ -152,14 +152,16 @@ class OutputVariance:
 
     The frame's variance times the weight of its frame in each pixel's mean,
     ``weight`` (the history's variance for a static scene with stationary noise;
-    None: the frame's as it is), and the shortest exposure's where
-    ``replaced = (used, variance)`` says the within-frame test's finding was applied.
-    A whole-frame array the live path never reads: computing it on demand saves writing it.
+    None: the frame's as it is), and the shortest exposure's where the within-frame
+    test's finding ``replaced`` was applied: where it flagged, and also ``within``
+    unless that is None. A whole-frame array the live path never reads: computing
+    it on demand saves writing it (and the shortest exposure's variance).
     """
 
     frame: np.ndarray
     weight: np.ndarray | None = None
-    replaced: tuple[np.ndarray, np.ndarray] | None = None
+    replaced: Inconsistency | None = None
+    within: np.ndarray | None = None
 
     def __call__(self) -> np.ndarray:
         variance = self.frame
@@ -167,8 +169,8 @@ class OutputVariance:
             variance = np.empty(self.frame.shape, np.float32)
             np.multiply(self.frame, self.weight, out=variance)
         if self.replaced is not None:
-            used, replacement = self.replaced
-            variance = np.where(used, replacement, variance)
+            used = self.replaced.flagged if self.within is None else self.replaced.flagged & self.within
+            variance = np.where(used, self.replaced.variance, variance)
         return variance
 
 
@@ -223,12 +225,35 @@ def _widen(mask: np.ndarray, pixels: int) -> np.ndarray:
 
 
 def disagree(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray, sigmas: float) -> np.ndarray:
-    """bool (H, W): ``(a - b)^2 > sigmas^2 (var_a + var_b)``, the noise-model test of two float32 estimates."""
+    """bool: ``(a - b)^2 > sigmas^2 (var_a + var_b)``, the noise-model test of two float32 estimates (broadcast)."""
+    arrays = [np.ascontiguousarray(x, np.float32) for x in np.broadcast_arrays(a, var_a, b, var_b)]
+    out = np.empty(arrays[0].shape, bool)
+    _disagree_pass(*flat(*arrays, out), np.float32(sigmas * sigmas))
+    return out
+
+
+@kernel
+def _disagrees(a, var_a, b, var_b, k2):
+    """:func:`disagree` of one pixel, k2 = sigmas^2 (float32)."""
     diff = a - b
-    diff *= diff
-    tolerance = var_a + var_b
-    tolerance *= np.float32(sigmas * sigmas)
-    return diff > tolerance
+    return diff * diff > (var_a + var_b) * k2
+
+
+@kernel
+def _disagree_pass(a, var_a, b, var_b, out, k2):
+    for k in range(a.size):
+        out[k] = _disagrees(a[k], var_a[k], b[k], var_b[k], k2)
+
+
+#: Rows per strip of the per-pixel passes: small enough for a strip's arrays to stay in cache
+#: from its test to its update.
+STRIP_ROWS = 64
+
+
+def _strips(height: int, rows: int) -> list[slice]:
+    """The frame's rows in strips of ``rows`` (the last one shorter)."""
+    rows = max(1, int(rows))
+    return [slice(top, min(top + rows, height)) for top in range(0, height, rows)]
 
 
 # ----- within one frame -----------------------------------------------------
@@ -239,91 +264,345 @@ def _window_kernels(pattern: Pattern) -> tuple[np.ndarray, np.ndarray]:
     return binomial_kernel(support_size(th)), binomial_kernel(support_size(tw))
 
 
+@dataclass(frozen=True)
+class _ShortestLayout:
+    """What the shortest exposure's interpolation needs that depends only on (pattern, shape), read-only.
+
+    The tables hold a frame's window sums when none of the level's samples is
+    censored; a window's sums repeat with the tile's period away from the top and
+    bottom borders, so they keep only distinct rows: row r's are ``table[row_of[r]]``.
+
+    Attributes:
+        exposure: the level's relative exposure e.
+        mask: float32 (P, W), 1 at the level's pixels, by row phase: pixel (r, c) is ``mask[r % P, c]``.
+        kernels: float32 binomial kernels (rows, cols) of the window, then their squares.
+        row_of: intp (H,), the tables' row of each frame row.
+        scale: float32 (n, W), the window's sum of weights times e.
+        denominator: float32 (n, W), ``max(effective, 1e-6) e^2``, effective = (sum w)^2 / sum w^2
+            the window's effective number of samples.
+        valid: bool (n, W), the window's sum of weights exceeds 1e-6.
+    """
+
+    exposure: float
+    mask: np.ndarray
+    kernels: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    row_of: np.ndarray
+    scale: np.ndarray
+    denominator: np.ndarray
+    valid: np.ndarray
+
+
 @lru_cache(maxsize=8)
-def _shortest_layout(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """For the shortest exposure level: (mask float32, window sum of squared kernel weights), read-only."""
+def _shortest_layout(pattern: Pattern, shape: tuple[int, int]) -> _ShortestLayout:
+    """The :class:`_ShortestLayout` of a nominal tile over frames of ``shape``."""
+    exposure = float(pattern.levels[0])
     mask = (pattern.level_index_map(shape) == 0).astype(np.float32)
     ky, kx = _window_kernels(pattern)
-    squares = smooth(mask, ky * ky, kx * kx)
-    for array in (mask, squares):
+    kernels = (ky, kx, ky * ky, kx * kx)
+    tables = _window_tables(smooth(mask, ky, kx), smooth(mask, kernels[2], kernels[3]), exposure)
+    rows, row_of = np.unique(_repeating_rows(shape[0], pattern.shape[0], ky.size // 2, tables), return_inverse=True)
+    tables = [np.ascontiguousarray(t[rows]) for t in tables]
+    mask = np.ascontiguousarray(mask[:min(pattern.shape[0], shape[0])])
+    row_of = row_of.astype(np.intp)
+    for array in (mask, row_of, *kernels, *tables):
         array.setflags(write=False)
-    return mask, squares
+    return _ShortestLayout(exposure, mask, kernels, row_of, *tables)
 
 
-def shortest_exposure_estimate(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Radiance from the shortest exposure's uncensored samples alone, as the ``weighted`` method interpolates one level.
+def _repeating_rows(height: int, period: int, radius: int, tables: list[np.ndarray]) -> np.ndarray:
+    """intp (H,): for each row, a row with equal values in every table (among the first
+    ``radius + period`` and the last ``radius``).
 
-    A binomial window holding every phase of the tile averages the level's
-    uncensored readings s / e; the variance is the noise model's at that
-    radiance divided by the effective number of samples in the window.
-
-    Returns:
-        (estimate float32 (H, W) DN at exposure 1, variance float32 (H, W) DN^2,
-        valid bool (H, W): the window held at least one uncensored sample).
+    A window reaching ``radius`` rows each side that stays inside the frame sees the
+    tile's rows in the same order every ``period`` rows; the equality is checked, not
+    assumed (otherwise every row is its own).
     """
-    if inp.pattern.pixel_map is not None:
-        raise SveliveError("the exposure-consistency test needs a nominal tile, not a per-pixel exposure map")
-    mask, squares = _shortest_layout(inp.pattern, inp.shape)
-    ky, kx = _window_kernels(inp.pattern)
-    exposure = float(inp.pattern.levels[0])
-    weights = mask * ~inp.censored
-    weight_sum = smooth(weights, ky, kx)
-    estimate = smooth(inp.signal * weights, ky, kx)
-    valid = weight_sum > 1e-6
-    np.divide(estimate, weight_sum * np.float32(exposure), out=estimate, where=valid)
-    np.maximum(estimate, 0, out=estimate)
-    if inp.censored.any():
-        squares = smooth(weights, ky * ky, kx * kx)
-    effective = weight_sum * weight_sum / np.maximum(squares, 1e-12)  # (sum w)^2 / sum w^2
-    sensor = inp.sensor
-    variance = estimate * np.float32(exposure / sensor.effective_gain) + np.float32(sensor.floor_variance)
-    variance /= np.maximum(effective, 1e-6) * np.float32(exposure * exposure)
-    variance[~valid] = np.inf
-    return estimate, variance, valid
+    first = np.arange(height)
+    interior = (first >= radius + period) & (first < height - radius)
+    first[interior] = radius + (first[interior] - radius) % period
+    if all(np.array_equal(t[first], t) for t in tables):
+        return first
+    return np.arange(height)
+
+
+def _window_tables(weight_sum: np.ndarray, squares: np.ndarray, exposure: float) -> list[np.ndarray]:
+    """[scale, denominator, valid] of :class:`_ShortestLayout` from the window sums of the weights and their squares."""
+    scale, denominator = np.empty_like(weight_sum), np.empty_like(weight_sum)
+    valid = np.empty(weight_sum.shape, bool)
+    _tables_pass(*flat(weight_sum, squares, scale, denominator, valid), np.float32(exposure),
+                 np.float32(exposure * exposure))
+    return [scale, denominator, valid]
+
+
+@kernel
+def _tables_pass(weight_sum, squares, scale, denominator, valid, exposure, exposure2):
+    for k in range(weight_sum.size):
+        total = weight_sum[k]
+        valid[k] = total > np.float32(1e-6)
+        scale[k] = total * exposure
+        effective = total * total / _maximum(squares[k], np.float32(1e-12))
+        denominator[k] = _maximum(effective, np.float32(1e-6)) * exposure2
 
 
 @dataclass(frozen=True)
+class _ShortNoise:
+    """What the shortest exposure's variance is computed from: (estimate slope + floor) / denominator.
+
+    Attributes:
+        slope, floor: float32, the noise model's variance of one reading over e^2, ``slope * L + floor`` at radiance L.
+        layout: the tables of frames without censored samples of the level.
+        own: for each strip where the level had censored samples, (rows, row_of, first, denominator,
+            valid): its frame rows and its own tables, row r of ``rows`` at ``row_of[first + r]``.
+    """
+
+    slope: np.float32
+    floor: np.float32
+    layout: _ShortestLayout
+    own: list[tuple[slice, np.ndarray, int, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+
 class Inconsistency:
     """The within-frame test's finding: where to rely on the shortest exposure, and its estimate.
 
+    Made by :func:`exposure_consistency`, and computed by strips when needed:
+    :func:`fuse` tests each strip just before it updates it, while the strip's rows
+    are in cache, and keeps the strip's estimate only as long as it uses it;
+    reading ``flagged`` tests the rows still untested, reading ``image`` (or
+    ``variance``) tests again the rows whose estimate was not kept (so until then
+    it holds on to the frame's arrays). Results do not depend on the order or the
+    strips.
+
     Attributes:
         flagged: bool (H, W), widened pixels whose estimate disagrees with the shortest exposure's.
-        image, variance: float32 (H, W), the shortest exposure's estimate and variance.
+        image: float32 (H, W), the shortest exposure's estimate.
+        variance: float32 (H, W), its variance (inf where its window holds no uncensored
+            sample), computed on first access: the live path only reads it through
+            :class:`OutputVariance`.
     """
 
-    flagged: np.ndarray
-    image: np.ndarray
-    variance: np.ndarray
+    def __init__(self, image: np.ndarray, variance: np.ndarray, inp: SveInput, config: MotionConfig,
+                 workers: int | Executor = 1, strip_rows: int = STRIP_ROWS) -> None:
+        if inp.pattern.pixel_map is not None:
+            raise SveliveError("the exposure-consistency test needs a nominal tile, not a per-pixel exposure map")
+        layout = _shortest_layout(inp.pattern, inp.shape)
+        sensor = inp.sensor
+        self._frame: tuple | None = (image, variance, inp)
+        self._noise = _ShortNoise(np.float32(layout.exposure / sensor.effective_gain),
+                                  np.float32(sensor.floor_variance), layout)
+        self._k2 = np.float32(config.consistency_sigmas * config.consistency_sigmas)
+        self._widen = int(config.widen)
+        self._flagged = np.empty(inp.shape, bool)
+        self._image: np.ndarray | None = None  # made when the estimate is first kept
+        self._tested, self._kept = np.zeros(inp.shape[0], bool), np.zeros(inp.shape[0], bool)  # by row
+        self._lock = threading.Lock()
+        self._workers, self._strip_rows = workers, strip_rows
 
-    def apply(self, image: np.ndarray, variance: np.ndarray,
-              where: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(image, variance, used): the shortest exposure's values where flagged (and ``where``), new arrays."""
-        image, used = self.apply_image(image, where)
-        return image, np.where(used, self.variance, variance), used
+    def test(self, rows: slice, short: np.ndarray) -> None:
+        """Test the frame rows ``rows``, writing their estimate to ``short`` (float32 (len(rows), W));
+        threads may test disjoint rows at once."""
+        if self._kept[rows].all():  # (then the frame's arrays may be gone)
+            short[...] = self._image[rows]
+            return
+        _consistency_rows(rows, *self._frame, self._noise.layout, self._noise.slope, self._noise.floor, self._k2,
+                          self._widen, self._flagged, short)
+        self._tested[rows] = True
 
-    def apply_image(self, image: np.ndarray, where: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(image, used): :meth:`apply` without the variance (:class:`OutputVariance` takes ``used``)."""
-        used = self.flagged if where is None else self.flagged & where
-        return np.where(used, self.image, image), used
+    def _keep(self, rows: slice) -> None:
+        """Test ``rows`` keeping their estimate, and the tables of its variance."""
+        own = _consistency_rows(rows, *self._frame, self._noise.layout, self._noise.slope, self._noise.floor,
+                                self._k2, self._widen, self._flagged, self._image[rows])
+        if own is not None:
+            self._noise.own.append(own)
+        self._tested[rows] = self._kept[rows] = True
+
+    def _completed(self, keep: bool) -> Inconsistency:
+        """Self, with every row tested and, with ``keep``, every estimate kept."""
+        done = self._kept if keep else self._tested
+        if not done.all():
+            with self._lock:
+                if self._image is None:
+                    self._image = np.empty(self._flagged.shape, np.float32)
+                strips = [s for s in _strips(len(done), self._strip_rows) if not done[s].all()]
+                map_on(self._workers, self._keep, strips)
+                if self._kept.all():  # the frame's arrays are not needed any more: do not keep them alive
+                    self._frame = None
+        return self
+
+    @property
+    def flagged(self) -> np.ndarray:
+        return self._completed(False)._flagged
+
+    @property
+    def image(self) -> np.ndarray:
+        return self._completed(True)._image
+
+    @cached_property
+    def variance(self) -> np.ndarray:
+        """float32 (H, W), DN^2: the variance of ``image``."""
+        short, noise = self.image, self._noise
+        layout = noise.layout
+        variance = np.empty(short.shape, np.float32)
+        _variance_rows(short, layout.row_of, 0, layout.denominator, layout.valid, noise.slope, noise.floor, variance)
+        for rows, row_of, first, denominator, valid in noise.own:
+            _variance_rows(short[rows], row_of, first, denominator, valid, noise.slope, noise.floor, variance[rows])
+        return variance
+
+    def apply(self, image: np.ndarray) -> np.ndarray:
+        """A new float32 (H, W) array: the shortest exposure's estimate where flagged, ``image`` elsewhere
+        (the variance is :class:`OutputVariance`'s, on demand)."""
+        out = np.empty(image.shape, np.float32)
+        _select_pass(*flat(self.flagged, self.image, np.ascontiguousarray(image, np.float32), out))
+        return out
 
 
-def exposure_consistency(image: np.ndarray, variance: np.ndarray, inp: SveInput,
-                         config: MotionConfig) -> Inconsistency:
+@kernel
+def _select_pass(flagged, replacement, image, out):
+    # every value is loaded before the choice: a load under a condition keeps LLVM from
+    # vectorising a loop (2-3x slower; so in the other kernels that choose)
+    for k in range(out.size):
+        use, a, b = flagged[k], replacement[k], image[k]
+        out[k] = a if use else b
+
+
+def exposure_consistency(image: np.ndarray, variance: np.ndarray, inp: SveInput, config: MotionConfig,
+                         workers: int = 1, strip_rows: int = STRIP_ROWS,
+                         executor: Executor | None = None) -> Inconsistency:
     """Within-frame test: where does the frame's estimate disagree with the shortest exposure's beyond noise?
+
+    The shortest exposure's estimate interpolates its uncensored samples alone,
+    as the ``weighted`` method interpolates one level: a binomial window holding
+    every phase of the tile averages the readings s / e, and the variance is the
+    noise model's at that radiance divided by the window's effective number of
+    samples (sum w)^2 / sum w^2. Where the two estimates differ by more than
+    ``config.consistency_sigmas`` (:func:`disagree`), pixels are flagged; flags
+    widen by ``config.widen`` pixels, and stay only where the window held a sample.
 
     The estimates interpolate different pixels, so at static fine texture they
     also disagree (spatial aliasing, not in the noise model): a caller with a
     history applies the finding only where the temporal test saw motion.
 
     Args:
-        image, variance: float32 (H, W), a single-frame estimate and its variance (DN, DN^2).
-        inp: the prepared raw frame it came from.
+        image, variance: float32 (H, W), a single-frame estimate and its variance (DN, DN^2),
+            not modified while the finding is in use.
+        inp: the prepared raw frame it came from (a nominal tile, no per-pixel exposure map).
+        workers, executor: threads over which strips of ``strip_rows`` rows are spread when
+            the finding is completed (:func:`fuse`); the result depends on none of them.
+
+    Returns:
+        the finding, computed when used (:class:`Inconsistency`).
     """
-    short, short_var, valid = shortest_exposure_estimate(inp)
-    flagged = disagree(image, variance, short, short_var, config.consistency_sigmas)
-    flagged &= valid
-    flagged = _widen(flagged, config.widen) & valid
-    return Inconsistency(flagged, short, short_var)
+    return Inconsistency(image, variance, inp, config, executor if executor is not None else workers, strip_rows)
+
+
+def _consistency_rows(core: slice, image: np.ndarray, variance: np.ndarray, inp: SveInput, layout: _ShortestLayout,
+                      slope: np.float32, floor: np.float32, k2: np.float32, widen: int, flagged: np.ndarray,
+                      short: np.ndarray) -> tuple | None:
+    """:func:`exposure_consistency` of the rows ``core``: writes ``flagged[core]`` and their estimate
+    to ``short`` ((len(core), W)). Returns, where the level had censored samples in the strip, the
+    strip's own tables (an entry of ``_ShortNoise.own``), else None.
+
+    The test runs on ``widen`` rows more each side (for the widening), whose window
+    sums need the window's radius more (both within the frame).
+    """
+    h, w = inp.shape
+    ky, kx, ky2, kx2 = layout.kernels
+    mid = slice(max(core.start - widen, 0), min(core.stop + widen, h))
+    ext = slice(max(mid.start - ky.size // 2, 0), min(mid.stop + ky.size // 2, h))
+    mid_in_ext = slice(mid.start - ext.start, mid.stop - ext.start)
+    core_in_mid = slice(core.start - mid.start, core.stop - mid.start)
+    product = np.empty((ext.stop - ext.start, w), np.float32)
+    no_weights = np.zeros((0, 0), np.float32)
+    censored = _shortest_samples(inp.signal[ext], inp.censored[ext], layout.mask, ext.start, product, no_weights)
+    summed = smooth(product, ky, kx)[mid_in_ext]
+    row_of, first, scale, denominator, valid = layout.row_of, mid.start, layout.scale, layout.denominator, layout.valid
+    own = None
+    if censored:  # the layout's tables do not hold: the strip's own
+        weights = np.empty_like(product)
+        _shortest_samples(inp.signal[ext], inp.censored[ext], layout.mask, ext.start, product, weights)
+        sums = smooth(weights, ky, kx)[mid_in_ext], smooth(weights, ky2, kx2)[mid_in_ext]
+        scale, denominator, valid = _window_tables(*sums, layout.exposure)
+        row_of, first = np.arange(mid.stop - mid.start, dtype=np.intp), 0
+        for array in (row_of, scale, denominator, valid):  # read-only as the layout's: the kernels' types match
+            array.setflags(write=False)
+        own = (core, row_of, core_in_mid.start, denominator, valid)
+    tested = flagged[core] if widen <= 0 else np.empty(summed.shape, bool)
+    count = _shortest_test(summed, row_of, first, scale, denominator, valid, image[mid], variance[mid],
+                           slope, floor, k2, tested, short, core_in_mid.start)
+    if widen > 0 and count == 0:
+        flagged[core] = False
+    elif widen > 0:
+        _valid_only(_widen(tested, widen)[core_in_mid], row_of, first + core_in_mid.start, valid, flagged[core])
+    return own
+
+
+@kernel
+def _shortest_samples(signal, censored, mask, first_row, product, weights):
+    """Weights w of the shortest exposure's uncensored samples (written unless ``weights`` is
+    empty) and s w, for (R, W) rows from ``first_row`` on (``mask`` by row phase); returns the
+    count of the level's censored samples."""
+    period = mask.shape[0]
+    zero = np.float32(0)
+    with_weights = weights.size > 0
+    count = 0
+    for r in range(signal.shape[0]):
+        p = (first_row + r) % period
+        for c in range(signal.shape[1]):
+            m = mask[p, c]
+            lost = censored[r, c]
+            weight = zero if lost else m
+            product[r, c] = signal[r, c] * weight
+            if with_weights:
+                weights[r, c] = weight
+            count += lost & (m != zero)
+    return count
+
+
+@kernel
+def _short_variance(estimate, slope, floor, denominator, valid):
+    """The shortest exposure's variance at one pixel (inf where its window holds no sample)."""
+    return (estimate * slope + floor) / denominator if valid else np.float32(np.inf)
+
+
+@kernel
+def _shortest_test(summed, row_of, first, scale, denominator, valid, image, variance, slope, floor, k2,
+                   flagged, short, core_first):
+    """The shortest exposure's estimate and the test of (R, W) rows: ``summed`` the window sums of s w,
+    tables (:class:`_ShortestLayout`) at rows ``row_of[first + r]``. Writes ``flagged`` for every row,
+    the estimate for rows ``core_first:core_first + len(short)``; returns the count flagged."""
+    zero = np.float32(0)
+    count = 0
+    for r in range(summed.shape[0]):
+        t = row_of[first + r]
+        core = core_first <= r < core_first + short.shape[0]
+        for c in range(summed.shape[1]):
+            ok, total, weight_sum = valid[t, c], summed[r, c], scale[t, c]
+            estimate = _maximum(total / weight_sum if ok else total, zero)
+            var = _short_variance(estimate, slope, floor, denominator[t, c], ok)
+            f = ok & _disagrees(image[r, c], variance[r, c], estimate, var, k2)
+            flagged[r, c] = f
+            count += f
+            if core:
+                short[r - core_first, c] = estimate
+    return count
+
+
+@kernel
+def _variance_rows(short, row_of, first, denominator, valid, slope, floor, out):
+    """out = the variance of the shortest exposure's estimate ``short``, (R, W) rows whose tables'
+    rows are ``row_of[first + r]``."""
+    for r in range(short.shape[0]):
+        t = row_of[first + r]
+        for c in range(short.shape[1]):
+            out[r, c] = _short_variance(short[r, c], slope, floor, denominator[t, c], valid[t, c])
+
+
+@kernel
+def _valid_only(grown, row_of, first, valid, out):
+    """out = grown where the window held a sample (``valid`` at table rows ``row_of[first + r]``)."""
+    for r in range(grown.shape[0]):
+        t = row_of[first + r]
+        for c in range(grown.shape[1]):
+            out[r, c] = grown[r, c] & valid[t, c]
 
 
 # ----- across frames ----------------------------------------------------------
@@ -359,10 +638,6 @@ def _subsampled_ratios(image, mean, variance, bound, old_bound, step, out):
                 count += 1
     return count
 
-
-#: Rows per strip of the per-pixel passes: small enough for a strip's arrays to stay in cache
-#: from its test to its update.
-STRIP_ROWS = 64
 
 #: Global brightness ratios closer to 1 than this are not divided out (far below any noise).
 RATIO_TOLERANCE = 2e-3
@@ -416,7 +691,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     join without a seam), then updated at once unless the moving pixels found so
     far already exceed ``config.global_motion`` of the frame; from then on the
     frame restarts whatever the other strips hold, so they are skipped. The
-    global brightness ratio is measured first, on a subsample.
+    within-frame test of a strip's rows (``inconsistency``, computed on demand)
+    runs just before its temporal test. The global brightness ratio is measured
+    first, on a subsample.
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
     if state is None or state.mean.shape != image.shape:
@@ -425,8 +702,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
     h = image.shape[0]
-    rows = max(1, int(strip_rows))
-    strips = [slice(top, min(top + rows, h)) for top in range(0, h, rows)]
+    strips = _strips(h, strip_rows)
     window = tuple(support_size(n) for n in pattern_shape)
     # rows a strip's motion mask depends on: censor changes grow by window // 2, then
     # confirmation looks 1 row further, widening ``widen`` more
@@ -459,14 +735,19 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         return int(np.count_nonzero(moving))
 
     fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
-    out = np.empty_like(image) if detail else fused
+    # the output differs from the history's mean where sharpened or replaced by the within-frame test
+    out = np.empty_like(image) if detail or inconsistency is not None else fused
     floor_weight = np.float32(1.0 / config.max_history)
 
-    def update(core: slice) -> None:
+    def update(core: slice, short: np.ndarray | None) -> None:
         _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
                      frame.signal[core], frame.censored[core], frame.inverse, frame.own_slope,
                      frame.own_floor, floor_weight, scale, detail, reset[core], weight[core], fused[core], own[core],
                      out[core])
+        if inconsistency is not None:  # output only: the history keeps estimates of one kind
+            if not detail:
+                out[core] = fused[core]
+            _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
 
     limit = config.global_motion * motion.size
     lock = threading.Lock()
@@ -476,12 +757,16 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         with lock:
             if moved[0] > limit:  # the frame restarts: nothing to do
                 return
+        short = None
+        if inconsistency is not None:  # while the strip's rows are in cache; the estimate only for the update
+            short = np.empty((core.stop - core.start, image.shape[1]), np.float32)
+            inconsistency.test(core, short)
         count = test(core)
         with lock:
             moved[0] += count
             restarts = moved[0] > limit
         if not restarts:
-            update(core)
+            update(core, short)
 
     map_on(executor if executor is not None else workers, strip, strips)
     if moved[0] > limit:
@@ -489,23 +774,18 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         # restarts from this frame, as a stream's first frame does
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     state = TemporalState(fused, own, weight, bound, frame.censored)
-    replaced = None
-    if inconsistency is not None:  # output only: the history keeps estimates of one kind
-        out, used = inconsistency.apply_image(out, reset)
-        motion = motion | used
-        replaced = (used, inconsistency.variance)
-    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, replaced))
+    # the update applied the within-frame test's finding to the output where it reset the history
+    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset))
 
 
 def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: float, motion: np.ndarray) -> Fused:
     """Every pixel restarts from this frame (a stream's first frame, or the camera moved); motion: the mask to report."""
     fresh = start(frame)
-    image, replaced = frame.image, None
+    image = frame.image
     if inconsistency is not None:
-        image, used = inconsistency.apply_image(image)
-        motion = motion | used
-        replaced = (used, inconsistency.variance)
-    return Fused(image, motion, fresh.weight, ratio, fresh, OutputVariance(frame.variance, None, replaced))
+        image = inconsistency.apply(image)
+        motion = motion | inconsistency.flagged
+    return Fused(image, motion, fresh.weight, ratio, fresh, OutputVariance(frame.variance, None, inconsistency))
 
 
 @kernel
@@ -567,6 +847,17 @@ def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal
                 # a pixel without history (reset, or max_history 1) has nothing to sharpen with
                 sharp = history and not restart
                 out[r, c] = _sharpened(f, o, (own_slope[p, c] * f + own_floor[p, c]) * w) if sharp else f
+
+
+@kernel
+def _replace(reset, flagged, short, out, motion):
+    """out = ``short`` where a ``reset`` pixel was ``flagged``, which then counts as moving (``motion``
+    set); flat arrays (distinct: a second array aliasing ``out`` would keep the loop from vectorising)."""
+    for k in range(out.size):
+        used = reset[k] & flagged[k]
+        a, b = short[k], out[k]
+        out[k] = a if used else b
+        motion[k] = motion[k] | used
 
 
 @kernel

@@ -240,7 +240,10 @@ class Reconstructor:
         inp, est = self._estimate(raw, method)
         t1 = time.perf_counter()
         image, variance = est.image, est.variance
-        inconsistency = exposure_consistency(image, variance, inp, self.motion_config) if self.consistency else None
+        inconsistency = None
+        if self.consistency:
+            inconsistency = exposure_consistency(image, variance, inp, self.motion_config, workers=self.workers,
+                                                 executor=self._pool)
         if self.temporal:
             rows = own_reading_rows(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
             frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, inp.signal, *rows)
@@ -251,8 +254,8 @@ class Reconstructor:
         else:
             motion = np.zeros(image.shape, bool)
             if inconsistency is not None:
-                image, variance, motion = inconsistency.apply(image, variance)
-            variance_of = OutputVariance(variance)
+                image, motion = inconsistency.apply(image), inconsistency.flagged
+            variance_of = OutputVariance(variance, None, inconsistency)
             weight, ratio = np.ones(image.shape, np.float32), 1.0
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
         t2 = time.perf_counter()
@@ -282,9 +285,11 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
     machine); a service or an image build calls this once so that no live
     frame waits for it. Runs a few tiny synthetic frames (with saturated pixels,
     so the censored paths run too) through a temporal Reconstructor per method,
-    and the preview tone map. ``methods``: default every method but ``cubic``
-    (numpy only). The frames are uint16; other raw types are converted to float32
-    before any kernel, so they need nothing more.
+    with ``mask`` and ``integration`` exposure timing (the latter runs the
+    within-frame test, whose output variance is also computed), and the preview
+    tone map. ``methods``: default every method but ``cubic`` (numpy only). The
+    frames are uint16; other raw types are converted to float32 before any
+    kernel, so they need nothing more.
     """
     from svelive.tonemap import ToneMapper  # only the preview uses it
 
@@ -294,7 +299,9 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
     for frame in frames:
         frame[:2, :4] = 4095
     for method in methods if methods is not None else [m for m in METHODS if m != "cubic"]:
-        reconstructor = Reconstructor("1,4/16,64", method=method, white_level=4095)
-        for frame in frames:
-            result = reconstructor.process(frame)
+        for timing in EXPOSURE_TIMINGS:
+            reconstructor = Reconstructor("1,4/16,64", method=method, white_level=4095, exposure_timing=timing)
+            for frame in frames:
+                result = reconstructor.process(frame)
+            result.variance  # noqa: B018 (computed on demand: the within-frame test's variance kernel)
     ToneMapper()(result.image, 0)

@@ -31,10 +31,16 @@ def test_warm_up_compiles_what_a_stream_runs():
     scene = rng.uniform(0, 6000, (96, 128))
     for method in ("adaptive", "weighted", "aggregate"):
         for dtype, white in ((np.uint16, 4095), (np.uint8, 255)):
-            reconstructor = Reconstructor("1,4/16,64", method=method, white_level=white)
-            for moved in (0, 0, 0, 1, 40):  # fuse, then a small move, then the whole frame moves
-                noisy = rng.normal(np.roll(scene, moved, axis=1), 20) * white / 4095
-                result = reconstructor.process(np.clip(noisy, 0, white).astype(dtype))
-            ToneMapper()(result.image, 0)
+            for timing in ("mask", "integration"):  # integration: the within-frame test too
+                reconstructor = Reconstructor("1,4/16,64", method=method, white_level=white, exposure_timing=timing)
+                for moved in (0, 0, 0, 1, 40):  # fuse, then a small move, then the whole frame moves
+                    noisy = rng.normal(np.roll(scene, moved, axis=1), 20) * white / 4095
+                    result = reconstructor.process(np.clip(noisy, 0, white).astype(dtype))
+                result.variance  # noqa: B018 (computed on demand)
+                ToneMapper()(result.image, 0)
+    reconstructor = Reconstructor("1,4/16,64", white_level=4095, exposure_timing="integration", temporal=False)
+    for _ in range(2):
+        result = reconstructor.process(np.clip(rng.normal(scene, 20), 0, 4095).astype(np.uint16))
+    result.variance  # noqa: B018
     after = {name: len(k.signatures) for name, k in found.items()}
     assert after == before

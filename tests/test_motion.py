@@ -5,6 +5,7 @@ Scenes are the shipped 256x256 crops (cropped further for speed) or synthetic.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -13,7 +14,9 @@ from svelive import Pattern, Sensor, SveliveError
 from svelive.cli import main
 from svelive.exr import read_exr
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode, pu21_psnr
-from svelive.motion import FrameEstimate, MotionConfig, disagree, sharpen
+from svelive.methods.base import binomial_kernel, smooth, support_size
+from svelive.motion import FrameEstimate, MotionConfig, disagree, exposure_consistency, fuse, sharpen
+from svelive.reconstruct import estimate_variance, prepare, run_method
 from svelive.reconstructor import Reconstructor, own_reading_rows, reconstruct_sequence
 from svelive.scenes import mains_flicker, modulated, moving_disc, panning, render_sequence, static
 from svelive.simulate import exposure_scale, load_sample_scene
@@ -85,6 +88,98 @@ def test_frame_rows_by_phase_give_every_pixel_its_own_reading_and_noise(shape, p
     rows = np.arange(shape[0]) % inverse.shape[0]
     np.testing.assert_allclose(slope[rows], 9.0 / (exposure * SENSOR.effective_gain), rtol=1e-6)
     np.testing.assert_allclose(floor[rows], 9.0 * SENSOR.floor_variance / exposure**2, rtol=1e-6)
+
+
+def consistency_reference(image, variance, inp, config):
+    """The within-frame test as whole-frame numpy operations, as exposure_consistency's docstring states it."""
+    pattern, sensor = inp.pattern, inp.sensor
+    ky, kx = (binomial_kernel(support_size(n)) for n in pattern.shape)
+    e = float(pattern.levels[0])
+    weights = ((pattern.level_index_map(inp.shape) == 0) & ~inp.censored).astype(np.float32)
+    total = smooth(weights, ky, kx)
+    valid = total > 1e-6
+    estimate = smooth(inp.signal * weights, ky, kx)
+    np.divide(estimate, total * np.float32(e), out=estimate, where=valid)
+    np.maximum(estimate, 0, out=estimate)
+    effective = total * total / np.maximum(smooth(weights, ky * ky, kx * kx), 1e-12)  # (sum w)^2 / sum w^2
+    short_var = estimate * np.float32(e / sensor.effective_gain) + np.float32(sensor.floor_variance)
+    short_var /= np.maximum(effective, 1e-6) * np.float32(e * e)
+    short_var[~valid] = np.inf
+    flagged = disagree(image, variance, estimate, short_var, config.consistency_sigmas) & valid
+    if config.widen:
+        square = np.ones((2 * config.widen + 1,) * 2, np.uint8)
+        flagged = cv2.dilate(flagged.view(np.uint8), square, borderType=cv2.BORDER_REPLICATE).view(bool) & valid
+    return flagged, estimate, short_var
+
+
+def disc_frames(pattern: str, shape: tuple[int, int], n: int, saturate: bool = True):
+    """Prepared integration-timing frames of a bright disc crossing a textured scene, with the weighted
+    method's estimates; with ``saturate``, a block where every exposure (the shortest too) is censored."""
+    background = scene_dn("desk", 4, max(shape))[:shape[0], :shape[1]]
+    scene = moving_disc(background, float(background.max()) * 4, 6, (shape[0] / 2, 8), (0, 5))
+    out = []
+    for f in render_sequence(scene, n, pattern, SENSOR, timing="integration", seed=9):
+        raw = f.raw.copy()
+        if saturate:
+            raw[3:9, -12:-4] = SENSOR.white_level
+        inp = prepare(raw, pattern, SENSOR)
+        est = run_method(inp, "weighted", return_variance=True)
+        out.append((inp, est.image, estimate_variance(est, inp), est.lower_bound))
+    return out
+
+
+@pytest.mark.parametrize("pattern", [PATTERN, "1,2,4/8,16,32/64,128,256", "1/16"])
+@pytest.mark.parametrize("widen", [0, 1, 2])
+def test_consistency_by_strips_is_the_whole_frame_test(pattern, widen):
+    config = MotionConfig(widen=widen)
+    for inp, image, variance, _ in disc_frames(pattern, (75, 61), 2):
+        assert inp.censored[inp.pattern.level_index_map(inp.shape) == 0].any()
+        flagged, short, short_var = consistency_reference(image, variance, inp, config)
+        assert flagged.any() and not flagged.all()
+        for strip_rows, workers in ((64, 1), (5, 2), (1, 1)):
+            found = exposure_consistency(image, variance, inp, config, workers=workers, strip_rows=strip_rows)
+            np.testing.assert_array_equal(found.flagged, flagged)
+            np.testing.assert_allclose(found.image, short, rtol=1e-6)
+            np.testing.assert_allclose(found.variance, short_var, rtol=1e-6)  # inf where no sample: equal
+            np.testing.assert_array_equal(found.apply(image), np.where(flagged, short, image))
+
+
+@pytest.mark.parametrize("shape", [(3, 5), (1, 17), (17, 1), (2, 2), (1, 1)])
+def test_consistency_on_tiny_frames(shape):
+    rng = np.random.default_rng(5)
+    raw = np.clip(rng.normal(rng.uniform(0, 6000, shape), 20), 0, 4095).astype(np.uint16)
+    inp = prepare(raw, PATTERN, SENSOR)
+    image = rng.uniform(0, 3000, shape).astype(np.float32)
+    variance = np.full(shape, 4.0, np.float32)
+    flagged, short, short_var = consistency_reference(image, variance, inp, MotionConfig())
+    found = exposure_consistency(image, variance, inp, MotionConfig())
+    np.testing.assert_array_equal(found.flagged, flagged)
+    np.testing.assert_allclose(found.image, short, rtol=1e-6)
+    np.testing.assert_allclose(found.variance, short_var, rtol=1e-6)
+
+
+@pytest.mark.parametrize("detail", [True, False])
+def test_fusion_applies_the_within_frame_finding_only_where_the_history_restarts(detail):
+    config = MotionConfig()
+    frames = disc_frames(PATTERN, (90, 70), 4)
+    rows = own_reading_rows(Pattern.parse(PATTERN), (90, 70), SENSOR, config.detail_sigmas ** 2)
+    plain_state = state = None
+    for inp, image, variance, bound in frames:
+        frame = FrameEstimate(image, variance, bound, inp.censored, inp.signal, *rows)
+        plain = fuse(plain_state, frame, config, (2, 2), detail=detail)
+        found = exposure_consistency(image, variance, inp, config)
+        results = [fuse(state, frame, config, (2, 2), exposure_consistency(image, variance, inp, config),
+                        detail=detail, workers=workers, strip_rows=strip_rows)
+                   for strip_rows, workers in ((64, 1), (7, 2))]
+        used = found.flagged & (plain.history == 1)  # weight 1: the history restarted there
+        assert used.any()
+        for fused in results:
+            np.testing.assert_array_equal(fused.image, np.where(used, found.image, plain.image))
+            np.testing.assert_array_equal(fused.motion, plain.motion | used)
+            np.testing.assert_array_equal(fused.variance, np.where(used, found.variance, plain.variance))
+            for name in ("mean", "own", "weight", "bound", "censored"):  # the history keeps the frame's estimates
+                np.testing.assert_array_equal(getattr(fused.state, name), getattr(plain.state, name))
+        plain_state, state = plain.state, results[0].state
 
 
 def test_config_rejects_bad_values():
