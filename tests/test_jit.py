@@ -2,11 +2,13 @@
 
 import importlib
 import pkgutil
+from itertools import product
 
 import numba
 import numpy as np
 
 import svelive
+from svelive import Pattern
 from svelive.reconstructor import Reconstructor, warm_up
 from svelive.tonemap import ToneMapper
 
@@ -28,11 +30,17 @@ def test_warm_up_compiles_what_a_stream_runs():
     assert len(found) >= 5, found.keys()  # the methods', the motion stage's and the tone map's kernels
     before = {name: len(k.signatures) for name, k in found.items()}  # 0 for kernels only other kernels call
     rng = np.random.default_rng(3)
-    scene = rng.uniform(0, 6000, (96, 128))
-    for method in ("adaptive", "weighted", "aggregate"):
+    dark = rng.uniform(0, 1500, (160, 128))
+    bright = dark.copy()
+    bright[100:] *= 4  # the bottom strips saturate, the top ones do not
+    nominal = Pattern.parse("1,4/16,64")
+    patterns = [nominal, Pattern.parse("1/1/8/8"), nominal.with_pixel_map(nominal.exposure_map(dark.shape))]
+    for method, pattern, scene in product(("adaptive", "weighted", "aggregate"), patterns, (dark, bright)):
         for dtype, white in ((np.uint16, 4095), (np.uint8, 255)):
             for timing in ("mask", "integration"):  # integration: the within-frame test too
-                reconstructor = Reconstructor("1,4/16,64", method=method, white_level=white, exposure_timing=timing)
+                if timing == "integration" and pattern.pixel_map is not None:
+                    continue
+                reconstructor = Reconstructor(pattern, method=method, white_level=white, exposure_timing=timing)
                 for moved in (0, 0, 0, 1, 40):  # fuse, then a small move, then the whole frame moves
                     noisy = rng.normal(np.roll(scene, moved, axis=1), 20) * white / 4095
                     result = reconstructor.process(np.clip(noisy, 0, white).astype(dtype))
@@ -40,7 +48,7 @@ def test_warm_up_compiles_what_a_stream_runs():
                 ToneMapper()(result.image, 0)
     reconstructor = Reconstructor("1,4/16,64", white_level=4095, exposure_timing="integration", temporal=False)
     for _ in range(2):
-        result = reconstructor.process(np.clip(rng.normal(scene, 20), 0, 4095).astype(np.uint16))
+        result = reconstructor.process(np.clip(rng.normal(bright, 20), 0, 4095).astype(np.uint16))
     result.variance  # noqa: B018
     after = {name: len(k.signatures) for name, k in found.items()}
     assert after == before
