@@ -84,18 +84,22 @@ def test_demo_renders_moving_hdr_scene_at_rate() -> None:
 
 
 def test_close_from_another_thread_ends_iteration_quickly(tmp_path: Path) -> None:
+    """close() wakes a reader waiting for the next frame: with 50 s between frames, the
+    reader must end within the join's 10 s, so no tight wall-clock bound is needed."""
     write_sequence(tmp_path / "seq", 2)
-    for spec, opts in [("demo", {"width": 64, "height": 48, "fps": 2}),
-                       (f"images:{tmp_path / 'seq'}", {"fps": 0.5, "loop": True})]:
+    for spec, opts in [("demo", {"width": 64, "height": 48, "fps": 0.02}),
+                       (f"images:{tmp_path / 'seq'}", {"fps": 0.02, "loop": True})]:
         source = open_source(spec, **opts)
         got: list[int] = []
         th = threading.Thread(target=lambda: got.extend(f.frame_id for f in source))
         th.start()
-        time.sleep(0.3)
-        t = time.monotonic()
+        for _ in range(100):  # the first frame comes at once; then the reader waits ~50 s
+            if got:
+                break
+            time.sleep(0.05)
         source.close()
-        th.join(2)
-        assert not th.is_alive() and time.monotonic() - t < 0.5
+        th.join(10)
+        assert not th.is_alive()
         assert source.stats()["state"] == "closed" and got == [0]
 
 
