@@ -73,11 +73,13 @@ def test_replay_source_timing_speed_and_loop(tmp_path: Path) -> None:
     with open_source(f"replay:{path}") as s:  # recorded timing: 5 intervals of 40 ms
         t = time.monotonic()
         got = list(s.frames(seconds=5))
-        assert len(got) == 6 and 0.18 < time.monotonic() - t < 0.5
+        recorded_pace = time.monotonic() - t
+        assert len(got) == 6 and 0.18 < recorded_pace < 2  # waits the 0.2 s; the upper bound only catches hangs
         assert s.pattern == "1,4/16,64" and s.stats()["state"] == "ended"
     with open_source(f"replay:{path}", speed=4.0) as s:
         t = time.monotonic()
-        assert len(list(s)) == 6 and time.monotonic() - t < 0.15
+        assert len(list(s)) == 6
+        assert time.monotonic() - t < recorded_pace / 2  # 1/4 of the time expected; a ratio, robust to load
     with open_source(f"replay:{path}", speed=0, loop=True, start=4) as s:
         ids = [f.frame_id for f in s.frames(limit=9)]
     assert ids == [104, 105, 106, 107, 108, 109, 110, 111, 112]  # ids keep increasing over loops
