@@ -51,6 +51,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from svelive.capture import open_source
+    from svelive.reconstructor import warm_up
 
     from service.app import create_app, listen_socket
     from service.pipeline import Pipeline
@@ -67,6 +68,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)
+    # compile (first run on a machine, a few seconds) or load the kernels before the first live frame
+    warm_up()
     app = create_app(Pipeline(config), server)
     sock = listen_socket(server)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
