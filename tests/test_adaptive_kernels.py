@@ -91,3 +91,45 @@ def test_kernels_agree_with_the_numpy_formulas(pattern, shape):
     # float32 rounding: the kernels order a few operations differently from this statement of the formulas
     np.testing.assert_allclose(est.image, image, rtol=1e-5, atol=1e-5 * float(image.max()))
     np.testing.assert_allclose(est.variance, variance, rtol=1e-5)
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
+def test_censored_boxes_at_the_edges_and_inside(pattern):
+    """Censored pixels at the corners, along the edges and in small clusters inside: each level's box is cut there."""
+    rng = np.random.default_rng(7)
+    shape = (150, 90)  # several strips
+    truth = cv2.GaussianBlur(rng.uniform(2, 60, shape).astype(np.float32), (0, 0), 1.5)
+    clusters = [(slice(0, 3), slice(0, 4)), (slice(-2, None), slice(-3, None)), (slice(70, 72), slice(0, 1)),
+                (slice(40, 44), slice(-1, None)), (slice(100, 103), slice(30, 33)), (slice(20, 21), slice(60, 61))]
+    for rows, cols in clusters:
+        truth[rows, cols] = rng.uniform(100, 3000)  # saturates some exposures
+    truth[:3, :4] = truth[-2:, -3:] = truth[100:103, 30:33] = 8000  # all of them: lower bounds
+    inp = prepare(simulate(truth, pattern, SENSOR, seed=3).raw, pattern, SENSOR)
+    assert 0 < inp.censored.mean() < 0.05
+    image, lower, variance = _reference(inp)
+    assert lower[:3, :4].any() and lower[-2:, -3:].any() and lower[100:103, 30:33].any()
+    est = run_method(inp, "adaptive", return_variance=True)
+    np.testing.assert_array_equal(est.lower_bound, lower)
+    np.testing.assert_allclose(est.image, image, rtol=1e-5, atol=1e-5 * float(image.max()))
+    np.testing.assert_allclose(est.variance, variance, rtol=1e-5)
+
+
+@pytest.mark.parametrize("box", [(slice(10, 14), slice(20, 23)), (slice(0, 2), slice(0, 3)),
+                                 (slice(-3, None), slice(-1, None)), (slice(5, 6), slice(None)),
+                                 (slice(None), slice(7, 8))])
+def test_bounds_only_in_the_box_of_lower_pixels_equal_whole_frame_ones(box):
+    """The lower-bound fill dilates only around the lower pixels (a window radius wider): the frame's values."""
+    rng = np.random.default_rng(11)
+    raw = np.where(rng.random((30, 40)) < 0.5, 4095, rng.integers(0, 4096, (30, 40))).astype(np.uint16)
+    inp = prepare(raw, "1,4/16,64", SENSOR)
+    assert inp.censored.mean() > 0.4
+    inp.signal[inp.censored] += rng.uniform(0, 50, int(inp.censored.sum())).astype(np.float32)  # bounds differ
+    lower = np.zeros(inp.shape, bool)
+    lower[box] = rng.random(lower[box].shape) < 0.5
+    lower[box][0, 0] = lower[box][-1, -1] = True
+    image, variance = rng.random(inp.shape).astype(np.float32), rng.random(inp.shape).astype(np.float32)
+    bound = censored_lower_bound(inp, (3, 3))
+    expected_image, expected_variance = np.where(lower, bound, image), np.where(lower, bound * bound, variance)
+    adaptive._bounds_at(inp, lower, np.flatnonzero(lower.any(axis=1)), (3, 3), image, variance)
+    np.testing.assert_array_equal(image, expected_image)
+    np.testing.assert_array_equal(variance, expected_variance)

@@ -38,8 +38,9 @@ bound the window's censored pixels imply, flagged in ``lower_bound``.
 Cost. Per-pixel weights make the cost independent of the number of exposure
 levels: two separable windows for the pilot, two for m, two for b^2. The
 censored-pixel step (one more pair of windows per level) runs only for the
-levels, and the rows of each strip, that actually hold censored pixels, so a
-scene whose range fits in the unsaturated exposures does not pay for it.
+levels that actually hold censored pixels in a strip, over the box around
+that level's censored pixels, so a scene whose range fits in the unsaturated
+exposures does not pay for it; so does the lower-bound fill.
 Without censored pixels the pilot's exposure window is the same for every
 strip of a frame (strips start on whole tiles), so it is computed once per
 pattern and strip shape. Between the windows the per-pixel arithmetic runs as
@@ -139,12 +140,29 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     if any_censored:
         lower |= _censored_pixels(inp, image, w, x, ky, kx)
     variance = np.divide(f32(1.0), total) if want_variance else None
-    if lower.any():
-        bound = censored_lower_bound(inp, (len(ky), len(kx)))
-        np.copyto(image, bound, where=lower)
-        if variance is not None:  # a bound is known to within itself: relative error 1
-            np.copyto(variance, bound * bound, where=lower)
+    rows = np.flatnonzero(lower.any(axis=1))
+    if rows.size:
+        _bounds_at(inp, lower, rows, (len(ky), len(kx)), image, variance)
     return image, lower, variance, np.divide(w, total) if want_share else None
+
+
+def _bounds_at(inp: SveInput, lower: np.ndarray, rows: np.ndarray, window: tuple[int, int], image: np.ndarray,
+               variance: np.ndarray | None) -> None:
+    """Set ``image`` (and ``variance``: bound^2) to the censored lower bound at the ``lower`` pixels, in place.
+
+    ``rows``: the rows holding ``lower`` pixels, ascending. The bound is
+    dilated over their box, one window radius wider (cut at the frame's
+    edges), so inside it equals the whole frame's.
+    """
+    cols = np.flatnonzero(lower[rows[0]:rows[-1] + 1].any(axis=0))
+    (ry, rx), (h, w) = (window[0] // 2, window[1] // 2), inp.shape
+    box = (slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, h)),
+           slice(max(cols[0] - rx, 0), min(cols[-1] + rx + 1, w)))
+    piece = SveInput(inp.signal[box], inp.exposure[box], inp.censored[box], inp.pattern, inp.sensor, inp.integral)
+    bound, where = censored_lower_bound(piece, window), lower[box]
+    np.copyto(image[box], bound, where=where)
+    if variance is not None:  # a bound is known to within itself: relative error 1
+        np.copyto(variance[box], bound * bound, where=where)
 
 
 @lru_cache(maxsize=16)
@@ -253,56 +271,128 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
     censored pixel the surviving ones are the darker ones. With no consistent
     neighbour the pixel is returned for the caller to give it the largest bound
     of its window.
+
+    Each level's two window sums cover only the box around its censored pixels,
+    one window radius wider (cut at the frame's edges), so that inside it they
+    equal whole-frame sums.
     """
     f32 = np.float32
-    censored = inp.censored
-    rows = np.flatnonzero(censored.any(axis=1))
-    ry = len(ky) // 2
-    band = slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, inp.shape[0]))  # the rows the sums need
-    shape = (band.stop - band.start, inp.shape[1])
-    x = x[band]
-    reach, consistent, consistent_x = (np.empty(shape, f32) for _ in range(3))
-    _reach(*flat(w[band], x, reach))
-    levels = inp.pattern.levels.tolist()
+    levels, censor = inp.pattern.levels.tolist(), inp.sensor.censor_level
     if inp.pattern.pixel_map is None:
-        key, values = inp.exposure[band], [f32(level) for level in levels]
+        key, values = inp.exposure, np.array(levels, f32)
     else:
-        key, values = inp.pattern.level_index_map(inp.shape)[band], list(range(len(levels)))
-    at_censored = key[censored[band]]
+        key, values = inp.pattern.level_index_map(inp.shape), np.arange(len(levels), dtype=np.uint8)
+    h, width = inp.shape
+    ry, rx = len(ky) // 2, len(kx) // 2
+    boxes = np.empty((len(levels), 4), np.int64)  # first row, last row, first column, last column
+    if len(levels) < 64:
+        _level_boxes(*flat(inp.censored, key), values, width, boxes)
+    else:  # more levels than bits in a mask: every level's box is the whole frame
+        boxes[:] = (0, h - 1, 0, width - 1)
     bound_only = np.zeros(inp.shape, bool)
-    for value, level in zip(values, levels):
-        if not (at_censored == value).any():
-            continue
-        _consistent(*flat(reach, x, consistent, consistent_x), f32(inp.sensor.censor_level / level))
-        _fill_censored(*flat(censored[band], key, smooth(consistent, ky, kx), smooth(consistent_x, ky, kx), x,
-                             image[band], bound_only[band]), value)
+    for level, value, (top, bottom, left, right) in zip(levels, values, boxes.tolist()):
+        if bottom < 0:
+            continue  # no censored pixel of this level
+        r0, r1, c0, c1 = max(top - ry, 0), min(bottom + ry + 1, h), max(left - rx, 0), min(right + rx + 1, width)
+        consistent, consistent_x = np.empty((r1 - r0, c1 - c0), f32), np.empty((r1 - r0, c1 - c0), f32)
+        _consistent(*flat(w, x, consistent, consistent_x), width, r0, c0, c1 - c0, f32(censor / level))
+        count, sum_x = smooth(consistent, ky, kx), smooth(consistent_x, ky, kx)
+        _fill_censored(*flat(inp.censored, key, x, image, bound_only, count, sum_x), width, value, r0, c0, c1 - c0,
+                       top, bottom + 1, left, right + 1)
     return bound_only
 
 
 @kernel
-def _reach(w, x, reach):
-    """Upper reach x + 2 sqrt(v_p) of every reading; -inf where w = 0 (censored: no reading to count)."""
-    tiny, sigma, none = np.float32(TINY), np.float32(CONSISTENT_SIGMA), np.float32(-np.inf)
-    for k in range(w.size):
-        reach[k] = np.sqrt(np.float32(1.0) / max(w[k], tiny)) * sigma + x[k] if w[k] > 0 else none
+def _level_boxes(censored, key, values, width, boxes):
+    """Per level j, a box (first row, last row, first column, last column) holding its censored pixels.
+
+    ``values``: the levels' keys, ascending (at most 63); a pixel's level is
+    the number of keys below its own. The box of a level without censored
+    pixels has last row -1.
+    """
+    rows = censored.size // width
+    row_bits, col_bits = np.zeros(rows, np.int64), np.zeros(width, np.int64)
+    slot = np.empty(width, np.int64)
+    for r in range(rows):
+        row = slice(r * width, (r + 1) * width)
+        if censored[row].any():
+            row_bits[r] = _row_level_bits(censored[row], key[row], values, slot, col_bits)
+    for j in range(values.size):
+        bit = np.int64(1) << j
+        boxes[j, 0], boxes[j, 1] = _first_last(row_bits, bit)
+        boxes[j, 2], boxes[j, 3] = _first_last(col_bits, bit)
 
 
 @kernel
-def _consistent(reach, x, consistent, consistent_x, bound):
-    """1 for readings consistent with ``bound`` (reach >= bound), else 0; and that times x."""
-    zero, one = np.float32(0.0), np.float32(1.0)
-    for k in range(x.size):
-        c = zero if reach[k] < bound else one
+def _row_level_bits(censored, key, values, slot, col_bits):
+    """Bit j set where a censored pixel of level j lies: in the row (returned), per column (OR-ed into col_bits)."""
+    slot[:] = 0
+    for j in range(values.size):
+        for k in range(key.size):
+            slot[k] += key[k] > values[j]
+    bits = np.int64(0)
+    for k in range(key.size):
+        b = np.int64(censored[k]) << slot[k]
+        bits |= b
+        col_bits[k] |= b
+    return bits
+
+
+@kernel
+def _first_last(bits, bit):
+    """First and last index of ``bits`` with ``bit`` set; (size, -1) when none."""
+    first, last = bits.size, -1
+    for i in range(bits.size):
+        if bits[i] & bit:
+            first = min(first, i)
+            last = i
+    return first, last
+
+
+@kernel
+def _consistent(w, x, consistent, consistent_x, width, r0, c0, cols, bound):
+    """Over a box of ``cols`` columns at (r0, c0): 1 for readings consistent with ``bound``, else 0; and that times x.
+
+    Consistent: an uncensored reading (w > 0) whose reach x + 2 sqrt(v_p) is at least the bound.
+    """
+    for i in range(consistent.size // cols):
+        start, out = (r0 + i) * width + c0, i * cols
+        _consistent_row(w[start:start + cols], x[start:start + cols], consistent[out:out + cols],
+                        consistent_x[out:out + cols], bound)
+
+
+@kernel
+def _consistent_row(w, x, consistent, consistent_x, bound):
+    """One row of :func:`_consistent` (a loop of its own, which LLVM vectorises)."""
+    zero, one, tiny, sigma = np.float32(0.0), np.float32(1.0), np.float32(TINY), np.float32(CONSISTENT_SIGMA)
+    none = np.float32(-np.inf)  # no reading: consistent with no bound
+    for k in range(w.size):
+        reach = np.sqrt(one / max(w[k], tiny)) * sigma + x[k] if w[k] > 0 else none
+        c = zero if reach < bound else one
         consistent[k] = c
         consistent_x[k] = c * x[k]
 
 
 @kernel
-def _fill_censored(censored, key, total, sum_x, x, image, bound_only, value):
-    """At this level's censored pixels (key == value): image = max(mean of consistent x, x); flag empty windows."""
+def _fill_censored(censored, key, x, image, bound_only, count, sum_x, width, value, r0, c0, cols,
+                   top, bottom, left, right):
+    """At this level's censored pixels (key == value) in rows [top, bottom) and cols [left, right):
+    image = max(mean of consistent x, x), from the window sums ``count`` and ``sum_x`` of a box of ``cols``
+    columns at (r0, c0); flag empty windows.
+    """
+    n = right - left
+    for r in range(top, bottom):
+        at, box = r * width + left, (r - r0) * cols + left - c0
+        _fill_row(censored[at:at + n], key[at:at + n], x[at:at + n], image[at:at + n], bound_only[at:at + n],
+                  count[box:box + n], sum_x[box:box + n], value)
+
+
+@kernel
+def _fill_row(censored, key, x, image, bound_only, count, sum_x, value):
+    """One row of :func:`_fill_censored` (a loop of its own, which LLVM vectorises)."""
     tiny = np.float32(TINY)
     for k in range(x.size):
         if censored[k] and key[k] == value:
-            image[k] = max(sum_x[k] / max(total[k], tiny), x[k])
-            if total[k] <= 0:
+            image[k] = max(sum_x[k] / max(count[k], tiny), x[k])
+            if count[k] <= 0:
                 bound_only[k] = True
