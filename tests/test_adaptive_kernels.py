@@ -6,7 +6,7 @@ import pytest
 
 from svelive import Sensor, simulate
 from svelive.methods import adaptive
-from svelive.methods.base import censored_lower_bound, smooth
+from svelive.methods.base import censored_lower_bound, fill_lower_bounds, smooth
 from svelive.reconstruct import prepare, run_method
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
@@ -130,6 +130,6 @@ def test_bounds_only_in_the_box_of_lower_pixels_equal_whole_frame_ones(box):
     image, variance = rng.random(inp.shape).astype(np.float32), rng.random(inp.shape).astype(np.float32)
     bound = censored_lower_bound(inp, (3, 3))
     expected_image, expected_variance = np.where(lower, bound, image), np.where(lower, bound * bound, variance)
-    adaptive._bounds_at(inp, lower, np.flatnonzero(lower.any(axis=1)), (3, 3), image, variance)
+    fill_lower_bounds(inp, lower, (3, 3), image, variance)
     np.testing.assert_array_equal(image, expected_image)
     np.testing.assert_array_equal(variance, expected_variance)

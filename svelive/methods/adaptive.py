@@ -59,7 +59,7 @@ import cv2
 import numpy as np
 
 from svelive.jit import flat, kernel
-from svelive.methods.base import (Estimate, SveInput, binomial_kernel, censored_lower_bound, in_strips,
+from svelive.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips,
                                   smooth, support_size)
 from svelive.pattern import Pattern
 
@@ -140,29 +140,8 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
     if any_censored:
         lower |= _censored_pixels(inp, image, w, x, ky, kx)
     variance = np.divide(f32(1.0), total) if want_variance else None
-    rows = np.flatnonzero(lower.any(axis=1))
-    if rows.size:
-        _bounds_at(inp, lower, rows, (len(ky), len(kx)), image, variance)
+    fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance)
     return image, lower, variance, np.divide(w, total) if want_share else None
-
-
-def _bounds_at(inp: SveInput, lower: np.ndarray, rows: np.ndarray, window: tuple[int, int], image: np.ndarray,
-               variance: np.ndarray | None) -> None:
-    """Set ``image`` (and ``variance``: bound^2) to the censored lower bound at the ``lower`` pixels, in place.
-
-    ``rows``: the rows holding ``lower`` pixels, ascending. The bound is
-    dilated over their box, one window radius wider (cut at the frame's
-    edges), so inside it equals the whole frame's.
-    """
-    cols = np.flatnonzero(lower[rows[0]:rows[-1] + 1].any(axis=0))
-    (ry, rx), (h, w) = (window[0] // 2, window[1] // 2), inp.shape
-    box = (slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, h)),
-           slice(max(cols[0] - rx, 0), min(cols[-1] + rx + 1, w)))
-    piece = SveInput(inp.signal[box], inp.exposure[box], inp.censored[box], inp.pattern, inp.sensor, inp.integral)
-    bound, where = censored_lower_bound(piece, window), lower[box]
-    np.copyto(image[box], bound, where=where)
-    if variance is not None:  # a bound is known to within itself: relative error 1
-        np.copyto(variance[box], bound * bound, where=where)
 
 
 @lru_cache(maxsize=16)

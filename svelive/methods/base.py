@@ -106,6 +106,29 @@ def censored_lower_bound(inp: SveInput, window: tuple[int, int]) -> np.ndarray:
     return cv2.dilate(bound, np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
 
 
+
+def fill_lower_bounds(inp: SveInput, lower: np.ndarray, window: tuple[int, int], image: np.ndarray,
+                      variance: np.ndarray | None = None) -> None:
+    """Set ``image`` to :func:`censored_lower_bound` at the ``lower`` pixels (bool (H, W)), in place.
+
+    ``variance``, if given, becomes bound^2 there: a bound is known to within
+    itself (relative error 1). The bound is dilated only over the box of the
+    ``lower`` pixels, one window radius wider (cut at the frame's edges), so
+    inside it it equals the whole frame's.
+    """
+    rows = np.flatnonzero(lower.any(axis=1))
+    if rows.size == 0:
+        return
+    cols = np.flatnonzero(lower[rows[0]:rows[-1] + 1].any(axis=0))
+    (ry, rx), (h, w) = (window[0] // 2, window[1] // 2), inp.shape
+    box = (slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, h)),
+           slice(max(cols[0] - rx, 0), min(cols[-1] + rx + 1, w)))
+    piece = SveInput(inp.signal[box], inp.exposure[box], inp.censored[box], inp.pattern, inp.sensor, inp.integral)
+    bound, where = censored_lower_bound(piece, window), lower[box]
+    np.copyto(image[box], bound, where=where)
+    if variance is not None:
+        np.copyto(variance[box], bound * bound, where=where)
+
 def pad_same_phase(image: np.ndarray, period: tuple[int, int], before: tuple[int, int],
                    after: tuple[int, int]) -> np.ndarray:
     """Pad (H, W) by ``before``/``after`` (rows, cols) with pixels of the same tile phase.

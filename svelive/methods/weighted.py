@@ -58,7 +58,7 @@ import cv2
 import numpy as np
 
 from svelive.jit import flat, kernel
-from svelive.methods.base import (Estimate, SveInput, binomial_kernel, censored_lower_bound, in_strips, smooth,
+from svelive.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips, smooth,
                                   support_size)
 from svelive.pattern import Pattern
 
@@ -290,10 +290,7 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
                       np.float32(gain), np.float32(1.0 / gain), np.float32(floor), w,
                       *flat(image, lower_bound, variance))
     if bounds:
-        where = np.nonzero(lower_bound)
-        image[where] = censored_lower_bound(inp, window)[where]
-        if return_variance:  # a bound is known to within itself: relative error 1
-            variance[where] = image[where] ** 2
+        fill_lower_bounds(inp, lower_bound, window, image, variance if return_variance else None)
     return Estimate(image, lower_bound, variance if return_variance else None)
 
 
