@@ -33,7 +33,7 @@ import numpy as np
 
 from svelive.errors import SveliveError
 from svelive.jit import flat, kernel
-from svelive.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size
+from svelive.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size, tile_rows
 from svelive.pattern import Pattern
 
 
@@ -270,7 +270,8 @@ class _ShortestLayout:
 
     The tables hold a frame's window sums when none of the level's samples is
     censored; a window's sums repeat with the tile's period away from the top and
-    bottom borders, so they keep only distinct rows: row r's are ``table[row_of[r]]``.
+    bottom borders, so they are kept for the rows of a small frame
+    (methods.base.tile_rows): row r's are ``table[row_of[r]]``.
 
     Attributes:
         exposure: the level's relative exposure e.
@@ -296,33 +297,16 @@ class _ShortestLayout:
 def _shortest_layout(pattern: Pattern, shape: tuple[int, int]) -> _ShortestLayout:
     """The :class:`_ShortestLayout` of a nominal tile over frames of ``shape``."""
     exposure = float(pattern.levels[0])
-    mask = (pattern.level_index_map(shape) == 0).astype(np.float32)
     ky, kx = _window_kernels(pattern)
     kernels = (ky, kx, ky * ky, kx * kx)
+    small, row_of = tile_rows(shape[0], pattern.shape[0], ky.size // 2)
+    mask = (pattern.level_index_map((small, shape[1])) == 0).astype(np.float32)
     tables = _window_tables(smooth(mask, ky, kx), smooth(mask, kernels[2], kernels[3]), exposure)
-    rows, row_of = np.unique(_repeating_rows(shape[0], pattern.shape[0], ky.size // 2, tables), return_inverse=True)
-    tables = [np.ascontiguousarray(t[rows]) for t in tables]
-    mask = np.ascontiguousarray(mask[:min(pattern.shape[0], shape[0])])
+    mask = np.ascontiguousarray(mask[:min(pattern.shape[0], small)])
     row_of = row_of.astype(np.intp)
     for array in (mask, row_of, *kernels, *tables):
         array.setflags(write=False)
     return _ShortestLayout(exposure, mask, kernels, row_of, *tables)
-
-
-def _repeating_rows(height: int, period: int, radius: int, tables: list[np.ndarray]) -> np.ndarray:
-    """intp (H,): for each row, a row with equal values in every table (among the first
-    ``radius + period`` and the last ``radius``).
-
-    A window reaching ``radius`` rows each side that stays inside the frame sees the
-    tile's rows in the same order every ``period`` rows; the equality is checked, not
-    assumed (otherwise every row is its own).
-    """
-    first = np.arange(height)
-    interior = (first >= radius + period) & (first < height - radius)
-    first[interior] = radius + (first[interior] - radius) % period
-    if all(np.array_equal(t[first], t) for t in tables):
-        return first
-    return np.arange(height)
 
 
 def _window_tables(weight_sum: np.ndarray, squares: np.ndarray, exposure: float) -> list[np.ndarray]:

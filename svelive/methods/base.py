@@ -87,6 +87,27 @@ def support_size(tile_length: int) -> int:
     return tile_length + 1 if tile_length % 2 == 0 else tile_length
 
 
+
+def tile_rows(height: int, period: int, radius: int) -> tuple[int, np.ndarray]:
+    """A small frame whose rows stand for all ``height`` rows of a frame tiled with ``period`` rows.
+
+    Window sums (reaching ``radius`` rows each side, borders mirrored) of
+    anything that repeats with the tile are the same on two rows of one tile
+    phase away from the top and bottom borders, so they need computing only on
+    a frame of the top border's rows, one tile of rows, and the bottom border's
+    rows, in the same phase as the full frame's.
+
+    Returns:
+        (rows of the small frame, intp (height,): the small frame's row that holds each row's values).
+    """
+    rows = np.arange(height)
+    if height <= 2 * radius + 2 * period:
+        return height, rows
+    small = 2 * radius + period + (height - 2 * radius - period) % period
+    rows[radius:height - radius] = radius + (rows[radius:height - radius] - radius) % period
+    rows[height - radius:] -= height - small
+    return small, rows
+
 def smooth(image: np.ndarray, kernel_y: np.ndarray, kernel_x: np.ndarray) -> np.ndarray:
     """Separable filtering, float32, borders mirrored (exposure maps mirror with the data)."""
     return cv2.sepFilter2D(image, cv2.CV_32F, kernel_x, kernel_y, borderType=cv2.BORDER_REFLECT_101)

@@ -59,7 +59,7 @@ import numpy as np
 
 from svelive.jit import flat, kernel
 from svelive.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips, smooth,
-                                  support_size)
+                                  support_size, tile_rows)
 from svelive.pattern import Pattern
 
 
@@ -106,15 +106,7 @@ def _level_layout(pattern: Pattern, shape: tuple[int, int]) -> _Layout:
     (th, tw), (h, w) = pattern.shape, shape
     window = support_size(th), support_size(tw)
     ky, kx = binomial_kernel(window[0]), binomial_kernel(window[1])
-    edge = window[0] // 2  # rows a window reaches beyond its centre
-    if h <= 2 * edge + 2 * th:
-        small, rows = h, np.arange(h)
-    else:
-        # the top edge's rows, one tile of rows out of reach of both edges, the bottom edge's rows
-        small = 2 * edge + th + (h - 2 * edge - th) % th
-        rows = np.arange(h)
-        rows[edge:h - edge] = edge + (rows[edge:h - edge] - edge) % th
-        rows[h - edge:] -= h - small
+    small, rows = tile_rows(h, th, window[0] // 2)
     levels = pattern.levels
     index = pattern.level_index_map((small, w))
     masks = [(index == k).astype(np.float32) for k in range(levels.size)]
@@ -127,17 +119,17 @@ def _level_layout(pattern: Pattern, shape: tuple[int, int]) -> _Layout:
     groups = _phase_groups(pattern) if _polyphase(pattern, shape) else None
     if groups is None:  # plane k: level k's window sum of x
         owner = np.broadcast_to(np.arange(levels.size)[:, None, None], (levels.size, small, w))
-        groups, scales, tile_rows = (), levels.astype(np.float32), 1
+        groups, scales, phase_rows = (), levels.astype(np.float32), 1
     else:
         # plane g holds the level of the pixels at offsets of its class (cy, cx): phase (r + cy, c + cx)
         classes, weights = _classes(pattern.shape), _class_weights(pattern.shape)
         shifted = pattern.level_index_map((small + 1, w + 1))
         owner = np.stack([shifted[cy:cy + small, cx:cx + w] for cy, cx in (classes[g[0]] for g in groups)])
-        scales, tile_rows = np.array([weights[g[0]] if len(g) == 1 else 1 for g in groups], np.float32), th
+        scales, phase_rows = np.array([weights[g[0]] if len(g) == 1 else 1 for g in groups], np.float32), th
     owner = owner.astype(np.intp)
     pick = lambda per_level: np.take_along_axis(per_level, owner, axis=0)  # noqa: E731
     # the planes' exposures repeat with the tile's rows (owner's first rows: small >= th), kept small to stay in cache
-    exposures = np.ascontiguousarray(levels.astype(np.float32)[owner[:, :tile_rows]])
+    exposures = np.ascontiguousarray(levels.astype(np.float32)[owner[:, :phase_rows]])
     layout = _Layout(rows, index, bool(groups), groups, scales, exposures, pick(share), pick(information),
                      exposure_sum)
     for array in layout:
