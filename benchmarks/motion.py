@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 from svelive import Pattern, Sensor  # noqa: E402
 from svelive.exr import read_luminance  # noqa: E402
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode  # noqa: E402
-from svelive.reconstructor import Reconstructor  # noqa: E402
+from svelive.reconstruction.stream import Reconstructor  # noqa: E402
 from svelive.scenes import load_beachball, moving_disc, panning, placed_frames, render_sequence, static  # noqa: E402
 from svelive.simulate import exposure_scale  # noqa: E402
 

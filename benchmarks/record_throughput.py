@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from replay import RecordingReader, RecordingWriter, WriterConfig
+from svelive.camera import Camera
 from svelive.frame import Frame
 from svelive.sensor import Sensor
 
@@ -35,7 +36,7 @@ def main() -> None:
     pool = [rng.integers(0, 4096, (args.height, args.width), dtype=np.uint16) for _ in range(8)]
     sensor = Sensor(bits=12)
     frames = [Frame(raw=pool[i % 8], frame_id=i, host_time_ns=i * 16_666_667, device_time_ns=i * 16_666_667,
-                    pixel_format="Mono12", sensor=sensor) for i in range(args.frames)]
+                    pixel_format="Mono12", camera=Camera(sensor=sensor)) for i in range(args.frames)]
     fd, name = tempfile.mkstemp(suffix=".sverec", dir=args.dir)
     os.close(fd)
     try:

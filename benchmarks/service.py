@@ -74,7 +74,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
                 self._t0 = time.monotonic() - self._n / fps
             raw = raws[self._n % n]
             frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(), pixel_format="Mono12",
-                          sensor=self.sensor)
+                          camera=self.camera)
             self._n += 1
             return frame
 

@@ -24,7 +24,7 @@ from replay.container import (
 from svelive.capture import formats
 from svelive.errors import SveliveError
 from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.camera import Camera
 
 
 class CorruptFrameError(RecordingError):
@@ -73,14 +73,17 @@ class RecordingReader:
         except SveliveError:
             raise RecordingError(f"{self.path}: unknown pixel format {self.meta.get('pixel_format')!r} "
                                  "in the header") from None
+        # recordings before the camera description stored pattern and sensor alone; a Bayer
+        # pixel format then still says which colour filter the frames have
+        described = self.meta.get("camera") or {
+            "pattern": self.meta.get("pattern"), "sensor": self.meta.get("sensor") or {},
+            "cfa": formats.lookup(self.pixel_format).cfa}
         try:
-            s = self.meta.get("sensor") or {}
-            self.sensor = Sensor(int(s.get("bits", 16 if self.layout.dtype == "uint16" else 8)),
-                                 float(s.get("black_level", 0.0)), s.get("white_level"), s.get("gain"),
-                                 s.get("read_noise"))
-        except (TypeError, ValueError) as exc:
-            raise RecordingError(f"{self.path}: sensor metadata is invalid ({exc})") from None
-        self.pattern: str | None = self.meta.get("pattern")
+            self.camera = Camera.from_dict(described, default_bits=16 if self.layout.dtype == "uint16" else 8)
+        except SveliveError as exc:
+            raise RecordingError(f"{self.path}: camera metadata is invalid ({exc})") from None
+        self.sensor = self.camera.sensor
+        self.pattern: str | None = None if self.camera.pattern is None else str(self.camera.pattern)
         self._size = size
         times = self._read_index(size)
         self.clean = times is not None
@@ -208,7 +211,7 @@ class RecordingReader:
             arr = arr.astype(arr.dtype.newbyteorder("="))
         return Frame(raw=arr, frame_id=int(fid), host_time_ns=int(host),
                      device_time_ns=None if dev == NO_TIME else int(dev),
-                     pixel_format=self.pixel_format, sensor=self.sensor)
+                     pixel_format=self.pixel_format, camera=self.camera)
 
     def info(self) -> dict[str, Any]:
         """A JSON-ready summary (what ``svelive replay-info`` prints)."""
@@ -217,6 +220,7 @@ class RecordingReader:
         return {
             "path": str(self.path), "frames": len(self), "width": lay.width, "height": lay.height,
             "dtype": lay.dtype, "pixel_format": self.pixel_format, "pattern": self.pattern,
+            "cfa": None if self.camera.cfa is None else self.camera.cfa.name,
             "sensor": {"bits": self.sensor.bits, "black_level": self.sensor.black_level,
                        "white_level": self.sensor.white_level, "gain": self.sensor.gain,
                        "read_noise": self.sensor.read_noise},

@@ -85,6 +85,11 @@ class RecordingWriter:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _camera_dict(self, frame: Frame) -> dict[str, Any]:
+        """The frame's camera description, with the writer's pattern where one was given."""
+        camera = frame.camera if self.pattern is None else frame.camera.with_pattern(self.pattern)
+        return camera.to_dict()
+
     def _start(self, frame: Frame) -> None:
         raw = frame.raw
         if raw.ndim != 2 or raw.dtype not in (np.uint8, np.uint16):
@@ -96,7 +101,8 @@ class RecordingWriter:
         h, w = raw.shape
         meta = {
             "format": "svelive-recording", "width": w, "height": h, "dtype": raw.dtype.name,
-            "pixel_format": frame.pixel_format, "pattern": self.pattern, "sensor": sensor_dict(frame.sensor),
+            "pixel_format": frame.pixel_format, "pattern": self.pattern or frame.camera.to_dict()["pattern"],
+            "sensor": sensor_dict(frame.sensor), "camera": self._camera_dict(frame),
             "source": self.source, "created": datetime.datetime.now(datetime.timezone.utc).isoformat(),
             **self.extra,
         }

@@ -301,9 +301,9 @@ def create_app(pipeline: Pipeline, settings: ServerSettings, *, manage_pipeline:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)
         hdr = published.hdr
         attributes = {"frameId": int(hdr.frame_id), "timestamp": f"{published.wall_time:.6f}",
-                      "pattern": published.pattern, "method": hdr.method,
-                      "blackLevel": float(published.sensor.black_level),
-                      "whiteLevel": float(published.sensor.white_level),
+                      "pattern": str(published.camera.pattern), "method": hdr.method,
+                      "blackLevel": float(published.camera.sensor.black_level),
+                      "whiteLevel": float(published.camera.sensor.white_level),
                       "units": "radiance, DN at relative exposure 1"}
         data = await run_in_threadpool(exr_bytes, {"Y": hdr.image}, attributes, half=half)
         return Response(data, media_type="image/x-exr",

@@ -19,7 +19,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--source", help="source spec: demo (default), gige[:ID], v4l2:/dev/videoN, images:GLOB, replay:PATH")
     p.add_argument("--source-option", dest="source_options", action="append", metavar="KEY=VALUE",
                    help="source option, repeatable (e.g. fps=30, width=1920)")
-    p.add_argument("--pattern", help="exposure pattern, e.g. 1,4/16,64 (default: the source's own)")
+    p.add_argument("--pattern", help="exposure pattern, e.g. 1,4/16,64, or a colour layout such as dual-iso "
+                                     "(default: the source's own)")
+    p.add_argument("--cfa", help="colour filter layout, e.g. RGGB or quad-RGGB; 'none' for monochrome "
+                                 "(default: a Bayer pixel format sets it by itself)")
     p.add_argument("--black-level", type=float)
     p.add_argument("--white-level", type=float)
     p.add_argument("--method", help="reconstruction method (see `svelive methods`)")
@@ -51,7 +54,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from svelive.capture import open_source
-    from svelive.reconstructor import warm_up
+    from svelive.reconstruction.warmup import warm_up
 
     from service.app import create_app, listen_socket
     from service.pipeline import Pipeline
@@ -63,7 +66,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = resolve(cli, config=args.config)
     config, server = settings.pipeline, settings.server
     # build (not open) the source once, so a bad spec or option fails now with one line
-    open_source(config.source, pattern=config.pattern, black_level=config.black_level,
+    open_source(config.source, pattern=config.pattern, cfa=config.cfa, black_level=config.black_level,
                 white_level=config.white_level, **config.source_options)
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "

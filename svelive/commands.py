@@ -14,7 +14,7 @@ from svelive.errors import SveliveError
 from svelive.exr import read_luminance, write_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, dynamic_range_db, dynamic_range_stops, \
     unique_levels
-from svelive.reconstruct import methods, reconstruct
+from svelive.reconstruction.single import methods, reconstruct
 from svelive.sensor import Sensor, container_bits
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
 

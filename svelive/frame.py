@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from svelive.camera import Camera
 from svelive.sensor import Sensor
 
 
@@ -19,7 +20,8 @@ class Frame:
         host_time_ns: host ``time.monotonic_ns()`` when the frame was received.
         device_time_ns: the camera's own timestamp in ns, or None when it has none.
         pixel_format: the wire format it was decoded from, e.g. ``"Mono12Packed"``.
-        sensor: bit depth, black and white level of the values in ``raw``.
+        camera: what the frame is: exposure pattern, colour filter, sensor, response
+            (svelive.camera.Camera). Reconstruction reads it from here.
     """
 
     raw: np.ndarray
@@ -27,7 +29,12 @@ class Frame:
     host_time_ns: int
     device_time_ns: int | None = None
     pixel_format: str = "Mono16"
-    sensor: Sensor = field(default_factory=Sensor)
+    camera: Camera = field(default_factory=Camera)
+
+    @property
+    def sensor(self) -> Sensor:
+        """The camera's sensor: bit depth, black and white level of the values in ``raw``."""
+        return self.camera.sensor
 
 
 @dataclass(frozen=True)
@@ -35,7 +42,8 @@ class HdrFrame:
     """One reconstructed HDR frame, with where it came from and what it cost.
 
     Attributes:
-        image: float32 (H, W), radiance in DN at relative exposure 1.
+        image: float32 (H, W), or (H, W, 3) linear camera RGB for a colour camera,
+            radiance in DN at relative exposure 1.
         confidence: float32 (H, W) in [0, 1]; 0 where the value is only a lower bound.
         motion: bool (H, W) or None, pixels flagged as moving.
         frame_id, host_time_ns, device_time_ns: copied from the source Frame.
@@ -51,3 +59,4 @@ class HdrFrame:
     method: str = ""
     motion: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    camera: Camera | None = None

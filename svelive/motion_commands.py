@@ -12,8 +12,8 @@ from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
 from svelive.errors import SveliveError
 from svelive.exr import write_exr
-from svelive.methods import METHODS
-from svelive.reconstructor import EXPOSURE_TIMINGS, Reconstructor
+from svelive.reconstruction.methods import METHODS
+from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:

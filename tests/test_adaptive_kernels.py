@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from svelive import Sensor, simulate
-from svelive.methods import adaptive
-from svelive.methods.base import censored_lower_bound, fill_lower_bounds, smooth
-from svelive.reconstruct import prepare, run_method
+from svelive.reconstruction.methods import adaptive
+from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.single import run_method
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
 

@@ -12,9 +12,9 @@ from svelive.bench.reference import bracketing_merge, bracketing_reference
 from svelive.bench.runner import BenchConfig, Setting, pareto_front, run_benchmark
 from svelive.cli import main
 from svelive.exr import write_exr
-from svelive.methods import baseline
+from svelive.reconstruction.methods import baseline
 from svelive.metrics import pu21_psnr
-from svelive.reconstruct import prepare
+from svelive.reconstruction.input import prepare
 from svelive.simulate import exposure_scale, load_sample_scene
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from svelive import Sensor, reconstruct, simulate
-from svelive.methods import adaptive
+from svelive.reconstruction.methods import adaptive
 from svelive.metrics import pu21_psnr
-from svelive.reconstruct import prepare, run_method
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.single import run_method
 from tests.conftest import simulated
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

@@ -9,7 +9,8 @@ import numpy as np
 
 import svelive
 from svelive import Pattern
-from svelive.reconstructor import Reconstructor, warm_up
+from svelive.reconstruction.stream import Reconstructor
+from svelive.reconstruction.warmup import warm_up
 from svelive.tonemap import ToneMapper
 
 

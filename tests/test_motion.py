@@ -14,10 +14,14 @@ from svelive import Pattern, Sensor, SveliveError
 from svelive.cli import main
 from svelive.exr import read_exr
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode, pu21_psnr
-from svelive.methods.base import binomial_kernel, smooth, support_size
-from svelive.motion import FrameEstimate, MotionConfig, disagree, exposure_consistency, fuse, sharpen
-from svelive.reconstruct import estimate_variance, prepare, run_method
-from svelive.reconstructor import Reconstructor, own_reading_rows, reconstruct_sequence
+from svelive.reconstruction.methods.base import binomial_kernel, smooth, support_size
+from svelive.reconstruction.config import MotionConfig
+from svelive.reconstruction.consistency import exposure_consistency
+from svelive.reconstruction.fusion import FrameEstimate, fuse, sharpen
+from svelive.reconstruction.numerics import disagree
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.single import estimate_variance, run_method
+from svelive.reconstruction.stream import Reconstructor, own_reading_rows, reconstruct_sequence
 from svelive.scenes import mains_flicker, modulated, moving_disc, panning, render_sequence, static
 from svelive.simulate import exposure_scale, load_sample_scene
 

@@ -16,6 +16,7 @@ import pytest
 
 from replay import CorruptFrameError, RecordingError, RecordingReader, RecordingWriter
 from replay.container import FOOTER, RECORD_HEADER
+from svelive.camera import Camera
 from svelive.capture import open_source
 from svelive.cli import main
 from svelive.frame import Frame
@@ -28,7 +29,7 @@ def make_frames(n: int, h: int = 24, w: int = 32, dt_ms: float = 20.0) -> list[F
     rng = np.random.default_rng(1)
     return [Frame(raw=rng.integers(0, 4096, (h, w), dtype=np.uint16), frame_id=100 + i,
                   host_time_ns=int(1e9 + i * dt_ms * 1e6), device_time_ns=int(5e9 + i * dt_ms * 1e6),
-                  pixel_format="Mono12", sensor=SENSOR) for i in range(n)]
+                  pixel_format="Mono12", camera=Camera(sensor=SENSOR)) for i in range(n)]
 
 
 def write(path: Path, frames: list[Frame], pattern: str = "1,4/16,64") -> None:
@@ -60,7 +61,7 @@ def test_round_trip_metadata_and_constant_time_seek(tmp_path: Path) -> None:
 
 def test_uint8_and_no_device_clock(tmp_path: Path) -> None:
     frames = [Frame(raw=np.full((5, 7), i, np.uint8), frame_id=i, host_time_ns=i * 10**9, pixel_format="Mono8",
-                    sensor=Sensor(bits=8)) for i in range(3)]
+                    camera=Camera(sensor=Sensor(bits=8))) for i in range(3)]
     write(tmp_path / "b.sverec", frames, pattern=None)
     with RecordingReader(tmp_path / "b.sverec") as r:
         assert r.read(2).raw.dtype == np.uint8 and r.read(2).raw[0, 0] == 2 and r.read(1).device_time_ns is None

@@ -16,9 +16,10 @@ from svelive.errors import SveliveError
 from svelive.exr import read_exr
 from svelive.pattern import Pattern
 
-from service.pipeline import FrameReconstructor, Pipeline, PipelineConfig
+from service.pipeline import Pipeline, PipelineConfig
 from service.settings import resolve
-from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, chart_raws, make_camera
+from tests.test_service_helpers import (PATTERN, SENSOR, Camera, ServerThread, chart_raws, make_camera,
+                                        reference_image)
 
 
 def snapshot_after(srv: ServerThread, frame_id: int) -> tuple[np.ndarray, int]:
@@ -70,10 +71,9 @@ def test_calibrate_endpoint_fits_the_newest_frame_applies_it_live_and_refuses_ba
         assert state["response"]["coefficients"] == applied["coefficients"]
         image, frame_id = snapshot_after(srv, state["frames"]["last_frame_id"] + 1)
         response = Response.from_dict(applied)
-        reference = FrameReconstructor(Pattern.parse(PATTERN), SENSOR, None, False, response)
-        expected, _, _ = reference(camera.delivered[frame_id])
+        expected = reference_image(camera.delivered[frame_id], response=response)
         np.testing.assert_array_equal(image, expected)
-        unlinearised, _, _ = FrameReconstructor(Pattern.parse(PATTERN), SENSOR, None, False)(camera.delivered[frame_id])
+        unlinearised = reference_image(camera.delivered[frame_id])
         assert not np.array_equal(image, unlinearised)
 
         # a frame that cannot calibrate (flat grey: no brightness span) is a 422 with the reason,
@@ -127,14 +127,13 @@ def test_serve_with_response_and_mask_files_reconstructs_through_them(tmp_path):
         image, frame_id = snapshot_after(srv, -1)
         pattern = Pattern.parse(PATTERN).with_pixel_map(load_mask(mask_path))
         raw = camera.delivered[frame_id]
-        expected, _, _ = FrameReconstructor(pattern, SENSOR, None, False, load_response(response_path))(raw)
+        expected = reference_image(raw, pattern, load_response(response_path))
         np.testing.assert_array_equal(image, expected)
         # and it differs from the nominal, unlinearised reconstruction
-        plain, _, _ = FrameReconstructor(Pattern.parse(PATTERN), SENSOR, None, False)(raw)
+        plain = reference_image(raw)
         assert not np.array_equal(image, plain)
-        np.testing.assert_array_equal(
-            expected, FrameReconstructor(pattern, SENSOR, None, False)(linearise(raw, load_response(response_path),
-                                                                                 SENSOR))[0])
+        np.testing.assert_array_equal(expected, reference_image(linearise(raw, load_response(response_path), SENSOR),
+                                                                pattern))
         # DELETE goes back to the configured file, not to linear
         assert httpx.delete(srv.url + "/api/calibrate/response", timeout=10).json()["response"]["origin"] \
             == response_path

@@ -14,7 +14,8 @@ import httpx
 import numpy as np
 import uvicorn
 
-from svelive import Sensor
+from svelive.camera import Camera as CameraDescription
+from svelive import Reconstructor, Sensor
 from svelive.capture import Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
@@ -27,6 +28,13 @@ from service.settings import ServerSettings
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
+
+
+def reference_image(raw: np.ndarray, pattern: Pattern | str = PATTERN, response=None) -> np.ndarray:
+    """What the service's single-frame reconstruction (no temporal fusion, default method) makes of ``raw``."""
+    camera = CameraDescription(Pattern.parse(pattern), sensor=SENSOR, response=response)
+    with Reconstructor(camera, temporal=False) as reconstructor:
+        return reconstructor.process(raw).image
 
 
 @dataclasses.dataclass
@@ -75,18 +83,18 @@ class SimSource(Source):
 
     def __init__(self, camera: Camera) -> None:
         super().__init__("sim", pattern=PATTERN, sensor=SENSOR)
-        self.camera = camera
+        self.sim = camera
         self._n = 0
         self._next_t = 0.0
 
     def _open(self) -> None:
-        if not self.camera.plugged:
+        if not self.sim.plugged:
             raise SveliveError("sim: camera not found")
-        self.camera.opens += 1
+        self.sim.opens += 1
         self._next_t = time.monotonic()
 
     def _next(self) -> Frame | None:
-        cam = self.camera
+        cam = self.sim
         if not cam.plugged:
             raise SveliveError("sim: camera disconnected")
         wait = self._next_t - time.monotonic()
@@ -99,7 +107,7 @@ class SimSource(Source):
         self._next_t = max(self._next_t + 1.0 / cam.fps, time.monotonic() - 1.0)
         raw = cam.raws[self._n % len(cam.raws)]
         frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(), pixel_format="Mono12",
-                      sensor=SENSOR)
+                      camera=self.camera)
         cam.delivered[self._n] = raw
         self._n += 1
         return frame

@@ -13,10 +13,8 @@ import pytest
 
 import svelive
 from svelive.exr import read_exr
-from svelive.pattern import Pattern
 
-from service.pipeline import FrameReconstructor
-from tests.test_service_helpers import PATTERN, SENSOR, ServerThread, make_camera, mjpeg_parts
+from tests.test_service_helpers import PATTERN, SENSOR, ServerThread, make_camera, mjpeg_parts, reference_image
 
 
 @pytest.fixture(scope="module")
@@ -53,13 +51,12 @@ def test_stream_sends_well_formed_jpeg_parts_with_timestamps(server):
 
 
 def test_exr_snapshot_is_exactly_one_reconstructed_frame(server, camera):
-    reference = FrameReconstructor(Pattern.parse(PATTERN), SENSOR, None, temporal=False)
     for _ in range(3):  # while frames keep coming: each snapshot is one whole frame, never two
         r = httpx.get(server.url + "/snapshot.exr", timeout=10)
         assert r.status_code == 200 and r.headers["content-type"] == "image/x-exr"
         channels, header = read_exr(r.content)
         frame_id = int(header["frameId"])
-        expected, _, _ = reference(camera.delivered[frame_id])
+        expected = reference_image(camera.delivered[frame_id])
         np.testing.assert_array_equal(channels["Y"], expected)
         assert header["pattern"] == PATTERN and header["method"] == svelive.methods()[0]  # the default
         assert header["whiteLevel"] == SENSOR.white_level and header["blackLevel"] == SENSOR.black_level

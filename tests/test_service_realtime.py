@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, SveliveError
-from svelive.motion import MotionConfig, fuse
-from svelive.reconstructor import Reconstructor
+from svelive.reconstruction.config import MotionConfig
+from svelive.reconstruction.fusion import fuse
+from svelive.reconstruction.stream import Reconstructor
 from svelive.scenes import moving_disc, panning, render_sequence
 from svelive.simulate import exposure_scale, load_sample_scene
 
-import svelive.reconstructor as reconstructor_module
+import svelive.reconstruction.stream as reconstructor_module
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

@@ -93,7 +93,7 @@ def test_serve_rejects_bad_options_with_one_line_and_status_2():
 
 def test_state_names_the_method_really_in_use():
     from service.pipeline import Pipeline, PipelineConfig
-    from svelive.reconstructor import Reconstructor
+    from svelive.reconstruction.stream import Reconstructor
 
     for temporal in (True, False):
         pipeline = Pipeline(PipelineConfig(temporal=temporal))

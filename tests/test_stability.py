@@ -7,7 +7,7 @@ from svelive import Pattern, Sensor, simulate
 from svelive.bench.runner import Setting
 from svelive.bench.stability import (SWEEPS, edge_across_saturation, low_light, reconstruct_with,
                                      saturated_fraction, stability_settings)
-from svelive.reconstruct import sensor_for
+from svelive.reconstruction.input import sensor_for
 
 SETTINGS = stability_settings()
 LABELS = [s.label for s in SETTINGS]

@@ -8,7 +8,7 @@ import pytest
 from svelive import Sensor
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
-from svelive.reconstruct import reconstruct
+from svelive.reconstruction.single import reconstruct
 from svelive.simulate import exposure_scale, load_sample_scene, simulate
 from svelive.tonemap import ToneMapper, ToneSettings, ToneStats, srgb_encode
 

@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, simulate
-from svelive.methods import weighted
-from svelive.methods.base import SveInput, binomial_kernel, censored_lower_bound, smooth, support_size
-from svelive.reconstruct import prepare, run_method
+from svelive.reconstruction.methods import weighted
+from svelive.reconstruction.methods.base import SveInput, binomial_kernel, censored_lower_bound, smooth, support_size
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.single import run_method
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
 

@@ -21,7 +21,7 @@ One role per module:
 - ``meters``: NewestSlot (the hand-off), RateMeter, LatencyWindow, DropCounter;
 - ``frames``: the records handed on, Published and EncodedFrame;
 - ``capture``: CaptureStage (source, reconnects, online/offline);
-- ``reconstruction``: FrameReconstructor (the adapter to svelive) and ReconstructionStage;
+- ``reconstruction``: ReconstructionStage (a svelive.Reconstructor per camera and method);
 - ``encoder``: EncoderStage (tone map + JPEG, no-signal frames, listeners, watchers, snapshots);
 - ``calibration``: Calibration (response in use, live response calibration, mask) and CalibrationBusy;
 - ``pipeline``: Pipeline, which wires the stages and assembles ``state()`` and ``settings()``.
@@ -34,9 +34,9 @@ from service.pipeline.encoder import EncoderStage, encode_jpeg, no_signal_image
 from service.pipeline.frames import EncodedFrame, Published, monotonic_to_wall
 from service.pipeline.meters import WINDOW, DropCounter, LatencyWindow, NewestSlot, RateMeter
 from service.pipeline.pipeline import Pipeline, opencv_threads
-from service.pipeline.reconstruction import FrameReconstructor, ReconstructionStage
+from service.pipeline.reconstruction import ReconstructionStage
 
 __all__ = ["FALLBACK_PATTERN", "WINDOW", "Calibration", "CalibrationBusy", "CaptureStage", "DropCounter",
-           "EncodedFrame", "EncoderStage", "FrameReconstructor", "LatencyWindow", "NewestSlot", "Pipeline",
+           "EncodedFrame", "EncoderStage", "LatencyWindow", "NewestSlot", "Pipeline",
            "PipelineConfig", "Published", "RateMeter", "ReconstructionStage", "check_jpeg_quality", "check_method",
            "encode_jpeg", "monotonic_to_wall", "no_signal_image", "opencv_threads"]

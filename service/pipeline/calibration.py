@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 
 from svelive.calibrate import Response, calibrate_frame, load_mask, load_response
+from svelive.camera import Camera
 from svelive.errors import SveliveError
 from svelive.frame import Frame
-from svelive.pattern import Pattern
 
 
 class CalibrationBusy(SveliveError):
@@ -23,11 +23,12 @@ class Calibration:
 
     The configured response and mask files are read at construction, so a bad
     file fails before serving. ``newest_raw`` gives the newest captured raw
-    frame and its pattern text (or None), which ``calibrate_response`` fits.
+    frame (or None), which ``calibrate_response`` fits. :meth:`apply` makes the
+    camera every frame is reconstructed with.
     """
 
     def __init__(self, response_path: str | None, mask_path: str | None,
-                 newest_raw: Callable[[], tuple[Frame, str] | None]) -> None:
+                 newest_raw: Callable[[], Frame | None]) -> None:
         self._newest_raw = newest_raw
         self._response_path = response_path
         self._configured_response = load_response(response_path) if response_path else None
@@ -38,6 +39,23 @@ class Calibration:
         self.busy = threading.Lock()
         self.pixel_map: np.ndarray | None = load_mask(mask_path) if mask_path else None
         self._calibration: dict[str, Any] | None = None
+        self._applied: tuple[tuple[Camera, Response | None], Camera] | None = None
+
+    def apply(self, camera: Camera) -> Camera:
+        """The camera with the response in use and the mask's per-pixel exposure map.
+
+        Returns the same object while neither the camera nor the response changes,
+        so a reconstructor built for it can be kept (a per-pixel map compares by identity).
+        """
+        key = (camera, self._response)
+        if self._applied is not None and self._applied[0] == key:
+            return self._applied[1]
+        pattern = camera.require_pattern()
+        if self.pixel_map is not None:
+            pattern = pattern.with_pixel_map(self.pixel_map)
+        applied = camera.replace(pattern=pattern, response=key[1])
+        self._applied = (key, applied)
+        return applied
 
     @property
     def response(self) -> Response | None:
@@ -56,14 +74,13 @@ class Calibration:
         """
         if not 1 <= max_degree <= 10:
             raise SveliveError(f"max_degree must be 1..10, got {max_degree}")
-        item = self._newest_raw()
-        if item is None:
+        frame = self._newest_raw()
+        if frame is None:
             return None
         if not self.busy.acquire(blocking=False):
             raise CalibrationBusy("a response calibration is already running")
         try:
-            frame, pattern_text = item
-            data = calibrate_frame(frame.raw, Pattern.parse(pattern_text), frame.sensor, max_degree=max_degree)
+            data = calibrate_frame(frame.raw, frame.camera.require_pattern(), frame.sensor, max_degree=max_degree)
         finally:
             self.busy.release()
         data.update(frame_id=frame.frame_id, applied=bool(apply))

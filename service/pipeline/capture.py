@@ -6,11 +6,12 @@ import collections
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
+from svelive.camera import Camera
 from svelive.capture import Source
 from svelive.frame import Frame
-from svelive.pattern import Pattern
 
 from service.pipeline.config import FALLBACK_PATTERN, PipelineConfig
 from service.pipeline.meters import DropCounter, NewestSlot, RateMeter
@@ -20,8 +21,9 @@ class CaptureStage:
     """The capture thread's loop and what it knows of the source.
 
     ``factory`` builds a new (unopened) Source each time the stage (re)connects.
-    Every frame goes into ``slot`` with its pattern text; a frame pushed out
-    unread counts as a ``reconstruct_busy`` drop.
+    Every frame goes into ``slot``, its camera given FALLBACK_PATTERN when the
+    source knows no pattern; a frame pushed out unread counts as a
+    ``reconstruct_busy`` drop.
     """
 
     def __init__(self, config: PipelineConfig, factory: Callable[[], Source], slot: NewestSlot,
@@ -36,10 +38,10 @@ class CaptureStage:
         self.error: str | None = None
         self.stats: dict[str, Any] = {}
         self._closed_source_drops: collections.Counter = collections.Counter()
-        #: the pattern text of the open source, None before the first
-        self.pattern_text: str | None = None
+        #: the camera of the open source's frames, None before the first
+        self.camera: Camera | None = None
         self._last_frame_ns: int | None = None
-        self._newest_raw: tuple[Frame, str] | None = None
+        self._newest_raw: Frame | None = None
         self.captured = RateMeter()
 
     def run(self) -> None:
@@ -52,14 +54,18 @@ class CaptureStage:
                 if self._stop.is_set():
                     break
                 source.open()
-                pattern = self.config.pattern or source.pattern or FALLBACK_PATTERN
-                self.pattern_text = str(Pattern.parse(pattern))
                 self.state, self.error = "online", None
+                given: Camera | None = None
                 for frame in source:
+                    if frame.camera is not given:  # once per source camera, not per frame
+                        given = frame.camera
+                        self.camera = given if given.pattern is not None else given.with_pattern(FALLBACK_PATTERN)
+                    if self.camera is not given:
+                        frame = replace(frame, camera=self.camera)
                     self.captured.tick(frame.host_time_ns)
                     self._last_frame_ns = frame.host_time_ns
-                    self._newest_raw = (frame, self.pattern_text)
-                    if self._slot.put((frame, self.pattern_text)):
+                    self._newest_raw = frame
+                    if self._slot.put(frame):
                         self._drops.count("reconstruct_busy")
                     self.stats = source.stats()
                 if self._stop.is_set():
@@ -98,8 +104,8 @@ class CaptureStage:
             return False
         return (time.monotonic_ns() - self._last_frame_ns) / 1e9 <= self.config.offline_after_s
 
-    def latest_raw(self) -> tuple[Frame, str] | None:
-        """The newest captured raw frame and its pattern text, or None before the first."""
+    def latest_raw(self) -> Frame | None:
+        """The newest captured raw frame (with its camera), or None before the first."""
         return self._newest_raw
 
     def source_drops(self) -> collections.Counter:

@@ -8,8 +8,10 @@ from typing import Any
 import numpy as np
 
 from svelive.errors import SveliveError
-from svelive.pattern import Pattern
-from svelive.reconstruct import methods as method_names
+from svelive.camera import Camera
+from svelive.capture.source import MONO_WORDS
+from svelive.cfa import ColourFilter
+from svelive.reconstruction.single import methods as method_names
 from svelive.tonemap import ToneSettings
 
 #: Pattern used when neither the settings nor the source name one.
@@ -24,6 +26,8 @@ class PipelineConfig:
         source: source spec (see svelive.capture), e.g. ``"demo"`` or ``"gige:GV01"``.
         source_options: extra keyword options for ``open_source`` (e.g. fps, width).
         pattern: exposure pattern text; None: the source's own, else FALLBACK_PATTERN.
+        cfa: colour filter layout (svelive.cfa), ``"none"`` for explicitly monochrome, or
+            None: the source's pixel format says (a Bayer format sets it by itself).
         black_level, white_level: DN overrides of the source's sensor; None keeps it.
         method: reconstruction method name; None for the default.
         temporal: use temporal fusion where the reconstructor offers it.
@@ -44,6 +48,7 @@ class PipelineConfig:
     source: str = "demo"
     source_options: dict[str, Any] = field(default_factory=dict)
     pattern: str | None = None
+    cfa: str | None = None
     black_level: float | None = None
     white_level: float | None = None
     method: str | None = None
@@ -61,7 +66,9 @@ class PipelineConfig:
 
     def __post_init__(self) -> None:
         if self.pattern is not None:
-            Pattern.parse(self.pattern)
+            Camera.build(self.pattern, self.cfa if self.cfa not in MONO_WORDS else None)
+        elif self.cfa is not None and self.cfa not in MONO_WORDS:
+            ColourFilter.parse(self.cfa)
         check_method(self.method)
         check_jpeg_quality(self.jpeg_quality)
         if not 0 <= self.workers <= 64:

@@ -6,7 +6,7 @@ import time
 from dataclasses import dataclass
 
 from svelive.frame import HdrFrame
-from svelive.sensor import Sensor
+from svelive.camera import Camera
 
 
 @dataclass(frozen=True)
@@ -14,18 +14,21 @@ class Published:
     """One reconstructed frame as the pipeline publishes it.
 
     Attributes:
-        hdr: the HdrFrame (timings_ms holds "queue" and "reconstruct").
+        hdr: the HdrFrame (timings_ms holds "queue" and "reconstruct"; ``camera`` the
+            camera it was reconstructed with).
         seq: the pipeline's own counter of published frames.
-        pattern: the exposure pattern's text form.
-        sensor: the sensor the raw frame came from.
         published_ns: monotonic time it was published.
     """
 
     hdr: HdrFrame
     seq: int
-    pattern: str
-    sensor: Sensor
     published_ns: int
+
+    @property
+    def camera(self) -> Camera:
+        """The camera the frame was reconstructed with (pattern, colour filter, sensor, response)."""
+        assert self.hdr.camera is not None
+        return self.hdr.camera
 
     @property
     def wall_time(self) -> float:

@@ -14,8 +14,8 @@ import cv2
 from svelive.capture import Source, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
-from svelive.reconstruct import methods as method_names
-from svelive.reconstructor import default_method
+from svelive.reconstruction.single import methods as method_names
+from svelive.reconstruction.stream import default_method
 
 from service.pipeline.calibration import Calibration
 from service.pipeline.capture import CaptureStage
@@ -100,8 +100,8 @@ class Pipeline:
 
     def _default_factory(self) -> Source:
         c = self.config
-        return open_source(c.source, pattern=c.pattern, black_level=c.black_level, white_level=c.white_level,
-                           **c.source_options)
+        return open_source(c.source, pattern=c.pattern, cfa=c.cfa, black_level=c.black_level,
+                           white_level=c.white_level, **c.source_options)
 
     # ----- the stages' own answers ---------------------------------------
     def online(self) -> bool:
@@ -112,8 +112,8 @@ class Pipeline:
         """The newest reconstructed frame (an immutable record), or None before the first."""
         return self.reconstruction.latest()
 
-    def latest_raw(self) -> tuple[Frame, str] | None:
-        """The newest captured raw frame and its pattern text, or None before the first."""
+    def latest_raw(self) -> Frame | None:
+        """The newest captured raw frame (with its camera), or None before the first."""
         return self.capture.latest_raw()
 
     def add_listener(self, callback: Callable[[EncodedFrame], None]) -> None:
@@ -216,10 +216,11 @@ class Pipeline:
             "mask": self.config.mask,
             "workers": self.workers,
             "reconstruct_error": self.reconstruction.error,
-            "pattern": capture.pattern_text,
-            "sensor": None if latest is None else {"bits": latest.sensor.bits,
-                                                   "black_level": latest.sensor.black_level,
-                                                   "white_level": latest.sensor.white_level},
+            "pattern": None if capture.camera is None else str(capture.camera.pattern),
+            "cfa": None if capture.camera is None or capture.camera.cfa is None else capture.camera.cfa.name,
+            "sensor": None if latest is None else {"bits": latest.camera.sensor.bits,
+                                                   "black_level": latest.camera.sensor.black_level,
+                                                   "white_level": latest.camera.sensor.white_level},
             "tone": dict(vars(self.encoder.tone)),
             "jpeg_quality": self.encoder.jpeg_quality,
             "preview_width": self.config.preview_width,

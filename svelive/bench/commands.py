@@ -28,8 +28,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 def choice_map_example(pattern: str = "1,2/4,8"):
     """(truth, own-reading share, title) of the adaptive method on the shipped ``desk`` crop, bright, seed 0."""
     from svelive.bench.scenes import BENCH_SENSOR, Condition
-    from svelive.methods.adaptive import own_share
-    from svelive.reconstruct import prepare
+    from svelive.reconstruction.methods.adaptive import own_share
+    from svelive.reconstruction.input import prepare
     from svelive.simulate import load_sample_scene, simulate
 
     scene = load_sample_scene("desk")

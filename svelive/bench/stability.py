@@ -20,9 +20,9 @@ import numpy as np
 
 from svelive.bench.runner import Setting
 from svelive.bench.scenes import BENCH_SENSOR
-from svelive.methods import METHODS
+from svelive.reconstruction.methods import METHODS
 from svelive.pattern import Pattern
-from svelive.reconstruct import prepare
+from svelive.reconstruction.input import prepare
 from svelive.sensor import Sensor
 from svelive.simulate import simulate
 

@@ -149,7 +149,7 @@ class DemoSource(Source):
         frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(),
                       device_time_ns=int(round(scene_t * 1e9)),
                       pixel_format=_mono_name(self.sensor.bits),
-                      sensor=self.sensor)
+                      camera=self.camera)
         self._n += 1
         return frame
 

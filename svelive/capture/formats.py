@@ -136,10 +136,15 @@ def lookup(name: str | PixelFormat) -> PixelFormat:
     """The format called ``name`` (PFNC name or V4L2 fourcc, case-insensitive)."""
     if isinstance(name, PixelFormat):
         return name
-    fmt = FORMATS.get(str(name).strip().lower())
+    fmt = find(name)
     if fmt is None:
         raise SveliveError(f"unknown pixel format {name!r}; known: {', '.join(names())}")
     return fmt
+
+
+def find(name: str) -> PixelFormat | None:
+    """The format called ``name``, or None when it is not one this module knows (a free-form label)."""
+    return FORMATS.get(str(name).strip().lower())
 
 
 def fourcc_text(code: int) -> str:

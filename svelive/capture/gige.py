@@ -104,8 +104,8 @@ class GigeSource(Source):
 
     def __init__(self, spec: str, arg: str | None = None, *, pattern: str | None = None,
                  sensor: Sensor | None = None, bits: int | None = None, black_level: float | None = None,
-                 white_level: float | None = None, **opts: Any) -> None:
-        super().__init__(spec, pattern=pattern, sensor=sensor)
+                 white_level: float | None = None, cfa: str | None = None, **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor, cfa=cfa)
         self.config: GigeConfig = make_config(GigeConfig, opts, spec)
         if self.config.n_buffers < 2:
             raise SveliveError(f"{spec}: n_buffers must be >= 2")
@@ -145,6 +145,9 @@ class GigeSource(Source):
             self._configure(camera)
             pf_name = camera.get_pixel_format_as_string()
             self._format = formats.lookup(pf_name)
+            x, y, _, _ = camera.get_region()
+            self._settle_camera(build_sensor(*self._sensor_opts, default_bits=self._format.bits), self._format.cfa,
+                                self._format.name, (y, x))
             self._pf_code = int(camera.get_pixel_format())
             payload = int(camera.get_payload())
             stream = camera.create_stream(None, None)
@@ -173,7 +176,6 @@ class GigeSource(Source):
                 del stream, camera
                 return
             self._camera, self._stream, self._arrays = camera, stream, arrays
-        self.sensor = build_sensor(*self._sensor_opts, default_bits=self._format.bits)
         x, y, w, h = camera.get_region()
         self.camera_info = {"device_id": camera.get_device_id(), "vendor": camera.get_vendor_name(),
                             "model": camera.get_model_name(), "pixel_format": pf_name,
@@ -312,7 +314,7 @@ class GigeSource(Source):
         self._last_frame_t = time.monotonic()
         ts = int(buf.get_timestamp())
         return Frame(raw=raw, frame_id=self._unwrap(int(buf.get_frame_id())), host_time_ns=host_ns,
-                     device_time_ns=ts if ts else None, pixel_format=self._format.name, sensor=self.sensor)
+                     device_time_ns=ts if ts else None, pixel_format=self._format.name, camera=self.camera)
 
     def _unwrap(self, raw_id: int) -> int:
         """Device frame id made monotonic across 16-bit wraps and reconnects."""

@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from svelive.capture import build_sensor, make_config
+from svelive.capture import build_sensor, formats, make_config
 from svelive.capture.source import EndOfStream, Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
@@ -81,8 +81,8 @@ class ImageSequenceSource(Source):
 
     def __init__(self, spec: str, arg: str | None, *, pattern: str | None = None, sensor: Sensor | None = None,
                  bits: int | None = None, black_level: float | None = None, white_level: float | None = None,
-                 **opts: Any) -> None:
-        super().__init__(spec, pattern=pattern, sensor=sensor)
+                 cfa: str | None = None, **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor, cfa=cfa)
         self.config: ImagesConfig = make_config(ImagesConfig, opts, spec)
         self._glob = arg or ""
         self._sensor_opts = (sensor, bits, black_level, white_level)
@@ -97,8 +97,11 @@ class ImageSequenceSource(Source):
         first = read_image(self._files[0])
         self._shape = (first.shape, first.dtype)
         default_bits = container_bits(first.dtype)
-        self.sensor = build_sensor(*self._sensor_opts, default_bits=default_bits)
         self._format = self.config.pixel_format or ("Mono8" if first.dtype == np.uint8 else "Mono16")
+        # image files do not say whether a colour filter sat on the sensor: only a format named by the user does
+        named = formats.find(self.config.pixel_format) if self.config.pixel_format else None
+        self._settle_camera(build_sensor(*self._sensor_opts, default_bits=default_bits),
+                            None if named is None else named.cfa, None if named is None else named.name)
         self._t0 = time.monotonic()
 
     def _next(self) -> Frame | None:
@@ -119,7 +122,7 @@ class ImageSequenceSource(Source):
                                f"with {w}x{h} {dt}")
         self._pos += 1
         frame = Frame(raw=img, frame_id=self._n, host_time_ns=time.monotonic_ns(), device_time_ns=None,
-                      pixel_format=self._format, sensor=self.sensor)
+                      pixel_format=self._format, camera=self.camera)
         self._n += 1
         return frame
 

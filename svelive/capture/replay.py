@@ -44,8 +44,8 @@ class ReplaySource(Source):
     """Frames of a recording; see the module docstring."""
 
     def __init__(self, spec: str, arg: str | None, *, pattern: str | None = None, sensor: Sensor | None = None,
-                 **opts: Any) -> None:
-        super().__init__(spec, pattern=pattern, sensor=sensor)
+                 cfa: str | None = None, **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor, cfa=cfa)
         self.config: ReplayConfig = make_config(ReplayConfig, opts, spec)
         if self.config.speed < 0:
             raise SveliveError(f"{spec}: speed must be >= 0 (0 = as fast as possible), got {self.config.speed}")
@@ -61,8 +61,15 @@ class ReplaySource(Source):
             raise SveliveError(f"{self._path}: the recording has no replayable frames")
         if not -n <= self.config.start < n:
             raise SveliveError(f"{self.spec}: start frame {self.config.start} out of range (0..{n - 1})")
-        self.pattern = self._override[0] or self._reader.pattern
-        self.sensor = self._override[1] or self._reader.sensor
+        recorded = self._reader.camera
+        pattern, sensor = self._override
+        self.camera = recorded if pattern is None else recorded.with_pattern(pattern)
+        try:  # the recorded colour filter stands for a pixel format: the user may not contradict it
+            self._settle_camera(sensor or recorded.sensor, None if recorded.cfa is None else str(recorded.cfa),
+                                f"{self._reader.pixel_format} frames")
+        except SveliveError:
+            self._reader.close()
+            raise
         self._timeline = self._reader.timeline_ns()
         ids = self._reader.times[:, 0]
         self._id_span = int(ids.max() - ids.min() + 1)
@@ -101,7 +108,7 @@ class ReplaySource(Source):
             self._drop("checksum")
             return None
         return dataclasses.replace(rec, frame_id=rec.frame_id + self._loops * self._id_span,
-                                   host_time_ns=time.monotonic_ns(), sensor=self.sensor)
+                                   host_time_ns=time.monotonic_ns(), camera=self.camera)
 
     def _extra_stats(self) -> dict[str, Any]:
         r = self._reader

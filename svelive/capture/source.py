@@ -22,9 +22,55 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
+from svelive.camera import Camera
+from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.sensor import Sensor
+
+#: ``cfa`` values that say "this sensor has no colour filter".
+MONO_WORDS = ("none", "mono")
+
+
+def resolve_cfa(given: str | ColourFilter | None, format_cfa: str | None, format_name: str | None,
+                offset: tuple[int, int] = (0, 0), where: str = "source") -> ColourFilter | None:
+    """The colour filter of a source's frames, from what the user gave and what the pixel format says.
+
+    Args:
+        given: the user's ``cfa`` (a layout, ``"none"``/``"mono"`` for explicitly
+            monochrome, or None for not given).
+        format_cfa: the pixel format's colour filter at the sensor's origin (``"RGGB"``...),
+            None for a monochrome format.
+        format_name: the pixel format's name, or None when the source cannot tell
+            (image files): the user's word then stands.
+        offset: (rows, cols) of the region's top-left pixel on the sensor; the format's
+            layout is shifted by it (an odd offset changes the Bayer phase).
+
+    A contradiction is refused with a one-line error naming the fix: a Bayer format
+    reconstructed as monochrome, a colour filter for a monochrome format, or a
+    2x2 Bayer phase other than the format's. A larger layout (``quad-RGGB``) may
+    refine a Bayer format, which has no PFNC name of its own.
+    """
+    mono = isinstance(given, str) and given.strip().lower() in MONO_WORDS
+    user = None if given is None or mono else ColourFilter.parse(given)
+    if format_name is None:
+        return user
+    if format_cfa is None:
+        if user is not None:
+            raise SveliveError(f"{where}: the camera delivers {format_name}, a monochrome format, but a colour "
+                               f"filter ({user.name}) was given: drop --cfa, or choose a Bayer pixel format")
+        return None
+    native = ColourFilter.parse(format_cfa).shifted(*offset)
+    if mono:
+        raise SveliveError(f"{where}: the camera delivers {format_name}, a Bayer format (colour filter "
+                           f"{native.name}), which cannot be reconstructed as monochrome: drop --cfa {given}, "
+                           "or choose a Mono pixel format")
+    if user is None or user == native:
+        return native
+    if user.is_bayer():
+        raise SveliveError(f"{where}: the camera delivers {format_name} (colour filter {native.name} at this "
+                           f"region), but --cfa {user.name} was given: drop --cfa")
+    return user
 
 
 class EndOfStream(Exception):
@@ -36,18 +82,20 @@ class Source:
 
     Attributes:
         spec: the spec string this source was opened from (e.g. ``"gige:GV01"``).
-        pattern: the exposure pattern's text form when the source knows it
-            (demo, replay, or given by the user), else None.
-        sensor: the sensor metadata of the frames it yields.
+        camera: the description attached to every frame it yields (svelive.Camera);
+            final once the source is open (the pixel format and bit depth may only be
+            known then).
         poll_s: longest time ``_next`` blocks before returning None.
     """
 
     poll_s: float = 0.1
 
-    def __init__(self, spec: str, *, pattern: str | None = None, sensor: Sensor | None = None) -> None:
+    def __init__(self, spec: str, *, pattern: str | None = None, sensor: Sensor | None = None,
+                 cfa: str | None = None) -> None:
         self.spec = spec
-        self.pattern = pattern
-        self.sensor = sensor if sensor is not None else Sensor()
+        self._given_cfa = cfa
+        mono = isinstance(cfa, str) and cfa.strip().lower() in MONO_WORDS
+        self.camera = Camera.build(pattern, None if mono else cfa, sensor if sensor is not None else Sensor())
         self._closing = threading.Event()
         self._lock = threading.Lock()
         self._opened = False
@@ -59,6 +107,23 @@ class Source:
         self._last: Frame | None = None
         self._error: str | None = None
         self._reconnects = 0
+
+    @property
+    def pattern(self) -> str | None:
+        """The exposure pattern's text form when known (demo, replay, or given by the user), else None."""
+        return None if self.camera.pattern is None else str(self.camera.pattern)
+
+    @property
+    def sensor(self) -> Sensor:
+        """The sensor metadata of the frames it yields."""
+        return self.camera.sensor
+
+    def _settle_camera(self, sensor: Sensor, format_cfa: str | None = None, format_name: str | None = None,
+                       offset: tuple[int, int] = (0, 0)) -> None:
+        """Fix the camera once the device is known: its sensor, and the colour filter the user
+        gave reconciled with the pixel format's (:func:`resolve_cfa`)."""
+        cfa = resolve_cfa(self._given_cfa, format_cfa, format_name, offset, self.spec)
+        self.camera = self.camera.replace(sensor=sensor, cfa=cfa)
 
     # ----- lifecycle ---------------------------------------------------
     def open(self) -> Source:
@@ -151,8 +216,8 @@ class Source:
         ``online`` (bool), ``frames`` (delivered), ``drops`` ({cause: count}),
         ``dropped`` (total), ``fps`` (delivery rate over the last frames, 0 when
         stalled), ``width``, ``height``, ``pixel_format``, ``last_frame_id``,
-        ``reconnects``, ``error`` (last error text or None), plus source-specific
-        keys from ``_extra_stats()``.
+        ``reconnects``, ``error`` (last error text or None), ``cfa`` (colour filter
+        name or None), plus source-specific keys from ``_extra_stats()``.
         """
         with self._lock:
             recent = list(self._recent)
@@ -180,6 +245,7 @@ class Source:
             "pixel_format": None if last is None else last.pixel_format,
             "last_frame_id": None if last is None else last.frame_id,
             "reconnects": self._reconnects, "error": self._error,
+            "cfa": None if self.camera.cfa is None else self.camera.cfa.name,
         }
         out.update(self._extra_stats())
         return out

@@ -70,8 +70,8 @@ class V4l2Source(Source):
 
     def __init__(self, spec: str, arg: str | None, *, pattern: str | None = None, sensor: Sensor | None = None,
                  bits: int | None = None, black_level: float | None = None, white_level: float | None = None,
-                 **opts: Any) -> None:
-        super().__init__(spec, pattern=pattern, sensor=sensor)
+                 cfa: str | None = None, **opts: Any) -> None:
+        super().__init__(spec, pattern=pattern, sensor=sensor, cfa=cfa)
         self.config: V4l2Config = make_config(V4l2Config, opts, spec)
         self.device = arg or ""
         self._sensor_opts = (sensor, bits, black_level, white_level)
@@ -106,7 +106,12 @@ class V4l2Source(Source):
             raise SveliveError(f"{self.device}: delivers fourcc {fourcc!r}, not a raw format this reads "
                                f"(choose one with pixel_format=, e.g. GREY, Y12, Y16, RG16)") from None
         self._size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        self.sensor = build_sensor(*self._sensor_opts, default_bits=self._format.bits)
+        try:
+            self._settle_camera(build_sensor(*self._sensor_opts, default_bits=self._format.bits), self._format.cfa,
+                                self._format.name)
+        except SveliveError:
+            cap.release()
+            raise
         self._cap = cap
 
     def _close(self) -> None:
@@ -135,7 +140,7 @@ class V4l2Source(Source):
         self._n += 1
         return Frame(raw=raw, frame_id=self._n - 1, host_time_ns=host,
                      device_time_ns=int(pos * 1e6) if pos and pos > 0 else None,
-                     pixel_format=self._format.name, sensor=self.sensor)
+                     pixel_format=self._format.name, camera=self.camera)
 
     def _extra_stats(self) -> dict[str, Any]:
         return {"device": self.device}

@@ -19,7 +19,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.methods.base import Estimate, SveInput, in_strips, pad_same_phase, support_size
+from svelive.reconstruction.methods.base import Estimate, SveInput, in_strips, pad_same_phase, support_size
 
 
 def effective_response(exposures: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray]:

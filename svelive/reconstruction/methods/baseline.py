@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from svelive.methods.base import Estimate, SveInput
+from svelive.reconstruction.methods.base import Estimate, SveInput
 
 
 def upsample_phase(sub: np.ndarray, phase: tuple[int, int], period: tuple[int, int],

@@ -1,8 +1,9 @@
 """What every reconstruction method receives and returns.
 
-A method is a function ``run(inp: SveInput, **options) -> Estimate``. The
-public :func:`svelive.reconstruct` prepares the SveInput (black level removed,
-exposures, censoring) once, so methods only do the reconstruction itself.
+A method is a function ``run(inp: SveInput, **options) -> Estimate``.
+:func:`svelive.reconstruction.input.prepare` makes the SveInput (response
+applied, black level removed, exposures, censoring, colour channels) once, from
+the frame's camera, so methods only do the reconstruction itself.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from svelive.cfa import ColourFilter, joint_period
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
@@ -30,6 +32,8 @@ class SveInput:
         pattern: the exposure pattern.
         sensor: the sensor, with its noise model.
         integral: True when every signal value is an integer (integer raw, integer black level).
+        cfa: the colour filter layout, or None for a monochrome frame.
+        channels: uint8 (H, W), the colour channel (0 R, 1 G, 2 B) of every pixel, or None.
     """
 
     signal: np.ndarray
@@ -38,10 +42,24 @@ class SveInput:
     pattern: Pattern
     sensor: Sensor
     integral: bool = False
+    cfa: ColourFilter | None = None
+    channels: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.signal.shape  # type: ignore[return-value]
+
+    @property
+    def period(self) -> tuple[int, int]:
+        """The joint tile of exposure pattern and colour filter (rows, cols)."""
+        return self.pattern.shape if self.cfa is None else joint_period(self.pattern.shape, self.cfa.shape)
+
+    def crop(self, rows: slice, cols: slice = slice(None)) -> SveInput:
+        """The input of a rectangle of the frame (views, no copies). Keep tile phases in mind: the
+        pattern's origin stays the frame's, so ``rows`` and ``cols`` should start on whole tiles."""
+        return SveInput(self.signal[rows, cols], self.exposure[rows, cols], self.censored[rows, cols],
+                        self.pattern, self.sensor, self.integral, self.cfa,
+                        None if self.channels is None else self.channels[rows, cols])
 
 
 @dataclass(frozen=True)
@@ -54,11 +72,21 @@ class Estimate:
             censored, so ``image`` is only the lower bound they imply.
         variance: float32 (H, W) or None, the method's own predicted variance of
             ``image`` (DN^2 at exposure 1) where it has one.
+
+    A colour estimate (svelive.reconstruction.colour) has ``image`` (H, W, 3) camera
+    RGB, and ``luminance`` (H, W), the quantity ``lower_bound`` and ``variance``
+    describe and the motion tests compare.
     """
 
     image: np.ndarray
     lower_bound: np.ndarray
     variance: np.ndarray | None = None
+    luminance: np.ndarray | None = None
+
+    @property
+    def plane(self) -> np.ndarray:
+        """The (H, W) image ``variance`` and ``lower_bound`` refer to: ``luminance`` for colour, else ``image``."""
+        return self.image if self.luminance is None else self.luminance
 
 
 @lru_cache(maxsize=16)
@@ -144,7 +172,7 @@ def fill_lower_bounds(inp: SveInput, lower: np.ndarray, window: tuple[int, int],
     (ry, rx), (h, w) = (window[0] // 2, window[1] // 2), inp.shape
     box = (slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, h)),
            slice(max(cols[0] - rx, 0), min(cols[-1] + rx + 1, w)))
-    piece = SveInput(inp.signal[box], inp.exposure[box], inp.censored[box], inp.pattern, inp.sensor, inp.integral)
+    piece = inp.crop(*box)
     bound, where = censored_lower_bound(piece, window), lower[box]
     np.copyto(image[box], bound, where=where)
     if variance is not None:
@@ -210,7 +238,7 @@ def in_strips(run, inp: SveInput, halo: int, rows: int = 64, workers: int | Exec
     faster; strips start on whole tiles so the pattern keeps its phase. The
     result equals a whole-frame run. ``workers``: see :func:`map_on`.
     """
-    th = inp.pattern.shape[0]
+    th = inp.period[0]
     h = inp.shape[0]
     halo = -(-halo // th) * th
     rows = max(-(-rows // th) * th, th)
@@ -219,9 +247,7 @@ def in_strips(run, inp: SveInput, halo: int, rows: int = 64, workers: int | Exec
 
     def strip(top: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         start, stop = max(top - halo, 0), min(top + rows + halo, h)
-        piece = SveInput(inp.signal[start:stop], inp.exposure[start:stop], inp.censored[start:stop],
-                         inp.pattern, inp.sensor, inp.integral)
-        est = run(piece, **options)
+        est = run(inp.crop(slice(start, stop)), **options)
         keep = slice(top - start, top - start + min(rows, h - top))
         return est.image[keep], est.lower_bound[keep], None if est.variance is None else est.variance[keep]
 

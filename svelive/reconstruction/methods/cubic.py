@@ -35,7 +35,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.methods.base import Estimate, SveInput, smooth
+from svelive.reconstruction.methods.base import Estimate, SveInput, smooth
 
 FULL = (1 << 16) - 1
 

@@ -1,31 +1,36 @@
 """The stateful per-stream reconstruction: raw SVE frames in, motion-robust HDR frames out.
 
-``Reconstructor(pattern, ...).process(raw)`` runs a single-frame method
-(svelive.reconstruct), then the motion tests of svelive.motion: the
-within-frame exposure-consistency test (on by default for ``integration``
-exposure timing) and the temporal fusion that cuts noise where the scene is
-static and resets a pixel's history the moment it moves.
+``Reconstructor(camera or pattern, ...).process(frame or raw)`` runs a
+single-frame method (svelive.reconstruction.single), then the motion tests:
+the within-frame exposure-consistency test (svelive.reconstruction.consistency,
+on by default for ``integration`` exposure timing) and the temporal fusion
+(svelive.reconstruction.fusion) that cuts noise where the scene is static and
+resets a pixel's history the moment it moves.
 """
 
 from __future__ import annotations
 
-import inspect
-from itertools import product
 import threading
 from concurrent.futures import ThreadPoolExecutor
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
 
 import numpy as np
 
+from svelive.camera import Camera, camera_for_raw
+from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
-from svelive.methods import DEFAULT_METHOD, METHODS
-from svelive.methods.base import Estimate, SveInput, exposure_maps
-from svelive.motion import FrameEstimate, MotionConfig, OutputVariance, TemporalState, exposure_consistency, fuse
+from svelive.frame import Frame
 from svelive.pattern import Pattern
-from svelive.reconstruct import confidence_from_variance, estimate_variance, prepare, run_method, sensor_for
+from svelive.reconstruction.config import MotionConfig
+from svelive.reconstruction.consistency import exposure_consistency
+from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
+from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
+from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 from svelive.sensor import Sensor
 
 #: The single-frame method temporal fusion uses unless told otherwise. The
@@ -53,7 +58,7 @@ class SequenceResult:
     Attributes:
         image: float32 (H, W), radiance in DN at relative exposure 1, finite and >= 0.
         motion: bool (H, W), pixels flagged as moving (history reset or within-frame inconsistency).
-        variance_of: computes ``variance`` (svelive.motion.OutputVariance).
+        variance_of: computes ``variance`` (svelive.reconstruction.fusion.OutputVariance).
         lower_bound: bool (H, W), ``image`` is only the lower bound saturated samples imply.
         weight: float32 (H, W), 1 / n, n = frames fused into each pixel (1 without temporal fusion).
         moving_fraction: fraction of pixels in ``motion``.
@@ -97,7 +102,7 @@ class SequenceResult:
 @lru_cache(maxsize=8)
 def own_reading_rows(pattern: Pattern, shape: tuple[int, int], sensor: Sensor,
                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(inverse, slope, floor), float32 (P, W) by row phase, read-only (svelive.motion.FrameEstimate).
+    """(inverse, slope, floor), float32 (P, W) by row phase, read-only (svelive.reconstruction.fusion.FrameEstimate).
 
     Pixel (r, c) has exposure 1 / ``inverse[r % P, c]`` and its own estimate s / e has variance
     ``slope * L + floor`` at radiance L, times ``scale``. P is the tile's rows, or H for a per-pixel map.
@@ -116,7 +121,10 @@ class Reconstructor:
     """Motion-robust reconstruction of one stream of raw SVE frames.
 
     Args:
-        pattern: the exposure pattern or its text form.
+        pattern: the camera (svelive.Camera: pattern, colour filter, sensor, response), or
+            the exposure pattern or its text form (the sensor then comes from the levels
+            below and the raw dtype, the colour filter from ``cfa``).
+        cfa: the colour filter layout when ``pattern`` is not a Camera.
         method: single-frame method name; changeable between frames through the
             ``method`` attribute (the history restarts then). None: the library's
             default for single frames, but TEMPORAL_METHOD with temporal fusion.
@@ -126,10 +134,11 @@ class Reconstructor:
             are different integration times ending together.
         consistency: run the within-frame exposure-consistency test; None means
             on for ``integration`` timing, off for ``mask``.
-        black_level, white_level, gain, read_noise: the sensor, as for svelive.reconstruct.
-        motion_config: thresholds (svelive.motion.MotionConfig).
+        black_level, white_level, gain, read_noise: the sensor, as for svelive.reconstruct,
+            when ``pattern`` is not a Camera.
+        motion_config: thresholds (svelive.reconstruction.config.MotionConfig).
         detail: with temporal fusion, sharpen static pixels that have history
-            towards their own fused readings (svelive.motion.sharpen).
+            towards their own fused readings (svelive.reconstruction.fusion.sharpen).
         workers: threads for one frame: the strips of the method (where it takes
             a ``workers`` option) and of the motion stage are spread over them.
             The results do not depend on it; 1 keeps everything on the caller's thread.
@@ -139,7 +148,8 @@ class Reconstructor:
     ``state()`` may be called from any thread.
     """
 
-    def __init__(self, pattern: Pattern | str, *, method: str | None = None, temporal: bool = True,
+    def __init__(self, pattern: Pattern | str | Camera, *, cfa: ColourFilter | str | None = None,
+                 method: str | None = None, temporal: bool = True,
                  exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
                  motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
@@ -148,7 +158,15 @@ class Reconstructor:
             raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
         if exposure_timing not in EXPOSURE_TIMINGS:
             raise SveliveError(f"exposure timing must be one of {', '.join(EXPOSURE_TIMINGS)}, got {exposure_timing!r}")
+        if isinstance(pattern, Camera):
+            if cfa is not None or any(v not in (None, 0) for v in (black_level, white_level, gain, read_noise)):
+                raise SveliveError("give the colour filter and sensor levels inside the Camera, not beside it")
+            self.camera: Camera | None = pattern
+            pattern = pattern.require_pattern()
+        else:
+            self.camera = None  # built per raw dtype from the levels below (see _camera_for)
         self.pattern = Pattern.parse(pattern)
+        self.cfa = self.camera.cfa if self.camera is not None else (None if cfa is None else ColourFilter.parse(cfa))
         self.temporal = bool(temporal)
         self.exposure_timing = exposure_timing
         self.consistency = exposure_timing == "integration" if consistency is None else bool(consistency)
@@ -167,7 +185,7 @@ class Reconstructor:
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
-        self._sensors: dict[np.dtype, object] = {}
+        self._cameras: dict[np.dtype, Camera] = {}
 
     def _checked(self, method: str | None) -> str:
         if method is None:
@@ -217,24 +235,37 @@ class Reconstructor:
                     "consistency": self.consistency, "frames": self._frames,
                     "moving_fraction": self._last_moving}
 
-    def _estimate(self, raw: np.ndarray, method: str) -> tuple[SveInput, Estimate]:
-        raw = np.asarray(raw)
-        sensor = self._sensors.get(raw.dtype)
-        if sensor is None:
-            sensor = self._sensors[raw.dtype] = sensor_for(raw, **self.sensor_levels)
-        inp = prepare(raw, self.pattern, sensor)
+    def _camera_for(self, raw: np.ndarray | Frame) -> Camera:
+        """The camera of this stream; a Frame's own camera must agree with it on colour."""
+        if self.camera is not None:
+            camera = self.camera
+        else:
+            dtype = np.asarray(getattr(raw, "raw", raw)).dtype
+            camera = self._cameras.get(dtype)
+            if camera is None:
+                camera = self._cameras[dtype] = camera_for_raw(np.empty(0, dtype), self.pattern, cfa=self.cfa,
+                                                               **self.sensor_levels)
+        if isinstance(raw, Frame) and raw.camera.cfa != camera.cfa:
+            def kind(c: Camera) -> str:
+                return "monochrome" if c.cfa is None else f"colour ({c.cfa.name})"
+            raise SveliveError(f"frame {raw.frame_id} is {kind(raw.camera)} but this stream reconstructs "
+                               f"{kind(camera)} frames: give the matching colour filter (--cfa)")
+        return camera
+
+    def _estimate(self, raw: np.ndarray | Frame, method: str) -> tuple[SveInput, Estimate]:
+        inp = prepare(getattr(raw, "raw", raw), self._camera_for(raw))
+        spec = method_spec(method)
         options = dict(self.method_options)
-        parameters = inspect.signature(METHODS[method]).parameters
-        if "return_variance" in parameters:
+        if spec.variance:
             options["return_variance"] = True
-        if "workers" in parameters and "workers" not in options:
+        if spec.workers and "workers" not in options:
             options["workers"] = self._pool if self._pool is not None else self.workers
         estimate = run_method(inp, method, **options)
-        variance = estimate_variance(estimate, inp)
-        return inp, Estimate(estimate.image, estimate.lower_bound, variance)
+        return inp, replace(estimate, variance=estimate_variance(estimate, inp))
 
-    def process(self, raw: np.ndarray) -> SequenceResult:
-        """Reconstruct the next raw frame of the stream (uint8/uint16 (H, W), black level included)."""
+    def process(self, raw: np.ndarray | Frame) -> SequenceResult:
+        """Reconstruct the next frame of the stream: a Frame, or a raw uint8/uint16 (H, W) array
+        (black level included) of this stream's camera."""
         with self._lock:
             method, history, index, generation = self._method, self._history, self._frames, self._generation
         t0 = time.perf_counter()
@@ -276,41 +307,4 @@ def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, *
     """
     reconstructor = Reconstructor(pattern, **kwargs)
     for frame in frames:
-        yield reconstructor.process(getattr(frame, "raw", frame))
-
-
-def warm_up(methods: Iterable[str] | None = None) -> None:
-    """Compile, or load from numba's disk cache, every kernel a stream of these methods runs.
-
-    A kernel compiles on its first call (about a second each on a fresh
-    machine); a service or an image build calls this once so that no live
-    frame waits for it. Runs a few tiny synthetic frames (without and with
-    saturated pixels, which take different paths) through a temporal
-    Reconstructor per method and kind of pattern,
-    with ``mask`` and ``integration`` exposure timing (the latter runs the
-    within-frame test, whose output variance is also computed), and the preview
-    tone map. ``methods``: default every method but ``cubic`` (numpy only). The
-    frames are uint16; other raw types are converted to float32 before any
-    kernel, so they need nothing more.
-    """
-    from svelive.tonemap import ToneMapper  # only the preview uses it
-
-    rng = np.random.default_rng(0)
-    scene = rng.uniform(0, 200, (24, 32))  # still, so that frames after the first fuse with the history
-    clean = [np.clip(rng.normal(scene, 3), 0, 4095).astype(np.uint16) for _ in range(3)]
-    saturated = [frame.copy() for frame in clean]
-    for frame in saturated:
-        frame[:2, :4] = 4095
-    nominal = Pattern.parse("1,4/16,64")
-    # kernels take other paths for other tiles (1/1/8/8) and for calibrated per-pixel exposure maps
-    patterns = [nominal, Pattern.parse("1/1/8/8"), nominal.with_pixel_map(nominal.exposure_map(scene.shape))]
-    for method in methods if methods is not None else [m for m in METHODS if m != "cubic"]:
-        for pattern, timing in product(patterns, EXPOSURE_TIMINGS):
-            if timing == "integration" and pattern.pixel_map is not None:
-                continue  # the within-frame test needs a nominal tile
-            for frames in (clean, saturated):
-                reconstructor = Reconstructor(pattern, method=method, white_level=4095, exposure_timing=timing)
-                for frame in frames:
-                    result = reconstructor.process(frame)
-                result.variance  # noqa: B018 (computed on demand: the within-frame test's variance kernel)
-    ToneMapper()(result.image, 0)
+        yield reconstructor.process(frame)

@@ -58,7 +58,7 @@ import cv2
 import numpy as np
 
 from svelive.jit import flat, kernel
-from svelive.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips, smooth,
+from svelive.reconstruction.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips, smooth,
                                   support_size, tile_rows)
 from svelive.pattern import Pattern
 

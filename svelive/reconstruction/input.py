@@ -1,0 +1,81 @@
+"""Input preparation: a raw frame and its camera in, the SveInput every method takes out.
+
+The one place where the camera description is applied to raw values: the
+response curve linearises, the black level is removed, the exposure of every
+pixel (the pattern's tile or its calibrated per-pixel map) and the censoring of
+near-saturated readings are computed, and a colour filter layout gives every
+pixel its channel.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from svelive.camera import Camera
+from svelive.cfa import ColourFilter
+from svelive.errors import SveliveError
+from svelive.frame import Frame
+from svelive.pattern import Pattern
+from svelive.reconstruction.methods.base import SveInput, exposure_maps
+from svelive.sensor import Sensor
+
+
+@lru_cache(maxsize=8)
+def channel_map(cfa: ColourFilter, shape: tuple[int, int]) -> np.ndarray:
+    """The CFA's channel of every pixel, uint8 (H, W), read-only, cached per layout and shape."""
+    channels = cfa.channel_map(shape)
+    channels.setflags(write=False)
+    return channels
+
+
+def as_camera(camera: Camera | Pattern | str, sensor: Sensor | None = None) -> Camera:
+    """A Camera, or one built from a pattern (object or text) and a sensor: a convenience for tests and tools."""
+    if isinstance(camera, Camera):
+        if sensor is not None and sensor != camera.sensor:
+            raise SveliveError("give either a Camera or a pattern with a sensor, not a Camera and another sensor")
+        return camera
+    return Camera.build(camera, sensor=sensor)
+
+
+def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = None,
+            sensor: Sensor | None = None) -> SveInput:
+    """Check a raw frame and turn it into the SveInput every method takes.
+
+    Args:
+        raw: uint8/uint16 (H, W) raw DN, black level included (or float, already
+            linear), or a Frame, whose own camera is used when ``camera`` is None.
+        camera: the camera description; a pattern (with ``sensor``) stands for a
+            monochrome camera with that pattern.
+    """
+    if isinstance(raw, Frame):
+        camera = raw.camera if camera is None else camera
+        raw = raw.raw
+    if camera is None:
+        raise SveliveError("no camera description: give the exposure pattern")
+    camera = as_camera(camera, sensor)
+    pattern = camera.require_pattern()
+    sensor = camera.sensor
+    raw = camera.check(raw)
+    if camera.response is not None:
+        from svelive.calibrate.response import linearise  # calibration code only where a response is in use
+
+        raw = linearise(raw, camera.response, sensor)
+    exposure, _ = exposure_maps(pattern, raw.shape)
+    signal = raw.astype(np.float32)
+    signal -= np.float32(sensor.black_level)
+    censored = signal >= sensor.censor_level
+    integral = raw.dtype.kind in "ui" and float(sensor.black_level).is_integer()
+    channels = None if camera.cfa is None else channel_map(camera.cfa, raw.shape)
+    return SveInput(signal=signal, exposure=exposure, censored=censored, pattern=pattern, sensor=sensor,
+                    integral=integral, cfa=camera.cfa, channels=channels)
+
+
+def sensor_for(raw: np.ndarray, black_level: float = 0, white_level: float | None = None,
+               gain: float | None = None, read_noise: float | None = None) -> Sensor:
+    """The Sensor a raw array implies: bit depth from its dtype unless the white level says more."""
+    from svelive.camera import camera_for_raw
+
+    return camera_for_raw(raw, None, black_level=black_level, white_level=white_level, gain=gain,
+                          read_noise=read_noise).sensor
