@@ -13,15 +13,20 @@ from svelive.errors import SveliveError
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark every method: speed, accuracy, stability; charts",
                        description="Run every reconstruction method over real HDR images (simulated SVE frames, "
-                                   "patterns 1,4/16,64 1,2/4,8 1/1/8/8, a bright and a dim scene) and the "
+                                   "patterns 1,4/16,64 1,2/4,8 1/1/8/8, a bright and a dim scene), the colour "
+                                   "benchmark (joint against split, every colour layout, the RGB images) and the "
                                    "stability sweeps; write results.json, results.csv, speed_accuracy.png, "
-                                   "stability.json, stability.png, adaptive_choice.png and summary.md to DIR.")
-    p.add_argument("--quick", action="store_true", help="three images and fewer timing runs (a couple of minutes)")
+                                   "colour.json, colour.csv, colour.png, colour.md, stability.json, stability.png, "
+                                   "adaptive_choice.png and summary.md to DIR.")
+    p.add_argument("--quick", action="store_true",
+                   help="three images, the shipped crops for colour, fewer timing runs (a couple of minutes)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR", help="directory for the results")
     p.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="directory of HDR .exr images (default: ../shared/data/hdr beside the checkout)")
     p.add_argument("--no-chart", action="store_true", help="skip the PNG charts (no matplotlib needed)")
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
+    p.add_argument("--no-mono", action="store_true", help="skip the monochrome speed/accuracy run")
+    p.add_argument("--no-colour", action="store_true", help="skip the colour benchmark")
     p.set_defaults(func=cmd_bench)
 
 
@@ -38,6 +43,29 @@ def choice_map_example(pattern: str = "1,2/4,8"):
     return frame.truth, share, f"adaptive: per-pixel choice, shipped 'desk' crop, pattern {pattern}, bright"
 
 
+def run_colour(out: Path, data: Path, quick: bool, images: tuple[str, ...], chart: bool) -> str:
+    """The colour benchmark (the shipped crops when ``quick``, else the RGB images of ``data``); its Markdown."""
+    from svelive.bench import colour, report
+
+    start = time.perf_counter()
+    if quick:
+        scenes, skipped = colour.shipped_scenes(), {}
+        config = colour.quick_colour_config()
+    else:
+        scenes, skipped = colour.data_scenes(data, images)
+        config = colour.ColourBenchConfig(images=images)
+    results = colour.run_colour_benchmark(scenes, config, skipped=skipped)
+    results["seconds"] = round(time.perf_counter() - start, 1)
+    results["source"] = "shipped 256x256 crops" if quick else str(data)
+    report.write_json(out / "colour.json", results)
+    report.write_csv(out / "colour.csv", results["rows"])
+    table = colour.markdown_colour(results)
+    write_bytes_atomic(out / "colour.md", table.encode())
+    if chart:
+        report.plot_colour(results, out / "colour.png")
+    return "\n" + table
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from svelive.bench import report
     from svelive.bench.runner import BenchConfig, quick_config, run_benchmark
@@ -49,20 +77,28 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise SveliveError(f"{out}: exists and is not a directory")
     if not args.no_chart:
         report._pyplot()  # fail before the long run, not after it
+    if not args.no_colour:
+        from svelive.metrics import skimage_color
+
+        skimage_color()  # the colour error's library, checked before the long run too
     out.mkdir(parents=True, exist_ok=True)
     config = quick_config() if args.quick else BenchConfig()
+    data = args.data or default_data_dir()
     start = time.perf_counter()
-    results = run_benchmark(args.data or default_data_dir(), config)
-    results["seconds"] = round(time.perf_counter() - start, 1)
-    report.write_json(out / "results.json", results)
-    report.write_csv(out / "results.csv", results["rows"])
-    table = report.markdown_table(results["summary"])
-    write_bytes_atomic(out / "summary.md", table.encode())
-    if not args.no_chart:
-        report.plot_speed_accuracy(results["summary"], out / "speed_accuracy.png", results["default_method"])
-    if not args.no_chart:
-        truth, share, title = choice_map_example()
-        report.plot_choice_map(truth, share, out / "adaptive_choice.png", title)
+    table = ""
+    if not args.no_mono:
+        results = run_benchmark(data, config)
+        results["seconds"] = round(time.perf_counter() - start, 1)
+        report.write_json(out / "results.json", results)
+        report.write_csv(out / "results.csv", results["rows"])
+        table = report.markdown_table(results["summary"])
+        write_bytes_atomic(out / "summary.md", table.encode())
+        if not args.no_chart:
+            report.plot_speed_accuracy(results["summary"], out / "speed_accuracy.png", results["default_method"])
+            truth, share, title = choice_map_example()
+            report.plot_choice_map(truth, share, out / "adaptive_choice.png", title)
+    if not args.no_colour:
+        table += run_colour(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_stability:
         sweeps = run_stability()
         report.write_json(out / "stability.json", sweeps)

@@ -94,8 +94,15 @@ def plot_curves(sweeps: list[dict[str, object]], path: Path) -> None:
     rows = -(-n // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
     for ax, sweep in zip(axes.ravel(), sweeps):
+        layouts = list(dict.fromkeys(label.split(" ", 1)[-1] for label in sweep["errors"]))
         for method, errors in sweep["errors"].items():
-            ax.plot(sweep["difficulty"], errors, marker=".", label=method)
+            style = {}
+            if sweep["name"].startswith("colour"):  # "<mode> <layout>": a colour per layout, split dashed
+                mode, layout = method.split(" ", 1)
+                style = {"color": f"C{layouts.index(layout)}", "ls": "--" if mode == "split" else "-"}
+            ax.plot(sweep["difficulty"], errors, marker=".", label=method, **style)
+        if sweep["name"].startswith("colour"):
+            ax.legend(fontsize=6)
         ax.set_title(sweep["title"], fontsize=9)
         ax.set_xlabel(sweep["axis"], fontsize=8)
         ax.set_ylabel(sweep["error"], fontsize=8)
@@ -141,5 +148,43 @@ def plot_choice_map(truth: np.ndarray, share: np.ndarray, path: Path, title: str
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(title, fontsize=10)
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def plot_colour(results: dict[str, object], path: Path) -> None:
+    """Colour benchmark: PU21-PSNR of luminance and mean CIEDE2000 (p99 as a tick) per layout and noise level,
+    one bar per setting (means over the images)."""
+    plt = _pyplot()
+    rows = results["rows"]
+    groups = list(dict.fromkeys((r["layout"], r["noise"]) for r in rows))
+    labels = list(dict.fromkeys(r["method"] for r in rows))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
+    width = 0.8 / len(labels)
+    x = np.arange(len(groups))
+
+    def mean(label: str, group: tuple[str, str], metric: str) -> float:
+        return float(np.mean([r[metric] for r in rows if r["method"] == label and (r["layout"], r["noise"]) == group]))
+
+    for i, label in enumerate(labels):
+        offset = x - 0.4 + width * (i + 0.5)
+        hatch = "//" if label.startswith("split") else None
+        axes[0].bar(offset, [mean(label, g, "pu21_y") for g in groups], width, label=label, hatch=hatch)
+        axes[1].bar(offset, [mean(label, g, "de2000_mean") for g in groups], width, label=label, hatch=hatch)
+        axes[1].scatter(offset, [mean(label, g, "de2000_p99") for g in groups], marker="_", s=80, color="black",
+                        zorder=3, label="p99" if i == 0 else None)
+    for ax, title in zip(axes, ("PU21-PSNR of luminance (dB, higher is better)",
+                                "CIEDE2000 of the sRGB rendering (mean bars, p99 ticks; lower is better)")):
+        ax.set_xticks(x)
+        ax.set_xticklabels([f"{layout}\n{noise}" for layout, noise in groups], fontsize=7)
+        ax.set_title(title, fontsize=9)
+        ax.grid(True, axis="y", alpha=0.3)
+        ax.tick_params(labelsize=7)
+    axes[1].set_yscale("log")
+    axes[0].legend(fontsize=7, loc="lower right")
+    axes[1].legend(fontsize=7)
+    n = len(results["images"])
+    fig.suptitle(f"colour SVE: joint reconstruction against the split baseline, mean over {n} RGB images", fontsize=10)
+    fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)

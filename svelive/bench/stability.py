@@ -9,6 +9,13 @@ Error measures (lower is better):
   can tell, min(truth, full scale of the shortest exposure): above that the
   frame only says "at least", and a method cannot do better than the bound.
 - ``relative RMS error``: RMS(out - truth) / mean(truth).
+
+Colour cases (every colour layout, joint against split; :data:`COLOUR_SWEEPS`):
+- ``chroma error`` (stops): the spread max_c e_c - min_c e_c of the per-channel
+  errors e_c = log2(out_c / target_c): 0 when only brightness is wrong, so it
+  measures false colour alone, and it does not depend on white balance.
+- ``magenta/pink shift`` (stops): max(e_R, e_B) - e_G where positive, against
+  the truth: green low against red or blue, what clipped highlights turn into.
 """
 
 from __future__ import annotations
@@ -18,8 +25,10 @@ from typing import Callable
 
 import numpy as np
 
+from svelive.bench.colour import ColourSetting
 from svelive.bench.runner import Setting
 from svelive.bench.scenes import BENCH_SENSOR
+from svelive.camera import COLOUR_LAYOUTS, Camera
 from svelive.reconstruction.methods import METHODS
 from svelive.pattern import Pattern
 from svelive.reconstruction.input import prepare
@@ -222,7 +231,142 @@ SWEEPS: dict[str, Callable[[list[Setting]], Sweep]] = {
 }
 
 
-def run_stability(settings: list[Setting] | None = None) -> list[dict[str, object]]:
-    """Every sweep for every setting, JSON-ready."""
+# ----- colour cases ------------------------------------------------------------------------------
+
+#: Camera RGB of a white surface in daylight: green strongest, as in the raw data of real sensors
+#: (daylight white-balance multipliers about 2 for red and 1.4 for blue), so green clips first.
+CAMERA_WHITE = np.array([0.5, 1.0, 0.7], np.float32)
+
+
+def colour_stability_settings() -> list[ColourSetting]:
+    """The colour default and the split baseline, both with the default method."""
+    return [ColourSetting("joint", "joint"), ColourSetting("split", "split")]
+
+
+def colour_label(setting: ColourSetting, layout: str) -> str:
+    return f"{setting.label} {layout}"
+
+
+def measurable_rgb(truth: np.ndarray, camera: Camera) -> np.ndarray:
+    """What a colour frame can tell, per channel: truth capped where the shortest exposure saturates."""
+    return np.minimum(truth, camera.sensor.censor_level / float(camera.require_pattern().levels[0]))
+
+
+def channel_errors(out: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """log2(out / target) per pixel and channel, float64 (H, W, 3); values floored at 1e-3 DN."""
+    return np.log2(np.maximum(out, 1e-3) / np.maximum(target, 1e-3))
+
+
+def chroma_error(out: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    """Mean over ``mask`` of the spread of the per-channel errors in stops (0: a pure brightness error)."""
+    e = channel_errors(out, target)[mask]
+    return float(np.mean(e.max(axis=-1) - e.min(axis=-1)))
+
+
+def magenta_shift(out: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    """Mean over ``mask`` of max(0, max(e_R, e_B) - e_G) in stops: green too low against red or blue."""
+    e = channel_errors(out, truth)[mask]
+    return float(np.mean(np.maximum(np.maximum(e[:, 0], e[:, 2]) - e[:, 1], 0)))
+
+
+def luminance_error(out: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    """Mean over ``mask`` of |log2| of the luminance ratio (Rec. 709 weights): zipper and blur at edges."""
+    from svelive.metrics import luminance
+
+    return stops_error(luminance(out), luminance(target), mask)
+
+
+def _run_colour_sweep(sweep: Sweep, scene: Callable[[float, str], tuple[np.ndarray, np.ndarray]],
+                      measure: Callable[[np.ndarray, np.ndarray, Camera], float], settings: list[ColourSetting],
+                      layouts: tuple[str, ...]) -> Sweep:
+    """``scene(d, layout)`` gives (raw, truth (H, W, 3)); one curve per setting and layout."""
+    for layout in layouts:
+        camera = Camera.build(layout, sensor=BENCH_SENSOR)
+        curves = {colour_label(s, layout): [] for s in settings}
+        for d in sweep.difficulty:
+            raw, truth = scene(d, layout)
+            inp = prepare(raw, camera)
+            for s in settings:
+                curves[colour_label(s, layout)].append(measure(s.run(inp), truth, camera))
+        sweep.errors.update(curves)
+    return sweep
+
+
+def _simulated_rgb(truth: np.ndarray, layout: str, seed: int = SEED) -> np.ndarray:
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    return simulate(truth, pattern, BENCH_SENSOR, cfa=cfa, seed=seed).raw
+
+
+def colour_edge(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> tuple[Sweep, Sweep]:
+    """A slanted black/white edge (white = :data:`CAMERA_WHITE`) whose bright side climbs through saturation.
+
+    Returns two sweeps over the same frames: the chroma error within 3 px of the edge
+    (false colour, colour zipper) and the luminance error there (zipper, blur), both
+    against what the frame can tell.
+    """
+    contrasts = [float(c) for c in np.arange(0.0, 10.01, 1.0)]
+    chroma = Sweep("colour_edge", "colour: black/white edge, false colour", "edge contrast (stops)",
+                   "chroma error near the edge (stops)", contrasts, log_y=True)
+    luma = Sweep("colour_edge_luma", "colour: black/white edge, zipper", "edge contrast (stops)",
+                 "mean |log2 luminance error| near the edge", contrasts, log_y=True)
+    u, _ = slanted()
+    band = np.abs(u) <= 3
+    frames: dict[tuple[float, str], tuple[np.ndarray, np.ndarray]] = {}
+
+    def scene(c: float, layout: str):
+        if (c, layout) not in frames:
+            longest = float(Camera.build(layout).require_pattern().levels[-1])
+            dark = 0.25 * BENCH_SENSOR.range_dn / longest
+            level = np.where(u > 0, dark * 2.0**c, dark).astype(np.float32)
+            truth = level[..., None] * CAMERA_WHITE
+            frames[c, layout] = (_simulated_rgb(truth, layout), truth)
+        return frames[c, layout]
+
+    _run_colour_sweep(chroma, scene, lambda out, t, cam: chroma_error(out, measurable_rgb(t, cam), band),
+                      settings, layouts)
+    _run_colour_sweep(luma, scene, lambda out, t, cam: luminance_error(out, measurable_rgb(t, cam), band),
+                      settings, layouts)
+    return chroma, luma
+
+
+#: Peaks of the highlight sweep, in stops of its green channel above the shortest exposure's full scale;
+#: red (half of green in CAMERA_WHITE) is measured up to +1 stop, so "only some channels clip" up to there.
+HIGHLIGHT_PEAKS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.25, 0.5, 0.75, 1.5, 2.5)
+
+
+def clipped_highlight(settings: list[ColourSetting],
+                      layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> Sweep:
+    """A white (:data:`CAMERA_WHITE`) Gaussian highlight on a dim grey ground, its peak rising until green,
+    then blue, then red clip in every exposure: the magenta/pink shift inside the highlight (green above a
+    quarter of its peak), against the truth."""
+    sweep = Sweep("colour_highlight", "colour: clipped white highlight", "peak green (stops above the "
+                  "shortest exposure's full scale)", "magenta/pink shift in the highlight (stops)",
+                  list(HIGHLIGHT_PEAKS), log_y=False,
+                  notes="beyond +1 stop every channel clips at the centre: the frame cannot tell the hue there")
+    y, x = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32) - (SIZE - 1) / 2
+    profile = np.exp(-(x * x + y * y) / (2 * 14.0**2))
+    core = profile >= 0.25
+
+    def scene(peak: float, layout: str):
+        full = BENCH_SENSOR.censor_level / float(Camera.build(layout).require_pattern().levels[0])
+        level = full * 2.0**peak * profile + 0.02 * full
+        truth = (level[..., None] * CAMERA_WHITE).astype(np.float32)
+        return _simulated_rgb(truth, layout), truth
+
+    return _run_colour_sweep(sweep, scene, lambda out, t, cam: magenta_shift(out, t, core), settings, layouts)
+
+
+def colour_sweeps(settings: list[ColourSetting] | None = None,
+                  layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> list[Sweep]:
+    """The colour cases: the edge (false colour, zipper) and the clipped highlight."""
+    settings = colour_stability_settings() if settings is None else settings
+    return [*colour_edge(settings, layouts), clipped_highlight(settings, layouts)]
+
+
+def run_stability(settings: list[Setting] | None = None, colour: bool = True) -> list[dict[str, object]]:
+    """Every sweep for every setting (and the colour cases for joint and split), JSON-ready."""
     settings = stability_settings() if settings is None else settings
-    return [asdict(make(settings)) for make in SWEEPS.values()]
+    sweeps = [asdict(make(settings)) for make in SWEEPS.values()]
+    if colour:
+        sweeps += [asdict(sweep) for sweep in colour_sweeps()]
+    return sweeps
