@@ -141,7 +141,8 @@ def render_srgb(rgb: np.ndarray, exposure: float) -> np.ndarray:
     return srgb_encode(x / (1.0 + x))
 
 
-def _skimage_color():
+def skimage_color():
+    """scikit-image's colour module; a one-line SveliveError naming the install when it is missing."""
     try:
         from skimage import color
     except ImportError:
@@ -151,12 +152,12 @@ def _skimage_color():
 
 def srgb_to_lab(srgb: np.ndarray) -> np.ndarray:
     """CIELAB (D65, 2 degree observer) of sRGB-encoded values in [0, 1], float64 (..., 3) (scikit-image)."""
-    return _skimage_color().rgb2lab(srgb, illuminant="D65", observer="2")
+    return skimage_color().rgb2lab(srgb, illuminant="D65", observer="2")
 
 
 def delta_e_2000(lab_test: np.ndarray, lab_reference: np.ndarray) -> np.ndarray:
     """CIEDE2000 colour difference (kL = kC = kH = 1) of two CIELAB arrays (..., 3), per pixel (scikit-image)."""
-    return _skimage_color().deltaE_ciede2000(lab_test, lab_reference)
+    return skimage_color().deltaE_ciede2000(lab_test, lab_reference)
 
 
 def colour_error(test: np.ndarray, reference: np.ndarray, key: float = RENDER_KEY) -> dict[str, float]:
