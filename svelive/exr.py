@@ -1,4 +1,11 @@
-"""OpenEXR reading and writing: files (written to a temporary name, then renamed) and bytes."""
+"""OpenEXR reading and writing: files (written to a temporary name, then renamed) and bytes.
+
+Images go in as named 2-D channels: a monochrome frame as ``Y``, a colour frame
+as ``R``, ``G``, ``B`` (:func:`image_channels`). What the colour channels mean
+(camera RGB or Rec.709, the white balance) is said by attributes
+(svelive.whitebalance.exr_attributes); Rec.709 data carries the standard
+``chromaticities`` attribute (:data:`REC709_CHROMATICITIES`).
+"""
 
 from __future__ import annotations
 
@@ -16,6 +23,13 @@ from svelive.errors import SveliveError
 
 #: Rec. 709 / sRGB primaries: luminance from linear RGB.
 LUMA_WEIGHTS = (0.2126, 0.7152, 0.0722)
+
+#: The standard ``chromaticities`` attribute of Rec. 709 primaries and a D65 white:
+#: (red x, y, green x, y, blue x, y, white x, y).
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+#: Shapes of numeric attributes stored as OpenEXR vectors and matrices (V2f, V3f, M33f).
+_VECTOR_SHAPES = ((2,), (3,), (3, 3))
 
 _COMPRESSIONS = {
     "none": OpenEXR.NO_COMPRESSION,
@@ -40,10 +54,37 @@ def _build(channels: Mapping[str, np.ndarray], attributes: Mapping[str, object] 
         "type": OpenEXR.scanlineimage,
     }
     for key, value in (attributes or {}).items():
-        header[key] = value if isinstance(value, (int, float, str)) else str(value)
+        header[key] = _attribute(key, value)
     data = {name: np.ascontiguousarray(np.asarray(a, dtype=np.float32).astype(dtype, copy=False))
             for name, a in channels.items()}
     return OpenEXR.File(header, data)
+
+
+def _attribute(key: str, value: object) -> object:
+    """A header value the bindings store with its type: numbers and text as they are, ``chromaticities`` as
+    its 8 numbers, numeric arrays of shape (2,), (3,), (3, 3) as float32 vectors and matrices; else ``str()``."""
+    if isinstance(value, (int, float, str)):
+        return value
+    if key == "chromaticities":
+        numbers = tuple(float(x) for x in np.asarray(value, np.float64).reshape(-1))
+        if len(numbers) != 8:
+            raise SveliveError(f"EXR chromaticities need 8 numbers (rx, ry, gx, gy, bx, by, wx, wy), got {len(numbers)}")
+        return numbers
+    if isinstance(value, (tuple, list, np.ndarray)) and np.shape(value) in _VECTOR_SHAPES:
+        array = np.asarray(value)
+        if array.dtype.kind in "iuf":
+            return array.astype(np.float32)
+    return str(value)
+
+
+def image_channels(image: np.ndarray) -> dict[str, np.ndarray]:
+    """The EXR channels of an image: ``{"Y": image}`` for (H, W), ``R``, ``G``, ``B`` for (H, W, 3)."""
+    image = np.asarray(image)
+    if image.ndim == 2:
+        return {"Y": image}
+    if image.ndim == 3 and image.shape[2] == 3:
+        return {name: image[:, :, c] for c, name in enumerate("RGB")}
+    raise SveliveError(f"an EXR image must be (H, W) or (H, W, 3), got shape {image.shape}")
 
 
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attributes: Mapping[str, object] | None = None,
@@ -52,7 +93,9 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attri
 
     The file appears complete or not at all: it is written to a temporary name in
     the same directory and renamed. String, int and float attributes are stored as
-    header attributes; anything else as its ``str()``.
+    they are, ``chromaticities`` as the standard attribute (8 numbers), numeric
+    arrays of shape (2,), (3,) or (3, 3) as float32 vectors or matrices; anything
+    else as its ``str()``.
     """
     exr = _build(channels, attributes, half, compression)
     with atomic_path(path) as tmp:
@@ -101,3 +144,14 @@ def read_luminance(source: str | os.PathLike | bytes) -> np.ndarray:
         r, g, b = (channels[c] for c in "RGB")
         return (LUMA_WEIGHTS[0] * r + LUMA_WEIGHTS[1] * g + LUMA_WEIGHTS[2] * b).astype(np.float32)
     raise SveliveError(f"{source}: EXR has neither a Y channel nor R, G, B (channels: {', '.join(channels)})")
+
+
+def read_rgb(source: str | os.PathLike | bytes) -> np.ndarray:
+    """Linear RGB (float32 (H, W, 3)) of an EXR: ``R``, ``G``, ``B``, or a grey image from ``Y`` alone."""
+    channels, _ = read_exr(source)
+    if all(c in channels for c in "RGB"):
+        return np.dstack([channels[c] for c in "RGB"])
+    if "Y" in channels:
+        return np.repeat(channels["Y"][:, :, None], 3, axis=2)
+    raise SveliveError(f"{source if not isinstance(source, bytes) else 'EXR bytes'}: EXR has neither R, G, B "
+                       f"nor a Y channel (channels: {', '.join(channels)})")

@@ -46,3 +46,37 @@ def test_luminance_from_rgb(tmp_path):
     r = np.full((2, 2), 1.0, np.float32)
     path = write_exr(tmp_path / "rgb.exr", {"R": r, "G": 2 * r, "B": 3 * r})
     assert np.allclose(read_luminance(path), 0.2126 + 2 * 0.7152 + 3 * 0.0722)
+
+
+def test_rgb_channels_typed_attributes_and_chromaticities(tmp_path):
+    from svelive.exr import REC709_CHROMATICITIES, image_channels, read_rgb
+
+    rgb = np.random.default_rng(1).random((6, 5, 3)).astype(np.float32) * 1e3
+    channels = image_channels(rgb)
+    assert list(channels) == ["R", "G", "B"]
+    path = write_exr(tmp_path / "rgb.exr", {**channels, "confidence": rgb[:, :, 0] / 1e3},
+                     {"chromaticities": REC709_CHROMATICITIES, "whiteBalance": (2.0, 1.0, 1.5),
+                      "colourMatrix": np.eye(3), "colourSpace": "rec709", "whiteBalanceApplied": 1})
+    back, header = read_exr(path)
+    assert set(back) == {"R", "G", "B", "confidence"}
+    assert np.array_equal(read_rgb(path), rgb)
+    assert header["chromaticities"] == pytest.approx(REC709_CHROMATICITIES, abs=1e-6)
+    assert header["whiteBalance"].tolist() == [2.0, 1.0, 1.5] and header["colourMatrix"].shape == (3, 3)
+    assert header["colourSpace"] == "rec709" and header["whiteBalanceApplied"] == 1
+    half, _ = read_exr(exr_bytes(channels, half=True))
+    assert np.allclose(np.dstack([half[c] for c in "RGB"]), rgb, rtol=1e-3)
+
+
+def test_image_channels_and_read_rgb_of_mono(tmp_path):
+    from svelive.exr import image_channels, read_rgb
+
+    y = np.arange(12, dtype=np.float32).reshape(3, 4)
+    assert list(image_channels(y)) == ["Y"]
+    grey = read_rgb(write_exr(tmp_path / "y.exr", {"Y": y}))
+    assert grey.shape == (3, 4, 3) and np.array_equal(grey[:, :, 2], y)
+    with pytest.raises(SveliveError, match=r"\(H, W, 3\)"):
+        image_channels(np.zeros((3, 4, 2)))
+    with pytest.raises(SveliveError, match="neither R, G, B nor a Y"):
+        read_rgb(write_exr(tmp_path / "z.exr", {"Z": y}))
+    with pytest.raises(SveliveError, match="8 numbers"):
+        write_exr(tmp_path / "c.exr", {"Y": y}, {"chromaticities": (0.64, 0.33)})
