@@ -25,6 +25,7 @@ from svelive.capture import formats
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.camera import Camera
+from svelive.cfa import ColourFilter
 
 
 class CorruptFrameError(RecordingError):
@@ -73,15 +74,22 @@ class RecordingReader:
         except SveliveError:
             raise RecordingError(f"{self.path}: unknown pixel format {self.meta.get('pixel_format')!r} "
                                  "in the header") from None
+        format_cfa = formats.lookup(self.pixel_format).cfa
         # recordings before the camera description stored pattern and sensor alone; a Bayer
         # pixel format then still says which colour filter the frames have
-        described = self.meta.get("camera") or {
-            "pattern": self.meta.get("pattern"), "sensor": self.meta.get("sensor") or {},
-            "cfa": formats.lookup(self.pixel_format).cfa}
+        described = self.meta.get("camera")
+        if described is None:
+            described = {"pattern": self.meta.get("pattern"), "sensor": self.meta.get("sensor") or {},
+                         "cfa": format_cfa}
         try:
             self.camera = Camera.from_dict(described, default_bits=16 if self.layout.dtype == "uint16" else 8)
         except SveliveError as exc:
             raise RecordingError(f"{self.path}: camera metadata is invalid ({exc})") from None
+        cfa = self.camera.cfa
+        if format_cfa is not None and (cfa is None or (cfa.is_bayer() and cfa != ColourFilter.parse(format_cfa))):
+            raise RecordingError(f"{self.path}: the header's camera has colour filter "
+                                 f"{'none' if cfa is None else cfa.name} but the frames are {self.pixel_format} "
+                                 f"({format_cfa}); the header was altered: correct its camera.cfa")
         self.sensor = self.camera.sensor
         self.pattern: str | None = None if self.camera.pattern is None else str(self.camera.pattern)
         self._size = size

@@ -23,6 +23,7 @@ from replay.container import (
     Layout, RecordingError, crc32, encode_header,
 )
 from svelive.capture import formats
+from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.sensor import Sensor
@@ -86,8 +87,19 @@ class RecordingWriter:
         self.close()
 
     def _camera_dict(self, frame: Frame) -> dict[str, Any]:
-        """The frame's camera description, with the writer's pattern where one was given."""
+        """The frame's camera description, with the writer's pattern where one was given.
+
+        A Bayer pixel format and the camera's colour filter must agree, as the reader
+        checks; a camera without one (a hand-made Frame) takes the format's.
+        """
         camera = frame.camera if self.pattern is None else frame.camera.with_pattern(self.pattern)
+        named = formats.lookup(frame.pixel_format).cfa
+        if named is not None:
+            if camera.cfa is None:
+                camera = camera.replace(cfa=ColourFilter.parse(named))
+            elif camera.cfa.is_bayer() and camera.cfa != ColourFilter.parse(named):
+                raise RecordingError(f"frame {frame.frame_id} is {frame.pixel_format} (colour filter {named}) but "
+                                     f"its camera says {camera.cfa.name}; give the source the right --cfa")
         return camera.to_dict()
 
     def _start(self, frame: Frame) -> None:

@@ -55,7 +55,10 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
     """The --source option and the common source options (shared with other verbs)."""
     p.add_argument("--source", required=True, metavar="SPEC",
                    help="gige[:DEVICE_ID], v4l2:/dev/videoN, images:GLOB_OR_DIR, replay:PATH or demo")
-    p.add_argument("--pattern", help="exposure pattern text or preset stored with the frames (e.g. 1,4/16,64)")
+    p.add_argument("--pattern", help="exposure pattern text or preset stored with the frames (e.g. 1,4/16,64), "
+                                     "or a colour layout such as dual-iso")
+    p.add_argument("--cfa", help="colour filter layout, e.g. RGGB or quad-RGGB; 'none' for monochrome "
+                                 "(default: a Bayer pixel format sets it by itself)")
     p.add_argument("--bits", type=int, help="sensor bit depth (default: the pixel format's)")
     p.add_argument("--black-level", type=float, help="sensor black level, DN")
     p.add_argument("--white-level", type=float, help="sensor white level, DN")
@@ -92,7 +95,7 @@ def parse_opts(items: list[str]) -> dict[str, Any]:
 
 def source_from_args(args: argparse.Namespace) -> Any:
     """Build the Source the common arguments describe."""
-    opts = {"pattern": args.pattern, "bits": args.bits, "black_level": args.black_level,
+    opts = {"pattern": args.pattern, "cfa": args.cfa, "bits": args.bits, "black_level": args.black_level,
             "white_level": args.white_level, "pixel_format": args.pixel_format, "width": args.width,
             "height": args.height, "fps": args.fps, "speed": args.speed, "loop": args.loop}
     opts.update(parse_opts(args.opt))
@@ -105,7 +108,8 @@ def _record(args: argparse.Namespace) -> int:
     if args.seconds is not None and args.seconds <= 0:
         raise SveliveError("--seconds must be > 0")
     source = source_from_args(args)
-    writer = RecordingWriter(args.output, pattern=args.pattern, source=args.source,
+    # the frames carry the camera (the user's pattern and colour filter included), which the writer stores
+    writer = RecordingWriter(args.output, source=args.source,
                              config=WriterConfig(overwrite=args.overwrite, sync_every=args.sync_every))
     frames: queue.Queue[Frame | None] = queue.Queue(maxsize=max(1, args.queue))
     failure: list[BaseException] = []
@@ -126,8 +130,6 @@ def _record(args: argparse.Namespace) -> int:
     interrupted = False
     try:
         with source:
-            if writer.pattern is None:
-                writer.pattern = source.pattern
             thread.start()
             try:
                 for frame in source.frames(limit=args.frames, seconds=args.seconds):

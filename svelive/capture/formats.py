@@ -147,6 +147,19 @@ def find(name: str) -> PixelFormat | None:
     return FORMATS.get(str(name).strip().lower())
 
 
+def unpacked_name(bits: int, cfa: object = None) -> str:
+    """The narrowest unpacked format holding ``bits``-bit values: ``Mono<n>``, or ``Bayer<XY><n>`` for a
+    2x2 Bayer colour filter (a :class:`svelive.cfa.ColourFilter` or its name); any other filter, which
+    has no PFNC name, gets the Mono name."""
+    from svelive.cfa import ColourFilter
+
+    layout = None if cfa is None else ColourFilter.parse(cfa)  # type: ignore[arg-type]
+    if layout is not None and layout.is_bayer():
+        short, widths = _GEV_BAYER[layout.name], (8, 10, 12, 16)
+        return next(f"Bayer{short}{b}" for b in widths if bits <= b)
+    return next(f"Mono{b}" for b in (8, 10, 12, 14, 16) if bits <= b)
+
+
 def fourcc_text(code: int) -> str:
     """A V4L2 fourcc integer (little-endian characters) as its 4-character text."""
     return "".join(chr((int(code) >> (8 * i)) & 0xFF) for i in range(4)).rstrip("\x00 ")

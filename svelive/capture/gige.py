@@ -13,6 +13,12 @@ status is not SUCCESS (missing packets, timeout, size mismatch, ...) never
 becomes a Frame: it is counted in ``stats()["drops"]`` under the status name
 in lower case and re-queued.
 
+Colour: a Bayer pixel format sets the frames' colour filter (``camera.cfa``) to
+the layout its name gives, which GigE Vision's PFNC defines at the first pixel
+of the delivered frame: the region offset does not shift it (colour cameras keep
+offsets even or rename the format; Aravis's fake camera keeps the named phase at
+odd offsets). ``cfa`` given as well must agree, ``cfa="none"`` is refused.
+
 Liveness: when the device reports ``control-lost`` (heartbeat failure), or no
 frame has come for ``offline_after_s`` (at least five frame periods), the source
 reports offline, tears the stream down and reconnects with exponential backoff
@@ -141,13 +147,16 @@ class GigeSource(Source):
                 raise SveliveError(f"cannot open {what}: {_message(exc)}") from None
         if camera is None:
             raise SveliveError(f"no GigE camera {self.device_id or ''} found".replace("  ", " "))
+        stream: Any = None
+        arrays: dict[Any, np.ndarray] = {}
         try:
             self._configure(camera)
             pf_name = camera.get_pixel_format_as_string()
             self._format = formats.lookup(pf_name)
-            x, y, _, _ = camera.get_region()
+            # a Bayer format names the colour of the first delivered pixel, whatever the region offset
+            # (PFNC; the fake camera keeps its phase at odd offsets too), so the layout is not shifted
             self._settle_camera(build_sensor(*self._sensor_opts, default_bits=self._format.bits), self._format.cfa,
-                                self._format.name, (y, x))
+                                self._format.name)
             self._pf_code = int(camera.get_pixel_format())
             payload = int(camera.get_payload())
             stream = camera.create_stream(None, None)
@@ -156,7 +165,6 @@ class GigeSource(Source):
             if isinstance(stream, Ar.GvStream):
                 stream.set_property("packet-resend", Ar.GvStreamPacketResend.ALWAYS if c.packet_resend
                                     else Ar.GvStreamPacketResend.NEVER)
-            arrays: dict[Any, np.ndarray] = {}
             for _ in range(c.n_buffers):
                 arr = np.empty(payload, dtype=np.uint8)
                 buf = Ar.Buffer.new(payload, arr.ctypes.data)
@@ -166,9 +174,15 @@ class GigeSource(Source):
             self._lost.clear()
             device.connect("control-lost", lambda *_: self._lost.set())
             camera.start_acquisition()
-        except SveliveError:
-            raise
         except Exception as exc:
+            # release the device now (the stream before its arrays): the traceback keeps this frame's
+            # locals, and a camera object kept alive keeps the control channel from the next open
+            _stop(camera)
+            stream = None
+            arrays = {}
+            camera = None
+            if isinstance(exc, SveliveError):
+                raise
             raise SveliveError(f"{self.spec}: camera setup failed: {_message(exc)}") from None
         with self._io:
             if self._closing.is_set():  # closed while connecting: drop what was built

@@ -1,5 +1,8 @@
 """Image-sequence source: 8/16-bit single-channel PNG, TIFF or PGM files in name order.
 
+Files hold raw mosaics; their colour filter is what the user gives (``cfa``, or a
+Bayer ``pixel_format`` name), none by default.
+
 Files are ordered by natural name order (``f2.png`` before ``f10.png``). Frames
 come at ``fps`` (None: as fast as they are read) and, with ``loop``, start
 again after the last. Every file must have the size and bit depth of the
@@ -35,7 +38,8 @@ class ImagesConfig:
     Attributes:
         fps: delivery rate in frames per second; None or 0 for as fast as possible.
         loop: start again after the last file.
-        pixel_format: name recorded in each Frame (default Mono8 or Mono16 by file depth).
+        pixel_format: name recorded in each Frame (default by file depth: Mono8 or Mono16, or
+            BayerRG8/BayerRG16... with a Bayer ``cfa``); a Bayer name sets the colour filter.
     """
 
     fps: float | None = None
@@ -97,11 +101,12 @@ class ImageSequenceSource(Source):
         first = read_image(self._files[0])
         self._shape = (first.shape, first.dtype)
         default_bits = container_bits(first.dtype)
-        self._format = self.config.pixel_format or ("Mono8" if first.dtype == np.uint8 else "Mono16")
-        # image files do not say whether a colour filter sat on the sensor: only a format named by the user does
+        # image files do not say whether a colour filter sat on the sensor: only the user does, by a
+        # format name or by --cfa (frames then carry the Bayer name of the container, e.g. BayerRG16)
         named = formats.find(self.config.pixel_format) if self.config.pixel_format else None
         self._settle_camera(build_sensor(*self._sensor_opts, default_bits=default_bits),
                             None if named is None else named.cfa, None if named is None else named.name)
+        self._format = self.config.pixel_format or formats.unpacked_name(default_bits, self.camera.cfa)
         self._t0 = time.monotonic()
 
     def _next(self) -> Frame | None:

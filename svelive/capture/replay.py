@@ -51,7 +51,8 @@ class ReplaySource(Source):
             raise SveliveError(f"{spec}: speed must be >= 0 (0 = as fast as possible), got {self.config.speed}")
         self._path = arg or ""
         self._reader: RecordingReader | None = None
-        self._override = (pattern, sensor)
+        # the user's pattern as parsed (a colour layout's exposures), or None for the recorded one
+        self._override = (None if pattern is None else self.camera.pattern, sensor)
 
     def _open(self) -> None:
         self._reader = RecordingReader(self._path)

@@ -43,8 +43,11 @@ def resolve_cfa(given: str | ColourFilter | None, format_cfa: str | None, format
             None for a monochrome format.
         format_name: the pixel format's name, or None when the source cannot tell
             (image files): the user's word then stands.
-        offset: (rows, cols) of the region's top-left pixel on the sensor; the format's
-            layout is shifted by it (an odd offset changes the Bayer phase).
+        offset: (rows, cols) by which to shift the format's layout, for a source whose
+            format names the colour filter at the sensor's origin rather than at the
+            delivered frame's. GigE Vision and V4L2 formats name the first delivered
+            pixel (PFNC; cameras keep colour regions at even offsets or rename the
+            format), so they pass (0, 0).
 
     A contradiction is refused with a one-line error naming the fix: a Bayer format
     reconstructed as monochrome, a colour filter for a monochrome format, or a
@@ -93,9 +96,13 @@ class Source:
     def __init__(self, spec: str, *, pattern: str | None = None, sensor: Sensor | None = None,
                  cfa: str | None = None) -> None:
         self.spec = spec
-        self._given_cfa = cfa
         mono = isinstance(cfa, str) and cfa.strip().lower() in MONO_WORDS
         self.camera = Camera.build(pattern, None if mono else cfa, sensor if sensor is not None else Sensor())
+        if mono and self.camera.cfa is not None:
+            raise SveliveError(f"{spec}: the layout {pattern} has the colour filter {self.camera.cfa.name}, but "
+                               f"--cfa {cfa} was given: drop --cfa, or give the exposure pattern itself")
+        # what the user asked for, directly or through a colour layout, to reconcile with the pixel format
+        self._given_cfa: str | ColourFilter | None = cfa if mono else self.camera.cfa
         self._closing = threading.Event()
         self._lock = threading.Lock()
         self._opened = False
