@@ -68,7 +68,7 @@ def test_image_sequence_bad_input(tmp_path: Path) -> None:
 
 
 def test_demo_renders_moving_hdr_scene_at_rate() -> None:
-    with open_source("demo", width=320, height=180, fps=30) as s:
+    with open_source("demo", width=320, height=180, fps=30, cfa="none") as s:  # the monochrome demo
         t = time.monotonic()
         frames = list(s.frames(limit=16))
         elapsed = time.monotonic() - t
@@ -81,6 +81,112 @@ def test_demo_renders_moving_hdr_scene_at_rate() -> None:
     assert np.abs(frames[-1].raw.astype(int) - raw.astype(int)).mean() > 5  # it moves
     long_px = raw[1::2, 1::2]  # exposure 64 of the tile 1,4/16,64
     assert (long_px == 4095).mean() > (raw[0::2, 0::2] == 4095).mean()
+
+
+def test_demo_is_a_colour_sve_camera_at_the_scene_native_size() -> None:
+    from svelive.capture.demo import DemoSource
+
+    with open_source("demo", fps=0) as s:
+        frames = list(s.frames(limit=3))
+        stats = s.stats()
+    raw = frames[0].raw
+    camera = frames[0].camera
+    assert raw.shape == (540, 960) and raw.dtype == np.uint16  # the shipped crop less its motion margin
+    assert frames[0].pixel_format == "BayerRG12" and camera.cfa.name == "RGGB" and stats["cfa"] == "RGGB"
+    assert str(camera.pattern) == "1/1/8/8" and s.pattern == "1/1/8/8"  # the dual-ISO exposures
+    assert raw.max() == 4095 and np.percentile(raw, 1) < 20  # the light saturates, shadows stay dark
+    # colour, not grey: the three channels of the scene the sensor sees differ
+    source = DemoSource("demo", fps=0)
+    source.open()
+    rgb = source.radiance(0.0)
+    source.close()
+    assert rgb.shape == (540, 960, 3)
+    means = rgb.reshape(-1, 3).mean(axis=0)
+    assert np.ptp(means) > 0.1 * means.mean()
+    # each filter site records its own channel: compare the raw with the mosaic of that radiance
+    mosaic = source.mosaic(0.0) * source._exposure
+    assert np.array_equal(mosaic[0::2, 0::2], (rgb[0::2, 0::2, 0] * source._exposure[0::2, 0::2]))
+    assert np.array_equal(mosaic[1::2, 1::2], (rgb[1::2, 1::2, 2] * source._exposure[1::2, 1::2]))
+
+
+def test_demo_noise_follows_the_sensor_model() -> None:
+    """The fast render's raw values are the mosaic of radiance() times the exposure, plus noise
+    of the sensor model's variance: standardised residuals have mean 0 and deviation 1."""
+    from svelive.capture.demo import DemoSource
+
+    for cfa in ("RGGB", "none"):
+        s = DemoSource("demo", width=320, height=200, fps=0, cfa=cfa, seed=3)
+        s.open()
+        raw = s._render(1.5).astype(np.float64)
+        signal = s.mosaic(1.5).astype(np.float64) * s._exposure
+        s.close()
+        sensor = s.sensor
+        var = sensor.signal_variance(signal)
+        inside = (signal + 5 * np.sqrt(var) < sensor.range_dn) & (signal > 20)  # away from clipping and zero
+        z = (raw - sensor.black_level - signal)[inside] / np.sqrt(var[inside])
+        assert inside.sum() > 20000
+        assert abs(z.mean()) < 0.02 and z.std() == pytest.approx(1.0, abs=0.03)
+        clipped = signal > sensor.range_dn + 5 * np.sqrt(sensor.signal_variance(sensor.range_dn))
+        assert clipped.any() and np.all(raw[clipped] == sensor.white_level)
+
+
+def test_demo_exact_render_agrees_with_the_fast_one() -> None:
+    """exact=True (Poisson-Gaussian through svelive.simulate) and the fast Gaussian render give
+    the same mean per filter site and exposure (within 1 %) of the same scene."""
+    for cfa in ("RGGB", "none"):
+        means = []
+        for exact in (True, False):
+            with open_source("demo", width=320, height=200, fps=0, cfa=cfa, exact=exact, seed=5) as s:
+                raw = s.read().raw.astype(np.float64)
+            means.append([raw[i::4, j::2].mean() for i in range(4) for j in range(2)])
+        np.testing.assert_allclose(means[0], means[1], rtol=0.01)
+
+
+def test_demo_light_has_no_square_edge() -> None:
+    """The moving light is a Gaussian over the whole frame: no window edge where it steps to zero."""
+    from svelive.capture.demo import DemoSource
+
+    s = DemoSource("demo", width=640, height=360, fps=0, cfa="none")
+    s.open()
+    with_light = s.radiance(2.0).astype(np.float64)
+    s._light = np.zeros_like(s._light)
+    scene = s.radiance(2.0).astype(np.float64)
+    s.close()
+    light = with_light - scene
+    # along the row through the light's peak its profile falls off smoothly: no step between neighbours
+    y, x = np.unravel_index(np.argmax(light), light.shape)
+    profile = light[y]
+    steps = np.abs(np.diff(profile))
+    far = profile < 1e-3 * profile.max()
+    assert far.any() and steps[far[1:] & far[:-1]].max() < 1e-3 * profile.max()
+    assert light.min() >= 0 and light[y, x] > 1000
+
+
+def test_demo_bayer_option_behaves_like_a_bayer_camera() -> None:
+    from svelive.capture.demo import DemoSource
+
+    with open_source("demo", width=64, height=48, fps=0, pixel_format="BayerGR16") as s:
+        frame = s.read()
+    assert frame.pixel_format == "BayerGR16" and frame.camera.cfa.name == "GRBG" and frame.sensor.bits == 16
+    assert frame.raw.max() == 65535 and str(frame.camera.pattern) == "1/1/8/8"
+    with open_source("demo", width=64, height=48, fps=0, pixel_format="Mono12") as s:
+        assert s.read().camera.cfa is None and s.pattern == "1,4/16,64"
+    with open_source("demo", width=64, height=48, fps=0, pattern="quad-bayer") as s:
+        frame = s.read()
+    assert frame.camera.cfa.name == "quad-RGGB" and frame.pixel_format == "Mono12"  # no PFNC name for it
+    # the contradictions a camera refuses
+    with pytest.raises(SveliveError, match="BayerRG12, a Bayer format .* cannot be reconstructed as monochrome"):
+        DemoSource("demo", pixel_format="BayerRG12", cfa="none")
+    with pytest.raises(SveliveError, match="Mono12, a monochrome format, but a colour filter"):
+        DemoSource("demo", pixel_format="Mono12", cfa="RGGB")
+    with pytest.raises(SveliveError, match="colour filter GRBG at this region.*--cfa RGGB"):
+        DemoSource("demo", pixel_format="BayerGR12", cfa="RGGB")
+    with pytest.raises(SveliveError, match="layout dual-iso has the colour filter RGGB.*--cfa none"):
+        DemoSource("demo", pattern="dual-iso", cfa="none")
+    with pytest.raises(SveliveError, match="unknown scene 'moon'"):
+        DemoSource("demo", scene="moon")
+    with open_source("demo:desk", width=64, height=48, fps=0) as s:  # the 256x256 crops still work
+        assert s.config.scene == "desk" and s.read().raw.shape == (48, 64)
 
 
 def test_close_from_another_thread_ends_iteration_quickly(tmp_path: Path) -> None:

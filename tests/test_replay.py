@@ -19,6 +19,7 @@ from replay.container import FOOTER, RECORD_HEADER
 from svelive.camera import Camera
 from svelive.capture import open_source
 from svelive.cli import main
+from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.sensor import Sensor
 
@@ -213,8 +214,8 @@ def test_kill_9_mid_recording_keeps_every_complete_frame(tmp_path: Path) -> None
 
 def test_cli_record_replay_info_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rec = tmp_path / "r.sverec"
-    assert main(["record", "--source", "demo", "--width", "64", "--height", "48", "--fps", "0", "--frames", "5",
-                 "-o", str(rec)]) == 0
+    assert main(["record", "--source", "demo", "--cfa", "none", "--width", "64", "--height", "48", "--fps", "0",
+                 "--frames", "5", "-o", str(rec)]) == 0
     capsys.readouterr()
     assert main(["replay-info", str(rec)]) == 0
     info = json.loads(capsys.readouterr().out)
@@ -238,3 +239,110 @@ def test_writer_refuses_unknown_pixel_format(tmp_path: Path) -> None:
     with RecordingWriter(tmp_path / "u.sverec") as w, pytest.raises(RecordingError, match="unknown pixel format"):
         w.append(Frame(raw=np.zeros((2, 2), np.uint8), frame_id=0, host_time_ns=0, pixel_format="Weird42"))
     assert not (tmp_path / "u.sverec").exists()
+
+
+# ----- colour: the camera in the header ---------------------------------------------------------
+
+
+def test_header_stores_the_camera_and_the_reader_restores_it(tmp_path: Path) -> None:
+    from svelive.calibrate.response import Response
+
+    response = Response(coefficients=(0.0, 0.7, 0.3), black_level=64, white_level=4095)
+    camera = Camera.build("dual-iso", sensor=Sensor(bits=12, black_level=64, gain=2.5, read_noise=1.5),
+                          response=response)
+    frames = [Frame(raw=np.full((8, 12), 100 + i, np.uint16), frame_id=i, host_time_ns=i * 10**6,
+                    pixel_format="BayerRG12", camera=camera) for i in range(3)]
+    path = tmp_path / "colour.sverec"
+    with RecordingWriter(path, source="test") as w:
+        for f in frames:
+            w.append(f)
+    with RecordingReader(path) as r:
+        assert r.meta["camera"]["cfa"] == "R,G/G,B" and r.meta["camera"]["pattern"] == "1/1/8/8"
+        assert r.camera.cfa.name == "RGGB" and str(r.camera.pattern) == "1/1/8/8"
+        assert r.camera.sensor == camera.sensor and r.camera.response == response
+        assert r.read(2).camera == r.camera and r.info()["cfa"] == "RGGB"
+    # a replay delivers frames with that camera; a monochrome reading of Bayer frames is refused
+    with open_source(f"replay:{path}", speed=0) as s:
+        got = list(s)
+    assert len(got) == 3 and all(f.camera.cfa.name == "RGGB" and f.camera.response == response for f in got)
+    with pytest.raises(SveliveError, match="cannot be reconstructed as monochrome: drop --cfa none"):
+        open_source(f"replay:{path}", cfa="none").open()
+    with open_source(f"replay:{path}", speed=0, pattern="1/8/1/8") as s:  # another exposure pattern, same filter
+        frame = s.read()
+    assert str(frame.camera.pattern) == "1/8/1/8" and frame.camera.cfa.name == "RGGB"
+
+
+def test_old_header_with_a_bayer_format_still_gives_the_colour_filter(tmp_path: Path) -> None:
+    from replay.container import encode_header
+
+    meta = {"width": 4, "height": 2, "dtype": "uint16", "pixel_format": "BayerGB12", "pattern": "1,4/16,64",
+            "sensor": {"bits": 12, "black_level": 10.0}}
+    (tmp_path / "old.sverec").write_bytes(encode_header(meta))
+    with RecordingReader(tmp_path / "old.sverec") as r:
+        assert r.camera.cfa.name == "GBRG" and str(r.camera.pattern) == "1,4/16,64" and r.sensor.black_level == 10
+        assert r.info()["cfa"] == "GBRG"
+    (tmp_path / "mono.sverec").write_bytes(encode_header({**meta, "pixel_format": "Mono12"}))
+    with RecordingReader(tmp_path / "mono.sverec") as r:
+        assert r.camera.cfa is None and r.info()["cfa"] is None
+
+
+@pytest.mark.parametrize("camera, message", [
+    ({"pattern": "1/1/8/8", "cfa": "RGGB", "sensor": [12, 0]}, "camera sensor must be a JSON object"),
+    ({"pattern": "1/1/8/8", "cfa": "RGGB", "sensor": {"bits": "twelve"}}, "camera sensor is invalid"),
+    ({"pattern": "1/1/8/8", "cfa": "RGBX"}, "RGBX"),
+    ({"pattern": "1/1/8/8", "cfa": "RGGB", "response": {"domain": [0, 1]}}, "response data"),
+    ([], "must be a JSON object"),
+    ("RGGB", "must be a JSON object"),
+    ({"pattern": "1/1/8/8", "cfa": None}, "colour filter none but the frames are BayerRG12"),
+    ({"pattern": "1/1/8/8", "cfa": "GRBG"}, "colour filter GRBG but the frames are BayerRG12"),
+])
+def test_malformed_camera_in_the_header_is_a_one_line_error(tmp_path: Path, camera: object, message: str) -> None:
+    from replay.container import encode_header
+
+    meta = {"width": 4, "height": 2, "dtype": "uint16", "pixel_format": "BayerRG12", "camera": camera}
+    (tmp_path / "bad.sverec").write_bytes(encode_header(meta))
+    with pytest.raises(RecordingError, match=message) as info:
+        RecordingReader(tmp_path / "bad.sverec")
+    assert "\n" not in str(info.value)
+
+
+def test_writer_takes_the_bayer_format_filter_and_refuses_a_contradiction(tmp_path: Path) -> None:
+    raw = np.zeros((4, 6), np.uint8)
+    with RecordingWriter(tmp_path / "a.sverec") as w:  # a hand-made frame: its camera knows no filter
+        w.append(Frame(raw=raw, frame_id=0, host_time_ns=0, pixel_format="BayerBG8"))
+    with RecordingReader(tmp_path / "a.sverec") as r:
+        assert r.camera.cfa.name == "BGGR"
+    with RecordingWriter(tmp_path / "b.sverec") as w, pytest.raises(RecordingError, match="its camera says RGGB"):
+        w.append(Frame(raw=raw, frame_id=0, host_time_ns=0, pixel_format="BayerBG8", camera=Camera.build(cfa="RGGB")))
+    assert not (tmp_path / "b.sverec").exists()
+
+
+def test_cli_record_takes_cfa_and_replay_info_shows_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rec = tmp_path / "c.sverec"
+    assert main(["record", "--source", "demo", "--width", "64", "--height", "48", "--fps", "0", "--frames", "3",
+                 "-o", str(rec)]) == 0  # the colour demo
+    capsys.readouterr()
+    assert main(["replay-info", str(rec)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["cfa"] == "RGGB" and info["pixel_format"] == "BayerRG12" and info["pattern"] == "1/1/8/8"
+    # an image sequence is whatever --cfa says; its frames then carry the Bayer name of their container
+    assert main(["export", str(rec), "--png", str(tmp_path / "png")]) == 0
+    rec2 = tmp_path / "c2.sverec"
+    assert main(["record", "--source", f"images:{tmp_path / 'png'}", "--pattern", "dual-iso", "--bits", "12",
+                 "-o", str(rec2)]) == 0
+    capsys.readouterr()
+    assert main(["replay-info", str(rec2)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["cfa"] == "RGGB" and info["pixel_format"] == "BayerRG16" and info["pattern"] == "1/1/8/8"
+    rec3 = tmp_path / "c3.sverec"
+    assert main(["record", "--source", f"images:{tmp_path / 'png'}", "--pattern", "1/1/8/8", "--cfa", "GRBG",
+                 "-o", str(rec3)]) == 0
+    with RecordingReader(rec3) as r:
+        assert r.camera.cfa.name == "GRBG" and r.pixel_format == "BayerGR16"
+    # refusals are one line on stderr, exit 2
+    capsys.readouterr()
+    assert main(["record", "--source", f"replay:{rec}", "--cfa", "none", "-o", str(tmp_path / "x.sverec")]) == 2
+    assert "cannot be reconstructed as monochrome" in capsys.readouterr().err
+    assert main(["record", "--source", "demo", "--cfa", "RGBX", "-o", str(tmp_path / "y.sverec")]) == 2
+    err = capsys.readouterr().err
+    assert "'RGBX'" in err and err.count("\n") == 1
