@@ -2,10 +2,12 @@
 
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
                                  [--no-temporal] [--workers N] [--scene pan|static] [--size 1920x1200]
+                                 [--cfa none|RGGB]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
-that replays pre-rendered demo frames (1920x1200, 12-bit, pattern 1,4/16,64) at
-the target rate (``--scene pan``: the demo's camera pans, so every frame moves
+that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
+default: monochrome, pattern 1,4/16,64; ``--cfa RGGB``: the colour demo camera,
+a Bayer mosaic with its dual-ISO exposures, labelled BayerRG12) at the target rate (``--scene pan``: the demo's camera pans, so every frame moves
 and temporal fusion restarts each frame; ``static``: the same view, new noise in
 every frame, so fusion runs on every pixel), then, from this process:
 
@@ -42,24 +44,28 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 
 
-def replay_source_factory(fps: float, width: int, height: int, n: int = 24, static: bool = False):
+def replay_source_factory(fps: float, width: int, height: int, n: int = 24, static: bool = False,
+                          cfa: str = "none"):
     """A factory of Sources replaying n pre-rendered demo frames at ``fps`` (fresh timestamps).
 
     ``static``: the demo's pan is stopped (a still view, independent noise in every frame).
+    ``cfa``: ``"none"`` for the monochrome demo, else the colour filter of the colour demo.
     """
     from svelive.capture import Source
     from svelive.capture.demo import DemoSource
     from svelive.frame import Frame
 
-    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9 if static else n / fps * 4)
-    raws = [f.raw for f in demo.frames(limit=n)]
+    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9 if static else n / fps * 4, cfa=cfa)
+    rendered = list(demo.frames(limit=n))
     demo.close()
+    raws, label, camera = [f.raw for f in rendered], rendered[0].pixel_format, rendered[0].camera
 
     class Replay(Source):
         poll_s = 0.05
 
         def __init__(self) -> None:
-            super().__init__("bench-replay", pattern=demo.pattern, sensor=demo.sensor)
+            super().__init__("bench-replay")
+            self.camera = camera
             self._n = 0
             self._t0 = 0.0
 
@@ -73,7 +79,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
             if time.monotonic() - due > 1.0:  # far behind: restart the clock rather than burst
                 self._t0 = time.monotonic() - self._n / fps
             raw = raws[self._n % n]
-            frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(), pixel_format="Mono12",
+            frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(), pixel_format=label,
                           camera=self.camera)
             self._n += 1
             return frame
@@ -82,7 +88,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
-          size: tuple[int, int]) -> None:
+          size: tuple[int, int], cfa: str) -> None:
     """Child process: the service over the replay source."""
     import uvicorn
 
@@ -90,7 +96,7 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     from service.pipeline import Pipeline, PipelineConfig
     from service.settings import ServerSettings
 
-    factory = replay_source_factory(fps, size[0], size[1], static=static)
+    factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa)
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
@@ -182,15 +188,18 @@ def main() -> None:
     parser.add_argument("--scene", choices=("pan", "static"), default="pan",
                         help="pan: the whole view moves every frame; static: a still view (default pan)")
     parser.add_argument("--size", default="1920x1200", help="frame size WxH (default 1920x1200)")
+    parser.add_argument("--cfa", default="none",
+                        help="none: the monochrome demo frames (default); RGGB (or another layout): the colour demo")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x"))
     if args.serve_port:
-        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size)
+        serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
+              args.cfa)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
-           "--scene", args.scene, "--size", args.size]
+           "--scene", args.scene, "--size", args.size, "--cfa", args.cfa]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -218,7 +227,8 @@ def main() -> None:
     finally:
         child.terminate()
         child.wait(15)
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {args.size} 12-bit replay at "
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {args.size} 12-bit "
+          f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, {args.scene} scene, "
           f"{args.clients} clients, {args.minutes:g} min")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames encoded, "
