@@ -1,10 +1,15 @@
-"""Time per 1920x1200 12-bit frame of every reconstruction method, one thread.
+"""Time per 1920x1200 12-bit frame of every reconstruction method, one thread; with --colour, colour too.
 
     python benchmarks/speed.py [--repeats 7] [--methods weighted,aggregate] [--pattern 1,4/16,64]
+    python benchmarks/speed.py --colour [--layout dual-iso] [--colour-methods adaptive,weighted]
 
 Simulates one frame from a shipped sample scene (upscaled to 1920x1200) and
 reports the median wall time of several runs per method. OpenCV is limited to
 one thread and numpy's BLAS is not used by the methods, so this is one core.
+With --colour the mono methods are timed as without it (so that a mono
+regression shows in the same run), then a 12-bit colour SVE frame of the
+layout (svelive.camera.COLOUR_LAYOUTS; the shipped RGB crop upscaled) is
+reconstructed joint and split with each colour method.
 """
 
 from __future__ import annotations
@@ -22,26 +27,35 @@ import numpy as np  # noqa: E402
 
 import svelive  # noqa: E402
 from svelive import Pattern, Sensor  # noqa: E402
+from svelive.camera import COLOUR_LAYOUTS  # noqa: E402
 from svelive.simulate import exposure_scale, load_sample_scene, simulate  # noqa: E402
 
+SIZE = (1200, 1920)
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
 
-def test_frame(pattern: str, size: tuple[int, int] = (1200, 1920)) -> tuple[np.ndarray, Sensor]:
-    sensor = Sensor.from_full_well(12, 10_000, 3)
-    scene = cv2.resize(load_sample_scene("desk"), size[::-1], interpolation=cv2.INTER_CUBIC)
+
+def test_frame(pattern: str, size: tuple[int, int] = SIZE, cfa: str | None = None) -> tuple[np.ndarray, Sensor]:
+    """The shipped 'desk' crop upscaled to ``size``, bright, through ``pattern`` (and ``cfa``: RGB scene)."""
+    scene = cv2.resize(load_sample_scene("desk", rgb=cfa is not None), size[::-1], interpolation=cv2.INTER_CUBIC)
     scene = np.maximum(scene, 0)
-    radiance = scene * exposure_scale(scene, Pattern.parse(pattern), sensor)
-    return simulate(radiance, pattern, sensor, seed=0).raw, sensor
+    radiance = scene * exposure_scale(scene, Pattern.parse(pattern), SENSOR)
+    return simulate(radiance, pattern, SENSOR, cfa=cfa, seed=0).raw, SENSOR
 
 
-def time_method(raw: np.ndarray, pattern: str, sensor: Sensor, method: str, repeats: int) -> float:
-    kwargs = dict(method=method, white_level=sensor.white_level, gain=sensor.gain, read_noise=sensor.read_noise)
-    svelive.reconstruct(raw, pattern, **kwargs)  # warm caches
+def time_call(run, repeats: int) -> float:
+    """Median wall time (ms) of ``run()`` over ``repeats`` runs after one warm-up run."""
+    run()
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
-        svelive.reconstruct(raw, pattern, **kwargs)
+        run()
         times.append(time.perf_counter() - t)
     return float(np.median(times)) * 1e3
+
+
+def time_method(raw: np.ndarray, pattern: str, sensor: Sensor, method: str, repeats: int, **kwargs) -> float:
+    kwargs.update(method=method, white_level=sensor.white_level, gain=sensor.gain, read_noise=sensor.read_noise)
+    return time_call(lambda: svelive.reconstruct(raw, pattern, **kwargs), repeats)
 
 
 def main() -> None:
@@ -49,14 +63,27 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--pattern", default="1,4/16,64")
     parser.add_argument("--methods", default=",".join(svelive.methods()))
+    parser.add_argument("--colour", action="store_true", help="also time colour frames, joint and split")
+    parser.add_argument("--layout", default="dual-iso", choices=list(COLOUR_LAYOUTS))
+    parser.add_argument("--colour-methods", default="adaptive,weighted")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     raw, sensor = test_frame(args.pattern)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; "
-          f"pattern {args.pattern}, 1920x1200 12-bit, median of {args.repeats}")
+          f"pattern {args.pattern}, 1920x1200 12-bit, median of {args.repeats}; "
+          f"load average {os.getloadavg()[0]:.1f} at start")
     for method in args.methods.split(","):
         repeats = 3 if method == "cubic" else args.repeats
-        print(f"{method:12s} {time_method(raw, args.pattern, sensor, method, repeats):8.1f} ms")
+        print(f"{method:20s} {time_method(raw, args.pattern, sensor, method, repeats):8.1f} ms", flush=True)
+    if args.colour:
+        pattern, cfa = COLOUR_LAYOUTS[args.layout]
+        raw, sensor = test_frame(pattern, cfa=cfa)
+        print(f"# colour: layout {args.layout} (pattern {pattern}, CFA {cfa}), 1920x1200 12-bit, "
+              f"median of {args.repeats}")
+        for method in args.colour_methods.split(","):
+            for mode in ("joint", "split"):
+                ms = time_method(raw, pattern, sensor, method, args.repeats, cfa=cfa, colour=mode)
+                print(f"{mode + ' ' + method:20s} {ms:8.1f} ms", flush=True)
 
 
 if __name__ == "__main__":

@@ -10,10 +10,17 @@ Error measures (lower is better):
   frame only says "at least", and a method cannot do better than the bound.
 - ``relative RMS error``: RMS(out - truth) / mean(truth).
 
-Colour cases (every colour layout, joint against split; :data:`COLOUR_SWEEPS`):
+Colour cases (every colour layout, joint against split; :func:`colour_sweeps`):
 - ``chroma error`` (stops): the spread max_c e_c - min_c e_c of the per-channel
-  errors e_c = log2(out_c / target_c): 0 when only brightness is wrong, so it
-  measures false colour alone, and it does not depend on white balance.
+  errors e_c = log2(out_c / truth_c): 0 when only brightness is wrong, so it
+  measures false colour alone, and it does not depend on white balance. Against
+  the truth: scaling a pixel does not change it, so a clipped pixel that keeps
+  its hue at any brightness has none.
+- ``luminance error`` (stops): |log2| distance of the output's luminance from
+  the interval between what the frame can tell (the luminance of the truth
+  with every channel capped at its shortest exposure's full scale, a lower
+  bound) and the truth: 0 inside it, as any value there is consistent with a
+  clipped reading.
 - ``magenta/pink shift`` (stops): max(e_R, e_B) - e_G where positive, against
   the truth: green low against red or blue, what clipped highlights turn into.
 """
@@ -269,11 +276,15 @@ def magenta_shift(out: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float
     return float(np.mean(np.maximum(np.maximum(e[:, 0], e[:, 2]) - e[:, 1], 0)))
 
 
-def luminance_error(out: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
-    """Mean over ``mask`` of |log2| of the luminance ratio (Rec. 709 weights): zipper and blur at edges."""
+def luminance_error(out: np.ndarray, low: np.ndarray, high: np.ndarray, mask: np.ndarray) -> float:
+    """Mean over ``mask`` of the |log2| distance (stops) of the luminance of ``out`` from the interval
+    [luminance(low), luminance(high)] (Rec. 709 weights; all (H, W, 3)): zipper and blur at edges."""
     from svelive.metrics import luminance
 
-    return stops_error(luminance(out), luminance(target), mask)
+    y = np.log2(np.maximum(luminance(out), 1e-3))
+    lo = np.log2(np.maximum(luminance(low), 1e-3))
+    hi = np.log2(np.maximum(luminance(high), 1e-3))
+    return float(np.maximum(np.maximum(lo - y, y - hi), 0)[mask].mean())
 
 
 def _run_colour_sweep(sweep: Sweep, scene: Callable[[float, str], tuple[np.ndarray, np.ndarray]],
@@ -301,14 +312,14 @@ def colour_edge(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(
     """A slanted black/white edge (white = :data:`CAMERA_WHITE`) whose bright side climbs through saturation.
 
     Returns two sweeps over the same frames: the chroma error within 3 px of the edge
-    (false colour, colour zipper) and the luminance error there (zipper, blur), both
-    against what the frame can tell.
+    (false colour, colour zipper) and the luminance error there (zipper, blur). From 5
+    stops of contrast the bright side's green clips in every exposure, from 6 every channel.
     """
     contrasts = [float(c) for c in np.arange(0.0, 10.01, 1.0)]
     chroma = Sweep("colour_edge", "colour: black/white edge, false colour", "edge contrast (stops)",
                    "chroma error near the edge (stops)", contrasts, log_y=True)
     luma = Sweep("colour_edge_luma", "colour: black/white edge, zipper", "edge contrast (stops)",
-                 "mean |log2 luminance error| near the edge", contrasts, log_y=True)
+                 "luminance error near the edge (stops)", contrasts, log_y=True)
     u, _ = slanted()
     band = np.abs(u) <= 3
     frames: dict[tuple[float, str], tuple[np.ndarray, np.ndarray]] = {}
@@ -322,9 +333,8 @@ def colour_edge(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(
             frames[c, layout] = (_simulated_rgb(truth, layout), truth)
         return frames[c, layout]
 
-    _run_colour_sweep(chroma, scene, lambda out, t, cam: chroma_error(out, measurable_rgb(t, cam), band),
-                      settings, layouts)
-    _run_colour_sweep(luma, scene, lambda out, t, cam: luminance_error(out, measurable_rgb(t, cam), band),
+    _run_colour_sweep(chroma, scene, lambda out, t, cam: chroma_error(out, t, band), settings, layouts)
+    _run_colour_sweep(luma, scene, lambda out, t, cam: luminance_error(out, measurable_rgb(t, cam), t, band),
                       settings, layouts)
     return chroma, luma
 
