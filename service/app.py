@@ -22,6 +22,7 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from fastapi import FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
@@ -169,12 +170,29 @@ class ToneUpdate(BaseModel):
 
 
 class SettingsUpdate(BaseModel):
-    """Body of PUT /api/settings: any subset of the run-time settings."""
+    """Body of PUT /api/settings: any subset of the run-time settings.
+
+    The colour settings are checked by svelive.whitebalance.ColourSettings (one-line
+    messages): ``white_balance`` "auto" or [r, g, b]; ``colour_matrix`` 9 numbers, 3 rows
+    of 3, or null (none); ``output_space`` "camera" or "rec709".
+    """
 
     model_config = ConfigDict(extra="forbid")
     method: str | None = Field(None, max_length=64)
     jpeg_quality: int | None = Field(None, ge=10, le=100)
     tone: ToneUpdate | None = None
+    white_balance: str | list[Any] | None = None
+    colour_matrix: str | list[Any] | None = None
+    output_space: str | None = Field(None, max_length=16)
+
+    def colour(self) -> dict[str, Any]:
+        """The colour settings given (``colour_matrix`` null counts: it removes the matrix)."""
+        given = {name: getattr(self, name) for name in ("white_balance", "colour_matrix", "output_space")
+                 if name in self.model_fields_set}
+        if given.get("white_balance", "") is None or given.get("output_space", "") is None:
+            raise SveliveError("white_balance and output_space cannot be null: give \"auto\" or three "
+                               "multipliers, and \"camera\" or \"rec709\"")
+        return given
 
 
 class CalibrateRequest(BaseModel):
@@ -214,6 +232,17 @@ def listen_socket(settings: ServerSettings) -> socket.socket:
     return sock
 
 
+def validation_message(exc: RequestValidationError) -> str:
+    """One line for a rejected request: where the first problem is and what it is."""
+    errors = exc.errors()
+    if not errors:
+        return "invalid request"
+    first = errors[0]
+    where = ".".join(str(part) for part in first.get("loc", ()) if part != "body") or "body"
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{where}: {first.get('msg', 'invalid')}{more}".replace("\n", " ")
+
+
 def viewer_html() -> str:
     return (resources.files("service") / "static" / "index.html").read_text(encoding="utf-8")
 
@@ -244,6 +273,10 @@ def create_app(pipeline: Pipeline, settings: ServerSettings, *, manage_pipeline:
     @app.exception_handler(SveliveError)
     async def bad_value(request: Request, exc: SveliveError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=422)
+
+    @app.exception_handler(RequestValidationError)
+    async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": validation_message(exc)}, status_code=422)
 
     @app.exception_handler(CalibrationBusy)
     async def busy(request: Request, exc: CalibrationBusy) -> JSONResponse:
@@ -305,7 +338,12 @@ def create_app(pipeline: Pipeline, settings: ServerSettings, *, manage_pipeline:
                       "blackLevel": float(published.camera.sensor.black_level),
                       "whiteLevel": float(published.camera.sensor.white_level),
                       "units": "radiance, DN at relative exposure 1"}
-        data = await run_in_threadpool(exr_bytes, {"Y": hdr.image}, attributes, half=half)
+
+        def encode() -> bytes:  # colour conversion and compression off the event loop
+            channels, colour = pipeline.exr_image(published)
+            return exr_bytes(channels, {**attributes, **colour}, half=half)
+
+        data = await run_in_threadpool(encode)
         return Response(data, media_type="image/x-exr",
                         headers={**NO_STORE, "X-Timestamp": f"{published.wall_time:.6f}",
                                  "X-Frame-Id": str(hdr.frame_id),
@@ -331,7 +369,8 @@ def create_app(pipeline: Pipeline, settings: ServerSettings, *, manage_pipeline:
     @app.put("/api/settings")
     async def put_settings(update: SettingsUpdate) -> dict[str, Any]:
         tone = update.tone.model_dump(exclude_none=True) if update.tone else None
-        return pipeline.update_settings(method=update.method, jpeg_quality=update.jpeg_quality, tone=tone)
+        return pipeline.update_settings(method=update.method, jpeg_quality=update.jpeg_quality, tone=tone,
+                                        colour=update.colour())
 
     @app.post("/api/calibrate/response")
     async def calibrate_response(request: CalibrateRequest | None = None) -> Any:

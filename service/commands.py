@@ -45,6 +45,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--key", type=float, help="preview middle grey 0.01..0.9 (default 0.18)")
     p.add_argument("--white-percentile", type=float, help="radiance percentile shown as white (default 99.5)")
     p.add_argument("--adapt-s", type=float, help="preview adaptation time constant in s (default 0.2)")
+    p.add_argument("--white-balance", metavar="auto|R,G,B",
+                   help="colour cameras: 'auto' (default: estimated from the frames, smoothed over time) or fixed "
+                        "multipliers R,G,B (normalised to G = 1), e.g. 2.0,1,1.5")
+    p.add_argument("--colour-matrix", metavar="9 NUMBERS|none",
+                   help="colour cameras: 3x3 matrix from white-balanced camera RGB to linear Rec.709, row-major, "
+                        "comma-separated (default none)")
+    p.add_argument("--output-space", choices=("camera", "rec709"),
+                   help="what colour EXR snapshots hold: camera RGB as reconstructed (default) or Rec.709 "
+                        "(white balance and --colour-matrix applied)")
     p.add_argument("--send-buffer-kb", type=int, help="kernel send buffer per client in KiB (default 256; 0: system)")
     p.add_argument("--log-level", help="uvicorn log level (default info)")
     p.set_defaults(func=cmd_serve)

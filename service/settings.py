@@ -4,8 +4,10 @@ Every setting has one name, used as the TOML/JSON key of the config file
 (``--config PATH`` or ``SVELIVE_CONFIG``), as the environment variable
 ``SVELIVE_<NAME IN CAPITALS>`` and, with dashes, as the CLI option
 (``--jpeg-quality``); the names are the fields of ServerSettings,
-service.pipeline.PipelineConfig and svelive.tonemap.ToneSettings. ``source_options`` is a table in the file and
-``key=value,key=value`` in the environment and on the CLI.
+service.pipeline.PipelineConfig, svelive.tonemap.ToneSettings and svelive.whitebalance.ColourSettings.
+``source_options`` is a table in the file and ``key=value,key=value`` in the environment and on the CLI;
+``white_balance`` (``auto`` or three multipliers) and ``colour_matrix`` (9 numbers or ``none``) are arrays
+in the file and comma-separated numbers in the environment and on the CLI.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 
 from svelive.errors import SveliveError
 from svelive.tonemap import ToneSettings
+from svelive.whitebalance import ColourSettings, parse_colour_matrix, parse_white_balance
 
 from service.pipeline import PipelineConfig
 
@@ -72,7 +75,7 @@ class ServiceSettings:
     """Everything ``svelive serve`` can be told: the server's settings and the pipeline's.
 
     The flat setting names (config keys, ``SVELIVE_*`` variables, CLI options) are
-    the field names of ServerSettings, PipelineConfig and ToneSettings (see FIELDS).
+    the field names of ServerSettings, PipelineConfig, ToneSettings and ColourSettings (see FIELDS).
     """
 
     server: ServerSettings = field(default_factory=ServerSettings)
@@ -81,11 +84,13 @@ class ServiceSettings:
     @classmethod
     def from_flat(cls, values: Mapping[str, Any]) -> ServiceSettings:
         """Build from flat names (every one optional)."""
-        parts: dict[type, dict[str, Any]] = {ServerSettings: {}, PipelineConfig: {}, ToneSettings: {}}
+        parts: dict[type, dict[str, Any]] = {owner: {} for owner in OWNERS}
         for name, value in values.items():
             parts[OWNER[name]][name] = value
         tone = ToneSettings(**parts[ToneSettings])
-        return cls(ServerSettings(**parts[ServerSettings]), PipelineConfig(**parts[PipelineConfig], tone=tone))
+        colour = ColourSettings(**parts[ColourSettings])
+        return cls(ServerSettings(**parts[ServerSettings]),
+                   PipelineConfig(**parts[PipelineConfig], tone=tone, colour=colour))
 
     def public(self) -> dict[str, Any]:
         """The settings as a dict, the token masked."""
@@ -94,11 +99,12 @@ class ServiceSettings:
         return out
 
 
+#: the dataclasses whose fields are the settings (PipelineConfig's ``tone`` and ``colour`` are the last two)
+OWNERS = (ServerSettings, PipelineConfig, ToneSettings, ColourSettings)
+NESTED = ("tone", "colour")
 #: flat setting name -> the dataclass that holds it; FIELDS: name -> dataclasses.Field
-OWNER: dict[str, type] = {f.name: owner for owner in (ServerSettings, PipelineConfig, ToneSettings)
-                          for f in dataclasses.fields(owner) if f.name != "tone"}
-FIELDS = {f.name: f for owner in (ServerSettings, PipelineConfig, ToneSettings)
-          for f in dataclasses.fields(owner) if f.name != "tone"}
+OWNER: dict[str, type] = {f.name: owner for owner in OWNERS for f in dataclasses.fields(owner) if f.name not in NESTED}
+FIELDS = {f.name: f for owner in OWNERS for f in dataclasses.fields(owner) if f.name not in NESTED}
 
 
 def parse_scalar(text: str) -> Any:
@@ -139,6 +145,10 @@ def coerce(name: str, value: Any, where: str) -> Any:
             if not isinstance(value, Mapping):
                 raise ValueError("expected a table of options")
             return {str(k).replace("-", "_"): v for k, v in value.items()}
+        if name == "white_balance":
+            return parse_white_balance(value)  # SveliveError is a ValueError: reported below with ``where``
+        if name == "colour_matrix":
+            return parse_colour_matrix(value)
         if name == "cors_origins":
             items = value.split(",") if isinstance(value, str) else list(value)
             return tuple(item.strip() for item in items if str(item).strip())

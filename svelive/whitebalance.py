@@ -280,15 +280,16 @@ class WhiteBalancer:
         self.current = WhiteBalance((float(measured[0]), 1.0, float(measured[2])), "auto", time_ns)
         return self.current
 
-    def for_frame(self, image: np.ndarray, time_ns: int) -> WhiteBalance:
-        """The white balance for one frame without changing the state (e.g. an EXR snapshot off the encoder thread).
+    def for_frame(self, image: np.ndarray, time_ns: int, settings: ColourSettings | None = None) -> WhiteBalance:
+        """The white balance for one frame without changing the state (e.g. an EXR snapshot off the updating thread).
 
         Fixed: the fixed multipliers. Auto: the smoothed state when it is recent
         (within ``reset_after_s`` of ``time_ns``), so a snapshot matches the preview;
-        else this frame's own estimate.
+        else this frame's own estimate. ``settings``: these instead of the last configured ones.
         """
-        if not self.settings.auto:
-            return WhiteBalance(self.settings.white_balance, "fixed", time_ns)  # type: ignore[arg-type]
+        settings = settings or self.settings
+        if not settings.auto:
+            return WhiteBalance(settings.white_balance, "fixed", time_ns)  # type: ignore[arg-type]
         current = self.current
         if current is not None and current.mode == "auto" and abs(time_ns - current.time_ns) <= self.reset_after_s * 1e9:
             return current

@@ -41,11 +41,34 @@ def test_precedence_cli_over_env_over_file_over_defaults(tmp_path):
     ({"token": "has space"}, {}, "token"),
     ({"source_options": "fps"}, {}, "KEY=VALUE"),
     ({}, {"SVELIVE_TEMPORAL": "maybe"}, "SVELIVE_TEMPORAL"),
+    ({"white_balance": "2,1"}, {}, "--white-balance"),
+    ({}, {"SVELIVE_COLOUR_MATRIX": "1,0,0"}, "SVELIVE_COLOUR_MATRIX"),
+    ({"output_space": "rec709"}, {}, "needs a colour matrix"),
+    ({"output_space": "xyz"}, {}, "output space"),
 ])
 def test_bad_settings_are_one_line_errors(cli, env, word):
     with pytest.raises(SveliveError, match=word) as info:
         resolve(cli, env)
     assert "\n" not in str(info.value)
+
+
+def test_colour_settings_from_file_environment_and_command_line(tmp_path):
+    config = tmp_path / "svelive.toml"
+    config.write_text('[serve]\nwhite_balance = [2.0, 1.0, 1.5]\n'
+                      'colour_matrix = [[1.6, -0.4, -0.2], [-0.3, 1.5, -0.2], [0.0, -0.5, 1.5]]\n')
+    colour = resolve({}, {"SVELIVE_CONFIG": str(config)}).pipeline.colour
+    assert colour.white_balance == (2.0, 1.0, 1.5) and colour.colour_matrix[:3] == (1.6, -0.4, -0.2)
+    assert colour.output_space == "camera"
+    colour = resolve({"output_space": "rec709"}, {"SVELIVE_CONFIG": str(config), "SVELIVE_WHITE_BALANCE": "auto"}
+                     ).pipeline.colour
+    assert colour.auto and colour.output_space == "rec709"
+    colour = resolve({"white_balance": "4,2,3", "colour_matrix": "none"}, {"SVELIVE_CONFIG": str(config)}).pipeline.colour
+    assert colour.white_balance == (2.0, 1.0, 1.5) and colour.colour_matrix is None
+    json_config = tmp_path / "svelive.json"
+    json_config.write_text('{"white_balance": "auto", "colour_matrix": [1, 0, 0, 0, 1, 0, 0, 0, 1], '
+                           '"output_space": "rec709"}')
+    assert resolve({}, {}, config=json_config).pipeline.colour.output_space == "rec709"
+    assert resolve({}, {}).pipeline.colour.auto  # default
 
 
 def test_bad_config_file(tmp_path):
@@ -84,7 +107,9 @@ def test_helpers():
 
 def test_serve_rejects_bad_options_with_one_line_and_status_2():
     for args, word in ((["--source", "nosuch:thing"], "unknown source"), (["--port", "99999"], "port"),
-                       (["--source-option", "colour=red"], "colour")):
+                       (["--source-option", "colour=red"], "colour"),
+                       (["--output-space", "rec709"], "needs a colour matrix"),
+                       (["--white-balance", "1,1,0"], "must be > 0")):
         proc = subprocess.run([sys.executable, "-m", "svelive.cli", "serve", *args], capture_output=True,
                               text=True, timeout=60)
         assert proc.returncode == 2, proc.stderr

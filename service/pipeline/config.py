@@ -13,6 +13,7 @@ from svelive.capture.source import MONO_WORDS
 from svelive.cfa import ColourFilter
 from svelive.reconstruction.single import methods as method_names
 from svelive.tonemap import ToneSettings
+from svelive.whitebalance import ColourSettings
 
 #: Pattern used when neither the settings nor the source name one.
 FALLBACK_PATTERN = "1,4/16,64"
@@ -38,6 +39,8 @@ class PipelineConfig:
         workers: threads the reconstruction spreads one frame over; 0: one per core.
         queue: frames the capture -> reconstruction hand-off holds (1..8).
         tone: preview tone-mapping parameters.
+        colour: colour output of a colour camera (svelive.whitebalance.ColourSettings: white
+            balance, camera -> Rec.709 matrix, the space EXR snapshots are in); unused for mono.
         jpeg_quality: preview JPEG quality, 10..100.
         preview_width: downscale previews wider than this (pixels); 0 keeps full size.
         offline_after_s: no frame for this long means the source is offline.
@@ -58,6 +61,7 @@ class PipelineConfig:
     workers: int = 0
     queue: int = 1
     tone: ToneSettings = field(default_factory=ToneSettings)
+    colour: ColourSettings = field(default_factory=ColourSettings)
     jpeg_quality: int = 80
     preview_width: int = 0
     offline_after_s: float = 2.0

@@ -1,5 +1,10 @@
 """The encoder stage: tone map + JPEG of the newest HdrFrame while someone watches, "no signal" frames
-while the source is offline, and the hand-off of every JPEG to the listeners (the HTTP fan-out)."""
+while the source is offline, and the hand-off of every JPEG to the listeners (the HTTP fan-out).
+
+Colour frames (linear camera RGB) are white-balanced (fixed, or the automatic estimate smoothed over
+frame time) and taken through the optional camera -> Rec.709 matrix on their way into the tone map,
+which writes BGR for OpenCV's JPEG encoder; the EXR snapshot's colour is :meth:`EncoderStage.exr_image`.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +16,10 @@ import cv2
 import numpy as np
 
 from svelive.errors import SveliveError
+from svelive.exr import image_channels
 from svelive.tonemap import ToneMapper, ToneSettings
+from svelive.whitebalance import (ColourSettings, WhiteBalance, WhiteBalancer, exr_attributes, output_matrix,
+                                  to_output_space)
 
 from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, Published, monotonic_to_wall
@@ -30,7 +38,7 @@ def no_signal_image(width: int = 640, height: int = 360) -> np.ndarray:
 
 
 def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
-    """JPEG bytes of a uint8 (H, W) image."""
+    """JPEG bytes of a uint8 (H, W) grey or (H, W, 3) BGR image."""
     ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise SveliveError("JPEG encoding failed")
@@ -42,8 +50,8 @@ class EncoderStage:
 
     Waits on ``cond`` (shared with the reconstruction stage, which notifies it on
     every new frame) and encodes ``latest()`` once per new frame, only while a
-    client watches or a snapshot is asked. ``tone`` and ``jpeg_quality`` may be
-    changed at run time (under ``cond``).
+    client watches or a snapshot is asked. ``tone``, ``colour`` and ``jpeg_quality``
+    may be changed at run time (under ``cond``).
     """
 
     def __init__(self, config: PipelineConfig, latest: Callable[[], Published | None], online: Callable[[], bool],
@@ -55,7 +63,10 @@ class EncoderStage:
         self._drops = drops
         self._stop = stop
         self.tone: ToneSettings = config.tone
+        self.colour: ColourSettings = config.colour
         self.jpeg_quality = config.jpeg_quality
+        #: owned by the encoder thread (``update``); its ``current`` is read by the others
+        self._balancer = WhiteBalancer(config.colour)
         self._encoded: EncodedFrame | None = None
         self._last_signal: EncodedFrame | None = None
         self.watchers = 0
@@ -85,13 +96,13 @@ class EncoderStage:
                     if new_frame or no_signal:
                         break
                     self._cond.wait(timeout=0.1)
-                tone, quality = self.tone, self.jpeg_quality
+                tone, colour, quality = self.tone, self.colour, self.jpeg_quality
             if new_frame:
                 if watching and encoded is not None and latest.seq > encoded_hdr_seq + 1:
                     self._drops.count("encoder_busy", latest.seq - encoded_hdr_seq - 1)
                 mapper.configure(tone)
                 start = time.monotonic_ns()
-                display = self._resize(mapper(latest.hdr.image, latest.hdr.host_time_ns))
+                display = self._resize(self._tone_map(mapper, latest, colour))
                 jpeg = encode_jpeg(display, quality)
                 done = time.monotonic_ns()
                 seq += 1
@@ -115,6 +126,38 @@ class EncoderStage:
                 self._cond.notify_all()
             for listener in listeners:
                 listener(item)
+
+    def _tone_map(self, mapper: ToneMapper, latest: Published, colour: ColourSettings) -> np.ndarray:
+        """The preview of one frame: uint8 (H, W), or (H, W, 3) BGR for colour (white balance and matrix applied)."""
+        image, time_ns = latest.hdr.image, latest.hdr.host_time_ns
+        if image.ndim == 2:
+            return mapper(image, time_ns)
+        self._balancer.configure(colour)
+        balance = self._balancer.update(image, time_ns)
+        return mapper(image, time_ns, output_matrix(balance.multipliers, colour.matrix), bgr=True)
+
+    def white_balance(self, published: Published | None = None) -> WhiteBalance | None:
+        """The white balance for ``published`` (default: the newest frame); None for mono or before a frame.
+
+        Auto: the preview's smoothed balance while it is recent, else the frame's own
+        estimate (nobody watched, so nothing was smoothed). Fixed: the multipliers. Any thread.
+        """
+        published = published or self._latest()
+        if published is None or published.hdr.image.ndim != 3:
+            return None
+        return self._balancer.for_frame(published.hdr.image, published.hdr.host_time_ns, self.colour)
+
+    def exr_image(self, published: Published) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+        """The EXR channels and colour attributes of a frame: ``Y`` for mono; for colour ``R``, ``G``, ``B``
+        in the configured output space with the white balance in use (svelive.whitebalance.exr_attributes)."""
+        image = published.hdr.image
+        if image.ndim == 2:
+            return image_channels(image), {}
+        colour, balance = self.colour, self.white_balance(published)
+        assert balance is not None
+        attributes = exr_attributes(balance, colour)
+        attributes["cfa"] = published.camera.cfa.name if published.camera.cfa is not None else "none"
+        return image_channels(to_output_space(image, balance, colour)), attributes
 
     def _resize(self, image: np.ndarray) -> np.ndarray:
         width = self.config.preview_width

@@ -10,6 +10,7 @@ from dataclasses import replace
 from typing import Any
 
 import cv2
+import numpy as np
 
 from svelive.capture import Source, open_source
 from svelive.errors import SveliveError
@@ -135,6 +136,10 @@ class Pipeline:
         """A JPEG of the newest reconstructed frame, encoding it if nobody did; None if there is none."""
         return self.encoder.snapshot_jpeg(timeout)
 
+    def exr_image(self, published: Published) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+        """EXR channels and colour attributes of a frame (see :meth:`EncoderStage.exr_image`)."""
+        return self.encoder.exr_image(published)
+
     def calibrate_response(self, max_degree: int = 6, apply: bool = False) -> dict[str, Any] | None:
         """See :meth:`service.pipeline.calibration.Calibration.calibrate_response`."""
         return self.calibration.calibrate_response(max_degree, apply)
@@ -155,11 +160,16 @@ class Pipeline:
     def settings(self) -> dict[str, Any]:
         """The settings that can be changed at run time."""
         return {"method": self.reconstruction.method or default_method(self.config.temporal), "jpeg_quality": self.encoder.jpeg_quality,
-                "tone": dict(vars(self.encoder.tone))}
+                "tone": dict(vars(self.encoder.tone)), **self.encoder.colour.public()}
 
     def update_settings(self, method: str | None = None, jpeg_quality: int | None = None,
-                        tone: dict[str, float] | None = None) -> dict[str, Any]:
-        """Change method, JPEG quality and tone-mapping parameters (all checked first); returns settings()."""
+                        tone: dict[str, float] | None = None, colour: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Change method, JPEG quality, tone mapping and colour output (all checked first); returns settings().
+
+        ``colour``: any of ``white_balance``, ``colour_matrix`` (None removes it) and
+        ``output_space`` (svelive.whitebalance.ColourSettings), checked together with the
+        ones kept (rec709 needs a matrix).
+        """
         check_method(method)
         if jpeg_quality is not None:
             check_jpeg_quality(jpeg_quality)
@@ -170,12 +180,20 @@ class Pipeline:
                 raise SveliveError(f"unknown tone mapping setting(s) {', '.join(unknown)}; "
                                    f"accepted: {', '.join(vars(new_tone))}")
             new_tone = replace(new_tone, **tone)
+        new_colour = self.encoder.colour
+        if colour:
+            unknown = sorted(set(colour) - set(vars(new_colour)))
+            if unknown:
+                raise SveliveError(f"unknown colour setting(s) {', '.join(unknown)}; "
+                                   f"accepted: {', '.join(vars(new_colour))}")
+            new_colour = replace(new_colour, **colour)
         with self._cond:
             if method is not None:
                 self.reconstruction.method = method
             if jpeg_quality is not None:
                 self.encoder.jpeg_quality = int(jpeg_quality)
             self.encoder.tone = new_tone
+            self.encoder.colour = new_colour
             self._cond.notify_all()
         return self.settings()
 
@@ -189,6 +207,7 @@ class Pipeline:
             drops[f"source_{cause}"] = n
         capture, latest = self.capture, self.latest()
         online = self.online()
+        balance = self.encoder.white_balance(latest)  # colour frames only
         return {
             "source": {
                 "spec": self.config.source,
@@ -222,6 +241,8 @@ class Pipeline:
                                                    "black_level": latest.camera.sensor.black_level,
                                                    "white_level": latest.camera.sensor.white_level},
             "tone": dict(vars(self.encoder.tone)),
+            "white_balance": None if balance is None else balance.public(),
+            **{name: value for name, value in self.encoder.colour.public().items() if name != "white_balance"},
             "jpeg_quality": self.encoder.jpeg_quality,
             "preview_width": self.config.preview_width,
             "watchers": watchers,
