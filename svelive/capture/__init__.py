@@ -8,12 +8,14 @@
 ``v4l2:/dev/videoN``   V4L2 device through OpenCV in raw mode
 ``images:GLOB_OR_DIR`` 8/16-bit PNG, TIFF or PGM files in name order
 ``replay:PATH``        an svelive recording
-``demo``               synthetic moving SVE scene from a shipped HDR image
+``demo``               synthetic colour SVE camera filming a shipped HDR image
 =====================  =====================================================
 
 Options are keyword arguments understood by the source's config dataclass
 (e.g. ``fps=30, loop=True`` for images, ``speed=2.0`` for replay,
-``pixel_format="Mono12Packed", width=1280`` for cameras) plus ``pattern`` and
+``pixel_format="Mono12Packed", width=1280`` for cameras) plus ``pattern``,
+``cfa`` (colour filter layout, ``"none"`` for monochrome; a Bayer pixel format
+sets it by itself, see :func:`svelive.capture.source.resolve_cfa`) and
 ``sensor`` (a Sensor or ``bits``/``black_level``/``white_level``) for all.
 Unknown options are an error naming the accepted ones. The source modules are
 imported lazily, so Aravis (PyGObject) is only needed for ``gige``.
