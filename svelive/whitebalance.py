@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from svelive.errors import SveliveError
-from svelive.exr import LUMA_WEIGHTS, REC709_CHROMATICITIES
+from svelive.exr import LUMA_WEIGHTS, REC709_CHROMATICITIES, image_channels
 from svelive.tonemap import smoothing_factor
 
 #: What an EXR of a colour frame holds (see the module docstring).
@@ -354,3 +354,17 @@ def exr_attributes(balance: WhiteBalance | Sequence[float], settings: ColourSett
         out["colourMatrix"] = settings.matrix.astype(np.float32)  # type: ignore[union-attr]
         out["chromaticities"] = REC709_CHROMATICITIES
     return out
+
+
+def exr_output(image: np.ndarray, balance: WhiteBalance | None, settings: ColourSettings
+               ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """EXR channels and colour attributes of a reconstructed frame.
+
+    A mono (H, W) frame gives ``Y`` and no attributes; a colour (H, W, 3) one ``R``, ``G``,
+    ``B`` in ``settings.output_space`` (:func:`to_output_space`) and :func:`exr_attributes`.
+    """
+    if image.ndim == 2:
+        return image_channels(image), {}
+    if balance is None:
+        raise SveliveError("a colour frame needs its white balance for the EXR (WhiteBalancer.update)")
+    return image_channels(to_output_space(image, balance, settings)), exr_attributes(balance, settings)

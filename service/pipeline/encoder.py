@@ -16,10 +16,8 @@ import cv2
 import numpy as np
 
 from svelive.errors import SveliveError
-from svelive.exr import image_channels
 from svelive.tonemap import ToneMapper, ToneSettings
-from svelive.whitebalance import (ColourSettings, WhiteBalance, WhiteBalancer, exr_attributes, output_matrix,
-                                  to_output_space)
+from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, exr_output, output_matrix
 
 from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, Published, monotonic_to_wall
@@ -149,15 +147,11 @@ class EncoderStage:
 
     def exr_image(self, published: Published) -> tuple[dict[str, np.ndarray], dict[str, object]]:
         """The EXR channels and colour attributes of a frame: ``Y`` for mono; for colour ``R``, ``G``, ``B``
-        in the configured output space with the white balance in use (svelive.whitebalance.exr_attributes)."""
-        image = published.hdr.image
-        if image.ndim == 2:
-            return image_channels(image), {}
-        colour, balance = self.colour, self.white_balance(published)
-        assert balance is not None
-        attributes = exr_attributes(balance, colour)
-        attributes["cfa"] = published.camera.cfa.name if published.camera.cfa is not None else "none"
-        return image_channels(to_output_space(image, balance, colour)), attributes
+        in the configured output space with the white balance in use (svelive.whitebalance.exr_output)."""
+        channels, attributes = exr_output(published.hdr.image, self.white_balance(published), self.colour)
+        if published.hdr.image.ndim == 3:
+            attributes["cfa"] = published.camera.cfa.name if published.camera.cfa is not None else "none"
+        return channels, attributes
 
     def _resize(self, image: np.ndarray) -> np.ndarray:
         width = self.config.preview_width
