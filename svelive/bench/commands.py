@@ -16,7 +16,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                    "patterns 1,4/16,64 1,2/4,8 1/1/8/8, a bright and a dim scene), the colour "
                                    "benchmark (joint against split, every colour layout, the RGB images) and the "
                                    "stability sweeps; write results.json, results.csv, speed_accuracy.png, "
-                                   "colour.json, colour.csv, colour.png, colour.md, stability.json, stability.png, "
+                                   "colour.json, colour.csv, colour.png, colour.md, stability.json, stability.png, colour_edges.png, "
                                    "adaptive_choice.png and summary.md to DIR.")
     p.add_argument("--quick", action="store_true",
                    help="three images, the shipped crops for colour, fewer timing runs (a couple of minutes)")
@@ -70,7 +70,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from svelive.bench import report
     from svelive.bench.runner import BenchConfig, quick_config, run_benchmark
     from svelive.bench.scenes import default_data_dir
-    from svelive.bench.stability import run_stability
+    from svelive.bench.stability import colour_edge_crops, run_stability
 
     out: Path = args.output
     if out.exists() and not out.is_dir():
@@ -100,10 +100,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if not args.no_colour:
         table += run_colour(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_stability:
-        sweeps = run_stability()
+        sweeps = run_stability(colour=not args.no_colour)
         report.write_json(out / "stability.json", sweeps)
         if not args.no_chart:
             report.plot_curves(sweeps, out / "stability.png")
+            if not args.no_colour:
+                report.plot_colour_edges(colour_edge_crops(), out / "colour_edges.png")
     print(table, end="")
     print(f"wrote {out} in {time.perf_counter() - start:.0f} s")
     return 0

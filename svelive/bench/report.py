@@ -188,3 +188,28 @@ def plot_colour(results: dict[str, object], path: Path) -> None:
     fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)
+
+
+def plot_colour_edges(crops: list[dict[str, object]], path: Path) -> None:
+    """A grid of rendered edge crops (svelive.bench.stability.colour_edge_crops): one row per layout,
+    for each contrast one column per image (truth, then each setting)."""
+    plt = _pyplot()
+    labels = list(crops[0]["images"])
+    layouts = list(dict.fromkeys(c["layout"] for c in crops))
+    contrasts = list(dict.fromkeys(c["contrast"] for c in crops))
+    cols = len(contrasts) * len(labels)
+    fig, axes = plt.subplots(len(layouts), cols, figsize=(1.6 * cols, 1.7 * len(layouts)), squeeze=False)
+    for crop in crops:
+        row = layouts.index(crop["layout"])
+        for j, label in enumerate(labels):
+            ax = axes[row, contrasts.index(crop["contrast"]) * len(labels) + j]
+            ax.imshow(crop["images"][label], interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"{label}, {crop['contrast']:g} stops", fontsize=8)
+        axes[row, 0].set_ylabel(crop["layout"], fontsize=8)
+    fig.suptitle("slanted black/white edge (centre 36x36 px, white-balanced, fixed rendering)", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+    plt.close(fig)

@@ -339,6 +339,34 @@ def colour_edge(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(
     return chroma, luma
 
 
+def colour_edge_crops(layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS), contrasts: tuple[float, ...] = (3.0, 5.0),
+                      settings: list[ColourSetting] | None = None, half: int = 18) -> list[dict[str, object]]:
+    """What the user sees at the edge of :func:`colour_edge`: the centre of the frame rendered for display.
+
+    Returns one entry per layout and contrast: ``{"layout", "contrast", "images": {label: float64
+    (2 half, 2 half, 3) sRGB in [0, 1]}}`` for the truth and each setting, white-balanced by
+    :data:`CAMERA_WHITE` (so white is white) and rendered with svelive.metrics.render_srgb at half the
+    exposure the truth's log-average implies.
+    """
+    from svelive.metrics import render_exposure, render_srgb
+
+    settings = colour_stability_settings() if settings is None else settings
+    u, _ = slanted()
+    centre = slice(SIZE // 2 - half, SIZE // 2 + half)
+    out = []
+    for layout in layouts:
+        camera = Camera.build(layout, sensor=BENCH_SENSOR)
+        dark = 0.25 * BENCH_SENSOR.range_dn / float(camera.require_pattern().levels[-1])
+        for c in contrasts:
+            truth = np.where(u > 0, dark * 2.0**c, dark).astype(np.float32)[..., None] * CAMERA_WHITE
+            inp = prepare(_simulated_rgb(truth, layout), camera)
+            images = {"truth": truth, **{s.label: s.run(inp) for s in settings}}
+            exposure = 0.5 * render_exposure(truth)
+            out.append({"layout": layout, "contrast": c, "images": {
+                k: render_srgb(v[centre, centre] / CAMERA_WHITE, exposure) for k, v in images.items()}})
+    return out
+
+
 #: Peaks of the highlight sweep, in stops of its green channel above the shortest exposure's full scale;
 #: red (half of green in CAMERA_WHITE) is measured up to +1 stop, so "only some channels clip" up to there.
 HIGHLIGHT_PEAKS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.25, 0.5, 0.75, 1.5, 2.5)
