@@ -10,13 +10,21 @@ import cv2
 import numpy as np
 
 from svelive.atomic import write_bytes_atomic
+from svelive.camera import COLOUR_LAYOUTS, Camera
+from svelive.capture.source import MONO_WORDS
+from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
-from svelive.exr import read_luminance, write_exr
+from svelive.exr import LUMA_WEIGHTS, image_channels, read_luminance, read_rgb, write_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, dynamic_range_db, dynamic_range_stops, \
     unique_levels
 from svelive.reconstruction.single import methods, reconstruct
 from svelive.sensor import Sensor, container_bits
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
+from svelive.whitebalance import OUTPUT_SPACES, ColourSettings, WhiteBalancer, exr_output
+
+# the demo verb's layouts are the demo camera's: dual-ISO exposures on RGGB, or mono 1,4/16,64
+from svelive.capture.demo import COLOUR_PATTERN as DEMO_COLOUR_PATTERN, DEFAULT_CFA as DEMO_CFA, \
+    MONO_PATTERN as DEMO_MONO_PATTERN  # noqa: E402
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
 
@@ -31,20 +39,25 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_methods)
 
     p = sub.add_parser("simulate", help="render a raw SVE frame from a linear HDR EXR image")
-    p.add_argument("hdr", help="linear HDR EXR (luminance from Y or R, G, B)")
+    p.add_argument("hdr", help="linear HDR EXR (luminance from Y or R, G, B; with --cfa its R, G, B)")
     _add_pattern_sensor(p, bits_default=12)
+    add_cfa_argument(p, "colour filter the scene is seen through, e.g. RGGB (default: none, a monochrome "
+                        "sensor seeing the luminance)")
     p.add_argument("--full-well", type=float, default=10_000.0, help="full-well capacity, electrons")
     p.add_argument("--read-noise-e", type=float, default=3.0, help="read noise, electrons")
     p.add_argument("--stops-below-fill", type=float, default=0.0,
                    help="0: the scene's brightest point just fills the lowest exposure; each stop halves the light")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--truth", type=Path, help="also write the ground truth (DN at exposure 1) to this EXR")
+    p.add_argument("--truth", type=Path, help="also write the ground truth (DN at exposure 1; RGB with --cfa) "
+                                              "to this EXR")
     p.add_argument("-o", "--output", type=Path, required=True, help="raw frame: .png, .tif, .pgm or .npy")
     p.set_defaults(func=_simulate)
 
     p = sub.add_parser("reconstruct", help="reconstruct an HDR EXR from one raw SVE frame")
     p.add_argument("raw", type=Path, help="8/16-bit single-channel PNG, TIFF, PGM or .npy")
     _add_pattern_sensor(p, bits_default=None)
+    add_cfa_argument(p, "colour filter of the sensor, e.g. RGGB: writes an RGB EXR (default: none, or the "
+                        "layout's)")
     p.add_argument("--gain", type=float, help="electrons per DN (noise-aware methods)")
     p.add_argument("--read-noise", type=float, help="read noise in DN (noise-aware methods)")
     p.add_argument("--response", type=Path, help="response JSON (svelive calibrate response): linearise first")
@@ -52,19 +65,66 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=methods(), help=f"default: {methods()[0]}")
     p.add_argument("--confidence", action="store_true", help="also write a 'confidence' channel")
     p.add_argument("--half", action="store_true", help="write half floats instead of float32")
+    add_colour_arguments(p)
     p.add_argument("-o", "--output", type=Path, required=True, help="output .exr")
     p.set_defaults(func=_reconstruct)
 
     p = sub.add_parser("demo", help="simulate and reconstruct a shipped sample scene, print its dynamic range")
     p.add_argument("--scene", choices=SAMPLE_SCENES, default="desk")
-    p.add_argument("--pattern", default="1,4/16,64")
+    add_cfa_argument(p, f"colour filter (default {DEMO_CFA}; 'none': a monochrome sensor)")
+    p.add_argument("--pattern", help=f"exposure pattern (default {DEMO_COLOUR_PATTERN} in colour, the dual-ISO "
+                                     f"layout; {DEMO_MONO_PATTERN} in mono)")
     p.add_argument("--method", choices=methods())
+    add_colour_arguments(p)
     p.add_argument("-o", "--output", type=Path, default=Path("svelive-demo.exr"))
     p.set_defaults(func=_demo)
 
 
+def add_cfa_argument(p: argparse.ArgumentParser, text: str) -> None:
+    """The --cfa option of the verbs that read or make raw frames."""
+    p.add_argument("--cfa", help=f"{text}; presets: {', '.join(CFA_PRESETS)}, or rows such as R,G/G,B")
+
+
+def add_colour_arguments(p: argparse.ArgumentParser) -> None:
+    """How a colour result is written: white balance, camera -> Rec.709 matrix, output space."""
+    p.add_argument("--white-balance", default="auto", metavar="auto|R,G,B",
+                   help="colour: 'auto' (grey world over the well-exposed pixels; default) or fixed multipliers "
+                        "R,G,B; recorded in the EXR, applied only with --output-space rec709")
+    p.add_argument("--colour-matrix", metavar="9 NUMBERS",
+                   help="colour: 3x3 matrix from white-balanced camera RGB to linear Rec.709, row-major, "
+                        "comma-separated (write --colour-matrix=... when the first number is negative)")
+    p.add_argument("--output-space", choices=OUTPUT_SPACES, default="camera",
+                   help="colour: camera RGB as reconstructed (default) or Rec.709 (white balance and matrix applied)")
+
+
+def colour_settings(args: argparse.Namespace) -> ColourSettings:
+    """The colour output the command line asks for."""
+    return ColourSettings(args.white_balance, args.colour_matrix, args.output_space)
+
+
+def parse_cfa(text: str | None) -> str | None:
+    """The --cfa value as a colour filter text for Camera.build: None for not given, 'none' or 'mono'."""
+    if text is None or text.strip().lower() in MONO_WORDS:
+        return None
+    return text
+
+
+def colour_exr(image: np.ndarray, settings: ColourSettings, valid: np.ndarray | None = None
+               ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """EXR channels and colour attributes of one frame (``Y``, or ``R``, ``G``, ``B`` with its white balance
+    estimated from its ``valid`` pixels when automatic)."""
+    balance = WhiteBalancer(settings).update(image, 0, valid) if image.ndim == 3 else None
+    return exr_output(image, balance, settings)
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    """float32 (H, W): the image itself, or the Rec. 709 luminance of an (H, W, 3) one."""
+    return image if image.ndim == 2 else (image @ np.float32(LUMA_WEIGHTS)).astype(np.float32)
+
+
 def _add_pattern_sensor(p: argparse.ArgumentParser, bits_default: int | None) -> None:
-    p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', or a preset")
+    p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', a preset, or a colour "
+                                                    f"layout ({', '.join(COLOUR_LAYOUTS)}: sets --cfa too)")
     p.add_argument("--bits", type=int, default=bits_default,
                    help="bit depth" + (f" (default {bits_default})" if bits_default else " (default: from the file's dtype)"))
     p.add_argument("--black-level", type=float, default=0.0, help="DN (default 0)")
@@ -119,8 +179,9 @@ def read_raw(path: Path) -> np.ndarray:
     if raw.ndim == 3 and raw.shape[2] == 1:
         raw = raw[:, :, 0]
     if raw.ndim != 2:
-        raise SveliveError(f"{path}: expected a single-channel (mono) raw frame, got shape {raw.shape} "
-                           f"(a colour image?)")
+        kind = "a 3-channel (already demosaiced) image" if raw.ndim == 3 and raw.shape[2] in (3, 4) else "not a 2-D frame"
+        raise SveliveError(f"{path}: expected a single-channel raw mosaic, got shape {raw.shape}: {kind}; give "
+                           "the sensor's raw frame, one value per pixel (--cfa describes its colour filter)")
     if raw.dtype not in (np.uint8, np.uint16):
         raise SveliveError(f"{path}: raw values must be 8- or 16-bit unsigned integers, got {raw.dtype}")
     return raw
@@ -152,72 +213,96 @@ def _sensor_from_args(args: argparse.Namespace, raw: np.ndarray | None = None) -
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    pattern = Pattern.parse(args.pattern)
+    camera = Camera.build(args.pattern, parse_cfa(args.cfa))
+    pattern = camera.require_pattern()
     if not args.hdr or not Path(args.hdr).is_file():
         raise SveliveError(f"{args.hdr}: no such EXR file")
     nominal = _sensor_from_args(args)
     sensor = Sensor.from_full_well(nominal.bits, args.full_well, args.read_noise_e, nominal.black_level,
                                    nominal.white_level)
-    scene = np.maximum(read_luminance(args.hdr), 0)
+    scene = np.maximum(read_luminance(args.hdr) if camera.cfa is None else read_rgb(args.hdr), 0)
     radiance = scene * exposure_scale(scene, pattern, sensor, stops_below_fill=args.stops_below_fill)
-    frame = simulate(radiance, pattern, sensor, seed=args.seed)
+    frame = simulate(radiance, pattern, sensor, cfa=camera.cfa, seed=args.seed)
     write_raw(args.output, frame.raw)
     if args.truth:
-        write_exr(args.truth, {"Y": frame.truth}, {"pattern": str(pattern), "unit": "DN at exposure 1"})
-    print(f"wrote {args.output} ({frame.raw.shape[1]}x{frame.raw.shape[0]}, {sensor.bits}-bit, "
+        attributes = {"pattern": str(pattern), "unit": "DN at exposure 1"}
+        if camera.cfa is not None:
+            attributes.update(cfa=camera.cfa.name, colourSpace="camera")
+        write_exr(args.truth, image_channels(frame.truth), attributes)
+    colour = "" if camera.cfa is None else f", colour filter {camera.cfa.name}"
+    print(f"wrote {args.output} ({frame.raw.shape[1]}x{frame.raw.shape[0]}, {sensor.bits}-bit{colour}, "
           f"gain {sensor.gain:.3g} e-/DN, read noise {sensor.read_noise:.3g} DN)")
     return 0
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    pattern = Pattern.parse(args.pattern)
+    camera = Camera.build(args.pattern, parse_cfa(args.cfa))
+    settings = colour_settings(args)
     raw = read_raw(args.raw)
     sensor = _sensor_from_args(args, raw)
     if raw.dtype == np.uint8 and sensor.bits > 8:
         raise SveliveError(f"{args.raw}: 8-bit file but --bits {sensor.bits}")
-    th, tw = pattern.shape
+    th, tw = camera.period
     if raw.shape[0] < th or raw.shape[1] < tw:
         raise SveliveError(f"{args.raw}: frame {raw.shape[1]}x{raw.shape[0]} is smaller than the {tw}x{th} tile")
+    pattern = camera.require_pattern()
     if args.mask:
         from svelive.calibrate import load_mask
         pattern = pattern.with_pixel_map(load_mask(args.mask))
+    response = None
     if args.response:
-        from svelive.calibrate import linearise, load_response
-        raw = linearise(raw, load_response(args.response), sensor)
-    image, confidence = reconstruct(raw, pattern, method=args.method, black_level=sensor.black_level,
-                                    white_level=sensor.white_level, gain=args.gain, read_noise=args.read_noise,
-                                    return_confidence=True)
-    channels = {"Y": image}
+        from svelive.calibrate import load_response
+        response = load_response(args.response)
+    # one camera: the input preparation applies the response and the per-pixel map (svelive.reconstruction.input)
+    camera = camera.replace(pattern=pattern, sensor=sensor, response=response)
+    method = args.method or methods()[0]
+    image, confidence = reconstruct(raw, camera, method=args.method, return_confidence=True)
+    channels, colour = colour_exr(image, settings, confidence > 0)
     if args.confidence:
         channels["confidence"] = confidence
-    write_exr(args.output, channels, exr_attributes(pattern, args.method or methods()[0], sensor), half=args.half)
-    print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}, method {args.method or methods()[0]})")
+    write_exr(args.output, channels, {**exr_attributes(camera, method), **colour}, half=args.half)
+    kind = "" if camera.cfa is None else f", RGB ({settings.output_space})"
+    print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}{kind}, method {method})")
     return 0
 
 
-def exr_attributes(pattern: Pattern, method: str, sensor: Sensor) -> dict[str, object]:
-    """The header attributes every svelive EXR carries."""
-    return {"pattern": str(pattern), "method": method, "blackLevel": float(sensor.black_level),
-            "whiteLevel": float(sensor.white_level), "unit": "(raw - black) / exposure, DN at exposure 1"}
+def exr_attributes(camera: Camera, method: str) -> dict[str, object]:
+    """The header attributes every svelive EXR carries (and the colour filter of a colour camera)."""
+    sensor = camera.sensor
+    out: dict[str, object] = {"pattern": str(camera.require_pattern()), "method": method,
+                              "blackLevel": float(sensor.black_level), "whiteLevel": float(sensor.white_level),
+                              "unit": "(raw - black) / exposure, DN at exposure 1"}
+    if camera.cfa is not None:
+        out["cfa"] = camera.cfa.name
+    return out
 
 
 def _demo(args: argparse.Namespace) -> int:
-    pattern = Pattern.parse(args.pattern)
-    sensor = Sensor.from_full_well(12, 10_000, 3)
-    scene = np.maximum(load_sample_scene(args.scene), 0)
-    frame = simulate(scene * exposure_scale(scene, pattern, sensor), pattern, sensor, seed=0)
+    cfa = parse_cfa(args.cfa if args.cfa is not None else DEMO_CFA)
+    camera = Camera.build(args.pattern or (DEMO_MONO_PATTERN if cfa is None else DEMO_COLOUR_PATTERN), cfa,
+                          Sensor.from_full_well(12, 10_000, 3))
+    pattern, sensor = camera.require_pattern(), camera.sensor
+    settings = colour_settings(args)
+    scene = np.maximum(load_sample_scene(args.scene, rgb=camera.cfa is not None), 0)
+    frame = simulate(scene * exposure_scale(scene, pattern, sensor), pattern, sensor, cfa=camera.cfa, seed=0)
     method = args.method or methods()[0]
-    image, confidence = reconstruct(frame.raw, pattern, method=method, white_level=sensor.white_level,
-                                    gain=sensor.gain, read_noise=sensor.read_noise, return_confidence=True)
-    write_exr(args.output, {"Y": image, "confidence": confidence}, exr_attributes(pattern, method, sensor))
-    measured = image[confidence > 0.5]
+    image, confidence = reconstruct(frame.raw, camera, method=method, return_confidence=True)
+    channels, colour = colour_exr(image, settings, confidence > 0)
+    channels["confidence"] = confidence
+    write_exr(args.output, channels, {**exr_attributes(camera, method), **colour})
+    measured = luminance(image)[confidence > 0.5]
     low, high = np.percentile(measured, [0.1, 99.9]) if measured.size else (0.0, 0.0)
-    print(f"scene {args.scene}: {frame.raw.shape[1]}x{frame.raw.shape[0]} 12-bit SVE frame, pattern {pattern}, "
+    kind = "" if camera.cfa is None else f" {camera.cfa.name} colour"
+    print(f"scene {args.scene}: {frame.raw.shape[1]}x{frame.raw.shape[0]} 12-bit{kind} SVE frame, pattern {pattern}, "
           f"method {method}")
     print(f"sensor range: one exposure {20 * math.log10(sensor.range_dn):.1f} dB, "
           f"SVE {dynamic_range_db(pattern, 12):.1f} dB (theory)")
     if low > 0:
-        print(f"reconstructed dynamic range (0.1-99.9 percentile, confidence > 0.5): "
+        print(f"reconstructed dynamic range (0.1-99.9 percentile of luminance, confidence > 0.5): "
               f"{20 * math.log10(high / low):.1f} dB = {math.log2(high / low):.1f} stops")
+    if camera.cfa is not None:
+        balance = colour["whiteBalance"]
+        print(f"white balance ({colour['whiteBalanceMode']}): R {balance[0]:.3f}, G 1, B {balance[2]:.3f}; "
+              f"EXR in {settings.output_space} RGB")
     print(f"wrote {args.output}")
     return 0

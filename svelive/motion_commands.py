@@ -1,4 +1,9 @@
-"""CLI verb ``reconstruct-sequence``: a stream of raw SVE frames to one EXR per frame (Y, confidence, motion)."""
+"""CLI verb ``reconstruct-sequence``: a stream of raw SVE frames to one EXR per frame (Y or R, G, B, confidence, motion).
+
+Every frame is reconstructed with its own camera (svelive.Camera: pattern, colour filter,
+sensor, response), as the source attached it: a replayed Bayer recording comes out in colour,
+linearised through the response it was recorded with.
+"""
 
 from __future__ import annotations
 
@@ -8,19 +13,30 @@ from pathlib import Path
 
 import numpy as np
 
+from dataclasses import replace
+
+from svelive.camera import Camera, camera_for_raw
 from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
+from svelive.commands import add_colour_arguments, colour_settings, parse_cfa
 from svelive.errors import SveliveError
 from svelive.exr import write_exr
+from svelive.frame import Frame
 from svelive.reconstruction.methods import METHODS
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor
+from svelive.whitebalance import WhiteBalancer, exr_output
+
+#: Frame time of frames without a timestamp (plain .npy directories): 30 fps, for the white balance's smoothing.
+FRAME_NS = 33_333_333
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reconstruct-sequence",
                        help="reconstruct a stream of raw SVE frames with motion-robust temporal fusion, one EXR each",
-                       description="Writes DIR/frame_NNNNNN.exr with channels Y (radiance, DN at exposure 1), "
-                                   "confidence (0..1) and motion (1 where the pixel moved). --source also takes a "
+                       description="Writes DIR/frame_NNNNNN.exr with channels Y (radiance, DN at exposure 1), or "
+                                   "R, G, B for a colour camera, confidence (0..1) and motion (1 where the pixel "
+                                   "moved). Each frame is reconstructed with its own camera (a recording's "
+                                   "pattern, colour filter, sensor and response). --source also takes a "
                                    "plain directory of raw .npy (or PNG/TIFF/PGM) frames.")
     add_source_arguments(p)
     p.add_argument("--method", choices=list(METHODS), help=f"single-frame method (default: {next(iter(METHODS))})")
@@ -32,6 +48,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-temporal", action="store_true", help="no fusion across frames")
     p.add_argument("--frames", type=int, help="stop after N frames")
     p.add_argument("--half", action="store_true", help="write half floats")
+    add_colour_arguments(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output directory (created)")
     p.set_defaults(func=_reconstruct_sequence)
 
@@ -49,42 +66,77 @@ def npy_frames(directory: Path) -> Iterator[np.ndarray]:
         yield raw
 
 
-def _raw_frames(args: argparse.Namespace) -> tuple[Iterator[np.ndarray], str | None, object]:
-    """(raw frames, the source's pattern or None, the source to close or None)."""
+def _raw_frames(args: argparse.Namespace) -> tuple[Iterator[np.ndarray | Frame], object]:
+    """(frames: Frames with their camera, or bare raw arrays of a .npy directory; the source to close or None)."""
     plain = Path(args.source)
     if plain.is_dir():
         if any(p.suffix.lower() == ".npy" for p in plain.iterdir()):
-            return npy_frames(plain), None, None
+            return npy_frames(plain), None
         args.source = f"images:{plain}"
     source = source_from_args(args)
     source.open()
-    return (frame.raw for frame in source.frames()), source.pattern, source
+    return source.frames(), source
+
+
+def camera_of(frame: np.ndarray | Frame, args: argparse.Namespace) -> Camera:
+    """The camera to reconstruct ``frame`` with: its own (a bare array's from the options), with --gain and
+    --read-noise when given."""
+    if isinstance(frame, Frame):
+        camera = frame.camera
+    else:
+        camera = camera_for_raw(frame, args.pattern, cfa=parse_cfa(args.cfa), black_level=args.black_level or 0,
+                                white_level=args.white_level)
+    camera.require_pattern()
+    if args.gain is not None or args.read_noise is not None:
+        sensor = camera.sensor
+        camera = camera.replace(sensor=replace(sensor, gain=args.gain if args.gain is not None else sensor.gain,
+                                               read_noise=args.read_noise if args.read_noise is not None
+                                               else sensor.read_noise))
+    return camera
+
+
+def frame_time_ns(frame: np.ndarray | Frame, index: int) -> int:
+    """A frame's time for the white balance's smoothing: the device's clock, else the arrival, else 30 fps."""
+    if isinstance(frame, Frame):
+        return frame.device_time_ns if frame.device_time_ns is not None else frame.host_time_ns
+    return index * FRAME_NS
 
 
 def _reconstruct_sequence(args: argparse.Namespace) -> int:
     if args.frames is not None and args.frames < 1:
         raise SveliveError(f"--frames must be >= 1, got {args.frames}")
-    frames, source_pattern, source = _raw_frames(args)
+    settings = colour_settings(args)
+    frames, source = _raw_frames(args)
+    reconstructor: Reconstructor | None = None
+    balancer = WhiteBalancer(settings)
+    n = 0
     try:
-        pattern = args.pattern or source_pattern
-        if not pattern:
-            raise SveliveError("no exposure pattern: pass --pattern (e.g. 1,4/16,64)")
-        reconstructor = Reconstructor(pattern, method=args.method, temporal=not args.no_temporal,
-                                      exposure_timing=args.timing, black_level=args.black_level or 0,
-                                      white_level=args.white_level, gain=args.gain, read_noise=args.read_noise)
-        args.output.mkdir(parents=True, exist_ok=True)
-        n = 0
-        for raw in frames:
-            result = reconstructor.process(raw)
+        for frame in frames:
+            camera = camera_of(frame, args)
+            if reconstructor is None or camera != reconstructor.camera:  # a new camera: a new stream
+                if reconstructor is not None:
+                    reconstructor.close()
+                reconstructor = Reconstructor(camera, method=args.method, temporal=not args.no_temporal,
+                                              exposure_timing=args.timing)
+            result = reconstructor.process(getattr(frame, "raw", frame))
+            balance = None
+            if result.image.ndim == 3:
+                balance = balancer.update(result.image, frame_time_ns(frame, n), ~result.lower_bound)
+            channels, colour = exr_output(result.image, balance, settings)
+            attributes = {"svelive_method": result.method, "svelive_pattern": str(camera.pattern),
+                          "svelive_moving_fraction": f"{result.moving_fraction:.6f}", **colour}
+            if camera.cfa is not None:
+                attributes["cfa"] = camera.cfa.name
+            args.output.mkdir(parents=True, exist_ok=True)
             write_exr(args.output / f"frame_{n:06d}.exr",
-                      {"Y": result.image, "confidence": result.confidence,
-                       "motion": result.motion.astype(np.float32)},
-                      {"svelive_method": result.method, "svelive_pattern": str(reconstructor.pattern),
-                       "svelive_moving_fraction": f"{result.moving_fraction:.6f}"}, half=args.half)
+                      {**channels, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
+                      attributes, half=args.half)
             n += 1
             if args.frames is not None and n >= args.frames:
                 break
     finally:
+        if reconstructor is not None:
+            reconstructor.close()
         if source is not None:
             source.close()
     if n == 0:

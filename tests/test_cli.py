@@ -29,9 +29,18 @@ def test_methods_lists_default():
 def test_demo_writes_exr_and_prints_range(tmp_path):
     out = svelive("demo", "-o", tmp_path / "demo.exr")
     assert out.returncode == 0, out.stderr
-    assert "stops" in out.stdout
+    assert "stops" in out.stdout and "white balance (auto)" in out.stdout
     channels, header = read_exr(tmp_path / "demo.exr")
-    assert {"Y", "confidence"} <= set(channels) and header["pattern"] == "1,4/16,64"
+    # in colour by default: the demo camera's dual-ISO layout on RGGB, camera RGB with its white balance
+    assert set(channels) == {"R", "G", "B", "confidence"} and header["pattern"] == "1/1/8/8"
+    assert header["cfa"] == "RGGB" and header["colourSpace"] == "camera" and header["whiteBalance"][1] == 1
+    rgb = np.dstack([channels[c] for c in "RGB"])
+    assert np.all(np.isfinite(rgb)) and rgb.min() >= 0
+    assert np.abs(np.log(rgb[..., 0] + 1) - np.log(rgb[..., 2] + 1)).mean() > 0.05  # not a grey image
+    out = svelive("demo", "--cfa", "none", "-o", tmp_path / "mono.exr")
+    assert out.returncode == 0, out.stderr
+    channels, header = read_exr(tmp_path / "mono.exr")
+    assert set(channels) == {"Y", "confidence"} and header["pattern"] == "1,4/16,64" and "cfa" not in header
 
 
 @pytest.fixture
@@ -93,3 +102,100 @@ def test_reconstruct_bad_options(raw_png, tmp_path, args, words):
     out = svelive("reconstruct", raw_png, *args, "-o", tmp_path / "out.exr")
     assert out.returncode == 2 and words in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "out.exr").exists()
+
+
+@pytest.fixture
+def bayer_png(tmp_path):
+    """A simulated dual-ISO RGGB raw frame of a shipped RGB crop, and its RGB truth."""
+    from svelive.simulate import sample_scene_path
+
+    path = tmp_path / "bayer.png"
+    out = svelive("simulate", sample_scene_path("desk"), "--pattern", "1/1/8/8", "--cfa", "RGGB", "--black-level",
+                  "64", "-o", path, "--truth", tmp_path / "truth_rgb.exr")
+    assert out.returncode == 0, out.stderr
+    assert "colour filter RGGB" in out.stdout
+    return path
+
+
+def test_simulate_and_reconstruct_in_colour(bayer_png, tmp_path):
+    raw = cv2.imread(str(bayer_png), cv2.IMREAD_UNCHANGED)
+    assert raw.ndim == 2  # a mosaic, one value per pixel
+    truth, truth_header = read_exr(tmp_path / "truth_rgb.exr")
+    assert set(truth) == {"R", "G", "B"} and truth_header["cfa"] == "RGGB"
+    out = svelive("reconstruct", bayer_png, "--pattern", "1/1/8/8", "--cfa", "RGGB", "--black-level", "64",
+                  "--white-level", "4095", "--confidence", "-o", tmp_path / "rgb.exr")
+    assert out.returncode == 0, out.stderr
+    channels, header = read_exr(tmp_path / "rgb.exr")
+    assert set(channels) == {"R", "G", "B", "confidence"}
+    assert header["cfa"] == "RGGB" and header["colourSpace"] == "camera" and header["whiteBalanceApplied"] == 0
+    assert "chromaticities" not in header
+    for c in "RGB":  # the scale of every channel: within 2 % of the truth
+        assert np.median(channels[c] / np.maximum(truth[c], 1e-6)) == pytest.approx(1.0, abs=0.02), c
+
+    # the same frame in Rec.709: white balance and matrix applied, the standard chromaticities
+    matrix = [1.5, -0.3, -0.2, -0.2, 1.4, -0.2, 0.0, -0.4, 1.4]
+    out = svelive("reconstruct", bayer_png, "--pattern", "dual-iso", "--black-level", "64", "--white-level", "4095",
+                  "--white-balance", "2,1,1.5", "--colour-matrix", ",".join(map(str, matrix)),
+                  "--output-space", "rec709", "-o", tmp_path / "rec709.exr")
+    assert out.returncode == 0, out.stderr
+    rec709, header = read_exr(tmp_path / "rec709.exr")
+    assert header["colourSpace"] == "rec709" and header["whiteBalanceApplied"] == 1
+    assert header["chromaticities"] == pytest.approx((0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290), abs=1e-6)
+    camera = np.dstack([channels[c] for c in "RGB"]).astype(np.float64)
+    expected = np.einsum("ij,hwj->hwi", np.reshape(matrix, (3, 3)) @ np.diag([2, 1, 1.5]), camera)
+    np.testing.assert_allclose(np.dstack([rec709[c] for c in "RGB"]), expected, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--cfa", "RGGX"], "'RGGX' in row 1 is not R, G or B"),
+    (["--cfa", "R,G/G"], "different lengths"),
+    (["--pattern", "dual-iso", "--cfa", "GRBG"], "drop --cfa"),
+    (["--cfa", "RGGB", "--output-space", "rec709"], "needs a colour matrix"),
+    (["--cfa", "RGGB", "--white-balance", "1,2"], "expected 3 numbers"),
+])
+def test_colour_refusals_are_one_line(bayer_png, tmp_path, args, words):
+    base = ["--pattern", "1/1/8/8"] if "--pattern" not in args else []
+    out = svelive("reconstruct", bayer_png, *base, *args, "-o", tmp_path / "out.exr")
+    assert out.returncode == 2 and words in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "out.exr").exists()
+
+
+def test_cfa_with_a_demosaiced_image_and_simulate_refusals(tmp_path):
+    from svelive.simulate import sample_scene_path
+
+    rgb = _write(tmp_path / "rgb.png", np.full((8, 8, 3), 100, np.uint8))
+    out = svelive("reconstruct", rgb, "--pattern", "1/1/8/8", "--cfa", "RGGB", "-o", tmp_path / "out.exr")
+    assert out.returncode == 2 and "3-channel (already demosaiced)" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    out = svelive("simulate", sample_scene_path("desk"), "--pattern", "1/1/8/8", "--cfa", "XYZ", "-o",
+                  tmp_path / "r.png")
+    assert out.returncode == 2 and "is not R, G or B" in out.stderr and not (tmp_path / "r.png").exists()
+
+
+def test_reconstruct_sequence_uses_the_recordings_camera_and_response(tmp_path):
+    from replay import RecordingWriter
+    from svelive.calibrate import fit_response
+    from svelive.camera import Camera
+    from svelive.cli import main
+    from svelive.frame import Frame
+
+    from tests.test_calibrate_response import PATTERN, chart_frame
+
+    sensor, scene, first = chart_frame("gamma2.2", seed=7)
+    response = fit_response(first, PATTERN, sensor)
+    errors = {}
+    for name, camera in (("linear", Camera.build(PATTERN, None, sensor)),
+                         ("with response", Camera.build(PATTERN, None, sensor, response))):
+        path = tmp_path / f"{name}.sverec"
+        with RecordingWriter(path) as writer:  # a camera with a non-linear response, recorded with its camera
+            for i, seed in enumerate((8, 9)):
+                writer.append(Frame(raw=chart_frame("gamma2.2", seed=seed)[2], frame_id=i, host_time_ns=i * 33_000_000,
+                                    pixel_format="Mono12", camera=camera))
+        out = tmp_path / name
+        assert main(["reconstruct-sequence", "--source", f"replay:{path}", "--speed", "0", "--no-temporal",
+                     "-o", str(out)]) == 0
+        channels, header = read_exr(out / "frame_000001.exr")
+        assert set(channels) == {"Y", "confidence", "motion"} and header["svelive_pattern"] == str(PATTERN)
+        errors[name] = float(np.median(np.abs(np.log2(np.maximum(channels["Y"], 1e-3) / np.maximum(scene, 1e-3)))))
+    # the response the recording carries linearises every frame; without it the gamma curve stays
+    assert errors["with response"] < 0.1 < errors["linear"], errors
