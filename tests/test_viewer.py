@@ -7,6 +7,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.test_service_helpers import Camera, ServerThread, chart_raws, make_camera
@@ -87,3 +88,42 @@ def test_viewer_calibrates_the_response_and_plots_the_curve(tmp_path):
         shot = tmp_path / "calibration.png"
         page.screenshot(path=str(shot))
         assert shot.stat().st_size > 10_000
+
+
+def test_viewer_shows_a_colour_preview_and_the_white_balance(tmp_path):
+    from tests.test_service_colour import ColourServer, make_colour_camera
+
+    with ColourServer(make_colour_camera(fps=10.0)) as srv, browser_page(tmp_path, 700, 60_000) as page:
+        page.goto(srv.url + "/")
+        page.wait_for_function("document.getElementById('live').naturalWidth > 0")
+        page.wait_for_function("document.body.dataset.cfa === 'RGGB'")
+        # the pixels the browser decoded, read back through a canvas: the three channels differ
+        pixels = page.evaluate("""() => {
+            const img = document.getElementById('live');
+            const canvas = document.createElement('canvas');
+            canvas.width = img.naturalWidth; canvas.height = img.naturalHeight;
+            const ctx = canvas.getContext('2d');
+            ctx.drawImage(img, 0, 0);
+            return Array.from(ctx.getImageData(0, 0, canvas.width, canvas.height).data);
+        }""")
+        rgba = np.array(pixels, float).reshape(-1, 4)
+        assert rgba[:, :3].mean() > 5
+        assert np.abs(rgba[:, 0] - rgba[:, 2]).mean() > 3 and np.abs(rgba[:, 0] - rgba[:, 1]).mean() > 2
+        assert not page.locator("#colour-controls").is_hidden()
+        page.wait_for_function("document.getElementById('colour').textContent.includes('white balance auto')")
+        # fixing the white balance from the page: the server gets three numbers, green 1
+        page.select_option("#wb-mode", "fixed")
+        deadline = time.monotonic() + 10
+        while srv.pipeline.settings()["white_balance"] == "auto":
+            assert time.monotonic() < deadline, "the white balance control did not reach the server"
+            time.sleep(0.1)
+        fixed = srv.pipeline.settings()["white_balance"]
+        assert len(fixed) == 3 and fixed[1] == 1
+        page.wait_for_function("document.getElementById('colour').textContent.includes('white balance fixed')")
+        page.eval_on_selector("#wbr", "e => { e.value = '1'; e.dispatchEvent(new Event('change')); }")
+        deadline = time.monotonic() + 10
+        while srv.pipeline.settings()["white_balance"][0] != pytest.approx(2.0):
+            assert time.monotonic() < deadline, "the red slider did not reach the server"
+            time.sleep(0.1)
+        if os.environ.get("SVELIVE_VIEWER_SCREENSHOT"):
+            page.screenshot(path=os.environ["SVELIVE_VIEWER_SCREENSHOT"].replace(".png", "-colour.png"))
