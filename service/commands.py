@@ -64,6 +64,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from svelive.capture import open_source
     from svelive.reconstruction.warmup import warm_up
+    from svelive.tonemap import warm_up as warm_up_preview
 
     from service.app import create_app, listen_socket
     from service.pipeline import Pipeline
@@ -82,6 +83,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
               "this address can watch", file=sys.stderr)
     # compile (first run on a machine, a few seconds) or load the kernels before the first live frame
     warm_up()
+    warm_up_preview()  # the colour preview's kernel too
     app = create_app(Pipeline(config), server)
     sock = listen_socket(server)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
