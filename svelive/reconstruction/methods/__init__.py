@@ -23,6 +23,8 @@ class MethodSpec:
         options: the keyword options a user may pass.
         variance: it returns its own predicted variance when called with ``return_variance=True``.
         workers: it splits a frame over threads when called with ``workers=`` (a count or an Executor).
+        exposures: it reads every pixel's exposure from ``SveInput.exposure`` (so takes per-pixel
+            exposures, SveInput.folded); False: only the pattern's tile.
         summary: one line for ``svelive methods``.
     """
 
@@ -31,6 +33,7 @@ class MethodSpec:
     options: frozenset[str] = frozenset()
     variance: bool = False
     workers: bool = False
+    exposures: bool = True
     summary: str = ""
 
     @property
@@ -45,7 +48,7 @@ METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
                summary="own reading where neighbours disagree beyond noise, noise-optimal mean where they agree"),
     MethodSpec("weighted", weighted.run, variance=True, workers=True,
                summary="per-exposure interpolation merged with Poisson-Gaussian inverse-variance weights"),
-    MethodSpec("aggregate", aggregate.run, workers=True,
+    MethodSpec("aggregate", aggregate.run, workers=True, exposures=False,
                summary="the paper's section 6.1: tile box mean, inverse of the piecewise-linear response"),
     MethodSpec("cubic", cubic.run, options=frozenset({"dark_level", "literal"}),
                summary="the paper's section 6.2: off-grid cubic interpolation by local pseudo-inverse"),

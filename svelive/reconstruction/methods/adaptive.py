@@ -43,7 +43,9 @@ that level's censored pixels, so a scene whose range fits in the unsaturated
 exposures does not pay for it; so does the lower-bound fill.
 Without censored pixels the pilot's exposure window is the same for every
 strip of a frame (strips start on whole tiles), so it is computed once per
-pattern and strip shape. Between the windows the per-pixel arithmetic runs as
+pattern and strip shape; a folded input (a colour frame's luminance, see
+svelive.reconstruction.colour) computes it per strip, and tests each censored
+pixel against its own bound in one compiled pass. Between the windows the per-pixel arithmetic runs as
 compiled kernels (svelive.jit), one pass each: weights (w, x, w x), residuals
 (m, v_m and the two terms whose windows give b^2), blend (the result); and,
 only where pixels are censored, consistency with each level's bound and the
@@ -118,6 +120,11 @@ def _solve(inp: SveInput, want_variance: bool = False, want_share: bool = False)
         wn = np.empty(shape, f32)
         _weights_censored(*flat(smooth(s_valid, ky, kx), exposure_sum, s, e, censored, lowest, w, x, wn, wx),
                           gain_inv, floor)
+    elif inp.folded:  # exposures of this frame alone (colour folded in): nothing to cache
+        exposure_sum, no_exposure = smooth(e, ky, kx), None
+        lower = exposure_sum <= 0
+        wn = w
+        _weights(*flat(smooth(s, ky, kx), exposure_sum, s, e, w, x, wx), gain_inv, floor)
     else:
         exposure_sum, no_exposure, first_tile = _exposure_sum(inp.pattern, shape)
         if not np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):
@@ -253,10 +260,16 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
 
     Each level's two window sums cover only the box around its censored pixels,
     one window radius wider (cut at the frame's edges), so that inside it they
-    equal whole-frame sums.
+    equal whole-frame sums. A folded input (SveInput.folded: a colour frame's
+    luminance, whose exposures vary off the levels) tests each censored pixel's
+    neighbours against its own bound censor / e instead (:func:`_censored_each`).
     """
     f32 = np.float32
     levels, censor = inp.pattern.levels.tolist(), inp.sensor.censor_level
+    if inp.folded:  # exposures off the pattern's levels: every censored pixel with its own bound
+        bound_only = np.zeros(inp.shape, bool)
+        _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor))
+        return bound_only
     if inp.pattern.pixel_map is None:
         key, values = inp.exposure, np.array(levels, f32)
     else:
@@ -279,6 +292,49 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
         _fill_censored(*flat(inp.censored, key, x, image, bound_only, count, sum_x), width, value, r0, c0, c1 - c0,
                        top, bottom + 1, left, right + 1)
     return bound_only
+
+
+@kernel
+def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
+    """:func:`_censored_pixels` for exposures off the pattern's levels, (H, W) arrays.
+
+    At each censored pixel p: image = max(window mean (binomial weights, borders
+    reflect-101 as the window sums elsewhere) of the readings consistent with
+    p's own bound censor / e_p, x_p); ``bound_only`` where none is.
+    """
+    h, width = censored.shape
+    ry, rx = ky.size // 2, kx.size // 2
+    zero, one, tiny, sigma = np.float32(0.0), np.float32(1.0), np.float32(TINY), np.float32(CONSISTENT_SIGMA)
+    for r in range(h):
+        if not censored[r].any():
+            continue
+        for c in range(width):
+            if not censored[r, c]:
+                continue
+            bound = censor / exposure[r, c]
+            count, total = zero, zero
+            for dy in range(-ry, ry + 1):
+                rr = _reflect(r + dy, h)
+                for dx in range(-rx, rx + 1):
+                    cc = _reflect(c + dx, width)
+                    wq = w[rr, cc]
+                    if wq > zero and np.sqrt(one / max(wq, tiny)) * sigma + x[rr, cc] >= bound:
+                        g = ky[dy + ry] * kx[dx + rx]
+                        count += g
+                        total += g * x[rr, cc]
+            image[r, c] = max(total / max(count, tiny), x[r, c])
+            if count <= zero:
+                bound_only[r, c] = True
+
+
+@kernel
+def _reflect(i, n):
+    """Index ``i`` reflected into [0, n) without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
+    if n == 1:
+        return 0
+    while i < 0 or i >= n:
+        i = -i if i < 0 else 2 * (n - 1) - i
+    return i
 
 
 @kernel

@@ -34,6 +34,12 @@ class SveInput:
         integral: True when every signal value is an integer (integer raw, integer black level).
         cfa: the colour filter layout, or None for a monochrome frame.
         channels: uint8 (H, W), the colour channel (0 R, 1 G, 2 B) of every pixel, or None.
+        folded: ``exposure`` is not the pattern's (tile or calibrated map) but each
+            pixel's exposure times its colour channel's local share of luminance
+            (svelive.reconstruction.colour): a monochrome problem whose exposures vary
+            from pixel to pixel off the pattern's levels. Methods then use ``exposure``
+            itself wherever they would use what the tile alone fixes, and each censored
+            pixel's own bound; ``pattern`` still gives the layout (windows, levels).
     """
 
     signal: np.ndarray
@@ -44,6 +50,7 @@ class SveInput:
     integral: bool = False
     cfa: ColourFilter | None = None
     channels: np.ndarray | None = None
+    folded: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -59,7 +66,7 @@ class SveInput:
         pattern's origin stays the frame's, so ``rows`` and ``cols`` should start on whole tiles."""
         return SveInput(self.signal[rows, cols], self.exposure[rows, cols], self.censored[rows, cols],
                         self.pattern, self.sensor, self.integral, self.cfa,
-                        None if self.channels is None else self.channels[rows, cols])
+                        None if self.channels is None else self.channels[rows, cols], self.folded)
 
 
 @dataclass(frozen=True)

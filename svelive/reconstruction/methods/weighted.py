@@ -44,7 +44,8 @@ or 1/16, picked by the pixel's phase (a fixed sum of them for a level on several
 three shifted additions instead of K window sums. Reflect-101 keeps the class's phase at
 the frame's edges (row -1 reads row 1), so the sums are exact there too. The general way,
 for longer tiles (whose reflected edges change phase), frames of a single row or column
-under a 2-row or 2-column tile, a level on 3 of 4 phases and per-pixel exposure maps:
+under a 2-row or 2-column tile, a level on 3 of 4 phases and per-pixel exposures (a calibrated
+map, or a colour frame's luminance with its channels folded into them, SveInput.folded):
 a compiled pass lays out one plane per level (x at its pixels, 0 elsewhere), OpenCV sums each.
 """
 
@@ -101,8 +102,12 @@ class _Layout(NamedTuple):
 
 
 @lru_cache(maxsize=16)
-def _level_layout(pattern: Pattern, shape: tuple[int, int]) -> _Layout:
-    """The tile's window sums and level map for frames of ``shape`` (see _Layout), cached."""
+def _level_layout(pattern: Pattern, shape: tuple[int, int], folded: bool = False) -> _Layout:
+    """The tile's window sums and level map for frames of ``shape`` (see _Layout), cached.
+
+    ``folded``: the exposures are per pixel, off the levels (SveInput.folded), so the
+    level sums cannot come from s alone: the general way.
+    """
     (th, tw), (h, w) = pattern.shape, shape
     window = support_size(th), support_size(tw)
     ky, kx = binomial_kernel(window[0]), binomial_kernel(window[1])
@@ -116,7 +121,7 @@ def _level_layout(pattern: Pattern, shape: tuple[int, int]) -> _Layout:
     information = np.divide(effective, share, out=np.zeros_like(share), where=share > 0)
     exposure_sum = smooth(Pattern(pattern.tile).exposure_map((small, w)), ky, kx)  # the nominal tile's
 
-    groups = _phase_groups(pattern) if _polyphase(pattern, shape) else None
+    groups = _phase_groups(pattern) if _polyphase(pattern, shape) and not folded else None
     if groups is None:  # plane k: level k's window sum of x
         owner = np.broadcast_to(np.arange(levels.size)[:, None, None], (levels.size, small, w))
         groups, scales, phase_rows = (), levels.astype(np.float32), 1
@@ -243,12 +248,12 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     th, tw = inp.pattern.shape
     window = (support_size(th), support_size(tw))
     ky, kx = binomial_kernel(window[0]), binomial_kernel(window[1])
-    layout = _level_layout(inp.pattern, inp.shape)
+    layout = _level_layout(inp.pattern, inp.shape, inp.folded)
     h, w = inp.shape
 
     # Without censored pixels sum(s) is the levels' sums added up and sum_i G_i e_i is the tile's,
     # cached (inp.exposure is the pattern's map: prepare and in_strips keep the tile's phase).
-    tiled = inp.pattern.pixel_map is None and not inp.censored.any()
+    tiled = inp.pattern.pixel_map is None and not inp.folded and not inp.censored.any()
     valid = np.empty((2, 0 if tiled else h * w), np.float32)
     if layout.polyphase:
         if tiled:
