@@ -8,9 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from svelive import Pattern, Sensor, SveliveError, simulate
+import svelive
+from svelive import Camera, Pattern, Sensor, SveliveError, simulate
 from svelive.camera import COLOUR_LAYOUTS
 from svelive.cfa import PRESETS, ColourFilter
+from svelive.metrics import pu21_psnr_colour
+from svelive.reconstruction.colour import run_colour
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods import METHODS
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
@@ -84,3 +89,195 @@ def test_every_colour_layout_simulates(layout):
     frame = simulate(rgb * np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR)), pattern, SENSOR,
                      cfa=cfa, seed=2)
     assert frame.raw.shape == (64, 64) and frame.truth.shape == (64, 64, 3)
+
+
+# ----- reconstruction -------------------------------------------------------------------
+
+KW = dict(white_level=SENSOR.white_level, gain=SENSOR.gain, read_noise=SENSOR.read_noise)
+BRIGHTNESS = {"bright": 0.0, "dim": 5.0}
+
+
+def crop_frame(name: str, layout: str, stops: float, seed: int = 3):
+    """A shipped crop (RGB) simulated through a colour layout; (pattern, cfa, frame)."""
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    rgb = np.maximum(load_sample_scene(name, rgb=True), 0)
+    radiance = rgb * np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops))
+    return pattern, cfa, simulate(radiance, pattern, SENSOR, cfa=cfa, seed=seed)
+
+
+def block_means(image: np.ndarray, n: int = 8) -> np.ndarray:
+    h, w = image.shape[:2]
+    return image[:h // n * n, :w // n * n].reshape(h // n, n, w // n, n, *image.shape[2:]).mean(axis=(1, 3))
+
+
+def chromaticity(rgb: np.ndarray) -> np.ndarray:
+    return rgb / np.maximum(rgb.sum(axis=-1, keepdims=True), 1e-12)
+
+
+@pytest.mark.parametrize("stops", BRIGHTNESS.values(), ids=BRIGHTNESS.keys())
+@pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
+def test_every_colour_layout_reconstructs_finite_and_to_scale_per_channel(layout, stops):
+    """The median over the crops' well-exposed 8x8 blocks (every pixel at SNR >= 10 in the longest
+    exposure by the noise model, unclipped in the shortest) of the ratio of block means, per channel."""
+    ratios = [[], [], []]
+    for name in SAMPLE_SCENES:
+        pattern, cfa, frame = crop_frame(name, layout, stops)
+        image = svelive.reconstruct(frame.raw, pattern, cfa=cfa, **KW)
+        assert image.shape == frame.truth.shape and image.dtype == np.float32
+        assert np.all(np.isfinite(image)) and image.min() >= 0
+        tile = Pattern.parse(pattern).tile
+        signal = frame.truth * tile.max()
+        snr = signal / np.sqrt(signal / SENSOR.gain + SENSOR.floor_variance)
+        well = np.all((snr >= 10) & (frame.truth * tile.min() < SENSOR.censor_level), axis=2)
+        blocks = block_means(well.astype(np.float32)) == 1
+        truth, estimate = block_means(frame.truth), block_means(image)
+        for c in range(3):
+            ratios[c].extend(estimate[..., c][blocks] / truth[..., c][blocks])
+    assert len(ratios[0]) >= 20
+    for c in range(3):
+        assert np.median(ratios[c]) == pytest.approx(1.0, abs=0.02), "RGB"[c]
+
+
+@pytest.mark.parametrize("cfa", [*PRESETS, "R,G,B/G,B,R"])
+@pytest.mark.parametrize("mode", ["joint", "split"])
+def test_every_colour_filter_puts_each_channel_where_it_belongs(cfa, mode):
+    # a saturated colour in each channel in turn: a wrong phase would mix them up
+    for c in range(3):
+        rgb = np.full((50, 38, 3), 30.0, np.float32)
+        rgb[..., c] = 300.0
+        frame = simulate(rgb, "1/1/8/8", SENSOR, cfa=cfa, seed=c)
+        image = svelive.reconstruct(frame.raw, "1/1/8/8", cfa=cfa, colour=mode, **KW)
+        assert image.shape == (50, 38, 3) and np.all(np.isfinite(image)) and image.min() >= 0
+        inner = image[8:-8, 8:-8].reshape(-1, 3).mean(axis=0)
+        np.testing.assert_allclose(inner, rgb[0, 0], rtol=0.03)
+
+
+@pytest.mark.parametrize("method", ["adaptive", "weighted", "aggregate", "cubic"])
+@pytest.mark.parametrize("mode", ["joint", "split"])
+def test_every_method_runs_on_colour_frames_with_confidence(method, mode):
+    pattern, cfa, frame = crop_frame("cannon", "dual-iso", 0.0)
+    raw, truth = frame.raw[:48, :40], frame.truth[:48, :40]
+    image, confidence = svelive.reconstruct(raw, pattern, cfa=cfa, method=method, colour=mode,
+                                            return_confidence=True, **KW)
+    assert image.shape == (48, 40, 3) and confidence.shape == (48, 40)
+    assert np.all(np.isfinite(image)) and image.min() >= 0
+    assert 0 <= confidence.min() and confidence.max() <= 1
+    assert np.median(image / np.maximum(truth, 1e-6)) == pytest.approx(1.0, abs=0.1)
+
+
+@pytest.mark.parametrize("mode", ["joint", "split"])
+def test_per_pixel_exposure_maps_work_with_a_colour_filter(mode):
+    nominal = Pattern.parse("1/1/8/8")
+    rng = np.random.default_rng(4)
+    pixel_map = nominal.exposure_map((64, 48)) * rng.uniform(1.05, 1.25, (64, 48)).astype(np.float32)
+    calibrated = nominal.with_pixel_map(pixel_map)
+    rgb = np.empty((64, 48, 3), np.float32)
+    rgb[...] = (120.0, 200.0, 90.0)
+    frame = simulate(rgb, calibrated, SENSOR, cfa="RGGB", seed=2)  # the sensor's true exposures
+    with_map = svelive.reconstruct(frame.raw, calibrated, cfa="RGGB", colour=mode, **KW)
+    without = svelive.reconstruct(frame.raw, nominal, cfa="RGGB", colour=mode, **KW)
+    for c in range(3):
+        assert np.median(with_map[8:-8, 8:-8, c]) == pytest.approx(rgb[0, 0, c], rel=0.02)
+    assert np.median(without[8:-8, 8:-8] / with_map[8:-8, 8:-8]) > 1.1  # the map matters
+
+
+def test_grey_scene_shows_no_false_colour_beyond_the_chroma_noise():
+    """Flat grey at levels where no reading comes near the censor level: the spread of log(R/G) and
+    log(B/G) is at most what the noise model predicts for one cell's chroma (the inverse-variance
+    mean of each channel's readings in a cell, smoothed over 3x3 cells with [1, 2, 1] / 4 weights,
+    whose squared weights sum to (6/16)^2; interpolating between cells only lowers it), and their
+    mean is within 4 standard errors of 0 (one cell in 3x3 counted as independent)."""
+    for layout, (pattern, cfa) in COLOUR_LAYOUTS.items():
+        p, f = Pattern.parse(pattern), ColourFilter.parse(cfa)
+        cell = (np.lcm(p.shape[0], f.shape[0]), np.lcm(p.shape[1], f.shape[1]))
+        exposure = p.exposure_map(cell).astype(np.float64)
+        channels = f.channel_map(cell)
+        for level in (5.0, 50.0):
+            assert level * p.tile.max() + 4 * np.sqrt(SENSOR.signal_variance(level * p.tile.max())) < SENSOR.censor_level
+            variance = (exposure * level / SENSOR.gain + SENSOR.floor_variance) / exposure ** 2
+            cell_variance = [1 / np.sum(1 / variance[channels == c]) * (6 / 16) ** 2 for c in range(3)]
+            frame = simulate(np.full((128, 128, 3), level, np.float32), pattern, SENSOR, cfa=cfa, seed=7)
+            image = svelive.reconstruct(frame.raw, pattern, cfa=cfa, **KW)[8:-8, 8:-8]
+            cells = image.shape[0] * image.shape[1] / (cell[0] * cell[1] * 9)
+            for c in (0, 2):
+                log_ratio = np.log(image[..., c] / image[..., 1])
+                predicted = np.sqrt(cell_variance[c] + cell_variance[1]) / level
+                assert log_ratio.std() <= predicted, (layout, level, "RGB"[c])
+                assert abs(log_ratio.mean()) <= 4 * predicted / np.sqrt(cells), (layout, level, "RGB"[c])
+
+
+@pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
+def test_clipped_white_highlight_where_only_green_clips_stays_white_not_magenta(layout):
+    """A white object whose green clips in every exposure while red and blue are measured (camera
+    white 0.55 : 1 : 0.7, green the most sensitive) keeps the hue of white."""
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    p = Pattern.parse(pattern)
+    white = np.array([0.55, 1.0, 0.7], np.float32)
+    n = 96
+    yy, xx = np.mgrid[:n, :n]
+    radius2 = (yy - n / 2) ** 2 + (xx - n / 2) ** 2
+    level = np.where(radius2 <= 20 ** 2, 1.25 * SENSOR.white_level / p.tile.min(), 0.3 * SENSOR.range_dn / p.tile.max())
+    frame = simulate((level[..., None] * white).astype(np.float32), pattern, SENSOR, cfa=cfa, seed=6)
+    inner = radius2 <= 14 ** 2
+    channels = ColourFilter.parse(cfa).channel_map((n, n))
+    assert np.all(frame.raw[inner & (channels == 1)] >= SENSOR.censor_level)  # green clipped everywhere
+    assert np.all(frame.raw[inner & (channels != 1) & (p.exposure_map((n, n)) == p.tile.min())] < SENSOR.censor_level)
+    image = svelive.reconstruct(frame.raw, pattern, cfa=cfa, **KW)
+    hue = chromaticity(image[inner]).mean(axis=0)
+    np.testing.assert_allclose(hue, chromaticity(white), atol=0.01)
+
+
+def slanted_edge(layout: str, n: int = 96):
+    """A neutral black-to-white edge 5 degrees off vertical (white at 60 % of the shortest
+    exposure's range, black 30 times darker), its signed distance (px), and the frame."""
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    yy, xx = np.mgrid[:n, :n].astype(np.float32)
+    distance = (xx - n / 2) * np.cos(np.deg2rad(5)) - (yy - n / 2) * np.sin(np.deg2rad(5))
+    fill = SENSOR.range_dn / Pattern.parse(pattern).tile.min()
+    luminance = (0.02 + 0.58 * np.clip(distance + 0.5, 0, 1)) * fill
+    frame = simulate(np.repeat(luminance[..., None], 3, axis=2), pattern, SENSOR, cfa=cfa, seed=5)
+    return pattern, cfa, distance, frame
+
+
+@pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
+def test_slanted_edge_shows_less_false_colour_than_the_split_baseline(layout):
+    pattern, cfa, distance, frame = slanted_edge(layout)
+    n = distance.shape[0]
+    band = np.abs(distance) <= 4
+    band[:8], band[n - 8:] = False, False
+    false_colour = {}
+    for mode in ("joint", "split"):
+        image = svelive.reconstruct(frame.raw, pattern, cfa=cfa, colour=mode, **KW)
+        false_colour[mode] = np.abs(chromaticity(image[band]) - 1 / 3).sum(axis=-1).mean()
+    assert false_colour["joint"] < false_colour["split"]
+
+
+@pytest.mark.parametrize("stops", BRIGHTNESS.values(), ids=BRIGHTNESS.keys())
+@pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
+def test_joint_beats_split_in_pu21_on_luminance_over_the_crops(layout, stops):
+    scores = {"joint": [], "split": []}
+    for name in SAMPLE_SCENES:
+        pattern, cfa, frame = crop_frame(name, layout, stops)
+        for mode in scores:
+            image = svelive.reconstruct(frame.raw, pattern, cfa=cfa, colour=mode, **KW)
+            scores[mode].append(pu21_psnr_colour(image, frame.truth)["Y"])
+    assert np.mean(scores["joint"]) > np.mean(scores["split"])
+
+
+def test_colour_arguments_are_checked_in_one_line():
+    frame = simulate(np.full((16, 16, 3), 50.0, np.float32), "1/1/8/8", SENSOR, cfa="RGGB")
+    for call, word in ((lambda: svelive.reconstruct(frame.raw, "1/1/8/8", cfa="RGGB", colour="both"), "colour"),
+                       (lambda: svelive.reconstruct(frame.raw, "1/1/8/8", cfa="RGGX"), "RGGX")):
+        with pytest.raises(SveliveError) as error:
+            call()
+        assert word in str(error.value) and "\n" not in str(error.value)
+    mono = prepare(frame.raw, Camera.build("1/1/8/8"))
+    with pytest.raises(SveliveError, match="colour filter"):
+        run_colour(mono, METHODS["adaptive"], "joint")
+
+
+def test_a_colour_camera_stands_for_pattern_and_filter():
+    camera = Camera.build("dual-iso", sensor=SENSOR)
+    frame = simulate(np.full((32, 32, 3), 80.0, np.float32), camera.pattern, SENSOR, cfa=camera.cfa, seed=1)
+    np.testing.assert_array_equal(svelive.reconstruct(frame.raw, camera),
+                                  svelive.reconstruct(frame.raw, "1/1/8/8", cfa="RGGB", **KW))
