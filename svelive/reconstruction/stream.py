@@ -6,6 +6,19 @@ the within-frame exposure-consistency test (svelive.reconstruction.consistency,
 on by default for ``integration`` exposure timing) and the temporal fusion
 (svelive.reconstruction.fusion) that cuts noise where the scene is static and
 resets a pixel's history the moment it moves.
+
+Colour frames (a camera with a colour filter) take the joint reconstruction
+(svelive.reconstruction.colour): the motion tests and the fusion run on its
+luminance, a monochrome SVE problem, with its variance and lower bound (each
+pixel's own reading, for the detail step, is s / e' with the channel folded
+into its exposure); the chroma's shares, at cell resolution, are fused with
+the same history weights and resets (a cell takes the largest weight, i.e. the
+most recent reset, of the pixels its chroma reads: its own and its neighbour
+cells'), so a moving pixel restarts all its channels together; so is the
+chroma's coarse luminance. The fused luminance is refined against the fused
+coarse one with the fused variances (svelive.reconstruction.colour.refine: a
+history lowers the noise, so fewer pixels fall back to the coarse estimate
+than in one frame), and the output is that luminance times the fused shares.
 """
 
 from __future__ import annotations
@@ -17,6 +30,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
 
+import cv2
 import numpy as np
 
 from svelive.camera import Camera, camera_for_raw
@@ -24,6 +38,8 @@ from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.pattern import Pattern
+from svelive.jit import flat, kernel
+from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import exposure_consistency
 from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
@@ -56,7 +72,9 @@ class SequenceResult:
     """One reconstructed frame of a stream.
 
     Attributes:
-        image: float32 (H, W), radiance in DN at relative exposure 1, finite and >= 0.
+        image: float32 (H, W), radiance in DN at relative exposure 1, finite and >= 0; for a
+            colour camera (H, W, 3) linear camera RGB (before white balance), whose luminance
+            (``luminance``) the other fields describe.
         motion: bool (H, W), pixels flagged as moving (history reset or within-frame inconsistency).
         variance_of: computes ``variance`` (svelive.reconstruction.fusion.OutputVariance).
         lower_bound: bool (H, W), ``image`` is only the lower bound saturated samples imply.
@@ -66,6 +84,8 @@ class SequenceResult:
         method: the single-frame method used.
         frame_index: 0 for the first frame the Reconstructor processed (after a reset too).
         timings_ms: {"method": ..., "motion": ...}, wall time of the two stages.
+        luminance: float32 (H, W) for a colour camera, Y = sum_c n_c RGB_c
+            (svelive.reconstruction.colour); None for a monochrome one.
 
     ``variance`` (float32 (H, W), predicted noise variance of ``image``, DN^2 at exposure 1;
     of the fused smooth estimate where detail sharpening moved a pixel), ``confidence``
@@ -82,16 +102,22 @@ class SequenceResult:
     method: str
     frame_index: int
     timings_ms: dict[str, float] = field(default_factory=dict)
+    luminance: np.ndarray | None = None
+
+    @property
+    def plane(self) -> np.ndarray:
+        """The (H, W) image the other fields describe: ``luminance`` for colour, else ``image``."""
+        return self.image if self.luminance is None else self.luminance
 
     @cached_property
     def variance(self) -> np.ndarray:
-        """float32 (H, W), DN^2: the predicted noise variance of ``image``."""
+        """float32 (H, W), DN^2: the predicted noise variance of ``plane``."""
         return self.variance_of()
 
     @cached_property
     def confidence(self) -> np.ndarray:
-        """float32 (H, W) in [0, 1]: SNR / (1 + SNR) = L / (L + sigma), 0 where ``image`` is a lower bound."""
-        return confidence_from_variance(self.image, self.variance, self.lower_bound)
+        """float32 (H, W) in [0, 1]: SNR / (1 + SNR) = L / (L + sigma), 0 where ``plane`` is a lower bound."""
+        return confidence_from_variance(self.plane, self.variance, self.lower_bound)
 
     @cached_property
     def frames_fused(self) -> np.ndarray:
@@ -182,6 +208,7 @@ class Reconstructor:
         self._lock = threading.Lock()
         self._method = self._checked(method)
         self._history: TemporalState | None = None
+        self._chroma: np.ndarray | None = None  # a colour stream's fused chroma cells (5, Hc, Wc), fuse_chroma
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
@@ -206,7 +233,7 @@ class Reconstructor:
         with self._lock:
             if name != self._method:
                 self._method = name
-                self._history = None
+                self._history = self._chroma = None
                 self._generation += 1
 
     def close(self) -> None:
@@ -224,7 +251,7 @@ class Reconstructor:
     def reset(self) -> None:
         """Forget the history: the next frame is processed as the first of a stream."""
         with self._lock:
-            self._history = None
+            self._history = self._chroma = None
             self._generation += 1
             self._frames = 0
 
@@ -252,7 +279,12 @@ class Reconstructor:
                                f"{kind(camera)} frames: give the matching colour filter (--cfa)")
         return camera
 
-    def _estimate(self, raw: np.ndarray | Frame, method: str) -> tuple[SveInput, Estimate]:
+    def _estimate(self, raw: np.ndarray | Frame,
+                  method: str) -> tuple[SveInput, Estimate, colour.Joint | None]:
+        """(input, estimate with its variance, the joint parts of a colour frame or None).
+
+        A colour frame's estimate is of its luminance (the stream colours the fused luminance),
+        its variance that of the luminance's monochrome SVE frame (``parts.luminance_input``)."""
         inp = prepare(getattr(raw, "raw", raw), self._camera_for(raw))
         spec = method_spec(method)
         options = dict(self.method_options)
@@ -260,25 +292,40 @@ class Reconstructor:
             options["return_variance"] = True
         if spec.workers and "workers" not in options:
             options["workers"] = self._pool if self._pool is not None else self.workers
-        estimate = run_method(inp, method, **options)
-        return inp, replace(estimate, variance=estimate_variance(estimate, inp))
+        if inp.cfa is None:
+            estimate = run_method(inp, method, **options)
+            return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
+        unknown = set(options) - spec.accepted
+        if unknown:
+            raise SveliveError(f"method {spec.name!r} has no option {', '.join(sorted(unknown))}"
+                               f" (it takes: {', '.join(sorted(spec.options)) or 'none'})")
+        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal, **options)
+        estimate = parts.estimate
+        return inp, replace(estimate, variance=estimate_variance(estimate, parts.luminance_input)), parts
 
     def process(self, raw: np.ndarray | Frame) -> SequenceResult:
         """Reconstruct the next frame of the stream: a Frame, or a raw uint8/uint16 (H, W) array
         (black level included) of this stream's camera."""
         with self._lock:
             method, history, index, generation = self._method, self._history, self._frames, self._generation
+            chroma_history = self._chroma
         t0 = time.perf_counter()
-        inp, est = self._estimate(raw, method)
+        inp, est, parts = self._estimate(raw, method)
         t1 = time.perf_counter()
         image, variance = est.image, est.variance
+        lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
         inconsistency = None
         if self.consistency:
-            inconsistency = exposure_consistency(image, variance, inp, self.motion_config, workers=self.workers,
+            # the test reads each level's readings with its nominal exposure: a colour frame's
+            # readings divided by their channel's share instead of the share folded into e
+            tested = lum if not lum.folded else colour.luminance_input(inp, parts.interpolation, exposures=False)
+            inconsistency = exposure_consistency(image, variance, tested, self.motion_config, workers=self.workers,
                                                  executor=self._pool)
         if self.temporal:
-            rows = own_reading_rows(self.pattern, inp.shape, inp.sensor, self.motion_config.detail_sigmas ** 2)
-            frame = FrameEstimate(image, variance, est.lower_bound, inp.censored, inp.signal, *rows)
+            scale = self.motion_config.detail_sigmas ** 2
+            rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor, scale) if parts is None
+                    else own_reading_map(lum.exposure, inp.sensor, scale))
+            frame = FrameEstimate(image, variance, est.lower_bound, lum.censored, lum.signal, *rows)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
                          workers=self.workers, executor=self._pool)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
@@ -289,15 +336,112 @@ class Reconstructor:
                 image, motion = inconsistency.apply(image), inconsistency.flagged
             variance_of = OutputVariance(variance, None, inconsistency)
             weight, ratio = np.ones(image.shape, np.float32), 1.0
+        luminance = None
+        if parts is not None:
+            if self.temporal:
+                chroma_history = fuse_chroma(chroma_history, parts.chroma, weight, ratio)
+                luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
+                                                         parts.chroma.fused(chroma_history))
+            else:
+                luminance, inter = image, parts.interpolation
+            image = colour.colourise(luminance, inter)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
         t2 = time.perf_counter()
         with self._lock:
             if self._generation == generation:
                 self._history = history if self.temporal else None
+                self._chroma = chroma_history if self.temporal and parts is not None else None
                 self._frames = index + 1
             self._last_moving = moving_fraction
         return SequenceResult(image, motion, variance_of, est.lower_bound, weight, moving_fraction, ratio,
-                              method, index, {"method": (t1 - t0) * 1e3, "motion": (t2 - t1) * 1e3})
+                              method, index, {"method": (t1 - t0) * 1e3, "motion": (t2 - t1) * 1e3}, luminance)
+
+
+def own_reading_map(exposure: np.ndarray, sensor: Sensor, scale: float = 1.0) -> tuple[np.ndarray, ...]:
+    """(inverse, slope, floor), float32 (H, W) each, as :func:`own_reading_rows` for per-pixel exposures
+    (a colour frame's e', which no tile repeats): one row phase per frame row."""
+    out = tuple(np.empty(exposure.shape, np.float32) for _ in range(3))
+    _own_reading_pass(*flat(np.ascontiguousarray(exposure, np.float32), *out),
+                      np.float32(scale / sensor.effective_gain), np.float32(scale * sensor.floor_variance))
+    return out
+
+
+@kernel
+def _own_reading_pass(exposure, inverse, slope, floor, slope_scale, floor_scale):
+    one = np.float32(1.0)
+    for k in range(exposure.size):
+        i = one / exposure[k]
+        inverse[k] = i
+        slope[k] = i * slope_scale
+        floor[k] = i * i * floor_scale
+
+
+def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
+                ratio: float = 1.0) -> np.ndarray:
+    """A colour stream's chroma after this frame, float32 (5, Hc, Wc): the shares k_R, k_G, k_B,
+    the coarse luminance and its variance (svelive.reconstruction.colour.Chroma).
+
+    Per cell the weight is the largest history weight (1 / n, 1 where reset) of the pixels of its
+    3x3 cells, whose readings its chroma comes from: the shares and the coarse luminance (its
+    history times ``ratio``, the brightness ratio the luminance's fusion divided out) take the
+    running mean with it, the variance is this frame's times it (as the luminance's). This frame's
+    alone without a history of that shape.
+    """
+    new = np.concatenate([chroma.shares, chroma.coarse])
+    if history is None or history.shape != new.shape:
+        return new
+    (cy, cx), (hc, wc) = chroma.layout.cell, new.shape[1:]
+    cells = np.empty((hc, wc), np.float32)
+    _cell_maximum(weight, cy, cx, cells)
+    cells = cv2.dilate(cells, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    out = np.empty_like(new)
+    _running_chroma(history, new, cells, np.float32(ratio), out)
+    return out
+
+
+def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, variance_of: OutputVariance,
+             fused: colour.Chroma) -> tuple[np.ndarray, Callable[[], np.ndarray], colour.Interpolation]:
+    """A colour stream's output luminance (the fused one refined against the fused coarse luminance,
+    with v_Y the frame's variance times the history weight), the variance of that on demand, and
+    the fused chroma's interpolation."""
+    inter = colour.interpolation(fused, coarse=True)
+    cell = fused.layout.cell
+    refined = colour.refine(luminance, variance, inter, cell, weight=weight)
+
+    def refined_variance() -> np.ndarray:
+        out = np.empty(luminance.shape, np.float32)
+        colour.refine(luminance, variance_of(), inter, cell, out=np.empty_like(out), out_variance=out)
+        return out
+
+    return refined, refined_variance, inter
+
+
+@kernel
+def _cell_maximum(weight, cy, cx, out):
+    """out (Hc, Wc) = the largest of ``weight`` (H, W) over each cell of cy x cx pixels."""
+    h, w = weight.shape
+    out[...] = np.float32(0.0)
+    for r in range(h):
+        row, o = weight[r], out[r // cy]
+        for x in range(w):
+            j = x // cx
+            o[j] = max(o[j], row[x])
+
+
+@kernel
+def _running_chroma(history, new, weight, ratio, out):
+    """out = history + weight (new - history) per cell for the shares (planes 0-2), the same with
+    the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4)."""
+    for c in range(5):
+        scale = ratio if c == 3 else np.float32(1.0)
+        for i in range(weight.shape[0]):
+            a, b, w, o = history[c, i], new[c, i], weight[i], out[c, i]
+            if c == 4:
+                for j in range(o.size):
+                    o[j] = b[j] * w[j]
+            else:
+                for j in range(o.size):
+                    o[j] = a[j] * scale + (b[j] - a[j] * scale) * w[j]
 
 
 def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, **kwargs) -> Iterator[SequenceResult]:

@@ -1,0 +1,171 @@
+"""Colour streams: temporal fusion and the motion tests on colour frames (issue 11, section 3).
+
+The guarantees of the monochrome stream (tests/test_motion.py) on colour SVE frames: static
+scenes gain from fusion, moving ones leave no trail, and a frame of another kind is refused.
+Scenes are the shipped RGB crops, cropped further for speed.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+import svelive
+from svelive import Camera, Pattern, Sensor, SveliveError, simulate
+from svelive.camera import COLOUR_LAYOUTS
+from svelive.metrics import PU21_PEAK, display_scale, luminance, pu21_encode, pu21_psnr
+from svelive.reconstruction.stream import Reconstructor
+from svelive.simulate import exposure_scale, load_sample_scene
+
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
+KW = dict(white_level=SENSOR.white_level, gain=SENSOR.gain, read_noise=SENSOR.read_noise)
+#: The colour layout with the exposures of the monochrome motion tests (1,4/16,64): assorted pixels.
+LAYOUT = "assorted-4x4"
+
+
+def scene_rgb(name: str, layout: str, stops: float, size: int = 128) -> np.ndarray:
+    pattern, _ = COLOUR_LAYOUTS[layout]
+    rgb = np.maximum(load_sample_scene(name, rgb=True), 0)[:size, :size]
+    return rgb * np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops))
+
+
+def frames_of(scenes: list[np.ndarray], layout: str, seed: int = 0):
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    return [simulate(rgb, pattern, SENSOR, cfa=cfa, seed=seed + i) for i, rgb in enumerate(scenes)]
+
+
+def fused_and_single(frames, layout: str, **kw):
+    # "single frame" = the same method without fusion: what fusion adds or costs
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    fused = Reconstructor(pattern, cfa=cfa, **KW, **kw)
+    single = Reconstructor(pattern, cfa=cfa, temporal=False, method=fused.method, **KW, **kw)
+    return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
+
+
+def region_pu21(test: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
+    """PU21-PSNR (dB) of Rec. 709 luminance over a region, at the whole truth's display scale."""
+    y_test, y_truth = luminance(test), luminance(truth)
+    s = display_scale(y_truth)
+    err = pu21_encode(y_test[region] * s) - pu21_encode(y_truth[region] * s)
+    return float(10 * np.log10(PU21_PEAK ** 2 / np.mean(err * err)))
+
+
+def assert_finite(result) -> None:
+    h, w = result.luminance.shape
+    assert result.image.shape == (h, w, 3) and result.image.dtype == np.float32
+    for array in (result.image, result.luminance, result.variance, result.confidence):
+        assert np.all(np.isfinite(array))
+    assert result.image.min() >= 0 and result.luminance.min() >= 0
+    assert 0 <= result.confidence.min() and result.confidence.max() <= 1
+
+
+def shifted(rgb: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
+    matrix = np.float32([[1, 0, -dx], [0, 1, -dy]])
+    return cv2.warpAffine(rgb, matrix, rgb.shape[1::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_static_dim_colour_scene_gains_3db_after_8_frames_and_motion_stays_empty():
+    rgb = scene_rgb("desk", LAYOUT, 5)
+    out = fused_and_single(frames_of([rgb] * 8, LAYOUT, seed=11), LAYOUT)
+    f, fused, single = out[-1]
+    gain = pu21_psnr(luminance(fused.image), luminance(f.truth)) - pu21_psnr(luminance(single.image),
+                                                                              luminance(f.truth))
+    assert gain >= 3.0
+    assert np.mean([r.moving_fraction for _, r, _ in out[1:]]) < 0.005
+    assert fused.frames_fused.max() == 8
+    assert_finite(fused)
+
+
+@pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer"])
+def test_static_colour_scene_fuses_every_layout(layout):
+    # the real sensors' layouts gain too (less at 5 stops dim, where 8x is their longest exposure)
+    rgb = scene_rgb("mttamwest", layout, 3)
+    out = fused_and_single(frames_of([rgb] * 6, layout, seed=3), layout)
+    f, fused, single = out[-1]
+    assert pu21_psnr(luminance(fused.image), luminance(f.truth)) > pu21_psnr(luminance(single.image),
+                                                                             luminance(f.truth)) + 1.0
+    assert fused.frames_fused.max() == pytest.approx(6)
+    assert_finite(fused)
+
+
+def test_moving_coloured_disc_leaves_no_trail_and_moving_pixels_match_single_frame():
+    background = scene_rgb("mttamwest", LAYOUT, 4)
+    n = background.shape[0]
+    yy, xx = np.mgrid[:n, :n]
+    scenes = []
+    for t in range(8):
+        disc = (yy - 64) ** 2 + (xx - 20 - 10 * t) ** 2 <= 12 ** 2
+        scene = background.copy()
+        scene[disc] = np.float32([3.0, 1.5, 0.4]) * float(background.max())  # bright orange
+        scenes.append(scene)
+    out = fused_and_single(frames_of(scenes, LAYOUT, seed=2), LAYOUT)
+    truths = [f.truth for f, _, _ in out]
+    for i in range(2, len(out)):
+        f, fused, single = out[i]
+        moved = np.any(np.abs(truths[i] - truths[i - 1]) > 0.5 * (truths[i] + truths[i - 1]), axis=2)
+        assert moved.any() and np.all(fused.motion[moved] | (fused.weight[moved] == 1))
+        assert_finite(fused)
+        # where the disc was in the last two frames and is not now: the trail
+        was = np.any([np.any(np.abs(truths[j] - truths[j - 1]) > 0, axis=2) for j in (i - 1, i)], axis=0) & ~moved
+        for region in (was, moved):
+            assert region_pu21(fused.image, f.truth, region) >= region_pu21(single.image, f.truth, region) - 0.3
+        # and no colour of the disc left behind where it was
+        hue_error = {name: np.abs(r.image[was] / np.maximum(r.image[was].sum(-1, keepdims=True), 1e-9)
+                                  - f.truth[was] / np.maximum(f.truth[was].sum(-1, keepdims=True), 1e-9)).mean()
+                     for name, r in (("fused", fused), ("single", single))}
+        assert hue_error["fused"] <= hue_error["single"] + 0.01
+
+
+def test_colour_camera_pan_every_pixel_moves_no_worse_than_single_frame():
+    rgb = np.maximum(load_sample_scene("mttamwest", rgb=True), 0)
+    pattern, _ = COLOUR_LAYOUTS[LAYOUT]
+    rgb *= np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=1))
+    scenes = [shifted(rgb, 10 + 4 * t, 10)[:96, :96] for t in range(6)]
+    out = fused_and_single(frames_of(scenes, LAYOUT, seed=9), LAYOUT)
+    for f, fused, single in out[1:]:
+        assert_finite(fused)
+        everywhere = np.ones(f.truth.shape[:2], bool)
+        assert region_pu21(fused.image, f.truth, everywhere) >= region_pu21(single.image, f.truth, everywhere) - 0.3
+        assert fused.moving_fraction > 0.3
+
+
+def test_integration_timing_runs_the_within_frame_test_on_colour_frames():
+    background = scene_rgb("desk", LAYOUT, 5)
+    pattern, cfa = COLOUR_LAYOUTS[LAYOUT]
+    stream = Reconstructor(pattern, cfa=cfa, exposure_timing="integration", **KW)
+    assert stream.consistency
+    for f in frames_of([background] * 3, LAYOUT, seed=4):
+        result = stream.process(f.raw)
+        assert_finite(result)
+    assert result.frames_fused.max() == 3
+
+
+def test_method_reset_and_no_fusion_on_colour_streams():
+    rgb = scene_rgb("cannon", "dual-iso", 2, size=64)
+    frames = frames_of([rgb] * 3, "dual-iso", seed=5)
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    stream = Reconstructor(pattern, cfa=cfa, **KW)
+    for f in frames[:2]:
+        stream.process(f.raw)
+    stream.method = "adaptive"  # restarts the history
+    result = stream.process(frames[2].raw)
+    assert result.frame_index == 2 and result.frames_fused.max() == 1
+    single = Reconstructor(pattern, cfa=cfa, temporal=False, method="adaptive", **KW).process(frames[2].raw)
+    expected = svelive.reconstruct(frames[2].raw, pattern, cfa=cfa, method="adaptive", **KW)
+    np.testing.assert_allclose(single.image, expected, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(single.luminance, single.plane)
+
+
+def test_a_frame_of_the_other_kind_is_refused_in_one_line():
+    raw = np.full((16, 16), 100, np.uint16)
+    colour = Camera.build("dual-iso", sensor=Sensor(12))
+    mono = Camera.build("1/1/8/8", sensor=Sensor(12))
+    cases = ((Reconstructor(colour), svelive.Frame(raw, 7, 0, camera=mono), "monochrome but this stream reconstructs colour"),
+             (Reconstructor(mono), svelive.Frame(raw, 8, 0, camera=colour), "colour (RGGB) but this stream reconstructs monochrome"))
+    for stream, frame, words in cases:
+        with pytest.raises(SveliveError) as error:
+            stream.process(frame)
+        assert words in str(error.value) and "\n" not in str(error.value)
+    # the right kind goes through, the frame's camera and the stream's agreeing
+    assert Reconstructor(colour).process(svelive.Frame(raw, 9, 0, camera=colour)).image.shape == (16, 16, 3)
