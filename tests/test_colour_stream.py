@@ -7,6 +7,8 @@ Scenes are the shipped RGB crops, cropped further for speed.
 
 from __future__ import annotations
 
+from itertools import product
+
 import cv2
 import numpy as np
 import pytest
@@ -169,3 +171,42 @@ def test_a_frame_of_the_other_kind_is_refused_in_one_line():
         assert words in str(error.value) and "\n" not in str(error.value)
     # the right kind goes through, the frame's camera and the stream's agreeing
     assert Reconstructor(colour).process(svelive.Frame(raw, 9, 0, camera=colour)).image.shape == (16, 16, 3)
+
+
+def test_warm_up_compiles_what_a_colour_stream_runs():
+    """After warm_up, colour streams of every layout, method, timing, raw type, with and without
+    saturation and motion, and single joint colour frames compile nothing more (the preview's
+    colour tone map has its own warm-up, svelive.tonemap.warm_up)."""
+    from svelive.reconstruction.warmup import warm_up
+    from tests.test_jit import kernels
+
+    warm_up()
+    found = kernels()
+    assert any(name.startswith("svelive.reconstruction.colour.") for name in found)
+    before = {name: len(k.signatures) for name, k in found.items()}
+    rng = np.random.default_rng(3)
+    dark = rng.uniform(0, 1500, (160, 128))
+    bright = dark.copy()
+    bright[100:] *= 4  # the bottom strips saturate, the top ones do not
+    nominal = Pattern.parse("1/1/8/8")
+    cameras = [Camera.build(layout) for layout in COLOUR_LAYOUTS]
+    cameras += [Camera.build("1,4/16,64", "GBRG"), Camera.build("1,2", "R,G,B/G,B,R"),
+                Camera(nominal.with_pixel_map(nominal.exposure_map(dark.shape) * np.float32(1.02)),
+                       Camera.build(None, "RGGB").cfa)]
+    for method, camera, scene in product(("adaptive", "weighted", "aggregate"), cameras, (dark, bright)):
+        for dtype, white in ((np.uint16, 4095), (np.uint8, 255)):
+            sensor = Sensor(12 if dtype == np.uint16 else 8)
+            camera = camera.replace(sensor=sensor)
+            for timing in ("mask", "integration"):
+                if timing == "integration" and camera.pattern.pixel_map is not None:
+                    continue
+                stream = Reconstructor(camera, method=method, exposure_timing=timing)
+                for moved in (0, 0, 1, 40):
+                    noisy = rng.normal(np.roll(scene, moved, axis=1), 20) * white / 4095
+                    result = stream.process(np.clip(noisy, 0, white).astype(dtype))
+                result.variance  # noqa: B018 (computed on demand)
+                result.confidence  # noqa: B018
+            svelive.reconstruct(np.clip(scene * white / 4095, 0, white).astype(dtype), camera, method=method,
+                                return_confidence=True)
+    after = {name: len(k.signatures) for name, k in found.items()}
+    assert after == before, {name: (before[name], n) for name, n in after.items() if n != before[name]}

@@ -7,9 +7,11 @@ from itertools import product
 
 import numpy as np
 
+from svelive.camera import Camera
 from svelive.pattern import Pattern
 from svelive.reconstruction.methods import METHODS
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor
+from svelive.sensor import Sensor
 
 
 def warm_up(methods: Iterable[str] | None = None) -> None:
@@ -22,9 +24,12 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
     Reconstructor per method and kind of pattern,
     with ``mask`` and ``integration`` exposure timing (the latter runs the
     within-frame test, whose output variance is also computed), and the preview
-    tone map. ``methods``: default every method but ``cubic`` (numpy only). The
-    frames are uint16; other raw types are converted to float32 before any
-    kernel, so they need nothing more.
+    tone map. Then the same for colour cameras (svelive.reconstruction.colour:
+    cells 2 and 4 columns wide, which take loops of their own, and other widths;
+    a per-pixel exposure map), and a single-frame joint colour reconstruction (the
+    ``split`` baseline is not warmed: no stream runs it). ``methods``: default
+    every method but ``cubic`` (numpy only). The frames are uint16; other raw
+    types are converted to float32 before any kernel, so they need nothing more.
     """
     from svelive.tonemap import ToneMapper  # only the preview uses it
 
@@ -47,3 +52,29 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
                     result = reconstructor.process(frame)
                 result.variance  # noqa: B018 (computed on demand: the within-frame test's variance kernel)
     ToneMapper()(result.image, 0)
+    _warm_up_colour(methods if methods is not None else [m for m in METHODS if m != "cubic"], clean, saturated)
+
+
+def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: list[np.ndarray]) -> None:
+    """The colour half of :func:`warm_up` on the same frames, read as colour mosaics."""
+    from svelive.reconstruction.single import reconstruct
+
+    sensor = Sensor(12)
+    shape = clean[0].shape
+    nominal = Pattern.parse("1,4/16,64")
+    cameras = [Camera.build("1,4/16,64", "RGGB", sensor),  # cells 2 x 2
+               Camera.build("dual-iso", sensor=sensor),  # 4 x 2
+               Camera.build("quad-bayer", sensor=sensor),  # 4 x 4
+               Camera.build("1,4/16,64", "R,G,B/G,B,R", sensor),  # 2 x 6: the general loop
+               Camera(nominal.with_pixel_map(nominal.exposure_map(shape)), Camera.build(None, "RGGB").cfa, sensor)]
+    for method in methods:
+        for camera, timing in product(cameras, EXPOSURE_TIMINGS):
+            if timing == "integration" and camera.pattern.pixel_map is not None:
+                continue
+            for frames in (clean, saturated):
+                reconstructor = Reconstructor(camera, method=method, exposure_timing=timing)
+                for frame in frames:
+                    result = reconstructor.process(frame)
+                result.variance  # noqa: B018
+        for frames in (clean, saturated):
+            reconstruct(frames[0], cameras[1], method=method, return_confidence=True)
