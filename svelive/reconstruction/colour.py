@@ -257,19 +257,34 @@ def chroma(inp: SveInput) -> Chroma:
     values = np.empty((3, hc, wc), f32)
     _cell_values(numerator, denominator, mean, info, bound, white, values, np.empty(wc, f32))
     shares = np.empty((3, hc, wc), f32)
-    (cy, cx), centre = layout.cell, layout.centre
-    for c in range(3):  # each channel from the centroid of its samples to the cells' centres
-        dy, dx = (centre - layout.origin[c]) / (cy, cx)  # cell (i, j) reads (i + dy, j + dx)
-        cv2.warpAffine(values[c], np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]]), (wc, hc), dst=shares[c],
-                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    for c, (ky, kx) in enumerate(_centring_kernels(layout)):  # from the centroid of the samples to the centres
+        cv2.sepFilter2D(values[c], cv2.CV_32F, kx, ky, dst=shares[c], borderType=cv2.BORDER_REPLICATE)
     neutral = (white / f32(layout.share @ white)).astype(f32)
     coarse = np.empty((2, hc, wc), f32)
     noise, deviation = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
     _shares(shares, info, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation)
     for c in range(3):
         cv2.sepFilter2D(deviation[c], cv2.CV_32F, k, k, dst=deviation[c], borderType=cv2.BORDER_REFLECT_101)
-    _shrink(shares, neutral, noise, deviation, layout.share, f32(SHARE_FLOOR))
+    _shrink(shares, neutral, noise, deviation, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
+
+
+@lru_cache(maxsize=16)
+def _centring_kernels(layout: CellLayout) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Per channel, the (rows, cols) 3-tap kernels of the bilinear shift that moves its values from
+    the centroid of its samples to the cells' centres: cell i reads i + d, d = (centre - origin) /
+    cell (|d| < 1), float32, read-only."""
+    out = []
+    for c in range(3):
+        pair = []
+        for axis in range(2):
+            d = (layout.centre[axis] - layout.origin[c, axis]) / layout.cell[axis]
+            kernel = np.zeros(3, np.float32)  # taps at offsets -1, 0, +1
+            kernel[1], kernel[2 if d >= 0 else 0] = 1 - abs(d), abs(d)
+            kernel.setflags(write=False)
+            pair.append(kernel)
+        out.append(tuple(pair))
+    return tuple(out)
 
 
 def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarray, censored: np.ndarray,
@@ -443,49 +458,58 @@ def _shares(values, info, censored, share, neutral, floor, spread, coarse, noise
     ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing), COARSE_NONE where
     ``censored`` (Hc, Wc) is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's
-    noise; ``deviation``: (k_c - neutral_c)^2.
+    noise; ``deviation``: (k_c - neutral_c)^2. Loops over the cells of a row (which vectorise).
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
     tiny = np.float32(1e-30)
     for i in range(values.shape[1]):
-        lost, lum_row, var_row = censored[i], coarse[0, i], coarse[1, i]
-        for j in range(values.shape[2]):
-            lum = share[0] * values[0, i, j] + share[1] * values[1, i, j] + share[2] * values[2, i, j]
-            ok = lum > zero
-            inverse = one / lum if ok else zero
-            total = zero
-            for c in range(3):
-                k = max(values[c, i, j] * inverse, floor) if ok else neutral[c]
-                v = spread / max(info[c, i, j], tiny)
-                values[c, i, j] = k
-                noise[c, i, j] = min(v * inverse * inverse, none) if ok else none
-                deviation[c, i, j] = (k - neutral[c]) * (k - neutral[c])
-                total += share[c] * share[c] * v
-            lum_row[j] = lum
-            var_row[j] = none if lost[j] else min(total, none)
+        lum, var = coarse[0, i], coarse[1, i]
+        r, g, b = values[0, i], values[1, i], values[2, i]
+        for j in range(lum.size):
+            lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+            var[j] = zero
+        for c in range(3):
+            k, n, d, inf, level, weight = values[c, i], noise[c, i], deviation[c, i], info[c, i], neutral[c], share[c]
+            for j in range(lum.size):
+                ok = lum[j] > zero
+                inverse = one / lum[j] if ok else zero
+                v = spread / max(inf[j], tiny)
+                kc = max(k[j] * inverse, floor) if ok else level
+                k[j] = kc
+                n[j] = min(v * inverse * inverse, none) if ok else none
+                d[j] = (kc - level) * (kc - level)
+                var[j] += weight * weight * v
+        lost = censored[i]
+        for j in range(lum.size):
+            var[j] = none if lost[j] else min(var[j], none)
 
 
 @kernel
-def _shrink(shares, neutral, noise, deviation, share, floor):
+def _shrink(shares, neutral, noise, deviation, share, floor, total):
     """Shares towards the neutral's where their deviation from it is within their noise, in place:
     k_c = neutral_c + beta_c (k_c - neutral_c), beta_c = max(0, 1 - noise_c / E_c) with E_c the
     3x3 cells' mean squared deviation (``deviation``, smoothed), then scaled so sum_c n_c k_c = 1.
+    ``total``: (Wc,) scratch.
 
     The chroma's own garrote (as :func:`refine`'s for luminance): a colour is kept where the
     cells around show it beyond the noise, and noise in the dark is not painted as colour.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
     for i in range(shares.shape[1]):
-        for j in range(shares.shape[2]):
-            total = zero
-            for c in range(3):
-                beta = max(one - noise[c, i, j] / max(deviation[c, i, j], tiny), zero)
-                k = neutral[c] + beta * (shares[c, i, j] - neutral[c])
-                shares[c, i, j] = k
-                total += share[c] * k
-            inverse = one / total
-            for c in range(3):
-                shares[c, i, j] = max(shares[c, i, j] * inverse, floor)
+        total[:] = zero
+        for c in range(3):
+            k, n, d, level, weight = shares[c, i], noise[c, i], deviation[c, i], neutral[c], share[c]
+            for j in range(k.size):
+                beta = max(one - n[j] / max(d[j], tiny), zero)
+                kc = level + beta * (k[j] - level)
+                k[j] = kc
+                total[j] += weight * kc
+        for j in range(total.size):
+            total[j] = one / total[j]
+        for c in range(3):
+            k = shares[c, i]
+            for j in range(k.size):
+                k[j] = max(k[j] * total[j], floor)
 
 
 # ----- from cells to pixels ---------------------------------------------------------------
@@ -610,7 +634,7 @@ class Joint:
             or, for a method that reads only the tile, readings divided by k_c).
         chroma: the frame's chroma.
         interpolation: its interpolation (shares, and the coarse luminance after them when the
-            method reports a variance).
+            luminance was refined).
     """
 
     estimate: Estimate
@@ -640,7 +664,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
     """
     ch = chroma(inp)
-    inter = interpolation(ch, coarse=spec.variance)
+    inter = interpolation(ch, coarse=spec.variance and refined)
     lum = luminance_input(inp, inter, spec.exposures)
     if spec.variance:
         options = {**options, "return_variance": True}
@@ -683,9 +707,9 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
     """
     (cy, cx), (h, w) = cell, luminance.shape
     hc, wc = inter.rows.shape[1], -(-w // cx)
-    residual = np.zeros((1, hc, wc), np.float32)
+    residual = np.empty((1, hc, wc), np.float32)
     _residual_cells(luminance, inter.rows[3], inter.top, inter.frac, cy, cx, residual[0],
-                    np.empty(w, np.float32))
+                    np.empty((2, w), np.float32))
     out = np.empty((h, w), np.float32) if out is None else out
     none = np.empty((0, 0), np.float32)
     _refine(luminance, variance, none if weight is None else weight, inter.rows[3], inter.rows[4],
@@ -705,30 +729,36 @@ def _lerp_row(plane, top, frac, r, out):
 
 @kernel
 def _residual_cells(luminance, coarse, top, frac, cy, cx, out, row):
-    """out (Hc, Wc) = the mean over each cell of (Y - L)^2, L the coarse luminance; ``row`` (W,) scratch."""
+    """out (Hc, Wc) = the mean over each cell of (Y - L)^2, L the coarse luminance; ``row`` (2, W) scratch:
+    the interpolated L, and (Y - L)^2 added up over the cell's rows before the cells' columns are."""
     h, w = luminance.shape
-    for r in range(h):
-        _lerp_row(coarse, top, frac, r, row)
-        y = luminance[r]
-        for x in range(w):
-            d = y[x] - row[x]
-            row[x] = d * d
-        o = out[r // cy]
-        for j in range(o.size):
-            total = np.float32(0.0)
-            for x in range(j * cx, min(j * cx + cx, w)):
-                total += row[x]
-            o[j] += total
+    lum, total = row[0], row[1]
+    zero = np.float32(0.0)
     for i in range(out.shape[0]):
-        rows = min(i * cy + cy, h) - i * cy
-        for j in range(out.shape[1]):
-            out[i, j] /= np.float32(rows * (min(j * cx + cx, w) - j * cx))
+        r0, r1 = i * cy, min(i * cy + cy, h)
+        total[:] = zero
+        for r in range(r0, r1):
+            _lerp_row(coarse, top, frac, r, lum)
+            y = luminance[r]
+            for x in range(w):
+                d = y[x] - lum[x]
+                total[x] += d * d
+        o = out[i]
+        for j in range(o.size):
+            x0, x1 = j * cx, min(j * cx + cx, w)
+            s = zero
+            for x in range(x0, x1):
+                s += total[x]
+            o[j] = s / np.float32((r1 - r0) * (x1 - x0))
 
 
 @kernel
 def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, rows, out, out_variance):
     """The garrote of :func:`refine` per pixel; ``weight`` and ``out_variance`` may be empty (none);
-    ``rows`` (4, W) scratch. ``out`` and ``out_variance`` may be ``luminance`` and ``variance``."""
+    ``rows`` (4, W) scratch. ``out`` and ``out_variance`` may be ``luminance`` and ``variance``.
+
+    Branch-free (so that it vectorises): with t = max(v_Y - v_L, 0), beta = max(1 - t / E, 0) is
+    1 where t is 0, and the variance v_Y - (1 - beta) t is v_L + beta t where t > 0, v_Y elsewhere."""
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
     lum, var, res, v = rows[0], rows[1], rows[2], rows[3]
     weighted, with_variance = weight.size > 0, out_variance.size > 0
@@ -736,20 +766,23 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
         _lerp_row(coarse, top, frac, r, lum)
         _lerp_row(coarse_variance, top, frac, r, var)
         _lerp_row(residual, top, frac, r, res)
-        y, o = luminance[r], out[r]
+        y, o, vy = luminance[r], out[r], variance[r]
         if weighted:
+            wy = weight[r]
             for x in range(y.size):
-                v[x] = variance[r, x] * weight[r, x]
+                v[x] = vy[x] * wy[x]
         else:
-            v[:] = variance[r]
+            for x in range(y.size):
+                v[x] = vy[x]
         for x in range(y.size):
-            excess = v[x] - var[x]  # v_Y - v_L: the noise of Y - L
-            use = excess > zero
-            beta = max(one - excess / max(res[x], tiny), zero) if use else one
-            o[x] = lum[x] + (y[x] - lum[x]) * beta if use else y[x]
-            v[x] = var[x] + beta * excess if use else v[x]
+            t = max(v[x] - var[x], zero)  # v_Y - v_L: the noise of Y - L
+            beta = max(one - t / max(res[x], tiny), zero)
+            o[x] = lum[x] + (y[x] - lum[x]) * beta
+            v[x] = v[x] - (one - beta) * t
         if with_variance:
-            out_variance[r] = v
+            ov = out_variance[r]
+            for x in range(y.size):
+                ov[x] = v[x]
 
 
 # ----- split (the baseline) -----------------------------------------------------------------

@@ -418,14 +418,23 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, va
 
 @kernel
 def _cell_maximum(weight, cy, cx, out):
-    """out (Hc, Wc) = the largest of ``weight`` (H, W) over each cell of cy x cx pixels."""
+    """out (Hc, Wc) = the largest of ``weight`` (H, W) over each cell of cy x cx pixels: the cell
+    rows' largest per column first (a loop that vectorises), then each cell's columns."""
     h, w = weight.shape
-    out[...] = np.float32(0.0)
-    for r in range(h):
-        row, o = weight[r], out[r // cy]
-        for x in range(w):
-            j = x // cx
-            o[j] = max(o[j], row[x])
+    column = np.empty(w, np.float32)
+    for i in range(out.shape[0]):
+        r0, r1 = i * cy, min(i * cy + cy, h)
+        column[:] = weight[r0]
+        for r in range(r0 + 1, r1):
+            row = weight[r]
+            for x in range(w):
+                column[x] = max(column[x], row[x])
+        o = out[i]
+        for j in range(o.size):
+            top = column[j * cx]
+            for x in range(j * cx + 1, min(j * cx + cx, w)):
+                top = max(top, column[x])
+            o[j] = top
 
 
 @kernel
