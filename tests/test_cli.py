@@ -199,3 +199,23 @@ def test_reconstruct_sequence_uses_the_recordings_camera_and_response(tmp_path):
         errors[name] = float(np.median(np.abs(np.log2(np.maximum(channels["Y"], 1e-3) / np.maximum(scene, 1e-3)))))
     # the response the recording carries linearises every frame; without it the gamma curve stays
     assert errors["with response"] < 0.1 < errors["linear"], errors
+
+
+@pytest.mark.parametrize("temporal", [False, True])
+def test_reconstruct_sequence_of_a_bayer_recording_writes_rgb(tmp_path, temporal):
+    from svelive.cli import main
+
+    path = tmp_path / "bayer.sverec"
+    assert main(["record", "--source", "demo", "--cfa", "RGGB", "--width", "96", "--height", "64", "--fps", "0",
+                 "--frames", "3", "-o", str(path)]) == 0
+    out = tmp_path / "exr"
+    assert main(["reconstruct-sequence", "--source", f"replay:{path}", "--speed", "0", "-o", str(out)]
+                + ([] if temporal else ["--no-temporal"])) == 0
+    files = sorted(out.glob("*.exr"))
+    assert len(files) == 3
+    channels, header = read_exr(files[-1])
+    assert set(channels) == {"R", "G", "B", "confidence", "motion"}
+    assert header["cfa"] == "RGGB" and header["colourSpace"] == "camera" and header["whiteBalanceMode"] == "auto"
+    rgb = np.dstack([channels[c] for c in "RGB"])
+    assert rgb.shape == (64, 96, 3) and np.all(np.isfinite(rgb)) and rgb.min() >= 0
+    assert channels["motion"].shape == (64, 96) and channels["confidence"].shape == (64, 96)

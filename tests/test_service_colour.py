@@ -244,3 +244,15 @@ def test_pipeline_encodes_each_colour_frame_once_and_only_while_watched(camera):
         live = [item for item in seen if item.signal]
         assert len({item.hdr_seq for item in live}) == len(live)  # one JPEG per reconstructed frame
         assert decode(live[0].jpeg).shape == SHAPE + (3,)
+
+
+def test_colour_with_temporal_fusion(camera):
+    with ColourServer(camera, temporal=True) as srv:
+        state = srv.wait_for(lambda s: s["frames"]["reconstructed"] > 3, timeout=60)
+        assert state["reconstruct_error"] is None and state["temporal"] is True
+        channels, header = snapshot_exr(srv)
+        assert set(channels) == {"R", "G", "B"} and header["whiteBalanceMode"] == "auto"
+        rgb = np.dstack([channels[c] for c in "RGB"])
+        assert np.all(np.isfinite(rgb)) and rgb.min() >= 0
+        image = decode(httpx.get(srv.url + "/snapshot.jpg", timeout=20).content)
+        assert image.shape == SHAPE + (3,) and np.abs(image[:, :, 2].astype(float) - image[:, :, 0]).mean() > 3
