@@ -210,3 +210,18 @@ def test_warm_up_compiles_what_a_colour_stream_runs():
                                 return_confidence=True)
     after = {name: len(k.signatures) for name, k in found.items()}
     assert after == before, {name: (before[name], n) for name, n in after.items() if n != before[name]}
+
+
+@pytest.mark.parametrize("temporal", [True, False])
+def test_colour_results_do_not_depend_on_workers(temporal):
+    rgb = np.tile(scene_rgb("desk", "dual-iso", 2), (3, 2, 1))[:330, :250]  # several pieces of rows
+    frames = frames_of([rgb] * 3, "dual-iso", seed=8)
+    camera = Camera.build("dual-iso", sensor=SENSOR)
+    one, two = Reconstructor(camera, workers=1, temporal=temporal), Reconstructor(camera, workers=2, temporal=temporal)
+    for f in frames:
+        a, b = one.process(f.raw), two.process(f.raw)
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.variance, b.variance)
+    two.close()
+    np.testing.assert_array_equal(svelive.reconstruct(frames[0].raw, camera, workers=2),
+                                  svelive.reconstruct(frames[0].raw, camera))

@@ -99,6 +99,7 @@ balance); the luminance Y in that unit, which ``variance`` and
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -110,7 +111,7 @@ from svelive.errors import SveliveError
 from svelive.jit import kernel
 from svelive.pattern import Pattern
 from svelive.reconstruction.methods import MethodSpec
-from svelive.reconstruction.methods.base import Estimate, SveInput, binomial_kernel, exposure_maps, smooth
+from svelive.reconstruction.methods.base import Estimate, SveInput, binomial_kernel, exposure_maps, map_on, smooth
 
 MODES = ("joint", "split")
 #: A channel's share of luminance is at least this (a zero would make its pixels' exposure 0).
@@ -560,11 +561,26 @@ def _row_tables(h: int, hc: int, cy: int) -> tuple[np.ndarray, np.ndarray]:
     return top, frac
 
 
-def folded_exposure(inp: SveInput, inter: Interpolation) -> np.ndarray:
-    """e' = e k_c of every pixel, float32 (H, W) (module docstring, step b)."""
+#: Rows per piece of the per-pixel passes when they are spread over threads.
+PIECE_ROWS = 128
+
+
+def _pieces(h: int, align: int = 1) -> list[slice]:
+    """Row ranges of about PIECE_ROWS rows (multiples of ``align``) covering ``h`` rows."""
+    step = max(PIECE_ROWS // align, 1) * align
+    return [slice(r, min(r + step, h)) for r in range(0, h, step)]
+
+
+def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor = 1) -> np.ndarray:
+    """e' = e k_c of every pixel, float32 (H, W) (module docstring, step b); ``workers``: base.map_on."""
     out = np.empty(inp.shape, np.float32)
-    _fold(inp.exposure, _channel_rows(inp.cfa, inp.shape[1]), inter.rows, inter.top, inter.frac,
-          np.empty((3, inp.shape[1]), np.float32), out)
+    channel_rows = _channel_rows(inp.cfa, inp.shape[1])
+
+    def piece(rows: slice) -> None:
+        _fold(inp.exposure[rows], channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows],
+              np.empty((3, inp.shape[1]), np.float32), out[rows])
+
+    map_on(workers, piece, _pieces(inp.shape[0]))
     return out
 
 
@@ -576,11 +592,16 @@ def _channel_rows(cfa: ColourFilter, width: int) -> np.ndarray:
     return rows
 
 
-def colourise(luminance: np.ndarray, inter: Interpolation) -> np.ndarray:
+def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Executor = 1) -> np.ndarray:
     """RGB = Y k_c, float32 (H, W, 3), from the luminance Y (H, W) (module docstring, step c)."""
     out = np.empty((*luminance.shape, 3), np.float32)
-    _colourise(np.ascontiguousarray(luminance, np.float32), inter.rows, inter.top, inter.frac,
-               np.empty((3, luminance.shape[1]), np.float32), out)
+    luminance = np.ascontiguousarray(luminance, np.float32)
+
+    def piece(rows: slice) -> None:
+        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows],
+                   np.empty((3, luminance.shape[1]), np.float32), out[rows])
+
+    map_on(workers, piece, _pieces(luminance.shape[0]))
     return out
 
 
@@ -596,12 +617,13 @@ def _shares_row(rows, top, frac, r, out):
 
 
 @kernel
-def _fold(exposure, channel_rows, rows, top, frac, shares, out):
-    """out = e k_c of each pixel's channel c (``channel_rows``: the CFA's rows); ``shares`` (3, W) scratch."""
+def _fold(exposure, channel_rows, first, rows, top, frac, shares, out):
+    """out = e k_c of each pixel's channel c (``channel_rows``: the CFA's rows; the arrays' row r is
+    frame row ``first`` + r); ``shares`` (3, W) scratch."""
     period = channel_rows.shape[0]
     for r in range(exposure.shape[0]):
         _shares_row(rows, top, frac, r, shares)
-        ch, e, o = channel_rows[r % period], exposure[r], out[r]
+        ch, e, o = channel_rows[(first + r) % period], exposure[r], out[r]
         k0, k1, k2 = shares[0], shares[1], shares[2]
         for x in range(o.size):
             c, a, b, d = ch[x], k0[x], k1[x], k2[x]  # every value loaded before the choice (vectorises)
@@ -643,10 +665,11 @@ class Joint:
     interpolation: Interpolation
 
 
-def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True) -> SveInput:
+def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True,
+                    workers: int | Executor = 1) -> SveInput:
     """The monochrome SVE frame of the luminance: exposures e' (``exposures``, folded) or, for a
     method that reads only the pattern's tile, readings s e / e' with the nominal exposures."""
-    folded = folded_exposure(inp, inter)
+    folded = folded_exposure(inp, inter, workers)
     if exposures:  # a calibrated map is in e' already: the nominal tile keeps the method's strips
         pattern = inp.pattern if inp.pattern.pixel_map is None else Pattern(inp.pattern.tile)
         return SveInput(inp.signal, folded, inp.censored, pattern, inp.sensor, inp.integral, folded=True)
@@ -663,22 +686,23 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
     """
+    workers = options.get("workers", 1)  # the method's threads serve the colour passes too
     ch = chroma(inp)
     inter = interpolation(ch, coarse=spec.variance and refined)
-    lum = luminance_input(inp, inter, spec.exposures)
+    lum = luminance_input(inp, inter, spec.exposures, workers)
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
     luminance, variance = est.image, est.variance
     if variance is not None and refined:
-        refine(luminance, variance, inter, ch.layout.cell, out=luminance, out_variance=variance)
-    image = colourise(luminance, inter) if rgb else luminance
+        refine(luminance, variance, inter, ch.layout.cell, out=luminance, out_variance=variance, workers=workers)
+    image = colourise(luminance, inter, workers) if rgb else luminance
     return Joint(Estimate(image, est.lower_bound, variance, luminance), lum, ch, inter)
 
 
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,
            weight: np.ndarray | None = None, out: np.ndarray | None = None,
-           out_variance: np.ndarray | None = None) -> np.ndarray:
+           out_variance: np.ndarray | None = None, workers: int | Executor = 1) -> np.ndarray:
     """Move the luminance Y towards the coarse L where they differ by no more than noise.
 
     Y (the mono method's, variance v_Y) and L (the chroma cells', variance v_L; module
@@ -701,6 +725,7 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
         weight: float32 (H, W) or None: v_Y is ``variance`` times it (a stream's history weight).
         out, out_variance: where to write the result and its variance (a new array, and not
             computed, when None).
+        workers: threads for its pieces of rows (base.map_on); the result does not depend on it.
 
     Returns:
         ``out``, float32 (H, W).
@@ -708,13 +733,22 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
     (cy, cx), (h, w) = cell, luminance.shape
     hc, wc = inter.rows.shape[1], -(-w // cx)
     residual = np.empty((1, hc, wc), np.float32)
-    _residual_cells(luminance, inter.rows[3], inter.top, inter.frac, cy, cx, residual[0],
-                    np.empty((2, w), np.float32))
+
+    def cells(rows: slice) -> None:  # whole cells: pieces aligned on the cells' rows
+        _residual_cells(luminance[rows], inter.rows[3], inter.top[rows], inter.frac[rows], cy, cx,
+                        residual[0, rows.start // cy:-(-rows.stop // cy)], np.empty((2, w), np.float32))
+
+    map_on(workers, cells, _pieces(h, cy))
+    residual_rows = _full_width(residual, cx, w)[0]
     out = np.empty((h, w), np.float32) if out is None else out
     none = np.empty((0, 0), np.float32)
-    _refine(luminance, variance, none if weight is None else weight, inter.rows[3], inter.rows[4],
-            _full_width(residual, cx, w)[0], inter.top, inter.frac, np.empty((4, w), np.float32), out,
-            none if out_variance is None else out_variance)
+
+    def piece(rows: slice) -> None:
+        _refine(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
+                inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], np.empty((4, w), np.float32),
+                out[rows], none if out_variance is None else out_variance[rows])
+
+    map_on(workers, piece, _pieces(h))
     return out
 
 

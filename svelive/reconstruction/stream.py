@@ -24,7 +24,7 @@ than in one frame), and the output is that luminance times the fused shares.
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
@@ -223,6 +223,11 @@ class Reconstructor:
         return name
 
     @property
+    def _threads(self) -> int | Executor:
+        """What spreads a frame's pieces over this stream's threads (base.map_on)."""
+        return self._pool if self._pool is not None else self.workers
+
+    @property
     def method(self) -> str:
         """The single-frame method; setting it restarts the history with the next frame."""
         return self._method
@@ -341,10 +346,10 @@ class Reconstructor:
             if self.temporal:
                 chroma_history = fuse_chroma(chroma_history, parts.chroma, weight, ratio)
                 luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
-                                                         parts.chroma.fused(chroma_history))
+                                                         parts.chroma.fused(chroma_history), self._threads)
             else:
                 luminance, inter = image, parts.interpolation
-            image = colour.colourise(luminance, inter)
+            image = colour.colourise(luminance, inter, self._threads)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
         t2 = time.perf_counter()
         with self._lock:
@@ -400,13 +405,14 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
 
 
 def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, variance_of: OutputVariance,
-             fused: colour.Chroma) -> tuple[np.ndarray, Callable[[], np.ndarray], colour.Interpolation]:
+             fused: colour.Chroma,
+             workers: int | Executor = 1) -> tuple[np.ndarray, Callable[[], np.ndarray], colour.Interpolation]:
     """A colour stream's output luminance (the fused one refined against the fused coarse luminance,
     with v_Y the frame's variance times the history weight), the variance of that on demand, and
     the fused chroma's interpolation."""
     inter = colour.interpolation(fused, coarse=True)
     cell = fused.layout.cell
-    refined = colour.refine(luminance, variance, inter, cell, weight=weight)
+    refined = colour.refine(luminance, variance, inter, cell, weight=weight, workers=workers)
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)
