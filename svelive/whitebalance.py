@@ -242,15 +242,19 @@ class WhiteBalancer:
     The estimate is followed in the log domain with a first-order low-pass filter
     of time constant ``adapt_s`` seconds of frame time (slower than the tone
     mapper's exposure: a colour cast that drifts with noise is more visible than
-    a brightness that does). A frame more than ``reset_after_s`` after the
-    previous one restarts it. Not thread-safe: one thread updates it; ``current``
-    (an immutable record) may be read from any thread.
+    a brightness that does). A frame is measured only when ``measure_s`` of frame
+    time have passed since the last measurement (the filter's weight accounts for
+    the interval), so at 30 fps every third frame pays for an estimate. A frame more
+    than ``reset_after_s`` after the previous measurement restarts it. Not
+    thread-safe: one thread updates it; ``current`` (an immutable record) may be
+    read from any thread.
     """
 
-    def __init__(self, settings: ColourSettings | None = None, adapt_s: float = 1.0,
+    def __init__(self, settings: ColourSettings | None = None, adapt_s: float = 1.0, measure_s: float = 0.09,
                  reset_after_s: float = 2.0) -> None:
         self.settings = settings or ColourSettings()
         self.adapt_s = adapt_s
+        self.measure_s = measure_s
         self.reset_after_s = reset_after_s
         self.current: WhiteBalance | None = None
 
@@ -265,18 +269,19 @@ class WhiteBalancer:
         if not self.settings.auto:
             self.current = WhiteBalance(self.settings.white_balance, "fixed", time_ns)  # type: ignore[arg-type]
             return self.current
-        measured = estimate_white_balance(image, valid)
         previous = self.current if self.current is not None and self.current.mode == "auto" else None
+        dt = None if previous is None else (time_ns - previous.time_ns) / 1e9
+        if previous is not None and 0 <= dt < self.measure_s:
+            return previous
+        measured = estimate_white_balance(image, valid)
         if measured is None:
             kept = previous.multipliers if previous is not None else (1.0, 1.0, 1.0)
             self.current = WhiteBalance(kept, "auto", time_ns)
             return self.current
-        if previous is not None:
-            dt = (time_ns - previous.time_ns) / 1e9
-            if 0 <= dt <= self.reset_after_s:
-                alpha = smoothing_factor(dt, self.adapt_s)
-                old = np.log2(previous.multipliers)
-                measured = np.exp2(old + alpha * (np.log2(measured) - old))
+        if previous is not None and 0 <= dt <= self.reset_after_s:
+            alpha = smoothing_factor(dt, self.adapt_s)
+            old = np.log2(previous.multipliers)
+            measured = np.exp2(old + alpha * (np.log2(measured) - old))
         self.current = WhiteBalance((float(measured[0]), 1.0, float(measured[2])), "auto", time_ns)
         return self.current
 

@@ -189,3 +189,14 @@ def test_shipped_scene_estimate_is_finite_and_bounded():
     scene = load_sample_scene("desk", rgb=True)
     estimate = estimate_white_balance(np.maximum(scene, 0))
     assert estimate is not None and np.all(np.isfinite(estimate)) and np.all((estimate > 1 / 64) & (estimate < 64))
+
+
+def test_frames_between_measurements_reuse_the_last_one():
+    scene = grey_world_scene(seed=9)
+    balancer = WhiteBalancer(ColourSettings(), adapt_s=0.0, measure_s=0.09)  # adapt 0: each measurement taken as is
+    first = balancer.update(scene * ILLUMINANT, 0)
+    blue = np.float32([0.5, 1.0, 2.0])
+    assert balancer.update(scene * blue, FRAME_NS) is first  # 33 ms later: not measured
+    assert balancer.update(scene * blue, 2 * FRAME_NS) is first  # 67 ms
+    measured = balancer.update(scene * blue, 3 * FRAME_NS)  # 100 ms: measured
+    np.testing.assert_allclose(np.array(measured.multipliers) * blue, 1.0, rtol=0.03)
