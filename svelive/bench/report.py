@@ -159,28 +159,31 @@ def plot_colour(results: dict[str, object], path: Path) -> None:
     rows = results["rows"]
     groups = list(dict.fromkeys((r["layout"], r["noise"]) for r in rows))
     labels = list(dict.fromkeys(r["method"] for r in rows))
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.6))
     width = 0.8 / len(labels)
     x = np.arange(len(groups))
 
     def mean(label: str, group: tuple[str, str], metric: str) -> float:
         return float(np.mean([r[metric] for r in rows if r["method"] == label and (r["layout"], r["noise"]) == group]))
 
+    methods = list(dict.fromkeys(label.partition(" ")[2] for label in labels))  # "joint weighted" -> "weighted"
     for i, label in enumerate(labels):
         offset = x - 0.4 + width * (i + 0.5)
-        hatch = "//" if label.startswith("split") else None
-        axes[0].bar(offset, [mean(label, g, "pu21_y") for g in groups], width, label=label, hatch=hatch)
-        axes[1].bar(offset, [mean(label, g, "de2000_mean") for g in groups], width, label=label, hatch=hatch)
+        style = {"hatch": "//" if label.startswith("split") else None, "edgecolor": "white",
+                 "color": f"C{methods.index(label.partition(' ')[2])}"}  # one colour per method, split hatched
+        axes[0].bar(offset, [mean(label, g, "pu21_y") for g in groups], width, label=label, **style)
+        axes[1].bar(offset, [mean(label, g, "de2000_mean") for g in groups], width, label=label, **style)
         axes[1].scatter(offset, [mean(label, g, "de2000_p99") for g in groups], marker="_", s=80, color="black",
                         zorder=3, label="p99" if i == 0 else None)
     for ax, title in zip(axes, ("PU21-PSNR of luminance (dB, higher is better)",
                                 "CIEDE2000 of the sRGB rendering (mean bars, p99 ticks; lower is better)")):
         ax.set_xticks(x)
-        ax.set_xticklabels([f"{layout}\n{noise}" for layout, noise in groups], fontsize=7)
+        ax.set_xticklabels([f"{layout}\n{noise}" for layout, noise in groups], fontsize=6.5)
         ax.set_title(title, fontsize=9)
         ax.grid(True, axis="y", alpha=0.3)
         ax.tick_params(labelsize=7)
-    axes[1].set_yscale("log")
+    y = [mean(label, g, "pu21_y") for label in labels for g in groups]
+    axes[0].set_ylim(min(y) - 3, max(y) + 1)
     axes[0].legend(fontsize=7, loc="lower right")
     axes[1].legend(fontsize=7)
     n = len(results["images"])
