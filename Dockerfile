@@ -22,10 +22,17 @@ RUN python3 -m venv --system-site-packages /opt/svelive \
       /opt/svelive/bin/pip install --no-cache-dir /src; \
     fi \
  && /opt/svelive/bin/pip uninstall --yes setuptools pip
-# Compile the numba kernels once here (a few seconds) so that the first live frame does not;
+# Compile the numba kernels once here so that neither `svelive serve`'s start nor the first live
+# frame does: what serve warms (every mono and colour reconstruction kernel, the preview tone maps)
+# and the demo camera's render pass, compiled when the default `demo` source opens.
 # numba reuses this cache on a CPU like the build machine's and recompiles into it otherwise.
+# One thread for OpenCV and BLAS: the build machine may be shared.
 ENV NUMBA_CACHE_DIR=/opt/svelive/numba-cache
-RUN /opt/svelive/bin/python -c "from svelive.reconstructor import warm_up; warm_up()"
+RUN OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 /opt/svelive/bin/python -c "\
+import cv2; cv2.setNumThreads(1); \
+from svelive.reconstruction.warmup import warm_up; from svelive.tonemap import warm_up as warm_up_preview; \
+from svelive.capture import open_source; \
+warm_up(); warm_up_preview(); open_source('demo').open().close()"
 
 FROM debian:bookworm-slim
 # Runtime only: the interpreter, PyGObject and the Aravis 0.8 typelib (GigE Vision cameras).

@@ -13,8 +13,10 @@
 #   online  podman build of the default online path as $IMAGE-online (pip given the host's CA
 #           bundle through build-time volumes); not part of `all`
 #   smoke   unpack the image into a directory, run its CMD with its ENV, USER and WORKDIR in
-#           a chroot (podman run cannot start containers here), fetch /healthz, /api/state
-#           and /snapshot.jpg, run the HEALTHCHECK command, stop the server
+#           a chroot (podman run cannot start containers here), fetch /healthz, /api/state,
+#           /snapshot.jpg (a colour JPEG: 3 components) and /snapshot.exr (R, G, B), both read
+#           back with the image's own Python, check that serving compiled no numba kernel
+#           the build had not, run the HEALTHCHECK command, stop the server
 #   clean   remove the work directory (the image and the base image stay)
 #
 # Environment: WORK (default /tmp/svelive-image; never inside the repository), IMAGE
@@ -244,6 +246,11 @@ print("python", sys.version.split()[0], "| numpy", numpy.__version__, "| cv2", c
         [ ! -e /opt/svelive/bin/pip ] || { echo "pip in the runtime venv"; exit 1; }
         echo "no python3-venv, python3-pip or venv pip in the image"'
 
+    local cache=/opt/svelive/numba-cache
+    echo "numba cache from the build: $(find "$root$cache" -name '*.nbc' | wc -l) compiled kernels" \
+        "($(du -sh "$root$cache" | cut -f1))"
+    touch "$WORK/cache.stamp"
+
     log "run CMD (${cmd[*]}) with SVELIVE_PORT=$port"
     # Not through run_in: $! must be the server itself (env, chroot and sh exec it).
     env -i "${envs[@]}" SVELIVE_PORT="$port" "$(command -v chroot)" --userspec="$uid" "$root" \
@@ -272,6 +279,42 @@ print("python", sys.version.split()[0], "| numpy", numpy.__version__, "| cv2", c
     "$PYTHON" -m json.tool "$WORK/state.json"
     curl -fsS --max-time 10 -D "$WORK/snapshot.headers" "$url/snapshot.jpg" -o "$WORK/snapshot.jpg"
     echo "GET /snapshot.jpg -> $(grep -i '^content-type' "$WORK/snapshot.headers" | tr -d '\r'); $(file -b "$WORK/snapshot.jpg")"
+    # The default command serves the colour demo camera: the preview must be a colour image.
+    run_in python3 -c '
+import sys, cv2, numpy as np
+data = sys.stdin.buffer.read()
+img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+if img is None or img.ndim != 3 or img.shape[2] != 3:
+    sys.exit(f"snapshot.jpg is not a 3-channel colour image: {None if img is None else img.shape}")
+b, g, r = (img[:, :, i].astype(np.int16) for i in range(3))
+print(f"  decoded: {img.shape[1]}x{img.shape[0]}x{img.shape[2]} {img.dtype}, {len(data) / 1000:.1f} kB;",
+      "mean B, G, R %.1f, %.1f, %.1f;" % tuple(img.reshape(-1, 3).mean(axis=0)),
+      f"mean |R-G| {np.abs(r - g).mean():.1f}, |B-G| {np.abs(b - g).mean():.1f}")' < "$WORK/snapshot.jpg"
+    curl -fsS --max-time 10 -D "$WORK/snapshot-exr.headers" "$url/snapshot.exr" -o "$WORK/snapshot.exr"
+    echo "GET /snapshot.exr -> $(grep -i '^content-type' "$WORK/snapshot-exr.headers" | tr -d '\r'); $(stat -c %s "$WORK/snapshot.exr") bytes"
+    run_in python3 -c '
+import sys, numpy as np
+from svelive.exr import read_exr
+channels, header = read_exr(sys.stdin.buffer.read())
+if sorted(channels) != ["B", "G", "R"]:
+    sys.exit(f"snapshot.exr channels {sorted(channels)}, not R, G, B")
+for name in "RGB":
+    c = channels[name]
+    print(f"  {name}: {c.shape[1]}x{c.shape[0]} {c.dtype}, min {c.min():.3g}, median {np.median(c):.3g}, max {c.max():.4g}")
+standard = ("channels", "compression", "dataWindow", "displayWindow", "lineOrder", "pixelAspectRatio",
+            "screenWindowCenter", "screenWindowWidth", "type")
+for key, value in sorted(header.items()):
+    if key not in standard:
+        print(f"  {key}: {np.array2string(value, precision=4) if isinstance(value, np.ndarray) else value}")' \
+        < "$WORK/snapshot.exr"
+    local compiled
+    compiled=$(find "$root$cache" -type f -newer "$WORK/cache.stamp" | sed "s|$root$cache/||")
+    if [ -n "$compiled" ]; then
+        echo "warning: serving compiled kernels the build did not (the first frames waited for them):"
+        echo "$compiled" | sed 's/^/  /'
+    else
+        echo "numba cache: nothing compiled while serving (every kernel came from the build)"
+    fi
     health=$(inspect '{{range .Config.Healthcheck.Test}}{{println .}}{{end}}' | sed -n 2p)
     if run_in sh -c "$health"; then echo "HEALTHCHECK command: exit 0"; else echo "HEALTHCHECK command failed" >&2; exit 1; fi
     log "server log"
