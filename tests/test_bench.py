@@ -2,15 +2,19 @@
 
 import csv
 import json
+import sys
 
 import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, simulate
 from svelive.bench import report
+from svelive.bench.colour import (ColourBenchConfig, ColourCondition, ColourSetting, data_scenes, markdown_colour,
+                                  run_colour_benchmark, time_colour)
 from svelive.bench.reference import bracketing_merge, bracketing_reference
 from svelive.bench.runner import BenchConfig, Setting, pareto_front, run_benchmark
 from svelive.cli import main
+from svelive.errors import SveliveError
 from svelive.exr import write_exr
 from svelive.reconstruction.methods import baseline
 from svelive.metrics import pu21_psnr
@@ -124,3 +128,91 @@ def test_cli_bench_errors_are_one_line(tmp_path, capsys):
     a_file.write_text("x")
     assert main(["bench", "-o", str(a_file), "--no-chart"]) == 2
     assert "not a directory" in capsys.readouterr().err
+
+
+# ----- colour ------------------------------------------------------------------------------------
+
+COLOUR_SETTINGS = [ColourSetting("joint", "joint"), ColourSetting("split", "split")]
+
+
+@pytest.fixture(scope="module")
+def colour_run():
+    scenes = {"desk": load_sample_scene("desk", rgb=True)[64:128, 32:128]}
+    config = ColourBenchConfig(layouts=("dual-iso", "assorted-4x4"), repeats=0)
+    return run_colour_benchmark(scenes, config, COLOUR_SETTINGS, skipped={"Garden": "luminance only"},
+                                log=lambda line: None)
+
+
+def test_colour_rows_cover_every_setting_layout_and_noise_level(colour_run):
+    rows = colour_run["rows"]
+    assert {(r["method"], r["layout"], r["noise"]) for r in rows} == {
+        (s.label, layout, noise) for s in COLOUR_SETTINGS for layout in ("dual-iso", "assorted-4x4")
+        for noise in ("bright", "dim")}
+    for r in rows:
+        assert r["ms_per_frame"] is None  # repeats=0: not timed
+        assert all(np.isfinite(r[k]) for k in ("pu21_y", "pu21_r", "pu21_g", "pu21_b"))
+        assert 0 < r["de2000_mean"] <= r["de2000_p99"]
+    assert colour_run["skipped"] == {"Garden": "luminance only"}
+
+
+def test_colour_summary_and_comparison_are_means_of_the_rows(colour_run):
+    rows = colour_run["rows"]
+    summary = {s["method"]: s for s in colour_run["summary"]}
+    joint = [r for r in rows if r["method"] == "joint"]
+    assert summary["joint"]["pu21_y"] == pytest.approx(np.mean([r["pu21_y"] for r in joint]))
+    assert summary["joint"]["de2000_p99"] == pytest.approx(np.mean([r["de2000_p99"] for r in joint]))
+    assert summary["joint"]["ms_per_frame"] is None
+    by_group = {(c["layout"], c["noise"]): c for c in colour_run["comparison"]}
+    assert set(by_group) == {(lay, n) for lay in ("dual-iso", "assorted-4x4") for n in ("bright", "dim")} | {
+        ("all", "all")}
+    for (layout, noise), c in by_group.items():
+        mine = [r for r in rows if layout in ("all", r["layout"]) and noise in ("all", r["noise"])]
+        split = np.mean([r["pu21_y"] for r in mine if r["method"] == "split"])
+        assert c["pu21_y_baseline"] == pytest.approx(split)
+        assert c["gain_db"] == pytest.approx(c["pu21_y_default"] - c["pu21_y_baseline"])
+        assert c["met"] == (c["gain_db"] >= 2.0 and c["de2000_mean_default"] < c["de2000_mean_baseline"])
+    table = markdown_colour(colour_run)
+    assert "| joint |" in table and "| dual-iso | dim |" in table and "Garden (luminance only)" in table
+
+
+def test_colour_scaling_fills_the_shortest_exposure_with_the_brightest_channel():
+    scene = np.maximum(load_sample_scene("cannon", rgb=True), 0)
+    for layout in ("dual-iso", "assorted-4x4"):
+        shortest = float(ColourCondition(layout, "bright").camera().require_pattern().levels[0])
+        bright = ColourCondition(layout, "bright").radiance(scene)
+        dim = ColourCondition(layout, "dim").radiance(scene)
+        peak = float(np.percentile(bright.max(axis=-1), 99.9))
+        assert peak * shortest == pytest.approx(SENSOR.range_dn, rel=1e-4)
+        np.testing.assert_allclose(dim * 32, bright, rtol=1e-5)
+
+
+def test_colour_scenes_skip_luminance_only_images(tmp_path):
+    rgb = load_sample_scene("desk", rgb=True)[:18, :23]
+    write_exr(tmp_path / "Rgb.exr", {c: rgb[..., i] for i, c in enumerate("RGB")})
+    write_exr(tmp_path / "Grey.exr", {"Y": rgb[..., 1]})
+    scenes, skipped = data_scenes(tmp_path)
+    assert list(scenes) == ["Rgb"] and scenes["Rgb"].shape == (16, 20, 3)  # whole 4x4 tiles
+    assert list(skipped) == ["Grey"] and "luminance only" in skipped["Grey"]
+    with pytest.raises(SveliveError, match="holds none of the images Nothing"):
+        data_scenes(tmp_path, ("Nothing",))
+
+
+def test_colour_timing_is_a_median_in_ms():
+    condition = ColourCondition("dual-iso", "bright")
+    scene = load_sample_scene("desk", rgb=True)[:32, :32]
+    raw = condition.simulate(condition.radiance(scene), seed=0).raw
+    assert time_colour(COLOUR_SETTINGS[0], raw, condition.camera(), repeats=2) > 0
+
+
+def test_colour_chart_is_a_png(colour_run, tmp_path):
+    pytest.importorskip("matplotlib")
+    report.plot_colour(colour_run, tmp_path / "colour.png")
+    assert (tmp_path / "colour.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_bench_without_scikit_image_stops_before_the_run(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "skimage", None)
+    assert main(["bench", "-o", str(tmp_path / "out"), "--no-chart", "--no-mono", "--no-stability"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "scikit-image" in err
+    assert not (tmp_path / "out").exists()
