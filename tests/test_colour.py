@@ -281,3 +281,20 @@ def test_a_colour_camera_stands_for_pattern_and_filter():
     frame = simulate(np.full((32, 32, 3), 80.0, np.float32), camera.pattern, SENSOR, cfa=camera.cfa, seed=1)
     np.testing.assert_array_equal(svelive.reconstruct(frame.raw, camera),
                                   svelive.reconstruct(frame.raw, "1/1/8/8", cfa="RGGB", **KW))
+
+
+def test_a_channel_at_zero_over_a_bright_area_stays_finite():
+    """A synthetic frame (a test camera's) may hold green and blue at 0 where red is bright: the
+    white balance must not divide by them."""
+    rgb = np.zeros((64, 64, 3), np.float32)
+    rgb[:, :32, 0] = 400.0
+    rgb[:, 32:] = 60.0
+    frame = simulate(rgb, "1/1/8/8", Sensor(12, gain=1e6, read_noise=0.0), cfa="RGGB", seed=1)
+    for mode in ("joint", "split"):
+        image = svelive.reconstruct(frame.raw, "1/1/8/8", cfa="RGGB", colour=mode, **KW)
+        assert np.all(np.isfinite(image)) and image.min() >= 0
+    stream = svelive.Reconstructor("1/1/8/8", cfa="RGGB", **KW)
+    for _ in range(2):
+        result = stream.process(frame.raw)
+    assert np.all(np.isfinite(result.image)) and np.all(np.isfinite(result.variance))
+    assert result.image[8:-8, 8:24, 0].mean() == pytest.approx(400.0, rel=0.05)

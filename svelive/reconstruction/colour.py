@@ -294,7 +294,8 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
 
     The median of R / G and B / G of the smoothed cell values over every WHITE_STEP-th cell
     whose 3x3 cells hold no censored reading (``censored`` (Hc, Wc)) and whose luminance
-    sum_c n_c C_c is measured to 1 / WHITE_SNR (its variance sum_c n_c^2 spread / info_c):
+    sum_c n_c C_c is measured to 1 / WHITE_SNR (its variance sum_c n_c^2 spread / info_c) and
+    every channel above 0 (a synthetic frame may hold a channel at 0 over a bright area):
     chosen by the luminance, not by each channel's own noisy value, which would favour cells
     where that channel read high. (1, 1, 1) when fewer than WHITE_MIN_CELLS cells qualify.
     """
@@ -304,11 +305,12 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
         values = num / den
         lum = np.tensordot(share, values, 1)
         variance = np.tensordot(share * share * spread, 1 / n, 1)
-        good = (censored[step, step] == 0) & np.all(den > 0, axis=0) & (lum * lum >= WHITE_SNR ** 2 * variance)
+        good = ((censored[step, step] == 0) & np.all((den > 0) & (values > 0), axis=0)
+                & (lum * lum >= WHITE_SNR ** 2 * variance))
     if np.count_nonzero(good) < WHITE_MIN_CELLS:
         return np.ones(3, np.float32)
     r, g, b = (values[c][good] for c in range(3))
-    return np.array([np.median(r / g), 1.0, np.median(b / g)], np.float32)
+    return np.array([np.median(r / g), 1.0, np.median(b / g)], np.float32)  # finite, > 0: every value is
 
 
 @kernel
@@ -791,8 +793,8 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
     """The garrote of :func:`refine` per pixel; ``weight`` and ``out_variance`` may be empty (none);
     ``rows`` (4, W) scratch. ``out`` and ``out_variance`` may be ``luminance`` and ``variance``.
 
-    Branch-free (so that it vectorises): with t = max(v_Y - v_L, 0), beta = max(1 - t / E, 0) is
-    1 where t is 0, and the variance v_Y - (1 - beta) t is v_L + beta t where t > 0, v_Y elsewhere."""
+    With t = max(v_Y - v_L, 0), beta = max(1 - t / E, 0) is 1 where t is 0; the variance is
+    v_L + beta t (v_L where beta is 0, also for an infinite v_Y) where t > 0, v_Y elsewhere."""
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
     lum, var, res, v = rows[0], rows[1], rows[2], rows[3]
     weighted, with_variance = weight.size > 0, out_variance.size > 0
@@ -812,7 +814,7 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
             t = max(v[x] - var[x], zero)  # v_Y - v_L: the noise of Y - L
             beta = max(one - t / max(res[x], tiny), zero)
             o[x] = lum[x] + (y[x] - lum[x]) * beta
-            v[x] = v[x] - (one - beta) * t
+            v[x] = v[x] if t <= zero else (var[x] if beta <= zero else var[x] + beta * t)
         if with_variance:
             ov = out_variance[r]
             for x in range(y.size):

@@ -47,6 +47,9 @@ for longer tiles (whose reflected edges change phase), frames of a single row or
 under a 2-row or 2-column tile, a level on 3 of 4 phases and per-pixel exposures (a calibrated
 map, or a colour frame's luminance with its channels folded into them, SveInput.folded):
 a compiled pass lays out one plane per level (x at its pixels, 0 elsewhere), OpenCV sums each.
+A folded frame's level holds pixels of different exposures (a channel of tiny share has a tiny
+e' and a reading that says little), so its mean is sum G s / sum G e' and its weight takes the
+level's mean exposure in the window (_folded_sums); calibrated maps keep the mean of x.
 """
 
 from __future__ import annotations
@@ -263,6 +266,8 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
             _lay_out_samples(*flat(inp.signal, inp.exposure, inp.censored), np.zeros(w, np.uint8),
                              np.zeros(h, np.int64), w, signal.reshape(1, -1), valid[0], valid[1], False)
         planes = _group_sums(_neighbour_sums(signal, (th, tw)), layout.groups, (th, tw))
+    elif inp.folded:
+        planes, scales, exposures = _folded_sums(inp, layout, valid, ky, kx)
     else:
         levels = layout.scales.size
         samples = np.empty((levels, h, w), np.float32)
@@ -281,7 +286,9 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     lower_bound = np.empty(inp.shape, bool)
     variance = np.empty(inp.shape, np.float32) if return_variance else np.empty(0, np.float32)
     count = layout.scales.size
-    bounds = _combine(tuple(_read_only(plane.reshape(-1)) for plane in planes), layout.scales, layout.exposures,
+    if not inp.folded:
+        scales, exposures = layout.scales, layout.exposures
+    bounds = _combine(tuple(_read_only(plane.reshape(-1)) for plane in planes), scales, exposures,
                       layout.share.reshape(count, -1), layout.information.reshape(count, -1), layout.rows,
                       signal_sum, exposure_sum, exposure_rows, *flat(inp.signal, inp.exposure, inp.censored),
                       np.float32(gain), np.float32(1.0 / gain), np.float32(floor), w,
@@ -289,6 +296,36 @@ def _run(inp: SveInput, *, return_variance: bool = False) -> Estimate:
     if bounds:
         fill_lower_bounds(inp, lower_bound, window, image, variance if return_variance else None)
     return Estimate(image, lower_bound, variance if return_variance else None)
+
+
+def _folded_sums(inp: SveInput, layout: _Layout, valid: np.ndarray, ky: np.ndarray,
+                 kx: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Level sums for exposures off the levels (SveInput.folded): (planes, scales, exposures) for _combine.
+
+    A level's pixels no longer share one exposure (a colour frame's channels are folded in, and
+    a channel with a tiny share has a tiny e' and a reading that says little), so its mean is the
+    shot-noise maximum-likelihood m_k = sum_i G_i s_i / sum_i G_i e'_i rather than the mean of the
+    x_i, and its weight takes the level's mean exposure over the window, e_k = sum_i G_i e'_i / n_k,
+    per pixel: the planes hold sum_i G_i s_i (= e_k n_k m_k, scale 1) and ``exposures`` (K, H, W) e_k
+    (row r's at r, the kernel's row phase of an H-row tile). ``valid`` receives s and e at the
+    uncensored pixels, as for the other frames off the tile.
+    """
+    h, w = inp.shape
+    levels = layout.scales.size
+    samples = np.empty((levels, h, w), np.float32)
+    exposures = np.empty((levels, h, w), np.float32)
+    index = layout.index.reshape(-1)
+    _lay_out_samples(*flat(inp.signal, inp.exposure, inp.censored), index, layout.rows, w,
+                     samples.reshape(levels, -1), valid[0], valid[1], False)
+    none = np.empty(0, np.float32)
+    _lay_out_samples(*flat(inp.exposure, inp.exposure, inp.censored), index, layout.rows, w,
+                     exposures.reshape(levels, -1), none, none, False)
+    planes = [smooth(plane, ky, kx) for plane in samples]
+    share = layout.share[:, layout.rows]  # n_k of every pixel
+    for k in range(levels):
+        np.divide(smooth(exposures[k], ky, kx), share[k], out=exposures[k], where=share[k] > 0)
+        exposures[k][share[k] <= 0] = 0
+    return planes, np.ones(levels, np.float32), exposures
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
