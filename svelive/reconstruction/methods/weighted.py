@@ -321,11 +321,20 @@ def _folded_sums(inp: SveInput, layout: _Layout, valid: np.ndarray, ky: np.ndarr
     _lay_out_samples(*flat(inp.exposure, inp.exposure, inp.censored), index, layout.rows, w,
                      exposures.reshape(levels, -1), none, none, False)
     planes = [smooth(plane, ky, kx) for plane in samples]
-    share = layout.share[:, layout.rows]  # n_k of every pixel
     for k in range(levels):
-        np.divide(smooth(exposures[k], ky, kx), share[k], out=exposures[k], where=share[k] > 0)
-        exposures[k][share[k] <= 0] = 0
+        _mean_exposure(smooth(exposures[k], ky, kx), layout.share[k], layout.rows, exposures[k])
     return planes, np.ones(levels, np.float32), exposures
+
+
+@kernel
+def _mean_exposure(exposure_sum, share, rows, out):
+    """out (H, W) = a level's window sum of e' over its share n_k (R, W; row r's at rows[r]), 0 where n_k is 0."""
+    zero = np.float32(0.0)
+    for r in range(out.shape[0]):
+        total, n, o = exposure_sum[r], share[rows[r]], out[r]
+        for x in range(o.size):
+            ok = n[x] > zero
+            o[x] = total[x] / n[x] if ok else zero
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
