@@ -54,10 +54,11 @@ mirror() {
 }
 
 base() {
+    need podman
     if podman image exists "$BASE"; then
         log "base image $BASE exists"
     else
-        need debootstrap podman
+        need debootstrap
         local root="$WORK/base-rootfs" url
         url=$(mirror)
         log "debootstrap $SUITE from $url"
