@@ -600,31 +600,25 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
     luminance = np.ascontiguousarray(luminance, np.float32)
 
     def piece(rows: slice) -> None:
-        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows],
-                   np.empty((3, luminance.shape[1]), np.float32), out[rows])
+        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows], out[rows])
 
     map_on(workers, piece, _pieces(luminance.shape[0]))
     return out
 
 
 @kernel
-def _shares_row(rows, top, frac, r, out):
-    """out (3, W) = k_c on frame row r, interpolated between its two cell rows."""
-    t, f = top[r], frac[r]
-    t1 = min(t + 1, rows.shape[1] - 1)
-    for c in range(3):
-        a, b, o = rows[c, t], rows[c, t1], out[c]
-        for x in range(o.size):
-            o[x] = a[x] + (b[x] - a[x]) * f
-
-
-@kernel
 def _fold(exposure, channel_rows, first, rows, top, frac, shares, out):
     """out = e k_c of each pixel's channel c (``channel_rows``: the CFA's rows; the arrays' row r is
-    frame row ``first`` + r); ``shares`` (3, W) scratch."""
-    period = channel_rows.shape[0]
+    frame row ``first`` + r); ``shares`` (3, W) scratch: the row's shares, interpolated between
+    its two cell rows."""
+    period, last = channel_rows.shape[0], rows.shape[1] - 1
     for r in range(exposure.shape[0]):
-        _shares_row(rows, top, frac, r, shares)
+        t0, f = top[r], frac[r]
+        t1 = min(t0 + 1, last)
+        for c in range(3):
+            a, b, k = rows[c, t0], rows[c, t1], shares[c]
+            for x in range(k.size):
+                k[x] = a[x] + (b[x] - a[x]) * f
         ch, e, o = channel_rows[(first + r) % period], exposure[r], out[r]
         k0, k1, k2 = shares[0], shares[1], shares[2]
         for x in range(o.size):
@@ -633,17 +627,19 @@ def _fold(exposure, channel_rows, first, rows, top, frac, shares, out):
 
 
 @kernel
-def _colourise(luminance, rows, top, frac, shares, out):
-    """out (H, W, 3) = Y k_c; ``shares`` (3, W) scratch."""
+def _colourise(luminance, rows, top, frac, out):
+    """out (H, W, 3) = Y k_c, the shares interpolated between each row's two cell rows in the loop."""
+    last = rows.shape[1] - 1
     for r in range(luminance.shape[0]):
-        _shares_row(rows, top, frac, r, shares)
+        t0, f = top[r], frac[r]
+        t1 = min(t0 + 1, last)
+        a0, b0, a1, b1, a2, b2 = rows[0, t0], rows[0, t1], rows[1, t0], rows[1, t1], rows[2, t0], rows[2, t1]
         y, o = luminance[r], out[r]
-        k0, k1, k2 = shares[0], shares[1], shares[2]
         for x in range(y.size):
             v = y[x]
-            o[x, 0] = v * k0[x]
-            o[x, 1] = v * k1[x]
-            o[x, 2] = v * k2[x]
+            o[x, 0] = v * (a0[x] + (b0[x] - a0[x]) * f)
+            o[x, 1] = v * (a1[x] + (b1[x] - a1[x]) * f)
+            o[x, 2] = v * (a2[x] + (b2[x] - a2[x]) * f)
 
 
 # ----- joint ----------------------------------------------------------------------------------
@@ -747,8 +743,8 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
 
     def piece(rows: slice) -> None:
         _refine(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
-                inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], np.empty((4, w), np.float32),
-                out[rows], none if out_variance is None else out_variance[rows])
+                inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows],
+                none if out_variance is None else out_variance[rows], np.empty((2, w), np.float32))
 
     map_on(workers, piece, _pieces(h))
     return out
@@ -789,36 +785,35 @@ def _residual_cells(luminance, coarse, top, frac, cy, cx, out, row):
 
 
 @kernel
-def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, rows, out, out_variance):
-    """The garrote of :func:`refine` per pixel; ``weight`` and ``out_variance`` may be empty (none);
-    ``rows`` (4, W) scratch. ``out`` and ``out_variance`` may be ``luminance`` and ``variance``.
+def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out, out_variance, rows):
+    """The garrote of :func:`refine` per pixel; ``weight`` and ``out_variance`` may be empty (none).
+    ``out`` and ``out_variance`` may be ``luminance`` and ``variance``: each row is computed into
+    ``rows`` (2, W) first, so that the loop (the coarse planes interpolated in it) vectorises.
 
     With t = max(v_Y - v_L, 0), beta = max(1 - t / E, 0) is 1 where t is 0; the variance is
     v_L + beta t (v_L where beta is 0, also for an infinite v_Y) where t > 0, v_Y elsewhere."""
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
-    lum, var, res, v = rows[0], rows[1], rows[2], rows[3]
     weighted, with_variance = weight.size > 0, out_variance.size > 0
+    last = coarse.shape[0] - 1
     for r in range(luminance.shape[0]):
-        _lerp_row(coarse, top, frac, r, lum)
-        _lerp_row(coarse_variance, top, frac, r, var)
-        _lerp_row(residual, top, frac, r, res)
-        y, o, vy = luminance[r], out[r], variance[r]
-        if weighted:
-            wy = weight[r]
-            for x in range(y.size):
-                v[x] = vy[x] * wy[x]
-        else:
-            for x in range(y.size):
-                v[x] = vy[x]
+        t0, f = top[r], frac[r]
+        t1 = min(t0 + 1, last)
+        l0, l1, v0, v1, e0, e1 = (coarse[t0], coarse[t1], coarse_variance[t0], coarse_variance[t1],
+                                  residual[t0], residual[t1])
+        y, vy, o, ov = luminance[r], variance[r], rows[0], rows[1]
+        wy = weight[r] if weighted else vy  # (not read without a weight)
         for x in range(y.size):
-            t = max(v[x] - var[x], zero)  # v_Y - v_L: the noise of Y - L
-            beta = max(one - t / max(res[x], tiny), zero)
-            o[x] = lum[x] + (y[x] - lum[x]) * beta
-            v[x] = v[x] if t <= zero else (var[x] if beta <= zero else var[x] + beta * t)
+            lum = l0[x] + (l1[x] - l0[x]) * f
+            var = v0[x] + (v1[x] - v0[x]) * f
+            res = e0[x] + (e1[x] - e0[x]) * f
+            v = vy[x] * wy[x] if weighted else vy[x]
+            t = max(v - var, zero)  # v_Y - v_L: the noise of Y - L
+            beta = max(one - t / max(res, tiny), zero)
+            o[x] = lum + (y[x] - lum) * beta
+            ov[x] = v if t <= zero else (var if beta <= zero else var + beta * t)
+        out[r] = o
         if with_variance:
-            ov = out_variance[r]
-            for x in range(y.size):
-                ov[x] = v[x]
+            out_variance[r] = ov
 
 
 # ----- split (the baseline) -----------------------------------------------------------------
