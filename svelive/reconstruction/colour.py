@@ -87,7 +87,7 @@ are darker keeps its bound. Where every channel is censored, all take the
 neutral white at the largest bound (white_c max_m bound_m / white_m), and the
 mono method flags Y as a lower bound there. The white balance is the median,
 over cells whose smoothed luminance is measured to 10 % (an SNR of 10 by the
-noise model) and without censored readings around, of C_R / C_G and C_B / C_G:
+noise model) and away from channels with only censored readings, of C_R / C_G and C_B / C_G:
 robust to coloured objects; used for highlights and as the neutral of the
 chroma's garrote. (Choosing cells by each channel's own SNR favoured cells
 where that channel read high: 10 % too red and blue on a dark grey frame.)
@@ -122,8 +122,9 @@ COARSE_NONE = 1e30
 WHITE_SNR = 10.0
 #: Fewer such cells than this: no white balance (neutral is 1, 1, 1).
 WHITE_MIN_CELLS = 16
-#: Cells of every this many rows and columns are looked at for the white balance (a median needs no more).
-WHITE_STEP = 4
+#: About this many cells are looked at for the white balance (every n-th row and column of cells: a
+#: median needs no more, and a small frame's every cell counts).
+WHITE_CELLS = 4096
 
 
 def run_colour(inp: SveInput, spec: MethodSpec, mode: str, **options) -> Estimate:
@@ -208,8 +209,8 @@ class Chroma:
         shares: float32 (3, Hc, Wc), k_c = C_c / L at each cell's centre, at least SHARE_FLOOR;
             a neutral surface's shares where L is 0.
         coarse: float32 (2, Hc, Wc), the luminance L = sum_c n_c C_c at each cell's centre and
-            its noise variance (DN, DN^2); the variance is COARSE_NONE where censored readings
-            lie within the cell's 3x3 cells (the censoring rules bias L there).
+            its noise variance (DN, DN^2); the variance is COARSE_NONE within 3x3 cells of a
+            censored reading (the censoring rules bias L there, and Y's variance means less).
         layout: the cells' layout.
         white: float32 (3,), the white balance: camera RGB of a neutral surface, G = 1.
         shape: (H, W) of the frame.
@@ -252,9 +253,8 @@ def chroma(inp: SveInput) -> Chroma:
     for c in range(3):
         cv2.sepFilter2D(weighted[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
         cv2.sepFilter2D(kept[c], cv2.CV_32F, k, k, dst=denominator[c], borderType=cv2.BORDER_REFLECT_101)
-    censored = cv2.dilate((bound.max(axis=0) > 0).view(np.uint8), np.ones((3, 3), np.uint8),
-                          borderType=cv2.BORDER_REFLECT_101)
-    white = white_balance(numerator, denominator, info, censored, layout.share, spread)
+    clipped, censored = _near_censoring(info, bound)
+    white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
     values = np.empty((3, hc, wc), f32)
     _cell_values(numerator, denominator, mean, info, bound, white, values, np.empty(wc, f32))
     shares = np.empty((3, hc, wc), f32)
@@ -263,11 +263,20 @@ def chroma(inp: SveInput) -> Chroma:
     neutral = (white / f32(layout.share @ white)).astype(f32)
     coarse = np.empty((2, hc, wc), f32)
     noise, deviation = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    _shares(shares, info, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation)
+    _shares(shares, info, bound, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation)
     for c in range(3):
         cv2.sepFilter2D(deviation[c], cv2.CV_32F, k, k, dst=deviation[c], borderType=cv2.BORDER_REFLECT_101)
     _shrink(shares, neutral, noise, deviation, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
+
+
+def _near_censoring(info: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cells whose 3x3 cells hold (clipped) a channel with only censored readings, (censored) any
+    censored reading; uint8 (Hc, Wc) each, 1 there."""
+    box = np.ones((3, 3), np.uint8)
+    clipped = np.any((info <= 0) & (bound > 0), axis=0)
+    censored = np.any(bound > 0, axis=0)
+    return tuple(cv2.dilate(m.view(np.uint8), box, borderType=cv2.BORDER_REFLECT_101) for m in (clipped, censored))
 
 
 @lru_cache(maxsize=16)
@@ -292,14 +301,17 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
                   share: np.ndarray, spread: float) -> np.ndarray:
     """Camera RGB of a neutral surface (G = 1), float32 (3,), from the smoothed cell sums (3, Hc, Wc).
 
-    The median of R / G and B / G of the smoothed cell values over every WHITE_STEP-th cell
-    whose 3x3 cells hold no censored reading (``censored`` (Hc, Wc)) and whose luminance
+    The median of R / G and B / G of the smoothed cell values over about WHITE_CELLS cells (every
+    n-th row and column of them) away from channels with only censored readings (``censored``
+    (Hc, Wc): the first mask of :func:`_near_censoring`; other censored readings are allowed, a
+    longest exposure may clip over a whole bright ground, and the median outvotes the few cells
+    at a highlight's border where the surviving readings are the darker ones) and whose luminance
     sum_c n_c C_c is measured to 1 / WHITE_SNR (its variance sum_c n_c^2 spread / info_c) and
     every channel above 0 (a synthetic frame may hold a channel at 0 over a bright area):
     chosen by the luminance, not by each channel's own noisy value, which would favour cells
     where that channel read high. (1, 1, 1) when fewer than WHITE_MIN_CELLS cells qualify.
     """
-    step = slice(None, None, WHITE_STEP)
+    step = slice(None, None, max(int(np.sqrt(numerator[0].size / WHITE_CELLS)), 1))
     num, den, n = numerator[:, step, step], denominator[:, step, step], info[:, step, step]
     with np.errstate(divide="ignore", invalid="ignore"):
         values = num / den
@@ -455,12 +467,13 @@ def _cell_values(numerator, denominator, mean, info, bound, white, out, brightes
 
 
 @kernel
-def _shares(values, info, censored, share, neutral, floor, spread, coarse, noise, deviation):
+def _shares(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, deviation):
     """values (3, Hc, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place.
 
     ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
-    of C_c (``spread``: the sum of the squared weights of the cells' smoothing), COARSE_NONE where
-    ``censored`` (Hc, Wc) is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's
+    of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
+    censored readings, ``bound`` > 0, which keeps its own), COARSE_NONE where ``censored`` (Hc, Wc)
+    is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's
     noise; ``deviation``: (k_c - neutral_c)^2. Loops over the cells of a row (which vectorise).
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
@@ -473,10 +486,11 @@ def _shares(values, info, censored, share, neutral, floor, spread, coarse, noise
             var[j] = zero
         for c in range(3):
             k, n, d, inf, level, weight = values[c, i], noise[c, i], deviation[c, i], info[c, i], neutral[c], share[c]
+            b = bound[c, i]
             for j in range(lum.size):
                 ok = lum[j] > zero
                 inverse = one / lum[j] if ok else zero
-                v = spread / max(inf[j], tiny)
+                v = (spread if b[j] <= zero else one) / max(inf[j], tiny)
                 kc = max(k[j] * inverse, floor) if ok else level
                 k[j] = kc
                 n[j] = min(v * inverse * inverse, none) if ok else none
