@@ -240,12 +240,13 @@ def chroma(inp: SveInput) -> Chroma:
     hc, wc = -(-h // cy), -(-w // cx)
     f32 = np.float32
     mean, info, kept, weighted, bound = (np.empty((3, hc, wc), f32) for _ in range(5))
+    flags = np.empty((2, hc, wc), np.uint8)
     sensor = inp.sensor
     per_pixel = inp.pattern.pixel_map is not None
     values = inp.signal / inp.exposure if per_pixel else inp.signal
     _cell_stats(values, inp.censored, layout.channels, layout.levels, layout.exposures,
                 per_pixel, f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
-                mean, info, kept, weighted, bound, np.empty((3, 3, layout.exposures.size, wc), f32),
+                mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
                 np.empty((6, wc), f32))
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)  # the sum of the squared weights of the cells' smoothing
@@ -253,7 +254,8 @@ def chroma(inp: SveInput) -> Chroma:
     for c in range(3):
         cv2.sepFilter2D(weighted[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
         cv2.sepFilter2D(kept[c], cv2.CV_32F, k, k, dst=denominator[c], borderType=cv2.BORDER_REFLECT_101)
-    clipped, censored = _near_censoring(info, bound)
+    box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
+    clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
     values = np.empty((3, hc, wc), f32)
     _cell_values(numerator, denominator, mean, info, bound, white, values, np.empty(wc, f32))
@@ -268,15 +270,6 @@ def chroma(inp: SveInput) -> Chroma:
         cv2.sepFilter2D(deviation[c], cv2.CV_32F, k, k, dst=deviation[c], borderType=cv2.BORDER_REFLECT_101)
     _shrink(shares, neutral, noise, deviation, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
-
-
-def _near_censoring(info: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cells whose 3x3 cells hold (clipped) a channel with only censored readings, (censored) any
-    censored reading; uint8 (Hc, Wc) each, 1 there."""
-    box = np.ones((3, 3), np.uint8)
-    clipped = np.any((info <= 0) & (bound > 0), axis=0)
-    censored = np.any(bound > 0, axis=0)
-    return tuple(cv2.dilate(m.view(np.uint8), box, borderType=cv2.BORDER_REFLECT_101) for m in (clipped, censored))
 
 
 @lru_cache(maxsize=16)
@@ -303,7 +296,7 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
 
     The median of R / G and B / G of the smoothed cell values over about WHITE_CELLS cells (every
     n-th row and column of them) away from channels with only censored readings (``censored``
-    (Hc, Wc): the first mask of :func:`_near_censoring`; other censored readings are allowed, a
+    (Hc, Wc), 1 within 3x3 cells of one; other censored readings are allowed, a
     longest exposure may clip over a whole bright ground, and the median outvotes the few cells
     at a highlight's border where the surviving readings are the darker ones) and whose luminance
     sum_c n_c C_c is measured to 1 / WHITE_SNR (its variance sum_c n_c^2 spread / info_c) and
@@ -327,13 +320,14 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
 
 @kernel
 def _cell_stats(values, censored, channels, levels, exposures, per_pixel, gain_inv, floor, censor,
-                mean, info, kept, weighted_mean, bound, sums, scratch):
+                mean, info, kept, weighted_mean, bound, flags, sums, scratch):
     """Per cell (cy, cx) = channels.shape and channel, (3, Hc, Wc) each: the inverse-variance mean
     of the uncensored readings x = s / e (``mean``), the sum of their weights (``info``, 0: none),
     the share of the cell's information they hold (``kept``: info over the weights of all its
     readings, 1 without censored ones), ``kept`` times ``mean`` (``weighted_mean``), and the
-    largest bound censor / e_k the censored ones imply (``bound``, 0: none). ``sums`` (3, 3, K, Wc)
-    and ``scratch`` (6, Wc): scratch.
+    largest bound censor / e_k the censored ones imply (``bound``, 0: none). ``flags`` (2, Hc, Wc)
+    uint8: 1 where (0) a channel has only censored readings, (1) any reading is censored.
+    ``sums`` (3, 3, K, Wc) and ``scratch`` (6, Wc): scratch.
 
     ``values``: the readings s (H, W), or x itself with ``per_pixel`` exposures (a calibrated
     map). Weights e_k^2 / (e_k L0 / g + sigma^2) of each reading's nominal level e_k, at the pilot
@@ -368,6 +362,7 @@ def _cell_stats(values, censored, channels, levels, exposures, per_pixel, gain_i
                     xs[j] += row[j * cx + px] * keep
                     ns[j] += keep
                     alls[j] += one
+        flags[:, i, :] = 0
         for ch in range(3):  # per channel, loops over the cells of the row (which vectorise)
             s_total, e_total, pilot = scratch[0], scratch[1], scratch[2]
             weighted, total, full = scratch[3], scratch[4], scratch[5]
@@ -399,6 +394,11 @@ def _cell_stats(values, censored, channels, levels, exposures, per_pixel, gain_i
                 n[j] = total[j]
                 kp[j] = total[j] / full[j] if ok else zero
                 km[j] = weighted[j] / full[j] if ok else zero
+            clipped, lost = flags[0, i], flags[1, i]
+            for j in range(m.size):
+                some = b[j] > zero
+                clipped[j] |= np.uint8(some and total[j] <= zero)
+                lost[j] |= np.uint8(some)
 
 
 @kernel
