@@ -16,8 +16,8 @@ the longest exposure's noise floor, over the frame's range: a step of well under
 data, where linear interpolation across an edge of a thousand to one smears the
 bright side over the dark (measured on the shipped crops, dual-ISO at bright
 exposure: up to 1 dB PU21 better than linear-domain bilinear interpolation,
-nowhere worse by more than 0.05 dB). A
-Bayer CFA goes through OpenCV's edge-aware conversion (``COLOR_Bayer...2RGB_EA``).
+nowhere worse by more than 0.05 dB). A Bayer CFA goes through OpenCV's
+edge-aware conversion (``COLOR_Bayer...2RGB_EA``).
 A CFA that is not a 2x2 Bayer tile (quad-RGGB, custom tiles) has no OpenCV
 demosaicing: there each channel is interpolated by normalised convolution with a
 separable tent as wide as the CFA's period (bilinear for Bayer), in the same log
@@ -86,11 +86,19 @@ goes neutral (white), never magenta; a saturated colour whose measured channels
 are darker keeps its bound. Where every channel is censored, all take the
 neutral white at the largest bound (white_c max_m bound_m / white_m), and the
 mono method flags Y as a lower bound there. The white balance is the median,
-over cells whose smoothed luminance is measured to 10 % (an SNR of 10 by the
-noise model) and away from channels with only censored readings, of C_R / C_G and C_B / C_G:
-robust to coloured objects; used for highlights and as the neutral of the
-chroma's garrote. (Choosing cells by each channel's own SNR favoured cells
-where that channel read high: 10 % too red and blue on a dark grey frame.)
+over about 4096 cells whose smoothed luminance is measured to 10 % (an SNR of
+10 by the noise model) and away from channels with only censored readings, of
+C_R / C_G and C_B / C_G: robust to coloured objects; used for highlights and as
+the neutral of the chroma's garrote. (Choosing cells by each channel's own SNR
+favoured cells where that channel read high: 10 % too red and blue on a dark
+grey frame. Too few cells, or none where a 64x exposure clips over a whole
+bright ground, left it at 1, 1, 1: highlights went magenta.)
+
+Known limit: at a sharp edge a cell straddling it gives its channels ratios
+from different sides; the folded readings then disagree and the luminance
+alternates from pixel to pixel along the edge (zipper: about twice the split
+baseline's luminance error within 3 px on dual-ISO, docs/stability.md), while
+the false colour stays below the baseline's.
 
 Units: radiance in DN at relative exposure 1 per channel (before white
 balance); the luminance Y in that unit, which ``variance`` and
