@@ -139,17 +139,11 @@ MAGENTA_LIMIT_STOPS = 0.1
 _ZIPPER = ("joint's chroma is computed per cell of the joint tile; a cell straddling the edge gives the channels "
            "the wrong ratios, the folded readings disagree, and the luminance alternates from pixel to pixel "
            "along the edge (zipper): about twice the split baseline's luminance error within 3 px")
-_MAGENTA = ("with green clipped in every exposure and red still measured (peaks +0.5 and +0.75 stop) the highlight "
-            "keeps part of green's deficit: quad-bayer 0.19 stop towards magenta at +0.75, assorted-4x4 0.14 at "
-            "+0.5 and 0.23 at +0.75")
 KNOWN_COLOUR_FAILURES: dict[tuple[str, str], str] = {
     ("colour_edge_luma", "dual-iso"): _ZIPPER,
     ("colour_edge_luma", "column-bayer"): _ZIPPER,
     ("colour_edge_luma", "assorted-4x4"): _ZIPPER,
-    ("colour_highlight", "quad-bayer"): _MAGENTA,
-    ("colour_highlight", "assorted-4x4"): _MAGENTA,
 }
-
 
 @pytest.fixture(scope="module")
 def colour_cases():
