@@ -118,10 +118,7 @@ def run_method(inp: SveInput, method: str | None = None, *, colour: str = "joint
     """Run a method by name on a prepared input, checking its options; colour inputs go through
     svelive.reconstruction.colour (``colour``: ``"joint"`` or ``"split"``)."""
     spec = method_spec(method)
-    unknown = set(options) - spec.accepted
-    if unknown:
-        raise SveliveError(f"method {spec.name!r} has no option {', '.join(sorted(unknown))}"
-                           f" (it takes: {', '.join(sorted(spec.options)) or 'none'})")
+    spec.check_options(options)
     if inp.cfa is not None:
         from svelive.reconstruction.colour import run_colour
 

@@ -300,10 +300,7 @@ class Reconstructor:
         if inp.cfa is None:
             estimate = run_method(inp, method, **options)
             return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
-        unknown = set(options) - spec.accepted
-        if unknown:
-            raise SveliveError(f"method {spec.name!r} has no option {', '.join(sorted(unknown))}"
-                               f" (it takes: {', '.join(sorted(spec.options)) or 'none'})")
+        spec.check_options(options)
         parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal, **options)
         estimate = parts.estimate
         return inp, replace(estimate, variance=estimate_variance(estimate, parts.luminance_input)), parts

@@ -6,9 +6,10 @@ method can do, so that callers never inspect its signature.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+from svelive.errors import SveliveError
 from svelive.reconstruction.methods import adaptive, aggregate, cubic, weighted
 from svelive.reconstruction.methods.base import Estimate, SveInput
 
@@ -41,6 +42,13 @@ class MethodSpec:
         """Every keyword ``run`` takes: the user options plus the capability keywords."""
         return self.options | {name for name, has in (("return_variance", self.variance),
                                                       ("workers", self.workers)) if has}
+
+    def check_options(self, options: Mapping[str, object]) -> None:
+        """Raise a one-line SveliveError naming any keyword ``run`` does not take."""
+        unknown = set(options) - self.accepted
+        if unknown:
+            raise SveliveError(f"method {self.name!r} has no option {', '.join(sorted(unknown))}"
+                               f" (it takes: {', '.join(sorted(self.options)) or 'none'})")
 
 
 METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
