@@ -216,3 +216,12 @@ def test_cli_bench_without_scikit_image_stops_before_the_run(tmp_path, capsys, m
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "scikit-image" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_quick_bench_images_ship_with_the_package():
+    # without ../shared (a user's machine) `svelive bench --quick` falls back to the shipped crops
+    from svelive.bench.runner import quick_config
+    from svelive.bench.scenes import find_images, shipped_data_dir
+
+    stems = {p.stem.lower() for p in find_images(shipped_data_dir())}
+    assert {name.lower() for name in quick_config().images} <= stems

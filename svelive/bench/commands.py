@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -69,7 +70,7 @@ def run_colour(out: Path, data: Path, quick: bool, images: tuple[str, ...], char
 def cmd_bench(args: argparse.Namespace) -> int:
     from svelive.bench import report
     from svelive.bench.runner import BenchConfig, quick_config, run_benchmark
-    from svelive.bench.scenes import default_data_dir
+    from svelive.bench.scenes import default_data_dir, shipped_data_dir
     from svelive.bench.stability import colour_edge_crops, run_stability
 
     out: Path = args.output
@@ -84,6 +85,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     config = quick_config() if args.quick else BenchConfig()
     data = args.data or default_data_dir()
+    if args.data is None and not data.is_dir():
+        data = shipped_data_dir()
+        print(f"svelive bench: {default_data_dir()} not found: benchmarking the shipped crops in {data} "
+              "(pass --data DIR for the full images)", file=sys.stderr)
     start = time.perf_counter()
     table = ""
     if not args.no_mono:

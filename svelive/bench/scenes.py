@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,11 @@ PATTERNS: tuple[str, ...] = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
 def default_data_dir() -> Path:
     """``../shared/data/hdr`` beside the repository checkout (development machines only)."""
     return Path(__file__).resolve().parents[3] / "shared" / "data" / "hdr"
+
+
+def shipped_data_dir() -> Path:
+    """The HDR crops shipped with the package (svelive/data), for machines without the full images."""
+    return Path(str(resources.files("svelive") / "data"))
 
 
 def find_images(data_dir: Path) -> list[Path]:
