@@ -18,7 +18,6 @@ Images without R, G, B (a luminance-only EXR) are skipped and named in the resul
 
 from __future__ import annotations
 
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -26,7 +25,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from svelive.bench.runner import TIMING_SIZE
+from svelive.bench.runner import TIMING_SIZE, median_ms
 from svelive.bench.scenes import BENCH_SENSOR, NOISE_LEVELS, find_images
 from svelive.camera import COLOUR_LAYOUTS, Camera
 from svelive.errors import SveliveError
@@ -184,17 +183,7 @@ def colour_accuracy(image: np.ndarray, truth: np.ndarray) -> dict[str, float]:
 
 def time_colour(setting: ColourSetting, raw: np.ndarray, camera: Camera, repeats: int) -> float:
     """Median wall time (ms) of prepare + reconstruction of ``raw``, after one warm-up run."""
-
-    def once() -> None:
-        setting.run(prepare(raw, camera))
-
-    once()
-    times = []
-    for _ in range(max(repeats, 1)):
-        t = time.perf_counter()
-        once()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times)) * 1e3
+    return median_ms(lambda: setting.run(prepare(raw, camera)), repeats)
 
 
 def timing_frame(scene: np.ndarray, condition: ColourCondition, seed: int) -> np.ndarray:

@@ -108,12 +108,8 @@ def timing_frame(scene: np.ndarray, condition: Condition, seed: int) -> np.ndarr
     return simulate(condition.radiance(big), condition.pattern, BENCH_SENSOR, seed=seed).raw
 
 
-def time_reconstruct(setting: Setting, raw: np.ndarray, pattern: str, repeats: int) -> float:
-    """Median wall time (ms) of prepare + method on ``raw`` (as ``svelive.reconstruct`` does), one warm-up run."""
-
-    def once() -> None:
-        setting.run(prepare(raw, pattern, BENCH_SENSOR))
-
+def median_ms(once: Callable[[], object], repeats: int) -> float:
+    """Median wall time (ms) of ``once()`` over ``repeats`` runs, after one warm-up run."""
     once()
     times = []
     for _ in range(max(repeats, 1)):
@@ -121,6 +117,11 @@ def time_reconstruct(setting: Setting, raw: np.ndarray, pattern: str, repeats: i
         once()
         times.append(time.perf_counter() - t)
     return float(np.median(times)) * 1e3
+
+
+def time_reconstruct(setting: Setting, raw: np.ndarray, pattern: str, repeats: int) -> float:
+    """Median wall time (ms) of prepare + method on ``raw`` (as ``svelive.reconstruct`` does), one warm-up run."""
+    return median_ms(lambda: setting.run(prepare(raw, pattern, BENCH_SENSOR)), repeats)
 
 
 def machine() -> dict[str, object]:
