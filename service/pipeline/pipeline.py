@@ -27,6 +27,17 @@ from service.pipeline.meters import DropCounter, NewestSlot
 from service.pipeline.reconstruction import ReconstructionStage
 
 
+def _updated(settings: Any, changes: dict[str, Any] | None, what: str) -> Any:
+    """A copy of the frozen dataclass ``settings`` with ``changes`` (validated by its constructor);
+    an unknown name is a one-line SveliveError listing the accepted ones."""
+    if not changes:
+        return settings
+    unknown = sorted(set(changes) - set(vars(settings)))
+    if unknown:
+        raise SveliveError(f"unknown {what} setting(s) {', '.join(unknown)}; accepted: {', '.join(vars(settings))}")
+    return replace(settings, **changes)
+
+
 def opencv_threads(cpu_count: int | None = None) -> int:
     """OpenCV pool size for the pipeline: the cores minus one, at least 1.
 
@@ -173,20 +184,8 @@ class Pipeline:
         check_method(method)
         if jpeg_quality is not None:
             check_jpeg_quality(jpeg_quality)
-        new_tone = self.encoder.tone
-        if tone:
-            unknown = sorted(set(tone) - set(vars(new_tone)))
-            if unknown:
-                raise SveliveError(f"unknown tone mapping setting(s) {', '.join(unknown)}; "
-                                   f"accepted: {', '.join(vars(new_tone))}")
-            new_tone = replace(new_tone, **tone)
-        new_colour = self.encoder.colour
-        if colour:
-            unknown = sorted(set(colour) - set(vars(new_colour)))
-            if unknown:
-                raise SveliveError(f"unknown colour setting(s) {', '.join(unknown)}; "
-                                   f"accepted: {', '.join(vars(new_colour))}")
-            new_colour = replace(new_colour, **colour)
+        new_tone = _updated(self.encoder.tone, tone, "tone mapping")
+        new_colour = _updated(self.encoder.colour, colour, "colour")
         with self._cond:
             if method is not None:
                 self.reconstruction.method = method
