@@ -54,7 +54,6 @@ TRIM = 0.25
 #: Fewer usable pixels than this and a frame gives no estimate (the previous one is kept).
 MIN_PIXELS = 64
 
-IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 def _numbers(value: object, what: str) -> list[float]:

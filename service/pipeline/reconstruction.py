@@ -42,8 +42,6 @@ class ReconstructionStage:
         self._latest: Published | None = None
         self.motion_fraction: float | None = None
         self.error: str | None = None
-        #: the method the current reconstructor really uses (with temporal fusion the default may differ)
-        self.method_in_use: str | None = None
         self.reconstructed = RateMeter()
         self.latency = {name: LatencyWindow() for name in ("queue", "reconstruct", "arrival_to_hdr")}
 
@@ -59,9 +57,7 @@ class ReconstructionStage:
             if current[0] == key:
                 return current
             current[1].close()
-        reconstructor = Reconstructor(camera, method=method, temporal=self.temporal, workers=self.workers)
-        self.method_in_use = reconstructor.method
-        return key, reconstructor
+        return key, Reconstructor(camera, method=method, temporal=self.temporal, workers=self.workers)
 
     def run(self) -> None:
         """The reconstruction thread: until ``stop`` is set."""
