@@ -125,11 +125,10 @@ class Source:
         """The sensor metadata of the frames it yields."""
         return self.camera.sensor
 
-    def _settle_camera(self, sensor: Sensor, format_cfa: str | None = None, format_name: str | None = None,
-                       offset: tuple[int, int] = (0, 0)) -> None:
+    def _settle_camera(self, sensor: Sensor, format_cfa: str | None = None, format_name: str | None = None) -> None:
         """Fix the camera once the device is known: its sensor, and the colour filter the user
         gave reconciled with the pixel format's (:func:`resolve_cfa`)."""
-        cfa = resolve_cfa(self._given_cfa, format_cfa, format_name, offset, self.spec)
+        cfa = resolve_cfa(self._given_cfa, format_cfa, format_name, where=self.spec)
         self.camera = self.camera.replace(sensor=sensor, cfa=cfa)
 
     # ----- lifecycle ---------------------------------------------------
