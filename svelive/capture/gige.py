@@ -242,6 +242,38 @@ class GigeSource(Source):
         if c.packet_size is not None and camera.is_gv_device():
             camera.gv_set_packet_size(int(c.packet_size))
 
+    # ----- exposure control ------------------------------------------------
+    def exposure_time(self) -> float | None:
+        """ExposureTime in microseconds, None while disconnected or on a camera without it."""
+        with self._io:
+            camera = self._camera
+            try:
+                if camera is None or not camera.is_exposure_time_available():
+                    return None
+                return float(camera.get_exposure_time())
+            except Exception:  # noqa: BLE001 - GLib.Error from a lost device
+                return None
+
+    def set_exposure_time(self, value: float) -> float:
+        """Set ExposureTime (microseconds, within the camera's bounds); returns the value read back."""
+        with self._io:
+            camera = self._camera
+            if camera is None:
+                raise SveliveError(f"{self.spec}: the camera is not connected; cannot set its exposure time")
+            try:
+                if not camera.is_exposure_time_available():
+                    raise SveliveError(f"source {self.spec} cannot set its exposure time")
+                lo, hi = camera.get_exposure_time_bounds()
+                if not lo <= value <= hi:
+                    raise SveliveError(f"{self.spec}: exposure time {value:g} us is outside the camera's "
+                                       f"range {lo:g}..{hi:g} us")
+                camera.set_exposure_time(float(value))
+                return float(camera.get_exposure_time())
+            except SveliveError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - GLib.Error
+                raise SveliveError(f"{self.spec}: setting the exposure time failed: {_message(exc)}") from None
+
     def _teardown(self) -> None:
         """Stop acquisition and free the stream, then the arrays (in that order). Holds self._io."""
         camera, stream = self._camera, self._stream

@@ -131,6 +131,17 @@ class Source:
         cfa = resolve_cfa(self._given_cfa, format_cfa, format_name, where=self.spec)
         self.camera = self.camera.replace(sensor=sensor, cfa=cfa)
 
+    # ----- exposure control ----------------------------------------------
+    def exposure_time(self) -> float | None:
+        """The camera's global exposure time in its own unit (GigE: microseconds), or None when
+        the source cannot tell (files, replay, a camera without the control)."""
+        return None
+
+    def set_exposure_time(self, value: float) -> float:
+        """Set the camera's global exposure time (same unit as :meth:`exposure_time`); returns the
+        value the camera applied (it may round). Sources without the control raise SveliveError."""
+        raise SveliveError(f"source {self.spec} cannot set its exposure time")
+
     # ----- lifecycle ---------------------------------------------------
     def open(self) -> Source:
         """Connect to the source and start it. Idempotent; returns self."""
