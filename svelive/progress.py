@@ -14,6 +14,7 @@ commands keep printing their results there.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from collections.abc import Callable
@@ -136,3 +137,8 @@ class Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def add_quiet_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``-q/--quiet`` (no progress output) to a command's parser; read it as ``args.quiet``."""
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output on stderr")
