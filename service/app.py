@@ -24,11 +24,8 @@ from svelive.errors import SveliveError
 from service.guard import TokenGuard
 from service.pipeline import CalibrationBusy, Pipeline
 from service.publishers.mjpeg import StreamHub
-from service.routers import ServedCamera, calibration, settings as settings_router, snapshots, state, stream
-from service.settings import ServerSettings
-
-#: Name of the camera when the service runs one pipeline without a camera list.
-DEFAULT_CAMERA = "main"
+from service.routers import ServedCamera, calibration, metrics, settings as settings_router, snapshots, state, stream
+from service.settings import DEFAULT_CAMERA, ServerSettings
 
 
 def listen_socket(settings: ServerSettings) -> socket.socket:
@@ -113,6 +110,7 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
         return {"status": "ok", "source": "online" if online[cameras[0].name] else "offline",
                 "cameras": {name: "online" if up else "offline" for name, up in online.items()}}
 
+    app.include_router(metrics.router(cameras, settings))
     for index, cam in enumerate(cameras):
         routers = [stream.router(cam), snapshots.router(cam), state.router(cam, settings),
                    settings_router.router(cam), calibration.router(cam)]
@@ -121,7 +119,8 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
             if index == 0:
                 app.include_router(api)
 
-    app.add_middleware(TokenGuard, token=settings.token)
+    app.add_middleware(TokenGuard, token=settings.token,
+                       public=("/healthz", "/metrics") if settings.metrics_public else ("/healthz",))
     if settings.cors_origins:  # outermost, so that it answers preflight requests (they carry no token)
         from fastapi.middleware.cors import CORSMiddleware
 

@@ -13,16 +13,17 @@ MAX_BODY_BYTES = 16_384
 
 
 class TokenGuard:
-    """ASGI middleware: bearer token on every path but /healthz, and a bound on request bodies.
+    """ASGI middleware: bearer token on every path but the ``public`` ones, and a bound on request bodies.
 
     The token comes from ``Authorization: Bearer TOKEN`` or ``?token=TOKEN`` (for
     ``<img>`` tags, which cannot send headers). A wrong or missing token gets a
     bare 401.
     """
 
-    def __init__(self, app: Any, token: str | None) -> None:
+    def __init__(self, app: Any, token: str | None, public: tuple[str, ...] = ("/healthz",)) -> None:
         self.app = app
         self.token = token.encode() if token else None
+        self.public = frozenset(public)
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
@@ -31,7 +32,7 @@ class TokenGuard:
         length = headers.get(b"content-length")
         if length is not None and (not length.isdigit() or int(length) > MAX_BODY_BYTES):
             return await plain(send, 413, b"request body too large\n")
-        if self.token is not None and scope.get("path") != "/healthz" and not self._authorised(scope, headers):
+        if self.token is not None and scope.get("path") not in self.public and not self._authorised(scope, headers):
             return await plain(send, 401, b"unauthorized\n", [(b"www-authenticate", b'Bearer realm="svelive"')])
         return await self.app(scope, receive, send)
 

@@ -94,7 +94,7 @@ class StreamHub:
     def state(self) -> dict[str, Any]:
         """The MJPEG publisher's part of /api/state."""
         clients = list(self.clients.values())
-        return {"streamed_fps": round(self.streamed.rate(), 2), "arrival_to_sent": self.sent_latency.summary(),
+        return {"streamed": self.streamed.count, "streamed_fps": round(self.streamed.rate(), 2), "arrival_to_sent": self.sent_latency.summary(),
                 "clients": len(clients), "client_list": [c.summary() for c in clients[:100]],
                 "client_skipped": sum(c.skipped for c in clients)}
 

@@ -28,6 +28,7 @@ async def camera_state(cam: ServedCamera, settings: ServerSettings) -> dict[str,
     mjpeg = cam.hub.state()
     out["camera_name"] = cam.name
     out["fps"]["streamed"] = mjpeg["streamed_fps"]
+    out["frames"]["streamed"] = mjpeg["streamed"]
     out["latency_ms"]["arrival_to_sent"] = mjpeg["arrival_to_sent"]
     out["clients"] = mjpeg["clients"]
     out["client_list"] = mjpeg["client_list"]

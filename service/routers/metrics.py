@@ -1,0 +1,26 @@
+"""GET /metrics: every camera's state in the Prometheus exposition format."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import Response
+from starlette.concurrency import run_in_threadpool
+
+from service.publishers.metrics import CONTENT_TYPE_LATEST, exposition, families
+from service.routers import ServedCamera
+from service.routers.state import camera_state
+from service.settings import ServerSettings
+
+
+def router(cameras: list[ServedCamera], settings: ServerSettings) -> APIRouter:
+    api = APIRouter()
+
+    @api.get("/metrics")
+    async def metrics() -> Response:
+        snapshots = {cam.name: await camera_state(cam, settings) for cam in cameras}
+        histograms = {cam.name: {stage: window.histogram() for stage, window in cam.pipeline.latency.items()
+                                 if hasattr(window, "histogram")} for cam in cameras}
+        body = await run_in_threadpool(lambda: exposition(families(snapshots, histograms)))
+        return Response(body, media_type=CONTENT_TYPE_LATEST)
+
+    return api
