@@ -2,14 +2,18 @@
 
 Opening a recording checks its header, then takes the index from the footer of
 a cleanly closed file. Without one (the recorder was killed) or with a corrupt
-one, it rebuilds the index by scanning the fixed-stride record headers, stops at
-the first invalid one, and drops a torn last record (short, or its payload
-checksum fails). Every problem found is kept in :attr:`RecordingReader.warnings`
-and reported with ``warnings.warn``; frames that are readable stay readable.
+one, it rebuilds the index by scanning the fixed-stride record headers: a
+damaged record header in the middle is skipped (the records after it are at
+their fixed offsets, so every intact frame is recovered; the damaged one keeps
+its place and is listed in :attr:`RecordingReader.damaged`), and a torn last
+record (short, or its payload checksum fails) is dropped. Every problem found
+is kept in :attr:`RecordingReader.warnings` and reported with ``warnings.warn``;
+frames that are readable stay readable.
 """
 
 from __future__ import annotations
 
+import bisect
 import os
 import warnings
 from pathlib import Path
@@ -41,12 +45,19 @@ class RecordingReader:
         layout: geometry (width, height, dtype, data offset, record size).
         times: int64 (N, 3): frame_id, host_time_ns, device_time_ns (``NO_TIME`` when absent).
         clean: True when the file was closed cleanly and its index was used.
+        damaged: indices of records whose header was found damaged by the index rebuild (their
+            ``times`` row repeats the nearest intact frame's times; reading them raises
+            CorruptFrameError). Damaged payloads are only found by reading (:meth:`verify`).
         warnings: human-readable problems found while opening.
+
+    ``warn=False`` keeps the problems in ``warnings`` without ``warnings.warn`` (a second
+    opening of a file whose problems were already reported).
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, *, warn: bool = True) -> None:
         self.path = Path(path)
         self.warnings: list[str] = []
+        self.damaged: tuple[int, ...] = ()
         if self.path.is_dir():
             raise RecordingError(f"{self.path}: is a directory, not a recording")
         try:
@@ -56,12 +67,12 @@ class RecordingReader:
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot open ({exc.strerror})") from None
         try:
-            self._open()
+            self._open(warn)
         except BaseException:
             self._f.close()
             raise
 
-    def _open(self) -> None:
+    def _open(self, warn: bool) -> None:
         size = os.fstat(self._f.fileno()).st_size
         first = os.pread(self._f.fileno(), HEADER_ALIGN, 0)
         if len(first) >= FILE_HEADER.size:
@@ -99,8 +110,9 @@ class RecordingReader:
             times = self._scan(size)
         self.times = times
         self.times.setflags(write=False)
-        for w in self.warnings:
-            warnings.warn(w, stacklevel=3)
+        if warn:
+            for w in self.warnings:
+                warnings.warn(w, stacklevel=3)
 
     def _warn(self, text: str) -> None:
         self.warnings.append(f"{self.path}: {text}")
@@ -134,15 +146,17 @@ class RecordingReader:
         lay = self.layout
         fd = self._f.fileno()
         n_max = max(0, (size - lay.data_offset) // lay.record_size)
-        rows = []
+        rows: list[tuple[int, int, int] | None] = []
+        ended = False  # an index (of a close that did not finish its footer) follows the records
         for i in range(n_max):
             head = os.pread(fd, RECORD_HEADER.size, lay.data_offset + i * lay.record_size)
-            parsed = self._parse_record_header(head, i)
-            if parsed is None:
-                self._warn(f"record {i} is damaged; kept the {i} frames before it")
+            if head[:4] == INDEX_MAGIC:
+                ended = True
                 break
-            rows.append(parsed)
-        else:
+            rows.append(self._parse_record_header(head, i))
+        while rows and rows[-1] is None:  # damaged records after the last intact one: a torn end
+            rows.pop()
+        if not ended:
             tail = size - lay.data_offset - n_max * lay.record_size
             if tail > 0 and os.pread(fd, 4, lay.data_offset + n_max * lay.record_size) != INDEX_MAGIC:
                 self._warn(f"torn last frame ({tail} of {lay.record_size} bytes) skipped")
@@ -152,7 +166,13 @@ class RecordingReader:
             except CorruptFrameError:
                 rows.pop()
                 self._warn(f"torn last frame {len(rows)} (checksum mismatch) skipped")
-        return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+                while rows and rows[-1] is None:
+                    rows.pop()
+        self.damaged = tuple(i for i, row in enumerate(rows) if row is None)
+        if self.damaged:
+            self._warn(f"{len(self.damaged)} damaged record(s) skipped ({_ranges(self.damaged)}); "
+                       f"kept the {len(rows) - len(self.damaged)} intact frames")
+        return _fill_damaged(rows)
 
     def _parse_record_header(self, head: bytes, index: int) -> tuple[int, int, int] | None:
         if len(head) != RECORD_HEADER.size:
@@ -221,6 +241,16 @@ class RecordingReader:
                      device_time_ns=None if dev == NO_TIME else int(dev),
                      pixel_format=self.pixel_format, camera=self.camera)
 
+    def verify(self) -> list[int]:
+        """Read every frame and check its checksums; returns the indices of the damaged ones (sorted)."""
+        bad = []
+        for i in range(len(self)):
+            try:
+                self._payload(i)
+            except CorruptFrameError:
+                bad.append(i)
+        return bad
+
     def info(self) -> dict[str, Any]:
         """A JSON-ready summary (what ``svelive replay-info`` prints)."""
         lay = self.layout
@@ -236,7 +266,7 @@ class RecordingReader:
             "fps": round((len(t) - 1) / self.duration_s, 3) if self.duration_s > 0 else None,
             "clock": self.clock,
             "closed_cleanly": self.clean, "source": self.meta.get("source"), "created": self.meta.get("created"),
-            "bytes": self._size, "warnings": list(self.warnings),
+            "bytes": self._size, "damaged_records": list(self.damaged), "warnings": list(self.warnings),
         }
 
     def close(self) -> None:
@@ -247,3 +277,34 @@ class RecordingReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _fill_damaged(rows: list[tuple[int, int, int] | None]) -> np.ndarray:
+    """int64 (N, 3) times of the scanned records: a damaged record (None) takes the nearest earlier
+    intact record's times (the next one's at the start), frame_id advanced by its distance, so
+    the timeline stays ordered."""
+    out = np.zeros((len(rows), 3), np.int64)
+    known = [i for i, row in enumerate(rows) if row is not None]
+    for i, row in enumerate(rows):
+        if row is not None:
+            out[i] = row
+            continue
+        j = bisect.bisect_left(known, i)
+        k = known[j - 1] if j else known[0]
+        out[i] = rows[k]
+        out[i, 0] += i - k
+    return out
+
+
+def _ranges(indices: tuple[int, ...]) -> str:
+    """``"3, 7-9"`` for (3, 7, 8, 9)."""
+    parts: list[str] = []
+    start = prev = indices[0]
+    for i in (*indices[1:], None):
+        if i is not None and i == prev + 1:
+            prev = i
+            continue
+        parts.append(str(start) if start == prev else f"{start}-{prev}")
+        if i is not None:
+            start = prev = i
+    return ", ".join(parts)

@@ -346,3 +346,104 @@ def test_cli_record_takes_cfa_and_replay_info_shows_it(tmp_path: Path, capsys: p
     assert main(["record", "--source", "demo", "--cfa", "RGBX", "-o", str(tmp_path / "y.sverec")]) == 2
     err = capsys.readouterr().err
     assert "'RGBX'" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("case", ["missing", "directory", "empty", "garbage", "no frames"])
+def test_a_replay_source_that_can_never_work_fails_when_built(tmp_path: Path, case: str) -> None:
+    """serve builds its source once at start-up: a recording that can never play must fail there, in one line."""
+    path = tmp_path / "x.sverec"
+    if case == "directory":
+        path = tmp_path
+    elif case == "empty":
+        path.write_bytes(b"")
+    elif case == "garbage":
+        path.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    elif case == "no frames":
+        from replay.container import encode_header
+
+        path.write_bytes(encode_header({"width": 4, "height": 2, "dtype": "uint16", "pixel_format": "Mono12"}))
+    with pytest.raises(SveliveError) as info:
+        open_source(f"replay:{path}")
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_replay_source_takes_sensor_levels_over_the_recorded_ones(tmp_path: Path) -> None:
+    path = tmp_path / "levels.sverec"
+    write(path, make_frames(2))
+    with open_source(f"replay:{path}", speed=0) as s:
+        assert next(iter(s)).camera.sensor.black_level == 64
+    source = open_source(f"replay:{path}", speed=0, black_level=10, white_level=4000)
+    assert source.camera.sensor.black_level == 10  # known when built, before it is opened
+    with source:
+        sensor = next(iter(source)).camera.sensor
+    assert (sensor.black_level, sensor.white_level, sensor.bits) == (10, 4000, 12)
+
+
+def test_export_skips_and_counts_a_damaged_frame(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "f.sverec"
+    frames = make_frames(20)
+    write(path, frames)
+    with RecordingReader(path) as r:
+        start = r.layout.data_offset
+    data = bytearray(path.read_bytes())
+    data[start + RECORD_HEADER.size + 7] ^= 0x10  # one flipped bit in frame 0's pixels
+    path.write_bytes(data)
+    out = tmp_path / "png"
+    assert main(["export", str(path), "--png", str(out), "-q"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert len(names) == 19 and names[0] == "frame_000001.png"
+    assert "1 damaged frames skipped: 0" in capsys.readouterr().err
+    from svelive.commands import read_raw
+
+    np.testing.assert_array_equal(read_raw(out / "frame_000019.png"), frames[19].raw)
+
+
+def test_rebuilt_index_recovers_every_intact_frame_past_a_damaged_header(tmp_path: Path) -> None:
+    path = tmp_path / "g.sverec"
+    frames = make_frames(6)
+    write(path, frames)
+    with RecordingReader(path) as r:
+        record, start, end = r.layout.record_size, r.layout.data_offset, r.layout.data_offset + 6 * r.layout.record_size
+    data = bytearray(path.read_bytes()[:end])  # killed before the index was written
+    data[start + 2 * record + 20] ^= 0x01  # frame 2's record header (its frame id)
+    path.write_bytes(data)
+    with pytest.warns(UserWarning, match=r"1 damaged record\(s\) skipped \(2\); kept the 5 intact frames"):
+        r = RecordingReader(path)
+    with r:
+        assert len(r) == 6 and r.damaged == (2,) and r.info()["damaged_records"] == [2]
+        for i in (0, 1, 3, 4, 5):
+            np.testing.assert_array_equal(r.read(i).raw, frames[i].raw)
+            assert r.read(i).frame_id == 100 + i
+        with pytest.raises(CorruptFrameError, match="frame 2"):
+            r.read(2)
+        assert np.all(np.diff(r.timeline_ns()) >= 0) and r.clock == "device"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with open_source(f"replay:{path}", speed=0) as s:
+            assert [f.frame_id for f in s] == [100, 101, 103, 104, 105] and s.stats()["drops"] == {"checksum": 1}
+
+
+def test_rebuilt_index_stops_at_an_index_without_footer(tmp_path: Path) -> None:
+    """A close cut short after the index but before the footer: the index's bytes are no damaged frames."""
+    path = tmp_path / "h.sverec"
+    frames = [Frame(raw=np.full((4, 4), i, np.uint8), frame_id=i, host_time_ns=i, pixel_format="Mono8")
+              for i in range(40)]
+    write(path, frames, pattern="1,4/16,64")
+    path.write_bytes(path.read_bytes()[:-FOOTER.size])
+    with RecordingReader(path, warn=False) as r:
+        assert len(r) == 40 and r.damaged == ()
+        assert not any("damaged" in w or "torn" in w for w in r.warnings), r.warnings
+
+
+def test_replay_info_verify_checks_every_payload(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "v.sverec"
+    write(path, make_frames(5))
+    assert main(["replay-info", str(path), "--verify", "-q"]) == 0
+    assert json.loads(capsys.readouterr().out)["verified"] == {"frames": 5, "intact": 5, "damaged": []}
+    with RecordingReader(path) as r:
+        offset = r.layout.data_offset + 3 * r.layout.record_size + RECORD_HEADER.size + 11
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x04
+    path.write_bytes(data)
+    assert main(["replay-info", str(path), "--verify", "-q"]) == 1
+    assert json.loads(capsys.readouterr().out)["verified"] == {"frames": 5, "intact": 4, "damaged": [3]}

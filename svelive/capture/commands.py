@@ -15,10 +15,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from replay import RecordingReader, RecordingWriter, WriterConfig
+from replay import CorruptFrameError, RecordingReader, RecordingWriter, WriterConfig
 from svelive.capture import open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
+from svelive.progress import Progress, add_quiet_argument
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
@@ -36,10 +37,16 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="fdatasync every N frames (survives power loss; default 0: only a process kill)")
     p.add_argument("--queue", type=int, default=64, metavar="N",
                    help="frames buffered between capture and disk before frames are dropped (default 64)")
+    add_quiet_argument(p)
     p.set_defaults(func=_record)
 
-    p = sub.add_parser("replay-info", help="print a recording's summary as JSON")
+    p = sub.add_parser("replay-info", help="print a recording's summary as JSON",
+                       description="Prints the header, frame count, timing and the problems found while opening. "
+                                   "--verify reads every frame and checks its checksums (exit status 1 when a "
+                                   "frame is damaged).")
     p.add_argument("path", type=Path)
+    p.add_argument("--verify", action="store_true", help="check every frame's payload checksum")
+    add_quiet_argument(p)
     p.set_defaults(func=_replay_info)
 
     p = sub.add_parser("export", help="export a recording's frames as 8/16-bit PNG files")
@@ -48,6 +55,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
     p.add_argument("--end", type=int, help="stop before this frame index (default: all)")
     p.add_argument("--every", type=int, default=1, help="export every N-th frame (default 1)")
+    add_quiet_argument(p)
     p.set_defaults(func=_export)
 
 
@@ -128,6 +136,7 @@ def _record(args: argparse.Namespace) -> int:
     thread = threading.Thread(target=write_loop, name="recorder", daemon=True)
     t0 = time.monotonic()
     interrupted = False
+    progress = Progress("recording", total=args.frames, quiet=args.quiet)
     try:
         with source:
             thread.start()
@@ -139,10 +148,12 @@ def _record(args: argparse.Namespace) -> int:
                         frames.put_nowait(frame)
                     except queue.Full:
                         dropped += 1
+                    progress.update()
             except KeyboardInterrupt:
                 interrupted = True
             stats = source.stats()
     finally:
+        progress.close()
         if thread.is_alive():
             frames.put(None)
             thread.join()
@@ -168,8 +179,25 @@ def _replay_info(args: argparse.Namespace) -> int:
     from svelive.cli import print_json
 
     with RecordingReader(args.path) as reader:
-        print_json(reader.info())
-    return 0
+        info = reader.info()
+        if args.verify:
+            damaged = _verify(reader, args.quiet)
+            info["verified"] = {"frames": len(reader), "intact": len(reader) - len(damaged), "damaged": damaged}
+        print_json(info)
+    return 1 if args.verify and info["verified"]["damaged"] else 0
+
+
+def _verify(reader: RecordingReader, quiet: bool) -> list[int]:
+    """Indices of the frames whose record header or payload checksum fails, reading every frame."""
+    damaged = []
+    with Progress("verifying", total=len(reader), quiet=quiet) as progress:
+        for i in range(len(reader)):
+            try:
+                reader.read(i)
+            except CorruptFrameError:
+                damaged.append(i)
+            progress.update()
+    return damaged
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -185,9 +213,21 @@ def _export(args: argparse.Namespace) -> int:
         if not 0 <= args.start < max(end, 1):
             raise SveliveError(f"--start {args.start} is outside the recording's {len(reader)} frames")
         out.mkdir(parents=True, exist_ok=True)
-        n = 0
-        for i in range(args.start, end, args.every):
-            write_raw(out / f"frame_{i:06d}.png", reader.read(i).raw)
-            n += 1
-    print(f"exported {n} frames to {out}", file=sys.stderr)
+        indices = range(args.start, end, args.every)
+        damaged: list[int] = []
+        with Progress("exporting", total=len(indices), quiet=args.quiet) as progress:
+            for i in indices:
+                try:
+                    raw = reader.read(i).raw
+                except CorruptFrameError as exc:  # skipped and counted, as the replay source does
+                    print(f"svelive export: warning: {exc}; skipped", file=sys.stderr)
+                    damaged.append(i)
+                else:
+                    write_raw(out / f"frame_{i:06d}.png", raw)
+                progress.update()
+    n = len(indices) - len(damaged)
+    skipped = f" ({len(damaged)} damaged frames skipped: {', '.join(map(str, damaged))})" if damaged else ""
+    if n == 0:
+        raise SveliveError(f"{args.path}: no intact frame to export{skipped}")
+    print(f"exported {n} frames to {out}{skipped}", file=sys.stderr)
     return 0

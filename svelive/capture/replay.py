@@ -7,11 +7,17 @@ frame index (constant-time seek). Frames keep their recorded ``frame_id``
 (shifted by the recording's id span on each loop so ids keep increasing) and
 ``device_time_ns``; ``host_time_ns`` is the delivery time. A frame whose
 checksum fails is dropped (cause ``checksum``) with a warning.
+
+``bits``, ``black_level`` and ``white_level`` replace the recorded sensor's (a
+recording made with wrong levels); ``pattern`` the recorded pattern. A path
+that is missing, a directory, or not a recording with frames fails when the
+source is built, with a one-line error.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import replace
 import time
 import warnings
 from dataclasses import dataclass
@@ -44,7 +50,8 @@ class ReplaySource(Source):
     """Frames of a recording; see the module docstring."""
 
     def __init__(self, spec: str, arg: str | None, *, pattern: str | None = None, sensor: Sensor | None = None,
-                 cfa: str | None = None, **opts: Any) -> None:
+                 cfa: str | None = None, bits: int | None = None, black_level: float | None = None,
+                 white_level: float | None = None, **opts: Any) -> None:
         super().__init__(spec, pattern=pattern, sensor=sensor, cfa=cfa)
         self.config: ReplayConfig = make_config(ReplayConfig, opts, spec)
         if self.config.speed < 0:
@@ -53,24 +60,41 @@ class ReplaySource(Source):
         self._reader: RecordingReader | None = None
         # the user's pattern as parsed (a colour layout's exposures), or None for the recorded one
         self._override = (None if pattern is None else self.camera.pattern, sensor)
+        self._levels = {k: v for k, v in (("bits", bits), ("black_level", black_level),
+                                          ("white_level", white_level)) if v is not None}
+        # a recording that can never be replayed fails here, when the source is built (a service
+        # builds its source once at start-up and would otherwise retry it for ever)
+        with RecordingReader(self._path) as reader:
+            self._check(reader)
 
-    def _open(self) -> None:
-        self._reader = RecordingReader(self._path)
-        n = len(self._reader)
+    def _check(self, reader: RecordingReader) -> None:
+        """Check that ``reader`` has frames to play from ``start`` and settle the camera from its header."""
+        n = len(reader)
         if n == 0:
-            self._reader.close()
             raise SveliveError(f"{self._path}: the recording has no replayable frames")
         if not -n <= self.config.start < n:
             raise SveliveError(f"{self.spec}: start frame {self.config.start} out of range (0..{n - 1})")
-        recorded = self._reader.camera
+        recorded = reader.camera
         pattern, sensor = self._override
+        if sensor is None:
+            try:
+                sensor = replace(recorded.sensor, **self._levels)
+            except (TypeError, ValueError, SveliveError) as exc:
+                raise SveliveError(f"{self.spec}: sensor levels {self._levels} do not fit the recording ({exc})") \
+                    from None
         self.camera = recorded if pattern is None else recorded.with_pattern(pattern)
-        try:  # the recorded colour filter stands for a pixel format: the user may not contradict it
-            self._settle_camera(sensor or recorded.sensor, None if recorded.cfa is None else str(recorded.cfa),
-                                f"{self._reader.pixel_format} frames")
+        # the recorded colour filter stands for a pixel format: the user may not contradict it
+        self._settle_camera(sensor, None if recorded.cfa is None else str(recorded.cfa),
+                            f"{reader.pixel_format} frames")
+
+    def _open(self) -> None:
+        self._reader = RecordingReader(self._path, warn=False)  # its problems were reported when built
+        try:
+            self._check(self._reader)
         except SveliveError:
             self._reader.close()
             raise
+        n = len(self._reader)
         self._timeline = self._reader.timeline_ns()
         ids = self._reader.times[:, 0]
         self._id_span = int(ids.max() - ids.min() + 1)
