@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import logging
+import re
 import sys
 
 
@@ -35,7 +37,17 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, help="threads per frame for the reconstruction (default 0: one per core)")
     p.add_argument("--host", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (default 8000)")
-    p.add_argument("--token", help="require Authorization: Bearer TOKEN (or ?token=) on every endpoint but /healthz")
+    p.add_argument("--token", help="require Authorization: Bearer TOKEN (or ?token=) on every endpoint but /healthz; "
+                                   "prefer --token-file or SVELIVE_TOKEN, which do not show in ps")
+    p.add_argument("--token-file", metavar="PATH", help="read the token from the first line of this file")
+    p.add_argument("--allowed-host", dest="allowed_hosts", action="append", metavar="NAME",
+                   help="a host name clients reach this server by (the Host header), repeatable; the bound "
+                        "address (and localhost on loopback) is always allowed")
+    p.add_argument("--header-timeout-s", type=float,
+                   help="close a connection whose request headers take longer than this (default 10)")
+    p.add_argument("--max-connections", type=int, help="refuse connections beyond this many (default 512)")
+    p.add_argument("--metrics-public", action="store_const", const=True,
+                   help="serve /metrics (Prometheus) without the token")
     p.add_argument("--cors-origin", dest="cors_origins", action="append", metavar="ORIGIN",
                    help="allow this origin by CORS, repeatable (default: no CORS)")
     p.add_argument("--jpeg-quality", type=int, help="preview JPEG quality 10..100 (default 80)")
@@ -67,6 +79,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from svelive.tonemap import warm_up as warm_up_preview
 
     from service.app import create_app, listen_socket
+    from service.protocol import bounded_protocol
     from service.pipeline import Pipeline
     from service.settings import resolve
 
@@ -74,26 +87,49 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if cli["source_options"] is not None:
         cli["source_options"] = ",".join(cli["source_options"])
     settings = resolve(cli, config=args.config)
-    config, server = settings.pipeline, settings.server
-    # build (not open) the source once, so a bad spec or option fails now with one line
-    open_source(config.source, pattern=config.pattern, cfa=config.cfa, black_level=config.black_level,
-                white_level=config.white_level, **config.source_options)
+    server = settings.server
+    configs = settings.named_pipelines()
+    for config in configs.values():
+        # build (not open) each source once, so a bad spec or option fails now with one line
+        open_source(config.source, pattern=config.pattern, cfa=config.cfa, black_level=config.black_level,
+                    white_level=config.white_level, **config.source_options)
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)
     # compile (first run on a machine, a few seconds) or load the kernels before the first live frame
     warm_up()
     warm_up_preview()  # the colour preview's kernel too
-    app = create_app(Pipeline(config), server)
+    app = create_app({name: Pipeline(config) for name, config in configs.items()}, server)
     sock = listen_socket(server)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
-    print(f"svelive serve: {config.source} on http://{shown}:{server.port}/", file=sys.stderr, flush=True)
+    for index, (name, config) in enumerate(configs.items()):
+        paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])
+        print(f"svelive serve: {config.source} on {' and '.join(reversed(paths))}", file=sys.stderr, flush=True)
+    redact_tokens(logging.getLogger("uvicorn.access"))
     try:
         uvicorn.Server(uvicorn.Config(app, log_level=server.log_level, timeout_graceful_shutdown=2,
-                                      access_log=server.log_level in ("debug", "trace"))).run(sockets=[sock])
+                                      access_log=server.log_level in ("debug", "trace"),
+                                      http=bounded_protocol(server.header_timeout_s, server.max_connections),
+                                      timeout_keep_alive=5)).run(sockets=[sock])
     finally:
         sock.close()
     return 0
+
+
+class TokenRedactor(logging.Filter):
+    """Replaces the value of ``token=`` in a log record's arguments (access logs show query strings)."""
+
+    PATTERN = re.compile(r"(token=)[^&\s\"]*", re.IGNORECASE)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(self.PATTERN.sub(r"\1***", a) if isinstance(a, str) else a for a in record.args)
+        return True
+
+
+def redact_tokens(logger: logging.Logger) -> None:
+    """Keep tokens given as ``?token=`` out of ``logger``'s output."""
+    logger.addFilter(TokenRedactor())
 
 
 def is_loopback(host: str) -> bool:

@@ -16,6 +16,7 @@ import dataclasses
 import ipaddress
 import json
 import os
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -44,6 +45,15 @@ class ServerSettings:
         log_level: uvicorn log level.
         send_buffer_kb: kernel send buffer per client connection (KiB, Linux doubles it);
             bounds how much old video a slow client can have queued; 0: the system's autotuning.
+        token_file: file holding the token (its first line); read at start-up, so the token
+            never shows in ``ps``. Exclusive with ``token``.
+        allowed_hosts: host names (besides the bound address and, on loopback, localhost) the
+            ``Host`` header may name: the names users reach this server by.
+        header_timeout_s: a connection whose request headers are not complete this long after
+            it opened (or after its previous response) is closed.
+        max_connections: open connections beyond this are refused.
+        rtsp_port: serve the preview as H.264 over RTSP on this port; 0: no RTSP.
+        metrics_public: serve /metrics without the token (for a Prometheus that cannot send one).
     """
 
     host: str = "127.0.0.1"
@@ -52,8 +62,19 @@ class ServerSettings:
     cors_origins: tuple[str, ...] = ()
     log_level: str = "info"
     send_buffer_kb: int = 256
+    token_file: str | None = None
+    allowed_hosts: tuple[str, ...] = ()
+    header_timeout_s: float = 10.0
+    max_connections: int = 512
+    rtsp_port: int = 0
+    metrics_public: bool = False
 
     def __post_init__(self) -> None:
+        if self.token_file is not None:
+            if self.token is not None:
+                raise SveliveError("give the token or a token file, not both")
+            object.__setattr__(self, "token", read_token_file(self.token_file))
+            object.__setattr__(self, "token_file", None)  # read once: the settings hold the token itself
         if not 0 <= self.port <= 65535:
             raise SveliveError(f"port must be 0..65535, got {self.port}")
         if self.host != "localhost":
@@ -66,8 +87,29 @@ class ServerSettings:
             raise SveliveError(f"token must be 1..{MAX_TOKEN_LENGTH} printable characters without spaces")
         if not 0 <= self.send_buffer_kb <= 65536:
             raise SveliveError(f"send buffer must be 0..65536 KiB, got {self.send_buffer_kb}")
+        if not 0.5 <= self.header_timeout_s <= 300:
+            raise SveliveError(f"header timeout must be 0.5..300 s, got {self.header_timeout_s}")
+        if not 8 <= self.max_connections <= 65536:
+            raise SveliveError(f"max connections must be 8..65536, got {self.max_connections}")
+        if not 0 <= self.rtsp_port <= 65535 or (self.rtsp_port and self.rtsp_port == self.port):
+            raise SveliveError(f"RTSP port must be 0 (off) or 1..65535 and not the HTTP port, got {self.rtsp_port}")
+        for name in self.allowed_hosts:
+            if not name or len(name) > 253 or any(c in name for c in " /@?#"):
+                raise SveliveError(f"allowed host {name!r} is not a host name")
         if self.log_level not in ("critical", "error", "warning", "info", "debug", "trace"):
             raise SveliveError(f"log level must be critical, error, warning, info, debug or trace, got {self.log_level!r}")
+
+
+def read_token_file(path: str) -> str:
+    """The token in ``path``: its first line, stripped; a one-line error if the file cannot give one."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            token = f.readline(MAX_TOKEN_LENGTH + 2).strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SveliveError(f"token file {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if not token:
+        raise SveliveError(f"token file {path} is empty")
+    return token
 
 
 @dataclass(frozen=True)
@@ -80,6 +122,11 @@ class ServiceSettings:
 
     server: ServerSettings = field(default_factory=ServerSettings)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    cameras: tuple[tuple[str, PipelineConfig], ...] = ()
+
+    def named_pipelines(self) -> dict[str, PipelineConfig]:
+        """Every camera to serve, by name, in order: the config file's camera list, or the one pipeline."""
+        return dict(self.cameras) if self.cameras else {DEFAULT_CAMERA: self.pipeline}
 
     @classmethod
     def from_flat(cls, values: Mapping[str, Any]) -> ServiceSettings:
@@ -97,6 +144,12 @@ class ServiceSettings:
         out = dataclasses.asdict(self)
         out["server"]["token"] = None if self.server.token is None else "***"
         return out
+
+
+#: Name of the camera when the service runs one pipeline without a camera list.
+DEFAULT_CAMERA = "main"
+#: What a camera's name may be: it is a URL path segment (``/cam/NAME/``) and a metrics label.
+CAMERA_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,31}")
 
 
 #: the dataclasses whose fields are the settings (PipelineConfig's ``tone`` and ``colour`` are the last two)
@@ -149,7 +202,7 @@ def coerce(name: str, value: Any, where: str) -> Any:
             return parse_white_balance(value)  # SveliveError is a ValueError: reported below with ``where``
         if name == "colour_matrix":
             return parse_colour_matrix(value)
-        if name == "cors_origins":
+        if name in ("cors_origins", "allowed_hosts"):
             items = value.split(",") if isinstance(value, str) else list(value)
             return tuple(item.strip() for item in items if str(item).strip())
         if "bool" in kind:
@@ -174,8 +227,9 @@ def coerce(name: str, value: Any, where: str) -> Any:
         raise SveliveError(f"{where}: bad value {value!r} for {name} ({exc})") from None
 
 
-def from_file(path: str | os.PathLike) -> dict[str, Any]:
-    """Settings from a TOML (``.toml``) or JSON (``.json``) file; the ``[serve]`` table if there is one."""
+def read_config(path: str | os.PathLike) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Settings from a TOML (``.toml``) or JSON (``.json``) file -- the ``[serve]`` table if there is
+    one -- and its camera list (``[[cameras]]`` tables, each with a ``name`` and pipeline settings)."""
     path = Path(path)
     if not path.is_file():
         raise SveliveError(f"config file {path} does not exist")
@@ -188,14 +242,49 @@ def from_file(path: str | os.PathLike) -> dict[str, Any]:
         raise SveliveError(f"config file {path}: {str(exc).splitlines()[0]}") from None
     if not isinstance(data, dict):
         raise SveliveError(f"config file {path}: expected a table of settings")
+    cameras = data.pop("cameras", None)
     data = data.get("serve", data)
+    if cameras is None and isinstance(data, dict):
+        cameras = data.pop("cameras", None)
+    if not isinstance(data, dict):
+        raise SveliveError(f"config file {path}: [serve] must be a table of settings")
+    out = settings_table(data, f"config file {path}")
+    if cameras is None:
+        return out, []
+    if not isinstance(cameras, list) or not cameras or not all(isinstance(c, dict) for c in cameras):
+        raise SveliveError(f"config file {path}: cameras must be a list of tables ([[cameras]] in TOML)")
+    tables = []
+    for index, table in enumerate(cameras):
+        where = f"config file {path}, camera {index + 1}"
+        table = dict(table)
+        name = table.pop("name", None)
+        if not isinstance(name, str) or not CAMERA_NAME.fullmatch(name):
+            raise SveliveError(f"{where}: name must be 1..32 lower-case letters, digits, - or _ "
+                               f"(it is a URL path), got {name!r}")
+        if any(t["name"] == name for t in tables):
+            raise SveliveError(f"{where}: the name {name!r} is used twice")
+        values = settings_table(table, f"{where} ({name})")
+        server_names = sorted(n for n in values if OWNER[n] is ServerSettings)
+        if server_names:
+            raise SveliveError(f"{where} ({name}): {', '.join(server_names)} belong to the server, not to a camera")
+        tables.append({"name": name, **values})
+    return out, tables
+
+
+def settings_table(data: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """A table of settings with its values coerced; an unknown name is a one-line error."""
     out = {}
     for key, value in data.items():
         name = str(key).replace("-", "_")
         if name not in FIELDS:
-            raise SveliveError(f"config file {path}: unknown setting {key!r}; known: {', '.join(FIELDS)}")
-        out[name] = coerce(name, value, f"config file {path}")
+            raise SveliveError(f"{where}: unknown setting {key!r}; known: {', '.join(FIELDS)}")
+        out[name] = coerce(name, value, where)
     return out
+
+
+def from_file(path: str | os.PathLike) -> dict[str, Any]:
+    """The flat settings of a config file (its camera list aside: see read_config)."""
+    return read_config(path)[0]
 
 
 def from_env(environ: Mapping[str, str]) -> dict[str, Any]:
@@ -212,15 +301,34 @@ def resolve(cli: Mapping[str, Any] | None = None, environ: Mapping[str, str] | N
             config: str | os.PathLike | None = None) -> ServiceSettings:
     """The effective settings: CLI values (None means "not given") over the environment over the file.
 
-    The config file is ``config`` if given, else ``$SVELIVE_CONFIG`` if set, else none.
+    The config file is ``config`` if given, else ``$SVELIVE_CONFIG`` if set, else none. With a camera
+    list in the file, each camera's table sits between the file's top level and the environment:
+    a setting given on the command line or in the environment applies to every camera, except
+    ``source`` and ``source_options``, which only a camera's table can give.
     """
     environ = os.environ if environ is None else environ
     merged: dict[str, Any] = {}
+    cameras: list[dict[str, Any]] = []
     config = config or environ.get(CONFIG_ENV) or None
     if config:
-        merged.update(from_file(config))
-    merged.update(from_env(environ))
+        file_values, cameras = read_config(config)
+        merged.update(file_values)
+    given = from_env(environ)
     for name, value in (cli or {}).items():
         if value is not None:
-            merged[name] = coerce(name, value, f"--{name.replace('_', '-')}")
-    return ServiceSettings.from_flat(merged)
+            given[name] = coerce(name, value, f"--{name.replace('_', '-')}")
+    merged.update(given)
+    settings = ServiceSettings.from_flat(merged)
+    if not cameras:
+        return settings
+    per_camera_only = sorted({"source", "source_options"} & set(given))
+    if per_camera_only:
+        raise SveliveError(f"{', '.join(per_camera_only)} given on the command line or in the environment, but "
+                           f"config file {config} lists cameras: set them in each [[cameras]] table")
+    base = {k: v for k, v in merged.items() if OWNER[k] is not ServerSettings}
+    named = []
+    for table in cameras:
+        own = {k: v for k, v in table.items() if k != "name"}
+        values = {**base, **own, **{k: v for k, v in given.items() if OWNER[k] is not ServerSettings}}
+        named.append((table["name"], ServiceSettings.from_flat(values).pipeline))
+    return dataclasses.replace(settings, pipeline=named[0][1], cameras=tuple(named))
