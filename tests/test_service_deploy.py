@@ -290,4 +290,4 @@ source_options = {{ width = 128, height = 64, fps = 10 }}
         except subprocess.TimeoutExpired:
             proc.kill()
             _, err = proc.communicate()
-    assert f"/cam/two/" in err and "t0ken" not in err
+    assert "/cam/two/" in err and "t0ken" not in err
