@@ -18,7 +18,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                    "benchmark (joint against split, every colour layout, the RGB images) and the "
                                    "stability sweeps; write results.json, results.csv, speed_accuracy.png, "
                                    "colour.json, colour.csv, colour.png, colour.md, stability.json, stability.png, colour_edges.png, "
-                                   "adaptive_choice.png and summary.md to DIR.")
+                                   "adaptive_choice.png, summary.md and the default's guard grid (grid.json, grid.csv, "
+                                   "grid.md, grid.png: every image x 4 patterns x 4 light levels x 2 true sensors x 6 "
+                                   "noise models given, the default against aggregate and weighted) to DIR.")
     p.add_argument("--quick", action="store_true",
                    help="three images, the shipped crops for colour, fewer timing runs (a couple of minutes)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR", help="directory for the results")
@@ -28,6 +30,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
     p.add_argument("--no-mono", action="store_true", help="skip the monochrome speed/accuracy run")
     p.add_argument("--no-colour", action="store_true", help="skip the colour benchmark")
+    p.add_argument("--no-grid", action="store_true",
+                   help="skip the default's guard grid (with --quick: the issue's sensor only)")
     p.set_defaults(func=cmd_bench)
 
 
@@ -64,6 +68,30 @@ def run_colour(out: Path, data: Path, quick: bool, images: tuple[str, ...], char
     write_bytes_atomic(out / "colour.md", table.encode())
     if chart:
         report.plot_colour(results, out / "colour.png")
+    return "\n" + table
+
+
+def run_grid(out: Path, data: Path, quick: bool, images: tuple[str, ...], chart: bool) -> str:
+    """The default's guard grid over the images of ``data`` (``images`` only, if given); its Markdown."""
+    from svelive.bench import report
+    from svelive.bench.scenes import find_images, load_scene
+    from svelive.bench.stability import GridConfig, markdown_grid, quick_grid_config, run_grid as grid
+
+    wanted = {name.lower() for name in images}
+    paths = [p for p in find_images(data) if not wanted or p.stem.lower() in wanted]
+    if not paths:
+        raise SveliveError(f"{data}: holds none of the images {', '.join(images)}")
+    start = time.perf_counter()
+    results = grid({p.stem: load_scene(p) for p in paths}, quick_grid_config() if quick else GridConfig(),
+                   log=lambda line: print(line, file=sys.stderr, flush=True))
+    results["seconds"] = round(time.perf_counter() - start, 1)
+    results["source"] = str(data)
+    report.write_json(out / "grid.json", results)
+    report.write_csv(out / "grid.csv", results["rows"])
+    table = markdown_grid(results["summary"])
+    write_bytes_atomic(out / "grid.md", table.encode())
+    if chart:
+        report.plot_grid(results, out / "grid.png")
     return "\n" + table
 
 
@@ -104,6 +132,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             report.plot_choice_map(truth, share, out / "adaptive_choice.png", title)
     if not args.no_colour:
         table += run_colour(out, data, args.quick, config.images, not args.no_chart)
+    if not args.no_grid:
+        table += run_grid(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_stability:
         sweeps = run_stability(colour=not args.no_colour)
         report.write_json(out / "stability.json", sweeps)

@@ -216,3 +216,38 @@ def plot_colour_edges(crops: list[dict[str, object]], path: Path) -> None:
     fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)
+
+
+def plot_grid(results: dict[str, object], path: Path) -> None:
+    """The guard grid as heat maps of the default's margin over the best rival (dB), one per metric and true sensor.
+
+    Rows: image x pattern; columns: light level x noise model given. Cells below
+    the tolerance are outlined.
+    """
+    plt = _pyplot()
+    rows, tolerance = results["rows"], results["config"]["tolerance_db"]
+    sensors = list(dict.fromkeys(r["sensor"] for r in rows))
+    lines = list(dict.fromkeys((r["image"], r["pattern"]) for r in rows))
+    columns = list(dict.fromkeys((r["stops"], r["model"]) for r in rows))
+    fig, axes = plt.subplots(len(sensors), 2, figsize=(2 + 0.22 * len(columns) * 2, 1.2 + 0.2 * len(lines) * len(sensors)),
+                             squeeze=False)
+    for i, sensor in enumerate(sensors):
+        for j, metric in enumerate(("pu21", "log")):
+            margin = np.full((len(lines), len(columns)), np.nan)
+            for r in rows:
+                if r["sensor"] == sensor:
+                    margin[lines.index((r["image"], r["pattern"])), columns.index((r["stops"], r["model"]))] = \
+                        r[f"margin_{metric}"]
+            ax = axes[i, j]
+            shown = ax.imshow(np.clip(margin, -3, 3), cmap="RdBu", vmin=-3, vmax=3, aspect="auto",
+                              interpolation="nearest")
+            for y, x in zip(*np.nonzero(margin < -tolerance)):
+                ax.add_patch(plt.Rectangle((x - 0.5, y - 0.5), 1, 1, fill=False, ec="black", lw=0.8))
+            ax.set_yticks(range(len(lines)), [f"{a} {b}" for a, b in lines], fontsize=5)
+            ax.set_xticks(range(len(columns)), [f"{s:g} {m}" for s, m in columns], fontsize=5, rotation=90)
+            ax.set_title(f"{'PU21-PSNR' if metric == 'pu21' else 'log-PSNR'} margin of the default over "
+                         f"max(aggregate, weighted), true sensor {sensor} (dB; outlined < -{tolerance:g})", fontsize=7)
+            fig.colorbar(shown, ax=ax, fraction=0.03)
+    fig.tight_layout()
+    save_figure(fig, path)
+    plt.close(fig)

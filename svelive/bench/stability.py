@@ -40,7 +40,7 @@ from svelive.reconstruction.methods import METHODS
 from svelive.pattern import Pattern
 from svelive.reconstruction.input import prepare
 from svelive.sensor import Sensor
-from svelive.simulate import simulate
+from svelive.simulate import exposure_scale, simulate
 
 SIZE = 96
 PATTERN = "1,4/16,64"
@@ -408,3 +408,167 @@ def run_stability(settings: list[Setting] | None = None, colour: bool = True) ->
     if colour:
         sweeps += [asdict(sweep) for sweep in colour_sweeps()]
     return sweeps
+
+
+# ----- the default's guard grid (issue 12): the default against aggregate and weighted in every cell -----
+
+#: Patterns of the grid: both 2x2 tiles, the line-interleaved one and a 3x3 tile (each row and column holds every exposure).
+GRID_PATTERNS: tuple[str, ...] = ("1,4/16,64", "1,2/4,8", "1/1/8/8", "1,4,16/16,1,4/4,16,1")
+#: Light: stops by which the scene's 99.9th percentile lies below the lowest exposure's full scale.
+GRID_STOPS: tuple[float, ...] = (0.0, 3.0, 5.0, 7.0)
+#: The noise model given to the methods, as factors on the true (gain, read noise); None: not given (estimated).
+GRID_MODELS: dict[str, tuple[float, float] | None] = {
+    "estimated": None, "true": (1.0, 1.0), "read x0.5": (1.0, 0.5), "read x2": (1.0, 2.0),
+    "gain x0.5": (0.5, 1.0), "gain x2": (2.0, 1.0)}
+#: The methods the default must not lose to, and the margin it may lose by (dB).
+GRID_RIVALS: tuple[str, ...] = ("aggregate", "weighted")
+GRID_TOLERANCE_DB = 0.3
+GRID_SEED = 0
+
+
+@dataclass(frozen=True)
+class TrueSensor:
+    """A sensor the grid's frames are simulated with: 12 bits, black 64, its full well and read noise."""
+
+    name: str
+    full_well_e: float
+    read_noise_dn: float
+
+    def sensor(self) -> Sensor:
+        gain = self.full_well_e / (4095.0 - 64.0)
+        return Sensor(12, 64.0, 4095.0, gain, self.read_noise_dn)
+
+
+#: The true sensors: the issue's (10 000 e- full well, read noise 2 DN) and a small-pixel one (3 000 e-, 4 DN).
+GRID_SENSORS: tuple[TrueSensor, ...] = (TrueSensor("10000e-/2DN", 10_000.0, 2.0), TrueSensor("3000e-/4DN", 3_000.0, 4.0))
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """What a grid run covers (every combination of these)."""
+
+    patterns: tuple[str, ...] = GRID_PATTERNS
+    stops: tuple[float, ...] = GRID_STOPS
+    models: tuple[str, ...] = tuple(GRID_MODELS)
+    sensors: tuple[TrueSensor, ...] = GRID_SENSORS
+    seed: int = GRID_SEED
+
+
+def quick_grid_config() -> GridConfig:
+    """The issue's sensor only: half the cells."""
+    return GridConfig(sensors=GRID_SENSORS[:1])
+
+
+def given_noise(true: Sensor, model: str) -> dict[str, float | None]:
+    """The ``gain`` and ``read_noise`` keywords of :func:`svelive.reconstruct` for a noise model of GRID_MODELS."""
+    factors = GRID_MODELS[model]
+    if factors is None:
+        return {"gain": None, "read_noise": None}
+    return {"gain": true.gain * factors[0], "read_noise": true.read_noise * factors[1]}
+
+
+class _Scores:
+    """PU21-PSNR and log-PSNR (svelive.metrics) against one truth, its encodings computed once."""
+
+    def __init__(self, truth: np.ndarray) -> None:
+        from svelive.metrics import PU21_PEAK, display_scale, pu21_encode
+
+        self._encode, self._peak = pu21_encode, PU21_PEAK
+        self._scale = display_scale(truth)
+        self._pu21 = pu21_encode(truth * self._scale)
+        self._floor = 1e-4 * float(np.percentile(truth, 99.9))
+        self._log = np.log2(np.maximum(truth, self._floor))
+        self._log_peak = float(self._log.max() - self._log.min()) or 1.0
+
+    def __call__(self, image: np.ndarray) -> tuple[float, float]:
+        """(PU21-PSNR, log-PSNR) of ``image``, dB: metrics.pu21_psnr and metrics.log_psnr against the truth."""
+        pu21 = _psnr(self._encode(image * self._scale), self._pu21, self._peak)
+        return pu21, _psnr(np.log2(np.maximum(image, self._floor)), self._log, self._log_peak)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, peak: float) -> float:
+    mse = float(np.mean((a - b) ** 2))
+    return float("inf") if mse == 0 else float(10.0 * np.log10(peak * peak / mse))
+
+
+def grid_scene_rows(name: str, scene: np.ndarray, config: GridConfig, default: str | None = None,
+                    log: Callable[[str], None] | None = None) -> list[dict[str, object]]:
+    """Every cell of one scene (linear luminance, float32 (H, W)): one row per (pattern, light, sensor, model).
+
+    A row holds PU21-PSNR and log-PSNR of the default and of each rival, and the
+    margins default - best rival (dB; negative: the default loses). ``aggregate``
+    does not use the noise model, so it runs once per frame.
+    """
+    from svelive.reconstruction.methods import DEFAULT_METHOD
+    from svelive.reconstruction.single import reconstruct
+
+    default = DEFAULT_METHOD if default is None else default
+    rows = []
+    for true in config.sensors:
+        sensor = true.sensor()
+        for pattern in config.patterns:
+            for stops in config.stops:
+                radiance = scene * np.float32(exposure_scale(scene, Pattern.parse(pattern), sensor,
+                                                             stops_below_fill=stops))
+                frame = simulate(radiance, pattern, sensor, seed=config.seed)
+                score = _Scores(frame.truth)
+                levels = {"black_level": sensor.black_level, "white_level": sensor.white_level}
+                fixed = {m: score(reconstruct(frame.raw, pattern, method=m, **levels))
+                         for m in (default, *GRID_RIVALS) if m == "aggregate"}
+                cells = []
+                for model in config.models:
+                    noise = given_noise(sensor, model)
+                    scores = {m: fixed.get(m) or score(reconstruct(frame.raw, pattern, method=m, **levels, **noise))
+                              for m in (default, *GRID_RIVALS)}
+                    row: dict[str, object] = {"image": name, "pattern": pattern, "stops": -stops,
+                                              "sensor": true.name, "model": model}
+                    for m, (pu21, logp) in scores.items():
+                        row[f"{m}_pu21"], row[f"{m}_log"] = pu21, logp
+                    for metric in ("pu21", "log"):
+                        best = max(scores[m][0 if metric == "pu21" else 1] for m in GRID_RIVALS)
+                        row[f"margin_{metric}"] = row[f"{default}_{metric}"] - best
+                    rows.append(row)
+                    cells.append(row)
+                if log is not None:
+                    worst = min(cells, key=lambda r: min(r["margin_pu21"], r["margin_log"]))
+                    log(f"{name} {pattern} {-stops:+g} stops {true.name}: worst margin "
+                        f"PU21 {worst['margin_pu21']:+.2f} log {worst['margin_log']:+.2f} dB ({worst['model']})")
+    return rows
+
+
+def grid_summary(rows: list[dict[str, object]], default: str, worst: int = 12) -> dict[str, object]:
+    """Means over the grid per method and metric, the failing cells (margin below -GRID_TOLERANCE_DB) and the worst."""
+    methods = (default, *GRID_RIVALS)
+    means = {f"{m}_{metric}": float(np.mean([r[f"{m}_{metric}"] for r in rows]))
+             for m in methods for metric in ("pu21", "log")}
+    key = lambda r: min(r["margin_pu21"], r["margin_log"])  # noqa: E731
+    failing = [r for r in rows if key(r) < -GRID_TOLERANCE_DB]
+    return {"default": default, "cells": len(rows), "means": means, "failing": len(failing),
+            "worst": sorted(rows, key=key)[:worst]}
+
+
+def markdown_grid(summary: dict[str, object]) -> str:
+    """The grid's means and worst cells as Markdown."""
+    d = summary["default"]
+    means = summary["means"]
+    lines = [f"Grid: {summary['cells']} cells; default `{d}` loses by more than {GRID_TOLERANCE_DB} dB "
+             f"in {summary['failing']}.", "",
+             "| method | mean PU21-PSNR | mean log-PSNR |", "|---|---:|---:|"]
+    for m in (d, *GRID_RIVALS):
+        lines.append(f"| {m} | {means[f'{m}_pu21']:.2f} | {means[f'{m}_log']:.2f} |")
+    lines += ["", "| image | pattern | stops | sensor | model | margin PU21 | margin log |", "|---|---|---:|---|---|---:|---:|"]
+    for r in summary["worst"]:
+        lines.append(f"| {r['image']} | {r['pattern']} | {r['stops']:g} | {r['sensor']} | {r['model']} |"
+                     f" {r['margin_pu21']:+.2f} | {r['margin_log']:+.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_grid(scenes: dict[str, np.ndarray], config: GridConfig = GridConfig(), default: str | None = None,
+             log: Callable[[str], None] | None = print) -> dict[str, object]:
+    """The grid over ``scenes`` (name -> linear luminance): {"config", "rows", "summary"}, JSON-ready."""
+    from svelive.reconstruction.methods import DEFAULT_METHOD
+
+    default = DEFAULT_METHOD if default is None else default
+    rows = [row for name, scene in scenes.items() for row in grid_scene_rows(name, scene, config, default, log)]
+    return {"config": {**asdict(config), "rivals": list(GRID_RIVALS), "tolerance_db": GRID_TOLERANCE_DB},
+            "rows": rows, "summary": grid_summary(rows, default)}
