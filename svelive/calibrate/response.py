@@ -125,6 +125,8 @@ class ResponseFitConfig:
             (``coverage_bins`` over [0, 1]) each holding at least ``coverage_count``
             ends of equations; a gap in the data ends it.
         seed: seed of the fold assignment.
+        max_equations: with several frames, locations are left out at random beyond this
+            many ratio equations (time and memory grow with them; one frame is never cut).
     """
 
     max_degree: int = 6
@@ -139,6 +141,7 @@ class ResponseFitConfig:
     coverage_bins: int = 16
     coverage_count: int = 1
     seed: int = 0
+    max_equations: int = 250_000
 
 
 @dataclass(frozen=True)
@@ -270,21 +273,54 @@ def _too_few(found: int, needed: int) -> str:
             "bright, exposed so that the lowest exposure is not saturated")
 
 
-def _collect_pairs(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: ResponseFitConfig) -> _Pairs:
-    mean, var, var_factor, count, usable = level_window_statistics(raw, pattern, sensor, cfg.window)
-    unclipped = int(np.sum(usable.sum(axis=0) >= 2))
-    if unclipped < cfg.min_locations:
-        raise SveliveError(_too_few(unclipped, cfg.min_locations))
+def _flat_levels(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: ResponseFitConfig,
+                 statistics: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(variance of each level's window value float64 (K, Y, X), flat bool (K, Y, X)) of one frame
+    from its :func:`level_window_statistics`: flat windows are unclipped and pass the chi-square
+    test against the frame's own noise curve."""
+    mean, var, var_factor, count, usable = statistics
     noise_var = _noise_variance_fn(raw, pattern, sensor)
-    K = mean.shape[0]
     flat = np.zeros_like(usable)
     var_mean = np.zeros_like(mean)
-    for k in range(K):
+    for k in range(mean.shape[0]):
         dof = int(count[k]) - 3
         limit = _chi2_quantile(cfg.flat_quantile, dof) / dof
         nv = noise_var(mean[k])
         flat[k] = usable[k] & (var[k] <= nv * limit)
         var_mean[k] = _window_mean_variance(nv, var_factor[k], sensor.range_dn)
+    return var_mean, flat
+
+
+def _collect_pairs(raws: np.ndarray | list[np.ndarray], pattern: Pattern, sensor: Sensor, cfg: ResponseFitConfig,
+                   exposures: np.ndarray | None = None,
+                   progress: Callable[[str], None] | None = None) -> _Pairs:
+    """Ratio equations between every two flat levels at a location, over all frames.
+
+    Args:
+        raws: one (H, W) frame or a list of frames of the same still scene (same shape).
+        exposures: (J K,) exposure of every (frame j, level k), frame-major (index j K + k);
+            None: the pattern's levels (one frame). Levels of equal exposure give no equation.
+    """
+    raws = [raws] if isinstance(raws, np.ndarray) else list(raws)
+    if exposures is None:
+        exposures = pattern.levels.astype(np.float64)
+    statistics = []
+    for j, raw in enumerate(raws):
+        if progress is not None and len(raws) > 1:
+            progress(f"frame {j + 1}/{len(raws)}: window statistics")
+        statistics.append(level_window_statistics(raw, pattern, sensor, cfg.window))
+    usable = np.concatenate([st[4] for st in statistics])
+    unclipped = int(np.sum(usable.sum(axis=0) >= 2))
+    if unclipped < cfg.min_locations:
+        raise SveliveError(_too_few(unclipped, cfg.min_locations))
+    if progress is not None:
+        progress("noise curve and constant regions")
+    flat_parts = [_flat_levels(raw, pattern, sensor, cfg, st) for raw, st in zip(raws, statistics)]
+    mean = np.concatenate([st[0] for st in statistics])
+    var_mean = np.concatenate([fp[0] for fp in flat_parts])
+    flat = np.concatenate([fp[1] for fp in flat_parts])
+    del statistics, flat_parts, usable
+    V = mean.shape[0]
     Y, X = mean.shape[1:]
     loc = np.arange(Y * X).reshape(Y, X)
     rng = np.random.default_rng(cfg.seed)
@@ -292,12 +328,20 @@ def _collect_pairs(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: Respo
     block_fold = rng.permutation(by * bx) % cfg.folds
     yy, xx = np.mgrid[0:Y, 0:X]
     fold = block_fold[(yy // cfg.fold_block) * bx + xx // cfg.fold_block]
+    pairs = [(a, b) if exposures[a] < exposures[b] else (b, a)
+             for a in range(V) for b in range(a + 1, V) if exposures[a] != exposures[b]]
+    keep = np.ones((Y, X), bool)
+    if len(raws) > 1:
+        # a sweep multiplies the equations (every level of every frame against every other): beyond
+        # ``max_equations`` whole locations are left out at random, which costs precision, not coverage
+        total = sum(int(np.count_nonzero(flat[lo] & flat[hi])) for lo, hi in pairs)
+        if total > cfg.max_equations:
+            keep = rng.random((Y, X)) < cfg.max_equations / total
     parts = []
-    for lo in range(K):
-        for hi in range(lo + 1, K):
-            sel = flat[lo] & flat[hi]
-            parts.append((mean[lo][sel], mean[hi][sel], var_mean[lo][sel], var_mean[hi][sel],
-                          np.full(sel.sum(), lo), np.full(sel.sum(), hi), loc[sel], fold[sel]))
+    for lo, hi in pairs:
+        sel = flat[lo] & flat[hi] & keep
+        parts.append((mean[lo][sel], mean[hi][sel], var_mean[lo][sel], var_mean[hi][sel],
+                      np.full(sel.sum(), lo), np.full(sel.sum(), hi), loc[sel], fold[sel]))
     cols = [np.concatenate([p[i] for p in parts]) for i in range(8)]
     return _Pairs(*cols)
 
@@ -384,20 +428,38 @@ def _monotone(coef: np.ndarray, measured: tuple[float, float], tolerance: float 
     return bool(inside_drop.max(initial=0.0) <= tolerance and drop.max() <= outside_tolerance)
 
 
-def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int, folds: int) -> tuple[float, float]:
-    """Mean and standard error over locations of the held-out squared normalised residual."""
+def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int,
+              folds: int) -> tuple[float, float, list[np.ndarray]]:
+    """Mean and standard error over locations of the held-out squared normalised residual,
+    and the coefficients fitted without each fold (for the jackknife band)."""
     A, y = _design(pairs, exposures, degree)
     loss = np.zeros(pairs.m_lo.size)
+    fits = []
     for f in range(folds):
         test = pairs.fold == f
         if not test.any():
             continue
         coef = _solve(pairs, exposures, degree, ~test)
+        fits.append(coef)
         sigma = _residual_sigma(_subset(pairs, test), exposures, coef)
         loss[test] = ((A[test] @ coef[1:] - y[test]) / sigma) ** 2
     _, inverse = np.unique(pairs.location, return_inverse=True)
     per_location = np.bincount(inverse, weights=loss)
-    return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size))
+    return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size)), fits
+
+
+def _jackknife_error(fold_fits: list[np.ndarray], grid: np.ndarray) -> np.ndarray:
+    """Delete-a-group jackknife standard error of f on ``grid`` from the fits without each spatial fold.
+
+    Unlike the covariance it sees that neighbouring equations share pixels and scene
+    content (each fold is a set of image blocks), so it is the honest spread of the fit
+    over scenes like this one; neither sees a model that is too stiff.
+    """
+    n = len(fold_fits)
+    if n < 2:
+        return np.full(grid.shape, math.inf)
+    curves = np.stack([P.polyval(grid, c) for c in fold_fits])
+    return np.sqrt((n - 1) / n * np.sum((curves - curves.mean(axis=0)) ** 2, axis=0))
 
 
 def _curve_uncertainty(weighted_design: np.ndarray, scale: float, grid: np.ndarray) -> np.ndarray:
@@ -490,35 +552,68 @@ def common_ratio(exposures: np.ndarray, max_power: int = 12, tolerance: float = 
     return None
 
 
-def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
-                 config: ResponseFitConfig = ResponseFitConfig()) -> Response:
-    """Fit the inverse response polynomial to one raw SVE frame.
+def _check_frames(raw: np.ndarray | list[np.ndarray], exposure_times) -> tuple[list[np.ndarray], np.ndarray]:
+    """The frames as a list and their exposure times (float64 (J,), ones for a single frame)."""
+    raws = [np.asarray(raw)] if isinstance(raw, np.ndarray) else [np.asarray(r) for r in raw]
+    if not raws:
+        raise SveliveError("response calibration needs at least one frame")
+    for i, r in enumerate(raws):
+        which = "raw frame" if len(raws) == 1 else f"frame {i + 1}"
+        if r.ndim != 2 or r.size == 0:
+            raise SveliveError(f"{which} must be a non-empty single-channel 2-D array, got shape {r.shape}")
+        if r.dtype.kind not in "ui":
+            raise SveliveError(f"response calibration takes the camera's integer raw values, got {r.dtype}")
+        if r.shape != raws[0].shape:
+            raise SveliveError(f"frame {i + 1} is {r.shape[1]}x{r.shape[0]}, frame 1 "
+                               f"{raws[0].shape[1]}x{raws[0].shape[0]}: give frames of one camera and region")
+    if exposure_times is None:
+        if len(raws) > 1:
+            raise SveliveError(f"{len(raws)} frames need their exposure times (--exposure-times T1,T2,...)")
+        return raws, np.ones(1)
+    times = np.asarray(exposure_times, np.float64).ravel()
+    if times.size != len(raws):
+        raise SveliveError(f"{times.size} exposure times for {len(raws)} frames: give one per frame")
+    if not np.all(np.isfinite(times) & (times > 0)):
+        raise SveliveError(f"exposure times must be positive numbers, got {times.tolist()}")
+    return raws, times
+
+
+def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sensor: Sensor,
+                 config: ResponseFitConfig = ResponseFitConfig(), *, exposure_times=None,
+                 progress: Callable[[str], None] | None = None) -> Response:
+    """Fit the inverse response polynomial to one raw SVE frame, or to frames at several global exposures.
+
+    With several frames of the same still scene taken at global exposure times
+    ``t_j``, every (frame j, level k) is one exposure ``t_j e_k``: the ratio
+    equations within each frame and between every two frames enter one fit with
+    their noise weights. Exposure ratios that are not powers of the pattern's
+    ratio remove the log-periodic ambiguity of one frame (:func:`common_ratio`).
 
     Args:
         raw: (H, W) uint8/uint16 raw frame, DN including black, of a static scene
-            with smooth areas spanning dark to bright.
+            with smooth areas spanning dark to bright; or a list of such frames.
         pattern: the exposure pattern with its nominal exposures.
         sensor: bit depth, black and white level.
         config: fit options.
+        exposure_times: (J,) global exposure time of every frame, any unit (needed
+            for more than one frame).
+        progress: called with a short text at each stage (e.g. for a progress line).
 
     Returns:
         The Response; ``stats`` holds the measured brightness range, the number of
-        locations and equations, the held-out error of every degree tried and the
-        exposures used.
+        locations and equations, the held-out error of every degree tried, the
+        exposures used and the uncertainty band over the measured range.
     """
-    raw = np.asarray(raw)
-    if raw.ndim != 2 or raw.size == 0:
-        raise SveliveError(f"raw frame must be a non-empty single-channel 2-D array, got shape {raw.shape}")
-    if raw.dtype.kind not in "ui":
-        raise SveliveError(f"response calibration takes the camera's integer raw values, got {raw.dtype}")
+    raws, times = _check_frames(raw, exposure_times)
     if not 1 <= config.max_degree <= 10:
         raise SveliveError(f"max degree must be 1..10, got {config.max_degree}")
     if config.window < 3 or config.window % 2 == 0:
         raise SveliveError(f"window must be odd and >= 3 tiles, got {config.window}")
     pattern = Pattern.parse(pattern)
-    if pattern.levels.size < 2:
+    if pattern.levels.size < 2 and len(raws) < 2:
         raise SveliveError("the pattern has one exposure only; response calibration needs two or more")
-    pairs = _collect_pairs(raw, pattern, sensor, config)
+    nominal = (times[:, None] / times[0] * pattern.levels.astype(np.float64)[None, :]).ravel()
+    pairs = _collect_pairs(raws, pattern, sensor, config, nominal, progress)
     n_locations = int(np.unique(pairs.location).size)
     if n_locations < config.min_locations:
         raise SveliveError(_too_few(n_locations, config.min_locations))
@@ -529,25 +624,31 @@ def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
     if flipped > 0.1:
         raise SveliveError(
             f"at {flipped:.0%} of the constant regions the higher exposure reads darker than the lower one: "
-            "this is not an SVE frame of this pattern (check --pattern and the tile origin) or the scene moved")
+            + ("this is not an SVE frame of this pattern (check --pattern and the tile origin) or the scene moved"
+               if len(raws) == 1 else "check --pattern, the order of the exposure times, and that the scene "
+               "and camera stood still"))
     used = np.concatenate([pairs.m_lo, pairs.m_hi])
     measured = (float(np.min(used)), float(np.max(used)))
     if measured[1] - measured[0] < config.min_span:
         raise SveliveError(
             f"the constant regions only cover brightness {measured[0]:.2f}..{measured[1]:.2f} of full scale "
             f"(need a span of {config.min_span:.2f}): use a scene with smooth areas over a wider range of brightness")
-    exposures = pattern.levels.astype(np.float64)
+    exposures = nominal
     iterations = 8 if config.refine_ratios else 1
     for _ in range(iterations):
         scores = {}
         fits = {}
+        fold_fits = {}
         for d in range(1, config.max_degree + 1):
+            if progress is not None:
+                progress(f"degree {d}/{config.max_degree} ({pairs.m_lo.size} equations)")
             coef = _solve(pairs, exposures, d)
             if not _monotone(coef, measured):
                 continue
-            mean, se = _held_out(pairs, exposures, d, config.folds)
+            mean, se, held = _held_out(pairs, exposures, d, config.folds)
             scores[d] = (mean, se)
             fits[d] = coef
+            fold_fits[d] = held
         if not scores:
             raise SveliveError("no polynomial degree gives a monotone response on this data; use a frame with "
                                "more smooth areas, or check the pattern and the black and white levels")
@@ -566,6 +667,7 @@ def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
     chi2 = float(np.mean(((A @ coef[1:] - y) / sigma) ** 2))
     grid = np.linspace(0.0, 1.0, 513)
     profile = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), grid)
+    del A, y, sigma
     pinned = _pinned_range(pairs, profile, grid, config.max_uncertainty, config.coverage_bins,
                            config.coverage_count)
     if pinned[1] - pinned[0] < config.min_span:
@@ -576,19 +678,27 @@ def fit_response(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor,
             "to bright and little noise")
     inside = (grid >= pinned[0]) & (grid <= pinned[1])
     uncertainty = float(profile[inside].max())
+    band_m = np.linspace(pinned[0], pinned[1], 33)
+    band_se = np.maximum(np.interp(band_m, grid, profile), _jackknife_error(fold_fits[degree], band_m))
     stats = {
         "measured_range": list(pinned),
         "data_range": list(measured),
         "uncertainty": {"brightness": grid[::16].tolist(), "standard_error": profile[::16].tolist()},
+        "band": {"brightness": band_m.tolist(), "linear": P.polyval(band_m, coef).tolist(),
+                 "standard_error": band_se.tolist()},
         "locations": n_locations,
         "equations": int(pairs.m_lo.size),
         "held_out_error": {str(d): {"mean": m, "standard_error": s} for d, (m, s) in scores.items()},
         "reduced_chi2": chi2,
         "curve_uncertainty": uncertainty,
         "exposures": exposures.tolist(),
-        "nominal_exposures": pattern.levels.tolist(),
+        "nominal_exposures": nominal.tolist(),
         "pattern": str(pattern),
-        "common_ratio": common_ratio(pattern.levels),
+        "frames": len(raws),
+        "exposure_times": times.tolist() if exposure_times is not None else None,
+        # a sweep's near-coincidences (1.5 against 4 agree to 1e-3 at the 12th root) give ripples no
+        # polynomial can follow: only common ratios within the fourth root of the smallest step count
+        "common_ratio": common_ratio(nominal) if len(raws) == 1 else common_ratio(nominal, max_power=4),
     }
     return Response(tuple(float(c) for c in coef), (0.0, 1.0), float(sensor.black_level),
                     float(sensor.white_level), stats)
