@@ -9,6 +9,7 @@ pixel its channel.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -17,6 +18,7 @@ from svelive.camera import Camera
 from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
 from svelive.frame import Frame
+from svelive.noise import NoiseEstimate, estimate_noise
 from svelive.pattern import Pattern
 from svelive.reconstruction.methods.base import SveInput, exposure_maps
 from svelive.sensor import Sensor
@@ -70,6 +72,25 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
     channels = None if camera.cfa is None else channel_map(camera.cfa, raw.shape)
     return SveInput(signal=signal, exposure=exposure, censored=censored, pattern=pattern, sensor=sensor,
                     integral=integral, cfa=camera.cfa, channels=channels)
+
+
+def with_noise_model(raw: np.ndarray, camera: Camera, inp: SveInput,
+                     noise: NoiseEstimate | None = None) -> tuple[Camera, SveInput, NoiseEstimate]:
+    """The camera and input with the noise model filled in where the sensor has none.
+
+    Given values are never overridden. When gain or read noise is unknown, ``noise`` (an
+    estimate already made) or else :func:`svelive.noise.estimate_noise` of this frame supplies it,
+    and the censoring, which depends on the noise at white, is recomputed. ``raw`` is the frame
+    ``inp`` was prepared from.
+    """
+    sensor = camera.sensor
+    if sensor.gain is not None and sensor.read_noise is not None:
+        return camera, inp, NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+    if noise is None:
+        noise = estimate_noise(raw, camera, signal=inp.signal if camera.response is not None else None)
+    sensor = noise.apply(sensor)
+    camera = camera.replace(sensor=sensor)
+    return camera, replace(inp, sensor=sensor, censored=inp.signal >= sensor.censor_level), noise
 
 
 def sensor_for(raw: np.ndarray, black_level: float = 0, white_level: float | None = None,

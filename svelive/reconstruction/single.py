@@ -10,7 +10,8 @@ from svelive.camera import Camera, camera_for_raw
 from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
-from svelive.reconstruction.input import prepare
+from svelive.noise import NoiseEstimate
+from svelive.reconstruction.input import prepare, with_noise_model
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS, MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput, smooth, support_size
 
@@ -66,7 +67,8 @@ def estimate_variance(estimate: Estimate, inp: SveInput) -> np.ndarray:
 def reconstruct(raw: np.ndarray, pattern: Pattern | str | Camera, *, cfa: ColourFilter | str | None = None,
                 method: str | None = None, black_level: float = 0, white_level: float | None = None,
                 gain: float | None = None, read_noise: float | None = None, colour: str = "joint",
-                return_confidence: bool = False, **options) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                noise: NoiseEstimate | str = "estimate", return_confidence: bool = False,
+                **options) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Reconstruct one HDR frame from one raw SVE frame.
 
     Args:
@@ -80,10 +82,14 @@ def reconstruct(raw: np.ndarray, pattern: Pattern | str | Camera, *, cfa: Colour
         black_level, white_level: DN; the white level defaults to the dtype's maximum
             (pass it for 10/12-bit data in 16-bit containers).
         gain, read_noise: electrons per DN and read noise in DN, for the noise-aware
-            weights; unknown values take the sensor defaults (sensor.py).
+            weights; unknown values are estimated from the frame (svelive.noise), see ``noise``.
         colour: with a CFA, ``"joint"`` (the method reconstructs luminance from every
             pixel and colour from the local channel ratios) or ``"split"`` (the method
             on each CFA channel alone, then demosaicing: the baseline).
+        noise: where the sensor lacks gain or read noise: ``"estimate"`` (from this frame,
+            :func:`svelive.noise.estimate_noise`), ``"default"`` (the fixed defaults of sensor.py),
+            or a :class:`svelive.noise.NoiseEstimate` already made (e.g. to print it too).
+            Given values are never overridden.
         return_confidence: also return the confidence map (see :func:`confidence_map`).
         **options: passed to the method (see its module).
 
@@ -100,6 +106,10 @@ def reconstruct(raw: np.ndarray, pattern: Pattern | str | Camera, *, cfa: Colour
         camera = camera_for_raw(raw, pattern, cfa=cfa, black_level=black_level, white_level=white_level,
                                 gain=gain, read_noise=read_noise)
     inp = prepare(raw, camera)
+    if isinstance(noise, NoiseEstimate) or noise == "estimate":
+        camera, inp, _ = with_noise_model(raw, camera, inp, noise if isinstance(noise, NoiseEstimate) else None)
+    elif noise != "default":
+        raise SveliveError(f"noise must be 'estimate', 'default' or a NoiseEstimate, got {noise!r}")
     estimate = run_method(inp, method, colour=colour, **options)
     if return_confidence:
         return estimate.image, confidence_map(estimate, inp)
