@@ -3,6 +3,10 @@
 Every frame is reconstructed with its own camera (svelive.Camera: pattern, colour filter,
 sensor, response), as the source attached it: a replayed Bayer recording comes out in colour,
 linearised through the response it was recorded with.
+
+A recording (``--source replay:FILE``) is reprocessed by svelive.reprocess: in this process,
+or with ``--workers N`` / ``--scheduler tcp://HOST:8786`` on a Dask cluster; its EXRs are
+named by the frame's index in the recording and a second run skips the complete ones.
 """
 
 from __future__ import annotations
@@ -23,7 +27,8 @@ from svelive.errors import SveliveError
 from svelive.exr import write_exr
 from svelive.frame import Frame
 from svelive.reconstruction.methods import METHODS
-from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor
+from svelive.progress import Progress, add_quiet_argument
+from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor, default_method
 from svelive.whitebalance import WhiteBalancer, exr_output
 
 #: Frame time of frames without a timestamp (plain .npy directories): 30 fps, for the white balance's smoothing.
@@ -36,10 +41,16 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                        description="Writes DIR/frame_NNNNNN.exr with channels Y (radiance, DN at exposure 1), or "
                                    "R, G, B for a colour camera, confidence (0..1) and motion (1 where the pixel "
                                    "moved). Each frame is reconstructed with its own camera (a recording's "
-                                   "pattern, colour filter, sensor and response). --source also takes a "
-                                   "plain directory of raw .npy (or PNG/TIFF/PGM) frames.")
+                                   "pattern, colour filter, sensor and response; --pattern, --bits, --black-level "
+                                   "and --white-level replace the recorded ones). --source also takes a "
+                                   "plain directory of raw .npy (or PNG/TIFF/PGM) frames. A recording "
+                                   "(replay:FILE) is read by frame index, NNNNNN is the frame's index in it, a "
+                                   "damaged frame is skipped, and a second run skips the complete EXRs; "
+                                   "--workers/--scheduler spread it over a Dask cluster (docs/reprocessing.md).")
     add_source_arguments(p)
-    p.add_argument("--method", choices=list(METHODS), help=f"single-frame method (default: {next(iter(METHODS))})")
+    p.add_argument("--method", choices=list(METHODS),
+                   help=f"single-frame method (default: {default_method(True)} with temporal fusion, "
+                        f"{default_method(False)} with --no-temporal)")
     p.add_argument("--timing", choices=EXPOSURE_TIMINGS, default="mask",
                    help="mask: all exposures integrate together; integration: exposures are different "
                         "integration times (turns on the within-frame consistency test)")
@@ -48,6 +59,16 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-temporal", action="store_true", help="no fusion across frames")
     p.add_argument("--frames", type=int, help="stop after N frames")
     p.add_argument("--half", action="store_true", help="write half floats")
+    cluster = p.add_argument_group("reprocessing a recording on a Dask cluster (replay: sources)")
+    cluster.add_argument("--workers", type=int, metavar="N",
+                         help="reconstruct on a local Dask cluster of N worker processes (one thread each)")
+    cluster.add_argument("--scheduler", metavar="tcp://HOST:8786",
+                         help="use this running Dask scheduler instead of a local cluster (its workers must "
+                              "see the recording and the output directory at the same paths)")
+    cluster.add_argument("--warmup", type=int, metavar="K",
+                         help="frames a temporal chunk runs before its first frame (default: until the fused "
+                              "history agrees with the sequential run's to float32 rounding, 133 frames)")
+    add_quiet_argument(p)
     add_colour_arguments(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output directory (created)")
     p.set_defaults(func=_reconstruct_sequence)
@@ -105,11 +126,19 @@ def frame_time_ns(frame: np.ndarray | Frame, index: int) -> int:
 def _reconstruct_sequence(args: argparse.Namespace) -> int:
     if args.frames is not None and args.frames < 1:
         raise SveliveError(f"--frames must be >= 1, got {args.frames}")
+    if args.workers is not None and not 1 <= args.workers <= 256:
+        raise SveliveError(f"--workers must be 1..256, got {args.workers}")
     settings = colour_settings(args)
+    if args.source.strip().lower().startswith("replay:"):
+        return _reprocess(args, settings)
+    if args.workers is not None or args.scheduler is not None or args.warmup is not None:
+        raise SveliveError("--workers, --scheduler and --warmup reprocess a recording: give --source replay:FILE "
+                           "(record other sources first with svelive record)")
     frames, source = _raw_frames(args)
     reconstructor: Reconstructor | None = None
     balancer = WhiteBalancer(settings)
     n = 0
+    progress = Progress("reconstructing", total=args.frames, quiet=args.quiet)
     try:
         for frame in frames:
             camera = camera_of(frame, args)
@@ -132,9 +161,11 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
                       {**channels, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
                       attributes, half=args.half)
             n += 1
+            progress.update()
             if args.frames is not None and n >= args.frames:
                 break
     finally:
+        progress.close()
         if reconstructor is not None:
             reconstructor.close()
         if source is not None:
@@ -142,4 +173,43 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
     if n == 0:
         raise SveliveError(f"{args.source}: no frames")
     print(f"{n} frames written to {args.output}")
+    return 0
+
+
+def _reprocess(args: argparse.Namespace, settings: object) -> int:
+    """``--source replay:FILE``: svelive.reprocess, in this process or on Dask."""
+    from svelive import reprocess
+    from svelive.capture import parse_spec
+    from svelive.capture.commands import parse_opts
+    from svelive.cli import print_json
+
+    _, path = parse_spec(args.source)
+    options = {"pattern": args.pattern, "cfa": args.cfa, "bits": args.bits, "black_level": args.black_level,
+               "white_level": args.white_level, **parse_opts(args.opt)}
+    job = reprocess.Job(recording=str(Path(path).resolve()), output=str(args.output.resolve()), method=args.method,
+                        temporal=not args.no_temporal, timing=args.timing,
+                        source_options={k: v for k, v in options.items() if v is not None},
+                        gain=args.gain, read_noise=args.read_noise, colour=settings, half=args.half,
+                        frames=args.frames)
+    if args.output.exists() and not args.output.is_dir():
+        raise SveliveError(f"{args.output}: exists and is not a folder")
+    reprocess.frame_count(job)  # a bad recording or option fails here, in one line, before any cluster starts
+    with Progress("reconstructing", quiet=args.quiet) as progress:
+        if args.workers is None and args.scheduler is None:
+            summary = reprocess.run_local(job, progress, args.warmup)
+        else:
+            workers = args.workers or 1
+            client = reprocess.connect(workers, args.scheduler)
+            try:
+                if args.scheduler:
+                    workers = max(1, len(client.scheduler_info().get("workers", {})))
+                summary = reprocess.run_dask(job, client, workers, progress, args.warmup)
+            finally:
+                cluster = getattr(client, "cluster", None)
+                client.close()
+                if cluster is not None and args.scheduler is None:
+                    cluster.close()
+    if summary.written + summary.complete == 0:
+        raise SveliveError(f"{args.source}: no intact frames")
+    print_json({"output": str(args.output), **summary.to_dict()})
     return 0
