@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import struct
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -18,37 +21,124 @@ from svelive.pattern import Pattern
 from svelive.sensor import Sensor, container_bits
 
 
-def sensor_from_args(raw: np.ndarray, args: argparse.Namespace) -> Sensor:
-    """Sensor levels from --bits/--black-level/--white-level, the bit depth defaulting to the container's."""
-    bits = args.bits if args.bits is not None else container_bits(raw.dtype)
+def png_significant_bits(path: Path) -> int | None:
+    """The bit depth a PNG's sBIT chunk declares for a grey image (e.g. 12 in a 16-bit file), or None."""
+    if path.suffix.lower() != ".png":
+        return None
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != b"\x89PNG\r\n\x1a\n":
+                return None
+            while True:
+                head = f.read(8)
+                if len(head) < 8:
+                    return None
+                length, kind = struct.unpack(">I4s", head)
+                if kind == b"sBIT":
+                    return int(f.read(length)[0])
+                if kind in (b"IDAT", b"IEND"):  # sBIT comes before the image data
+                    return None
+                f.seek(length + 4, 1)
+    except (OSError, IndexError, struct.error):
+        return None
+
+
+def saturation_bits(raw: np.ndarray) -> int | None:
+    """The bit depth b (9..16) whose white, 2^b - 1, is the frame's maximum and is held by a cluster
+    of pixels (at least 16 and 1/10000 of the frame): the evidence a saturated 12-bit frame in a
+    16-bit file gives. None when the maximum is not such a value."""
+    top = int(raw.max())
+    bits = top.bit_length()
+    if top != 2**bits - 1 or not 9 <= bits <= 16:
+        return None
+    return bits if int(np.count_nonzero(raw == top)) >= max(16, raw.size // 10000) else None
+
+
+def sensor_from_args(raw: np.ndarray, args: argparse.Namespace, path: Path | None = None,
+                     required: bool = True) -> Sensor:
+    """Sensor levels from --bits/--black-level/--white-level.
+
+    Without --bits the bit depth is, in order: the one --white-level implies, the PNG's sBIT
+    chunk, 8 for an 8-bit file, or a cluster of readings at 2^b - 1 (a saturated frame); a
+    16-bit file with none of these is refused with a message naming --bits (``required``) or
+    taken as 16 bits.
+    """
+    bits = args.bits
+    where = f"{path}: " if path is not None else ""
+    if bits is None and args.white is not None:
+        bits = max(int(math.ceil(args.white)).bit_length(), 1)
+    if bits is None and path is not None:
+        bits = png_significant_bits(path)
+    if bits is None:
+        bits = 8 if raw.dtype == np.uint8 else saturation_bits(raw)
+    if bits is None and not required:
+        bits = container_bits(raw.dtype)
+    if bits is None:
+        raise SveliveError(f"{where}a {8 * raw.dtype.itemsize}-bit file that does not say the sensor's bit depth "
+                           f"(values up to {int(raw.max())}, none saturated at a full-scale value): pass --bits "
+                           "(e.g. --bits 12) or --white-level")
     sensor = Sensor(bits=bits, black_level=args.black, white_level=args.white)
     if raw.max() > sensor.white_level:
-        raise SveliveError(f"the frame has values up to {int(raw.max())}, above the white level "
+        raise SveliveError(f"{where}the frame has values up to {int(raw.max())}, above the white level "
                            f"{sensor.white_level:g} of {bits} bits: pass the right --bits or --white-level")
     return sensor
 
 
+def parse_times(text: str) -> list[float]:
+    """argparse type of --exposure-times: comma-separated positive numbers."""
+    try:
+        times = [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: exposure times are numbers separated by commas, "
+                                         "e.g. 10000,15000") from None
+    if not times or not all(math.isfinite(t) and t > 0 for t in times):
+        raise argparse.ArgumentTypeError(f"{text!r}: exposure times must be positive numbers")
+    return times
+
+
+def _progress(args: argparse.Namespace):
+    """A callback printing progress lines with the elapsed time on stderr, or None with -q."""
+    if args.quiet:
+        return None
+    start = time.monotonic()
+    return lambda text: print(f"[{time.monotonic() - start:5.1f} s] {text}", file=sys.stderr, flush=True)
+
+
 def _response(args: argparse.Namespace) -> int:
-    raw = read_raw(args.raw)
-    sensor = sensor_from_args(raw, args)
+    raws = [read_raw(p) for p in args.raw]
+    sensors = [sensor_from_args(raw, args, path) for raw, path in zip(raws, args.raw)]
+    if len({(s.bits, s.white_level) for s in sensors}) > 1:
+        raise SveliveError("the frames imply different bit depths "
+                           f"({', '.join(str(s.bits) for s in sensors)}): pass --bits")
+    times = args.exposure_times
+    if len(raws) > 1 and times is None:
+        raise SveliveError(f"{len(raws)} frames need --exposure-times with one time per frame, e.g. "
+                           f"--exposure-times {','.join(str(10000 + 5000 * i) for i in range(len(raws)))}")
+    if times is not None and len(times) != len(raws):
+        raise SveliveError(f"--exposure-times gives {len(times)} times for {len(raws)} frames: give one per frame")
     config = ResponseFitConfig(max_degree=args.max_degree, window=args.window, refine_ratios=args.refine_ratios)
-    response = fit_response(raw, Pattern.parse(args.pattern), sensor, config)
+    response = fit_response(raws if len(raws) > 1 else raws[0], Pattern.parse(args.pattern), sensors[0], config,
+                            exposure_times=times, progress=_progress(args))
     save_response(response, args.output)
     lo, hi = response.stats["measured_range"]
-    print(f"degree {response.degree}, measured brightness {lo:.3f}..{hi:.3f}, "
-          f"{response.stats['locations']} constant regions -> {args.output}")
+    band = max(response.stats["band"]["standard_error"])
+    print(f"degree {response.degree}, measured brightness {lo:.3f}..{hi:.3f} (standard error up to {band:.2%} of "
+          f"full scale), {response.stats['locations']} constant regions, {response.stats['equations']} equations "
+          f"from {len(raws)} frame{'s' if len(raws) > 1 else ''} -> {args.output}")
     ratio = response.stats["common_ratio"]
     if ratio is not None:
-        print(f"note: every exposure ratio of this pattern is a power of {ratio:g}, so the frame cannot tell the "
+        what = "frame" if len(raws) == 1 else "sweep"
+        print(f"note: every exposure ratio of this {what} is a power of {ratio:g}, so it cannot tell the "
               f"curve from one with a ripple periodic in log{ratio:g}(I); the polynomial fit settles it, which "
-              "suits smooth curves but can be off by a few % of full scale on S-shaped (film) curves "
+              "suits smooth curves but can be off by a few % of full scale on S-shaped (film) curves; frames at "
+              "global exposure times whose ratio is not a power of it (e.g. 1.5) remove the ambiguity "
               "(docs/calibration.md)", file=sys.stderr)
     return 0
 
 
 def _mask(args: argparse.Namespace) -> int:
     flats = [read_raw(p) for p in args.flats]
-    sensor = [sensor_from_args(f, args) for f in flats][0]
+    sensor = [sensor_from_args(f, args, p) for f, p in zip(flats, args.flats)][0]
     mask = estimate_mask(flats, parse_tile(args.tile), sensor, MaskConfig(vignetting_degree=args.vignetting_degree))
     save_mask(mask, args.output)
     tile = "/".join(",".join(f"{v:.4g}" for v in row) for row in mask.tile_exposures)
@@ -59,7 +149,7 @@ def _mask(args: argparse.Namespace) -> int:
 
 def _noise(args: argparse.Namespace) -> int:
     frames = [read_raw(p) for p in args.frames]
-    sensor = sensor_from_args(frames[0], args)
+    sensor = sensor_from_args(frames[0], args, args.frames[0], required=False)
     pattern = Pattern.parse(args.pattern) if args.pattern else None
     model = estimate_noise(frames, sensor, pattern)
     data = model.to_dict()
@@ -70,7 +160,8 @@ def _noise(args: argparse.Namespace) -> int:
 
 
 def _levels(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--bits", type=int, help="bit depth of the raw values (default: 8 or 16 by file)")
+    p.add_argument("--bits", type=int, help="bit depth of the raw values (default: what --white-level implies, a "
+                                            "PNG's sBIT, 8 for 8-bit files, or the value saturated pixels hold)")
     p.add_argument("--black-level", dest="black", type=float, default=0.0, help="black level, DN (default 0)")
     p.add_argument("--white-level", dest="white", type=float, help="white level, DN (default 2^bits - 1)")
 
@@ -81,13 +172,18 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     cal = sub.add_parser("calibrate", help="calibrate the response, the exposure mask or the noise from data")
     verbs = cal.add_subparsers(dest="calibration", required=True, metavar="WHAT")
 
-    p = verbs.add_parser("response", help="camera response polynomial from one SVE frame of a still scene")
-    p.add_argument("raw", type=existing_file, metavar="RAW", help="raw frame (.npy, PNG, TIFF, PGM)")
+    p = verbs.add_parser("response", help="camera response polynomial from SVE frames of a still scene (one, or "
+                                          "several at different global exposure times)")
+    p.add_argument("raw", type=existing_file, nargs="+", metavar="FRAME",
+                   help="raw frame(s) (.npy, PNG, TIFF, PGM) of one still scene")
+    p.add_argument("--exposure-times", type=parse_times, metavar="T1,T2,...",
+                   help="global exposure time of every frame, in any one unit (needed for two or more frames)")
     p.add_argument("--pattern", required=True, help="exposure tile, e.g. 1,4/16,64, or a preset")
     _levels(p)
     p.add_argument("--max-degree", type=int, default=6, help="highest polynomial degree tried (default 6)")
     p.add_argument("--window", type=int, default=3, help="local window side in tiles (odd, default 3)")
     p.add_argument("--refine-ratios", action="store_true", help="re-estimate intermediate exposure ratios")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("-o", "--output", type=Path, required=True, help="response JSON to write")
     p.set_defaults(func=_response)
 
