@@ -21,7 +21,7 @@ from starlette.concurrency import run_in_threadpool
 
 from svelive.errors import SveliveError
 
-from service.guard import TokenGuard
+from service.guard import HostPolicy, SiteGuard, TokenGuard
 from service.pipeline import CalibrationBusy, Pipeline
 from service.publishers.mjpeg import StreamHub
 from service.routers import ServedCamera, calibration, metrics, settings as settings_router, snapshots, state, stream
@@ -48,15 +48,33 @@ def listen_socket(settings: ServerSettings) -> socket.socket:
     return sock
 
 
+def one_line(text: str, limit: int = 300) -> str:
+    """``text`` as one printable line any JSON encoder takes: no line breaks, lone surrogates and
+    other unencodable characters escaped, at most ``limit`` characters."""
+    line = " ".join(str(text).split())
+    line = line.encode("utf-8", "backslashreplace").decode("utf-8")
+    return line if len(line) <= limit else line[:limit - 3] + "..."
+
+
 def validation_message(exc: RequestValidationError) -> str:
-    """One line for a rejected request: where the first problem is and what it is."""
+    """One line for a rejected request: where the first problem is and what it is (never the input itself)."""
     errors = exc.errors()
     if not errors:
         return "invalid request"
     first = errors[0]
+    if first.get("type") == "json_invalid":
+        position = next((part for part in first.get("loc", ()) if isinstance(part, int)), None)
+        reason = (first.get("ctx") or {}).get("error") or "JSON decode error"
+        where = "" if position is None else f" at character {position}"
+        return one_line(f"the body is not valid JSON{where}: {reason}")
     where = ".".join(str(part) for part in first.get("loc", ()) if part != "body") or "body"
     more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-    return f"{where}: {first.get('msg', 'invalid')}{more}".replace("\n", " ")
+    return one_line(f"{where}: {first.get('msg', 'invalid')}{more}")
+
+
+def error(status: int, detail: object) -> JSONResponse:
+    """A JSON error answer ``{"detail": "one line"}``."""
+    return JSONResponse({"detail": one_line(str(detail))}, status_code=status)
 
 
 def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSettings, *,
@@ -94,15 +112,15 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
 
     @app.exception_handler(SveliveError)
     async def bad_value(request: Request, exc: SveliveError) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=422)
+        return error(422, exc)
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse({"detail": validation_message(exc)}, status_code=422)
+        return error(422, validation_message(exc))
 
     @app.exception_handler(CalibrationBusy)
     async def busy(request: Request, exc: CalibrationBusy) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=409)
+        return error(409, exc)
 
     @app.get("/healthz")
     async def healthz() -> dict[str, Any]:
@@ -121,9 +139,12 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
 
     app.add_middleware(TokenGuard, token=settings.token,
                        public=("/healthz", "/metrics") if settings.metrics_public else ("/healthz",))
-    if settings.cors_origins:  # outermost, so that it answers preflight requests (they carry no token)
+    if settings.cors_origins:  # outside the token, so that it answers preflight requests (they carry no token)
         from fastapi.middleware.cors import CORSMiddleware
 
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins),
                            allow_methods=["GET", "PUT", "POST", "DELETE"], allow_headers=["Authorization", "Content-Type"])
+    # outermost: a request for another host name (DNS rebinding) or a cross-site write goes no further
+    hosts = HostPolicy.for_server(settings.host, getattr(settings, "allowed_hosts", ()), settings.token is not None)
+    app.add_middleware(SiteGuard, hosts=hosts, cors_origins=settings.cors_origins)
     return app

@@ -114,12 +114,16 @@ class SimSource(Source):
 
 
 class ServerThread:
-    """A real uvicorn server on a free 127.0.0.1 port, in a thread, over a Pipeline on a Camera."""
+    """A real uvicorn server on a free 127.0.0.1 port, in a thread, over a Pipeline on a Camera.
 
-    def __init__(self, camera: Camera, token: str | None = None, send_buffer_kb: int = 256, **config) -> None:
+    ``server``: more ServerSettings (``cors_origins``, ``allowed_hosts``...).
+    """
+
+    def __init__(self, camera: Camera, token: str | None = None, send_buffer_kb: int = 256,
+                 server: dict | None = None, **config) -> None:
         defaults = dict(source="sim", offline_after_s=0.6, retry_s=0.2, no_signal_fps=5.0, temporal=False)
         self.pipeline = Pipeline(PipelineConfig(**{**defaults, **config}), lambda: SimSource(camera))
-        settings = ServerSettings(port=0, token=token, send_buffer_kb=send_buffer_kb)
+        settings = ServerSettings(port=0, token=token, send_buffer_kb=send_buffer_kb, **(server or {}))
         self.sock = listen_socket(settings)
         self.port = self.sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"

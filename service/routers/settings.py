@@ -13,7 +13,7 @@ from service.routers import ServedCamera
 
 
 class ToneUpdate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     exposure_ev: float | None = Field(None, ge=-16, le=16)
     key: float | None = Field(None, ge=0.01, le=0.9)
     white_percentile: float | None = Field(None, ge=50, le=100)
@@ -28,7 +28,7 @@ class SettingsUpdate(BaseModel):
     of 3, or null (none); ``output_space`` "camera" or "rec709".
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     method: str | None = Field(None, max_length=64)
     jpeg_quality: int | None = Field(None, ge=10, le=100)
     tone: ToneUpdate | None = None
