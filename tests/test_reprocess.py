@@ -1,0 +1,156 @@
+"""Reprocessing a recording (svelive.reprocess): on a local Dask cluster of 2 workers the EXRs equal
+the sequential run's, a second run skips the complete ones and redoes a truncated one; the
+progress counter; reconstruct-sequence's sensor levels for a recording."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from replay import RecordingReader
+from svelive import reprocess
+from svelive.cli import main
+from svelive.exr import read_exr
+from svelive.progress import Progress, format_progress
+from svelive.reconstruction.config import MotionConfig
+from svelive.reconstruction.stream import Reconstructor
+
+#: a short history so that a 60-frame recording splits into chunks with their full warm-up
+MOTION = MotionConfig(max_history=2)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "demo.sverec"
+    assert main(["record", "--source", "demo", "--cfa", "none", "--width", "64", "--height", "48", "--fps", "0",
+                 "--frames", "60", "--black-level", "64", "-q", "-o", str(path)]) == 0
+    return path
+
+
+@pytest.fixture(scope="module")
+def client():
+    pytest.importorskip("distributed")
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as c:
+        yield c
+
+
+def sequential(path: Path, frames: int, **kwargs) -> list:
+    """The reference: one Reconstructor over the recording's frames in order."""
+    with RecordingReader(path) as reader, Reconstructor(reader.camera, **kwargs) as reconstructor:
+        return [reconstructor.process(reader.read(i)) for i in range(frames)]
+
+
+def exr(directory: Path, i: int) -> dict[str, np.ndarray]:
+    return read_exr(reprocess.frame_path(directory, i))[0]
+
+
+def test_single_frame_method_on_dask_equals_the_sequential_run(recording: Path, client, tmp_path: Path) -> None:
+    job = reprocess.Job(str(recording), str(tmp_path), temporal=False, frames=10)
+    summary = reprocess.run_dask(job, client, 2)
+    assert (summary.written, summary.chunks, summary.reconstructed) == (10, 10, 10)  # one task per frame
+    for i, want in enumerate(sequential(recording, 10, temporal=False)):
+        got = exr(tmp_path, i)
+        np.testing.assert_array_equal(got["Y"], want.image)
+        np.testing.assert_array_equal(got["confidence"], want.confidence)
+
+
+def test_temporal_chunks_on_dask_equal_the_sequential_run_to_float_rounding(recording: Path, client,
+                                                                             tmp_path: Path) -> None:
+    want = sequential(recording, 60, motion_config=MOTION)
+    k = reprocess.fusion_warmup(MOTION)
+    assert k == 2 + 24  # the history's difference halves each frame: 24 halvings reach float32 rounding
+    job = reprocess.Job(str(recording), str(tmp_path / "k"), motion=MOTION)
+    plan = reprocess.make_plan(job, 2)
+    assert [(c.first, c.start, c.stop) for c in plan.chunks] == [(0, 0, 30), (30 - k, 30, 60)]
+    summary = reprocess.run_dask(job, client, 2)
+    assert (summary.written, summary.reconstructed) == (60, 60 + k)
+    fused = 0
+    for i in range(60):
+        got = exr(tmp_path / "k", i)
+        np.testing.assert_array_equal(got["motion"], want[i].motion)
+        np.testing.assert_allclose(got["Y"], want[i].image, rtol=2e-7, atol=0)
+        fused += int(np.count_nonzero(want[i].weight < 1))
+    assert fused > 0  # the frames were fused
+    # the warm-up is what makes it equal: chunks started cold differ
+    cold = reprocess.Job(str(recording), str(tmp_path / "cold"), motion=MOTION)
+    reprocess.run_dask(cold, client, 2, warmup=0)
+    assert not np.allclose(exr(tmp_path / "cold", 30)["Y"], want[30].image, rtol=1e-3, atol=0)
+
+
+def test_resume_skips_complete_exrs_and_redoes_a_truncated_one(recording: Path, client, tmp_path: Path) -> None:
+    job = reprocess.Job(str(recording), str(tmp_path), temporal=False, frames=6)
+    assert reprocess.run_dask(job, client, 2).written == 6
+    paths = [reprocess.frame_path(tmp_path, i) for i in range(6)]
+    before = {p: p.stat().st_mtime_ns for p in paths}
+    truncated = paths[3].read_bytes()
+    paths[3].write_bytes(truncated[: len(truncated) // 2])
+    summary = reprocess.run_dask(job, client, 2)
+    assert (summary.written, summary.complete) == (1, 5)
+    assert all(p.stat().st_mtime_ns == before[p] for p in paths if p != paths[3])
+    assert paths[3].read_bytes() == truncated  # redone, the same
+    assert not list(tmp_path.glob(".*.tmp"))  # no temporary file left behind
+
+
+def test_a_resumed_temporal_run_warms_up_before_the_missing_frames(recording: Path, tmp_path: Path) -> None:
+    job = reprocess.Job(str(recording), str(tmp_path), motion=MOTION, frames=40)
+    assert reprocess.run_local(job).written == 40
+    reprocess.frame_path(tmp_path, 35).unlink()
+    plan = reprocess.make_plan(job, 1, [i for i in range(40) if i != 35])
+    assert [(c.first, c.start, c.stop) for c in plan.chunks] == [(35 - 26, 35, 36)]
+    summary = reprocess.run_local(job)
+    assert (summary.written, summary.complete, summary.reconstructed) == (1, 39, 27)
+    want = sequential(recording, 36, motion_config=MOTION)[35]
+    np.testing.assert_allclose(exr(tmp_path, 35)["Y"], want.image, rtol=2e-7, atol=0)
+
+
+def test_workers_without_dask_is_a_one_line_error_naming_the_extra(recording: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed raises ImportError
+    assert main(["reconstruct-sequence", "--source", f"replay:{recording}", "--workers", "2", "-q",
+                 "-o", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and 'svelive[cluster]' in err and "dask[distributed]" in err
+
+
+def test_recorded_and_given_black_level_for_a_recording(recording: Path, tmp_path: Path) -> None:
+    with RecordingReader(recording) as reader:
+        camera = reader.camera
+        raw = reader.read(0)
+    assert camera.sensor.black_level == 64
+    assert main(["reconstruct-sequence", "--source", f"replay:{recording}", "--frames", "1", "--no-temporal", "-q",
+                 "-o", str(tmp_path / "recorded")]) == 0
+    np.testing.assert_array_equal(exr(tmp_path / "recorded", 0)["Y"],
+                                  Reconstructor(camera, temporal=False).process(raw).image)
+    assert main(["reconstruct-sequence", "--source", f"replay:{recording}", "--frames", "1", "--no-temporal", "-q",
+                 "--black-level", "16", "-o", str(tmp_path / "given")]) == 0
+    other = camera.replace(sensor=dataclasses.replace(camera.sensor, black_level=16))
+    got = exr(tmp_path / "given", 0)["Y"]
+    np.testing.assert_array_equal(got, Reconstructor(other, temporal=False).process(raw).image)
+    assert np.median(got) > np.median(exr(tmp_path / "recorded", 0)["Y"])
+
+
+def test_progress_counts_and_rate_and_quiet() -> None:
+    now = [0.0]
+    out = io.StringIO()
+    progress = Progress("work", total=4, stream=out, clock=lambda: now[0], log_interval_s=1.0)
+    for i in range(4):
+        now[0] += 0.75
+        progress.update(skipped=i == 0)
+    progress.close()
+    lines = out.getvalue().splitlines()
+    assert lines[-1] == "work: 4/4 frames (100%), 1 skipped, 1 frames/s"  # 3 done in 3 s
+    assert lines[0].startswith("work: 2/4 frames (50%)")  # a log line once 1 s passed, not every update
+    quiet = io.StringIO()
+    with Progress("work", stream=quiet, quiet=True) as p:
+        p.update()
+    assert quiet.getvalue() == ""
+    assert format_progress("x", 5, 10, 10.0) == "x: 5/10 frames (50%), 0.5 frames/s, 10 s left"
