@@ -9,6 +9,7 @@ per-pixel exposure map are applied once, in :mod:`svelive.reconstruction.input`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
@@ -134,15 +135,31 @@ class Camera:
 
         if not isinstance(data, dict):
             raise SveliveError(f"camera description must be a JSON object, got {type(data).__name__}")
-        s = data.get("sensor") or {}
+        s = data.get("sensor")
+        s = {} if s is None else s
         if not isinstance(s, dict):
             raise SveliveError(f"camera sensor must be a JSON object, got {type(s).__name__}")
-        try:
-            sensor = Sensor(int(s.get("bits", default_bits)), float(s.get("black_level", 0.0)),
-                            s.get("white_level"), s.get("gain"), s.get("read_noise"))
-        except (TypeError, ValueError) as exc:
-            raise SveliveError(f"camera sensor is invalid ({exc})") from None
+        for key in ("bits", "black_level", "white_level", "gain", "read_noise"):
+            value = s.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise SveliveError(f"camera sensor is invalid ({key} must be a number, got {type(value).__name__} "
+                                   f"{value!r:.40})")
+            if isinstance(value, float) and not math.isfinite(value):
+                raise SveliveError(f"camera sensor is invalid ({key} must be finite, got {value!r})")
+        bits = s.get("bits", default_bits)
+        if not (1 <= bits <= 16 and float(bits).is_integer()):
+            raise SveliveError(f"camera sensor is invalid (bits must be a whole number 1..16, got {bits!r:.20})")
+        for key in ("pattern", "cfa"):
+            if data.get(key) is not None and not isinstance(data[key], str):
+                raise SveliveError(f"camera {key} must be text or null, got {type(data[key]).__name__}")
         response = data.get("response")
+        if response is not None and not isinstance(response, dict):
+            raise SveliveError(f"camera response must be a JSON object or null, got {type(response).__name__}")
+        try:
+            sensor = Sensor(int(bits), float(s.get("black_level", 0.0)), s.get("white_level"), s.get("gain"),
+                            s.get("read_noise"))
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise SveliveError(f"camera sensor is invalid ({exc})") from None
         return cls.build(data.get("pattern"), data.get("cfa"), sensor,
                          None if response is None else Response.from_dict(response))
 

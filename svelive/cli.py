@@ -30,7 +30,10 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from svelive import __version__
+
     parser = argparse.ArgumentParser(prog="svelive", description="HDR video from spatially varying exposure (SVE) cameras.")
+    parser.add_argument("--version", action="version", version=f"svelive {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_commands(sub)

@@ -9,12 +9,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from svelive import __version__ as svelive_version
 from svelive.atomic import write_bytes_atomic
 from svelive.camera import COLOUR_LAYOUTS, Camera
+from svelive.capture.images import decode_image
 from svelive.capture.source import MONO_WORDS
 from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
-from svelive.exr import LUMA_WEIGHTS, image_channels, read_luminance, read_rgb, write_exr
+from svelive.exr import LUMA_WEIGHTS, image_channels, read_luminance, read_rgb, standard_attributes, write_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, dynamic_range_db, dynamic_range_stops, \
     unique_levels
 from svelive.reconstruction.single import methods, reconstruct
@@ -27,12 +29,15 @@ from svelive.capture.demo import COLOUR_PATTERN as DEMO_COLOUR_PATTERN, DEFAULT_
     MONO_PATTERN as DEMO_MONO_PATTERN  # noqa: E402
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
+#: The ``units`` attribute of a simulation's ground truth (the radiance the reconstruction estimates).
+TRUTH_UNITS = "radiance, DN at relative exposure 1 (simulation ground truth)"
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="dynamic range and quantisation levels of a pattern (paper sections 4-5)")
     p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', or a preset: " + ", ".join(PRESETS))
-    p.add_argument("--bits", type=int, default=8, help="bit depth of the raw values (default 8)")
+    p.add_argument("--bits", type=int, default=12, help="bit depth of the raw values (default 12, the simulated "
+                                                         "sensor's; 8 compares with the paper's figures)")
     p.set_defaults(func=_info)
 
     p = sub.add_parser("methods", help="list the reconstruction methods, the default first")
@@ -135,21 +140,29 @@ def _info(args: argparse.Namespace) -> int:
     pattern = Pattern.parse(args.pattern)
     if not 1 <= args.bits <= 16:
         raise SveliveError(f"--bits must be 1..16, got {args.bits}")
-    levels = unique_levels(pattern, args.bits)
-    print(f"pattern            {pattern}  ({len(pattern.levels)} exposures, ratio {pattern.ratio:g})")
+    print(f"pattern            {pattern}  ({len(pattern.levels)} exposures, ratio {pattern.ratio:g}), "
+          f"{args.bits}-bit readings")
     print(f"detector range     {20 * math.log10(2**args.bits - 1):.2f} dB for {args.bits} bits")
     print(f"SVE dynamic range  {dynamic_range_db(pattern, args.bits):.2f} dB = "
           f"{dynamic_range_stops(pattern, args.bits):.2f} stops (paper eq. 3)")
-    print(f"unique levels Q    {levels} (exact enumeration of the union of every exposure's levels)")
-    print(f"paper's figures    {PAPER_DR_DB} dB and Q = {PAPER_Q} for 8 bits, 4 exposures, ratio 4")
-    reference = Pattern.parse("nayar-r4")
-    ours = unique_levels(reference, 8)
-    if ours != PAPER_Q:
-        print(f"note               for the paper's case enumeration gives Q = {ours}, not {PAPER_Q}: "
+    try:
+        levels = f"{unique_levels(pattern, args.bits)} (exact enumeration of the union of every exposure's levels)"
+    except SveliveError as exc:
+        levels = f"not counted: {exc}"
+    print(f"unique levels Q    {levels}")
+    if args.bits == 8 and _is_paper_case(pattern):
+        print(f"paper's figures    {PAPER_DR_DB} dB and Q = {PAPER_Q} for 8 bits, 4 exposures, ratio 4")
+        print(f"note               enumeration gives Q = {unique_levels(pattern, 8)}, not {PAPER_Q}: "
               f"256 levels of the highest exposure plus 192 new levels from each lower one (levels q/e that "
               f"coincide count once); the paper's eq. 4 is garbled in the available text and its 869 "
               f"could not be reproduced (see docs/methods.md)")
     return 0
+
+
+def _is_paper_case(pattern: Pattern) -> bool:
+    """True for the paper's example: four exposures, each 4 times the last."""
+    levels = pattern.levels / pattern.levels[0]
+    return levels.size == 4 and bool(np.allclose(levels, [1, 4, 16, 64]))
 
 
 def _methods(args: argparse.Namespace) -> int:
@@ -173,9 +186,7 @@ def read_raw(path: Path) -> np.ndarray:
         except (ValueError, OSError, EOFError) as exc:
             raise SveliveError(f"{path}: not a readable .npy array ({exc})") from None
     else:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise SveliveError(f"{path}: not a readable {suffix[1:].upper()} image")
+        raw = decode_image(path, suffix[1:].upper())
     if raw.ndim == 3 and raw.shape[2] == 1:
         raw = raw[:, :, 0]
     if raw.ndim != 2:
@@ -225,7 +236,7 @@ def _simulate(args: argparse.Namespace) -> int:
     frame = simulate(radiance, pattern, sensor, cfa=camera.cfa, seed=args.seed)
     write_raw(args.output, frame.raw)
     if args.truth:
-        attributes = {"pattern": str(pattern), "unit": "DN at exposure 1"}
+        attributes = {"svelive": svelive_version, "units": TRUTH_UNITS, "pattern": str(pattern)}
         if camera.cfa is not None:
             attributes.update(cfa=camera.cfa.name, colourSpace="camera")
         write_exr(args.truth, image_channels(frame.truth), attributes)
@@ -260,21 +271,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
     channels, colour = colour_exr(image, settings, confidence > 0)
     if args.confidence:
         channels["confidence"] = confidence
-    write_exr(args.output, channels, {**exr_attributes(camera, method), **colour}, half=args.half)
+    write_exr(args.output, channels, standard_attributes(camera, method, extra=colour), half=args.half)
     kind = "" if camera.cfa is None else f", RGB ({settings.output_space})"
     print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}{kind}, method {method})")
     return 0
-
-
-def exr_attributes(camera: Camera, method: str) -> dict[str, object]:
-    """The header attributes every svelive EXR carries (and the colour filter of a colour camera)."""
-    sensor = camera.sensor
-    out: dict[str, object] = {"pattern": str(camera.require_pattern()), "method": method,
-                              "blackLevel": float(sensor.black_level), "whiteLevel": float(sensor.white_level),
-                              "unit": "(raw - black) / exposure, DN at exposure 1"}
-    if camera.cfa is not None:
-        out["cfa"] = camera.cfa.name
-    return out
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -289,7 +289,7 @@ def _demo(args: argparse.Namespace) -> int:
     image, confidence = reconstruct(frame.raw, camera, method=method, return_confidence=True)
     channels, colour = colour_exr(image, settings, confidence > 0)
     channels["confidence"] = confidence
-    write_exr(args.output, channels, {**exr_attributes(camera, method), **colour})
+    write_exr(args.output, channels, standard_attributes(camera, method, extra=colour))
     measured = luminance(image)[confidence > 0.5]
     low, high = np.percentile(measured, [0.1, 99.9]) if measured.size else (0.0, 0.0)
     kind = "" if camera.cfa is None else f" {camera.cfa.name} colour"

@@ -13,13 +13,16 @@ import io
 import os
 import tempfile
 from pathlib import Path
-from typing import Mapping
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 import OpenEXR
 
 from svelive.atomic import atomic_path
 from svelive.errors import SveliveError
+
+if TYPE_CHECKING:
+    from svelive.camera import Camera
 
 #: Rec. 709 / sRGB primaries: luminance from linear RGB.
 LUMA_WEIGHTS = (0.2126, 0.7152, 0.0722)
@@ -30,6 +33,25 @@ REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 
 #: Shapes of numeric attributes stored as OpenEXR vectors and matrices (V2f, V3f, M33f).
 _VECTOR_SHAPES = ((2,), (3,), (3, 3))
+
+#: What a reconstructed pixel value is, in the ``units`` attribute of every EXR svelive writes.
+UNITS = "(raw - black) / exposure, DN at relative exposure 1"
+
+#: The attribute vocabulary of every HDR frame svelive writes (the CLI, the service's snapshots,
+#: reconstruct-sequence): one name for each piece of information (:func:`standard_attributes`).
+#: Colour attributes (white balance, colour space, chromaticities) come from svelive.whitebalance.
+STANDARD_ATTRIBUTES: dict[str, str] = {
+    "svelive": "version of svelive that wrote the file",
+    "units": f"what a pixel value is: {UNITS} (per channel for colour, camera RGB before white balance)",
+    "method": "reconstruction method (svelive methods)",
+    "pattern": "exposure pattern, text form (rows by '/', values by ',')",
+    "cfa": "colour filter layout of a colour camera (absent for a monochrome one)",
+    "blackLevel": "black level, DN",
+    "whiteLevel": "white (saturation) level, DN",
+    "frameId": "frame number of a stream or recording (absent for a single frame)",
+    "timestamp": "the frame's time, seconds as text with 6 decimals: Unix time in the service, the recording's "
+                 "frame time (device clock when there is one, else the host's monotonic clock) for recorded frames",
+}
 
 _COMPRESSIONS = {
     "none": OpenEXR.NO_COMPRESSION,
@@ -75,6 +97,37 @@ def _attribute(key: str, value: object) -> object:
         if array.dtype.kind in "iuf":
             return array.astype(np.float32)
     return str(value)
+
+
+def standard_attributes(camera: Camera, method: str, *, frame_id: int | None = None,
+                        timestamp: float | None = None, extra: Mapping[str, object] | None = None) -> dict[str, object]:
+    """The header attributes of an HDR frame (:data:`STANDARD_ATTRIBUTES`), then ``extra``.
+
+    Args:
+        camera: the frame's camera (its pattern, colour filter and sensor levels are recorded).
+        method: the reconstruction method.
+        frame_id: the frame's number in its stream, or None for a single frame.
+        timestamp: the frame's time in seconds, or None (stored as text: a float attribute is float32).
+        extra: more attributes (colour, noise, motion...), added last; they may not rename a standard one.
+    """
+    from svelive import __version__
+
+    sensor = camera.sensor
+    out: dict[str, object] = {"svelive": __version__, "units": UNITS, "method": str(method),
+                              "pattern": "unknown" if camera.pattern is None else str(camera.pattern),
+                              "blackLevel": float(sensor.black_level), "whiteLevel": float(sensor.white_level)}
+    if camera.cfa is not None:
+        out["cfa"] = camera.cfa.name
+    if frame_id is not None:
+        out["frameId"] = int(frame_id)
+    if timestamp is not None:
+        out["timestamp"] = f"{float(timestamp):.6f}"
+    for key, value in (extra or {}).items():
+        if key in STANDARD_ATTRIBUTES and key in out and value != out[key]:
+            raise SveliveError(f"EXR attribute {key!r} is a standard one, set by standard_attributes: pass it as "
+                               "an argument instead")
+        out[key] = value
+    return out
 
 
 def image_channels(image: np.ndarray) -> dict[str, np.ndarray]:

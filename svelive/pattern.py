@@ -30,6 +30,16 @@ PRESETS: dict[str, str] = {
     "checker-16": "1,16/16,1",
 }
 
+#: Largest exposure over smallest a pattern may have: 2^24, 24 stops (float32 carries 24 significant bits;
+#: sensors' exposure ratios stay far below, dual gain ~2^3-2^5, optical SVE masks ~2^6-2^8).
+MAX_RATIO = float(2**24)
+#: Every exposure lies within [2^-24, 2^24]: with at most 16-bit readings, every value (raw - black) / e,
+#: its square (variances) and its inverse (noise weights) stay inside float32's normal range with room to
+#: spare. Further out float32 rounds an exposure to 0 or inf and reconstruction returns zeros.
+EXPOSURE_RANGE = (float(2**-24), float(2**24))
+#: unique_levels enumerates at most this many levels (distinct exposures x 2^bits).
+MAX_ENUMERATED_LEVELS = 1 << 24
+
 
 @dataclass(frozen=True, eq=False)
 class Pattern:
@@ -52,6 +62,7 @@ class Pattern:
             raise SveliveError(f"exposure tile must be a non-empty 2-D array, got shape {tile.shape}")
         if not np.all(np.isfinite(tile)) or np.any(tile <= 0):
             raise SveliveError(f"exposures must be finite and > 0, got {tile.tolist()}")
+        check_exposures(tile)
         tile.setflags(write=False)
         object.__setattr__(self, "tile", tile)
         if self.pixel_map is not None:
@@ -60,6 +71,7 @@ class Pattern:
                 raise SveliveError(f"per-pixel exposure map must be 2-D, got shape {pmap.shape}")
             if not np.all(np.isfinite(pmap)) or np.any(pmap <= 0):
                 raise SveliveError("per-pixel exposure map must be finite and > 0 everywhere")
+            check_exposures(pmap)
             pmap.setflags(write=False)
             object.__setattr__(self, "pixel_map", pmap)
 
@@ -100,7 +112,10 @@ class Pattern:
         widths = {len(r) for r in rows}
         if len(widths) != 1:
             raise SveliveError(f"pattern {spec!r}: rows have different lengths {[len(r) for r in rows]}")
-        return cls(np.array(rows, dtype=np.float64))
+        try:
+            return cls(np.array(rows, dtype=np.float64))
+        except SveliveError as exc:
+            raise SveliveError(f"pattern {spec!r}: {exc}") from None
 
     def with_pixel_map(self, pixel_map: np.ndarray) -> Pattern:
         """The same nominal tile with a calibrated per-pixel exposure map."""
@@ -152,6 +167,23 @@ class Pattern:
         return np.tile(idx, (-(-h // th), -(-w // tw)))[:h, :w]
 
 
+def check_exposures(exposures: np.ndarray) -> None:
+    """Refuse relative exposures (finite, > 0) that float32 reconstruction cannot represent.
+
+    One line naming the limit: each exposure within :data:`EXPOSURE_RANGE`, and the largest
+    over the smallest at most :data:`MAX_RATIO`.
+    """
+    low, high = float(np.min(exposures)), float(np.max(exposures))
+    lo, hi = EXPOSURE_RANGE
+    if high / low > MAX_RATIO:
+        raise SveliveError(f"exposures {low:g} to {high:g} span a ratio of {high / low:.3g}; at most 2^24 = "
+                           f"{MAX_RATIO:.0f} (24 stops) can be reconstructed in float32")
+    if low < lo or high > hi:
+        value = low if low < lo else high
+        raise SveliveError(f"exposure {value:g} is outside 2^-24..2^24 ({lo:.3g}..{hi:.3g}), where float32 "
+                           "reconstruction holds its values: give relative exposures (e.g. 1,4/16,64)")
+
+
 # ----- theory (paper sections 4-5) ----------------------------------------
 
 PAPER_DR_DB = 84.25  # 8 bits, e_max / e_min = 64
@@ -173,12 +205,22 @@ def unique_levels(pattern: Pattern, bits: int) -> int:
     """Number of distinct radiance values the pattern can report, counted exactly.
 
     Every exposure e_k quantises radiance to the levels q / e_k, q = 0 .. 2^bits - 1.
-    The union over exposures is enumerated with exact rational arithmetic (the
-    exposures are scaled to integers first), so coincident levels count once.
+    The union over exposures is enumerated with exact rational arithmetic, so
+    coincident levels count once: the exposures relative to the smallest (the count
+    does not depend on their scale) become fractions n/d (to 6 decimal places), each
+    level q d / n is reduced by its gcd, and distinct (numerator, denominator) pairs
+    are distinct levels. Every integer stays below 2^63 for ratios up to
+    :data:`MAX_RATIO` and bits <= 16.
     """
-    exposures = [Fraction(float(e)).limit_denominator(10**6) for e in pattern.levels]
-    scale = math.lcm(*(e.numerator for e in exposures))
+    if not 1 <= bits <= 16:
+        raise SveliveError(f"bit depth must be 1..16, got {bits}")
+    levels = pattern.levels / pattern.levels[0]
+    if levels.size * 2**bits > MAX_ENUMERATED_LEVELS:
+        raise SveliveError(f"{levels.size} exposures x 2^{bits} levels is more than {MAX_ENUMERATED_LEVELS} to "
+                           "enumerate: give a pattern with fewer distinct exposures")
+    exposures = [Fraction(float(e)).limit_denominator(10**6) for e in levels]
     q = np.arange(2**bits, dtype=np.int64)
-    # q / (n/d) = q d / n, times the lcm of the numerators: an exact integer
-    values = [q * (e.denominator * (scale // e.numerator)) for e in exposures]
-    return int(np.unique(np.concatenate(values)).size)
+    num = np.concatenate([q * e.denominator for e in exposures])
+    den = np.concatenate([np.full(q.size, e.numerator, np.int64) for e in exposures])
+    g = np.gcd(num, den)  # gcd(0, n) = n: every zero level becomes 0/1
+    return int(np.unique(np.stack([num // g, den // g], axis=1), axis=0).shape[0])

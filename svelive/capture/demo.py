@@ -67,6 +67,9 @@ LIGHT_RGB = (1.0, 0.86, 0.7)
 LIGHT_PEAK = 0.8
 #: Light profile values below this fraction of the peak are zero (no denormals; far below 1 DN).
 LIGHT_FLOOR = 1e-12
+#: Largest demo frame: 8K UHD. The demo holds about 40 bytes per pixel (scene planes, noise bank,
+#: exposure and channel maps), so this is ~1.3 GB; a larger request is refused, not attempted.
+MAX_SIZE = (7680, 4320)
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,16 @@ def light_profile(n: int, centre: float, sigma: float) -> np.ndarray:
     return p.astype(np.float32)
 
 
+def check_size(width: int | None, height: int | None) -> None:
+    """Refuse (one line) a demo frame larger than :data:`MAX_SIZE` in pixels or on either side."""
+    w, h = (v or 0 for v in (width, height))
+    most = MAX_SIZE[0] * MAX_SIZE[1]
+    if w * h > most or max(w, h) > MAX_SIZE[0]:
+        size = f"{w}x{h}" if w and h else f"width {w}" if w else f"height {h}"
+        raise SveliveError(f"demo: {size} is larger than the demo renders (at most {MAX_SIZE[0]} pixels "
+                           f"a side and {MAX_SIZE[0]}x{MAX_SIZE[1]} = {most / 1e6:.1f} MP); give a smaller --width/--height")
+
+
 class DemoSource(Source):
     """The synthetic SVE camera; see the module docstring."""
 
@@ -159,6 +172,7 @@ class DemoSource(Source):
         c = self.config
         if c.fps < 0 or any(v is not None and v < 16 for v in (c.width, c.height)):
             raise SveliveError(f"demo: need width, height >= 16 and fps >= 0, got {c.width}x{c.height} @ {c.fps}")
+        check_size(c.width, c.height)
         if c.scene not in scene_names():
             raise SveliveError(f"demo: unknown scene {c.scene!r}; choose from {', '.join(scene_names())}")
         fmt = formats.lookup(c.pixel_format) if c.pixel_format else None
@@ -185,6 +199,7 @@ class DemoSource(Source):
         width = c.width or (round((w0 - 2 * MARGIN) * c.height / (h0 - 2 * MARGIN)) if c.height else w0 - 2 * MARGIN)
         height = c.height or round((h0 - 2 * MARGIN) * width / (w0 - 2 * MARGIN))
         self.size = (int(width), int(height))
+        check_size(*self.size)
         pattern, sensor = self.camera.require_pattern(), self.sensor
         scene = cover(rgb, *self.size)
         scene = scene * np.float32(exposure_scale(scene.max(axis=2), pattern, sensor, stops_below_fill=1.0))

@@ -12,6 +12,7 @@ first; a colour or differently sized file is a one-line error naming it.
 from __future__ import annotations
 
 import glob
+import math
 import os
 import re
 import time
@@ -29,6 +30,10 @@ from svelive.frame import Frame
 from svelive.sensor import Sensor, container_bits
 
 EXTENSIONS = (".png", ".tif", ".tiff", ".pgm")
+#: Largest image decoded: 2^28 pixels (16384 x 16384; a 100-megapixel sensor's frame fits). A header
+#: claiming more is refused before OpenCV allocates anything.
+MAX_IMAGE_PIXELS = 1 << 28
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass(frozen=True)
@@ -66,11 +71,55 @@ def list_images(spec: str) -> list[str]:
     return sorted(files, key=natural_key)
 
 
+def _pnm_header(data: bytes) -> tuple[int, int, int, int] | None:
+    """(width, height, maxval, header length) of a binary PGM/PPM (``P5``/``P6``) header, or None."""
+    match = re.match(rb"P[56](?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)\s", data)
+    if match is None:
+        return None
+    return int(match[1]), int(match[2]), int(match[3]), match.end()
+
+
+def check_image_header(path: str | os.PathLike, max_pixels: int = MAX_IMAGE_PIXELS) -> None:
+    """Refuse, with one line, a PNG or binary PGM whose header claims more than ``max_pixels`` pixels or
+    more sample bytes than the file holds; other files pass (the decoder judges them)."""
+    with open(path, "rb") as f:
+        head = f.read(1024)
+        size = os.fstat(f.fileno()).st_size
+    if head.startswith(_PNG_SIGNATURE) and len(head) >= 24 and head[12:16] == b"IHDR":
+        width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        need = 0
+    else:
+        pnm = _pnm_header(head)
+        if pnm is None:
+            return
+        width, height, maxval, start = pnm
+        channels = 3 if head[1:2] == b"6" else 1
+        need = start + width * height * channels * (1 if maxval < 256 else 2)
+    if width * height > max_pixels:
+        raise SveliveError(f"{path}: the header claims {width}x{height} pixels, more than the {max_pixels} "
+                           f"(about {math.isqrt(max_pixels)}^2) a raw frame may have")
+    if need > size:
+        raise SveliveError(f"{path}: the header claims {width}x{height} pixels but the file holds only {size} "
+                           "bytes (truncated?)")
+
+
+def decode_image(path: str | os.PathLike, what: str) -> np.ndarray:
+    """An image file as OpenCV decodes it, unchanged (any dtype and channels); a one-line SveliveError
+    ``"<path>: not a readable <what> image"`` when it cannot, or when its header claims an absurd size."""
+    check_image_header(path)
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise SveliveError(f"{path}: not a readable {what} image ({reason})") from None
+    if img is None:
+        raise SveliveError(f"{path}: not a readable {what} image")
+    return img
+
+
 def read_image(path: str) -> np.ndarray:
     """One single-channel image file as uint8 or uint16 (H, W)."""
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise SveliveError(f"{path}: not a readable PNG, TIFF or PGM image")
+    img = decode_image(path, "PNG, TIFF or PGM")
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim != 2:
