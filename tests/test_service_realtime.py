@@ -1,6 +1,10 @@
-"""The real-time path: frames spread over threads give exactly the single-thread results."""
+"""The real-time path: frames spread over threads give exactly the single-thread results; the encoder stage
+counts every frame once (encoded, not watched, or dropped while busy)."""
 
 from __future__ import annotations
+
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -64,3 +68,82 @@ def test_workers_option_is_checked():
         with pytest.raises(SveliveError, match="workers"):
             Reconstructor(PATTERN, **KW, workers=bad)
     assert MotionConfig().widen == 1  # the halo the strips read is derived from it
+
+
+class EncoderHarness:
+    """An EncoderStage on its own thread, fed by hand: ``publish`` sets the newest reconstructed frame."""
+
+    def __init__(self) -> None:
+        from service.pipeline import DropCounter, EncoderStage, PipelineConfig
+
+        self.cond, self.stop, self.drops = threading.Condition(), threading.Event(), DropCounter()
+        self.current = None
+        self.stage = EncoderStage(PipelineConfig(source="sim"), lambda: self.current, lambda: True, self.cond,
+                                  self.drops, self.stop)
+        self.jpegs, self.previews = [], []
+        self.stage.add_listener(self.jpegs.append)
+        self.stage.add_preview_listener(self.previews.append)
+        self.image = np.random.default_rng(0).uniform(1, 4000, (16, 24)).astype(np.float32)
+        self.thread = threading.Thread(target=self.stage.run, daemon=True)
+        self.thread.start()
+
+    def publish(self, *seqs: int) -> None:
+        """Publish frames ``seqs`` one after the other, all under the lock: the encoder sees only the last."""
+        from service.pipeline import Published
+        from svelive.frame import HdrFrame
+
+        with self.cond:
+            for seq in seqs:
+                now = time.monotonic_ns()
+                self.current = Published(HdrFrame(self.image, None, seq, now), seq, now)
+            self.cond.notify_all()
+
+    def wait(self, predicate, what: str) -> None:
+        deadline = time.monotonic() + 10
+        while not predicate():
+            assert time.monotonic() < deadline, f"{what}: not_watched {self.stage.not_watched}, {self.drops.snapshot()}"
+            time.sleep(0.005)
+
+    def close(self) -> None:
+        self.stop.set()
+        with self.cond:
+            self.cond.notify_all()
+        self.thread.join(5)
+
+
+def test_frames_nobody_watched_are_not_drops():
+    h = EncoderHarness()
+    try:
+        for seq in range(1, 21):  # 20 frames, nobody watching
+            h.publish(seq)
+        h.stage.watch(+1)  # an MJPEG client: it gets the newest frame at once
+        h.wait(lambda: [j.hdr_seq for j in h.jpegs] == [20], "the newest frame encoded for the new watcher")
+        assert h.stage.not_watched == 19 and h.drops.snapshot() == {}
+        h.publish(21)
+        h.wait(lambda: len(h.jpegs) == 2, "frame 21")
+        h.publish(22)
+        h.wait(lambda: len(h.jpegs) == 3, "frame 22")
+        h.publish(23, 24, 25)  # while the encoder could not look: 23 and 24 are lost to the watcher
+        h.wait(lambda: len(h.jpegs) == 4, "frame 25")
+        assert [j.hdr_seq for j in h.jpegs] == [20, 21, 22, 25]
+        assert h.drops.snapshot() == {"encoder_busy": 2} and h.stage.not_watched == 19
+        h.stage.watch(-1)
+        for seq in range(26, 31):  # nobody watches again: 26..29 not watched, 30 still open for a watcher
+            h.publish(seq)
+        h.wait(lambda: h.stage.not_watched == 19 + 4, "26..29 not watched")
+        assert h.stage.snapshot_jpeg(timeout=10).hdr_seq == 30  # a snapshot takes the newest
+        h.publish(31, 32)
+        h.publish(33)
+        assert h.stage.snapshot_jpeg(timeout=10).hdr_seq == 33
+        h.wait(lambda: h.stage.not_watched == 23 + 2, "31, 32 not watched")
+        # an RTSP-like preview watcher: tone-mapped previews, no JPEG; its skipped frames are drops
+        h.stage.watch_previews(+1)
+        h.publish(34)
+        h.wait(lambda: [p.hdr_seq for p in h.previews if p.signal][-1:] == [34], "preview 34")
+        h.publish(35, 36)
+        h.wait(lambda: [p.hdr_seq for p in h.previews if p.signal][-1:] == [36], "preview 36")
+        assert h.drops.snapshot() == {"encoder_busy": 3} and h.stage.not_watched == 25
+        assert [j.hdr_seq for j in h.jpegs] == [20, 21, 22, 25, 30, 33]  # no JPEG for the preview watcher
+        h.stage.watch_previews(-1)
+    finally:
+        h.close()

@@ -19,10 +19,11 @@ One role per module:
 
 - ``config``: PipelineConfig and the checks of the run-time settings;
 - ``meters``: NewestSlot (the hand-off), RateMeter, LatencyWindow, DropCounter;
-- ``frames``: the records handed on, Published and EncodedFrame;
+- ``frames``: the records handed on, Published, PreviewFrame (tone-mapped 8-bit) and EncodedFrame;
 - ``capture``: CaptureStage (source, reconnects, online/offline);
 - ``reconstruction``: ReconstructionStage (a svelive.Reconstructor per camera and method);
-- ``encoder``: EncoderStage (tone map + JPEG, no-signal frames, listeners, watchers, snapshots);
+- ``encoder``: EncoderStage (tone map once, JPEG for MJPEG watchers, previews for RTSP, no-signal frames,
+  listeners, watchers, snapshots);
 - ``calibration``: Calibration (response in use, live response calibration, mask) and CalibrationBusy;
 - ``pipeline``: Pipeline, which wires the stages and assembles ``state()`` and ``settings()``.
 """
@@ -31,12 +32,12 @@ from service.pipeline.calibration import Calibration, CalibrationBusy
 from service.pipeline.capture import CaptureStage
 from service.pipeline.config import FALLBACK_PATTERN, PipelineConfig, check_jpeg_quality, check_method
 from service.pipeline.encoder import EncoderStage, encode_jpeg, no_signal_image
-from service.pipeline.frames import EncodedFrame, Published, monotonic_to_wall
+from service.pipeline.frames import EncodedFrame, Published, PreviewFrame, monotonic_to_wall
 from service.pipeline.meters import WINDOW, DropCounter, LatencyWindow, NewestSlot, RateMeter
 from service.pipeline.pipeline import Pipeline, opencv_threads
 from service.pipeline.reconstruction import ReconstructionStage
 
 __all__ = ["FALLBACK_PATTERN", "WINDOW", "Calibration", "CalibrationBusy", "CaptureStage", "DropCounter",
            "EncodedFrame", "EncoderStage", "LatencyWindow", "NewestSlot", "Pipeline",
-           "PipelineConfig", "Published", "RateMeter", "ReconstructionStage", "check_jpeg_quality", "check_method",
+           "PipelineConfig", "PreviewFrame", "Published", "RateMeter", "ReconstructionStage", "check_jpeg_quality", "check_method",
            "encode_jpeg", "monotonic_to_wall", "no_signal_image", "opencv_threads"]

@@ -1,5 +1,7 @@
-"""The encoder stage: tone map + JPEG of the newest HdrFrame while someone watches, "no signal" frames
-while the source is offline, and the hand-off of every JPEG to the listeners (the HTTP fan-out).
+"""The encoder stage: tone map of the newest HdrFrame while someone watches, then JPEG while MJPEG clients
+watch, "no signal" frames while the source is offline, and the hand-off of every JPEG to the listeners (the
+HTTP fan-out) and of every tone-mapped 8-bit preview to the preview listeners (RTSP): the tone map runs once
+for both.
 
 Colour frames (linear camera RGB) are white-balanced (fixed, or the automatic estimate smoothed over
 frame time) and taken through the optional camera -> Rec.709 matrix on their way into the tone map,
@@ -20,7 +22,7 @@ from svelive.tonemap import ToneMapper, ToneSettings
 from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, exr_output, output_matrix
 
 from service.pipeline.config import PipelineConfig
-from service.pipeline.frames import EncodedFrame, Published, monotonic_to_wall
+from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
 
 
@@ -47,9 +49,15 @@ class EncoderStage:
     """The encoder thread's loop, its listeners, watchers and snapshot requests.
 
     Waits on ``cond`` (shared with the reconstruction stage, which notifies it on
-    every new frame) and encodes ``latest()`` once per new frame, only while a
-    client watches or a snapshot is asked. ``tone``, ``colour`` and ``jpeg_quality``
-    may be changed at run time (under ``cond``).
+    every new frame) and tone-maps ``latest()`` once per new frame while anyone
+    wants it: the 8-bit preview goes to the preview listeners (RTSP) while
+    ``preview_watchers`` > 0, and is JPEG-encoded for the JPEG listeners (MJPEG)
+    only while ``watchers`` > 0 or a snapshot is asked. ``tone``, ``colour`` and
+    ``jpeg_quality`` may be changed at run time (under ``cond``).
+
+    Every published frame is counted once: encoded, ``not_watched`` (skipped while
+    nobody streamed: not a drop) or the drop ``encoder_busy`` (skipped while someone
+    streamed, because the encoder was still busy with an earlier frame).
     """
 
     def __init__(self, config: PipelineConfig, latest: Callable[[], Published | None], online: Callable[[], bool],
@@ -67,63 +75,112 @@ class EncoderStage:
         self._balancer = WhiteBalancer(config.colour)
         self._encoded: EncodedFrame | None = None
         self._last_signal: EncodedFrame | None = None
+        self._preview: PreviewFrame | None = None
         self.watchers = 0
+        self.preview_watchers = 0
         self._snapshot_waiters = 0
         self._listeners: list[Callable[[EncodedFrame], None]] = []
+        self._preview_listeners: list[Callable[[PreviewFrame], None]] = []
+        #: reconstructed frames skipped while nobody streamed (neither JPEG nor preview watchers): not drops
+        self.not_watched = 0
+        #: the newest Published.seq counted as encoded, not_watched or encoder_busy (under ``cond``)
+        self._accounted = 0
         self.encoded = RateMeter()
-        self.latency = {name: LatencyWindow() for name in ("encode", "arrival_to_jpeg")}
+        self.previews = RateMeter()
+        self.latency = {name: LatencyWindow() for name in ("tone_map", "encode", "arrival_to_jpeg")}
 
     def run(self) -> None:
         """The encoder thread: until ``stop`` is set."""
         mapper = ToneMapper(self.tone)
         last_no_signal = 0
-        seq = 0
+        seq = preview_seq = 0
         no_signal_period_ns = 1e9 / self.config.no_signal_fps
         while True:
             with self._cond:
                 while True:
                     if self._stop.is_set():
                         return
-                    latest, encoded = self._latest(), self._last_signal
-                    watching = self.watchers > 0
-                    encoded_hdr_seq = encoded.hdr_seq if encoded is not None else 0
-                    new_frame = (watching or self._snapshot_waiters > 0) and latest is not None \
-                        and latest.seq > encoded_hdr_seq
+                    latest, encoded, mapped = self._latest(), self._last_signal, self._preview
+                    streaming = self.watchers > 0 or self.preview_watchers > 0
+                    want_jpeg = self.watchers > 0 or self._snapshot_waiters > 0
+                    jpeg_seq = encoded.hdr_seq if encoded is not None else 0
+                    mapped_seq = mapped.hdr_seq if mapped is not None else 0
+                    if not streaming:
+                        self._count_not_watched()
+                    new_jpeg = want_jpeg and latest is not None and latest.seq > jpeg_seq
+                    new_preview = self.preview_watchers > 0 and latest is not None and latest.seq > mapped_seq
                     now = time.monotonic_ns()
-                    no_signal = watching and not self._online() and now - last_no_signal >= no_signal_period_ns
-                    if new_frame or no_signal:
+                    no_signal = streaming and not self._online() and now - last_no_signal >= no_signal_period_ns
+                    if new_jpeg or new_preview or no_signal:
                         break
                     self._cond.wait(timeout=0.1)
                 tone, colour, quality = self.tone, self.colour, self.jpeg_quality
-            if new_frame:
-                if watching and encoded is not None and latest.seq > encoded_hdr_seq + 1:
-                    self._drops.count("encoder_busy", latest.seq - encoded_hdr_seq - 1)
-                mapper.configure(tone)
+                jpeg_wanted = self.watchers > 0 or (new_jpeg and self._snapshot_waiters > 0)
+                preview_wanted = self.preview_watchers > 0
+                if new_jpeg or new_preview:
+                    skipped = latest.seq - self._accounted - 1
+                    if skipped > 0 and streaming:
+                        self._drops.count("encoder_busy", skipped)
+                    elif skipped > 0:
+                        self.not_watched += skipped
+                    self._accounted = max(self._accounted, latest.seq)
+            item: EncodedFrame | None = None
+            if new_jpeg or new_preview:
                 start = time.monotonic_ns()
-                display = self._resize(self._tone_map(mapper, latest, colour))
-                jpeg = encode_jpeg(display, quality)
-                done = time.monotonic_ns()
-                seq += 1
-                item = EncodedFrame(seq, jpeg, True, latest.hdr.frame_id, latest.seq, latest.hdr.host_time_ns,
-                                    latest.wall_time, display.shape[1], display.shape[0])
-                self.latency["encode"].add((done - start) / 1e6)
-                self.latency["arrival_to_jpeg"].add((done - latest.hdr.host_time_ns) / 1e6)
+                if latest.seq > mapped_seq:
+                    mapper.configure(tone)
+                    display = self._resize(self._tone_map(mapper, latest, colour))
+                    display.flags.writeable = False
+                    preview_seq += 1
+                    mapped = PreviewFrame(preview_seq, display, True, latest.hdr.frame_id, latest.seq,
+                                          latest.hdr.host_time_ns)
+                    self.previews.tick()
+                    self.latency["tone_map"].add((time.monotonic_ns() - start) / 1e6)
+                if new_jpeg:
+                    jpeg = encode_jpeg(mapped.image, quality)
+                    done = time.monotonic_ns()
+                    seq += 1
+                    item = EncodedFrame(seq, jpeg, True, latest.hdr.frame_id, latest.seq, latest.hdr.host_time_ns,
+                                        latest.wall_time, mapped.image.shape[1], mapped.image.shape[0])
+                    self.latency["encode"].add((done - start) / 1e6)
+                    self.latency["arrival_to_jpeg"].add((done - latest.hdr.host_time_ns) / 1e6)
+                preview = mapped if new_preview else None
             else:
                 last_no_signal = now
                 width, height = (latest.hdr.image.shape[1], latest.hdr.image.shape[0]) if latest else (640, 360)
                 display = self._resize(no_signal_image(width, height))
-                seq += 1
-                item = EncodedFrame(seq, encode_jpeg(display, quality), False, None, encoded_hdr_seq, now,
-                                    monotonic_to_wall(now), display.shape[1], display.shape[0])
-            self.encoded.tick()
+                display.flags.writeable = False
+                preview = None
+                if preview_wanted:
+                    preview_seq += 1
+                    preview = PreviewFrame(preview_seq, display, False, None, latest.seq if latest else 0, now)
+                if jpeg_wanted:
+                    seq += 1
+                    item = EncodedFrame(seq, encode_jpeg(display, quality), False, None, jpeg_seq, now,
+                                        monotonic_to_wall(now), display.shape[1], display.shape[0])
+            if item is not None:
+                self.encoded.tick()
             with self._cond:
-                self._encoded = item
-                if item.signal:
-                    self._last_signal = item
-                listeners = list(self._listeners)
+                self._preview = mapped
+                if item is not None:
+                    self._encoded = item
+                    if item.signal:
+                        self._last_signal = item
+                listeners = list(self._listeners) if item is not None else []
+                preview_listeners = list(self._preview_listeners) if preview is not None else []
                 self._cond.notify_all()
             for listener in listeners:
                 listener(item)
+            for preview_listener in preview_listeners:
+                preview_listener(preview)
+
+    def _count_not_watched(self) -> None:
+        """Under ``cond``, while nobody streams: count the frames published since the last one accounted as
+        not watched, all but the newest (a watcher may still come for it)."""
+        latest = self._latest()
+        if latest is not None and latest.seq - 1 > self._accounted:
+            self.not_watched += latest.seq - 1 - self._accounted
+            self._accounted = latest.seq - 1
 
     def _tone_map(self, mapper: ToneMapper, latest: Published, colour: ColourSettings) -> np.ndarray:
         """The preview of one frame: uint8 (H, W), or (H, W, 3) BGR for colour (white balance and matrix applied)."""
@@ -171,10 +228,36 @@ class EncoderStage:
                 self._listeners.remove(callback)
 
     def watch(self, delta: int) -> None:
-        """Add (+1) or remove (-1) a stream client; the encoder runs only while there is one."""
+        """Add (+1) or remove (-1) a JPEG stream client; JPEGs are encoded only while there is one."""
         with self._cond:
+            if self.watchers == 0 and self.preview_watchers == 0:
+                self._count_not_watched()  # before the first watcher: its frames were nobody's
             self.watchers = max(0, self.watchers + delta)
             self._cond.notify_all()
+
+    def add_preview_listener(self, callback: Callable[[PreviewFrame], None]) -> None:
+        """Call ``callback(PreviewFrame)`` from the encoder thread for every new preview while
+        ``preview_watchers`` > 0. The callback must be quick (hand the image on, never encode in it)."""
+        with self._cond:
+            self._preview_listeners.append(callback)
+
+    def remove_preview_listener(self, callback: Callable[[PreviewFrame], None]) -> None:
+        with self._cond:
+            if callback in self._preview_listeners:
+                self._preview_listeners.remove(callback)
+
+    def watch_previews(self, delta: int) -> None:
+        """Add (+1) or remove (-1) a preview consumer (an RTSP stream with clients); frames are tone-mapped
+        for the preview listeners only while there is one, and JPEG-encoded only for ``watch``."""
+        with self._cond:
+            if self.watchers == 0 and self.preview_watchers == 0:
+                self._count_not_watched()
+            self.preview_watchers = max(0, self.preview_watchers + delta)
+            self._cond.notify_all()
+
+    def latest_preview(self) -> PreviewFrame | None:
+        """The newest tone-mapped frame (never a no-signal one), or None before the first."""
+        return self._preview
 
     def latest_jpeg(self) -> EncodedFrame | None:
         """The newest preview JPEG (possibly a no-signal frame), or None."""

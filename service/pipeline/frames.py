@@ -1,9 +1,12 @@
-"""The records the stages hand on: :class:`Published` (reconstructed) and :class:`EncodedFrame` (preview JPEG)."""
+"""The records the stages hand on: :class:`Published` (reconstructed), :class:`PreviewFrame` (the tone-mapped
+8-bit preview) and :class:`EncodedFrame` (preview JPEG)."""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+
+import numpy as np
 
 from svelive.frame import HdrFrame
 from svelive.camera import Camera
@@ -65,3 +68,29 @@ class EncodedFrame:
     wall_time: float
     width: int
     height: int
+
+
+@dataclass(frozen=True)
+class PreviewFrame:
+    """One tone-mapped 8-bit preview image, before JPEG, handed to the video publishers (RTSP).
+
+    Attributes:
+        seq: the encoder's counter of previews (no-signal ones included).
+        image: uint8 (H, W) grey or (H, W, 3) BGR, read-only (shared by every publisher and the JPEG).
+        signal: False for a "no signal" placeholder.
+        frame_id: the source frame id (None for no-signal frames).
+        hdr_seq: the Published.seq it was made from (the last one seen, for no-signal frames).
+        host_time_ns: arrival time of the source frame (monotonic clock; creation time for no-signal frames).
+    """
+
+    seq: int
+    image: np.ndarray
+    signal: bool
+    frame_id: int | None
+    hdr_seq: int
+    host_time_ns: int
+
+    @property
+    def wall_time(self) -> float:
+        """``host_time_ns`` as Unix seconds."""
+        return monotonic_to_wall(self.host_time_ns)

@@ -1,0 +1,478 @@
+"""RTSP/H.264 publisher: the tone-mapped preview for media servers, recorders and players.
+
+GStreamer's RTSP server (``gst-rtsp-server`` through PyGObject) serves one shared
+media per mount point:
+
+    encoder thread ──PreviewFrame──> appsrc (holds 1 frame, drops the older) ─> videoconvert (grey/BGR: I420)
+                                     ─> x264enc (zerolatency, no B-frames, 1 s GOP) ─> rtph264pay ─> clients
+
+- Encoded once for every client: the media is shared (``set_shared(True)``).
+- Encoded only while a client is connected: the media is built when the first
+  client asks for it and torn down after the last one leaves; only between the
+  two does the publisher ask the encoder stage for previews (``watch_previews``),
+  so with no client nothing is tone-mapped for RTSP and nothing is H.264-encoded
+  (``frames_pushed`` and ``frames_encoded`` in :meth:`RtspPublisher.state` prove it).
+- Never a queue: the appsrc holds one frame and drops the older one when the
+  encoder is still busy; x264's zerolatency tune has no look-ahead and no
+  frame threads; the payloader sends each frame as soon as it is encoded.
+- Token: with a token every request needs it, as the password of RTSP basic
+  authentication (any user name: ``rtsp://svelive:TOKEN@host:8554/live``) or as
+  ``?token=TOKEN`` in the URL; a missing or wrong one gets ``401 Unauthorized``
+  with a basic challenge, so clients that hold credentials in the URL retry with them.
+- The GLib main loop of the server runs in a thread of its own (its own main context).
+
+Debian packages: gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
+gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly (x264enc); clients in the tests: gstreamer1.0-plugins-good
+(rtspsrc) and gstreamer1.0-libav (avdec_h264).
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import collections
+import hmac
+import threading
+import time
+import urllib.parse
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from svelive.errors import SveliveError
+
+from service.pipeline import LatencyWindow, Pipeline, PreviewFrame, RateMeter
+
+#: What to install when the GStreamer RTSP server or its plugins are missing.
+SETUP_HINT = ("apt-get install gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-good "
+              "gstreamer1.0-plugins-ugly")
+#: The elements the media needs (x264enc is in gstreamer1.0-plugins-ugly).
+ELEMENTS = ("appsrc", "videoconvert", "x264enc", "rtph264pay")
+#: Bits per pixel per frame of the default H.264 rate: about 4.8 Mbit/s at 1920x1200 and 30 fps.
+BITS_PER_PIXEL = 0.07
+#: The media factory role a valid token gives (what it may do: see ``_serve``).
+ROLE = "viewer"
+#: Timecode: bits of the capture time in ms, and the side of one bit's square in pixels.
+TIMECODE_BITS = 48
+TIMECODE_BLOCK = 8
+
+
+def gstreamer() -> tuple[Any, Any, Any, Any]:
+    """The GStreamer modules ``(Gst, GstRtspServer, GstRtsp, GLib)``, initialised.
+
+    Raises a one-line SveliveError naming the packages when the typelibs or an element are missing.
+    """
+    try:
+        import gi
+
+        gi.require_version("Gst", "1.0")
+        gi.require_version("GstRtspServer", "1.0")
+        gi.require_version("GstRtsp", "1.0")
+        from gi.repository import GLib, Gst, GstRtsp, GstRtspServer
+    except (ImportError, ValueError) as exc:
+        raise SveliveError(f"RTSP needs PyGObject and GStreamer's RTSP server ({exc}); install: {SETUP_HINT}") \
+            from None
+    if not Gst.is_initialized():
+        Gst.init(None)
+    missing = [name for name in ELEMENTS if Gst.ElementFactory.find(name) is None]
+    if missing:
+        raise SveliveError(f"RTSP needs the GStreamer element(s) {', '.join(missing)}; install: {SETUP_HINT}")
+    return Gst, GstRtspServer, GstRtsp, GLib
+
+
+@dataclass(frozen=True)
+class H264Settings:
+    """The encoder's settings.
+
+    Attributes:
+        fps: the nominal frame rate (caps, keyframe interval and bitrate; the timestamps are the real ones).
+        keyframe_s: seconds between keyframes (a client that joins waits at most this long for a picture).
+        bitrate_kbps: H.264 rate in kbit/s; 0: from the frame size (``BITS_PER_PIXEL``).
+        speed_preset: x264's speed preset (``ultrafast``, ``superfast``, ``veryfast``...).
+        threads: x264 threads (0: x264 chooses; with zerolatency they are slice threads, no added latency).
+    """
+
+    fps: float = 30.0
+    keyframe_s: float = 1.0
+    bitrate_kbps: int = 0
+    speed_preset: str = "ultrafast"
+    threads: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.fps <= 240:
+            raise SveliveError(f"RTSP fps must be in (0, 240], got {self.fps}")
+        if not 0 < self.keyframe_s <= 60:
+            raise SveliveError(f"RTSP keyframe interval must be in (0, 60] s, got {self.keyframe_s}")
+        if not 0 <= self.bitrate_kbps <= 100_000:
+            raise SveliveError(f"RTSP bitrate must be 0 (from the size) to 100000 kbit/s, got {self.bitrate_kbps}")
+        if self.speed_preset not in ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"):
+            raise SveliveError(f"unknown x264 speed preset {self.speed_preset!r}; use ultrafast or superfast")
+
+    def bitrate_for(self, width: int, height: int) -> int:
+        """kbit/s for frames of ``width`` x ``height`` pixels: the configured rate, or one from the size."""
+        return self.bitrate_kbps or bitrate_kbps(width, height, self.fps)
+
+
+def bitrate_kbps(width: int, height: int, fps: float, bits_per_pixel: float = BITS_PER_PIXEL) -> int:
+    """An H.264 rate in kbit/s for a live preview: ``bits_per_pixel`` per pixel per frame, at least 200."""
+    return max(200, int(round(width * height * fps * bits_per_pixel / 1000)))
+
+
+def launch_description(width: int, height: int, grey: bool, settings: H264Settings) -> str:
+    """The gst-launch description of the shared media for frames of this size and kind.
+
+    appsrc: live, timestamped at push, one frame held, the older dropped (never a
+    queue); x264: zerolatency (no look-ahead, no frame threads), no B-frames, a
+    keyframe every ``keyframe_s``, constrained baseline (every decoder, browsers
+    included); the payloader repeats SPS/PPS with every keyframe (a client can join at any one).
+    """
+    fps = max(1, int(round(settings.fps)))
+    caps = f"video/x-raw,format={'GRAY8' if grey else 'BGR'},width={width},height={height},framerate={fps}/1"
+    gop = max(1, int(round(settings.fps * settings.keyframe_s)))
+    return (f"( appsrc name=src is-live=true do-timestamp=true format=time block=false max-buffers=1 "
+            f"leaky-type=downstream caps=\"{caps}\" "
+            f"! videoconvert ! video/x-raw,format=I420 "
+            f"! x264enc name=enc tune=zerolatency speed-preset={settings.speed_preset} "
+            f"bitrate={settings.bitrate_for(width, height)} key-int-max={gop} bframes=0 threads={settings.threads} "
+            f"! video/x-h264,profile=constrained-baseline "
+            f"! rtph264pay name=pay0 pt=96 config-interval=-1 aggregate-mode=zero-latency )")
+
+
+def even_size(image: np.ndarray) -> np.ndarray:
+    """``image`` cropped to an even width and height (4:2:0 H.264 needs both), a view."""
+    return image[:image.shape[0] // 2 * 2, :image.shape[1] // 2 * 2]
+
+
+def stamp_timecode(image: np.ndarray, wall_ms: int) -> None:
+    """Write ``wall_ms`` (Unix time in ms) into the top-left corner of uint8 ``image`` (H, W) or (H, W, C), in place:
+    TIMECODE_BITS squares of TIMECODE_BLOCK pixels, white for 1 and black for 0, most significant first."""
+    bits = [(wall_ms >> (TIMECODE_BITS - 1 - i)) & 1 for i in range(TIMECODE_BITS)]
+    strip = np.repeat(np.repeat(np.array(bits, np.uint8)[None, :] * 255, TIMECODE_BLOCK, 0), TIMECODE_BLOCK, 1)
+    image[:TIMECODE_BLOCK, :TIMECODE_BITS * TIMECODE_BLOCK] = strip if image.ndim == 2 else strip[..., None]
+
+
+def read_timecode(image: np.ndarray) -> int:
+    """The Unix time in ms written by :func:`stamp_timecode`, read back from a decoded uint8 ``image`` (the mean
+    of the centre of each square, thresholded at mid-grey: it survives lossy coding)."""
+    grey = image if image.ndim == 2 else image.mean(axis=2)
+    inset = TIMECODE_BLOCK // 4
+    squares = grey[inset:TIMECODE_BLOCK - inset, :TIMECODE_BITS * TIMECODE_BLOCK]
+    squares = squares.reshape(squares.shape[0], TIMECODE_BITS, TIMECODE_BLOCK)[:, :, inset:TIMECODE_BLOCK - inset]
+    value = 0
+    for bit in squares.mean(axis=(0, 2)) > 127.5:
+        value = (value << 1) | int(bit)
+    return value
+
+
+def token_matches(token: str, authorization: str | None, query: str | None) -> bool:
+    """True if the request carries ``token``: as the password of ``Authorization: Basic`` (any user name) or as
+    ``token=`` in the URL query. Compared in constant time."""
+    candidates = []
+    if authorization and authorization[:6].lower() == "basic ":
+        try:
+            candidates.append(base64.b64decode(authorization[6:].strip(), validate=True).decode().partition(":")[2])
+        except (binascii.Error, UnicodeDecodeError):
+            pass
+    if query:
+        candidates += urllib.parse.parse_qs(query).get("token", [])
+    expected = token.encode()
+    return any(hmac.compare_digest(candidate.encode(), expected) for candidate in candidates)
+
+
+class _Media:
+    """The live media's appsrc and the frame size fixed for its lifetime."""
+
+    def __init__(self, media: Any, src: Any, width: int, height: int) -> None:
+        self.media = media
+        self.src = src
+        self.width = width
+        self.height = height
+
+
+class RtspPublisher:
+    """Serves a pipeline's tone-mapped preview as H.264 over RTSP at ``url``.
+
+    ``start()`` binds ``host:port`` (port 0: a free one) and runs the server's GLib
+    main loop in its own thread; ``stop()`` closes every client and ends it (within a second).
+    ``timecode``: write each frame's arrival time into its top-left corner (a
+    measuring aid for benchmarks/service.py, see :func:`read_timecode`; off by default).
+    """
+
+    def __init__(self, pipeline: Pipeline, *, host: str = "127.0.0.1", port: int = 8554, path: str = "/live",
+                 token: str | None = None, settings: H264Settings | None = None, timecode: bool = False) -> None:
+        if not path.startswith("/") or len(path) < 2 or any(c in path for c in "?# "):
+            raise SveliveError(f"RTSP path must start with / and name a mount point (e.g. /live), got {path!r}")
+        if not 0 <= port <= 65535:
+            raise SveliveError(f"RTSP port must be 0..65535, got {port}")
+        self.pipeline = pipeline
+        self.host = host
+        self.port = port
+        self.path = path
+        self.token = token
+        self.settings = settings or H264Settings()
+        self.timecode = timecode
+        self._lock = threading.Lock()
+        self._media: _Media | None = None
+        self._watching = False
+        self._clients = 0
+        self._thread: threading.Thread | None = None
+        self._loop: Any = None
+        self._context: Any = None
+        self._server: Any = None
+        self._source_id = 0
+        self.pushed = RateMeter()
+        self.encoded = RateMeter()
+        self._bytes: collections.deque[tuple[int, int]] = collections.deque(maxlen=512)
+        self.arrival_to_push = LatencyWindow()
+        #: medias made so far (one per period with clients: the media is shared)
+        self.medias = 0
+        #: how long a client arriving before the first reconstructed frame waits for it (blocks the RTSP loop)
+        self.first_frame_wait_s = 3.0
+
+    # ----- lifecycle ---------------------------------------------------
+    @property
+    def url(self) -> str:
+        """The stream's URL (the bound port once started; 127.0.0.1 when bound to every address)."""
+        shown = "127.0.0.1" if self.host in ("0.0.0.0", "::", "") else self.host
+        shown = f"[{shown}]" if ":" in shown else shown
+        return f"rtsp://{shown}:{self.port}{self.path}"
+
+    def start(self) -> RtspPublisher:
+        """Bind and serve; returns self. A busy port or missing GStreamer parts are a one-line SveliveError."""
+        if self._thread is not None:
+            return self
+        Gst, GstRtspServer, GstRtsp, GLib = gstreamer()
+        server = GstRtspServer.RTSPServer()
+        server.set_address(self.host)
+        server.set_service(str(self.port))
+        factory = _make_factory(Gst, GstRtspServer, self._description)
+        factory.set_shared(True)
+        factory.connect("media-configure", self._on_media_configure)
+        if self.token is not None:
+            role = GstRtspServer.RTSPToken()
+            role.set_string("media.factory.role", ROLE)
+            factory.add_role_from_structure(Gst.Structure.new_from_string(
+                f"{ROLE}, media.factory.access=(boolean)true, media.factory.construct=(boolean)true"))
+            server.set_auth(_make_auth(GstRtspServer, GstRtsp, self.token, role))
+        server.get_mount_points().add_factory(self.path, factory)
+        server.connect("client-connected", self._on_client_connected)
+        context = GLib.MainContext.new()
+        source_id = server.attach(context)
+        if not source_id:
+            raise SveliveError(f"cannot listen for RTSP on {self.host}:{self.port} (in use or not allowed); "
+                               "choose another --rtsp port")
+        self.port = server.get_bound_port()
+        self._server, self._context, self._source_id = server, context, source_id
+        self._loop = GLib.MainLoop.new(context, False)
+        self.pipeline.encoder.add_preview_listener(self._on_preview)
+        self._thread = threading.Thread(target=self._loop.run, name="svelive-rtsp", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Disconnect every client, stop encoding and end the main loop (idempotent, within ``timeout`` s)."""
+        if self._thread is None:
+            return
+        from gi.repository import GstRtspServer
+
+        self.pipeline.encoder.remove_preview_listener(self._on_preview)
+        done = threading.Event()
+
+        def shut_down() -> bool:
+            self._server.client_filter(lambda server, client: GstRtspServer.RTSPFilterResult.REMOVE)
+            source = self._context.find_source_by_id(self._source_id)
+            if source is not None:
+                source.destroy()
+            self._loop.quit()
+            done.set()
+            return False
+
+        self._context.invoke_full(0, shut_down)
+        done.wait(timeout)
+        self._thread.join(max(0.0, timeout - 0.1))
+        with self._lock:
+            media, self._media = self._media, None
+            watching, self._watching = self._watching, False
+        if watching:
+            self.pipeline.encoder.watch_previews(-1)
+        if media is not None:
+            media.media.unprepare()
+        self._thread = None
+
+    def __enter__(self) -> RtspPublisher:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ----- the media -----------------------------------------------------
+    def _description(self) -> str:
+        """GLib thread, for each new media: the launch line for the newest preview's size and kind (the newest
+        reconstructed frame's before the first preview, waiting up to ``first_frame_wait_s`` for one; then
+        640x360 grey, the no-signal frame's)."""
+        preview = self.pipeline.encoder.latest_preview()
+        latest = self.pipeline.latest()
+        deadline = time.monotonic() + self.first_frame_wait_s
+        while preview is None and latest is None and time.monotonic() < deadline:  # just started
+            time.sleep(0.02)
+            latest = self.pipeline.latest()
+        if preview is not None:
+            height, width = preview.image.shape[:2]
+            grey = preview.image.ndim == 2
+        elif latest is not None:
+            height, width = latest.hdr.image.shape[:2]
+            grey = latest.hdr.image.ndim == 2
+        else:  # no frame yet: the no-signal frame's size
+            width, height, grey = 640, 360, True
+        preview_width = self.pipeline.config.preview_width
+        if preview is None and preview_width and width > preview_width:
+            height, width = max(1, round(height * preview_width / width)), preview_width
+        return launch_description(width // 2 * 2, height // 2 * 2, grey, self.settings)
+
+    def _on_media_configure(self, factory: Any, media: Any) -> None:
+        """GLib thread: a new shared media (the first client): take its appsrc, count its encoded frames,
+        ask the encoder for previews until it is unprepared (the last client left)."""
+        from gi.repository import Gst
+
+        element = media.get_element()
+        src, encoder = element.get_by_name("src"), element.get_by_name("enc")
+        caps = src.get_property("caps").get_structure(0)
+        self.medias += 1
+        encoder.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, self._on_encoded)
+        media.connect("unprepared", self._on_media_unprepared)
+        with self._lock:
+            self._media = _Media(media, src, caps.get_value("width"), caps.get_value("height"))
+            start_watching = not self._watching
+            self._watching = True
+        if start_watching:
+            self.pipeline.encoder.watch_previews(+1)
+        # the media is prepared once its first frame has gone through: give it the newest at once
+        preview = self.pipeline.encoder.latest_preview()
+        if preview is not None and self.pipeline.online():
+            self._on_preview(preview)
+
+    def _on_media_unprepared(self, media: Any) -> None:
+        with self._lock:
+            if self._media is None or self._media.media != media:
+                return
+            self._media = None
+            stop_watching, self._watching = self._watching, False
+        if stop_watching:
+            self.pipeline.encoder.watch_previews(-1)
+
+    def _on_encoded(self, pad: Any, info: Any) -> Any:
+        from gi.repository import Gst
+
+        buffer = info.get_buffer()
+        now = time.monotonic_ns()
+        self.encoded.tick(now)
+        self._bytes.append((now, buffer.get_size()))
+        return Gst.PadProbeReturn.OK
+
+    def _on_preview(self, preview: PreviewFrame) -> None:
+        """Encoder thread: hand the preview to the media's appsrc (converted to its size and kind)."""
+        from gi.repository import Gst
+
+        with self._lock:
+            media = self._media
+        if media is None:
+            return
+        image = self._fit(preview.image, media)
+        if self.timecode and preview.signal:
+            image = np.array(image)
+            stamp_timecode(image, int(round(preview.wall_time * 1000)))
+        media.src.emit("push-buffer", Gst.Buffer.new_wrapped(np.ascontiguousarray(image).tobytes()))
+        now = time.monotonic_ns()
+        self.pushed.tick(now)
+        if preview.signal:
+            self.arrival_to_push.add((now - preview.host_time_ns) / 1e6)
+
+    @staticmethod
+    def _fit(image: np.ndarray, media: _Media) -> np.ndarray:
+        """``image`` as the media takes it: its size (resized when the frames changed size) and kind."""
+        grey = media.src.get_property("caps").get_structure(0).get_value("format") == "GRAY8"
+        if grey and image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        elif not grey and image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if image.shape[:2] != (media.height, media.width):
+            cropped = even_size(image)
+            image = cropped if cropped.shape[:2] == (media.height, media.width) else \
+                cv2.resize(image, (media.width, media.height), interpolation=cv2.INTER_AREA)
+        return image
+
+    def _on_client_connected(self, server: Any, client: Any) -> None:
+        with self._lock:
+            self._clients += 1
+        client.connect("closed", self._on_client_closed)
+
+    def _on_client_closed(self, client: Any) -> None:
+        with self._lock:
+            self._clients = max(0, self._clients - 1)
+
+    # ----- state -------------------------------------------------------
+    def bitrate_kbps(self) -> float:
+        """Encoded kbit/s over the last two seconds (0 when nothing was encoded in them)."""
+        now = time.monotonic_ns()
+        recent = [(t, n) for t, n in list(self._bytes) if now - t <= 2e9]
+        if len(recent) < 2:
+            return 0.0
+        span = (recent[-1][0] - recent[0][0]) / 1e9
+        return round(sum(n for _, n in recent[1:]) * 8 / 1000 / span, 1) if span > 0 else 0.0
+
+    def state(self) -> dict[str, Any]:
+        """The RTSP publisher's part of /api/state."""
+        with self._lock:
+            media, clients = self._media, self._clients
+        rate = None if media is None else self.settings.bitrate_for(media.width, media.height)
+        return {"url": self.url, "path": self.path, "auth": self.token is not None, "clients": clients,
+                "encoding": media is not None,
+                "width": None if media is None else media.width, "height": None if media is None else media.height,
+                "frames_pushed": self.pushed.count, "frames_encoded": self.encoded.count,
+                "fps": round(self.encoded.rate(), 2), "bitrate_kbps": self.bitrate_kbps(),
+                "arrival_to_push": self.arrival_to_push.summary(),
+                "h264": {"fps": self.settings.fps, "keyframe_s": self.settings.keyframe_s,
+                         "bitrate_kbps": rate,
+                         "speed_preset": self.settings.speed_preset, "tune": "zerolatency", "bframes": 0}}
+
+
+def _make_factory(Gst: Any, GstRtspServer: Any, description: Any) -> Any:
+    """A shared-media factory whose pipeline is built from ``description()`` each time a media is made (so each
+    media takes the frame size and kind of the moment)."""
+
+    class PreviewFactory(GstRtspServer.RTSPMediaFactory):
+        def do_create_element(self, url: Any) -> Any:
+            return Gst.parse_launch(description())
+
+    return PreviewFactory()
+
+
+def _make_auth(GstRtspServer: Any, GstRtsp: Any, token: str, role: Any) -> Any:
+    """An RTSPAuth that admits a request carrying ``token`` (see :func:`token_matches`) with ``role``; others get
+    401 with a basic challenge."""
+
+    class TokenAuth(GstRtspServer.RTSPAuth):
+        def __init__(self) -> None:
+            super().__init__()
+            # connections that showed the token: a client that sent ?token= with DESCRIBE sends its SETUP and
+            # PLAY to the control URL, without the query
+            self.admitted: set[Any] = set()
+
+        def do_authenticate(self, ctx: Any) -> bool:
+            result, authorization = ctx.request.get_header(GstRtsp.RTSPHeaderField.AUTHORIZATION, 0)
+            query = ctx.uri.query if ctx.uri is not None else None
+            client = ctx.client
+            if client in self.admitted or \
+                    token_matches(token, authorization if result == GstRtsp.RTSPResult.OK else None, query):
+                if client is not None and client not in self.admitted:
+                    self.admitted.add(client)
+                    client.connect("closed", self.admitted.discard)
+                ctx.set_token(role)
+                return True
+            return False
+
+    auth = TokenAuth()
+    auth.set_supported_methods(GstRtsp.RTSPAuthMethod.BASIC)
+    return auth

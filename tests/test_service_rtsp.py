@@ -1,0 +1,277 @@
+"""RTSP/H.264 publisher: a real RTSP client (GStreamer rtspsrc ! decodebin) on 127.0.0.1 decodes the preview.
+
+The pipeline runs over the simulated camera of tests/test_service_helpers.py (mono) or
+tests/test_service_colour.py (RGGB); the client pulls decoded frames from an appsink
+with bounded waits.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from svelive.errors import SveliveError
+
+from service.pipeline import Pipeline, PipelineConfig
+from service.publishers import rtsp
+from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
+
+from tests.test_service_colour import ColourSimSource, make_colour_camera
+from tests.test_service_helpers import SimSource, make_camera
+
+
+def _missing() -> str | None:
+    try:
+        Gst = rtsp.gstreamer()[0]
+    except SveliveError as exc:
+        return str(exc)
+    for name in ("rtspsrc", "decodebin", "appsink"):
+        if Gst.ElementFactory.find(name) is None:
+            return f"the test client needs the GStreamer element {name} (gstreamer1.0-plugins-good/base)"
+    return None
+
+
+MISSING = _missing()
+pytestmark = pytest.mark.skipif(MISSING is not None, reason=f"GStreamer RTSP server not installed: {MISSING}")
+
+SHAPE = (192, 224)
+TOKEN = "s3cret-token"
+
+
+class RtspClientError(Exception):
+    """The client's pipeline posted an error (e.g. 401 Unauthorized)."""
+
+
+class RtspClient:
+    """rtspsrc (RTP over TCP, no jitter buffer latency) ! decodebin ! videoconvert ! appsink, in GRAY8 or BGR."""
+
+    def __init__(self, url: str, password: str | None = None, colour: bool = False) -> None:
+        Gst = rtsp.gstreamer()[0]
+        import gi
+
+        gi.require_version("GstApp", "1.0")
+        from gi.repository import GstApp  # noqa: F401 - gives the appsink its pull methods
+
+        credentials = f" user-id=viewer user-pw={password}" if password is not None else ""
+        self.channels = 3 if colour else 1
+        self.pipeline = Gst.parse_launch(
+            f'rtspsrc location="{url}"{credentials} protocols=tcp latency=0 ! decodebin ! videoconvert '
+            f'! video/x-raw,format={"BGR" if colour else "GRAY8"} '
+            '! appsink name=sink sync=false max-buffers=2 drop=true')
+        self.sink = self.pipeline.get_by_name("sink")
+        self.pipeline.set_state(Gst.State.PLAYING)
+
+    def frames(self, n: int, timeout: float = 30.0) -> list[np.ndarray]:
+        """The next ``n`` decoded frames as uint8 (H, W) or (H, W, 3); RtspClientError if the pipeline fails,
+        AssertionError when they do not come within ``timeout`` s."""
+        Gst = rtsp.gstreamer()[0]
+        out: list[np.ndarray] = []
+        deadline = time.monotonic() + timeout
+        while len(out) < n:
+            message = self.pipeline.get_bus().pop_filtered(Gst.MessageType.ERROR)
+            if message is not None:
+                error, debug = message.parse_error()
+                raise RtspClientError(f"{error.message} {debug}")
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{len(out)} of {n} frames in {timeout} s")
+            sample = self.sink.try_pull_sample(Gst.SECOND // 5)
+            if sample is not None:
+                out.append(self._array(sample))
+        return out
+
+    def _array(self, sample) -> np.ndarray:
+        Gst = rtsp.gstreamer()[0]
+        caps = sample.get_caps().get_structure(0)
+        width, height = caps.get_value("width"), caps.get_value("height")
+        ok, info = sample.get_buffer().map(Gst.MapFlags.READ)
+        assert ok
+        try:
+            data = np.frombuffer(info.data, np.uint8).copy()
+        finally:
+            sample.get_buffer().unmap(info)
+        stride = data.size // height  # rows are padded to 4 bytes
+        rows = data[:stride * height].reshape(height, stride)[:, :width * self.channels]
+        return rows.reshape(height, width, self.channels).squeeze(axis=2) if self.channels == 1 else \
+            rows.reshape(height, width, 3)
+
+    def close(self) -> None:
+        Gst = rtsp.gstreamer()[0]
+        self.pipeline.set_state(Gst.State.NULL)
+
+    def __enter__(self) -> RtspClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def wait_until(predicate, timeout: float = 30.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} not reached in {timeout} s")
+        time.sleep(0.05)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(cv2.PSNR(a, b))
+
+
+@pytest.fixture
+def mono_pipeline():
+    # one raw repeated: every reconstructed frame and its preview are the same picture
+    camera = make_camera(fps=20.0, n=1, shape=SHAPE)
+    pipeline = Pipeline(PipelineConfig(source="sim", temporal=False), lambda: SimSource(camera))
+    with pipeline:
+        yield pipeline
+
+
+def test_no_client_no_encoding_then_a_client_decodes_the_preview(mono_pipeline):
+    pipeline = mono_pipeline
+    with RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
+        assert publisher.url == f"rtsp://127.0.0.1:{publisher.port}/live" and publisher.port > 0
+        wait_until(lambda: pipeline.reconstructed.count >= 8, what="8 reconstructed frames")
+        state = publisher.state()
+        # nobody watches: nothing tone-mapped, nothing JPEG- or H.264-encoded
+        assert state["frames_pushed"] == 0 and state["frames_encoded"] == 0 and not state["encoding"]
+        assert pipeline.encoder.previews.count == 0 and pipeline.encoder.encoded.count == 0
+        with RtspClient(publisher.url) as client:
+            frames = client.frames(8)
+            state = publisher.state()
+            assert state["clients"] == 1 and state["encoding"] and (state["width"], state["height"]) == SHAPE[::-1]
+            assert state["frames_encoded"] >= 8 and state["fps"] > 0 and state["bitrate_kbps"] > 0
+            preview = pipeline.encoder.latest_preview()
+        assert all(frame.shape == SHAPE for frame in frames)
+        assert preview.image.shape == SHAPE
+        assert psnr(frames[-1], preview.image) > 30  # the picture itself, through H.264
+        # RTSP alone: the tone map ran, no JPEG was made
+        assert pipeline.encoder.encoded.count == 0 and pipeline.encoder.previews.count >= 8
+        # the client left: the media goes, and encoding stops
+        wait_until(lambda: not publisher.state()["encoding"] and publisher.state()["clients"] == 0,
+                   what="the media torn down after the client left")
+        encoded, previews = publisher.state()["frames_encoded"], pipeline.encoder.previews.count
+        reconstructed = pipeline.reconstructed.count
+        wait_until(lambda: pipeline.reconstructed.count >= reconstructed + 6, what="6 more frames")
+        assert publisher.state()["frames_encoded"] == encoded and pipeline.encoder.previews.count == previews
+        assert pipeline.encoder.preview_watchers == 0
+
+
+def test_one_encoding_shared_by_two_clients_and_with_mjpeg(mono_pipeline):
+    pipeline = mono_pipeline
+    previews, jpegs = [], []
+    pipeline.encoder.add_preview_listener(previews.append)
+    pipeline.add_listener(jpegs.append)
+    with RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
+        pipeline.watch(+1)  # an MJPEG client
+        try:
+            with RtspClient(publisher.url) as first, RtspClient(publisher.url) as second:
+                assert all(f.shape == SHAPE for f in first.frames(5) + second.frames(5))
+                state = publisher.state()
+        finally:
+            pipeline.watch(-1)
+    assert state["clients"] == 2 and publisher.medias == 1  # one shared media, one encoder
+    assert state["frames_encoded"] <= state["frames_pushed"]
+    # one tone map per frame for both: as many tone maps as distinct frames sent as JPEG or preview
+    preview_seqs = [p.hdr_seq for p in previews if p.signal]
+    assert len(preview_seqs) == len(set(preview_seqs)) > 0
+    both = set(preview_seqs) & {j.hdr_seq for j in jpegs if j.signal}
+    assert len(both) >= 3  # frames that went to both publishers
+    wait_until(lambda: pipeline.encoder.previews.count == len({p.hdr_seq for p in previews if p.signal}
+                                                               | {j.hdr_seq for j in jpegs if j.signal}),
+               timeout=5, what="one tone map per frame")
+    pipeline.encoder.remove_preview_listener(previews.append)
+
+
+def test_colour_preview_is_served_in_colour():
+    camera = make_colour_camera(fps=15.0, n=1)
+    with Pipeline(PipelineConfig(source="sim", temporal=False), lambda: ColourSimSource(camera)) as pipeline:
+        wait_until(lambda: pipeline.reconstructed.count >= 2, timeout=60, what="2 reconstructed colour frames")
+        with RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher, \
+                RtspClient(publisher.url, colour=True) as client:
+            frames = client.frames(8)
+            preview = pipeline.encoder.latest_preview()
+    assert preview.image.shape == SHAPE + (3,)
+    assert all(frame.shape == SHAPE + (3,) for frame in frames)
+    assert psnr(frames[-1], preview.image) > 30
+    # the colour survived: the decoded frame's chroma follows the preview's, far from a grey picture
+    grey = cv2.cvtColor(cv2.cvtColor(preview.image, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    assert psnr(frames[-1], preview.image) > psnr(frames[-1], grey) + 3
+
+
+def test_token_is_required_as_basic_password_or_query(mono_pipeline):
+    with RtspPublisher(mono_pipeline, host="127.0.0.1", port=0, token=TOKEN) as publisher:
+        for url, password in ((publisher.url, None), (publisher.url, "wrong"), (publisher.url + "?token=wrong", None),
+                              (publisher.url + "?token=" + TOKEN[:-1], None)):
+            with RtspClient(url, password) as client, pytest.raises(RtspClientError, match="Unauthorized"):
+                client.frames(1)
+        assert publisher.state()["frames_pushed"] == 0 and publisher.medias == 0  # a refused client costs nothing
+        for url, password in ((publisher.url, TOKEN), (publisher.url + "?token=" + TOKEN, None)):
+            with RtspClient(url, password) as client:
+                assert client.frames(2)[0].shape == SHAPE
+        assert publisher.state()["auth"]
+
+
+def test_token_matches():
+    basic = "Basic " + __import__("base64").b64encode(b"anyone:" + TOKEN.encode()).decode()
+    assert token_matches(TOKEN, basic, None)
+    assert token_matches(TOKEN, None, "a=1&token=" + TOKEN)
+    assert not token_matches(TOKEN, basic.replace("Basic", "Digest"), None)
+    assert not token_matches(TOKEN, "Basic !!notbase64", "token=x")
+    assert not token_matches(TOKEN, None, None)
+    assert not token_matches(TOKEN, "Basic " + __import__("base64").b64encode(TOKEN.encode()).decode(), None)
+
+
+def test_stop_disconnects_clients_and_frees_the_port(mono_pipeline):
+    publisher = RtspPublisher(mono_pipeline, host="127.0.0.1", port=0).start()
+    port = publisher.port
+    with RtspClient(publisher.url) as client:
+        client.frames(2)
+        publisher.stop()
+        assert publisher._thread is None
+        assert mono_pipeline.encoder.preview_watchers == 0
+        with pytest.raises((RtspClientError, AssertionError)):
+            client.frames(200, timeout=5)  # the server went away: an error, or at least no 200 more frames
+    again = RtspPublisher(mono_pipeline, host="127.0.0.1", port=port).start()
+    again.stop()
+    publisher.stop()  # idempotent
+
+
+def test_bad_settings_are_refused(mono_pipeline):
+    with pytest.raises(SveliveError, match="path"):
+        RtspPublisher(mono_pipeline, path="live")
+    with pytest.raises(SveliveError, match="port"):
+        RtspPublisher(mono_pipeline, port=70000)
+    with pytest.raises(SveliveError, match="preset"):
+        H264Settings(speed_preset="placebo-ish")
+    with pytest.raises(SveliveError, match="fps"):
+        H264Settings(fps=0)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        with pytest.raises(SveliveError, match="cannot listen for RTSP"):
+            RtspPublisher(mono_pipeline, host="127.0.0.1", port=busy.getsockname()[1]).start()
+
+
+def test_launch_description_is_low_latency():
+    text = rtsp.launch_description(1920, 1200, True, H264Settings())
+    for part in ("tune=zerolatency", "bframes=0", "key-int-max=30", "speed-preset=ultrafast", "leaky-type=downstream",
+                 "max-buffers=1", "format=GRAY8", "config-interval=-1"):
+        assert part in text
+    assert f"bitrate={rtsp.bitrate_kbps(1920, 1200, 30.0)}" in text
+    assert rtsp.bitrate_kbps(1920, 1200, 30.0) > rtsp.bitrate_kbps(1280, 720, 30.0) > rtsp.bitrate_kbps(64, 64, 1)
+    assert "format=BGR" in rtsp.launch_description(640, 480, False, H264Settings(keyframe_s=0.5, fps=20))
+
+
+def test_timecode_survives_lossy_coding():
+    rng = np.random.default_rng(1)
+    for shape in ((120, 400), (120, 400, 3)):
+        image = rng.integers(0, 256, shape, dtype=np.uint8)
+        value = int(time.time() * 1000)
+        stamp_timecode(image, value)
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 40])
+        assert ok
+        assert read_timecode(cv2.imdecode(jpeg, cv2.IMREAD_UNCHANGED)) == value
