@@ -1,21 +1,68 @@
-"""Calibration in the live pipeline: the response in use (configured or calibrated live) and the mask's pixel map."""
+"""Calibration in the live pipeline: the response in use (configured or calibrated live), the
+exposure sweep that calibrates it from several frames, and the mask's pixel map."""
 
 from __future__ import annotations
 
+import copy
+import ctypes
+import ctypes.util
+import gc
+import math
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from svelive.calibrate import Response, calibrate_frame, load_mask, load_response
+from svelive.calibrate import Response, load_mask, load_response
+from svelive.calibrate.response import calibrate_frame
 from svelive.camera import Camera
+from svelive.capture import Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
+
+#: most exposure times one sweep takes
+MAX_SWEEP = 16
 
 
 class CalibrationBusy(SveliveError):
     """A calibration was asked while another one runs."""
+
+
+class ExposureUnsupported(SveliveError):
+    """The source cannot set its exposure time (a sweep is impossible)."""
+
+
+def release_memory() -> None:
+    """Hand freed heap back to the system after a calibration.
+
+    A fit allocates hundreds of MB of short-lived numpy arrays in a worker thread; glibc
+    keeps freed chunks in that thread's arena (and raises its mmap threshold after large
+    frees, so the next large arrays come from the heap too), so the process's resident
+    memory stayed up after every calibration. ``malloc_trim(0)`` returns the free pages of
+    every arena; elsewhere than glibc this does nothing.
+    """
+    gc.collect()
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        if libc is not None and hasattr(libc, "malloc_trim"):
+            libc.malloc_trim(0)
+    except OSError:
+        pass
+
+
+def check_sweep(times: list[float]) -> list[float]:
+    """The sweep's exposure times as floats; a one-line SveliveError when they are not 1..16 positive numbers."""
+    if not 1 <= len(times) <= MAX_SWEEP:
+        raise SveliveError(f"sweep: give 1 to {MAX_SWEEP} exposure times, got {len(times)}")
+    values = [float(t) for t in times]
+    if not all(math.isfinite(t) and t > 0 for t in values):
+        raise SveliveError(f"sweep: exposure times must be positive numbers, got {times}")
+    if len(set(values)) < len(values):
+        raise SveliveError(f"sweep: exposure times must differ, got {times}")
+    return values
 
 
 class Calibration:
@@ -28,8 +75,9 @@ class Calibration:
     """
 
     def __init__(self, response_path: str | None, mask_path: str | None,
-                 newest_raw: Callable[[], Frame | None]) -> None:
+                 newest_raw: Callable[[], Frame | None], stop: threading.Event | None = None) -> None:
         self._newest_raw = newest_raw
+        self._stop = stop if stop is not None else threading.Event()
         self._response_path = response_path
         self._configured_response = load_response(response_path) if response_path else None
         self._response = self._configured_response
@@ -40,6 +88,8 @@ class Calibration:
         self.pixel_map: np.ndarray | None = load_mask(mask_path) if mask_path else None
         self._calibration: dict[str, Any] | None = None
         self._applied: tuple[tuple[Camera, Response | None], Camera] | None = None
+        self._job: dict[str, Any] | None = None  # the newest sweep: progress, then result or error
+        self._jobs = 0
 
     def apply(self, camera: Camera) -> Camera:
         """The camera with the response in use and the mask's per-pixel exposure map.
@@ -81,23 +131,143 @@ class Calibration:
             raise CalibrationBusy("a response calibration is already running")
         try:
             data = calibrate_frame(frame.raw, frame.camera.require_pattern(), frame.sensor, max_degree=max_degree)
+            data["frame_id"] = frame.frame_id
         finally:
             self.busy.release()
-        data.update(frame_id=frame.frame_id, applied=bool(apply))
-        self._calibration = data
-        if apply:
-            with self._lock:
+            del frame
+            release_memory()
+        return self._keep(data, apply)
+
+    def _keep(self, data: dict[str, Any], apply: bool) -> dict[str, Any]:
+        """Record a successful fit as the last calibration; with ``apply`` make it the response in use."""
+        data["applied"] = bool(apply)
+        with self._lock:
+            self._calibration = data
+            if apply:
                 self._response, self._origin = Response.from_dict(data), "calibrated live"
-        return data
+        return copy.deepcopy(data)
+
+    # ----- the exposure sweep (a background job) ----------------------------
+    def start_sweep(self, times: list[float], source: Source | None, max_degree: int = 6, apply: bool = False,
+                    settle_frames: int = 1, frame_timeout_s: float = 5.0) -> dict[str, Any]:
+        """Start stepping ``source``'s exposure time through ``times`` in a background thread.
+
+        At each step the exposure is set, the frame that arrives ``settle_frames`` frames after
+        the first one captured after the change is kept (the one in flight may have been exposed
+        before it), and once every step has its frame the response is fitted to them all with the
+        exposure times the camera reported back (``svelive.calibrate.fit_response``), the camera
+        going back to its exposure time meanwhile. :meth:`job_state` reports the progress and
+        the result; returns it. Raises ExposureUnsupported when the source cannot set its
+        exposure time, CalibrationBusy while another calibration runs, SveliveError for bad
+        times or when no source is connected.
+        """
+        if not 1 <= max_degree <= 10:
+            raise SveliveError(f"max_degree must be 1..10, got {max_degree}")
+        times = check_sweep(times)
+        if source is None or self._newest_raw() is None:
+            raise SveliveError("no frame yet: the sweep needs a connected camera")
+        original = source.exposure_time()
+        if original is None:
+            raise ExposureUnsupported(f"source {source.spec} cannot set its exposure time, so it cannot sweep; "
+                                      "calibrate from one frame (POST without \"sweep\") or sweep offline "
+                                      "(svelive calibrate response FRAMES --exposure-times)")
+        if not self.busy.acquire(blocking=False):
+            raise CalibrationBusy("a response calibration is already running")
+        with self._lock:
+            self._jobs += 1
+            self._job = {"id": self._jobs, "state": "running", "stage": "starting", "step": 0, "steps": len(times),
+                         "sweep": times, "exposure_time_before": original, "exposure_times": [], "frame_ids": [],
+                         "restored": None, "error": None, "apply": bool(apply), "started_s": time.time(),
+                         "finished_s": None}
+            job = copy.deepcopy(self._job)
+        thread = threading.Thread(target=self._run_sweep, name="svelive-sweep", daemon=True,
+                                  args=(times, source, original, max_degree, apply, settle_frames, frame_timeout_s))
+        thread.start()
+        return job
+
+    def _update(self, **changes: Any) -> None:
+        with self._lock:
+            if self._job is not None:
+                self._job.update(changes)
+
+    def _run_sweep(self, times: list[float], source: Source, original: float, max_degree: int, apply: bool,
+                   settle_frames: int, frame_timeout_s: float) -> None:
+        frames: list[Frame] = []
+        applied: list[float] = []
+        restored = False
+        try:
+            for i, t in enumerate(times):
+                self._update(stage=f"exposure {i + 1}/{len(times)}: {t:g}", step=i)
+                applied.append(source.set_exposure_time(t))
+                frames.append(self._frame_after(time.monotonic_ns(), settle_frames, frame_timeout_s))
+                self._update(exposure_times=list(applied), frame_ids=[f.frame_id for f in frames], step=i + 1)
+            self._update(restored=source.set_exposure_time(original))
+            restored = True
+            shapes = {f.raw.shape for f in frames}
+            if len(shapes) > 1:
+                raise SveliveError(f"the frames of the sweep differ in size ({sorted(shapes)}): the camera's "
+                                   "region changed during the sweep; try again")
+            self._update(stage="fitting")
+            data = calibrate_frame([f.raw for f in frames], frames[0].camera.require_pattern(), frames[0].sensor,
+                                   max_degree=max_degree, exposure_times=applied,
+                                   progress=lambda text: self._update(stage=f"fitting: {text}"))
+            data.update(frame_id=frames[-1].frame_id, frame_ids=[f.frame_id for f in frames])
+            self._keep(data, apply)
+            self._update(state="done", stage="done", finished_s=time.time())
+        except Exception as exc:  # reported in the job; the response in use stays
+            message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            self._update(state="failed", stage="failed", error=message, finished_s=time.time())
+        finally:
+            if not restored:
+                try:
+                    self._update(restored=source.set_exposure_time(original))
+                except Exception as exc:  # noqa: BLE001 - a camera gone meanwhile
+                    self._update(error=(self._job or {}).get("error") or f"exposure not restored: {exc}")
+            del frames
+            self.busy.release()
+            release_memory()
+
+    def _frame_after(self, changed_ns: int, settle_frames: int, timeout_s: float) -> Frame:
+        """The ``settle_frames``-th frame after the first one captured after ``changed_ns`` (monotonic ns)."""
+        deadline = time.monotonic() + timeout_s
+        first: int | None = None
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            frame = self._newest_raw()
+            if frame is not None and frame.host_time_ns > changed_ns:
+                if first is None:
+                    first = frame.frame_id
+                if frame.frame_id >= first + settle_frames:
+                    return frame
+            self._stop.wait(0.005)
+        if self._stop.is_set():
+            raise SveliveError("the service is stopping")
+        raise SveliveError(f"no frame within {timeout_s:g} s of changing the exposure time")
+
+    def job_state(self) -> dict[str, Any] | None:
+        """The newest sweep: id, state ("running", "done", "failed"), stage, step/steps, sweep,
+        exposure_times (as the camera applied them), frame_ids, exposure_time_before, restored,
+        error; None before the first."""
+        with self._lock:
+            return copy.deepcopy(self._job)
 
     def last_calibration(self) -> dict[str, Any] | None:
-        """The result of the last successful calibrate_response, or None."""
-        return self._calibration
+        """The result of the last successful calibration (one frame or a sweep), or None; with
+        ``job`` (:meth:`job_state`) once a sweep was started. ``applied`` is true while that
+        result is the response in use."""
+        with self._lock:
+            data = None if self._calibration is None else dict(self._calibration)
+            job = copy.deepcopy(self._job)
+        if job is not None:
+            data = {**(data or {}), "job": job}
+        return data
 
     def reset_response(self) -> dict[str, Any] | None:
-        """Go back to the configured response (the ``response`` file, or none); returns response_state()."""
+        """Go back to the configured response (the ``response`` file, or none); returns response_state().
+        The last calibration stays readable, no longer ``applied``."""
         with self._lock:
             self._response, self._origin = self._configured_response, self._response_path
+            if self._calibration is not None:
+                self._calibration = {**self._calibration, "applied": False}
         return self.response_state()
 
     def response_state(self) -> dict[str, Any] | None:

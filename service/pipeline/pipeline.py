@@ -67,7 +67,7 @@ class Pipeline:
         self.capture = CaptureStage(config, source_factory or self._default_factory, self._slot, self.drops,
                                     self._stop)
         # the configured response and mask are read now, so a bad file fails before serving
-        self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw)
+        self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw, self._stop)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, config.method, config.temporal,
                                                   self.workers, self._cond, self.drops, self._stop)
         self.encoder = EncoderStage(config, self.reconstruction.latest, self.capture.online, self._cond, self.drops,
@@ -155,8 +155,14 @@ class Pipeline:
         """See :meth:`service.pipeline.calibration.Calibration.calibrate_response`."""
         return self.calibration.calibrate_response(max_degree, apply)
 
+    def start_sweep(self, times: list[float], max_degree: int = 6, apply: bool = False) -> dict[str, Any]:
+        """Calibrate the response from frames at the exposure times ``times`` (a background job);
+        see :meth:`service.pipeline.calibration.Calibration.start_sweep`. Returns the job."""
+        # the capture stage's open source (it has no public accessor yet)
+        return self.calibration.start_sweep(times, self.capture._source, max_degree, apply)
+
     def last_calibration(self) -> dict[str, Any] | None:
-        """The result of the last successful calibrate_response, or None."""
+        """The result of the last successful calibration, with the newest sweep's ``job``; None if neither."""
         return self.calibration.last_calibration()
 
     def reset_response(self) -> dict[str, Any] | None:
@@ -231,6 +237,7 @@ class Pipeline:
             "temporal": self.config.temporal,
             "motion_fraction": self.reconstruction.motion_fraction,
             "response": self.response_state(),
+            "calibration": self.calibration.job_state(),
             "mask": self.config.mask,
             "workers": self.workers,
             "reconstruct_error": self.reconstruction.error,

@@ -9,15 +9,18 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
+from service.pipeline.calibration import MAX_SWEEP, ExposureUnsupported
 from service.routers import NO_STORE, ServedCamera
 
 
 class CalibrateRequest(BaseModel):
-    """Body of POST /api/calibrate/response (optional)."""
+    """Body of POST /api/calibrate/response (optional). ``sweep``: exposure times (the camera's
+    unit, GigE: microseconds) to step through, one frame each, fitted together in the background."""
 
     model_config = ConfigDict(extra="forbid")
     max_degree: int = Field(6, ge=1, le=10)
     apply: bool = False
+    sweep: list[float] | None = Field(None, min_length=1, max_length=MAX_SWEEP)
 
 
 def router(cam: ServedCamera) -> APIRouter:
@@ -28,6 +31,12 @@ def router(cam: ServedCamera) -> APIRouter:
     async def calibrate_response(request: CalibrateRequest | None = None) -> Any:
         # seconds of numpy at full HD: in a worker thread, so the streams keep flowing
         request = request or CalibrateRequest()
+        if request.sweep is not None:  # a background job: 202 with it, progress in the state and GET
+            try:
+                job = pipeline.start_sweep(request.sweep, request.max_degree, request.apply)
+            except ExposureUnsupported as exc:
+                return JSONResponse({"detail": str(exc)}, status_code=409)
+            return JSONResponse(job, status_code=202, headers=NO_STORE)
         data = await run_in_threadpool(pipeline.calibrate_response, request.max_degree, request.apply)
         if data is None:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)

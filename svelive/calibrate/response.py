@@ -736,13 +736,17 @@ def linearise(raw: np.ndarray, response: Response, sensor: Sensor | None = None)
     return out.astype(np.float32)
 
 
-def calibrate_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *, max_degree: int = 6,
-                    points: int = 65) -> dict:
-    """Response calibration of a live raw frame, for the service: the response file's
-    content plus ``curve``, ``points`` samples {"brightness": [...], "linear": [...]}
-    of I = f(M) over [0, 1] for plotting. Raises SveliveError when the frame cannot
-    calibrate (too few constant regions, too narrow a brightness range)."""
-    response = fit_response(raw, pattern, sensor, ResponseFitConfig(max_degree=max_degree))
+def calibrate_frame(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sensor: Sensor, *,
+                    max_degree: int = 6, points: int = 65, exposure_times=None,
+                    progress: Callable[[str], None] | None = None) -> dict:
+    """Response calibration of live raw frames, for the service: the response file's content
+    plus ``curve``, ``points`` samples {"brightness": [...], "linear": [...]} of I = f(M) over
+    [0, 1] for plotting (``stats.band`` has the uncertainty band over the measured range).
+    ``raw`` is one frame, or a list of frames at ``exposure_times`` (a sweep). Raises
+    SveliveError when the frames cannot calibrate (too few constant regions, too narrow a
+    brightness range)."""
+    response = fit_response(raw, pattern, sensor, ResponseFitConfig(max_degree=max_degree),
+                            exposure_times=exposure_times, progress=progress)
     m = np.linspace(0.0, 1.0, points)
     data = response.to_dict()
     data["curve"] = {"brightness": m.tolist(), "linear": np.clip(response(m), 0.0, 1.0).tolist()}

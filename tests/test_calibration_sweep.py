@@ -1,0 +1,214 @@
+"""The live exposure sweep (issue 14): POST /api/calibrate/response {"sweep": [...]} steps the camera's
+exposure time, keeps one frame captured after each change, fits them together in the background,
+reports progress in /api/state, and puts the exposure back. Against a real uvicorn server on
+127.0.0.1: a simulated camera with exposure control whose frames go through a known response, the
+fake GigE camera of Aravis, and a source without exposure control (409)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+
+from svelive.calibrate import CURVES, simulate_nonlinear
+from svelive.frame import Frame
+
+from service.app import create_app, listen_socket
+from service.pipeline import Pipeline, PipelineConfig
+from service.settings import ServerSettings
+from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, SimSource, make_camera
+
+URL = "/api/calibrate/response"
+
+
+class Server(ServerThread):
+    """ServerThread over a pipeline with any source factory."""
+
+    def __init__(self, factory, **config) -> None:  # noqa: D107 - same as ServerThread, own factory
+        defaults = dict(source="sim", offline_after_s=0.6, retry_s=0.2, no_signal_fps=5.0, temporal=False)
+        self.pipeline = Pipeline(PipelineConfig(**{**defaults, **config}), factory)
+        settings = ServerSettings(port=0)
+        self.sock = listen_socket(settings)
+        self.port = self.sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.server = uvicorn.Server(uvicorn.Config(create_app(self.pipeline, settings), log_level="warning",
+                                                    timeout_graceful_shutdown=1))
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+
+    def __exit__(self, *exc: object) -> None:
+        super().__exit__(*exc)
+        self.pipeline.stop()
+
+
+def chart(shape=(192, 224)) -> np.ndarray:
+    """A grey-patch chart (10 stops) in DN at exposure 1, its brightest patch at the sensor's white."""
+    rng = np.random.default_rng(5)
+    patches = np.kron(2.0 ** rng.uniform(-10, 0, (shape[0] // 16, shape[1] // 16)), np.ones((16, 16)))
+    return (patches * SENSOR.range_dn / patches.max()).astype(np.float32)
+
+
+class ExposureSource(SimSource):
+    """A simulated camera with an exposure time (microseconds; 10 000 renders the chart at exposure 1)
+    and the gamma 2.2 response. A change takes effect from the frame after the one in flight, like a
+    camera that exposes the next frame while the current one is read out."""
+
+    def __init__(self, camera: Camera, exposure_us: float = 10_000.0) -> None:
+        super().__init__(camera)
+        self.scene = chart()
+        self.exposure_us = exposure_us
+        self._exposing = exposure_us  # exposure of the frame in flight
+        self.exposure_of: dict[int, float] = {}  # frame id -> exposure it was taken at
+        self.changes: list[float] = []
+        self._rendered: dict[float, np.ndarray] = {}
+
+    def exposure_time(self) -> float | None:
+        return self.exposure_us
+
+    def set_exposure_time(self, value: float) -> float:
+        self.changes.append(float(value))
+        self.exposure_us = float(value)
+        return self.exposure_us
+
+    def _next(self) -> Frame | None:
+        frame = super()._next()
+        if frame is None:
+            return None
+        used, self._exposing = self._exposing, self.exposure_us
+        if used not in self._rendered:
+            self._rendered[used] = simulate_nonlinear(self.scene * (used / 10_000.0), PATTERN, SENSOR,
+                                                      CURVES["gamma2.2"], seed=int(used))
+        self.exposure_of[frame.frame_id] = used
+        return Frame(raw=self._rendered[used], frame_id=frame.frame_id, host_time_ns=frame.host_time_ns,
+                     pixel_format=frame.pixel_format, camera=frame.camera)
+
+
+def wait_job(srv: ServerThread, job_id: int, timeout: float = 120.0) -> tuple[dict, list[int]]:
+    """Poll /api/state until the sweep ``job_id`` is done or failed: (its state, the steps seen)."""
+    deadline = time.monotonic() + timeout
+    seen: list[int] = []
+    while True:
+        job = srv.state()["calibration"]
+        assert job is not None and job["id"] == job_id
+        if not seen or seen[-1] != job["step"]:
+            seen.append(job["step"])
+        if job["state"] != "running":
+            return job, seen
+        assert time.monotonic() < deadline, f"the sweep did not finish: {job}"
+        time.sleep(0.02)
+
+
+def test_sweep_steps_the_exposure_fits_every_frame_applies_and_restores():
+    camera = Camera(fps=25.0, raws=[np.zeros((192, 224), np.uint16)], paused=True)
+    sources: list[ExposureSource] = []
+
+    def factory() -> ExposureSource:
+        sources.append(ExposureSource(camera))
+        return sources[-1]
+
+    with Server(factory) as srv:
+        assert srv.state()["calibration"] is None
+        assert httpx.post(srv.url + URL, json={"sweep": [10_000, 15_000]}, timeout=10).status_code == 422  # no frame
+        camera.paused = False
+        srv.wait_for(lambda s: s["frames"]["captured"] > 2)
+        source = sources[-1]
+        camera.paused = True  # the job waits for frames: a second request meets it running
+        sweep = [10_000.0, 15_000.0, 22_500.0]
+        r = httpx.post(srv.url + URL, json={"sweep": sweep, "apply": True}, timeout=10)
+        assert r.status_code == 202, r.text
+        job = r.json()
+        assert job["state"] == "running" and job["steps"] == 3 and job["sweep"] == sweep
+        assert job["exposure_time_before"] == 10_000.0
+        busy = httpx.post(srv.url + URL, json={"sweep": sweep}, timeout=10)
+        assert busy.status_code == 409 and "already running" in busy.json()["detail"]
+        assert srv.state()["calibration"]["state"] == "running"
+        camera.paused = False
+        done, steps = wait_job(srv, job["id"])
+        assert done["state"] == "done", done
+        assert steps == sorted(steps) and steps[-1] == 3
+        assert done["exposure_times"] == sweep
+        # every kept frame was exposed at its step's time, not the one in flight during the change
+        assert [source.exposure_of[i] for i in done["frame_ids"]] == sweep
+        # the exposure went back, last
+        assert source.changes == sweep + [10_000.0] and done["restored"] == 10_000.0
+        assert source.exposure_time() == 10_000.0
+
+        result = httpx.get(srv.url + URL, timeout=10).json()
+        assert result["job"] == done and result["applied"] is True
+        stats = result["stats"]
+        assert stats["frames"] == 3 and stats["exposure_times"] == sweep and stats["common_ratio"] is None
+        lo, hi = stats["measured_range"]
+        assert hi - lo > 0.9
+        m = np.asarray(result["curve"]["brightness"])
+        inside = (m >= lo) & (m <= hi)
+        error = np.abs(np.asarray(result["curve"]["linear"]) - CURVES["gamma2.2"].inverse(m))[inside]
+        assert error.max() < 0.02, error.max()
+        band = stats["band"]
+        assert band["brightness"][0] == lo and band["brightness"][-1] == hi
+        assert all(0 <= se < 0.01 for se in band["standard_error"])
+        state = srv.state()
+        assert state["response"]["origin"] == "calibrated live"
+        assert state["response"]["coefficients"] == result["coefficients"]
+
+        # back to the configured response (none): nothing says "applied" any more (issue 13 item 13)
+        assert httpx.delete(srv.url + URL, timeout=10).json() == {"response": None}
+        assert srv.state()["response"] is None
+        assert httpx.get(srv.url + URL, timeout=10).json()["applied"] is False
+
+
+def test_a_source_without_exposure_control_gets_409_and_bad_sweeps_422():
+    with ServerThread(make_camera(fps=20.0, n=2)) as srv:
+        srv.wait_for(lambda s: s["frames"]["captured"] > 1)
+        r = httpx.post(srv.url + URL, json={"sweep": [1000, 1500]}, timeout=10)
+        assert r.status_code == 409, r.text
+        detail = r.json()["detail"]
+        assert "source sim cannot set its exposure time" in detail and "\n" not in detail
+        for body, word in (({"sweep": []}, "sweep"), ({"sweep": [1, -2]}, "positive"), ({"sweep": [5, 5]}, "differ"),
+                           ({"sweep": list(range(1, 30))}, "sweep"), ({"sweep": "fast"}, "sweep")):
+            r = httpx.post(srv.url + URL, json=body, timeout=10)
+            assert r.status_code in (409, 422) and word in r.text, (body, r.status_code, r.text)
+        assert srv.state()["calibration"] is None
+
+
+# ----- the fake GigE camera of Aravis --------------------------------------------------------------
+
+from tests.test_capture_gige import _MISSING, ADDRESS, FakeCamera  # noqa: E402
+
+
+@pytest.mark.skipif(_MISSING is not None, reason=str(_MISSING))
+def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it():
+    from svelive.capture import open_source
+
+    fake = FakeCamera("SVESWEEP")
+    fake.start()
+    try:
+        opened = []
+
+        def factory():
+            opened.append(open_source(f"gige:{ADDRESS}", pixel_format="Mono8", width=64, height=48, fps=40,
+                                      exposure_us=8000, pattern="1,4/16,64"))
+            return opened[-1]
+
+        with Server(factory, offline_after_s=2.0) as srv:
+            srv.wait_for(lambda s: s["frames"]["captured"] > 2, timeout=15)
+            source = opened[-1]
+            assert source.exposure_time() == 8000.0
+            r = httpx.post(srv.url + URL, json={"sweep": [4000, 6000, 9000]}, timeout=10)
+            assert r.status_code == 202, r.text
+            job, steps = wait_job(srv, r.json()["id"], timeout=60)
+            assert steps[-1] == 3 and job["exposure_times"] == [4000.0, 6000.0, 9000.0]
+            assert len(job["frame_ids"]) == 3 and job["frame_ids"] == sorted(job["frame_ids"])
+            assert job["restored"] == 8000.0 and source.exposure_time() == 8000.0
+            # the fake camera's moving ramp is no still SVE scene: the fit refuses it, with the reason
+            assert job["state"] in ("done", "failed")
+            if job["state"] == "failed":
+                assert job["error"] and "\n" not in job["error"]
+            # the camera itself reports the restored value
+            from svelive.capture.gige import load_aravis
+
+            assert load_aravis().Camera.new(ADDRESS).get_exposure_time() == 8000.0
+    finally:
+        fake.stop()
