@@ -146,7 +146,7 @@ class Camera:
                                    f"{value!r:.40})")
             if isinstance(value, float) and not math.isfinite(value):
                 raise SveliveError(f"camera sensor is invalid ({key} must be finite, got {value!r})")
-        bits = s.get("bits", default_bits)
+        bits = default_bits if s.get("bits") is None else s["bits"]
         if not (1 <= bits <= 16 and float(bits).is_integer()):
             raise SveliveError(f"camera sensor is invalid (bits must be a whole number 1..16, got {bits!r:.20})")
         for key in ("pattern", "cfa"):
@@ -156,7 +156,7 @@ class Camera:
         if response is not None and not isinstance(response, dict):
             raise SveliveError(f"camera response must be a JSON object or null, got {type(response).__name__}")
         try:
-            sensor = Sensor(int(bits), float(s.get("black_level", 0.0)), s.get("white_level"), s.get("gain"),
+            sensor = Sensor(int(bits), float(s.get("black_level") or 0.0), s.get("white_level"), s.get("gain"),
                             s.get("read_noise"))
         except (TypeError, ValueError, OverflowError) as exc:
             raise SveliveError(f"camera sensor is invalid ({exc})") from None
