@@ -108,13 +108,24 @@ class Chunk:
 @dataclass(frozen=True)
 class ChunkResult:
     """What a task did: frames written, already complete (skipped), damaged in the recording, and
-    frames reconstructed (warm-up included) in ``seconds`` of wall time."""
+    frames reconstructed (warm-up included) in ``seconds`` of wall time.
+
+    ``start_state`` and ``end_state`` are the stream's state (:func:`stream_state`) before frame
+    ``start`` and after frame ``stop - 1``, None for a stream without state; ``staged``: the
+    EXRs were written to :func:`staging_dir` and wait for the chunk's check."""
 
     written: tuple[int, ...]
     complete: tuple[int, ...]
     damaged: tuple[int, ...]
     reconstructed: int
     seconds: float
+    start_state: dict[str, Any] | None = field(default=None, repr=False)
+    end_state: dict[str, Any] | None = field(default=None, repr=False)
+    staged: bool = False
+
+    def without_states(self) -> ChunkResult:
+        """This result without the (large) states."""
+        return replace(self, start_state=None, end_state=None)
 
 
 def frame_path(output: str | Path, index: int) -> Path:
@@ -240,6 +251,12 @@ def job_camera(job: Job) -> tuple[Camera, Any]:
     return camera, RecordingReader(job.recording, warn=False)
 
 
+def stateful(job: Job, camera: Camera) -> bool:
+    """True when a frame's output depends on the frames before it: temporal fusion, or a colour
+    camera's automatic white balance."""
+    return job.temporal or (camera.cfa is not None and job.colour.auto)
+
+
 def expected_channels(camera: Camera) -> set[str]:
     """The channel names of an output EXR for ``camera``."""
     return ({"Y"} if camera.cfa is None else {"R", "G", "B"}) | {"confidence", "motion"}
@@ -267,11 +284,74 @@ def complete_frames(job: Job, indices: Iterable[int]) -> list[int]:
     return [i for i in indices if is_complete(frame_path(job.output, i), shape, channels)]
 
 
-def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = None) -> ChunkResult:
+def staging_dir(job: Job, chunk: Chunk) -> Path:
+    """Where a chunk that starts cold writes its EXRs until its start state is checked."""
+    return Path(job.output) / ".svelive-pending" / f"{chunk.start:06d}-{chunk.stop:06d}"
+
+
+#: Relative difference up to which two fused states count as the same (float32 rounding is 6e-8).
+STATE_RTOL = 1e-6
+
+
+def stream_state(reconstructor: Any, balancer: WhiteBalancer) -> dict[str, Any]:
+    """Everything a stream carries from one frame to the next: the fused history's arrays
+    (svelive.reconstruction.fusion.TemporalState), a colour stream's fused chroma, and the white
+    balance's filter (multipliers, mode, time of its last measurement). The arrays are the
+    stream's own (never modified after creation), not copies."""
+    if not hasattr(reconstructor, "_history") or not hasattr(reconstructor, "_chroma"):
+        raise SveliveError("svelive.reprocess: the Reconstructor no longer has the state this reads")
+    state: dict[str, Any] = {}
+    history = reconstructor._history  # the stream's state (no public accessor yet)
+    if history is not None:
+        state.update({name: value for name, value in vars(history).items() if isinstance(value, np.ndarray)})
+    if reconstructor._chroma is not None:
+        state["chroma"] = reconstructor._chroma
+    current = balancer.current
+    if current is not None:
+        state["white_balance"] = (tuple(current.multipliers), current.mode, current.time_ns)
+    return state
+
+
+def compare_states(a: dict[str, Any] | None, b: dict[str, Any] | None, rtol: float = STATE_RTOL) -> str | None:
+    """None when two stream states are the same: the same history weights (so the same resets),
+    boolean maps and white balance mode and time, and every other number within ``rtol`` of
+    the other relative to the larger; else what differs, in a few words."""
+    if a is None or b is None:
+        return None if a is b else "one stream has no state"
+    if a.keys() != b.keys():
+        return f"different state parts {sorted(a.keys() ^ b.keys())}"
+    for key in sorted(a):
+        x, y = a[key], b[key]
+        if key == "white_balance":
+            (mx, *rx), (my, *ry) = x, y
+            if rx != ry or not np.allclose(mx, my, rtol=rtol, atol=0):
+                return f"white balance {x} != {y}"
+            continue
+        if x.shape != y.shape or x.dtype != y.dtype:
+            return f"{key}: shape or type differs"
+        if x.dtype == bool or key == "weight":
+            if not np.array_equal(x, y):
+                return f"{key}: {int(np.count_nonzero(x != y))} pixels differ"
+            continue
+        with np.errstate(invalid="ignore", over="ignore"):
+            x64, y64 = x.astype(np.float64), y.astype(np.float64)
+            bad = ~((x64 == y64) | (np.abs(x64 - y64) <= rtol * np.maximum(np.abs(x64), np.abs(y64))))
+        if bad.any():
+            return f"{key}: {int(np.count_nonzero(bad))} values differ by more than {rtol:g}"
+    return None
+
+
+def compare_results(before: ChunkResult, after: ChunkResult, rtol: float = STATE_RTOL) -> str | None:
+    """:func:`compare_states` of the state ``before`` ends with and the state ``after`` starts with."""
+    return compare_states(before.end_state, after.start_state, rtol)
+
+
+def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = None,
+              stage: bool = False) -> ChunkResult:
     """Reconstruct frames ``chunk.first`` .. ``chunk.stop - 1`` in order and write the EXRs of
-    ``chunk.start`` .. ``chunk.stop - 1`` that are not complete yet. A damaged frame is skipped
-    (the stream goes on without it, as the replay source's reader does). ``on_frame(index)``
-    is called after each written or skipped frame of the chunk."""
+    ``chunk.start`` .. ``chunk.stop - 1`` that are not complete yet (into :func:`staging_dir`
+    with ``stage``). A damaged frame is skipped (the stream goes on without it, as the replay
+    source does). ``on_frame(index)`` is called after each written or skipped frame."""
     import dataclasses
 
     from replay import CorruptFrameError
@@ -281,7 +361,7 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
 
     t0 = time.perf_counter()
     camera, reader = job_camera(job)
-    output = Path(job.output)
+    output = staging_dir(job, chunk) if stage else Path(job.output)
     output.mkdir(parents=True, exist_ok=True)
     shape = (reader.layout.height, reader.layout.width)
     channels = expected_channels(camera)
@@ -289,22 +369,23 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
     written, complete, damaged = [], [], []
     reconstructed = 0
     balancer = WhiteBalancer(job.colour)
-    # a chunk whose frames are all complete needs no warm-up: nothing to write
-    todo = [i for i in range(chunk.start, chunk.stop)
-            if not is_complete(frame_path(output, i), shape, channels)]
-    done = set(range(chunk.start, chunk.stop)) - set(todo)
-    last = max(todo) + 1 if todo else chunk.start
+    keeps_state = stateful(job, camera)
+    final = Path(job.output)
+    done = {i for i in range(chunk.start, chunk.stop) if is_complete(frame_path(final, i), shape, channels)}
+    start_state = None
     with reader, Reconstructor(camera, method=job.method, temporal=job.temporal, exposure_timing=job.timing,
                                motion_config=job.motion) as reconstructor:
-        for i in range(chunk.first if todo else chunk.start, chunk.stop):
+        # a chunk whose frames are all complete needs no warm-up: nothing to write
+        first = chunk.first if len(done) < chunk.stop - chunk.start or chunk.start == chunk.stop else chunk.start
+        for i in range(first, chunk.stop):
+            if i == chunk.start and keeps_state:
+                start_state = stream_state(reconstructor, balancer)
             if i in done:
                 complete.append(i)
                 if on_frame is not None:
                     on_frame(i)
-                if not job.temporal and camera.cfa is None:
+                if not keeps_state:
                     continue
-            if i >= last:
-                continue
             try:
                 frame = dataclasses.replace(reader.read(i), camera=camera)
             except CorruptFrameError:
@@ -332,14 +413,40 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
             written.append(i)
             if on_frame is not None:
                 on_frame(i)
-    return ChunkResult(tuple(written), tuple(complete), tuple(damaged), reconstructed, time.perf_counter() - t0)
+        if keeps_state and start_state is None:  # an empty chunk: the state before ``start``
+            start_state = stream_state(reconstructor, balancer)
+        end_state = stream_state(reconstructor, balancer) if keeps_state else None
+    return ChunkResult(tuple(written), tuple(complete), tuple(damaged), reconstructed, time.perf_counter() - t0,
+                       start_state, end_state, stage)
+
+
+def commit_staged(job: Job, chunk: Chunk, frames: Iterable[int]) -> None:
+    """Move a checked chunk's staged EXRs into the output (a rename each: atomic)."""
+    import os
+
+    staged = staging_dir(job, chunk)
+    for i in frames:
+        os.replace(frame_path(staged, i), frame_path(job.output, i))
+    _remove_staging(job, chunk)
+
+
+def _remove_staging(job: Job, chunk: Chunk) -> None:
+    import shutil
+
+    staged = staging_dir(job, chunk)
+    shutil.rmtree(staged, ignore_errors=True)
+    try:
+        staged.parent.rmdir()  # the last chunk's takes the folder with it
+    except OSError:
+        pass
 
 
 # ----- the client ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Summary:
     """The outcome of a run: frames written, skipped as complete, damaged; frames reconstructed
-    (warm-ups included); wall seconds; chunks; workers (0: in this process)."""
+    (warm-ups and re-runs included); wall seconds; chunk tasks run (re-runs included); chunks
+    re-run because their warm-up had not converged; workers (0: in this process)."""
 
     written: int
     complete: int
@@ -347,12 +454,14 @@ class Summary:
     reconstructed: int
     seconds: float
     chunks: int
+    reruns: int
     workers: int
+    reasons: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {"written": self.written, "complete": self.complete, "damaged": list(self.damaged),
                 "reconstructed": self.reconstructed, "seconds": round(self.seconds, 3), "chunks": self.chunks,
-                "workers": self.workers,
+                "reruns": self.reruns, "rerun_reasons": list(self.reasons), "workers": self.workers,
                 "fps": round(self.written / self.seconds, 3) if self.seconds > 0 else None}
 
 
@@ -394,9 +503,161 @@ def existing_outputs(job: Job, n: int) -> list[int]:
     return [i for i in range(n) if frame_path(job.output, i).exists()]
 
 
+class LocalBackend:
+    """Runs chunks one after the other in this process; a state reference is the full ChunkResult."""
+
+    def run(self, tasks: list[tuple[Job, Chunk, bool]]) -> Iterable[tuple[int, ChunkResult, Any]]:
+        for k, (job, chunk, stage) in enumerate(tasks):
+            result = run_chunk(job, chunk, stage=stage)
+            yield k, result.without_states(), result
+
+    def compare(self, before: Any, after: Any) -> str | None:
+        return compare_results(before, after)
+
+
+class DaskBackend:
+    """Runs chunks as tasks of a dask.distributed Client. A state reference is the future of the
+    full ChunkResult, which stays on its worker: states are compared on a worker (Dask moves one
+    of them between workers), only small results come to the client."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+
+    def run(self, tasks: list[tuple[Job, Chunk, bool]]) -> Iterable[tuple[int, ChunkResult, Any]]:
+        from distributed import as_completed
+
+        full = [self.client.submit(run_chunk, job, chunk, None, stage, pure=False) for job, chunk, stage in tasks]
+        small = {self.client.submit(ChunkResult.without_states, f, pure=False): k for k, f in enumerate(full)}
+        for future in as_completed(small):
+            k = small[future]
+            yield k, future.result(), full[k]
+
+    def compare(self, before: Any, after: Any) -> str | None:
+        return self.client.submit(compare_results, before, after, pure=False).result()
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What :func:`execute` did: the results whose EXRs are in the output, frames reconstructed by
+    every task (warm-ups, re-runs and reference runs included), tasks run, chunks re-run, and
+    why each re-run was needed."""
+
+    results: tuple[ChunkResult, ...]
+    reconstructed: int
+    tasks: int
+    reruns: int
+    reasons: tuple[str, ...] = ()
+
+
+def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = None, verify: bool = True) -> Outcome:
+    """Run ``chunks`` on ``backend`` (LocalBackend, DaskBackend) and make the result the sequential run's.
+
+    A chunk of a stream with state (:func:`stateful`) that starts cold (``first > 0``) writes into
+    its staging folder; its state before ``start`` must be the same (:func:`compare_states`: the
+    same resets, fused values within STATE_RTOL) as the state the run before it ends with: the
+    previous chunk's end state when that chunk ends at ``start`` and was accepted itself (or
+    starts at frame 0), else the state of a reference run warmed up twice as long. An accepted
+    chunk's EXRs are moved into the output; another is run again with twice the warm-up (at most
+    back to frame 0, which is the sequential run). ``verify=False`` accepts every chunk as it
+    comes (no staging).
+    """
+    pending = list(chunks)
+    camera, reader = job_camera(job)
+    with reader:
+        times = reader.timeline_ns()
+    keeps_state = stateful(job, camera) and verify
+    measured = None
+    if camera.cfa is not None and job.colour.auto:
+        measured, _ = white_balance_chain(times, WhiteBalancer(job.colour))
+
+    def longer(chunk: Chunk) -> Chunk:
+        """The chunk with twice its warm-up (8 frames at least), started where the white balance measures."""
+        first = max(0, chunk.start - max(2 * chunk.warmup, 8))
+        while measured is not None and first > 0 and not measured[first]:
+            first -= 1
+        return Chunk(first, chunk.start, chunk.stop)
+
+    final: dict[int, ChunkResult] = {}  # by chunk start: results whose EXRs are in the output
+    waiting: dict[int, tuple[Chunk, ChunkResult, Any]] = {}  # staged, not yet checked
+    ends: dict[int, Any] = {}  # by frame: the reference to the accepted state before it
+    reconstructed = tasks = 0
+    reasons: list[str] = []
+    while pending:
+        batch = [(job, c, keeps_state and c.first > 0) for c in pending]
+        tasks += len(batch)
+        for k, result, ref in backend.run(batch):
+            chunk = pending[k]
+            reconstructed += result.reconstructed
+            if result.staged:
+                waiting[chunk.start] = (chunk, result, ref)
+                continue
+            final[chunk.start] = result
+            if keeps_state:
+                ends[chunk.stop] = ref
+            if progress is not None:
+                progress.update(len(result.written) + len(result.damaged))
+        pending = []
+        stops = {c.stop for c, _, _ in waiting.values()}
+        alone = [c for start, (c, _, _) in sorted(waiting.items()) if start not in ends and start not in stops]
+        if alone:  # cold chunks with nothing run before them: a reference run warmed up longer
+            refs = [longer(Chunk(c.first, c.start, c.start)) for c in alone]
+            tasks += len(refs)
+            for k, result, ref in backend.run([(job, r, False) for r in refs]):
+                reconstructed += result.reconstructed
+                ends[alone[k].start] = _StartOf(ref)
+        changed = True
+        while changed:  # an accepted chunk makes the next one checkable
+            changed = False
+            for start, (chunk, result, ref) in sorted(waiting.items()):
+                if start not in ends:
+                    continue
+                del waiting[start]
+                changed = True
+                before = ends[start]
+                if isinstance(before, _StartOf):  # a reference run's start state against this one's
+                    reason = backend.compare(_as_end(before.ref, backend), ref)
+                else:
+                    reason = backend.compare(before, ref)
+                if reason is None:
+                    commit_staged(job, chunk, result.written)
+                    final[start] = result
+                    ends.pop(start)
+                    ends[chunk.stop] = ref
+                    if progress is not None:
+                        progress.update(len(result.written) + len(result.damaged))
+                else:
+                    _remove_staging(job, chunk)
+                    pending.append(longer(chunk))
+                    reasons.append(f"frames {chunk.start}-{chunk.stop - 1} after {chunk.warmup} frames of "
+                                   f"warm-up: {reason}")
+        if not pending and waiting:  # pragma: no cover - every waiting chunk has a predecessor or a reference
+            raise SveliveError("svelive.reprocess: chunks left unchecked")
+    return Outcome(tuple(r for _, r in sorted(final.items())), reconstructed, tasks, len(reasons), tuple(reasons))
+
+
+@dataclass(frozen=True)
+class _StartOf:
+    """A reference run's result, whose start state (not its end state) is the one to compare with."""
+
+    ref: Any
+
+
+def _end_from_start(result: ChunkResult) -> ChunkResult:
+    """A result whose end state is ``result``'s start state (for :func:`compare_results`)."""
+    return replace(result, end_state=result.start_state)
+
+
+def _as_end(ref: Any, backend: Any) -> Any:
+    """A reference run's state reference turned so that :meth:`compare` reads its start state."""
+    if isinstance(backend, DaskBackend):
+        return backend.client.submit(_end_from_start, ref, pure=False)
+    return _end_from_start(ref)
+
+
 def run_local(job: Job, progress: Any = None, warmup: int | None = None) -> Summary:
     """Reprocess in this process, in frame order: from frame 0 when nothing is written yet (the
-    sequential result); a resumed run starts its missing runs ``warmup`` frames early, as a worker would."""
+    sequential result); a resumed run starts its missing runs ``warmup`` frames early, checked
+    as a worker's chunk is (:func:`execute`)."""
     t0 = time.perf_counter()
     n = frame_count(job)
     complete = complete_frames(job, existing_outputs(job, n))
@@ -405,15 +666,15 @@ def run_local(job: Job, progress: Any = None, warmup: int | None = None) -> Summ
         progress.total = n
         if complete:
             progress.update(len(complete), skipped=True)
-    results = [run_chunk(job, chunk, on_frame=None if progress is None else (lambda i: progress.update()))
-               for chunk in work.chunks]
-    return _summary(results, len(complete), time.perf_counter() - t0, len(work.chunks), 0)
+
+    return _summary(execute(job, work.chunks, LocalBackend(), progress), len(complete), time.perf_counter() - t0, 0)
 
 
-def _summary(results: list[ChunkResult], complete: int, seconds: float, chunks: int, workers: int) -> Summary:
+def _summary(outcome: Outcome, complete: int, seconds: float, workers: int) -> Summary:
+    results = outcome.results
     return Summary(sum(len(r.written) for r in results), complete + sum(len(r.complete) for r in results),
-                   tuple(sorted(i for r in results for i in r.damaged)), sum(r.reconstructed for r in results),
-                   seconds, chunks, workers)
+                   tuple(sorted(i for r in results for i in r.damaged)), outcome.reconstructed, seconds,
+                   outcome.tasks, outcome.reruns, workers, outcome.reasons)
 
 
 def connect(workers: int, scheduler: str | None) -> Any:
@@ -433,11 +694,11 @@ def connect(workers: int, scheduler: str | None) -> Any:
     return Client(cluster)
 
 
-def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: int | None = None) -> Summary:
+def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: int | None = None,
+             verify: bool = True) -> Summary:
     """Reprocess on the Dask cluster of ``client``: a check of the existing outputs, then the chunks of
-    :func:`make_plan` as tasks (the workers read the recording and write the EXRs themselves)."""
-    from distributed import as_completed
-
+    :func:`make_plan` as tasks (the workers read the recording and write the EXRs themselves),
+    checked by :func:`execute` (``verify=False``: accepted as they are)."""
     t0 = time.perf_counter()
     n = frame_count(job)
     existing = existing_outputs(job, n)
@@ -449,13 +710,6 @@ def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: 
         progress.total = n
         if complete:
             progress.update(len(complete), skipped=True)
-    futures = [client.submit(run_chunk, job, chunk, pure=False) for chunk in work.chunks]
-    results = []
-    for future in as_completed(futures):
-        result: ChunkResult = future.result()
-        results.append(result)
-        if progress is not None:
-            progress.update(len(result.written) + len(result.damaged))
-            if result.complete:
-                progress.update(len(result.complete), skipped=True)
-    return _summary(results, len(complete), time.perf_counter() - t0, len(work.chunks), workers)
+
+    return _summary(execute(job, work.chunks, DaskBackend(client), progress, verify), len(complete),
+                    time.perf_counter() - t0, workers)
