@@ -1,11 +1,14 @@
 """Motion robustness targets (issue 5): temporal fusion gain, moving regions, ghosting, integration timing, cost.
 
-    python benchmarks/motion.py [--quick] [--cost-only] [--figure docs/motion-trail.png]
+    python benchmarks/motion.py [--quick] [--cost-only] [--method NAME] [--figure docs/motion-trail.png]
 
 Real HDR content from ../shared/data (not shipped). 12-bit sensor, 10 000 e- full
-well, 3 e- read noise, pattern 1,4/16,64, default method. PU21-PSNR is computed
-over a region (static or moving pixels of the ground-truth motion mask) with
-the display scaling of the whole frame's truth.
+well, 3 e- read noise, pattern 1,4/16,64, the stream's default method (or
+``--method``). PU21-PSNR is computed over a region (static or moving pixels of
+the ground-truth motion mask) with the display scaling of the whole frame's
+truth. "single" is one frame of the single-frame default (svelive.reconstruct's),
+what a user gets without a stream; where the stream's method is another, its own
+single frame is printed beside it.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import numpy as np  # noqa: E402
 from svelive import Pattern, Sensor  # noqa: E402
 from svelive.exr import read_luminance  # noqa: E402
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode  # noqa: E402
+from svelive.reconstruction.methods import DEFAULT_METHOD  # noqa: E402
 from svelive.reconstruction.stream import Reconstructor  # noqa: E402
 from svelive.scenes import load_beachball, moving_disc, panning, placed_frames, render_sequence, static  # noqa: E402
 from svelive.simulate import exposure_scale  # noqa: E402
@@ -49,45 +53,60 @@ def scaled(image: np.ndarray, stops: float) -> np.ndarray:
     return image * exposure_scale(image, Pattern.parse(PATTERN), SENSOR, stops_below_fill=stops)
 
 
+#: The stream's method (``--method``; None: the stream's default).
+STREAM_METHOD: list[str | None] = [None]
+
+
 def run(frames, **kw):
-    """Fused and single-frame results of a rendered sequence: list of (frame, fused, single)."""
-    # single frame = the same method without fusion: what fusion adds or costs
-    fused = Reconstructor(PATTERN, **KW, **kw)
-    single = Reconstructor(PATTERN, temporal=False, method=fused.method, **KW, **kw)
-    return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
+    """Fused and single-frame results of a rendered sequence: list of (frame, fused, single, own single).
+
+    single: the single-frame default; own single: the stream's method on one frame (the same
+    result when the stream uses the single-frame default)."""
+    fused = Reconstructor(PATTERN, method=STREAM_METHOD[0], **KW, **kw)
+    single = Reconstructor(PATTERN, temporal=False, method=DEFAULT_METHOD, **KW, **kw)
+    own = single if fused.method == DEFAULT_METHOD else Reconstructor(PATTERN, temporal=False,
+                                                                       method=fused.method, **KW, **kw)
+    out = []
+    for f in frames:
+        a, b = fused.process(f.raw), single.process(f.raw)
+        out.append((f, a, b, b if own is single else own.process(f.raw)))
+    return out
 
 
-def static_gain(name: str, stops: float, n: int, crop: int) -> tuple[float, float, float]:
+def static_gain(name: str, stops: float, n: int, crop: int) -> tuple[float, float, float, float]:
+    """(single default, fused, false-alarm fraction, single of the stream's method) of a static scene."""
     image = np.maximum(read_luminance(DATA / "hdr" / name), 0)
     h, w = image.shape
     image = image[(h - min(h, crop)) // 2:][:crop, (w - min(w, crop)) // 2:][:, :crop]
     out = run(render_sequence(static(scaled(image, stops)), n, PATTERN, SENSOR, seed=1))
-    f, fused, single = out[-1]
+    f, fused, single, own = out[-1]
     everywhere = np.ones(f.truth.shape, bool)
-    false_alarm = float(np.mean([r.moving_fraction for _, r, _ in out[1:]]))
-    return region_pu21(single.image, f.truth, everywhere), region_pu21(fused.image, f.truth, everywhere), false_alarm
+    false_alarm = float(np.mean([r.moving_fraction for _, r, _, _ in out[1:]]))
+    return (region_pu21(single.image, f.truth, everywhere), region_pu21(fused.image, f.truth, everywhere),
+            false_alarm, region_pu21(own.image, f.truth, everywhere))
 
 
 def moving_case(label: str, scene, n: int, timing: str = "mask") -> dict[str, float]:
     out = run(render_sequence(scene, n, PATTERN, SENSOR, timing=timing, seed=3), exposure_timing=timing)
-    res = {}
-    moving = [f.motion for f, _, _ in out]
-    trail_f, trail_s, mov_f, mov_s, st_f, st_s = [], [], [], [], [], []
-    for i, (f, fused, single) in enumerate(out[2:], start=2):
+    moving = [f.motion for f, _, _, _ in out]
+    trail_f, trail_s, mov_f, mov_s, st_f, st_s, mov_o = [], [], [], [], [], [], []
+    for i, (f, fused, single, own) in enumerate(out[2:], start=2):
         # Trail: pixels that moved in the last 3 frames but are static now.
         trail = np.any(moving[max(0, i - 3):i], axis=0) & ~f.motion
         trail_f.append(region_pu21(fused.image, f.truth, trail))
         trail_s.append(region_pu21(single.image, f.truth, trail))
         mov_f.append(region_pu21(fused.image, f.truth, f.motion))
         mov_s.append(region_pu21(single.image, f.truth, f.motion))
+        mov_o.append(region_pu21(own.image, f.truth, f.motion))
         st_f.append(region_pu21(fused.image, f.truth, ~f.motion))
         st_s.append(region_pu21(single.image, f.truth, ~f.motion))
     res = {k: float(np.nanmean(v)) for k, v in dict(moving_fused=mov_f, moving_single=mov_s, trail_fused=trail_f,
                                                      trail_single=trail_s, static_fused=st_f,
-                                                     static_single=st_s).items()}
+                                                     static_single=st_s, moving_own=mov_o).items()}
     res["moving_fraction_gt"] = float(np.mean([m.mean() for m in moving]))
-    res["flagged_fraction"] = float(np.mean([r.moving_fraction for _, r, _ in out[1:]]))
-    print(f"{label:34s} moving {res['moving_single']:6.2f} -> {res['moving_fused']:6.2f} dB | "
+    res["flagged_fraction"] = float(np.mean([r.moving_fraction for _, r, _, _ in out[1:]]))
+    own = "" if out[0][3] is out[0][2] else f" (own single {res['moving_own']:6.2f})"
+    print(f"{label:34s} moving {res['moving_single']:6.2f} -> {res['moving_fused']:6.2f} dB{own} | "
           f"trail {res['trail_single']:6.2f} -> {res['trail_fused']:6.2f} dB | static {res['static_single']:6.2f} -> "
           f"{res['static_fused']:6.2f} dB | gt moving {100 * res['moving_fraction_gt']:.1f}% flagged "
           f"{100 * res['flagged_fraction']:.1f}%")
@@ -97,8 +116,10 @@ def moving_case(label: str, scene, n: int, timing: str = "mask") -> dict[str, fl
 def integration_edge(scene, n: int) -> None:
     frames = list(render_sequence(scene, n, PATTERN, SENSOR, timing="integration", seed=5))
     for temporal in (False, True):
-        with_c = Reconstructor(PATTERN, temporal=temporal, exposure_timing="integration", **KW)
-        without = Reconstructor(PATTERN, temporal=temporal, exposure_timing="integration", consistency=False, **KW)
+        method = STREAM_METHOD[0] if temporal else None
+        with_c = Reconstructor(PATTERN, temporal=temporal, method=method, exposure_timing="integration", **KW)
+        without = Reconstructor(PATTERN, temporal=temporal, method=method, exposure_timing="integration",
+                                consistency=False, **KW)
         a = [(with_c.process(f.raw).image, f) for f in frames][1:]
         b = [(without.process(f.raw).image, f) for f in frames][1:]
         for region in ("moving", "static"):
@@ -118,13 +139,14 @@ def cost(repeats: int) -> None:
     for label, opts in [("temporal + detail (mask)", {}), ("temporal, no detail", dict(detail=False)),
                         ("temporal + consistency (integration)", dict(exposure_timing="integration")),
                         ("single frame, no motion stage", dict(temporal=False))]:
-        r = Reconstructor(PATTERN, **kw, **opts)
+        method = STREAM_METHOD[0] if opts.get("temporal", True) else None
+        r = Reconstructor(PATTERN, method=method, **kw, **opts)
         method, motion = [], []
         for _ in range(repeats + 1):
             res = r.process(raw)
             method.append(res.timings_ms["method"])
             motion.append(res.timings_ms["motion"])
-        print(f"1920x1200 {label:38s} method {np.median(method[1:]):6.1f} ms, motion stage "
+        print(f"1920x1200 {label:38s} {r.method:9s} method {np.median(method[1:]):6.1f} ms, motion stage "
               f"{np.median(motion[1:]):6.1f} ms (median of {repeats})")
 
 
@@ -135,7 +157,7 @@ def trail_figure(path: Path, scene, n: int) -> None:
     import matplotlib.pyplot as plt
 
     out = run(render_sequence(scene, n, PATTERN, SENSOR, seed=7))
-    f, fused, single = out[-1]
+    f, fused, single, _ = out[-1]
     s = display_scale(f.truth)
     tone = lambda x: pu21_encode(x * s) / PU21_PEAK  # noqa: E731
     err = lambda x: np.abs(pu21_encode(x * s) - pu21_encode(f.truth * s))  # noqa: E731
@@ -160,19 +182,26 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="smaller crops and fewer repeats")
     parser.add_argument("--figure", type=Path, help="write the trail figure (frame, truth, error maps) here")
     parser.add_argument("--cost-only", action="store_true", help="only the 1920x1200 cost per frame")
+    parser.add_argument("--method", help="the stream's single-frame method (default: the stream's default)")
+    parser.add_argument("--no-cost", action="store_true", help="leave out the 1920x1200 cost per frame")
+    parser.add_argument("--repeats", type=int, default=None, help="frames timed in the cost table")
     args = parser.parse_args()
+    STREAM_METHOD[0] = args.method
     cv2.setNumThreads(1)
     crop, repeats = (256, 3) if args.quick else (512, 7)
+    if args.repeats:
+        repeats = args.repeats
     if args.cost_only:
-        cost(15)
+        cost(args.repeats or 15)
         return
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; pattern {PATTERN}, "
           f"12-bit, 10000 e- full well, 3 e- read noise; 8 frames")
     print("## static scenes: PU21-PSNR single frame -> fused after 8 frames; mean flagged fraction (false alarms)")
     for stops in (5, 0):
         for name in ("Desk.exr", "MtTamWest.exr", "Bonita.exr", "Garden.exr", "Cannon.exr", "BrightRings.exr"):
-            single, fused, fa = static_gain(name, stops, 8, crop)
-            print(f"{stops} stops below fill {name:16s} {single:6.2f} -> {fused:6.2f} dB ({fused - single:+.2f}), "
+            single, fused, fa, own = static_gain(name, stops, 8, crop)
+            mine = "" if own == single else f" (own single {own:6.2f})"
+            print(f"{stops} stops below fill {name:16s} {single:6.2f} -> {fused:6.2f} dB ({fused - single:+.2f}){mine}, "
                   f"false alarms {100 * fa:.3f}%")
     print("## moving scenes (mask timing unless stated): PU21 over ground-truth moving / trail / static pixels, "
           "single -> fused")
@@ -192,7 +221,8 @@ def main() -> None:
                          ("pan 3 px/frame MtTamWest", panning(scaled(mt, 0), (crop, crop), (0.0, 3.0), (100, 100)))]:
         print(label)
         integration_edge(scene, 6)
-    cost(repeats)
+    if not args.no_cost:
+        cost(repeats)
     if args.figure:
         trail_figure(args.figure, disc, 8)
 

@@ -17,6 +17,7 @@ import svelive
 from svelive import Camera, Pattern, Sensor, SveliveError, simulate
 from svelive.camera import COLOUR_LAYOUTS
 from svelive.metrics import PU21_PEAK, display_scale, luminance, pu21_encode, pu21_psnr
+from svelive.reconstruction.methods import DEFAULT_METHOD
 from svelive.reconstruction.stream import Reconstructor
 from svelive.simulate import exposure_scale, load_sample_scene
 
@@ -37,10 +38,10 @@ def frames_of(scenes: list[np.ndarray], layout: str, seed: int = 0):
     return [simulate(rgb, pattern, SENSOR, cfa=cfa, seed=seed + i) for i, rgb in enumerate(scenes)]
 
 
-def fused_and_single(frames, layout: str, **kw):
+def fused_and_single(frames, layout: str, method: str | None = None, **kw):
     # "single frame" = the same method without fusion: what fusion adds or costs
     pattern, cfa = COLOUR_LAYOUTS[layout]
-    fused = Reconstructor(pattern, cfa=cfa, **KW, **kw)
+    fused = Reconstructor(pattern, cfa=cfa, method=method, **KW, **kw)
     single = Reconstructor(pattern, cfa=cfa, temporal=False, method=fused.method, **KW, **kw)
     return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
 
@@ -67,9 +68,20 @@ def shifted(rgb: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
     return cv2.warpAffine(rgb, matrix, rgb.shape[1::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 
-def test_static_dim_colour_scene_gains_3db_after_8_frames_and_motion_stays_empty():
+#: The stream's default method (svelive.reconstruction.methods.DEFAULT_METHOD, ``adaptive``) keeps
+#: each pixel's own reading where it measures the scene: its single frame is far better than
+#: ``weighted``'s (31.3 against 26.5 dB on the dim Desk crop) and its error is mostly its own
+#: smoothing, not noise, so fusing it gains less than fusing ``weighted`` did (+2.1 to +2.4 dB
+#: there, +0.3 on dual-iso and quad-bayer at 3 stops), though the fused default is the better
+#: stream (33.4 against 31.8 dB; test_the_default_colour_stream_beats_the_weighted_one).
+KNOWN_SHORT = pytest.mark.xfail(strict=True, reason="fusing the colour default gains less than 3 dB / 1 dB over "
+                                "its single frame (docs/motion.md)")
+
+
+@pytest.mark.parametrize("method", ["weighted", pytest.param(None, marks=KNOWN_SHORT)])
+def test_static_dim_colour_scene_gains_3db_after_8_frames_and_motion_stays_empty(method):
     rgb = scene_rgb("desk", LAYOUT, 5)
-    out = fused_and_single(frames_of([rgb] * 8, LAYOUT, seed=11), LAYOUT)
+    out = fused_and_single(frames_of([rgb] * 8, LAYOUT, seed=11), LAYOUT, method=method)
     f, fused, single = out[-1]
     gain = pu21_psnr(luminance(fused.image), luminance(f.truth)) - pu21_psnr(luminance(single.image),
                                                                               luminance(f.truth))
@@ -79,16 +91,34 @@ def test_static_dim_colour_scene_gains_3db_after_8_frames_and_motion_stays_empty
     assert_finite(fused)
 
 
+@pytest.mark.parametrize("method", ["weighted", pytest.param(None, marks=KNOWN_SHORT)])
 @pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer"])
-def test_static_colour_scene_fuses_every_layout(layout):
+def test_static_colour_scene_fuses_every_layout(layout, method):
     # the real sensors' layouts gain too (less at 5 stops dim, where 8x is their longest exposure)
     rgb = scene_rgb("mttamwest", layout, 3)
-    out = fused_and_single(frames_of([rgb] * 6, layout, seed=3), layout)
+    out = fused_and_single(frames_of([rgb] * 6, layout, seed=3), layout, method=method)
     f, fused, single = out[-1]
     assert pu21_psnr(luminance(fused.image), luminance(f.truth)) > pu21_psnr(luminance(single.image),
                                                                              luminance(f.truth)) + 1.0
     assert fused.frames_fused.max() == pytest.approx(6)
     assert_finite(fused)
+
+
+@pytest.mark.parametrize("layout, scene, stops", [(LAYOUT, "desk", 5), ("dual-iso", "mttamwest", 3),
+                                                  ("quad-bayer", "mttamwest", 3)])
+def test_the_default_colour_stream_beats_the_weighted_one(layout, scene, stops):
+    """The stream's default is the single-frame default, and on a static scene its fused output is
+    better than one frame of it and than the ``weighted`` stream's."""
+    frames = frames_of([scene_rgb(scene, layout, stops)] * 6, layout, seed=3)
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    default = Reconstructor(pattern, cfa=cfa, **KW)
+    assert default.method == DEFAULT_METHOD
+    weighted = Reconstructor(pattern, cfa=cfa, method="weighted", **KW)
+    single = Reconstructor(pattern, cfa=cfa, temporal=False, **KW)
+    for f in frames:
+        results = [r.process(f.raw) for r in (default, weighted, single)]
+    fused, other, one = (pu21_psnr(luminance(r.image), luminance(f.truth)) for r in results)
+    assert fused > one and fused > other
 
 
 def test_moving_coloured_disc_leaves_no_trail_and_moving_pixels_match_single_frame():
@@ -150,11 +180,12 @@ def test_method_reset_and_no_fusion_on_colour_streams():
     stream = Reconstructor(pattern, cfa=cfa, **KW)
     for f in frames[:2]:
         stream.process(f.raw)
-    stream.method = "adaptive"  # restarts the history
+    other = next(name for name in ("weighted", "adaptive") if name != stream.method)
+    stream.method = other  # restarts the history
     result = stream.process(frames[2].raw)
-    assert result.frame_index == 2 and result.frames_fused.max() == 1
-    single = Reconstructor(pattern, cfa=cfa, temporal=False, method="adaptive", **KW).process(frames[2].raw)
-    expected = svelive.reconstruct(frames[2].raw, pattern, cfa=cfa, method="adaptive", **KW)
+    assert result.frame_index == 2 and result.frames_fused.max() == 1 and result.method == other
+    single = Reconstructor(pattern, cfa=cfa, temporal=False, method=other, **KW).process(frames[2].raw)
+    expected = svelive.reconstruct(frames[2].raw, pattern, cfa=cfa, method=other, **KW)
     np.testing.assert_allclose(single.image, expected, rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(single.luminance, single.plane)
 

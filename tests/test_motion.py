@@ -17,11 +17,12 @@ from svelive.metrics import PU21_PEAK, display_scale, pu21_encode, pu21_psnr
 from svelive.reconstruction.methods.base import binomial_kernel, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import exposure_consistency
-from svelive.reconstruction.fusion import FrameEstimate, fuse, sharpen
-from svelive.reconstruction.numerics import disagree
+from svelive.reconstruction.fusion import FrameEstimate, TemporalState, camera_moved, detail_threshold, fuse, sharpen
+from svelive.reconstruction.methods import DEFAULT_METHOD
+from svelive.reconstruction.numerics import disagree, window_estimate
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import estimate_variance, run_method
-from svelive.reconstruction.stream import Reconstructor, own_reading_rows, reconstruct_sequence
+from svelive.reconstruction.stream import Reconstructor, default_method, own_reading_rows, reconstruct_sequence
 from svelive.scenes import mains_flicker, modulated, moving_disc, panning, render_sequence, static
 from svelive.simulate import exposure_scale, load_sample_scene
 
@@ -42,7 +43,8 @@ def region_pu21(test: np.ndarray, truth: np.ndarray, region: np.ndarray) -> floa
 
 
 def fused_and_single(frames, **kw):
-    # "single frame" = the same method without fusion: what fusion adds or costs
+    # "single frame" = the same method without fusion: what fusion adds or costs (the stream's
+    # default is the single-frame default)
     fused = Reconstructor(PATTERN, **KW, **kw)
     single = Reconstructor(PATTERN, temporal=False, method=fused.method, **KW, **kw)
     return [(f, fused.process(f.raw), single.process(f.raw)) for f in frames]
@@ -86,7 +88,7 @@ def test_frame_rows_by_phase_give_every_pixel_its_own_reading_and_noise(shape, p
     signal = rng.uniform(0, 4095, shape).astype(np.float32)
     censored = signal > 3500
     image = rng.uniform(0, 100, shape).astype(np.float32)
-    inverse, slope, floor = own_reading_rows(pattern, shape, SENSOR, 9.0)
+    inverse, slope, floor = own_reading_rows(pattern, shape, SENSOR, 9.0)  # any scale: the variance times it
     frame = FrameEstimate(image, image, censored, censored, signal, inverse, slope, floor)
     np.testing.assert_allclose(frame.own, np.where(censored, image, signal / exposure), rtol=1e-6)
     rows = np.arange(shape[0]) % inverse.shape[0]
@@ -166,7 +168,7 @@ def test_consistency_on_tiny_frames(shape):
 def test_fusion_applies_the_within_frame_finding_only_where_the_history_restarts(detail):
     config = MotionConfig()
     frames = disc_frames(PATTERN, (90, 70), 4)
-    rows = own_reading_rows(Pattern.parse(PATTERN), (90, 70), SENSOR, config.detail_sigmas ** 2)
+    rows = own_reading_rows(Pattern.parse(PATTERN), (90, 70), SENSOR)
     plain_state = state = None
     for inp, image, variance, bound in frames:
         frame = FrameEstimate(image, variance, bound, inp.censored, inp.signal, *rows)
@@ -184,6 +186,90 @@ def test_fusion_applies_the_within_frame_finding_only_where_the_history_restarts
             for name in ("mean", "own", "weight", "bound", "censored"):  # the history keeps the frame's estimates
                 np.testing.assert_array_equal(getattr(fused.state, name), getattr(plain.state, name))
         plain_state, state = plain.state, results[0].state
+
+
+def window_reference(inp, image, variance):
+    """window_estimate as whole-frame numpy operations, as its docstring states it."""
+    ky, kx = (binomial_kernel(support_size(n)) for n in inp.period)
+    kept = (~inp.censored).astype(np.float32)
+    exposure = inp.exposure * kept
+    sums = smooth(inp.signal * kept, ky, kx), smooth(exposure, ky, kx)
+    squares = smooth(exposure, ky * ky, kx * kx), smooth(kept, ky * ky, kx * kx)
+    ok = sums[1] > 1e-12
+    level = np.where(ok, np.maximum(sums[0] / np.where(ok, sums[1], 1), 0), image)
+    noise = (level * squares[0] / inp.sensor.effective_gain + inp.sensor.floor_variance * squares[1])
+    return level, np.where(ok, noise / np.where(ok, sums[1] ** 2, 1), variance)
+
+
+@pytest.mark.parametrize("pattern", [PATTERN, "1,2,4/8,16,32/64,128,256", "1/16", "per-pixel"])
+def test_window_estimate_by_strips_is_the_whole_frame_formula(pattern):
+    calibrated = None
+    if pattern == "per-pixel":
+        nominal = Pattern.parse(PATTERN)
+        rng = np.random.default_rng(6)
+        calibrated = nominal.with_pixel_map(nominal.exposure_map((75, 61)) * rng.uniform(0.9, 1.1, (75, 61))
+                                            .astype(np.float32))
+        pattern = PATTERN
+    for inp, image, variance, _ in disc_frames(pattern, (75, 61), 2):
+        if calibrated is not None:
+            inp = prepare(inp.signal.astype(np.uint16), calibrated, SENSOR)
+        level, noise = window_reference(inp, image, variance)
+        whole = np.all(inp.censored[3:9, -12:-4])  # the saturated block: windows with no uncensored reading
+        assert whole and np.any(level == image)
+        for strip_rows, workers in ((64, 1), (5, 2), (1, 1)):
+            found, found_variance = window_estimate(inp, image, variance, workers=workers, strip_rows=strip_rows)
+            np.testing.assert_allclose(found, level, rtol=2e-5, atol=1e-6)
+            np.testing.assert_allclose(found_variance, noise, rtol=2e-5, atol=1e-9)
+
+
+def test_the_stream_default_is_the_single_frame_default():
+    assert default_method(True) == default_method(False) == DEFAULT_METHOD
+    assert Reconstructor(PATTERN).method == Reconstructor(PATTERN, temporal=False).method == DEFAULT_METHOD
+
+
+def test_motion_mask_does_not_depend_on_the_method():
+    """The tests compare a window mean computed beside the method: the same masks and history
+    weights whatever the method (no reading is so bright that a method's lower bound differs)."""
+    background = scene_dn("mttamwest", 4)
+    scene = moving_disc(background, float(background.max()) * 3, 12, (64, 20), (0, 10))
+    frames = list(render_sequence(scene, 5, PATTERN, SENSOR, seed=2))
+    streams = [Reconstructor(PATTERN, method=m, **KW) for m in ("adaptive", "weighted", "aggregate")]
+    for f in frames:
+        results = [r.process(f.raw) for r in streams]
+        assert not any(r.lower_bound.any() for r in results)
+        for r in results[1:]:
+            np.testing.assert_array_equal(r.motion, results[0].motion)
+            np.testing.assert_array_equal(r.weight, results[0].weight)
+    assert 0 < results[0].moving_fraction < 0.5
+
+
+def test_camera_moved_finds_a_change_below_the_pixel_threshold_everywhere():
+    rng = np.random.default_rng(8)
+    shape, config = (64, 80), MotionConfig()
+    mean = rng.uniform(100, 200, shape).astype(np.float32)
+    variance = np.full(shape, 4.0, np.float32)  # history of one frame: the difference has variance 8
+    no = np.zeros(shape, bool)
+    state = TemporalState(mean, mean, np.ones(shape, np.float32), no, no)
+
+    def moved(image: np.ndarray) -> bool:
+        frame = FrameEstimate(image.astype(np.float32), variance, no, no, image, *np.ones((3, 1, shape[1]), np.float32))
+        return camera_moved(state, frame, 1.0, config)
+
+    noise = rng.normal(0, np.sqrt(8), shape)
+    assert not moved(mean + noise)
+    assert not moved(mean + np.sqrt(3) * noise)  # the noise model underestimating the variance 3x
+    shift = np.where(rng.uniform(size=shape) < 0.5, -1, 1) * 2.5 * np.sqrt(8)  # 2.5 sigma: below k = 4
+    assert moved(mean + shift + 0.1 * noise)
+    assert not camera_moved(state, FrameEstimate(mean + shift, variance, no, no, mean,
+                                                 *np.ones((3, 1, shape[1]), np.float32)), 1.0,
+                            MotionConfig(global_sigmas=3.0))
+
+
+def test_detail_threshold_is_the_window_mean_of_chi_square_at_k_sigmas():
+    k3 = binomial_kernel(3)
+    expected = 1 + 3 * np.sqrt(2 * (np.outer(k3, k3) ** 2).sum())
+    assert detail_threshold(k3, k3, 3.0) == pytest.approx(expected)
+    assert detail_threshold(np.ones(1, np.float32), np.ones(1, np.float32), 2.0) == pytest.approx(1 + 2 * np.sqrt(2))
 
 
 def test_config_rejects_bad_values():
@@ -218,7 +304,8 @@ def test_moving_disc_leaves_no_trail_and_moving_pixels_match_single_frame():
         assert_finite(fused)
         trail = np.any(moved[i - 2:i], axis=0) & ~f.motion
         assert region_pu21(fused.image, f.truth, trail) >= region_pu21(single.image, f.truth, trail) - 0.5
-        assert region_pu21(fused.image, f.truth, f.motion) >= region_pu21(single.image, f.truth, f.motion) - 0.5
+        # issue 12: moving regions within 0.3 dB of the single-frame default
+        assert region_pu21(fused.image, f.truth, f.motion) >= region_pu21(single.image, f.truth, f.motion) - 0.3
 
 
 def test_integration_timing_consistency_lowers_edge_error():
@@ -254,7 +341,7 @@ def test_camera_pan_every_pixel_moves_no_worse_than_single_frame():
     out = fused_and_single(render_sequence(panning(image, (96, 96), (0.0, 4.0), (10, 10)), 6, PATTERN, SENSOR))
     for f, fused, single in out[1:]:
         assert_finite(fused)
-        assert pu21_psnr(fused.image, f.truth) >= pu21_psnr(single.image, f.truth) - 0.5
+        assert pu21_psnr(fused.image, f.truth) >= pu21_psnr(single.image, f.truth) - 0.3
         assert fused.moving_fraction > 0.3
 
 

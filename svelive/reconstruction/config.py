@@ -23,6 +23,13 @@ class MotionConfig:
         detail_sigmas: how far beyond its noise a pixel's own fused readings must
             differ from the smooth estimate before they sharpen it (:func:`sharpen`).
         global_motion: fraction of moving pixels above which the whole history restarts.
+        global_sigmas: the camera-motion test's per-pixel significance: the whole history
+            also restarts when more than ``global_motion`` of the (subsampled, measured)
+            pixels differ from their history by more than this many noise standard
+            deviations. 1.645 is the 90th percentile of a static pixel's difference: a
+            static frame has 10 % beyond it, 34 % if the noise model underestimates the
+            variance 3x, both far from half the frame; a camera pan whose changes are each
+            below the per-pixel threshold but present everywhere passes it.
         compensate_illumination: divide out a global brightness ratio between
             history and frame before testing.
     """
@@ -33,10 +40,11 @@ class MotionConfig:
     widen: int = 1
     detail_sigmas: float = 3.0
     global_motion: float = 0.5
+    global_sigmas: float = 1.645
     compensate_illumination: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("temporal_sigmas", "consistency_sigmas", "detail_sigmas"):
+        for name in ("temporal_sigmas", "consistency_sigmas", "detail_sigmas", "global_sigmas"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise SveliveError(f"motion config: {name} must be > 0, got {value}")

@@ -31,7 +31,7 @@ from functools import cached_property
 import numpy as np
 
 from svelive.jit import flat, kernel
-from svelive.reconstruction.methods.base import map_on, support_size
+from svelive.reconstruction.methods.base import binomial_kernel, map_on, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
 from svelive.reconstruction.numerics import STRIP_ROWS, _confirmed, _grow, _maximum, _strips, _widen
@@ -50,6 +50,8 @@ class TemporalState:
             of its mean over one frame's variance (conservative once n is capped).
         bound: bool (H, W), the mean is only a lower bound (all samples censored).
         censored: bool (H, W), the last frame's censored readings.
+        test: float32 (H, W), the fused estimate the temporal test compares frames with
+            (:attr:`FrameEstimate.test`), or None when that is ``mean``.
     """
 
     mean: np.ndarray
@@ -57,6 +59,12 @@ class TemporalState:
     weight: np.ndarray
     bound: np.ndarray
     censored: np.ndarray
+    test: np.ndarray | None = None
+
+    @property
+    def tested(self) -> np.ndarray:
+        """float32 (H, W), the fused estimate the temporal test compares frames with."""
+        return self.mean if self.test is None else self.test
 
 
 @dataclass(frozen=True)
@@ -71,9 +79,14 @@ class FrameEstimate:
         inverse: float32 (P, W), 1 / e by row phase: pixel (r, c) has ``inverse[r % P, c]``
             (P: the tile's rows, or H for a per-pixel exposure map). Rows rather than a
             whole map, so that the per-pixel pass reads a few rows that stay in cache.
-        own_slope, own_floor: float32 (P, W), by row phase likewise, the detail threshold
-            for one frame, ``own_slope * L + own_floor`` at radiance L: the own reading's
-            variance (1 / (e g) and sigma^2 / e^2) times detail_sigmas^2.
+        own_slope, own_floor: float32 (P, W), by row phase likewise, the variance of one frame's
+            own reading, ``own_slope * L + own_floor`` at radiance L (1 / (e g) and sigma^2 / e^2),
+            which the detail step compares the fused own readings' differences with.
+        test, test_variance: float32 (H, W), the estimate the temporal test compares with the
+            history, and its noise variance (DN, DN^2): a window mean whose loss of resolution
+            is the same in every frame of a static scene
+            (svelive.reconstruction.numerics.window_estimate), so that the test does not depend
+            on how sharp the method's ``image`` is. None: ``image`` and ``variance`` themselves.
     """
 
     image: np.ndarray
@@ -84,6 +97,13 @@ class FrameEstimate:
     inverse: np.ndarray
     own_slope: np.ndarray
     own_floor: np.ndarray
+    test: np.ndarray | None = None
+    test_variance: np.ndarray | None = None
+
+    @property
+    def tested(self) -> tuple[np.ndarray, np.ndarray]:
+        """(estimate, variance) the temporal test compares with the history."""
+        return (self.image, self.variance) if self.test is None else (self.test, self.test_variance)
 
     @cached_property
     def own(self) -> np.ndarray:
@@ -166,7 +186,9 @@ class Fused:
 
 def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.ndarray, bound: np.ndarray,
                        step: int = 8) -> float:
-    """Robust global brightness ratio frame / history: the median of image / mean over well-measured pixels.
+    """Robust global brightness ratio frame / history: the median of image / the history's tested
+    estimate (:attr:`TemporalState.tested`) over well-measured pixels; ``image`` and ``variance``
+    are the frame's tested estimate (:attr:`FrameEstimate.tested`).
 
     Subsampled every ``step`` pixels; pixels count when both values are at least
     3 noise standard deviations (the frame's) above 0 and neither is a lower bound. Returns 1
@@ -174,7 +196,7 @@ def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.nda
     """
     h, w = image.shape
     ratios = np.empty(-(-h // step) * -(-w // step), np.float32)
-    count = _subsampled_ratios(image, state.mean, variance, bound, state.bound, step, ratios)
+    count = _subsampled_ratios(image, state.tested, variance, bound, state.bound, step, ratios)
     if count < 64:
         return 1.0
     ratio = float(np.median(ratios[:count]))
@@ -196,13 +218,49 @@ def _subsampled_ratios(image, mean, variance, bound, old_bound, step, out):
     return count
 
 
+def camera_moved(state: TemporalState, frame: FrameEstimate, scale: float, config: MotionConfig,
+                 step: int = 4) -> bool:
+    """Did most of the frame change, each pixel perhaps below the per-pixel test's threshold?
+
+    True when more than ``config.global_motion`` of the measured pixels of a subsample (every
+    ``step``-th row and column; a pixel counts when neither the frame nor the history is a
+    lower bound there and its reading kept its censoring) differ from the history (times
+    ``scale``, the brightness ratio) by more than ``config.global_sigmas`` noise standard
+    deviations, ``(x - mean)^2 > s^2 v (1 + w)`` on the tested estimates. A pan over smooth
+    texture changes every pixel a little: the per-pixel test at k = 4 flags only part of
+    it, and the rest would average with history from another place. False when fewer than
+    64 pixels are measured.
+    """
+    tested, variance = frame.tested
+    counts = np.zeros(2, np.int64)
+    _subsampled_exceeding(tested, state.tested, state.weight, variance, frame.bound, state.bound, frame.censored,
+                          state.censored, np.float32(scale), np.float32(1.0 / config.global_sigmas ** 2), step, counts)
+    measured, exceeding = int(counts[0]), int(counts[1])
+    return measured >= 64 and exceeding > config.global_motion * measured
+
+
+@kernel
+def _subsampled_exceeding(image, mean, weight, variance, bound, old_bound, censored, old_censored, scale, inv_s2,
+                          step, counts):
+    """counts = [measured pixels, those beyond the threshold] of every ``step``-th row and column."""
+    one = np.float32(1)
+    for i in range(0, image.shape[0], step):
+        for j in range(0, image.shape[1], step):
+            if bound[i, j] or old_bound[i, j] or censored[i, j] != old_censored[i, j]:
+                continue
+            d = image[i, j] - mean[i, j] * scale
+            counts[0] += 1
+            counts[1] += d * d * inv_s2 > (weight[i, j] + one) * variance[i, j]
+
+
 #: Global brightness ratios closer to 1 than this are not divided out (far below any noise).
 RATIO_TOLERANCE = 2e-3
 
 
 def start(frame: FrameEstimate) -> TemporalState:
     """A history holding one frame."""
-    return TemporalState(frame.image, frame.own, np.ones(frame.image.shape, np.float32), frame.bound, frame.censored)
+    return TemporalState(frame.image, frame.own, np.ones(frame.image.shape, np.float32), frame.bound, frame.censored,
+                         frame.test)
 
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
@@ -228,19 +286,22 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             (svelive.reconstruction.methods.base.map_on); None: one is made for this call.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
-    estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it,
+    estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it (x, v: the
+    frame's tested estimate and its variance, ``frame.test`` where given, and mean its
+    fused history, held beside the fused ``image``),
     where either the history or the frame is only a
     lower bound (a bound cannot be averaged), and within a tile window of a
     reading that crossed the censor level. Flagged pixels count as motion when
     a neighbour is flagged too (every estimate spreads over a window, so does
     any real change; isolated flags are mostly noise); motion is widened by
     ``config.widen`` and reset too. When more than ``config.global_motion`` of
-    the frame moves, the camera moved: every pixel is reset.
+    the frame moves, or of a subsample differs beyond ``config.global_sigmas``
+    (:func:`camera_moved`, tested first), the camera moved: every pixel is reset.
     Elsewhere it takes the running mean with weight 1 / min(n + 1, max_history).
     The history's variance is taken as the frame's variance v times w, as for a
-    static scene with stationary noise. The test compares smooth estimates,
-    whose loss of resolution is the same in every frame of a static scene and
-    so cancels.
+    static scene with stationary noise. The test compares smooth estimates
+    (``frame.test``: window means, whatever the method), whose loss of resolution
+    is the same in every frame of a static scene and so cancels.
 
     Work is done in strips of ``strip_rows`` rows, small enough for a strip's
     arrays to stay in cache from its test to its update: each strip is tested
@@ -253,11 +314,16 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     first, on a subsample.
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
-    if state is None or state.mean.shape != image.shape:
+    if state is None or state.mean.shape != image.shape or (state.test is None) != (frame.test is None):
         return _restart(frame, inconsistency, 1.0, np.zeros(image.shape, bool))
-    ratio = illumination_ratio(state, image, variance, bound) if config.compensate_illumination else 1.0
+    tested, tested_variance = frame.tested
+    history = state.tested
+    ratio = (illumination_ratio(state, tested, tested_variance, bound) if config.compensate_illumination
+             else 1.0)
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
+    if camera_moved(state, frame, scale, config):
+        return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     h = image.shape[0]
     strips = _strips(h, strip_rows)
     window = tuple(support_size(n) for n in pattern_shape)
@@ -278,7 +344,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         changed = np.not_equal(frame.censored[ext], state.censored[ext])
         grown = _grow(changed, window) if changed.any() else changed
         flagged = np.empty(changed.shape, bool)
-        count = _test_rows(image[ext], state.mean[ext], state.weight[ext], variance[ext], bound[ext],
+        count = _test_rows(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
                            state.bound[ext], grown, scale, inv_k2, flagged, reset[core], keep.start)
         if count == 0:  # nothing flagged near the strip: nothing to confirm or widen
             motion[core] = False
@@ -292,18 +358,26 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         return int(np.count_nonzero(moving))
 
     fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
+    separate = frame.test is not None  # the test's estimate has a history of its own
+    fused_test = np.empty_like(image) if separate else fused
     # the output differs from the history's mean where sharpened or replaced by the within-frame test
     out = np.empty_like(image) if detail or inconsistency is not None else fused
     floor_weight = np.float32(1.0 / config.max_history)
+    # with detail: each pixel's squared difference own - fused over its variance, whose window
+    # mean is the local evidence of detail (a second pass, once every strip's rows are fused)
+    evidence = np.empty_like(image) if detail else image
+    # the shortest exposure's estimate, kept from the test of a strip to the detail pass
+    shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
     def update(core: slice, short: np.ndarray | None) -> None:
         _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
                      frame.signal[core], frame.censored[core], frame.inverse, frame.own_slope,
                      frame.own_floor, floor_weight, scale, detail, reset[core], weight[core], fused[core], own[core],
-                     out[core])
-        if inconsistency is not None:  # output only: the history keeps estimates of one kind
-            if not detail:
-                out[core] = fused[core]
+                     evidence[core])
+        if separate:
+            _running_rows(weight[core], history[core], tested[core], scale, fused_test[core])
+        if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
+            out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
 
     limit = config.global_motion * motion.size
@@ -315,8 +389,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             if moved[0] > limit:  # the frame restarts: nothing to do
                 return
         short = None
-        if inconsistency is not None:  # while the strip's rows are in cache; the estimate only for the update
-            short = np.empty((core.stop - core.start, image.shape[1]), np.float32)
+        if inconsistency is not None:  # while the strip's rows are in cache; the estimate only for the output
+            short = (shortest[core] if shortest is not None
+                     else np.empty((core.stop - core.start, image.shape[1]), np.float32))
             inconsistency.test(core, short)
         count = test(core)
         with lock:
@@ -330,7 +405,22 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
-    state = TemporalState(fused, own, weight, bound, frame.censored)
+    if detail:
+        ky, kx = (binomial_kernel(n) for n in window)
+        radius = ky.size // 2
+        threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
+        sharpens = config.max_history > 1  # else no pixel has history to sharpen with
+
+        def sharpen_strip(core: slice) -> None:
+            ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
+            local = smooth(evidence[ext], ky, kx)[core.start - ext.start:core.stop - ext.start]
+            _detail_pass(*flat(np.ascontiguousarray(local), fused[core], own[core], reset[core], out[core]),
+                         threshold, sharpens)
+            if inconsistency is not None:  # output only: the history keeps estimates of one kind
+                _replace(*flat(reset[core], inconsistency._flagged[core], shortest[core], out[core], motion[core]))
+
+        map_on(executor if executor is not None else workers, sharpen_strip, strips)
+    state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None)
     # the update applied the within-frame test's finding to the output where it reset the history
     return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset))
 
@@ -377,16 +467,18 @@ def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, in
 
 @kernel
 def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
-                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, out):
+                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, evidence):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
     (R, W) arrays but for inverse, own_slope and own_floor, which are (P, W) by row
     phase (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least
     ``floor_weight``, 1 where reset), the fused image and own readings and, with
-    ``detail``, the sharpened output.
+    ``detail``, the evidence of detail: (own - fused)^2 over the fused own reading's variance.
     """
     one = np.float32(1)
-    history = floor_weight < one  # else no pixel has history to sharpen with
+    # a history scaled up by the brightness ratio carries up to ratio times the (shot) noise
+    # variance the model gives at its new level
+    noisier = _maximum(scale, one)
     period = inverse.shape[0]
     for r in range(image.shape[0]):
         p = (first_row + r) % period
@@ -401,9 +493,16 @@ def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal
             o = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x), w, scale)
             own[r, c] = o
             if detail:
-                # a pixel without history (reset, or max_history 1) has nothing to sharpen with
-                sharp = history and not restart
-                out[r, c] = _sharpened(f, o, (own_slope[p, c] * f + own_floor[p, c]) * w) if sharp else f
+                d = o - f
+                evidence[r, c] = d * d / ((own_slope[p, c] * _maximum(f, np.float32(0)) + own_floor[p, c]) * w * noisier)
+
+
+@kernel
+def _running_rows(weight, mean, new, scale, out):
+    """out = the running mean of ``mean`` (times ``scale``) and ``new`` with ``weight``, (R, W) arrays."""
+    for r in range(out.shape[0]):
+        for c in range(out.shape[1]):
+            out[r, c] = _running_mean(mean[r, c], new[r, c], weight[r, c], scale)
 
 
 @kernel
@@ -424,6 +523,31 @@ def _running_mean(mean, new, weight, scale):
     return (new - mean) * weight + mean
 
 
+
+
+def detail_threshold(kernel_y: np.ndarray, kernel_x: np.ndarray, sigmas: float) -> float:
+    """The detail step's threshold on the window mean of the normalised squared differences z.
+
+    Where the fused own readings differ from the fused estimate by noise alone, each z has
+    mean 1 and variance 2 (a chi-square of one degree); their mean over a window of weights
+    G (``kernel_y`` x ``kernel_x``, summing to 1) has mean 1 and standard deviation
+    sqrt(2 sum G^2). The threshold is ``sigmas`` of those above 1.
+    """
+    squares = float(np.sum(np.square(kernel_y, dtype=np.float64))) * float(np.sum(np.square(kernel_x,
+                                                                                            dtype=np.float64)))
+    return 1.0 + sigmas * float(np.sqrt(2.0 * squares))
+
+
+@kernel
+def _detail_pass(local, fused, own, reset, out, threshold, sharpens):
+    """out = fused + beta (own - fused), beta = max(0, 1 - threshold / local), where the pixel has
+    history (not ``reset``, and ``sharpens``), else fused; >= 0. Flat arrays."""
+    zero, one = np.float32(0), np.float32(1)
+    for k in range(out.size):
+        f, o, z, restart = fused[k], own[k], local[k], reset[k]
+        beta = _maximum(one - threshold / z, zero)  # 0 where z is 0 (threshold / 0 = inf)
+        sharp = _maximum(f + beta * (o - f), zero)
+        out[k] = f if restart or not sharpens else sharp
 
 
 def sharpen(mean: np.ndarray, own: np.ndarray, threshold: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

@@ -44,25 +44,17 @@ from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import exposure_consistency
 from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
+from svelive.reconstruction.numerics import window_estimate
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 from svelive.sensor import Sensor
 
-#: The single-frame method temporal fusion uses unless told otherwise. The
-#: temporal test compares each new estimate with the history against the
-#: estimate's noise; ``adaptive`` (the single-frame default) reports a
-#: mean-square error that includes its local bias term and keeps each pixel's own
-#: reading at edges, so a camera pan is flagged on only 32-47 % of the pixels and
-#: the rest fuses with history from elsewhere (docs/motion.md). ``weighted``'s
-#: estimate is smooth and its variance is noise only; fusion and the detail
-#: step recover the resolution where the scene is static.
-TEMPORAL_METHOD = "weighted"
-
-
 def default_method(temporal: bool) -> str:
-    """The method a Reconstructor uses when none is named: TEMPORAL_METHOD with fusion, else the library default."""
-    return TEMPORAL_METHOD if temporal else DEFAULT_METHOD
+    """The method a Reconstructor uses when none is named: the library's single-frame default, with
+    temporal fusion too (the motion tests compare a window mean computed beside any method,
+    svelive.reconstruction.numerics.window_estimate, so they do not depend on its sharpness)."""
+    return DEFAULT_METHOD
 
 EXPOSURE_TIMINGS = ("mask", "integration")
 
@@ -153,7 +145,7 @@ class Reconstructor:
         cfa: the colour filter layout when ``pattern`` is not a Camera.
         method: single-frame method name; changeable between frames through the
             ``method`` attribute (the history restarts then). None: the library's
-            default for single frames, but TEMPORAL_METHOD with temporal fusion.
+            default (svelive.reconstruction.methods.DEFAULT_METHOD), with or without fusion.
         temporal: fuse consecutive frames where the scene is static.
         exposure_timing: ``"mask"`` when all exposures integrate over the same
             time (neutral-density mask, gain), ``"integration"`` when exposures
@@ -316,18 +308,20 @@ class Reconstructor:
         t1 = time.perf_counter()
         image, variance = est.image, est.variance
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
-        inconsistency = None
+        inconsistency = window = None
+        if self.temporal or self.consistency:
+            # what the motion tests compare: a window mean beside the method's estimate, whatever the method
+            window = window_estimate(lum, image, variance, self._threads)
         if self.consistency:
             # the test reads each level's readings with its nominal exposure: a colour frame's
             # readings divided by their channel's share instead of the share folded into e
             tested = lum if not lum.folded else colour.luminance_input(inp, parts.interpolation, exposures=False)
-            inconsistency = exposure_consistency(image, variance, tested, self.motion_config, workers=self.workers,
+            inconsistency = exposure_consistency(*window, tested, self.motion_config, workers=self.workers,
                                                  executor=self._pool)
         if self.temporal:
-            scale = self.motion_config.detail_sigmas ** 2
-            rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor, scale) if parts is None
-                    else own_reading_map(lum.exposure, inp.sensor, scale))
-            frame = FrameEstimate(image, variance, est.lower_bound, lum.censored, lum.signal, *rows)
+            rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor) if parts is None
+                    else own_reading_map(lum.exposure, inp.sensor))
+            frame = FrameEstimate(image, variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
                          workers=self.workers, executor=self._pool)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
