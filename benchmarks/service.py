@@ -2,7 +2,7 @@
 
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
                                  [--no-temporal] [--workers N] [--scene pan|static] [--size 1920x1200]
-                                 [--cfa none|RGGB]
+                                 [--cfa none|RGGB] [--rtsp]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
@@ -21,6 +21,15 @@ every frame, so fusion runs on every pixel), then, from this process:
 The clients run in this process (asyncio, headers parsed, bodies skipped) and
 so share the machine's cores with the server; on a real deployment they are
 elsewhere.
+
+``--rtsp``: the server also publishes RTSP/H.264 (service/publishers/rtsp.py) with
+a timecode (the frame's arrival time in ms, written as 48 black/white 8x8 squares
+into the top-left corner of every RTSP frame), and phase 2 runs three times in
+the same server, ``--minutes`` each: the MJPEG clients alone, the MJPEG clients
+and one RTSP client (GStreamer rtspsrc over TCP, jitter buffer 0 ms, decoded by
+avdec_h264 in this process), and the RTSP client alone. The RTSP latency is
+"arrival -> frame decoded by the client": the decode time (Unix clock) minus the
+timecode read back from the decoded picture, on the same host clock.
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ import platform
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 
@@ -88,8 +98,9 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
-          size: tuple[int, int], cfa: str) -> None:
-    """Child process: the service over the replay source."""
+          size: tuple[int, int], cfa: str, rtsp_port: int = 0) -> None:
+    """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
+    ``/bench/rtsp``)."""
     import uvicorn
 
     from service.app import create_app, listen_socket
@@ -100,9 +111,20 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
+    app = create_app(pipeline, settings)
+    publisher = None
+    if rtsp_port:
+        from service.publishers.rtsp import H264Settings, RtspPublisher
+
+        publisher = RtspPublisher(pipeline, host="127.0.0.1", port=rtsp_port, settings=H264Settings(fps=fps),
+                                  timecode=True).start()
+        app.add_api_route("/bench/rtsp", publisher.state)
     print("ready", flush=True)
-    uvicorn.Server(uvicorn.Config(create_app(pipeline, settings), log_level="warning",
-                                  timeout_graceful_shutdown=1)).run(sockets=[sock])
+    try:
+        uvicorn.Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=1)).run(sockets=[sock])
+    finally:
+        if publisher is not None:
+            publisher.stop()
 
 
 def free_port() -> int:
@@ -140,40 +162,212 @@ async def client(port: int, latencies: list[float], counts: list[int], index: in
         writer.close()
 
 
-async def load_phase(port: int, pid: int, n_clients: int, seconds: float) -> dict:
+class RtspReader:
+    """One RTSP client on a thread of this process: rtspsrc (RTP over TCP, jitter buffer 0 ms) ! decodebin !
+    GRAY8 appsink; each decoded frame's latency is its decode time minus the arrival time in its timecode."""
+
+    def __init__(self, url: str) -> None:
+        from service.publishers.rtsp import gstreamer
+
+        import gi
+
+        gi.require_version("GstApp", "1.0")
+        from gi.repository import GstApp  # noqa: F401 - the appsink's pull methods
+
+        del GstApp
+
+        self.Gst = gstreamer()[0]
+        self.pipeline = self.Gst.parse_launch(
+            f"rtspsrc location={url} protocols=tcp latency=0 ! decodebin ! videoconvert ! video/x-raw,format=GRAY8 "
+            "! appsink name=sink sync=false max-buffers=1 drop=true")
+        self.sink = self.pipeline.get_by_name("sink")
+        self.latencies: list[float] = []
+        self.frames = 0
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> RtspReader:
+        self.pipeline.set_state(self.Gst.State.PLAYING)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.pipeline.set_state(self.Gst.State.NULL)
+
+    def _run(self) -> None:
+        from service.publishers.rtsp import TIMECODE_BLOCK, read_timecode
+
+        Gst = self.Gst
+        while not self._stop.is_set():
+            message = self.pipeline.get_bus().pop_filtered(Gst.MessageType.ERROR)
+            if message is not None:
+                self.error = message.parse_error()[0].message
+                return
+            sample = self.sink.try_pull_sample(Gst.SECOND // 5)
+            if sample is None:
+                continue
+            received_ms = time.time() * 1000
+            caps = sample.get_caps().get_structure(0)
+            width, height = caps.get_value("width"), caps.get_value("height")
+            buffer = sample.get_buffer()
+            ok, info = buffer.map(Gst.MapFlags.READ)
+            if not ok:
+                continue
+            try:
+                data = np.frombuffer(info.data, np.uint8)
+            finally:
+                buffer.unmap(info)
+            stride = data.size // height
+            stamped = read_timecode(data[:stride * TIMECODE_BLOCK].reshape(TIMECODE_BLOCK, stride)[:, :width])
+            latency = received_ms - stamped
+            self.frames += 1
+            if 0 <= latency < 10_000:  # no-signal frames carry no timecode
+                self.latencies.append(latency)
+
+
+def get_json(port: int, path: str) -> dict:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=10) as r:
+        return json.load(r)
+
+
+def percentiles(values: list[float]) -> dict:
+    if not values:
+        return {"p50": None, "p95": None, "n": 0}
+    return {"p50": round(float(np.percentile(values, 50)), 1), "p95": round(float(np.percentile(values, 95)), 1),
+            "n": len(values)}
+
+
+async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_url: str | None = None) -> dict:
+    """``n_clients`` MJPEG clients (and one RTSP client if ``rtsp_url``) for ``seconds`` (the first 5 s not
+    measured): fps, drops, latencies, CPU of the server and of this process (the clients), memory."""
     latencies: list[float] = []
     counts = [0] * n_clients
     stop = asyncio.Event()
     tasks = [asyncio.create_task(client(port, latencies, counts, i, stop)) for i in range(n_clients)]
+    reader = RtspReader(rtsp_url).start() if rtsp_url else None
     rss: list[tuple[float, float]] = []
     t0 = time.monotonic()
     await asyncio.sleep(5)  # warm-up
     start_state, start_cpu, start_t = get_state(port), cpu_seconds(pid), time.monotonic()
+    start_own, start_rtsp = sum(os.times()[:2]), get_json(port, "/bench/rtsp") if rtsp_url else None
+    start_counts, start_rtsp_frames = list(counts), reader.frames if reader else 0
     latencies.clear()
+    if reader:
+        reader.latencies.clear()
     while time.monotonic() - t0 < seconds:
         await asyncio.sleep(10)
         rss.append((time.monotonic() - t0, get_state(port)["server"]["rss_mb"]))
+    if not rss:
+        rss.append((time.monotonic() - t0, get_state(port)["server"]["rss_mb"]))
     end_state, end_cpu, end_t = get_state(port), cpu_seconds(pid), time.monotonic()
+    end_own, end_rtsp = sum(os.times()[:2]), get_json(port, "/bench/rtsp") if rtsp_url else None
+    end_counts, end_rtsp_frames = list(counts), reader.frames if reader else 0
     stop.set()
     for task in tasks:
         task.cancel()
     await asyncio.gather(*tasks, return_exceptions=True)
+    if reader:
+        reader.stop()
     span = end_t - start_t
     frames = {k: (end_state["frames"][k] - start_state["frames"][k]) / span
               for k in ("captured", "reconstructed", "encoded")}
     first_minute = [m for t, m in rss if t <= 60] or [rss[0][1]]
-    return {
+    out = {
         "fps_mean": {k: round(v, 2) for k, v in frames.items()},
-        "fps_per_client_mean": round(float(np.mean(counts)) / (end_t - t0), 2),
-        "latency_client_ms": {"p50": round(float(np.percentile(latencies, 50)), 1),
-                              "p95": round(float(np.percentile(latencies, 95)), 1), "n": len(latencies)},
+        "fps_per_client_mean": round(float(np.mean([b - a for a, b in zip(start_counts, end_counts)])) / span, 2)
+        if n_clients else None,
+        "latency_client_ms": percentiles(latencies),
         "latency_server_ms": end_state["latency_ms"],
         "drops": end_state["drops"],
         "cpu_percent": round(100 * (end_cpu - start_cpu) / span, 1),
+        "clients_cpu_percent": round(100 * (end_own - start_own) / span, 1),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
                    "growth_percent": round(100 * (rss[-1][1] - first_minute[-1]) / first_minute[-1], 2),
                    "samples": rss},
     }
+    if reader:
+        out["rtsp"] = {"fps_server": round((end_rtsp["frames_encoded"] - start_rtsp["frames_encoded"]) / span, 2),
+                       "fps_client": round((end_rtsp_frames - start_rtsp_frames) / span, 2),
+                       "latency_client_ms": percentiles(reader.latencies), "error": reader.error,
+                       "bitrate_kbps": end_rtsp["bitrate_kbps"], "arrival_to_push": end_rtsp["arrival_to_push"],
+                       "width": end_rtsp["width"], "height": end_rtsp["height"]}
+    return out
+
+
+def h264_cost(size: tuple[int, int], fps: float, cfa: str, n: int = 120, threads: int = 0,
+              preset: str = "ultrafast") -> dict:
+    """The RTSP publisher's own cost, apart from the service: ``n`` previews of reconstructed, tone-mapped demo
+    frames converted to I420 and pushed one at a time through the publisher's media (appsrc ! x264enc !
+    rtph264pay, to a fakesink); CPU time of this process per frame (all its threads; nothing else runs in it meanwhile) and the wall
+    time from push to the payloaded frame. CPU time, unlike wall time, hardly depends on the machine's load."""
+    from service.publishers.rtsp import H264Settings, gstreamer, launch_description, to_i420
+    from svelive.reconstruction.stream import Reconstructor
+    from svelive.tonemap import ToneMapper, ToneSettings
+
+    Gst = gstreamer()[0]
+    demo = replay_source_factory(fps, size[0], size[1], n=8, cfa=cfa)()
+    demo.open()
+    previews = []
+    mapper = ToneMapper(ToneSettings())
+    with Reconstructor(demo.camera, temporal=False) as reconstructor:
+        while len(previews) < 8:
+            frame = demo.read(timeout=5.0)
+            image = reconstructor.process(frame.raw).image
+            previews.append(mapper(image, frame.host_time_ns) if image.ndim == 2 else
+                            mapper(image, frame.host_time_ns, np.eye(3, dtype=np.float32), bgr=True))
+    demo.close()
+    height, width = previews[0].shape[:2]
+    settings = H264Settings(fps=fps, threads=threads, speed_preset=preset)
+    text = launch_description(width, height, settings)[1:-1]
+    pipeline = Gst.parse_launch(text.strip() + " ! fakesink sync=false")
+    done = threading.Semaphore(0)
+    sizes: list[int] = []
+
+    def encoded(pad, info):
+        sizes.append(info.get_buffer().get_size())
+        done.release()
+        return Gst.PadProbeReturn.OK
+
+    pipeline.get_by_name("enc").get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, encoded)
+    src = pipeline.get_by_name("src")
+    pipeline.set_state(Gst.State.PLAYING)
+    walls, cpu0 = [], sum(os.times()[:2])
+    for i in range(n):
+        start = time.monotonic()
+        src.emit("push-buffer", Gst.Buffer.new_wrapped(to_i420(previews[i % len(previews)]).tobytes()))
+        if not done.acquire(timeout=10):
+            raise SystemExit("x264enc produced nothing in 10 s")
+        walls.append((time.monotonic() - start) * 1e3)
+        time.sleep(max(0.0, 1 / fps - (time.monotonic() - start)))
+    cpu = sum(os.times()[:2]) - cpu0
+    pipeline.set_state(Gst.State.NULL)
+    return {"size": f"{width}x{height}", "kind": "grey" if previews[0].ndim == 2 else "BGR",
+            "cpu_ms_per_frame": round(cpu / n * 1e3, 1), "cpu_percent_at_fps": round(cpu / n * fps * 100, 1),
+            "push_to_encoded_ms": percentiles(walls),
+            "kbit_per_s_at_fps": round(float(np.mean(sizes)) * 8 * fps / 1000, 1),
+            "bitrate_kbps_target": settings.bitrate_for(width, height)}
+
+
+def report(name: str, load: dict) -> None:
+    """Print one phase's figures."""
+    print(f"{name}: fps captured {load['fps_mean']['captured']}, reconstructed {load['fps_mean']['reconstructed']}, "
+          f"JPEG-encoded {load['fps_mean']['encoded']}, per MJPEG client {load['fps_per_client_mean']}; "
+          f"server CPU {load['cpu_percent']} %, clients (this process) CPU {load['clients_cpu_percent']} %")
+    if load["latency_client_ms"]["n"]:
+        print(f"  MJPEG latency arrival -> part received by a client: p50 {load['latency_client_ms']['p50']} ms, "
+              f"p95 {load['latency_client_ms']['p95']} ms (n={load['latency_client_ms']['n']})")
+    if "rtsp" in load:
+        r = load["rtsp"]
+        print(f"  RTSP {r['width']}x{r['height']}: H.264-encoded {r['fps_server']} fps, decoded by the client "
+              f"{r['fps_client']} fps, {r['bitrate_kbps']} kbit/s; latency arrival -> decoded: p50 "
+              f"{r['latency_client_ms']['p50']} ms, p95 {r['latency_client_ms']['p95']} ms "
+              f"(n={r['latency_client_ms']['n']}); arrival -> appsrc {json.dumps(r['arrival_to_push'])}"
+              f"{'; client error: ' + r['error'] if r['error'] else ''}")
+    print(f"  server stages: {json.dumps(load['latency_server_ms'])}")
+    print(f"  drops: {json.dumps(load['drops'])}")
 
 
 def main() -> None:
@@ -190,12 +384,23 @@ def main() -> None:
     parser.add_argument("--size", default="1920x1200", help="frame size WxH (default 1920x1200)")
     parser.add_argument("--cfa", default="none",
                         help="none: the monochrome demo frames (default); RGGB (or another layout): the colour demo")
+    parser.add_argument("--rtsp", action="store_true",
+                        help="also serve RTSP/H.264 and measure MJPEG alone, MJPEG + 1 RTSP client, RTSP alone")
+    parser.add_argument("--h264-cost", action="store_true",
+                        help="only measure the RTSP encoder's CPU per frame on tone-mapped demo previews (no service)")
+    parser.add_argument("--x264-threads", type=int, default=0, help="x264 threads (default 0: x264 chooses)")
+    parser.add_argument("--x264-preset", default="ultrafast", help="x264 speed preset (default ultrafast)")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--rtsp-port", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x"))
+    if args.h264_cost:
+        print(f"# load average {' '.join(open('/proc/loadavg').read().split()[:3])}, {os.cpu_count()} cores")
+        print(json.dumps(h264_cost(size, args.fps, args.cfa, threads=args.x264_threads, preset=args.x264_preset)))
+        return
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
-              args.cfa)
+              args.cfa, args.rtsp_port)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
@@ -204,6 +409,10 @@ def main() -> None:
         cmd += ["--method", args.method]
     if args.no_temporal:
         cmd.append("--no-temporal")
+    rtsp_port = free_port() if args.rtsp else 0
+    if rtsp_port:
+        cmd += ["--rtsp-port", str(rtsp_port)]
+    load_before = " ".join(open("/proc/loadavg").read().split()[:3])
     child = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
     try:
         assert child.stdout.readline().strip() == "ready"
@@ -222,27 +431,37 @@ def main() -> None:
         time.sleep(args.idle_s)
         c1, s1 = cpu_seconds(child.pid), get_state(port)
         idle = {"cpu_percent": round(100 * (c1 - c0) / args.idle_s, 1),
-                "fps": s1["fps"], "encoded_frames": s1["frames"]["encoded"] - s0["frames"]["encoded"]}
-        load = asyncio.run(load_phase(port, child.pid, args.clients, args.minutes * 60))
+                "fps": s1["fps"], "encoded_frames": s1["frames"]["encoded"] - s0["frames"]["encoded"],
+                "h264_frames": get_json(port, "/bench/rtsp")["frames_encoded"] if rtsp_port else None}
+        loads = {f"{args.clients} MJPEG clients": asyncio.run(load_phase(port, child.pid, args.clients,
+                                                                           args.minutes * 60))}
+        if rtsp_port:
+            url = f"rtsp://127.0.0.1:{rtsp_port}/live"
+            loads[f"{args.clients} MJPEG clients + 1 RTSP client"] = asyncio.run(
+                load_phase(port, child.pid, args.clients, args.minutes * 60, url))
+            loads["1 RTSP client alone"] = asyncio.run(load_phase(port, child.pid, 0, args.minutes * 60, url))
     finally:
         child.terminate()
         child.wait(15)
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {args.size} 12-bit "
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average before the run "
+          f"{load_before}; {args.size} 12-bit "
           f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, {args.scene} scene, "
-          f"{args.clients} clients, {args.minutes:g} min")
-    print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames encoded, "
+          f"{args.clients} clients, {args.minutes:g} min per phase")
+    print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
+          f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "
           f"fps {idle['fps']}")
-    print(f"{args.clients} clients: fps captured {load['fps_mean']['captured']}, reconstructed "
-          f"{load['fps_mean']['reconstructed']}, encoded/streamed {load['fps_mean']['encoded']}, per client "
-          f"{load['fps_per_client_mean']}; server CPU {load['cpu_percent']} %")
-    print(f"latency arrival -> part received by a client: p50 {load['latency_client_ms']['p50']} ms, "
-          f"p95 {load['latency_client_ms']['p95']} ms (n={load['latency_client_ms']['n']})")
-    print(f"server stages: {json.dumps(load['latency_server_ms'])}")
-    print(f"drops: {json.dumps(load['drops'])}")
+    for name, load in loads.items():
+        report(name, load)
+    load = loads[f"{args.clients} MJPEG clients"]
     print("RSS samples (s, MB): " + ", ".join(f"{t:.0f}: {m}" for t, m in load["rss_mb"]["samples"][5::6]))
     print(f"RSS after first minute {load['rss_mb']['after_first_minute']} MB, at end {load['rss_mb']['end']} MB, "
           f"growth {load['rss_mb']['growth_percent']} %")
+    if rtsp_port:
+        base, both = loads[f"{args.clients} MJPEG clients"], loads[f"{args.clients} MJPEG clients + 1 RTSP client"]
+        print(f"with / without RTSP (same run): server CPU {both['cpu_percent'] / base['cpu_percent']:.2f}, "
+              f"reconstructed fps {both['fps_mean']['reconstructed'] / base['fps_mean']['reconstructed']:.2f}, "
+              f"MJPEG p95 {both['latency_client_ms']['p95'] / base['latency_client_ms']['p95']:.2f}")
 
 
 if __name__ == "__main__":

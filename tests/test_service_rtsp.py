@@ -47,7 +47,8 @@ class RtspClientError(Exception):
 
 
 class RtspClient:
-    """rtspsrc (RTP over TCP, no jitter buffer latency) ! decodebin ! videoconvert ! appsink, in GRAY8 or BGR."""
+    """rtspsrc (RTP over TCP, no jitter buffer latency) ! decodebin ! videoconvert ! appsink: BGR, or its green
+    channel for grey pictures."""
 
     def __init__(self, url: str, password: str | None = None, colour: bool = False) -> None:
         Gst = rtsp.gstreamer()[0]
@@ -57,11 +58,12 @@ class RtspClient:
         from gi.repository import GstApp  # noqa: F401 - gives the appsink its pull methods
 
         credentials = f" user-id=viewer user-pw={password}" if password is not None else ""
-        self.channels = 3 if colour else 1
+        # BGR even for grey pictures: videoconvert's I420 -> GRAY8 copies the luma plane (limited range)
+        # without the range expansion of a player's I420 -> RGB
+        self.colour = colour
         self.pipeline = Gst.parse_launch(
             f'rtspsrc location="{url}"{credentials} protocols=tcp latency=0 ! decodebin ! videoconvert '
-            f'! video/x-raw,format={"BGR" if colour else "GRAY8"} '
-            '! appsink name=sink sync=false max-buffers=2 drop=true')
+            '! video/x-raw,format=BGR ! appsink name=sink sync=false max-buffers=2 drop=true')
         self.sink = self.pipeline.get_by_name("sink")
         self.pipeline.set_state(Gst.State.PLAYING)
 
@@ -94,9 +96,8 @@ class RtspClient:
         finally:
             sample.get_buffer().unmap(info)
         stride = data.size // height  # rows are padded to 4 bytes
-        rows = data[:stride * height].reshape(height, stride)[:, :width * self.channels]
-        return rows.reshape(height, width, self.channels).squeeze(axis=2) if self.channels == 1 else \
-            rows.reshape(height, width, 3)
+        image = data[:stride * height].reshape(height, stride)[:, :width * 3].reshape(height, width, 3)
+        return image if self.colour else image[..., 1].copy()
 
     def close(self) -> None:
         Gst = rtsp.gstreamer()[0]
@@ -257,13 +258,27 @@ def test_bad_settings_are_refused(mono_pipeline):
 
 
 def test_launch_description_is_low_latency():
-    text = rtsp.launch_description(1920, 1200, True, H264Settings())
+    text = rtsp.launch_description(1920, 1200, H264Settings())
     for part in ("tune=zerolatency", "bframes=0", "key-int-max=30", "speed-preset=ultrafast", "leaky-type=downstream",
-                 "max-buffers=1", "format=GRAY8", "config-interval=-1"):
+                 "max-buffers=1", "format=I420", "width=1920", "height=1200", "config-interval=-1"):
         assert part in text
     assert f"bitrate={rtsp.bitrate_kbps(1920, 1200, 30.0)}" in text
     assert rtsp.bitrate_kbps(1920, 1200, 30.0) > rtsp.bitrate_kbps(1280, 720, 30.0) > rtsp.bitrate_kbps(64, 64, 1)
-    assert "format=BGR" in rtsp.launch_description(640, 480, False, H264Settings(keyframe_s=0.5, fps=20))
+    assert "key-int-max=10" in rtsp.launch_description(640, 480, H264Settings(keyframe_s=0.5, fps=20))
+
+
+def test_i420_of_grey_and_colour():
+    rng = np.random.default_rng(3)
+    # uniform 2x2 blocks: 4:2:0 keeps them; what is left is the rounding of the limited range
+    bgr = np.repeat(np.repeat(rng.integers(30, 226, (24, 32, 3), dtype=np.uint8), 2, 0), 2, 1)
+    back = cv2.cvtColor(rtsp.to_i420(bgr), cv2.COLOR_YUV2BGR_I420)
+    assert np.abs(back.astype(int) - bgr).max() <= 3
+    grey = rng.integers(0, 256, (48, 64), dtype=np.uint8)
+    i420 = rtsp.to_i420(grey)
+    assert i420.shape == (72, 64) and (i420[48:] == 128).all()
+    assert i420[:48].min() >= 16 and i420[:48].max() <= 235
+    restored = cv2.cvtColor(i420, cv2.COLOR_YUV2BGR_I420)[..., 1].astype(int)
+    assert np.abs(restored - grey).max() <= 1  # a decoder's limited -> full range gives the grey back
 
 
 def test_timecode_survives_lossy_coding():
