@@ -17,8 +17,8 @@ from svelive.capture.source import MONO_WORDS
 from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
 from svelive.exr import LUMA_WEIGHTS, image_channels, read_luminance, read_rgb, standard_attributes, write_exr
-from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, dynamic_range_db, dynamic_range_stops, \
-    unique_levels
+from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
+    dynamic_range_stops, unique_levels
 from svelive.reconstruction.single import methods, reconstruct
 from svelive.sensor import Sensor, container_bits
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
@@ -229,6 +229,7 @@ def _simulate(args: argparse.Namespace) -> int:
     if not args.hdr or not Path(args.hdr).is_file():
         raise SveliveError(f"{args.hdr}: no such EXR file")
     nominal = _sensor_from_args(args)
+    check_depth(pattern, nominal.bits)
     sensor = Sensor.from_full_well(nominal.bits, args.full_well, args.read_noise_e, nominal.black_level,
                                    nominal.white_level)
     scene = np.maximum(read_luminance(args.hdr) if camera.cfa is None else read_rgb(args.hdr), 0)
@@ -260,6 +261,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     if args.mask:
         from svelive.calibrate import load_mask
         pattern = pattern.with_pixel_map(load_mask(args.mask))
+    check_depth(pattern, sensor.bits)
     response = None
     if args.response:
         from svelive.calibrate import load_response
@@ -282,6 +284,7 @@ def _demo(args: argparse.Namespace) -> int:
     camera = Camera.build(args.pattern or (DEMO_MONO_PATTERN if cfa is None else DEMO_COLOUR_PATTERN), cfa,
                           Sensor.from_full_well(12, 10_000, 3))
     pattern, sensor = camera.require_pattern(), camera.sensor
+    check_depth(pattern, sensor.bits)
     settings = colour_settings(args)
     scene = np.maximum(load_sample_scene(args.scene, rgb=camera.cfa is not None), 0)
     frame = simulate(scene * exposure_scale(scene, pattern, sensor), pattern, sensor, cfa=camera.cfa, seed=0)

@@ -37,6 +37,10 @@ MAX_RATIO = float(2**24)
 #: its square (variances) and its inverse (noise weights) stay inside float32's normal range with room to
 #: spare. Further out float32 rounds an exposure to 0 or inf and reconstruction returns zeros.
 EXPOSURE_RANGE = (float(2**-24), float(2**24))
+#: Largest reconstructed value allowed, (2^bits - 1) / smallest exposure, in DN at exposure 1: 2^24, the
+#: float32 integer range. The methods' noise weights are float32 with absolute floors; measured on flat
+#: fields, `adaptive` goes wrong from about 2^27 (at 8, 12 and 16 bits alike), so this keeps 8x of margin.
+MAX_VALUE = float(2**24)
 #: unique_levels enumerates at most this many levels (distinct exposures x 2^bits).
 MAX_ENUMERATED_LEVELS = 1 << 24
 
@@ -182,6 +186,19 @@ def check_exposures(exposures: np.ndarray) -> None:
         value = low if low < lo else high
         raise SveliveError(f"exposure {value:g} is outside 2^-24..2^24 ({lo:.3g}..{hi:.3g}), where float32 "
                            "reconstruction holds its values: give relative exposures (e.g. 1,4/16,64)")
+
+
+def check_depth(pattern: Pattern, bits: int) -> None:
+    """Refuse (one line, naming the limit) a pattern whose smallest exposure would make a full-scale
+    ``bits``-bit reading larger than :data:`MAX_VALUE` once divided by it."""
+    low = float(pattern.levels[0]) if pattern.pixel_map is None else float(
+        min(pattern.levels[0], float(pattern.pixel_map.min())))
+    largest = (2**bits - 1) / low
+    if largest > MAX_VALUE:
+        raise SveliveError(f"pattern {pattern}: a full-scale {bits}-bit (--bits) reading at exposure {low:g} is {largest:.3g} "
+                           f"DN at exposure 1, above the 2^24 = {MAX_VALUE:.0f} float32 reconstruction holds exactly; "
+                           f"scale the exposures so the smallest is at least {(2**bits - 1) / MAX_VALUE:.3g} "
+                           "(e.g. 1 for the shortest)")
 
 
 # ----- theory (paper sections 4-5) ----------------------------------------

@@ -259,3 +259,23 @@ def test_reconstruct_writes_the_standard_exr_attributes(raw_png: Path, tmp_path:
     assert "unit" not in header and "svelive_method" not in header
     assert set(STANDARD_ATTRIBUTES) >= {"units", "method", "pattern", "cfa", "blackLevel", "whiteLevel", "frameId",
                                         "timestamp"}
+
+
+def test_reconstruct_refuses_exposures_whose_values_float32_reconstruction_cannot_hold(raw_png: Path,
+                                                                                       tmp_path: Path) -> None:
+    # 0.0001 as the shortest exposure of a 12-bit reading: 4e7 DN at exposure 1, where the adaptive method's
+    # float32 noise weights had already failed (a bright flat field came back 2^15 times too dark)
+    out = run("reconstruct", raw_png, "--pattern", "0.0001,0.0004/0.0016,0.0064", "--bits", "12", "-o",
+              tmp_path / "x.exr")
+    one_line_error(out, "2^24", "--bits")
+    assert run("reconstruct", raw_png, "--pattern", "0.001,0.004/0.016,0.064", "--bits", "12", "-o",
+               tmp_path / "ok.exr").returncode == 0
+
+
+def test_check_depth_at_its_limit() -> None:
+    from svelive.pattern import MAX_VALUE, Pattern, check_depth
+
+    check_depth(Pattern.parse(f"{4095 / MAX_VALUE!r},1"), 12)
+    with pytest.raises(SveliveError, match="at least"):
+        check_depth(Pattern.parse(f"{4095 / MAX_VALUE * 0.99!r},1"), 12)
+    check_depth(Pattern.parse(f"1,{MAX_VALUE:.0f}"), 16)  # long exposures make values small: always fine
