@@ -80,3 +80,24 @@ def test_image_channels_and_read_rgb_of_mono(tmp_path):
         read_rgb(write_exr(tmp_path / "z.exr", {"Z": y}))
     with pytest.raises(SveliveError, match="8 numbers"):
         write_exr(tmp_path / "c.exr", {"Y": y}, {"chromaticities": (0.64, 0.33)})
+
+
+def test_standard_attributes_one_name_for_each(tmp_path):
+    from svelive import Camera, Sensor, __version__
+    from svelive.exr import STANDARD_ATTRIBUTES, UNITS, standard_attributes
+
+    camera = Camera.build("dual-iso", sensor=Sensor(12, 64, 4000))
+    attrs = standard_attributes(camera, "weighted", frame_id=7, timestamp=1700000000.1234567,
+                                extra={"whiteBalance": (2.0, 1.0, 1.5)})
+    assert set(attrs) - {"whiteBalance"} <= set(STANDARD_ATTRIBUTES)
+    assert attrs["units"] == UNITS and attrs["method"] == "weighted" and attrs["pattern"] == "1/1/8/8"
+    assert attrs["cfa"] == "RGGB" and attrs["blackLevel"] == 64 and attrs["whiteLevel"] == 4000
+    assert attrs["frameId"] == 7 and attrs["timestamp"] == "1700000000.123457" and attrs["svelive"] == __version__
+    write_exr(tmp_path / "a.exr", {"Y": np.zeros((2, 2), np.float32)}, attrs)
+    _, header = read_exr(tmp_path / "a.exr")
+    assert header["frameId"] == 7 and header["units"] == UNITS and header["timestamp"] == "1700000000.123457"
+
+    mono = standard_attributes(Camera.build("1,4/16,64"), "adaptive")
+    assert "cfa" not in mono and "frameId" not in mono and "timestamp" not in mono
+    with pytest.raises(SveliveError, match="standard"):
+        standard_attributes(camera, "weighted", extra={"method": "other"})
