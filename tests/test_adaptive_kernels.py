@@ -25,11 +25,14 @@ def _reference(inp):
     x = s / e
     e_valid = np.where(censored, f32(0), e)
 
-    # pilot L0 = sum s / sum e over the uncensored readings; w = 1 / v at L0 (0 for censored readings)
+    # pilot L0 = sum s / sum e over the uncensored readings of the window without the pixel; w = 1 / v at L0
+    # (0 for censored readings), with the noise model floored by the frame's evidence
+    s_valid = np.where(censored, f32(0), s)
     exposure_sum = smooth(e_valid, ky, kx)
-    pilot = np.maximum(smooth(np.where(censored, f32(0), s), ky, kx) / np.maximum(exposure_sum, tiny), f32(0))
-    gain_inv = f32(1 / inp.sensor.effective_gain)
-    w = e * e_valid / (pilot * e * gain_inv + f32(inp.sensor.floor_variance))
+    pilot = np.maximum((smooth(s_valid, ky, kx) - centre * s_valid)
+                       / np.maximum(exposure_sum - centre * e_valid, tiny), f32(0))
+    gain_inv, floor = (f32(v) for v in adaptive.noise_model(inp))
+    w = e * e_valid / (pilot * e * gain_inv + floor)
 
     # m: neighbours without the pixel itself, leaving out the dark side of an edge
     lowest_censored = cv2.erode(np.where(censored, e, f32(adaptive.BIG)), np.ones(window, np.uint8),
@@ -40,15 +43,18 @@ def _reference(inp):
     m = (smooth(wx, ky, kx) - centre * wx) / sum_w
     var_m = kernel_square / sum_w
 
-    # b^2: residual excess over its noise, weights 1 / (v_p + v_m)^2
+    # b^2: residual excess over its noise, weights q = 1 / (v_p + v_m)^2, shrunk by CONTRAST_SIGMA standard errors
     var_r = f32(1) / np.maximum(w, tiny) + var_m
     q = f32(1) / (var_r * var_r)
-    bias2 = np.maximum(smooth(q * ((x - m) ** 2 - var_r), ky, kx) / np.maximum(smooth(q, ky, kx), tiny), f32(0))
+    sum_q = np.maximum(smooth(q, ky, kx), tiny)
+    standard_error = np.sqrt(f32(2) * kernel_square / sum_q)
+    bias2 = np.maximum(smooth(q * ((x - m) ** 2 - var_r), ky, kx) / sum_q
+                       - f32(adaptive.CONTRAST_SIGMA) * standard_error, f32(0))
 
-    # L = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2))
+    # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L > 0
     weight_m = f32(1) / (var_m + bias2)
     total = w + weight_m
-    image = (w * x + weight_m * m) / total
+    image = _nonnegative((w * x + weight_m * m) / total, total)
     variance = f32(1) / total
 
     # censored pixels: plain mean of the consistent uncensored neighbours, at least the own bound
@@ -61,9 +67,69 @@ def _reference(inp):
         mean = np.maximum(smooth(consistent * x, ky, kx) / np.maximum(count, tiny), x)
         image = np.where(at, mean, image)
         lower |= at & (count <= 0)
-    image = np.maximum(image, f32(0))
     bound = censored_lower_bound(inp, window)
     return np.where(lower, bound, image), lower, np.where(lower, bound * bound, variance)
+
+
+def _nonnegative(estimate, information):
+    """exp(E[log L]) of N(estimate, 1 / information) restricted to L > 0: the table inside its range, the
+    expansions outside (adaptive._nonnegative)."""
+    sigma = 1 / np.sqrt(information.astype(np.float64))
+    z = estimate / sigma
+    grid = np.arange(adaptive.POSTERIOR_LOW, adaptive.POSTERIOR_HIGH + adaptive.POSTERIOR_STEP / 2,
+                     adaptive.POSTERIOR_STEP)
+    inside = sigma * np.interp(z, grid, adaptive.posterior_table())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        high = estimate * np.exp(-0.5 / z**2 - 0.75 / z**4)
+        low = sigma * np.exp(-adaptive.EULER_GAMMA) * (1 - 1.5 / z**2) / -z
+    out = np.where(z >= adaptive.POSTERIOR_HIGH, high, np.where(z <= adaptive.POSTERIOR_LOW, low, inside))
+    return out.astype(np.float32)
+
+
+def test_posterior_table_against_numerical_integration():
+    """exp(E[log L]) of the unit normal around z restricted to L > 0, by the trapezoid rule on a fine log grid."""
+    table = adaptive.posterior_table()
+    level = np.geomspace(1e-14, 40, 400_001)
+    for z in (-8.0, -2.0, 0.0, 1.5, 3.9):
+        density = np.exp(-0.5 * (level - z) ** 2 + 0.5 * z * z)
+        expected = np.exp(np.trapezoid(np.log(level) * density, level) / np.trapezoid(density, level))
+        got = table[int(round((z - adaptive.POSTERIOR_LOW) / adaptive.POSTERIOR_STEP))]
+        assert got == pytest.approx(expected, rel=2e-3), z
+    assert table[0] == pytest.approx(np.exp(-adaptive.EULER_GAMMA) * (1 - 1.5 / 100) / 10, rel=2e-3)  # meets the expansions
+    z = adaptive.POSTERIOR_HIGH
+    assert table[-1] == pytest.approx(z * np.exp(-0.5 / z**2 - 0.75 / z**4), rel=2e-3)
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
+def test_noise_floor_from_the_frame(pattern):
+    """The floor variance the method uses follows the frame's read noise whatever the sensor says, and the
+    kernel's pairs agree with a numpy statement of them."""
+    rng = np.random.default_rng(2)
+    truth = cv2.GaussianBlur(rng.uniform(0.5, 3, (200, 200)).astype(np.float32), (0, 0), 3)  # dark: read noise
+    true = Sensor(12, 64.0, 4095.0, 2.5, 2.0)
+    raw = simulate(truth, pattern, true, seed=1).raw
+    for factor in (0.5, 1.0, 2.0):
+        told = Sensor(12, 64.0, 4095.0, 2.5, 2.0 * factor)
+        inp = prepare(raw, pattern, told)
+        gain_inv, floor = adaptive.noise_model(inp)
+        assert gain_inv == pytest.approx(1 / 2.5)
+        assert floor == pytest.approx(true.floor_variance, rel=0.2), factor
+    # the pairs and the fixed point, in numpy
+    inp = prepare(raw, pattern, true)
+    tw = inp.period[1]
+    rows = np.unique(np.linspace(0, inp.shape[0] - 1, adaptive.EVIDENCE_ROWS).round().astype(int))
+    s, e = inp.signal[rows].astype(np.float64), inp.exposure[rows].astype(np.float64)
+    g, f = 1 / true.gain, true.floor_variance
+    radiance = np.maximum((s[:, :-tw] + s[:, tw:]) / (e[:, :-tw] + e[:, tw:]), 0)
+    shot = radiance * g * (1 / e[:, :-tw] + 1 / e[:, tw:])
+    k = 1 / e[:, :-tw] ** 2 + 1 / e[:, tw:] ** 2
+    square = (s[:, :-tw] / e[:, :-tw] - s[:, tw:] / e[:, tw:]) ** 2
+    keep = f * k > shot
+    level = f
+    for _ in range(adaptive.EVIDENCE_ITERATIONS):
+        ratio = np.sort(square[keep] / (shot[keep] + level * k[keep]))
+        level *= ratio[int(adaptive.EVIDENCE_QUANTILE * (ratio.size - 1))] / adaptive.CHI2_1_AT_QUANTILE
+    assert adaptive.floor_evidence(inp, g, f) == pytest.approx(level / f, rel=1e-4)
 
 
 def _frame(pattern, shape, seed):
