@@ -133,6 +133,30 @@ def test_format_names_are_looked_up_or_refused(name: str) -> None:
         assert "\n" not in str(exc)
 
 
+# ----- image files (raw frames on disk) ----------------------------------------------------
+
+@budget(120)
+@given(kind=st.sampled_from(["pgm", "png", "tif"]), width=st.integers(0, 70000), height=st.integers(0, 70000),
+       maxval=st.integers(0, 70000), body=st.binary(max_size=400))
+def test_an_image_file_reads_or_gives_a_one_line_error(tmp_path_factory, kind: str, width: int, height: int,
+                                                       maxval: int, body: bytes) -> None:
+    """A header with any size and depth, then any bytes: a raw frame or a one-line error, never a crash or an
+    allocation of what the header claims."""
+    from svelive.commands import read_raw
+
+    head = {"pgm": f"P5\n{width} {height}\n{maxval}\n".encode(),
+            "png": b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0dIHDR" + width.to_bytes(4, "big") + height.to_bytes(4, "big"),
+            "tif": b"II*\x00\x08\x00\x00\x00"}[kind]
+    path = tmp_path_factory.mktemp("img") / f"frame.{kind}"
+    path.write_bytes(head + body)
+    try:
+        raw = read_raw(path)
+    except SveliveError as exc:
+        assert "\n" not in str(exc)
+        return
+    assert raw.ndim == 2 and raw.dtype in (np.uint8, np.uint16)
+
+
 # ----- the recording reader ----------------------------------------------------------------
 
 @pytest.fixture(scope="module")

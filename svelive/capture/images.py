@@ -82,9 +82,12 @@ def _pnm_header(data: bytes) -> tuple[int, int, int, int] | None:
 def check_image_header(path: str | os.PathLike, max_pixels: int = MAX_IMAGE_PIXELS) -> None:
     """Refuse, with one line, a PNG or binary PGM whose header claims more than ``max_pixels`` pixels or
     more sample bytes than the file holds; other files pass (the decoder judges them)."""
-    with open(path, "rb") as f:
-        head = f.read(1024)
-        size = os.fstat(f.fileno()).st_size
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1024)
+            size = os.fstat(f.fileno()).st_size
+    except OSError as exc:
+        raise SveliveError(f"{path}: cannot read ({exc.strerror})") from None
     if head.startswith(_PNG_SIGNATURE) and len(head) >= 24 and head[12:16] == b"IHDR":
         width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
         need = 0
