@@ -373,9 +373,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
                      frame.signal[core], frame.censored[core], frame.inverse, frame.own_slope,
                      frame.own_floor, floor_weight, scale, detail, reset[core], weight[core], fused[core], own[core],
-                     evidence[core])
-        if separate:
-            _running_rows(weight[core], history[core], tested[core], scale, fused_test[core])
+                     evidence[core], separate, history[core], tested[core], fused_test[core])
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -400,26 +398,39 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if not restarts:
             update(core, short)
 
-    map_on(executor if executor is not None else workers, strip, strips)
+    ky, kx = (binomial_kernel(n) for n in window)
+    radius = ky.size // 2
+    threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
+    sharpens = config.max_history > 1  # else no pixel has history to sharpen with
+
+    def sharpen_strip(core: slice) -> None:
+        """The detail step of a strip, once the evidence of its rows and a window around them is in."""
+        ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
+        local = smooth(evidence[ext], ky, kx)[core.start - ext.start:core.stop - ext.start]
+        _detail_pass(*flat(np.ascontiguousarray(local), fused[core], own[core], reset[core], out[core]),
+                     threshold, sharpens)
+        if inconsistency is not None:  # output only: the history keeps estimates of one kind
+            _replace(*flat(reset[core], inconsistency._flagged[core], shortest[core], out[core], motion[core]))
+
+    if detail and executor is None and workers == 1:
+        # on one thread, each strip's detail step follows as soon as the next strips hold the rows
+        # its window reads, while they are still in cache
+        ready = 0
+        for i, core in enumerate(strips):
+            strip(core)
+            last = i == len(strips) - 1
+            while ready <= i and (last or strips[ready].stop + radius <= core.stop):
+                if moved[0] <= limit:  # else the frame restarts: nothing to do
+                    sharpen_strip(strips[ready])
+                ready += 1
+    else:
+        map_on(executor if executor is not None else workers, strip, strips)
+        if detail and moved[0] <= limit:
+            map_on(executor if executor is not None else workers, sharpen_strip, strips)
     if moved[0] > limit:
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
-    if detail:
-        ky, kx = (binomial_kernel(n) for n in window)
-        radius = ky.size // 2
-        threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
-        sharpens = config.max_history > 1  # else no pixel has history to sharpen with
-
-        def sharpen_strip(core: slice) -> None:
-            ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
-            local = smooth(evidence[ext], ky, kx)[core.start - ext.start:core.stop - ext.start]
-            _detail_pass(*flat(np.ascontiguousarray(local), fused[core], own[core], reset[core], out[core]),
-                         threshold, sharpens)
-            if inconsistency is not None:  # output only: the history keeps estimates of one kind
-                _replace(*flat(reset[core], inconsistency._flagged[core], shortest[core], out[core], motion[core]))
-
-        map_on(executor if executor is not None else workers, sharpen_strip, strips)
     state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None)
     # the update applied the within-frame test's finding to the output where it reset the history
     return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset))
@@ -467,13 +478,15 @@ def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, in
 
 @kernel
 def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
-                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, evidence):
+                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, evidence,
+                 separate, old_test, test, fused_test):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
     (R, W) arrays but for inverse, own_slope and own_floor, which are (P, W) by row
     phase (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least
     ``floor_weight``, 1 where reset), the fused image and own readings and, with
-    ``detail``, the evidence of detail: (own - fused)^2 over the fused own reading's variance.
+    ``detail``, the evidence of detail: (own - fused)^2 over the fused own reading's variance;
+    with ``separate``, the running mean of the tested estimate ``test`` too (``fused_test``).
     """
     one = np.float32(1)
     # a history scaled up by the brightness ratio carries up to ratio times the (shot) noise
@@ -492,17 +505,11 @@ def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal
             fused[r, c] = f
             o = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x), w, scale)
             own[r, c] = o
+            if separate:
+                fused_test[r, c] = _running_mean(old_test[r, c], test[r, c], w, scale)
             if detail:
                 d = o - f
                 evidence[r, c] = d * d / ((own_slope[p, c] * _maximum(f, np.float32(0)) + own_floor[p, c]) * w * noisier)
-
-
-@kernel
-def _running_rows(weight, mean, new, scale, out):
-    """out = the running mean of ``mean`` (times ``scale``) and ``new`` with ``weight``, (R, W) arrays."""
-    for r in range(out.shape[0]):
-        for c in range(out.shape[1]):
-            out[r, c] = _running_mean(mean[r, c], new[r, c], weight[r, c], scale)
 
 
 @kernel

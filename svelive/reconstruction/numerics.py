@@ -158,10 +158,18 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
         keep = slice(core.start - ext.start, core.stop - ext.start)
         ky, kx, ky2, kx2 = kernels
         censored = inp.censored[ext]
-        if layout is not None and not censored.any():
+        row_of, first = (layout.row_of, core.start) if layout is not None else (None, 0)
+        if layout is not None:
             summed = smooth(inp.signal[ext], ky, kx)[keep]
-            rows = layout.row_of[core]
-            tables = layout.exposure[rows], layout.exposure_squares[rows], layout.squares[rows]
+            tables = layout.exposure, layout.exposure_squares, layout.squares
+            if censored.any():  # the sums of the windows holding a censored reading, again without it
+                summed = np.ascontiguousarray(summed)
+                rows = layout.row_of[core]
+                tables = tuple(table[rows] for table in tables)  # the strip's own
+                row_of, first = None, 0
+                near = _near(censored, (ky.size, kx.size))[keep]
+                _uncensored_sums(np.ascontiguousarray(inp.signal[ext]), np.ascontiguousarray(inp.exposure[ext]),
+                                 np.ascontiguousarray(censored), near, keep.start, ky, kx, summed, *tables)
         else:
             kept = np.empty(censored.shape, np.float32)
             signal, exposure = np.empty_like(kept), np.empty_like(kept)
@@ -169,11 +177,55 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
                               np.ascontiguousarray(censored), kept, signal, exposure))
             summed = smooth(signal, ky, kx)[keep]
             tables = (smooth(exposure, ky, kx)[keep], smooth(exposure, ky2, kx2)[keep], smooth(kept, ky2, kx2)[keep])
-        arrays = [np.ascontiguousarray(a) for a in (summed, *tables, image[core], variance[core])]
-        _window_pass(*flat(*arrays, out[core], out_var[core]), inv_gain, floor)
+        if row_of is None:
+            row_of = np.arange(core.stop - core.start, dtype=np.intp)
+        _window_rows(np.ascontiguousarray(summed), row_of, first, *tables, image[core], variance[core], out[core],
+                     out_var[core], inv_gain, floor)
 
     map_on(workers, strip, _strips(h, strip_rows))
     return out, out_var
+
+
+def _near(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:
+    """bool (H, W): pixels whose centred (rows, cols) window holds a pixel of ``mask``."""
+    return cv2.dilate(mask.view(np.uint8), np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101).view(bool)
+
+
+@kernel
+def _reflected(i, n):
+    """Index i of an axis of n, mirrored at the ends without repeating them (OpenCV's reflect-101)."""
+    if i < 0:
+        i = -i
+    if i >= n:
+        i = 2 * (n - 1) - i
+    return min(max(i, 0), n - 1)
+
+
+@kernel
+def _uncensored_sums(signal, exposure, censored, near, first, ky, kx, summed, exposure_sum, exposure_squares,
+                     squares):
+    """The window sums of :func:`window_estimate` over uncensored readings, at the pixels ``near``
+    (R, W) a censored one; rows of (n, W) ``signal``, ``exposure`` and ``censored`` from
+    ``first`` on are those of ``near``, the sums' arrays (R, W) are rewritten there."""
+    n, w = signal.shape
+    ry, rx = ky.size // 2, kx.size // 2
+    zero = np.float32(0)
+    for r in range(near.shape[0]):
+        for c in range(w):
+            if not near[r, c]:
+                continue
+            a, b, e2, g2 = zero, zero, zero, zero
+            for dy in range(ky.size):
+                i = _reflected(first + r + dy - ry, n)
+                for dx in range(kx.size):
+                    j = _reflected(c + dx - rx, w)
+                    if not censored[i, j]:
+                        g = ky[dy] * kx[dx]
+                        a += g * signal[i, j]
+                        b += g * exposure[i, j]
+                        e2 += g * g * exposure[i, j]
+                        g2 += g * g
+            summed[r, c], exposure_sum[r, c], exposure_squares[r, c], squares[r, c] = a, b, e2, g2
 
 
 @kernel
@@ -188,12 +240,19 @@ def _uncensored(signal, exposure, censored, kept, kept_signal, kept_exposure):
 
 
 @kernel
-def _window_pass(summed, exposure, exposure_squares, squares, image, variance, out, out_var, inv_gain, floor):
-    """out = max(sum G s / sum G e, 0) and its variance; the method's where the window's sum G e is 0."""
-    zero, tiny = np.float32(0), np.float32(1e-12)
-    for k in range(out.size):
-        b, a, c, d, x, v = exposure[k], summed[k], exposure_squares[k], squares[k], image[k], variance[k]
-        ok = b > tiny
-        level = _maximum(a / b, zero) if ok else x
-        out[k] = level
-        out_var[k] = (level * inv_gain * c + floor * d) / (b * b) if ok else v
+def _window_rows(summed, row_of, first, exposure, exposure_squares, squares, image, variance, out, out_var,
+                 inv_gain, floor):
+    """out = max(sum G s / sum G e, 0) and its variance, (R, W) rows whose window sums of e, G^2 e
+    and G^2 are the tables' rows ``row_of[first + r]``; the method's where the window's sum G e is 0."""
+    zero, one, tiny = np.float32(0), np.float32(1), np.float32(1e-12)
+    for r in range(out.shape[0]):
+        t = row_of[first + r]
+        for c in range(out.shape[1]):
+            b, a, e2, g2, x, v = (exposure[t, c], summed[r, c], exposure_squares[t, c], squares[t, c], image[r, c],
+                                  variance[r, c])
+            ok = b > tiny
+            inverse = one / b
+            level = _maximum(a * inverse, zero)
+            noise = (level * inv_gain * e2 + floor * g2) * inverse * inverse
+            out[r, c] = level if ok else x
+            out_var[r, c] = noise if ok else v
