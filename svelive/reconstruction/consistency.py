@@ -1,7 +1,9 @@
 """The within-frame exposure-consistency test (``integration`` exposure timing).
 
 Where long exposures integrate over a longer time than short ones, a moving
-object makes them disagree: the frame's estimate is compared with the
+object makes them disagree: the frame's estimate (the stream passes the window
+estimate of svelive.reconstruction.numerics.window_estimate, whatever its method,
+so that a sharp method's texture is not taken for motion) is compared with the
 interpolation of the shortest exposure's uncensored samples alone, by the
 noise-model test of svelive.reconstruction.numerics.disagree; flagged
 pixels, widened by ``widen`` pixels, take the shortest exposure's estimate,

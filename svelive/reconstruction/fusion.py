@@ -13,10 +13,14 @@ moving scene.
   shortest exposure's estimate, which integrates over the shortest time.
 - Across frames: a per-pixel recursive average (equal weights over the last
   ``max_history`` frames at most) fuses the frame estimates where the scene
-  is static; a pixel whose new estimate disagrees with its history is reset
-  to the new estimate at once, so moving objects leave no trail. Global
-  brightness changes (lights switched, mains flicker) are first divided out
-  with a robust global ratio, so they do not reset every pixel.
+  is static; a pixel whose new tested estimate (a window mean computed beside
+  the method, svelive.reconstruction.numerics.window_estimate, with a history of
+  its own) disagrees with its history is reset to the new estimate at once, so
+  moving objects leave no trail; when most of the frame differs a little, the
+  camera moved and every pixel is reset. Global brightness changes (lights
+  switched, mains flicker) are first divided out with a robust global ratio, so
+  they do not reset every pixel. Where a pixel has history, the output moves
+  towards its fused own readings as far as the local evidence of detail allows.
 
 Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 """

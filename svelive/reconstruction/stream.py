@@ -1,7 +1,10 @@
 """The stateful per-stream reconstruction: raw SVE frames in, motion-robust HDR frames out.
 
 ``Reconstructor(camera or pattern, ...).process(frame or raw)`` runs a
-single-frame method (svelive.reconstruction.single), then the motion tests:
+single-frame method (svelive.reconstruction.single; the library's default unless
+told otherwise, with temporal fusion too), then the motion tests, which compare a
+window mean computed beside the method from the same readings
+(svelive.reconstruction.numerics.window_estimate), not the method's estimate:
 the within-frame exposure-consistency test (svelive.reconstruction.consistency,
 on by default for ``integration`` exposure timing) and the temporal fusion
 (svelive.reconstruction.fusion) that cuts noise where the scene is static and
