@@ -21,10 +21,7 @@ Which frames may go to which worker:
   less each frame, so after K = max_history + ceil(24 ln 2 / -ln(1 - 1 / max_history))
   frames (133 with max_history 8) the difference is below float32 rounding
   (2^-24 of the difference at the start). A pixel that the motion test resets is
-  exact from then on. The history cannot be reset on demand without changing the
-  output, so this is not bit-exact in general: a few pixels whose test statistic sits
-  within rounding of the threshold can decide differently (tests/test_reprocess.py
-  measures it).
+  exact from then on.
 - The automatic white balance of a colour recording is a first-order low-pass
   filter over frame time (svelive.whitebalance.WhiteBalancer, time constant
   ``adapt_s``), measured on every frame ``measure_s`` after the previous
@@ -32,6 +29,16 @@ Which frames may go to which worker:
   too (the measurement times follow from the timestamps alone) and at least
   ``adapt_s * 24 ln 2`` seconds of frame time (16.6 s) before ``start``, or at a
   gap longer than ``reset_after_s``, where the filter restarts exactly.
+- The history cannot be reset on demand without changing the output, and a motion
+  test whose statistic sits within rounding of its threshold can decide otherwise
+  in a run whose history differs by rounding (a colour stream with much motion
+  kept doing so for ~170 frames): the warm-up alone guarantees nothing. So every
+  chunk that starts cold is checked (:func:`execute`): its state before its first
+  frame must equal the state the chunk before it ends with (:func:`compare_states`:
+  the same resets, fused values within STATE_RTOL), or it runs again with twice
+  the warm-up, at most from frame 0.
+
+docs/reprocessing.md has the figures.
 """
 
 from __future__ import annotations
