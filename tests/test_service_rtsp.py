@@ -16,7 +16,7 @@ import pytest
 
 from svelive.errors import SveliveError
 
-from service.pipeline import Pipeline, PipelineConfig
+from service.pipeline import Pipeline, PipelineConfig, no_signal_image
 from service.publishers import rtsp
 from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
 
@@ -128,6 +128,8 @@ def mono_pipeline():
     camera = make_camera(fps=20.0, n=1, shape=SHAPE)
     pipeline = Pipeline(PipelineConfig(source="sim", temporal=False), lambda: SimSource(camera))
     with pipeline:
+        # a client that comes before the first frame gets a media of the no-signal size (640x360)
+        wait_until(lambda: pipeline.latest() is not None, timeout=60, what="the first frame")
         yield pipeline
 
 
@@ -290,3 +292,19 @@ def test_timecode_survives_lossy_coding():
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 40])
         assert ok
         assert read_timecode(cv2.imdecode(jpeg, cv2.IMREAD_UNCHANGED)) == value
+
+
+def test_no_signal_frames_while_the_source_is_offline():
+    camera = make_camera(fps=20.0, n=1, shape=SHAPE)
+    config = PipelineConfig(source="sim", temporal=False, offline_after_s=0.6, retry_s=0.2, no_signal_fps=5.0)
+    with Pipeline(config, lambda: SimSource(camera)) as pipeline, \
+            RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
+        wait_until(lambda: pipeline.latest() is not None, timeout=60, what="the first frame")
+        with RtspClient(publisher.url) as client:
+            live = client.frames(3)[-1]
+            camera.paused = True
+            wait_until(lambda: not pipeline.online(), what="the source offline")
+            frames = client.frames(4, timeout=30)  # the stream goes on, at the no-signal rate
+        assert all(frame.shape == SHAPE for frame in frames)
+        no_signal = no_signal_image(SHAPE[1], SHAPE[0])
+        assert psnr(frames[-1], no_signal) > 25 and psnr(live, no_signal) < 20

@@ -365,9 +365,10 @@ class RtspPublisher:
             self._watching = True
         if start_watching:
             self.pipeline.encoder.watch_previews(+1)
-        # the media is prepared once its first frame has gone through: give it the newest at once
-        preview = self.pipeline.encoder.latest_preview()
-        if preview is not None and self.pipeline.online():
+        # the media is prepared once its first frame has gone through: give it the newest frame's preview now
+        # if it exists (the encoder makes a preview only of a newer frame); an older one waits for the next
+        preview, latest = self.pipeline.encoder.latest_preview(), self.pipeline.latest()
+        if preview is not None and latest is not None and preview.hdr_seq == latest.seq and self.pipeline.online():
             self._on_preview(preview)
 
     def _on_media_unprepared(self, media: Any) -> None:
