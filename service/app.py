@@ -9,8 +9,10 @@ them and starts and stops the pipelines with the server.
 from __future__ import annotations
 
 import asyncio
+import signal
 import socket
-from collections.abc import Mapping
+import threading
+from collections.abc import Callable, Mapping
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -26,6 +28,41 @@ from service.pipeline import CalibrationBusy, Pipeline
 from service.publishers.mjpeg import StreamHub
 from service.routers import ServedCamera, calibration, metrics, settings as settings_router, snapshots, state, stream
 from service.settings import DEFAULT_CAMERA, ServerSettings
+
+
+#: Longest wait for each pipeline thread at shutdown; a thread still inside a blocking camera call
+#: (a GigE camera that vanished) is left behind (threads are daemons), so SIGTERM exits within 2.5 s.
+STOP_JOIN_S = 0.75
+
+
+def on_exit_signal(callback: Callable[[], None]) -> Callable[[], None]:
+    """Call ``callback()`` first when SIGINT or SIGTERM arrives, then the handler in place (uvicorn's,
+    which starts its graceful shutdown); returns a function that puts the handlers back.
+
+    Installed only from the main thread (the only one Python delivers signals to); elsewhere
+    nothing is installed. A handler that is not a Python function (default, ignore) is left alone.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    installed: dict[int, tuple[Any, Any]] = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous = signal.getsignal(sig)
+        if not callable(previous):
+            continue
+
+        def chained(signum: int, frame: Any, previous: Any = previous) -> None:
+            callback()
+            previous(signum, frame)
+
+        signal.signal(sig, chained)
+        installed[sig] = (previous, chained)
+
+    def restore() -> None:
+        for sig, (previous, chained) in installed.items():
+            if signal.getsignal(sig) is chained:
+                signal.signal(sig, previous)
+
+    return restore
 
 
 def listen_socket(settings: ServerSettings) -> socket.socket:
@@ -89,6 +126,16 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         loop = asyncio.get_running_loop()
+        closing = asyncio.Event()
+        app.state.closing = closing
+
+        def shutdown_streams() -> None:  # from any thread or a signal handler
+            loop.call_soon_threadsafe(closing.set)
+
+        app.state.shutdown_streams = shutdown_streams
+        # uvicorn waits for open responses before it shuts the app down: the endless MJPEG streams
+        # must end as soon as the signal comes, not be cancelled (and logged as errors) later
+        restore_signals = on_exit_signal(shutdown_streams)
         for cam in cameras:
             cam.hub = StreamHub(loop)
             cam.pipeline.add_listener(cam.hub.on_frame)
@@ -101,10 +148,12 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
                     started.append(cam)
             yield
         finally:
+            closing.set()
+            restore_signals()
             for cam in cameras:
                 cam.pipeline.remove_listener(cam.hub.on_frame)
             # stopped together, so that shutdown takes as long as the slowest camera, not their sum
-            await asyncio.gather(*(run_in_threadpool(cam.pipeline.stop) for cam in started))
+            await asyncio.gather(*(run_in_threadpool(cam.pipeline.stop, STOP_JOIN_S) for cam in started))
 
     app = FastAPI(title="svelive", lifespan=lifespan, docs_url=None, redoc_url=None, openapi_url=None)
     app.state.pipeline = cameras[0].pipeline

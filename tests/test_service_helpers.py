@@ -127,7 +127,7 @@ class ServerThread:
         self.sock = listen_socket(settings)
         self.port = self.sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
-        app = create_app(self.pipeline, settings)
+        self.app = app = create_app(self.pipeline, settings)
         self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=1))
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
 
@@ -141,6 +141,9 @@ class ServerThread:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        shutdown_streams = getattr(self.app.state, "shutdown_streams", None)
+        if shutdown_streams is not None:  # what a SIGTERM does first in `svelive serve`
+            shutdown_streams()
         self.server.should_exit = True
         self.thread.join(10)
         self.sock.close()

@@ -27,7 +27,7 @@ def server(camera):
     # a small send buffer (the kernel doubles it) so that the slow client below blocks within a second
     # on these small test frames (~3 kB); the default 256 kB is sized for full-HD previews
     with ServerThread(camera, send_buffer_kb=16) as srv:
-        srv.wait_for(lambda s: s["frames"]["reconstructed"] > 3)
+        srv.wait_for(lambda s: s["frames"]["reconstructed"] > 3, timeout=60)  # the first frame may compile kernels
         yield srv
 
 

@@ -12,6 +12,10 @@ from service.publishers.mjpeg import BOUNDARY, part_bytes
 from service.routers import NO_STORE, ServedCamera
 
 
+#: Longest a stream waits for a frame before it checks whether its client left or the server is closing.
+CHECK_S = 0.25
+
+
 def viewer_html() -> str:
     return (resources.files("service") / "static" / "index.html").read_text(encoding="utf-8")
 
@@ -30,14 +34,15 @@ def router(cam: ServedCamera) -> APIRouter:
         hub = cam.hub
         min_interval = 0.0 if fps is None else 1.0 / fps
         remote = f"{request.client.host}:{request.client.port}" if request.client else "?"
+        closing = getattr(request.app.state, "closing", None) or asyncio.Event()
 
         async def parts():
             client = hub.register(remote)
             pipeline.watch(+1)
             try:
                 last = 0
-                while True:
-                    item = await hub.wait_newer(last, timeout=1.0)
+                while not closing.is_set():  # the server shuts down: end the response cleanly
+                    item = await hub.wait_newer(last, timeout=CHECK_S)
                     if item is None:
                         if await request.is_disconnected():
                             return
@@ -45,8 +50,11 @@ def router(cam: ServedCamera) -> APIRouter:
                     yield part_bytes(item)
                     hub.sent(client, item, last)
                     last = item.seq
-                    if min_interval:
-                        await asyncio.sleep(min_interval)
+                    if min_interval:  # a rate cap, cut short when the server closes
+                        try:
+                            await asyncio.wait_for(closing.wait(), min_interval)
+                        except TimeoutError:
+                            pass
             finally:
                 pipeline.watch(-1)
                 hub.clients.pop(client.id, None)
