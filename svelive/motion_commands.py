@@ -164,8 +164,12 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
             progress.update()
             if args.frames is not None and n >= args.frames:
                 break
-    finally:
+    except BaseException:
+        progress.close(failed=True)
+        raise
+    else:
         progress.close()
+    finally:
         if reconstructor is not None:
             reconstructor.close()
         if source is not None:

@@ -7,8 +7,9 @@
 
 On a terminal the line is rewritten in place (carriage return) at most every
 ``interval_s``; into a file or pipe (a log) a full line is written at most every
-``log_interval_s``, so logs stay readable. ``close()`` always ends with one
-final line (count, elapsed time, rate), unless quiet. stdout is never touched:
+``log_interval_s``, so logs stay readable. ``close()`` ends with one final line
+(count, elapsed time, rate), unless quiet or the command failed (its error is
+then the last line). stdout is never touched:
 commands keep printing their results there.
 """
 
@@ -124,19 +125,26 @@ class Progress:
             self.stream.write(text + "\n")
         self.stream.flush()
 
-    def close(self) -> None:
-        """Write the final line (once), unless quiet."""
+    def close(self, failed: bool = False) -> None:
+        """Write the final line (once), unless quiet. ``failed``: the command is ending with an error,
+        which is then the last line: only a line shown on a terminal is ended."""
         if self._closed:
             return
         self._closed = True
-        if not self.quiet:
+        if self.quiet:
+            return
+        if not failed:
             self._show(final=True)
+        elif self._tty and self._width:
+            assert self.stream is not None
+            self.stream.write("\n")
+            self.stream.flush()
 
     def __enter__(self) -> Progress:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, kind: object, *exc: object) -> None:
+        self.close(failed=kind is not None)
 
 
 def add_quiet_argument(parser: argparse.ArgumentParser) -> None:

@@ -138,7 +138,7 @@ def _record(args: argparse.Namespace) -> int:
     interrupted = False
     progress = Progress("recording", total=args.frames, quiet=args.quiet)
     try:
-        with source:
+        with source, progress:
             thread.start()
             try:
                 for frame in source.frames(limit=args.frames, seconds=args.seconds):
@@ -153,7 +153,6 @@ def _record(args: argparse.Namespace) -> int:
                 interrupted = True
             stats = source.stats()
     finally:
-        progress.close()
         if thread.is_alive():
             frames.put(None)
             thread.join()
