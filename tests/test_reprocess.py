@@ -168,3 +168,12 @@ def test_progress_counts_and_rate_and_quiet() -> None:
         p.update()
     assert quiet.getvalue() == ""
     assert format_progress("x", 5, 10, 10.0) == "x: 5/10 frames (50%), 0.5 frames/s, 10 s left"
+
+
+def test_progress_leaves_the_last_line_to_an_error() -> None:
+    out = io.StringIO()
+    with pytest.raises(ValueError), Progress("work", total=3, stream=out, log_interval_s=0.0) as progress:
+        progress.update()
+        raise ValueError("bad")
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("work: 1/3 frames (33%)")  # the update's line, no final one
