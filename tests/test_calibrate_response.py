@@ -209,3 +209,160 @@ def test_known_curve_recovered_on_sample_scenes(scene_name, name):
     assert hi - lo >= 0.45
     assert response.stats["curve_uncertainty"] <= 0.01
     assert max_error(response, CURVES[name]) < 0.02
+
+
+# ----- several frames at different global exposure times (issue 14) ---------------------------------
+
+def sweep_frames(scene: np.ndarray, sensor: Sensor, curve: str, times=(1.0, 1.5), seed: int = 2) -> list[np.ndarray]:
+    """Raw frames of ``scene`` (DN at exposure 1) at the global exposure times ``times``."""
+    return [simulate_nonlinear(scene * t, PATTERN, sensor, CURVES[curve], seed=seed + i) for i, t in enumerate(times)]
+
+
+@pytest.mark.parametrize("bits", [12, 8])
+@pytest.mark.parametrize("name", ["linear", "gamma2.2", "poly3", "s-curve"])
+def test_two_frames_on_chart_recovered_without_the_ambiguity(name, bits):
+    sensor = Sensor.from_full_well(bits, 10000, 3)
+    scene = chart_scene()
+    scene *= sensor.range_dn / scene.max()
+    response = fit_response(sweep_frames(scene, sensor, name), PATTERN, sensor, exposure_times=[10, 15])
+    stats = response.stats
+    assert stats["frames"] == 2 and stats["exposure_times"] == [10, 15]
+    assert stats["nominal_exposures"] == [1, 4, 16, 64, 1.5, 6, 24, 96]
+    assert stats["common_ratio"] is None  # 1.5 is no power of the pattern's 4
+    lo, hi = stats["measured_range"]
+    assert hi - lo > 0.9
+    assert max_error(response, CURVES[name]) < 0.02
+    if name == "linear":
+        assert response.degree == 1
+
+
+def test_sweep_uses_between_frame_equations_and_gives_a_band():
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene(128, 16)
+    scene *= sensor.range_dn / scene.max()
+    frames = sweep_frames(scene, sensor, "gamma2.2", times=(1.0, 1.5, 2.25))
+    one = fit_response(frames[0], PATTERN, sensor)
+    three = fit_response(frames, PATTERN, sensor, exposure_times=[2, 3, 4.5])
+    # within each frame 6 level pairs, between every two frames 16: 3 * 6 + 3 * 16 per location at most
+    assert three.stats["equations"] > 4 * one.stats["equations"]
+    band = three.stats["band"]
+    lo, hi = three.stats["measured_range"]
+    m = np.asarray(band["brightness"])
+    assert m[0] == lo and m[-1] == hi and len(m) == 33
+    np.testing.assert_allclose(band["linear"], three(m), atol=1e-12)
+    se = np.asarray(band["standard_error"])
+    assert np.all(se > 0) and se.max() < 0.01
+    assert max(one.stats["band"]["standard_error"]) > se.max()  # more frames, narrower band
+
+
+def test_sweep_input_refused_with_the_fix():
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene(128, 16)
+    scene *= sensor.range_dn / scene.max()
+    a, b = sweep_frames(scene, sensor, "linear")
+    with pytest.raises(SveliveError, match="exposure times"):
+        fit_response([a, b], PATTERN, sensor)
+    with pytest.raises(SveliveError, match="one per frame"):
+        fit_response([a, b], PATTERN, sensor, exposure_times=[1, 2, 3])
+    with pytest.raises(SveliveError, match="positive"):
+        fit_response([a, b], PATTERN, sensor, exposure_times=[1, 0])
+    with pytest.raises(SveliveError, match="one camera and region"):
+        fit_response([a, b[:64]], PATTERN, sensor, exposure_times=[1, 1.5])
+    # the times in the wrong order: the brighter frame reads darker everywhere
+    with pytest.raises(SveliveError, match="order of the exposure times"):
+        fit_response([a, b], PATTERN, sensor, exposure_times=[1.5, 1])
+
+
+def test_cli_sweep_progress_quiet_and_bits_from_the_file(tmp_path, capsys):
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene()
+    scene *= sensor.range_dn / scene.max()
+    for i, raw in enumerate(sweep_frames(scene, sensor, "gamma2.2")):
+        np.save(tmp_path / f"f{i}.npy", raw)
+    frames = [str(tmp_path / "f0.npy"), str(tmp_path / "f1.npy")]
+    out = tmp_path / "r.json"
+    # no --bits: the saturated patches hold 4095, a 12-bit white
+    assert main(["calibrate", "response", *frames, "--exposure-times", "8000,12000", "--pattern", "1,4/16,64",
+                 "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "degree 1/6" in err and "frame 2/2" in err and "power of" not in err
+    data = json.loads(out.read_text())
+    assert data["white_level"] == 4095 and data["stats"]["exposure_times"] == [8000, 12000]
+    assert max_error(load_response(out), CURVES["gamma2.2"]) < 0.02
+    assert main(["calibrate", "response", *frames, "--exposure-times", "8000,12000", "--pattern", "1,4/16,64",
+                 "-q", "-o", str(out)]) == 0
+    assert capsys.readouterr().err == ""
+    assert main(["calibrate", "response", *frames, "--pattern", "1,4/16,64", "-o", str(out)]) == 2
+    assert "--exposure-times" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse's own error
+        main(["calibrate", "response", *frames, "--exposure-times", "1,x", "--pattern", "1,4/16,64", "-o", str(out)])
+    assert "exposure times are numbers" in capsys.readouterr().err
+
+
+def test_cli_bits_unknown_names_the_option(tmp_path, capsys):
+    """A 16-bit file with nothing saturated and no sBIT does not say its bit depth."""
+    raw = np.random.default_rng(0).integers(0, 3000, (64, 64)).astype(np.uint16)
+    cv2 = pytest.importorskip("cv2")
+    cv2.imwrite(str(tmp_path / "dim.png"), raw)
+    for verb in (["response", "--pattern", "1,4/16,64", "-o", str(tmp_path / "r.json")],
+                 ["mask", "--tile", "2x2", "-o", str(tmp_path / "m.npz")]):
+        assert main(["calibrate", verb[0], str(tmp_path / "dim.png"), *verb[1:]]) == 2
+        err = capsys.readouterr().err
+        assert "--bits" in err and "dim.png" in err and len(err.strip().splitlines()) == 1
+
+
+def test_bits_from_png_sbit_and_from_saturation(tmp_path):
+    import struct
+    import zlib
+
+    from svelive.calibrate.commands import png_significant_bits, saturation_bits
+
+    cv2 = pytest.importorskip("cv2")
+    raw = np.zeros((32, 32), np.uint16)
+    raw[:8] = 4095
+    assert saturation_bits(raw) == 12
+    raw[0, 0] = 4000  # still 12: the cluster at 4095 stays
+    assert saturation_bits(raw) == 12
+    assert saturation_bits(np.full((32, 32), 3000, np.uint16)) is None
+    one = raw.copy()
+    one[:8] = 0
+    one[0, 0] = 1023  # a single pixel at 2^10 - 1 is no evidence
+    assert saturation_bits(one) is None
+    path = tmp_path / "f.png"
+    cv2.imwrite(str(path), raw)
+    assert png_significant_bits(path) is None
+    data = path.read_bytes()
+    chunk = b"sBIT" + bytes([12])
+    sbit = struct.pack(">I", 1) + chunk + struct.pack(">I", zlib.crc32(chunk))
+    (tmp_path / "s.png").write_bytes(data[:33] + sbit + data[33:])  # after the 8-byte signature and IHDR
+    assert png_significant_bits(tmp_path / "s.png") == 12
+    assert cv2.imread(str(tmp_path / "s.png"), cv2.IMREAD_UNCHANGED).max() == 4095
+
+
+S_CURVE_TWO_FRAMES = {"desk": 0.024, "mttamwest": 0.021, "cannon": 0.050}
+
+
+def _two_frame_case(scene_name: str, name: str):
+    marks = []
+    if name == "s-curve":
+        marks.append(pytest.mark.xfail(strict=True, reason=(
+            f"S-curve on the {scene_name} crop from two frames (1 and 1.5): {S_CURVE_TWO_FRAMES[scene_name]:.1%} "
+            "off. The sweep removes the log-periodic ambiguity, but the polynomial cannot follow this inverse "
+            "curve in relative terms near M = 0 (its Taylor series converges only within 0.05 of 0 and of 1), "
+            "and the dark equations, the most numerous and precise, then bend the curve; with the "
+            "equations made exact it is still off (docs/calibration.md)")))
+    return pytest.param(scene_name, name, marks=marks)
+
+
+@pytest.mark.parametrize("scene_name,name", [_two_frame_case(s, n) for s in ("desk", "mttamwest", "cannon")
+                                             for n in ("linear", "gamma2.2", "poly3", "s-curve")])
+def test_known_curve_recovered_on_sample_scenes_from_two_frames(scene_name, name):
+    """Real photographs at global exposures 1 and 1.5: within 1% of full scale on the measured range."""
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = load_sample_scene(scene_name)
+    frames = sweep_frames(scene * exposure_scale(scene, PATTERN, sensor), sensor, name)
+    response = fit_response(frames, PATTERN, sensor, exposure_times=[1.0, 1.5])
+    lo, hi = response.stats["measured_range"]
+    assert hi - lo >= 0.75
+    assert response.stats["curve_uncertainty"] <= 0.01
+    assert max_error(response, CURVES[name]) < 0.01
