@@ -159,8 +159,15 @@ def test_an_image_file_reads_or_gives_a_one_line_error(tmp_path_factory, kind: s
 
 # ----- the recording reader ----------------------------------------------------------------
 
+class Recording(tuple):
+    """(file bytes, frames written); its repr is short, so a failing example's report stays readable."""
+
+    def __repr__(self) -> str:
+        return f"<recording of {len(self[0])} bytes, {len(self[1])} frames>"
+
+
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[bytes, list[np.ndarray]]:
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
     """A small closed recording (4 frames of 12x8 Mono12, dual-ISO-free mono camera) and its frames."""
     from replay.writer import RecordingWriter
     from svelive.camera import Camera
@@ -175,7 +182,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[bytes, list[np.
         for i, raw in enumerate(frames):
             writer.append(Frame(raw=raw, frame_id=i, host_time_ns=1000 * i, device_time_ns=None,
                                 pixel_format="Mono12", camera=camera))
-    return path.read_bytes(), frames
+    return Recording((path.read_bytes(), frames))
 
 
 def read_everything(path: Path, originals: list[np.ndarray]) -> int:
