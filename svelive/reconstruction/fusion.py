@@ -375,9 +375,15 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
 
     def update(core: slice, short: np.ndarray | None) -> None:
         _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
-                     frame.signal[core], frame.censored[core], frame.inverse, frame.own_slope,
-                     frame.own_floor, floor_weight, scale, detail, reset[core], weight[core], fused[core], own[core],
-                     evidence[core], separate, history[core], tested[core], fused_test[core])
+                     frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
+                     weight[core], fused[core], own[core])
+        if separate:
+            _running_rows(weight[core], history[core], tested[core], scale, fused_test[core])
+        if detail:
+            # a history scaled up by the brightness ratio carries up to ratio times the (shot)
+            # noise variance the model gives at its new level
+            _evidence_rows(core.start, weight[core], fused[core], own[core], frame.own_slope, frame.own_floor,
+                           max(scale, np.float32(1)), evidence[core])
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -482,20 +488,14 @@ def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, in
 
 @kernel
 def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
-                 own_slope, own_floor, floor_weight, scale, detail, reset, weight, fused, own, evidence,
-                 separate, old_test, test, fused_test):
+                 floor_weight, scale, reset, weight, fused, own):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
-    (R, W) arrays but for inverse, own_slope and own_floor, which are (P, W) by row
-    phase (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least
-    ``floor_weight``, 1 where reset), the fused image and own readings and, with
-    ``detail``, the evidence of detail: (own - fused)^2 over the fused own reading's variance;
-    with ``separate``, the running mean of the tested estimate ``test`` too (``fused_test``).
+    (R, W) arrays but for ``inverse``, (P, W) by row phase (:class:`FrameEstimate`). Writes
+    weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where reset), the fused image and
+    own readings. (Few arrays per kernel: with many, LLVM stops vectorising the loop.)
     """
     one = np.float32(1)
-    # a history scaled up by the brightness ratio carries up to ratio times the (shot) noise
-    # variance the model gives at its new level
-    noisier = _maximum(scale, one)
     period = inverse.shape[0]
     for r in range(image.shape[0]):
         p = (first_row + r) % period
@@ -505,15 +505,31 @@ def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal
             w = one if restart else _maximum(old_weight[r, c] / (old_weight[r, c] + one), floor_weight)
             weight[r, c] = w
             x = image[r, c]
-            f = _running_mean(old_mean[r, c], x, w, scale)
-            fused[r, c] = f
-            o = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x), w, scale)
-            own[r, c] = o
-            if separate:
-                fused_test[r, c] = _running_mean(old_test[r, c], test[r, c], w, scale)
-            if detail:
-                d = o - f
-                evidence[r, c] = d * d / ((own_slope[p, c] * _maximum(f, np.float32(0)) + own_floor[p, c]) * w * noisier)
+            fused[r, c] = _running_mean(old_mean[r, c], x, w, scale)
+            own[r, c] = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x),
+                                      w, scale)
+
+
+@kernel
+def _running_rows(weight, mean, new, scale, out):
+    """out = the running mean of ``mean`` (times ``scale``) and ``new`` with ``weight``, (R, W) arrays."""
+    for r in range(out.shape[0]):
+        for c in range(out.shape[1]):
+            out[r, c] = _running_mean(mean[r, c], new[r, c], weight[r, c], scale)
+
+
+@kernel
+def _evidence_rows(first_row, weight, fused, own, own_slope, own_floor, noisier, evidence):
+    """evidence = (own - fused)^2 over the fused own reading's variance (one reading's, from the
+    (P, W) row-phase tables, times the weight and ``noisier``), (R, W) rows from ``first_row`` on."""
+    zero = np.float32(0)
+    period = own_slope.shape[0]
+    for r in range(fused.shape[0]):
+        p = (first_row + r) % period
+        for c in range(fused.shape[1]):
+            f = fused[r, c]
+            d = own[r, c] - f
+            evidence[r, c] = d * d / ((own_slope[p, c] * _maximum(f, zero) + own_floor[p, c]) * weight[r, c] * noisier)
 
 
 @kernel
