@@ -96,10 +96,16 @@ EVIDENCE_ROWS = 32
 #: value there: a low quantile, so that texture (which only adds to a difference) moves it little, and not lower,
 #: where integer readings' differences of 0 would take over.
 EVIDENCE_QUANTILE, CHI2_1_AT_QUANTILE = 0.25, 0.10153104
+#: Largest window (taps) whose censored pixels are visited one by one (:func:`_censored_pixels`): measured, a 3x3
+#: window's visits beat the per-level window sums at any share of censored pixels, a 5x3 one's did not.
+DIRECT_TAPS = 9
 #: Variance of rounding to integer DN, the least signal-independent noise a reading has.
 QUANTISATION_VARIANCE = 1.0 / 12.0
 #: Fixed-point steps of the floor's evidence (each a partition of the pairs; 3 settle it to about 1 %).
 EVIDENCE_ITERATIONS = 3
+#: Readings within this many of the model's floor deviations of the raw range's bottom (raw 0) are left out of
+#: the evidence: their noise may have been clipped there.
+EVIDENCE_CLIP_SIGMA = 3.0
 #: Fewest pairs the noise evidence needs.
 EVIDENCE_PAIRS = 256
 
@@ -146,7 +152,9 @@ def floor_evidence(inp: SveInput, gain_inv: float, floor: float) -> float:
     rows = np.unique(np.linspace(0, h - 1, min(h, EVIDENCE_ROWS)).round().astype(np.intp))
     s, e, c = inp.signal[rows], inp.exposure[rows], inp.censored[rows]
     pairs = np.empty((3, rows.size * (w - tw)), np.float32)
-    count = _pairs(s, e, c, tw, np.float32(gain_inv), np.float32(floor), pairs)
+    # readings near the raw range's bottom may have been clipped there (a black level of 0): left out, like censored
+    lowest = -float(inp.sensor.black_level) + EVIDENCE_CLIP_SIGMA * np.sqrt(floor)
+    count = _pairs(s, e, c, tw, np.float32(gain_inv), np.float32(floor), np.float32(lowest), pairs)
     if count < EVIDENCE_PAIRS:
         return 1.0
     square, shot, k = pairs[:, :count]
@@ -155,13 +163,15 @@ def floor_evidence(inp: SveInput, gain_inv: float, floor: float) -> float:
     ratio = np.empty(count, np.float32)
     for _ in range(EVIDENCE_ITERATIONS):
         np.divide(square, shot + level * k, out=ratio)
-        level *= np.float32(np.partition(ratio, at)[at] / CHI2_1_AT_QUANTILE)
+        level = max(level * np.float32(np.partition(ratio, at)[at] / CHI2_1_AT_QUANTILE),
+                    np.float32(QUANTISATION_VARIANCE))
     return float(level) / floor
 
 
 @kernel
-def _pairs(s, e, c, tw, gain_inv, floor, pairs):
-    """For the pixels j = i + tw of each row of (R, W) arrays where both are uncensored and the floor part of the
+def _pairs(s, e, c, tw, gain_inv, floor, lowest, pairs):
+    """For the pixels j = i + tw of each row of (R, W) arrays where both are uncensored, above ``lowest`` and the
+    floor part of the
     model's v_i + v_j is larger than its shot part: (x_i - x_j)^2, the shot part S and k = 1 / e_i^2 + 1 / e_j^2,
     packed into the front of the rows of ``pairs`` (3, N); their count."""
     zero, one = np.float32(0.0), np.float32(1.0)
@@ -173,7 +183,7 @@ def _pairs(s, e, c, tw, gain_inv, floor, pairs):
             radiance = max((si + sj) / (ei + ej), zero)
             shot = radiance * gain_inv * (one / ei + one / ej)
             k = one / (ei * ei) + one / (ej * ej)
-            if floor * k > shot and not (c[r, i] or c[r, i + tw]):
+            if floor * k > shot and not (c[r, i] or c[r, i + tw]) and si > lowest and sj > lowest:
                 d = si / ei - sj / ej
                 pairs[0, n] = d * d
                 pairs[1, n] = shot
@@ -242,7 +252,7 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
 
     # Minimum-mean-square blend of the own reading and the neighbour estimate.
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_table(), f32(POSTERIOR_STEP))
+    _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial())
 
     if any_censored:
         lower |= _censored_pixels(inp, image, w, x, ky, kx)
@@ -337,7 +347,7 @@ def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
 
 
 @kernel
-def _blend(image, total, var_m, m, w, x, threshold, table, step):
+def _blend(image, total, var_m, m, w, x, threshold, coefficients):
     """The result: the non-negative estimate (:func:`_nonnegative`) from L ~ N(L^, 1 / total), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0).
 
@@ -345,68 +355,103 @@ def _blend(image, total, var_m, m, w, x, threshold, table, step):
     standard error under a flat scene, sqrt(2 kernel_square / sum q) (each
     residual's squared excess has variance 2 v_r^2 = 2 / q). ``threshold``:
     CONTRAST_SIGMA^2 * 2 kernel_square, so b^2 = max(B - sqrt(threshold / sum q), 0).
-    ``image`` and ``total`` come in holding the window sums of excess_q and q.
+    ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
-    for k in range(w.size):  # a loop without branches, which LLVM vectorises
+    high, half, second = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH), np.float32(0.5), np.float32(0.625)
+    dark = 0
+    for k in range(w.size):  # a loop without branches, which LLVM vectorises: every pixel as if well above 0
         weight = max(total[k], tiny)
         excess = max(image[k] / weight - np.sqrt(threshold / weight), zero) + var_m[k]
         t = one / excess + w[k]
-        image[k] = m[k] + (x[k] - m[k]) * (w[k] / t)
-        total[k] = t
-    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
-    for k in range(w.size):
-        estimate, t = image[k], total[k]
+        estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
         z2 = estimate * estimate * t
-        if estimate > zero and z2 >= high:
-            a = one / z2
-            image[k] = estimate * (one - a * (np.float32(0.5) + np.float32(0.625) * a))
-        else:
-            image[k] = _nonnegative(estimate, t, table, step)
+        a = one / max(z2, tiny)
+        image[k] = estimate * (one - a * (half + second * a))
+        var_m[k] = estimate  # kept for the pixels near 0, below
+        total[k] = t
+        dark += (estimate <= zero) | (z2 < high)
+    if dark > 0:
+        _nonnegative(image, var_m, total, coefficients)
 
 
-#: The range of z = estimate / sigma over which :func:`_posterior_table` tabulates, and its step.
+#: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step.
 POSTERIOR_LOW, POSTERIOR_HIGH, POSTERIOR_STEP = -10.0, 4.0, 1.0 / 64
+#: Degree of the polynomial :func:`posterior_polynomial` fits (5e-4 relative error at most, float32); the kernel
+#: (:func:`_nonnegative`) writes out its Horner scheme for this degree.
+POSTERIOR_DEGREE = 12
 EULER_GAMMA = 0.5772156649015329
 
 
 @lru_cache(maxsize=1)
 def posterior_table() -> np.ndarray:
-    """exp(E[log L]) / sigma for L ~ N(z, 1) restricted to L > 0, at z = POSTERIOR_LOW + i POSTERIOR_STEP up to
+    """g(z) = exp(E[log L]) for L ~ N(z, 1) restricted to L > 0, at z = POSTERIOR_LOW + i POSTERIOR_STEP up to
     POSTERIOR_HIGH; float32, read-only. Integrated over u = log L (the integrand is smooth there)."""
     z = np.arange(POSTERIOR_LOW, POSTERIOR_HIGH + POSTERIOR_STEP / 2, POSTERIOR_STEP)[:, None]
     u = np.linspace(-40.0, np.log(POSTERIOR_HIGH + 12.0), 6000)[None, :]
     level = np.exp(u)
-    density = np.exp(-0.5 * (level - z) ** 2 - 0.5 * z * z + u)  # phi(L - z) dL, scaled by phi(z) against underflow
+    density = np.exp(-0.5 * level * level + z * level + u)  # phi(L - z) dL over phi(z)
     table = np.exp((u * density).sum(axis=1) / density.sum(axis=1)).astype(np.float32)
     table.setflags(write=False)
     return table
 
 
+def posterior_base(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(b, u) of :func:`posterior_polynomial`: b(z) = (z + r) / 2 = c / ((r - z) / 2), r = sqrt(z^2 + 4c),
+    c = e^-gamma, and u = z / r in (-1, 1); float64."""
+    c = np.exp(-EULER_GAMMA)
+    root = np.sqrt(z * z + 4 * c)
+    return np.where(z > 0, (z + root) / 2, 2 * c / (root - np.minimum(z, 0))), z / root
+
+
+@lru_cache(maxsize=1)
+def posterior_polynomial() -> np.ndarray:
+    """Coefficients (lowest first, float32 (POSTERIOR_DEGREE + 1,), read-only) of P(u) with g(z) = b(z) P(u)
+    (:func:`posterior_base`) for z < POSTERIOR_HIGH, least squares on :func:`posterior_table` and, below it, the
+    expansion g(z) = e^-gamma / |z| (1 - 1.5 / z^2) (the normal restricted to L > 0 is nearly exponential there).
+
+    b has g's asymptotes (z and e^-gamma / |z|), so P is smooth and near 1 over the whole line, and the kernel
+    evaluates it without a table look-up (which does not vectorise).
+    """
+    z_table = np.arange(POSTERIOR_LOW, POSTERIOR_HIGH + POSTERIOR_STEP / 2, POSTERIOR_STEP)
+    z_tail = -np.geomspace(2000.0, -POSTERIOR_LOW, 200)[:-1]
+    tail = np.exp(-EULER_GAMMA) / -z_tail * (1 - 1.5 / z_tail**2)
+    z = np.concatenate([z_tail, z_table])
+    base, u = posterior_base(z)
+    coefficients = np.polynomial.polynomial.polyfit(u, np.concatenate([tail, posterior_table()]) / base,
+                                                    POSTERIOR_DEGREE).astype(np.float32)
+    coefficients.setflags(write=False)
+    return coefficients
+
+
 @kernel
-def _nonnegative(estimate, information, table, step):
-    """The estimate of L >= 0 from L ~ N(estimate, 1 / information) that minimises the expected squared error in
-    log L (in stops): exp(E[log L]) of that normal restricted to L > 0 (a flat prior on L >= 0).
+def _nonnegative(image, estimate, information, coefficients):
+    """image = the estimate of L >= 0 from L ~ N(estimate, 1 / information) that minimises the expected squared
+    error in log L (in stops): sigma g(z), g(z) = exp(E[log L]) of N(z, 1) restricted to L > 0 (a flat prior on
+    L >= 0), z = estimate / sigma, where z < POSTERIOR_HIGH (``image`` holds the result beyond); flat arrays.
 
     Radiance cannot be negative, and the errors that matter in HDR are relative ones: where a reading lies within a
     few noise deviations of 0 this gives a small positive value instead of 0 (clipping at 0 gives exact zeros, errors
     of many stops; the plain mean of the restricted normal overshoots dark regions). Well above the noise it is the
-    estimate times exp(-1/(2 z^2) - 3/(4 z^4)), z = estimate / sigma: below it by 3 % at z = 4, 0.5 % at z = 10.
-    ``table``: :func:`posterior_table`, ``step`` its step.
+    estimate times exp(-1/(2 z^2) - 3/(4 z^4)): below it by 3 % at z = 4, 0.5 % at z = 10. g = b(z) P(u)
+    (:func:`posterior_polynomial`, ``coefficients``); without branches, so that LLVM vectorises it.
     """
-    one = np.float32(1.0)
-    sigma = one / np.sqrt(max(information, np.float32(TINY)))
-    z = estimate / sigma
-    if z >= np.float32(POSTERIOR_HIGH):  # the restriction to L > 0 no longer matters: E[log L] of the normal
-        a = one / (z * z)
-        return estimate * (one - a * (np.float32(0.5) + np.float32(0.625) * a))
-    low = np.float32(POSTERIOR_LOW)
-    if z <= low:  # nearly exponential of rate |z| / sigma: exp(E[log L]) = e^-gamma sigma / |z| (1 - 1.5 / z^2)
-        return sigma * np.float32(np.exp(-EULER_GAMMA)) * (one - np.float32(1.5) / (z * z)) / -z
-    f = (z - low) / step
-    i = min(int(f), table.size - 2)
-    f -= np.float32(i)
-    return sigma * (table[i] * (one - f) + table[i + 1] * f)
+    zero, half, tiny = np.float32(0.0), np.float32(0.5), np.float32(TINY)
+    high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * np.exp(-EULER_GAMMA))
+    # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 12
+    p0, p1, p2, p3, p4, p5, p6 = (coefficients[0], coefficients[1], coefficients[2], coefficients[3], coefficients[4],
+                                  coefficients[5], coefficients[6])
+    p7, p8, p9, p10, p11, p12 = (coefficients[7], coefficients[8], coefficients[9], coefficients[10], coefficients[11],
+                                 coefficients[12])
+    for k in range(image.size):
+        root_t = np.sqrt(max(information[k], tiny))
+        z = estimate[k] * root_t
+        r = np.sqrt(z * z + c4)
+        base = (z + r) * half if z > zero else c4 * half / (r - z)
+        u = z / r
+        p = (((((((((((p12 * u + p11) * u + p10) * u + p9) * u + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u
+                   + p3) * u + p2) * u + p1) * u + p0
+        image[k] = base * p / root_t if z < high else image[k]
 
 
 def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarray, ky: np.ndarray,
@@ -421,18 +466,23 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
     neighbour the pixel is returned for the caller to give it the largest bound
     of its window.
 
-    Each level's two window sums cover only the box around its censored pixels,
-    one window radius wider (cut at the frame's edges), so that inside it they
-    equal whole-frame sums. A folded input (SveInput.folded: a colour frame's
-    luminance, whose exposures vary off the levels) tests each censored pixel's
-    neighbours against its own bound censor / e instead (:func:`_censored_each`).
+    Two ways to the same sums. A folded input (SveInput.folded: a colour frame's
+    luminance, whose exposures vary off the levels), and a tile whose window has
+    at most DIRECT_TAPS taps, visit each censored pixel's window once, testing
+    its neighbours against its own bound censor / e (:func:`_censored_each`):
+    the cost follows the number of censored pixels. Otherwise (longer windows,
+    and calibrated per-pixel exposure maps, tested against the bound of their
+    nominal level) each level with censored pixels gets two window sums over the
+    box around them, one window radius wider (cut at the frame's edges), so that
+    inside it they equal whole-frame sums: the cost follows the levels' boxes.
     """
     f32 = np.float32
-    levels, censor = inp.pattern.levels.tolist(), inp.sensor.censor_level
-    if inp.folded:  # exposures off the pattern's levels: every censored pixel with its own bound
+    censor = inp.sensor.censor_level
+    if inp.folded or (inp.pattern.pixel_map is None and ky.size * kx.size <= DIRECT_TAPS):
         bound_only = np.zeros(inp.shape, bool)
         _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor))
         return bound_only
+    levels = inp.pattern.levels.tolist()
     if inp.pattern.pixel_map is None:
         key, values = inp.exposure, np.array(levels, f32)
     else:
@@ -459,32 +509,43 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
 
 @kernel
 def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
-    """:func:`_censored_pixels` for exposures off the pattern's levels, (H, W) arrays.
+    """At each censored pixel p of (H, W) arrays: image = max(window mean (binomial weights, borders reflect-101
+    as the window sums elsewhere) of the readings consistent with p's own bound censor / e_p, x_p); ``bound_only``
+    where none is. Consistent (:func:`_consistent_row`): w > 0 and x + 2 / sqrt(w) >= bound, tested squared.
 
-    At each censored pixel p: image = max(window mean (binomial weights, borders
-    reflect-101 as the window sums elsewhere) of the readings consistent with
-    p's own bound censor / e_p, x_p); ``bound_only`` where none is.
+    One pass over the censored pixels alone: its cost follows their number, not the levels they are at.
     """
     h, width = censored.shape
     ry, rx = ky.size // 2, kx.size // 2
-    zero, one, tiny, sigma = np.float32(0.0), np.float32(1.0), np.float32(TINY), np.float32(CONSISTENT_SIGMA)
+    zero, tiny = np.float32(0.0), np.float32(TINY)
+    reach2 = np.float32(CONSISTENT_SIGMA * CONSISTENT_SIGMA)
+    rows = np.empty(ky.size, np.int64)
+    cols = np.empty(kx.size, np.int64)
     for r in range(h):
         if not censored[r].any():
             continue
+        for dy in range(ky.size):
+            rows[dy] = _reflect(r + dy - ry, h)
         for c in range(width):
             if not censored[r, c]:
                 continue
+            if rx <= c < width - rx:
+                for dx in range(kx.size):
+                    cols[dx] = c + dx - rx
+            else:
+                for dx in range(kx.size):
+                    cols[dx] = _reflect(c + dx - rx, width)
             bound = censor / exposure[r, c]
             count, total = zero, zero
-            for dy in range(-ry, ry + 1):
-                rr = _reflect(r + dy, h)
-                for dx in range(-rx, rx + 1):
-                    cc = _reflect(c + dx, width)
-                    wq = w[rr, cc]
-                    if wq > zero and np.sqrt(one / max(wq, tiny)) * sigma + x[rr, cc] >= bound:
-                        g = ky[dy + ry] * kx[dx + rx]
+            for dy in range(ky.size):
+                wr, xr, gy = w[rows[dy]], x[rows[dy]], ky[dy]
+                for dx in range(kx.size):
+                    wq, xq = wr[cols[dx]], xr[cols[dx]]
+                    gap = bound - xq
+                    if wq > zero and (gap <= zero or wq * gap * gap <= reach2):
+                        g = gy * kx[dx]
                         count += g
-                        total += g * x[rr, cc]
+                        total += g * xq
             image[r, c] = max(total / max(count, tiny), x[r, c])
             if count <= zero:
                 bound_only[r, c] = True
