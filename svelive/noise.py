@@ -48,6 +48,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -68,27 +69,29 @@ class EstimatorConfig:
 
     Attributes:
         max_samples: pixel pairs used at most (a strided subset of the frame beyond that).
-        texture_fraction: a place is flat when the guide's spread beyond its own noise is
-            below this fraction of the measured pixel's noise variance.
-        guide_noise_factor: allowance for the guide's own noise, in units of its expected variance.
-        clip_sigma: per-bin clipping of residuals, in standard deviations.
+        flat_quantile: a place is flat when its neighbour groups' spread is below this quantile
+            of the spread pure noise gives,
+        region_quantile: and the residuals of its 3x3-tile block below this quantile of theirs.
         bins: signal bins at most.
         min_bin: samples per bin at least.
         outlier_tolerance: a bin more than this fraction (plus 3 standard errors) above the line is dropped.
         iterations: passes of select-fit after the first, model-free one.
-        reach: farthest partner, pixels (Chebyshev distance).
+        reach: farthest neighbour, pixels (Chebyshev distance).
+        max_ratio: a neighbour's exposure is at least 1 / max_ratio times the pixel's.
+        clip_sigma: per-bin clipping of squared residuals, in standard deviations.
         start_fraction: the first pass keeps this flattest fraction of every signal bin.
     """
 
-    max_samples: int = 150_000
-    texture_fraction: float = 0.05
-    guide_noise_factor: float = 1.5
-    clip_sigma: float = 3.0
+    max_samples: int = 40_000
+    flat_quantile: float = 0.5
+    region_quantile: float = 0.75
     bins: int = 24
-    min_bin: int = 150
+    min_bin: int = 100
     outlier_tolerance: float = 0.1
-    iterations: int = 3
+    iterations: int = 2
     reach: int = 2
+    max_ratio: float = 0.13
+    clip_sigma: float = 3.0
     start_fraction: float = 0.25
 
 
@@ -185,177 +188,332 @@ class LineFit:
     bins_v: np.ndarray
     bins_n: np.ndarray
     inlier: np.ndarray
+    fixed_slope: bool = False
 
     def variance(self, t: np.ndarray | float) -> np.ndarray | float:
         return np.maximum(self.slope * np.asarray(t) + self.intercept, QUANTISATION_VARIANCE)
 
 
-# ----- pair samples from one frame ------------------------------------------------------------------
+# ----- samples from one frame ----------------------------------------------------------------------
 
 
-def _partners(tile_e: np.ndarray, tile_c: np.ndarray | None, reach: int) -> list[tuple[int, int, int, int]]:
-    """For every phase (a, b) of the joint tile, the offset (dy, dx) of its partner: the pixel of the same
-    colour and the highest exposure above its own among its 8 neighbours, else within ``reach``.
-    Phases without one (the highest exposure) are left out. Returns [(a, b, dy, dx), ...]."""
+def _groups(tile_e: np.ndarray, tile_c: np.ndarray | None, a: int, b: int,
+            reach: int, max_ratio: float) -> list[list[tuple[int, int]]]:
+    """The neighbour groups that predict phase (a, b) of the joint tile: lists of offsets (dy, dx).
+
+    Candidates have the pixel's colour and an exposure at least ``1 / max_ratio`` times its own: their
+    readings are so much more precise that the flatness test they make is sharp on the scale of the
+    pixel's noise. Symmetric pairs (k, -k) cancel any linear gradient, so pairs are preferred:
+    those within one pixel when there are two or more, else within ``reach``. Without two pairs,
+    single neighbours of the nearest ring holding two or more, highest exposures first (at most four).
+    Fewer than two groups: [] (the phase is not used).
+    """
     ph, pw = tile_e.shape
-    out = []
-    for a in range(ph):
-        for b in range(pw):
-            best = None
-            for dy in range(-reach, reach + 1):
-                for dx in range(-reach, reach + 1):
-                    qa, qb = (a + dy) % ph, (b + dx) % pw
-                    if (dy, dx) == (0, 0) or tile_e[qa, qb] <= tile_e[a, b] * 1.01:
-                        continue
-                    if tile_c is not None and tile_c[qa, qb] != tile_c[a, b]:
-                        continue
-                    # the 8-neighbourhood first, then the highest exposure (the most precise guide), then the nearest
-                    key = (max(abs(dy), abs(dx)), -tile_e[qa, qb], dy * dy + dx * dx, abs(dy), dy, dx)
-                    if best is None or key < best:
-                        best = key
-            if best is not None:
-                out.append((a, b, best[4], best[5]))
-    return out
+    e0 = tile_e[a, b]
+
+    def ok(dy: int, dx: int) -> bool:
+        qa, qb = (a + dy) % ph, (b + dx) % pw
+        return ((dy, dx) != (0, 0) and tile_e[qa, qb] * max_ratio >= e0 * 0.999
+                and (tile_c is None or tile_c[qa, qb] == tile_c[a, b]))
+
+    def exposure(dy: int, dx: int) -> float:
+        return float(tile_e[(a + dy) % ph, (b + dx) % pw])
+
+    for r in range(1, reach + 1):
+        ring = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if ok(dy, dx)]
+        pairs = [[k, (-k[0], -k[1])] for k in ring if k > (-k[0], -k[1]) and (-k[0], -k[1]) in ring]
+        if len(pairs) >= 2:
+            return pairs
+    for r in range(1, reach + 1):
+        ring = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if ok(dy, dx)]
+        if len(ring) >= 2:
+            ring.sort(key=lambda k: (-exposure(*k), k[0] * k[0] + k[1] * k[1], k))
+            return [[k] for k in ring[:4]]
+    return []
 
 
 @dataclass(frozen=True)
-class _PairData:
-    """Raw material of the pair samples, gathered once and re-selected at every iteration (float64 (N,))."""
+class _PhaseData:
+    """One tile phase's samples, gathered once and re-selected at every iteration.
+
+    Samples come in blocks of 3x3 neighbouring tiles; ``block`` says which.
+
+    Attributes:
+        xp: float64 (N,), the pixel's signal, DN.
+        m: float64 (G, N), each group's prediction of it (exposure-scaled mean of the group), DN.
+        rho: float64 (G, N), the pixel's exposure over the group's.
+        size: float64 (G, 1), readings per group.
+        block: int64 (N,), the block of every sample.
+        blocks: number of blocks.
+    """
 
     xp: np.ndarray
-    xq: np.ndarray
+    m: np.ndarray
     rho: np.ndarray
-    guide_var: np.ndarray  # sample variance of the four guide readings, in q's units (DN^2)
+    size: np.ndarray
+    block: np.ndarray
+    blocks: int
 
 
-def _gather_pairs(signal: np.ndarray, exposure: np.ndarray, tile_e: np.ndarray, tile_c: np.ndarray | None, high: float, config: EstimatorConfig) -> _PairData:
-    """Pairs (p, partner q) and q's four lattice neighbours over a strided subset of whole tiles.
+def _block_lines(first: int, stop: int, period: int, stride: int) -> np.ndarray:
+    """Rows (or columns) of 3-tile blocks: centres every ``stride`` tiles from the second tile line on,
+    each with the tile lines before and after it; int64 (3 B,), grouped by block."""
+    centres = np.arange(first + period, stop - period, period * stride)
+    return (centres[:, None] + period * np.array([-1, 0, 1])[None, :]).ravel()
 
-    ``high``: signal (DN) at or above which a reading may be clipped; pairs touching it are dropped.
+
+def _gather(source: np.ndarray, offset: float, pixel_map: np.ndarray | None, tile_e: np.ndarray,
+            tile_c: np.ndarray | None, high: float, config: EstimatorConfig) -> list[_PhaseData]:
+    """Every usable phase's pixels (in 3x3-tile blocks, a strided subset of the frame) with their groups'
+    predictions.
+
+    ``source - offset`` is the signal above black (raw (H, W) and the black level, or a linear
+    signal and 0); exposures are the tile's, or ``pixel_map``'s (H, W) where calibrated.
+    ``high``: signal (DN) at or above which a reading may be clipped; a sample touching one is dropped.
     """
+    signal = source
     ph, pw = tile_e.shape
     h, w = signal.shape
-    ny, nx = h // ph, w // pw
-    empty = _PairData(*(np.zeros(0) for _ in range(4)))
-    partners = _partners(tile_e, tile_c, config.reach)
-    if ny < 4 or nx < 4 or not partners:
-        return empty
-    x4 = signal[:ny * ph, :nx * pw].reshape(ny, ph, nx, pw)
-    e4 = exposure[:ny * ph, :nx * pw].reshape(ny, ph, nx, pw)
-    per_phase = config.max_samples / len(partners)
-    stride = max(1, int(math.ceil(math.sqrt(ny * nx / per_phase))))
-    parts = []
-    for a, b, dy, dx in partners:
-        ti, qa = divmod(a + dy, ph)
-        tj, qb = divmod(b + dx, pw)
-        # tile rows i with i + ti - 1 >= 0 and i + ti + 1 <= ny - 1 (the guide's neighbours exist)
-        i0, i1 = max(0, 1 - ti), min(ny, ny - 1 - ti)
-        j0, j1 = max(0, 1 - tj), min(nx, nx - 1 - tj)
-        if i1 <= i0 or j1 <= j0:
+    reach = config.reach
+    phases = [(a, b, g) for a in range(ph) for b in range(pw)
+              if (g := _groups(tile_e, tile_c, a, b, reach, config.max_ratio))]
+    if not phases:
+        return []
+    tiles = (h // ph) * (w // pw)
+    # each block holds 9 tiles; one block per stride x stride tiles
+    stride = max(3, int(math.ceil(math.sqrt(9 * tiles * len(phases) / config.max_samples))))
+    out = []
+    for a, b, groups in phases:
+        first_y = a + ph * (-(-(reach - a) // ph)) if a < reach else a
+        first_x = b + pw * (-(-(reach - b) // pw)) if b < reach else b
+        rows = _block_lines(first_y, h - reach, ph, stride)
+        cols = _block_lines(first_x, w - reach, pw, stride)
+        if rows.size == 0 or cols.size == 0:
             continue
-        rows, cols = slice(i0, i1, stride), slice(j0, j1, stride)
+        by, bx = rows.size // 3, cols.size // 3
+        block = (np.arange(by)[:, None, None, None] * bx + np.arange(bx)[None, None, :, None])
+        block = np.broadcast_to(block, (by, 3, bx, 3)).ravel()
 
-        def at(di: int, dj: int, pa: int, pb: int, arr: np.ndarray = x4) -> np.ndarray:
-            return arr[i0 + di:i1 + di:stride, pa, j0 + dj:j1 + dj:stride, pb]
+        def at(dy: int, dx: int) -> np.ndarray:
+            values = signal[np.ix_(rows + dy, cols + dx)].astype(np.float64).ravel()
+            values -= offset
+            return values
 
-        xp = x4[rows, a, cols, b]
-        xq = at(ti, tj, qa, qb)
-        guide = np.stack([at(ti - 1, tj, qa, qb), at(ti + 1, tj, qa, qb),
-                          at(ti, tj - 1, qa, qb), at(ti, tj + 1, qa, qb)])
-        rho = e4[rows, a, cols, b] / at(ti, tj, qa, qb, e4)
-        ok = (xq < high) & (guide.max(axis=0) < high) & (xp < high)
-        parts.append((xp[ok], xq[ok], rho[ok], guide.var(axis=0, ddof=1)[ok]))
-    if not parts:
-        return empty
-    return _PairData(*(np.concatenate([p[k] for p in parts]).astype(np.float64) for k in range(4)))
+        def exposure(dy: int, dx: int) -> np.ndarray | float:
+            if pixel_map is None:
+                return float(tile_e[(a + dy) % ph, (b + dx) % pw])
+            return pixel_map[np.ix_(rows + dy, cols + dx)].astype(np.float64).ravel()
 
-
-def _select_pairs(data: _PairData, model: LineFit | tuple[float, float] | None, floor: float, high: float,
-                  config: EstimatorConfig) -> NoiseSamples:
-    """Pair samples at flat, unclipped places under the current model ``(slope, intercept)``.
-
-    Without a model (the first pass), the clip margins take the guide's spread as the noise scale
-    and the flat places are the flattest ``start_fraction`` of each signal bin, by the guide's spread
-    in ``p``'s units: a ranking that needs no noise model and, not seeing ``p`` or ``q``, no bias.
-    """
-    rho = data.rho
-    s_p = rho * data.xq  # p's signal, told by its partner
-    spread_p = data.guide_var * rho * rho  # the guide's spread in p's units (noise and texture)
-    if model is None:
-        sd_p = np.sqrt(np.maximum(spread_p, QUANTISATION_VARIANCE))
-        keep = (s_p - floor >= 4.0 * sd_p) & (s_p + 4.0 * sd_p < high)
-        keep &= _flattest_per_bin(s_p, spread_p, keep, config)
-    else:
-        slope, intercept = (model.slope, model.intercept) if isinstance(model, LineFit) else model
-        var_p = np.maximum(slope * np.maximum(s_p, 0) + intercept, QUANTISATION_VARIANCE)
-        var_q = np.maximum(slope * np.maximum(data.xq, 0) + intercept, QUANTISATION_VARIANCE)
-        sd_p = np.sqrt(var_p)
-        keep = (s_p - floor >= 4.0 * sd_p) & (s_p + 4.0 * sd_p < high)
-        keep &= spread_p <= config.guide_noise_factor * var_q * rho * rho + config.texture_fraction * var_p
-    rho, s_p = rho[keep], s_p[keep]
-    r = data.xp[keep] - s_p
-    norm = 1.0 + rho * rho
-    return NoiseSamples(t=s_p * (1.0 + rho) / norm, u=r * r / norm)
-
-
-def _flattest_per_bin(s: np.ndarray, spread: np.ndarray, keep: np.ndarray, config: EstimatorConfig) -> np.ndarray:
-    """bool (N,): among ``keep``, the samples whose ``spread`` is within the lowest ``start_fraction``
-    of their bin of ``s`` (equal-count bins, as the fit's)."""
-    out = np.zeros(s.size, bool)
-    idx = np.flatnonzero(keep)
-    nb = min(config.bins, idx.size // config.min_bin)
-    if nb < 1:
-        return out
-    order = idx[np.argsort(s[idx], kind="stable")]
-    edges = np.linspace(0, order.size, nb + 1).astype(np.int64)
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        members = order[lo:hi]
-        limit = np.quantile(spread[members], config.start_fraction)
-        out[members[spread[members] <= limit]] = True
+        xp, ep = at(0, 0), exposure(0, 0)
+        ok = xp < high
+        m, rho = [], []
+        for group in groups:
+            values = [at(dy, dx) for dy, dx in group]
+            scales = [np.broadcast_to(ep / exposure(dy, dx), xp.shape) for dy, dx in group]
+            for v in values:
+                ok &= v < high
+            m.append(sum(v * c for v, c in zip(values, scales)) / len(group))
+            rho.append(sum(scales) / len(group))
+        size = np.array([[len(g)] for g in groups], np.float64)
+        out.append(_PhaseData(xp[ok], np.stack(m)[:, ok], np.stack(rho)[:, ok], size, block[ok], by * bx))
     return out
+
+
+def _chi2_quantile(q: float, dof: int) -> float:
+    """Quantile of chi-square with ``dof`` degrees of freedom (Wilson-Hilferty approximation)."""
+    z = _normal_quantile(q)
+    t = 2.0 / (9.0 * dof)
+    return dof * max(1.0 - t + z * math.sqrt(t), 0.0) ** 3
+
+
+def _normal_quantile(q: float) -> float:
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(q)
+
+
+def _select(data: _PhaseData, model: tuple[float, float], floor: float, high: float,
+            config: EstimatorConfig, ranked: bool) -> tuple[NoiseSamples, np.ndarray]:
+    """The phase's samples at flat, unclipped places under the model ``(slope, intercept)``.
+
+    Two flatness tests, neither of which sees the pixel's own reading (so selecting on them does
+    not bias its noise):
+
+    - its neighbour groups: their predictions, combined with inverse-variance weights into ``m``,
+      spread as ``T = sum w_k (m_k - m)^2``, chi-square with G - 1 degrees of freedom where the
+      scene is linear, larger on texture;
+    - its region: the other samples of its 3x3-tile block, whose standardised squared residuals
+      average ``Z``, chi-square with (n - 1) degrees of freedom over n - 1 where the block is
+      flat; texture comes in regions (foliage, fabric), so a pixel whose group test passed by
+      chance in a textured region is caught.
+
+    With ``ranked`` the caller keeps the flattest by ``T * Z`` (returned), else places below the
+    ``flat_quantile`` of both chi-squares are kept here.
+    """
+    slope, intercept = model
+    rho, size = data.rho, data.size
+    s_groups = np.maximum(data.m / rho, 0.0)  # each group's own signal
+    var_groups = rho * rho * np.maximum(slope * s_groups + intercept, QUANTISATION_VARIANCE) / size
+    weights = 1.0 / var_groups
+    total = weights.sum(axis=0)
+    m = (weights * data.m).sum(axis=0) / total
+    spread = (weights * (data.m - m) ** 2).sum(axis=0)
+    var_p = np.maximum(slope * np.maximum(m, 0.0) + intercept, QUANTISATION_VARIANCE)
+    omega = weights / total
+    coef = omega * omega * rho * rho / size  # var(m) = sum coef (slope s_k + R)
+    big_a = m + (coef * s_groups).sum(axis=0)
+    big_b = 1.0 + coef.sum(axis=0)
+    r = data.xp - m
+    u = r * r / big_b
+    z = u / np.maximum(slope * big_a / big_b + intercept, QUANTISATION_VARIANCE)
+    block_sum = np.bincount(data.block, z, data.blocks)
+    block_count = np.bincount(data.block, None, data.blocks)
+    others = block_count[data.block] - 1
+    region = (block_sum[data.block] - z) / np.maximum(others, 1)
+    sd_p = np.sqrt(var_p)
+    keep = (m - floor >= 4.0 * sd_p) & (m + 4.0 * sd_p < high) & (others >= 4)
+    # the neighbours too must be unlikely to clip (their readings near ``high`` were dropped, which
+    # would truncate their noise and bias the prediction)
+    sd_groups = np.sqrt(np.maximum(slope * s_groups + intercept, QUANTISATION_VARIANCE))
+    keep &= np.all(s_groups + 4.0 * sd_groups < high, axis=0)
+    dof = data.m.shape[0] - 1
+    if not ranked:
+        keep &= spread <= _chi2_quantile(config.flat_quantile, dof)
+        keep &= region * others <= _chi2_quantile_array(config.region_quantile, others)
+    samples = NoiseSamples(t=big_a[keep] / big_b[keep], u=u[keep])
+    return samples, (spread / dof * region)[keep]
+
+
+def _chi2_quantile_array(q: float, dof: np.ndarray) -> np.ndarray:
+    """:func:`_chi2_quantile` for an array of degrees of freedom (>= 1), float64."""
+    z = _normal_quantile(q)
+    d = np.maximum(dof, 1).astype(np.float64)
+    t = 2.0 / (9.0 * d)
+    return d * np.maximum(1.0 - t + z * np.sqrt(t), 0.0) ** 3
+
+
+def _select_all(data: list[_PhaseData], model: LineFit | tuple[float, float] | None, floor: float,
+                high: float, sensor: Sensor, config: EstimatorConfig) -> NoiseSamples:
+    """Samples of every phase. Without a model (the first pass) the weights take the sensor defaults
+    and the flattest ``start_fraction`` of every signal bin is kept, by T times Z: within a bin the
+    samples have about the same noise, so the ranking does not depend on the noise scale."""
+    ranked = model is None
+    if model is None:
+        model = (1.0 / sensor.effective_gain, sensor.floor_variance)
+    elif isinstance(model, LineFit):
+        model = (model.slope, model.intercept)
+    parts, spreads = [], []
+    for phase in data:
+        samples, spread = _select(phase, model, floor, high, config, ranked)
+        parts.append(samples)
+        spreads.append(spread)
+    joined = NoiseSamples.join(parts)
+    if not ranked or joined.size == 0:
+        return joined
+    spread = np.concatenate(spreads)
+    which, _ = _bin_index(joined.t, config.bins)
+    keep = np.zeros(joined.size, bool)
+    for k in np.unique(which):
+        members = np.flatnonzero(which == k)
+        keep[members[spread[members] <= np.quantile(spread[members], config.start_fraction)]] = True
+    return NoiseSamples(joined.t[keep], joined.u[keep])
 
 
 # ----- robust statistics and the line fit -------------------------------------------------------------
 
 
+def _normal_cdf(x: np.ndarray) -> np.ndarray:
+    """Standard normal CDF, float64, |error| < 2e-7 (Abramowitz and Stegun 7.1.26 for erf)."""
+    z = np.abs(x) / math.sqrt(2.0)
+    k = 1.0 / (1.0 + 0.3275911 * z)
+    poly = k * (0.254829592 + k * (-0.284496736 + k * (1.421413741 + k * (-1.453152027 + k * 1.061405429))))
+    erf = 1.0 - poly * np.exp(-z * z)
+    return 0.5 * (1.0 + np.sign(x) * erf)
+
+
+@lru_cache(maxsize=1)
+def _median_table() -> tuple[np.ndarray, np.ndarray]:
+    """(sigma^2 + 1/12, median of (g + q)^2) for g ~ N(0, sigma^2) and q ~ U(-1/2, 1/2), over a sigma grid:
+    the median of a rounded reading's squared residual, which for small sigma is not 0.455 of the variance.
+    Read-only arrays, computed once."""
+    sigmas = np.geomspace(0.05, 100.0, 100)[:, None]
+    u = ((np.arange(32) + 0.5) / 32 - 0.5)[None, :]  # quadrature over the rounding error
+    lo, hi = np.zeros_like(sigmas), 0.5 + 8 * sigmas
+    for _ in range(36):  # bisection on P(|g + q| <= x) = 1/2
+        x = 0.5 * (lo + hi)
+        p = np.mean(_normal_cdf((x - u) / sigmas) - _normal_cdf((-x - u) / sigmas), axis=1, keepdims=True)
+        lo, hi = np.where(p < 0.5, x, lo), np.where(p < 0.5, hi, x)
+    variance, medians = sigmas[:, 0] ** 2 + QUANTISATION_VARIANCE, (0.5 * (lo + hi))[:, 0] ** 2
+    variance.setflags(write=False)
+    medians.setflags(write=False)
+    return variance, medians
+
+
+def _variance_from_median(median: float, table: tuple[np.ndarray, np.ndarray]) -> float:
+    """The variance (DN^2, quantisation included) whose rounded-Gaussian residual has this median square."""
+    variance, medians = table
+    if median >= medians[-1]:
+        return median / 0.45493642  # Gaussian: the median of chi-square with one degree of freedom
+    return float(np.interp(median, medians, variance))
+
+
 def _clip_correction(k: float) -> float:
     """E[z^2 | |z| < k] for a standard normal z: the factor a k-sigma clipped mean square falls short by."""
     phi = math.exp(-0.5 * k * k) / math.sqrt(2 * math.pi)
-    inside = math.erf(k / math.sqrt(2))
-    return 1.0 - 2.0 * k * phi / inside
+    return 1.0 - 2.0 * k * phi / math.erf(k / math.sqrt(2))
 
 
-def _robust_variance(u: np.ndarray, clip_sigma: float) -> tuple[float, int]:
-    """Variance from squared residuals ``u`` (chi-square with one degree of freedom times sigma^2, plus
-    outliers): the clipped mean at ``clip_sigma`` iterated from the median, corrected for the clip."""
-    v = float(np.median(u)) / 0.4549  # median of chi-square_1
+def _robust_variance(u: np.ndarray, clip_sigma: float, table: tuple[np.ndarray, np.ndarray]) -> float:
+    """Variance (DN^2) from squared residuals ``u`` (noise, plus texture and edges in a minority).
+
+    The mean of ``u`` below ``clip_sigma^2`` times the variance, corrected for the clip and
+    iterated. A mean, not a quantile: residuals of integer readings
+    take discrete values where the signal barely varies, and a quantile of those jumps.
+    """
+    # start from above (the mean of all but the top percent) and clip down to the fixed point: from
+    # below, integer residuals of small noise (mostly 0 and +-1) would stop the clip short
+    v = max(_variance_from_median(float(np.median(u)), table), float(np.mean(u[u <= np.quantile(u, 0.99)])))
     corr = _clip_correction(clip_sigma)
-    kept = u
-    for _ in range(4):
-        if not v > 0:
-            v = float(np.mean(u)) if u.size else 0.0
-            break
+    for _ in range(6):
         kept = u[u <= clip_sigma * clip_sigma * v]
         if kept.size == 0:
             break
         v = float(np.mean(kept)) / corr
-    return v, int(kept.size)
+    return v
+
+
+def _bin_index(t: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """The bin of every sample, int64 (N,), bins equally spaced in log(t + 2 DN) over the samples' range,
+    and the bin edges in t, float64 (bins + 1,)."""
+    coord = np.log(np.maximum(t, 0.0) + 2.0)
+    lo, hi = float(coord.min()), float(coord.max())
+    which = np.minimum(((coord - lo) / max(hi - lo, 1e-9) * bins).astype(np.int64), bins - 1)
+    return which, np.exp(np.linspace(lo, hi, bins + 1)) - 2.0
 
 
 def bin_samples(samples: NoiseSamples, config: EstimatorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Equal-count signal bins: (mean t, robust variance, count), float64/float64/int64 (B,)."""
-    n = samples.size
-    nb = min(config.bins, n // config.min_bin)
-    if nb < 1:
+    """Signal bins, equally spaced in log(t + 2 DN): (mean t, robust variance, count), float64/float64/int64 (B,).
+
+    The variance of a bin is read from the median of its squared residuals (half the samples may
+    be texture or edges without moving it), through the rounded-Gaussian table; bins with fewer
+    than ``config.min_bin`` samples are left out.
+    """
+    if samples.size < config.min_bin:
         return np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
-    order = np.argsort(samples.t, kind="stable")
-    edges = np.linspace(0, n, nb + 1).astype(np.int64)
-    t, v, c = np.empty(nb), np.empty(nb), np.empty(nb, np.int64)
-    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        idx = order[lo:hi]
-        t[k] = float(np.mean(samples.t[idx]))
-        v[k], c[k] = _robust_variance(samples.u[idx], config.clip_sigma)
-    return t, v, c
+    table = _median_table()
+    which, _ = _bin_index(samples.t, config.bins)
+    order = np.argsort(which, kind="stable")
+    counts = np.bincount(which, minlength=config.bins)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    t, v, c = [], [], []
+    for k in range(config.bins):
+        if counts[k] < config.min_bin:
+            continue
+        idx = order[starts[k]:starts[k + 1]]
+        t.append(float(np.mean(samples.t[idx])))
+        v.append(_robust_variance(samples.u[idx], config.clip_sigma, table))
+        c.append(int(counts[k]))
+    return np.array(t), np.array(v), np.array(c, np.int64)
 
 
 def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None = None,
@@ -376,7 +534,7 @@ def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None
     model = np.maximum(v, QUANTISATION_VARIANCE)
     coef = np.array([slope or 0.0, intercept or 0.0])
     cov = np.zeros((2, 2))
-    for _ in range(10):
+    for _ in range(8):
         w = np.sqrt(n / 2.0) / model * inlier
         target = v - (0.0 if slope is None else slope * t) - (0.0 if intercept is None else intercept)
         cols = [c for c, f in zip((t, np.ones_like(t)), free) if f]
@@ -411,59 +569,87 @@ def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None
             cov[ki, kj] = sub[i, j]
     if not coef[0] > 0:
         return None
-    return LineFit(float(coef[0]), float(coef[1]), cov, t, v, n.astype(np.int64), inlier)
+    return LineFit(float(coef[0]), float(coef[1]), cov, t, v, n.astype(np.int64), inlier, not free[0])
+
+
+#: The prior every estimate is combined with: log-normal around the sensor defaults (sensor.py), one
+#: standard deviation a factor of 4 (full wells of 2 500-40 000 e- for 12 bits are within one sigma).
+PRIOR_LOG_SIGMA = math.log(4.0)
+
+
+def _with_prior(value: float, sigma: float, default: float) -> tuple[float, float]:
+    """Combine an estimate and its standard uncertainty with the log-normal prior around ``default``.
+
+    A well-measured value barely moves (at 15 % uncertainty the prior weighs about 1 %); a value the
+    data hardly constrains falls back towards the default instead of swinging wide.
+    """
+    s_est = sigma / max(value, 1e-12)
+    if not math.isfinite(s_est) or s_est <= 0:
+        return value, sigma
+    w_est, w_prior = 1.0 / s_est**2, 1.0 / PRIOR_LOG_SIGMA**2
+    log_v = (w_est * math.log(max(value, 1e-12)) + w_prior * math.log(default)) / (w_est + w_prior)
+    post = math.exp(log_v)
+    return post, post / math.sqrt(w_est + w_prior)
 
 
 def estimate_from_fit(fit: LineFit | None, sensor: Sensor, samples: int) -> NoiseEstimate:
-    """The NoiseEstimate of a fitted line, the sensor's given values kept, the defaults where the fit failed."""
+    """The NoiseEstimate of a fitted line: the sensor's given values kept, each estimated value combined
+    with the prior (:func:`_with_prior`), the defaults where the fit failed (source "default")."""
     given_gain, given_read = sensor.gain, sensor.read_noise
     if given_gain is not None and given_read is not None:
         return NoiseEstimate(given_gain, given_read, 0.0, 0.0, samples, "given")
+    default_gain = given_gain if given_gain is not None else DEFAULT_FULL_WELL_E / sensor.range_dn
+    default_read = DEFAULT_READ_NOISE_E / default_gain
     if fit is None:
-        gain = given_gain if given_gain is not None else DEFAULT_FULL_WELL_E / sensor.range_dn
-        read = given_read if given_read is not None else DEFAULT_READ_NOISE_E / gain
-        return NoiseEstimate(gain, read, None if given_gain is None else 0.0,
+        read = given_read if given_read is not None else default_read
+        return NoiseEstimate(default_gain, read, None if given_gain is None else 0.0,
                              None if given_read is None else 0.0, samples, "default")
-    gain = 1.0 / fit.slope
-    gain_sigma = math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain
-    read_var = fit.intercept - QUANTISATION_VARIANCE
-    read = math.sqrt(max(read_var, 0.0))
-    sd_r = math.sqrt(max(fit.cov[1, 1], 0.0))
-    read_sigma = sd_r / (2 * read) if read > math.sqrt(sd_r) else math.sqrt(sd_r)
-    return NoiseEstimate(gain if given_gain is None else given_gain, read if given_read is None else given_read,
-                         gain_sigma if given_gain is None else 0.0, read_sigma if given_read is None else 0.0,
-                         samples, "estimated")
+    if given_gain is not None:
+        gain, gain_sigma = given_gain, 0.0
+    elif fit.fixed_slope:  # the data told only the read noise; the gain stays the default
+        gain, gain_sigma = default_gain, None
+    else:
+        gain = 1.0 / fit.slope
+        gain, gain_sigma = _with_prior(gain, math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain, default_gain)
+    if given_read is not None:
+        read, read_sigma = given_read, 0.0
+    else:
+        read = math.sqrt(max(fit.intercept - QUANTISATION_VARIANCE, 0.0))
+        sd_r = math.sqrt(max(fit.cov[1, 1], 0.0))
+        # below about one standard error of the variance the read noise is known only to be small
+        read_sigma = sd_r / (2 * read) if read > math.sqrt(sd_r) else math.sqrt(sd_r)
+        read, read_sigma = _with_prior(max(read, 0.05), read_sigma, DEFAULT_READ_NOISE_E / default_gain)
+    return NoiseEstimate(gain, read, gain_sigma, read_sigma, samples, "estimated")
 
 
 # ----- the public single-frame estimate ---------------------------------------------------------------
 
 
-def _layout(camera: Camera, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The exposure of every pixel (H, W), and the joint tile's nominal exposures and channels (ph, pw)."""
+def _layout(camera: Camera) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The joint tile's nominal exposures and channels (ph, pw), and the calibrated per-pixel map or None."""
     pattern = camera.require_pattern()
     period = camera.period
     reps = lambda tile: np.tile(tile, (period[0] // tile.shape[0], period[1] // tile.shape[1]))  # noqa: E731
     tile_e = reps(np.asarray(pattern.tile, np.float64))
     tile_c = None if camera.cfa is None else reps(np.asarray(camera.cfa.tile))
-    return pattern.exposure_map(shape), tile_e, tile_c
+    return tile_e, tile_c, pattern.pixel_map
 
 
-def _signal_of(raw: np.ndarray, camera: Camera, signal: np.ndarray | None) -> tuple[np.ndarray, float]:
-    """Linear signal above black (float32 (H, W)) and the lowest value it can take (DN)."""
+def _signal_of(raw: np.ndarray, camera: Camera, signal: np.ndarray | None) -> tuple[np.ndarray, float, float]:
+    """(array, offset, floor): the linear signal above black is ``array - offset`` (no full-frame copy is
+    made); ``floor`` is the lowest signal a reading can take (DN)."""
     sensor = camera.sensor
     raw = camera.check(raw)
     if signal is not None:
-        signal = np.asarray(signal, np.float32)
+        signal = np.asarray(signal)
         if signal.shape != raw.shape:
             raise SveliveError(f"signal has shape {signal.shape} but the raw frame {raw.shape}")
         # a response's linearisation clips at black; raw frames clip at raw 0
-        return signal, 0.0 if camera.response is not None else -float(sensor.black_level)
+        return signal, 0.0, 0.0 if camera.response is not None else -float(sensor.black_level)
     if camera.response is not None:
         raise SveliveError("this camera has a response curve: give the linearised signal "
                            "(signal=svelive.reconstruction.input.prepare(raw, camera).signal)")
-    out = raw.astype(np.float32)
-    out -= np.float32(sensor.black_level)
-    return out, -float(sensor.black_level)
+    return raw, float(sensor.black_level), -float(sensor.black_level)
 
 
 def _high_level(sensor: Sensor) -> float:
@@ -474,21 +660,25 @@ def _high_level(sensor: Sensor) -> float:
 def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None = None,
                   config: EstimatorConfig = EstimatorConfig()) -> tuple[NoiseSamples, LineFit | None]:
     """The single-frame estimator's flat-place samples of one frame and the line fitted to them."""
-    sig, floor = _signal_of(raw, camera, signal)
-    exposure, tile_e, tile_c = _layout(camera, sig.shape)
+    source, offset, floor = _signal_of(raw, camera, signal)
+    tile_e, tile_c, pixel_map = _layout(camera)
     high = _high_level(camera.sensor)
-    data = _gather_pairs(sig, exposure, tile_e, tile_c, high, config)
-    if data.xp.size < 3 * config.min_bin:
+    data = _gather(source, offset, pixel_map, tile_e, tile_c, high, config)
+    if sum(d.xp.size for d in data) < 3 * config.min_bin:
         return NoiseSamples(np.zeros(0), np.zeros(0)), None
     fixed = _fixed(camera.sensor)
     model: LineFit | None = None
     fit, samples = None, NoiseSamples(np.zeros(0), np.zeros(0))
     for _ in range(1 + config.iterations):
-        samples = _select_pairs(data, model, floor, high, config)
+        samples = _select_all(data, model, floor, high, camera.sensor, config)
         fit = fit_line(*bin_samples(samples, config), **fixed, outlier_tolerance=config.outlier_tolerance)
         if fit is None:
             break
         model = fit
+    if fit is None and fixed["slope"] is None and fixed["intercept"] is None and samples.size:
+        # too narrow a signal range for the slope: the read noise alone, the gain held at the default
+        fit = fit_line(*bin_samples(samples, config), slope=1.0 / camera.sensor.effective_gain,
+                       outlier_tolerance=config.outlier_tolerance)
     return samples, fit
 
 
@@ -523,44 +713,101 @@ def estimate_noise(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None
 
 
 def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarray | None, floor: float,
-                     high: float, max_samples: int = 100_000) -> NoiseSamples:
+                     high: float, model: tuple[float, float], max_samples: int = 100_000) -> NoiseSamples:
     """Samples from two frames' signals (float (H, W), DN above black) at static pixels.
 
-    ``x1 - x2`` has variance ``2 (s / g + R)`` where the scene did not change; binned by the
-    pair's mean (for a Gaussian pair the mean and the difference are independent, so binning by it
-    does not bias). Pixels whose mean is within four floor-noise steps of either clip level are
-    dropped by that mean, not by either reading. A global brightness change (flicker) is removed first.
+    ``x1 - k x2`` has variance ``(1 + k^2) (s / g + R)`` where the scene did not change (``k``
+    removes a global brightness change, flicker), whatever the texture. Samples are binned by the
+    pair's mean (for a Gaussian pair independent of the difference), corrected for its own noise by
+    :func:`_tweedie` (binning by a noisy signal dilutes the slope where pixels crowd the dark end). Pixels whose mean lies within four noise standard deviations (under ``model``,
+    ``(slope, intercept)``) of either clip level are dropped by that mean, not by either reading:
+    dropping readings at 0 or at white truncates the noise (the cause of the low read noise the
+    older pair estimate gave with a black level of 0).
     """
-    a = np.asarray(previous, np.float64)
-    b = np.asarray(current, np.float64)
-    step = max(1, int(math.ceil(math.sqrt(a.size / max_samples))))
-    a, b = a[::step, ::step], b[::step, ::step]
-    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool)[::step, ::step]
-    mean = 0.5 * (a + b)
-    keep &= (mean - floor >= 8.0) & (mean < high - 8.0 * np.sqrt(np.maximum(mean, 1.0)) / 4 - 8.0)
+    # every step-th pixel in raster order, the step prime to 2, 3, 5 and 7 so that every tile phase
+    # (every exposure) is sampled: a step shared with the tile would keep one exposure only
+    need = max(1, int(math.ceil(np.size(previous) / max_samples)))
+    step = next(k for k in range(need, need + 210) if math.gcd(k, 210) == 1)
+    a = np.asarray(previous).ravel()[::step].astype(np.float64)
+    b = np.asarray(current).ravel()[::step].astype(np.float64)
+    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[::step]
+    slope, intercept = model
+    k = float(np.sum(a[keep]) / np.sum(b[keep])) if np.sum(b[keep]) > 0 else 1.0
+    mean = 0.5 * (a + k * b)
+    var_mean = 0.5 * np.maximum(slope * np.maximum(mean, 0.0) + intercept, QUANTISATION_VARIANCE)
+    # the signal estimate of every pixel, from the density of all of them (before any cut by the mean)
+    signal = _tweedie(mean, var_mean, keep)
+    sd = np.sqrt(2.0 * var_mean)
+    keep &= (mean - floor >= 4.0 * sd) & (mean + 4.0 * sd < high)
     if keep.sum() < 100:
         return NoiseSamples(np.zeros(0), np.zeros(0))
-    sa, sb = a[keep], b[keep]
-    k = float(sa.sum() / sb.sum()) if sb.sum() > 0 else 1.0
-    d = sa - k * sb
-    norm = 1.0 + k * k
-    return NoiseSamples(t=0.5 * (sa + k * sb), u=d * d / norm)
+    d = a[keep] - k * b[keep]
+    return NoiseSamples(t=signal[keep], u=d * d / (1.0 + k * k))
+
+
+def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span: float = 400.0) -> np.ndarray:
+    """E[true signal | observed], float64 (N,): Tweedie's formula ``x + var * d/dx log p(x)``.
+
+    Binning noise variances by a noisy signal dilutes the slope: where most pixels are dark, those
+    observed a little brighter are mostly dark ones with positive noise, so their bin's mean signal
+    overstates their true one (and the lowest bin understates). The correction needs only the
+    observed density ``p`` (of the pixels ``where``), here a histogram on 1 DN steps over the lowest ``span`` DN smoothed by
+    2 DN; above that the noise is small against the signal's spread and nothing is changed.
+    """
+    lo = float(observed[where].min()) if where.any() else 0.0
+    edges = np.arange(lo - 8.0, lo + span + 8.0, 1.0)
+    counts, _ = np.histogram(observed[where], edges)
+    kernel = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
+    density = np.convolve(counts.astype(np.float64), kernel / kernel.sum(), mode="same") + 1e-3
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    score = np.gradient(np.log(density), centres)
+    inside = observed < lo + span
+    out = observed.astype(np.float64, copy=True)
+    out[inside] += variance[inside] * np.interp(observed[inside], centres, score)
+    return out
+
+
+def pair_fit(previous: np.ndarray, current: np.ndarray, sensor: Sensor, *, floor: float | None = None,
+             static: np.ndarray | None = None, config: EstimatorConfig = EstimatorConfig(),
+             max_samples: int = 4_000_000) -> tuple[NoiseSamples, LineFit | None]:
+    """The noise line from two frames of a static scene (signals above black, float (H, W)).
+
+    Iterated: the clip margins of :func:`temporal_samples` start from twice the default sensor's
+    noise (generous) and then follow the fit. ``floor``: the lowest signal a reading can take
+    (``-black`` for raw frames).
+    """
+    floor = -float(sensor.black_level) if floor is None else floor
+    high = _high_level(sensor)
+    model = (4.0 / (DEFAULT_FULL_WELL_E / sensor.range_dn),
+             4.0 * ((DEFAULT_READ_NOISE_E * sensor.range_dn / DEFAULT_FULL_WELL_E) ** 2 + QUANTISATION_VARIANCE))
+    fixed = _fixed(sensor)
+    samples, fit = NoiseSamples(np.zeros(0), np.zeros(0)), None
+    for _ in range(3):
+        samples = temporal_samples(previous, current, static, floor, high, model, max_samples)
+        fit = fit_line(*bin_samples(samples, config), **fixed, outlier_tolerance=config.outlier_tolerance)
+        if fit is None:
+            break
+        model = (fit.slope, fit.intercept)
+    return samples, fit
 
 
 class NoiseTracker:
     """The noise model of one stream, refined frame by frame.
 
-    Holds the flat-place pair samples of the last ``history`` frames and the temporal-difference
-    samples of static pixels between consecutive frames, and refits the line over all of them.
-    A given gain or read noise in the camera is kept. Not thread-safe: one per stream.
+    Static pixels between consecutive frames give texture-free samples (their difference removes
+    the scene); once the recent frames hold enough of them (``temporal_enough``) the line is fitted
+    to those alone, else to them pooled with the single-frame samples of the recent frames (which
+    texture can bias). A given gain or read noise in the camera is kept. Not thread-safe: one per stream.
     """
 
     def __init__(self, history: int = 16, config: EstimatorConfig = EstimatorConfig(),
-                 temporal_samples_per_frame: int = 50_000) -> None:
+                 temporal_samples_per_frame: int = 50_000, temporal_enough: int = 20_000) -> None:
         self.config = config
         self.temporal_per_frame = temporal_samples_per_frame
-        self._parts: deque[NoiseSamples] = deque(maxlen=2 * history)
-        self._previous: tuple[np.ndarray, tuple] | None = None
+        self.temporal_enough = temporal_enough
+        self._frame_parts: deque[NoiseSamples] = deque(maxlen=history)
+        self._temporal_parts: deque[NoiseSamples] = deque(maxlen=history)
+        self._previous: np.ndarray | None = None
         self._estimate: NoiseEstimate | None = None
         self._camera_key: tuple | None = None
 
@@ -570,7 +817,9 @@ class NoiseTracker:
         return self._estimate
 
     def reset(self) -> None:
-        self._parts.clear()
+        """Forget every frame (the camera changed)."""
+        self._frame_parts.clear()
+        self._temporal_parts.clear()
         self._previous = None
         self._estimate = None
         self._camera_key = None
@@ -583,7 +832,7 @@ class NoiseTracker:
             raw: uint (H, W) raw frame as delivered.
             camera: its camera; a change of pattern, colour filter, levels or shape starts over.
             static_mask: bool (H, W), pixels known not to have changed since the previous frame (e.g.
-                the motion test's static pixels); None uses no temporal samples (a moving camera
+                the motion test's static pixels); None gives no temporal samples (a moving camera
                 would bias them), only the single-frame ones.
             signal: the linear signal above black when the camera has a response (see :func:`estimate_noise`).
         """
@@ -596,20 +845,25 @@ class NoiseTracker:
         if sensor.gain is not None and sensor.read_noise is not None:
             self._estimate = NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
             return self._estimate
-        sig, floor = _signal_of(raw, camera, signal)
-        samples, _ = frame_samples(raw, camera, signal=sig, config=self.config)
-        if samples.size:
-            self._parts.append(samples)
+        source, offset, floor = _signal_of(raw, camera, signal)
+        sig = np.asarray(source, np.float32) - np.float32(offset)
         if static_mask is not None and self._previous is not None:
             static = np.asarray(static_mask, bool)
             if static.shape != sig.shape:
                 raise SveliveError(f"static mask has shape {static.shape} but the frame {sig.shape}")
-            part = temporal_samples(self._previous, sig, static, floor, _high_level(sensor),
+            current = self._estimate if self._estimate is not None else estimate_from_fit(None, sensor, 0)
+            model = (1.0 / current.gain, current.read_noise**2 + QUANTISATION_VARIANCE)
+            part = temporal_samples(self._previous, sig, static, floor, _high_level(sensor), model,
                                     self.temporal_per_frame)
-            if part.size:
-                self._parts.append(part)
-        self._previous = sig.copy() if signal is not None else sig
-        pooled = NoiseSamples.join(list(self._parts))
+            self._temporal_parts.append(part)
+        temporal = NoiseSamples.join(list(self._temporal_parts))
+        if temporal.size >= self.temporal_enough:
+            pooled = temporal
+        else:
+            samples, _ = frame_samples(raw, camera, signal=sig, config=self.config)
+            self._frame_parts.append(samples)
+            pooled = NoiseSamples.join([*self._frame_parts, temporal])
+        self._previous = np.array(sig, copy=True)
         config = self.config
         fit = fit_line(*bin_samples(pooled, config), **_fixed(sensor), outlier_tolerance=config.outlier_tolerance)
         self._estimate = estimate_from_fit(fit, sensor, pooled.size)

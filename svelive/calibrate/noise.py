@@ -1,4 +1,4 @@
-"""The sensor's noise model from data: gain (electrons per DN) and read noise (DN).
+"""The sensor's noise model from calibration data: gain (electrons per DN) and read noise (DN).
 
 The model is Poisson-Gaussian: a raw reading with expected signal ``s`` DN above
 black has variance ``a s + b`` DN^2, with ``a = 1 / gain`` and
@@ -8,21 +8,25 @@ squares, from either
 
 - a pair of frames of the same static scene or flat field (the pixel-wise
   difference removes the scene, whatever its texture, vignetting or mask), or
-- one frame of a static scene: the residual of every pixel against the mean of
-  its four nearest neighbours of the same exposure (same tile position) holds
-  noise plus whatever texture the scene has there; a median absolute deviation
-  per signal bin ignores the textured minority.
+- one frame: the SVE estimator of :mod:`svelive.noise` (each pixel against its
+  more exposed neighbours at places its neighbours show flat).
+
+:func:`noise_curve_frame` (the older single-frame curve, second differences of
+one exposure's sub-image) stays for the response calibration's local-flatness
+test; it reads 10-40x too high on textured scenes, so the noise estimate no
+longer uses it.
 """
 
 from __future__ import annotations
 
 import math
 from statistics import NormalDist
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from svelive.errors import SveliveError
+from svelive.noise import EstimatorConfig, LineFit, frame_samples, pair_fit
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
@@ -64,6 +68,8 @@ class NoiseModel:
         samples: number of pixel samples used.
         method: "pair" or "single-frame".
         residual_rms: rms relative deviation of the bins from the fitted line.
+        gain_sigma, read_noise_sigma: standard uncertainties from the fit's covariance (None when
+            not known); a read noise of 0 with a large sigma means the data had no dark enough pixels.
     """
 
     gain: float
@@ -74,11 +80,14 @@ class NoiseModel:
     samples: int
     method: str
     residual_rms: float
+    gain_sigma: float | None = None
+    read_noise_sigma: float | None = None
 
     def to_dict(self) -> dict:
         return {"gain": self.gain, "read_noise": self.read_noise, "slope": self.slope,
                 "intercept": self.intercept, "signal_range": list(self.signal_range),
-                "samples": self.samples, "method": self.method, "residual_rms": self.residual_rms}
+                "samples": self.samples, "method": self.method, "residual_rms": self.residual_rms,
+                "gain_sigma": self.gain_sigma, "read_noise_sigma": self.read_noise_sigma}
 
     def sensor(self, base: Sensor) -> Sensor:
         """``base`` with this gain and read noise."""
@@ -118,24 +127,54 @@ def noise_curve_pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, *, bins
 
     Args:
         raw1, raw2: (H, W) raw frames, DN including black, same shape.
-        sensor: black and white level (gain and read noise are not used).
-    A global brightness change between the frames (flicker) is removed first.
+        sensor: black and white level (a given gain or read noise is held fixed).
+    A global brightness change between the frames (flicker) is removed first. Pixels are kept or
+    dropped by the pair's mean signal, four noise standard deviations clear of raw 0 and of white
+    (:func:`svelive.noise.pair_fit`), never by either reading: dropping the readings that hit 0
+    truncated the noise of dark pixels and gave 0.0-0.98 DN read noise for a truth of 1.23 DN with a
+    black level of 0. Bins are spaced in log signal (equal-count bins put nearly all of them at the
+    dark end of a dim scene) and their variance is a clipped mean robust to a little motion.
     """
+    return _curve(_pair(raw1, raw2, sensor, bins, min_count)[1])
+
+
+def _pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, bins: int = 32, min_count: int = 200):
     a = _check_frame(raw1, "first frame")
     b = _check_frame(raw2, "second frame")
     if a.shape != b.shape:
         raise SveliveError(f"the two frames differ in size: {a.shape[1]}x{a.shape[0]} and {b.shape[1]}x{b.shape[0]}")
     black, white = float(sensor.black_level), float(sensor.white_level)
-    valid = (a < white) & (b < white) & (a > 0) & (b > 0)
-    sa, sb = a[valid] - black, b[valid] - black
-    if sa.size < min_count or not sb.sum() > 0:
-        raise SveliveError(f"only {sa.size} pixels are neither saturated nor black in both frames; "
+    usable = int(np.count_nonzero((a < white) & (b < white) & (a > 0) & (b > 0)))
+    if usable < min_count:
+        raise SveliveError(f"only {usable} pixels are neither saturated nor black in both frames; "
                            "use frames exposed well below saturation")
-    k = float(sa.sum() / sb.sum())
-    diff = sa - k * sb
-    scale = 1.0 + k * k
-    curve = _bin_statistics(0.5 * (sa + k * sb), diff, lambda d: np.var(d) / scale, bins, min_count)
-    return curve
+    config = EstimatorConfig(bins=bins, min_bin=min_count)
+    samples, fit = pair_fit(a - black, b - black, sensor, config=config)
+    if fit is None:
+        raise SveliveError("the pair gives too few signal levels clear of black and white for a noise fit; "
+                           "use frames with a range of brightness well below saturation")
+    return samples, fit
+
+
+def _curve(fit: LineFit) -> NoiseCurve:
+    keep = fit.inlier
+    return NoiseCurve(fit.bins_t[keep], fit.bins_v[keep], fit.bins_n[keep])
+
+
+def _model(fit: LineFit, samples: int, method: str) -> NoiseModel:
+    """The NoiseModel of a fitted line."""
+    keep = fit.inlier
+    v, model_v = fit.bins_v[keep], fit.variance(fit.bins_t[keep])
+    resid = float(np.sqrt(np.mean(((v - model_v) / model_v) ** 2))) if keep.any() else float("nan")
+    gain = 1.0 / fit.slope
+    read = math.sqrt(max(fit.intercept - QUANTISATION_VARIANCE, 0.0))
+    sd_r = math.sqrt(max(fit.cov[1, 1], 0.0))
+    read_sigma = sd_r / (2 * read) if read > math.sqrt(sd_r) else math.sqrt(sd_r)
+    return NoiseModel(gain=1.0 / fit.slope, read_noise=math.sqrt(max(fit.intercept - QUANTISATION_VARIANCE, 0.0)),
+                      slope=fit.slope, intercept=fit.intercept,
+                      signal_range=(float(fit.bins_t[keep].min()), float(fit.bins_t[keep].max())),
+                      samples=samples, method=method, residual_rms=resid,
+                      gain_sigma=math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain, read_noise_sigma=read_sigma)
 
 
 def _chi2_quantile(q: float, dof: int) -> float:
@@ -240,11 +279,22 @@ def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | 
         frames: one or two (H, W) raw frames, DN including black.
         sensor: black and white level.
         pattern: the exposure pattern, required for a single frame.
+    A single frame uses the SVE estimator of :mod:`svelive.noise` (residuals of each pixel against
+    its more exposed neighbours at flat places); a pair, the difference of the frames.
     """
     if len(frames) == 2:
-        return fit_noise_model(noise_curve_pair(frames[0], frames[1], sensor), "pair")
+        samples, fit = _pair(frames[0], frames[1], sensor)
+        return _model(fit, samples.size, "pair")
     if len(frames) == 1:
         if pattern is None:
             raise SveliveError("noise from a single frame needs the exposure pattern (--pattern)")
-        return fit_noise_model(noise_curve_frame(frames[0], pattern, sensor), "single-frame", robust=True)
+        from svelive.camera import Camera
+
+        raw = np.asarray(frames[0])
+        camera = Camera(Pattern.parse(pattern), None, replace(sensor, gain=None, read_noise=None))
+        samples, fit = frame_samples(raw, camera)
+        if fit is None:
+            raise SveliveError("this frame has too few flat, unclipped places for a noise estimate; use a pair "
+                               "of frames of a still scene, or a frame with smooth areas at several brightnesses")
+        return _model(fit, samples.size, "single-frame")
     raise SveliveError(f"noise estimation takes one frame of a static scene or a pair of frames, got {len(frames)}")

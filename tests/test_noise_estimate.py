@@ -1,0 +1,188 @@
+"""The noise model from the data (svelive/noise.py): gain and read noise estimated from SVE frames.
+
+Simulated frames with known gain and read noise, on synthetic smooth scenes and on the shipped
+crops (svelive/data), mono and colour; the stream tracker; the wiring into svelive.reconstruct.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import svelive
+from svelive import Camera, Pattern, Sensor, simulate
+from svelive.calibrate.noise import fit_noise_model, noise_curve_frame
+from svelive.camera import COLOUR_LAYOUTS
+from svelive.noise import NoiseEstimate, NoiseTracker, estimate_noise
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.single import run_method
+from svelive.simulate import exposure_scale, load_sample_scene
+
+BITS, BLACK = 12, 64
+#: (full well e-, read noise DN): the bench sensor's and the corners of a wide range
+MODELS = [(10_000, 2.0), (3_000, 6.0), (40_000, 0.7)]
+
+
+def true_sensor(full_well: float, read_noise: float) -> Sensor:
+    return Sensor(BITS, BLACK, None, full_well / (2**BITS - 1 - BLACK), read_noise)
+
+
+def unknown(pattern: str, cfa: str | None = None) -> Camera:
+    """The camera the estimator is given: levels only, no gain, no read noise."""
+    return Camera.build(pattern, cfa, Sensor(BITS, BLACK))
+
+
+def smooth_scene(n: int = 384, rgb: bool = False) -> np.ndarray:
+    """A 9-stop horizontal ramp with a vertical sine: smooth at the pixel scale, float32 (n, n) or (n, n, 3)."""
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    lum = (2.0 ** (-9 * xx) * (1 + 0.3 * np.sin(2 * np.pi * yy))).astype(np.float32)
+    if not rgb:
+        return lum
+    return np.stack([lum * 0.8, lum, lum * (0.6 + 0.3 * yy)], axis=-1).astype(np.float32)
+
+
+def frame(scene: np.ndarray, pattern: str, truth: Sensor, stops: float, cfa: str | None = None, seed: int = 1):
+    p = Pattern.parse(pattern)
+    return simulate(scene * np.float32(exposure_scale(scene, p, truth, stops_below_fill=stops)), p, truth,
+                    cfa=cfa, seed=seed)
+
+
+@pytest.mark.parametrize("full_well,read", MODELS)
+@pytest.mark.parametrize("stops", [0, 5])
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
+def test_smooth_scene_gain_and_read_noise_within_15_percent(pattern, stops, full_well, read):
+    truth = true_sensor(full_well, read)
+    est = estimate_noise(frame(smooth_scene(), pattern, truth, stops).raw, unknown(pattern))
+    assert est.source == "estimated"
+    assert est.gain == pytest.approx(truth.gain, rel=0.15)
+    assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
+    # the stated uncertainty is a real one: positive, and not hiding a miss several times its size
+    assert 0 < est.gain_sigma < 0.15 * est.gain
+    assert abs(est.gain - truth.gain) < 4 * est.gain_sigma + 0.05 * truth.gain
+
+
+@pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer", "assorted-4x4"])
+@pytest.mark.parametrize("full_well,read", [(10_000, 2.0), (3_000, 6.0)])
+def test_colour_frames_estimated_from_same_colour_neighbours(layout, full_well, read):
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    truth = true_sensor(full_well, read)
+    raw = frame(smooth_scene(rgb=True), pattern, truth, 0, cfa=cfa).raw
+    est = estimate_noise(raw, unknown(pattern, cfa))
+    assert est.gain == pytest.approx(truth.gain, rel=0.15)
+    assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
+
+
+@pytest.mark.parametrize("name,full_well,read", [("desk", 10_000, 2.0), ("desk", 3_000, 6.0),
+                                                  ("mttamwest", 3_000, 6.0)])
+def test_texture_does_not_inflate_the_estimate(name, full_well, read):
+    """Bright frames of the shipped crops (real texture at the pixel scale): the older single-frame
+    curve (second differences of one exposure) reads the gain 30-55 % low here, i.e. the noise
+    variance 1.4-2.2x high; the SVE estimate is within 20 % and the read noise within 15 %.
+    (Not every crop and model gets there: docs/noise.md lists the misses.)"""
+    truth = true_sensor(full_well, read)
+    raw = frame(load_sample_scene(name), "1,4/16,64", truth, 0).raw
+    est = estimate_noise(raw, unknown("1,4/16,64"))
+    assert est.source == "estimated"
+    assert est.gain == pytest.approx(truth.gain, rel=0.2)
+    assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
+    old = fit_noise_model(noise_curve_frame(raw, "1,4/16,64", Sensor(BITS, BLACK)), "single-frame", robust=True)
+    assert old.gain < 0.75 * truth.gain  # the texture the old estimate took for noise
+    assert abs(np.log(est.gain / truth.gain)) < abs(np.log(old.gain / truth.gain)) / 2
+
+
+@pytest.mark.parametrize("full_well,read", MODELS)
+def test_desk_crop_truth_within_the_stated_uncertainty(full_well, read):
+    """On the desk crop, bright and dim, the truth lies within three stated standard uncertainties
+    (plus 10 % for what texture adds) of the estimate, or the estimate says it fell back to the defaults."""
+    truth = true_sensor(full_well, read)
+    for stops in (0, 5):
+        est = estimate_noise(frame(load_sample_scene("desk"), "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
+        if est.source == "default":
+            continue
+        assert abs(est.gain - truth.gain) <= 3 * est.gain_sigma + 0.1 * truth.gain, stops
+        assert abs(est.read_noise - truth.read_noise) <= 3 * est.read_noise_sigma + 0.1 * truth.read_noise, stops
+
+
+@pytest.mark.parametrize("full_well,read", MODELS)
+def test_read_noise_on_shipped_crops_bright_and_dim(full_well, read):
+    truth = true_sensor(full_well, read)
+    scene = load_sample_scene("desk")
+    for stops in (0, 5):
+        est = estimate_noise(frame(scene, "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
+        assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15), stops
+
+
+def test_given_values_are_kept_and_held_fixed():
+    truth = true_sensor(10_000, 2.0)
+    raw = frame(smooth_scene(), "1,4/16,64", truth, 0).raw
+    given = estimate_noise(raw, Camera.build("1,4/16,64", None, truth))
+    assert (given.gain, given.read_noise, given.source) == (truth.gain, truth.read_noise, "given")
+    half = Camera.build("1,4/16,64", None, Sensor(BITS, BLACK, None, truth.gain, None))
+    est = estimate_noise(raw, half)
+    assert est.gain == truth.gain and est.gain_sigma == 0.0
+    assert est.read_noise == pytest.approx(truth.read_noise, rel=0.1)
+    assert est.apply(half.sensor).gain == truth.gain
+
+
+def test_blank_or_saturated_frame_falls_back_to_the_defaults():
+    for value in (BLACK, 2**BITS - 1):
+        est = estimate_noise(np.full((64, 64), value, np.uint16), unknown("1,4/16,64"))
+        sensor = Sensor(BITS, BLACK)
+        assert est.source == "default"
+        assert est.gain == pytest.approx(sensor.effective_gain)
+        assert est.read_noise == pytest.approx(sensor.effective_read_noise)
+        assert est.gain_sigma is None
+
+
+def test_report_forms_are_json_safe():
+    est = NoiseEstimate(2.5, 1.2, float("inf"), None, 10, "estimated")
+    data = json.loads(json.dumps(est.to_dict()))
+    assert data == {"gain": 2.5, "read_noise": 1.2, "gain_sigma": None, "read_noise_sigma": None,
+                    "samples": 10, "source": "estimated"}
+    attrs = NoiseEstimate(2.5, 1.2, 0.1, 0.05, 10, "estimated").attributes()
+    assert attrs == {"noiseGain": 2.5, "noiseReadNoise": 1.2, "noiseSource": "estimated",
+                     "noiseGainSigma": 0.1, "noiseReadNoiseSigma": 0.05}
+    assert "e-/DN" in est.describe()
+
+
+def test_reconstruct_without_noise_model_uses_the_estimate():
+    truth = true_sensor(3_000, 6.0)
+    raw = frame(load_sample_scene("desk"), "1,4/16,64", truth, 5).raw
+    est = estimate_noise(raw, unknown("1,4/16,64"))
+    auto = svelive.reconstruct(raw, "1,4/16,64", black_level=BLACK, white_level=2**BITS - 1)
+    explicit = svelive.reconstruct(raw, "1,4/16,64", black_level=BLACK, white_level=2**BITS - 1,
+                                   gain=est.gain, read_noise=est.read_noise)
+    default = svelive.reconstruct(raw, "1,4/16,64", black_level=BLACK, white_level=2**BITS - 1, noise="default")
+    assert np.array_equal(auto, explicit)
+    assert not np.array_equal(auto, default)
+    with pytest.raises(svelive.SveliveError, match="noise must be"):
+        svelive.reconstruct(raw, "1,4/16,64", noise="guess")
+
+
+def test_given_noise_model_reconstructs_exactly_as_before():
+    truth = true_sensor(10_000, 2.0)
+    raw = frame(load_sample_scene("cannon"), "1,4/16,64", truth, 0).raw
+    camera = Camera.build("1,4/16,64", None, truth)
+    direct = run_method(prepare(raw, camera)).image
+    assert np.array_equal(svelive.reconstruct(raw, camera), direct)
+
+
+def test_tracker_removes_texture_with_static_pixels():
+    """Temporal differences of a static scene cancel its texture: after a few frames the tracker is
+    within 10 % on the textured crop where one frame alone reads the gain low."""
+    truth = true_sensor(10_000, 2.0)
+    scene = load_sample_scene("mttamwest")
+    camera = unknown("1,4/16,64")
+    tracker = NoiseTracker()
+    assert tracker.estimate is None
+    for seed in range(6):
+        raw = frame(scene, "1,4/16,64", truth, 0, seed=seed).raw
+        est = tracker.update(raw, camera, np.ones(raw.shape, bool))
+    assert est.source == "estimated"
+    assert est.gain == pytest.approx(truth.gain, rel=0.1)
+    assert est.read_noise == pytest.approx(truth.read_noise, rel=0.1)
+    # a new camera starts over
+    other = tracker.update(raw, unknown("1,2/4,8"))
+    assert other.samples < est.samples
