@@ -50,7 +50,7 @@ class RtspClient:
     """rtspsrc (RTP over TCP, no jitter buffer latency) ! decodebin ! videoconvert ! appsink: BGR, or its green
     channel for grey pictures."""
 
-    def __init__(self, url: str, password: str | None = None, colour: bool = False) -> None:
+    def __init__(self, url: str, password: str | None = None, colour: bool = False, publisher=None) -> None:
         Gst = rtsp.gstreamer()[0]
         import gi
 
@@ -61,6 +61,7 @@ class RtspClient:
         # BGR even for grey pictures: videoconvert's I420 -> GRAY8 copies the luma plane (limited range)
         # without the range expansion of a player's I420 -> RGB
         self.colour = colour
+        self.publisher = publisher
         self.pipeline = Gst.parse_launch(
             f'rtspsrc location="{url}"{credentials} protocols=tcp latency=0 ! decodebin ! videoconvert '
             '! video/x-raw,format=BGR ! appsink name=sink sync=false max-buffers=2 drop=true')
@@ -79,7 +80,9 @@ class RtspClient:
                 error, debug = message.parse_error()
                 raise RtspClientError(f"{error.message} {debug}")
             if time.monotonic() > deadline:
-                raise AssertionError(f"{len(out)} of {n} frames in {timeout} s")
+                _, state, _ = self.pipeline.get_state(0)
+                raise AssertionError(f"{len(out)} of {n} frames in {timeout} s; client pipeline {state.value_nick}; "
+                                     f"server {self.publisher.state() if self.publisher else '?'}")
             sample = self.sink.try_pull_sample(Gst.SECOND // 5)
             if sample is not None:
                 out.append(self._array(sample))
@@ -142,7 +145,7 @@ def test_no_client_no_encoding_then_a_client_decodes_the_preview(mono_pipeline):
         # nobody watches: nothing tone-mapped, nothing JPEG- or H.264-encoded
         assert state["frames_pushed"] == 0 and state["frames_encoded"] == 0 and not state["encoding"]
         assert pipeline.encoder.previews.count == 0 and pipeline.encoder.encoded.count == 0
-        with RtspClient(publisher.url) as client:
+        with RtspClient(publisher.url, publisher=publisher) as client:
             frames = client.frames(8)
             state = publisher.state()
             assert state["clients"] == 1 and state["encoding"] and (state["width"], state["height"]) == SHAPE[::-1]
@@ -171,7 +174,7 @@ def test_one_encoding_shared_by_two_clients_and_with_mjpeg(mono_pipeline):
     with RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
         pipeline.watch(+1)  # an MJPEG client
         try:
-            with RtspClient(publisher.url) as first, RtspClient(publisher.url) as second:
+            with RtspClient(publisher.url, publisher=publisher) as first, RtspClient(publisher.url, publisher=publisher) as second:
                 assert all(f.shape == SHAPE for f in first.frames(5) + second.frames(5))
                 state = publisher.state()
         finally:
@@ -189,12 +192,22 @@ def test_one_encoding_shared_by_two_clients_and_with_mjpeg(mono_pipeline):
     pipeline.encoder.remove_preview_listener(previews.append)
 
 
+def test_a_late_joiner_gets_a_keyframe_at_once(mono_pipeline):
+    # a keyframe every 60 s: without the key unit forced for it, the second client would wait for 1200 frames
+    with RtspPublisher(mono_pipeline, host="127.0.0.1", port=0, settings=H264Settings(keyframe_s=60)) as publisher, \
+            RtspClient(publisher.url, publisher=publisher) as first:
+        first.frames(10)
+        with RtspClient(publisher.url, publisher=publisher) as second:
+            assert second.frames(2, timeout=20)[0].shape == SHAPE
+        assert publisher.medias == 1
+
+
 def test_colour_preview_is_served_in_colour():
     camera = make_colour_camera(fps=15.0, n=1)
     with Pipeline(PipelineConfig(source="sim", temporal=False), lambda: ColourSimSource(camera)) as pipeline:
         wait_until(lambda: pipeline.reconstructed.count >= 2, timeout=60, what="2 reconstructed colour frames")
         with RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher, \
-                RtspClient(publisher.url, colour=True) as client:
+                RtspClient(publisher.url, colour=True, publisher=publisher) as client:
             frames = client.frames(8)
             preview = pipeline.encoder.latest_preview()
     assert preview.image.shape == SHAPE + (3,)
@@ -209,11 +222,11 @@ def test_token_is_required_as_basic_password_or_query(mono_pipeline):
     with RtspPublisher(mono_pipeline, host="127.0.0.1", port=0, token=TOKEN) as publisher:
         for url, password in ((publisher.url, None), (publisher.url, "wrong"), (publisher.url + "?token=wrong", None),
                               (publisher.url + "?token=" + TOKEN[:-1], None)):
-            with RtspClient(url, password) as client, pytest.raises(RtspClientError, match="Unauthorized"):
+            with RtspClient(url, password, publisher=publisher) as client, pytest.raises(RtspClientError, match="Unauthorized"):
                 client.frames(1)
         assert publisher.state()["frames_pushed"] == 0 and publisher.medias == 0  # a refused client costs nothing
         for url, password in ((publisher.url, TOKEN), (publisher.url + "?token=" + TOKEN, None)):
-            with RtspClient(url, password) as client:
+            with RtspClient(url, password, publisher=publisher) as client:
                 assert client.frames(2)[0].shape == SHAPE
         assert publisher.state()["auth"]
 
@@ -231,7 +244,7 @@ def test_token_matches():
 def test_stop_disconnects_clients_and_frees_the_port(mono_pipeline):
     publisher = RtspPublisher(mono_pipeline, host="127.0.0.1", port=0).start()
     port = publisher.port
-    with RtspClient(publisher.url) as client:
+    with RtspClient(publisher.url, publisher=publisher) as client:
         client.frames(2)
         publisher.stop()
         assert publisher._thread is None
@@ -300,7 +313,7 @@ def test_no_signal_frames_while_the_source_is_offline():
     with Pipeline(config, lambda: SimSource(camera)) as pipeline, \
             RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
         wait_until(lambda: pipeline.latest() is not None, timeout=60, what="the first frame")
-        with RtspClient(publisher.url) as client:
+        with RtspClient(publisher.url, publisher=publisher) as client:
             live = client.frames(3)[-1]
             camera.paused = True
             wait_until(lambda: not pipeline.online(), what="the source offline")

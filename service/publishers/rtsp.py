@@ -15,6 +15,8 @@ media per mount point:
 - Grey and colour previews alike become I420 (BT.601, limited range) in the
   publisher: grey through a look-up table and neutral chroma, BGR through
   OpenCV (2-7 ms per 1920x1200 frame, against 10-14 ms in GStreamer's videoconvert).
+- A client that starts playing gets a keyframe at once (a forced key unit), so a
+  late joiner of the shared media does not wait for the next periodic one.
 - Never a queue: the appsrc holds one frame and drops the older one when the
   encoder is still busy; x264's zerolatency tune has no look-ahead and no
   frame threads; the payloader sends each frame as soon as it is encoded.
@@ -73,7 +75,8 @@ def gstreamer() -> tuple[Any, Any, Any, Any]:
         gi.require_version("Gst", "1.0")
         gi.require_version("GstRtspServer", "1.0")
         gi.require_version("GstRtsp", "1.0")
-        from gi.repository import GLib, Gst, GstRtsp, GstRtspServer
+        gi.require_version("GstVideo", "1.0")
+        from gi.repository import GLib, Gst, GstRtsp, GstRtspServer, GstVideo  # noqa: F401 - GstVideo: keyframes
     except (ImportError, ValueError) as exc:
         raise SveliveError(f"RTSP needs PyGObject and GStreamer's RTSP server ({exc}); install: {SETUP_HINT}") \
             from None
@@ -91,7 +94,7 @@ class H264Settings:
 
     Attributes:
         fps: the nominal frame rate (caps, keyframe interval and bitrate; the timestamps are the real ones).
-        keyframe_s: seconds between keyframes (a client that joins waits at most this long for a picture).
+        keyframe_s: seconds between keyframes at the nominal rate (and one whenever a client starts playing).
         bitrate_kbps: H.264 rate in kbit/s; 0: from the frame size (``BITS_PER_PIXEL``).
         speed_preset: x264's speed preset (``ultrafast``, ``superfast``, ``veryfast``...).
         threads: x264 threads (0: x264 chooses; with zerolatency they are slice threads, no added latency).
@@ -201,11 +204,12 @@ def token_matches(token: str, authorization: str | None, query: str | None) -> b
 
 
 class _Media:
-    """The live media's appsrc and the frame size fixed for its lifetime."""
+    """The live media's appsrc and encoder, and the frame size fixed for its lifetime."""
 
-    def __init__(self, media: Any, src: Any, width: int, height: int) -> None:
+    def __init__(self, media: Any, src: Any, encoder: Any, width: int, height: int) -> None:
         self.media = media
         self.src = src
+        self.encoder = encoder
         self.width = width
         self.height = height
 
@@ -360,7 +364,7 @@ class RtspPublisher:
         encoder.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, self._on_encoded)
         media.connect("unprepared", self._on_media_unprepared)
         with self._lock:
-            self._media = _Media(media, src, caps.get_value("width"), caps.get_value("height"))
+            self._media = _Media(media, src, encoder, caps.get_value("width"), caps.get_value("height"))
             start_watching = not self._watching
             self._watching = True
         if start_watching:
@@ -419,6 +423,19 @@ class RtspPublisher:
         with self._lock:
             self._clients += 1
         client.connect("closed", self._on_client_closed)
+        client.connect("play-request", self._on_play)
+
+    def _on_play(self, client: Any, ctx: Any) -> None:
+        """GLib thread, a client starts playing: the next frame is a keyframe with SPS/PPS, so that it shows a
+        picture at once instead of after up to a keyframe interval (or more frames than that when the
+        pipeline runs slower than its nominal rate)."""
+        from gi.repository import Gst, GstVideo
+
+        with self._lock:
+            media = self._media
+        if media is not None:
+            event = GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
+            media.encoder.get_static_pad("src").send_event(event)
 
     def _on_client_closed(self, client: Any) -> None:
         with self._lock:
