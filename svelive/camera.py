@@ -17,7 +17,7 @@ import numpy as np
 
 from svelive.cfa import ColourFilter, joint_period
 from svelive.errors import SveliveError
-from svelive.pattern import Pattern
+from svelive.pattern import Pattern, check_depth
 from svelive.sensor import Sensor, container_bits
 
 if TYPE_CHECKING:
@@ -55,6 +55,10 @@ class Camera:
     cfa: ColourFilter | None = None
     sensor: Sensor = Sensor()
     response: Response | None = None
+
+    def __post_init__(self) -> None:
+        if self.pattern is not None:
+            check_depth(self.pattern, self.sensor.bits)
 
     @classmethod
     def build(cls, pattern: Pattern | str | None = None, cfa: ColourFilter | str | None = None,
