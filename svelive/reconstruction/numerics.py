@@ -179,8 +179,11 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
             tables = (smooth(exposure, ky, kx)[keep], smooth(exposure, ky2, kx2)[keep], smooth(kept, ky2, kx2)[keep])
         if row_of is None:
             row_of = np.arange(core.stop - core.start, dtype=np.intp)
-        _window_rows(np.ascontiguousarray(summed), row_of, first, *tables, image[core], variance[core], out[core],
-                     out_var[core], inv_gain, floor)
+        lost = _window_rows(np.ascontiguousarray(summed), row_of, first, *tables, out[core], out_var[core],
+                            inv_gain, floor)
+        if lost:  # windows without an uncensored reading (rare): the method's bound and variance
+            where = np.isinf(out_var[core])
+            out[core][where], out_var[core][where] = image[core][where], variance[core][where]
 
     map_on(workers, strip, _strips(h, strip_rows))
     return out, out_var
@@ -240,19 +243,21 @@ def _uncensored(signal, exposure, censored, kept, kept_signal, kept_exposure):
 
 
 @kernel
-def _window_rows(summed, row_of, first, exposure, exposure_squares, squares, image, variance, out, out_var,
-                 inv_gain, floor):
+def _window_rows(summed, row_of, first, exposure, exposure_squares, squares, out, out_var, inv_gain, floor):
     """out = max(sum G s / sum G e, 0) and its variance, (R, W) rows whose window sums of e, G^2 e
-    and G^2 are the tables' rows ``row_of[first + r]``; the method's where the window's sum G e is 0."""
-    zero, one, tiny = np.float32(0), np.float32(1), np.float32(1e-12)
+    and G^2 are the tables' rows ``row_of[first + r]``; 0 and an infinite variance where the
+    window's sum G e is 0 (no uncensored reading), whose count it returns."""
+    zero, one, tiny, inf = np.float32(0), np.float32(1), np.float32(1e-12), np.float32(np.inf)
+    lost = 0
     for r in range(out.shape[0]):
         t = row_of[first + r]
         for c in range(out.shape[1]):
-            b, a, e2, g2, x, v = (exposure[t, c], summed[r, c], exposure_squares[t, c], squares[t, c], image[r, c],
-                                  variance[r, c])
+            b, a, e2, g2 = exposure[t, c], summed[r, c], exposure_squares[t, c], squares[t, c]
             ok = b > tiny
             inverse = one / b
             level = _maximum(a * inverse, zero)
             noise = (level * inv_gain * e2 + floor * g2) * inverse * inverse
-            out[r, c] = level if ok else x
-            out_var[r, c] = noise if ok else v
+            out[r, c] = level if ok else zero
+            out_var[r, c] = noise if ok else inf
+            lost += not ok
+    return lost
