@@ -169,3 +169,108 @@ def test_bad_settings_are_one_line_errors(camera: FakeCamera) -> None:
     with pytest.raises(SveliveError, match="cannot open GigE camera 'NoSuchCamera-42'"):
         open_source("gige:NoSuchCamera-42").open()
     assert time.monotonic() - t < 5
+
+
+# ----- the service over a GigE camera: outage state and shutdown ---------------------------------
+def test_service_state_during_an_outage_says_offline_why_since_when_and_reconnects(camera: FakeCamera) -> None:
+    from service.pipeline import Pipeline, PipelineConfig
+
+    options = {"pixel_format": "Mono8", "width": 64, "height": 48, "fps": 30, "offline_after_s": 0.5,
+               "backoff_max_s": 0.5}
+    pipeline = Pipeline(PipelineConfig(source=f"gige:{ADDRESS}", pattern="1,4/16,64", source_options=options,
+                                       offline_after_s=0.6))
+    pipeline.start()
+    try:
+        def wait(predicate, seconds: float) -> dict:
+            deadline = time.monotonic() + seconds
+            while True:
+                state = pipeline.state()["source"] | {"status": pipeline.capture.status()}
+                if predicate(state) or time.monotonic() > deadline:
+                    return state
+                time.sleep(0.05)
+
+        state = wait(lambda s: s["online"], 30)
+        assert state["online"] and state["error"] is None and state["reconnects"] == 0
+        camera.stop()
+        lost = time.time()
+        state = wait(lambda s: not s["online"] and s["error"], 8)
+        assert state["state"] == "offline" and state["error"], state  # why: not null
+        status = state["status"]
+        assert status["state"] == "offline" and status["error"] == state["error"]
+        assert lost - 2 < status["since"] <= lost + 0.5 and status["for_s"] >= 0  # since the last frame
+        camera.start()
+        state = wait(lambda s: s["online"], 15)
+        assert state["online"] and state["error"] is None and state["reconnects"] >= 1, state
+        assert state["status"]["since"] > lost
+    finally:
+        pipeline.stop()
+
+
+def serve(port: int, *extra: str) -> subprocess.Popen:
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "svelive.cli", "serve", "--source", f"gige:{ADDRESS}",
+                             "--source-option", "pixel_format=Mono8", "--source-option", "width=64",
+                             "--source-option", "height=48", "--source-option", "fps=20", "--pattern", "1,4/16,64",
+                             "--port", str(port), *extra], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.parametrize("lose_camera", [False, True])
+def test_sigterm_stops_serve_within_2_5_s_without_a_traceback(camera: FakeCamera, lose_camera: bool) -> None:
+    import signal
+    import socket
+
+    import httpx
+
+    with socket.socket() as s:
+        s.bind((ADDRESS, 0))
+        port = s.getsockname()[1]
+    proc = serve(port)
+    url = f"http://{ADDRESS}:{port}"
+    stop = threading.Event()
+    parts = [0]
+
+    def watch() -> None:  # an MJPEG client connected at shutdown
+        try:
+            with httpx.stream("GET", url + "/stream.mjpg", timeout=10) as r:
+                for _ in r.iter_raw():
+                    parts[0] += 1
+                    if stop.is_set():
+                        return
+        except httpx.HTTPError:
+            pass
+
+    client = threading.Thread(target=watch, daemon=True)
+    try:
+        deadline = time.monotonic() + 120  # start-up loads (or compiles) the kernels
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(url + "/api/state", timeout=2).json()["frames"]["captured"] > 3:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert proc.poll() is None, proc.stderr.read()
+            time.sleep(0.2)
+        client.start()
+        deadline = time.monotonic() + 10
+        while parts[0] == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert parts[0] > 0
+        if lose_camera:
+            camera.stop()
+            deadline = time.monotonic() + 10
+            while httpx.get(url + "/api/state", timeout=5).json()["source"]["online"] and time.monotonic() < deadline:
+                time.sleep(0.1)
+            time.sleep(2.0)  # the GigE source is tearing the dead camera down, then trying to reconnect
+        t = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(15)
+        took = time.monotonic() - t
+    finally:
+        stop.set()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    err = proc.stderr.read()
+    assert took < 2.5, took
+    assert "Traceback" not in err and "ERROR" not in err, err[-2000:]
