@@ -68,6 +68,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     cluster.add_argument("--warmup", type=int, metavar="K",
                          help="frames a temporal chunk runs before its first frame (default: until the fused "
                               "history agrees with the sequential run's to float32 rounding, 133 frames)")
+    cluster.add_argument("--tolerance", type=float, default=0.0, metavar="FRACTION",
+                         help="fraction of a chunk's pixels whose fused state at its first frame may differ from "
+                              "the run before it (another reset decision); default 0: a chunk that differs is "
+                              "run again with a longer warm-up, so the result is the sequential one")
     add_quiet_argument(p)
     add_colour_arguments(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output directory (created)")
@@ -128,12 +132,14 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
         raise SveliveError(f"--frames must be >= 1, got {args.frames}")
     if args.workers is not None and not 1 <= args.workers <= 256:
         raise SveliveError(f"--workers must be 1..256, got {args.workers}")
+    if not 0 <= args.tolerance < 1:
+        raise SveliveError(f"--tolerance is a fraction of the pixels, 0 <= F < 1, got {args.tolerance}")
     settings = colour_settings(args)
     if args.source.strip().lower().startswith("replay:"):
         return _reprocess(args, settings)
-    if args.workers is not None or args.scheduler is not None or args.warmup is not None:
-        raise SveliveError("--workers, --scheduler and --warmup reprocess a recording: give --source replay:FILE "
-                           "(record other sources first with svelive record)")
+    if args.workers is not None or args.scheduler is not None or args.warmup is not None or args.tolerance:
+        raise SveliveError("--workers, --scheduler, --warmup and --tolerance reprocess a recording: give --source "
+                           "replay:FILE (record other sources first with svelive record)")
     frames, source = _raw_frames(args)
     reconstructor: Reconstructor | None = None
     balancer = WhiteBalancer(settings)
@@ -200,14 +206,14 @@ def _reprocess(args: argparse.Namespace, settings: object) -> int:
     reprocess.frame_count(job)  # a bad recording or option fails here, in one line, before any cluster starts
     with Progress("reconstructing", quiet=args.quiet) as progress:
         if args.workers is None and args.scheduler is None:
-            summary = reprocess.run_local(job, progress, args.warmup)
+            summary = reprocess.run_local(job, progress, args.warmup, args.tolerance)
         else:
             workers = args.workers or 1
             client = reprocess.connect(workers, args.scheduler)
             try:
                 if args.scheduler:
                     workers = max(1, len(client.scheduler_info().get("workers", {})))
-                summary = reprocess.run_dask(job, client, workers, progress, args.warmup)
+                summary = reprocess.run_dask(job, client, workers, progress, args.warmup, tolerance=args.tolerance)
             finally:
                 cluster = getattr(client, "cluster", None)
                 client.close()

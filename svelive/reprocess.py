@@ -319,38 +319,52 @@ def stream_state(reconstructor: Any, balancer: WhiteBalancer) -> dict[str, Any]:
     return state
 
 
-def compare_states(a: dict[str, Any] | None, b: dict[str, Any] | None, rtol: float = STATE_RTOL) -> str | None:
-    """None when two stream states are the same: the same history weights (so the same resets),
-    boolean maps and white balance mode and time, and every other number within ``rtol`` of
-    the other relative to the larger; else what differs, in a few words."""
+def compare_states(a: dict[str, Any] | None, b: dict[str, Any] | None, rtol: float = STATE_RTOL,
+                   pixels: float = 0.0) -> tuple[bool, str | None]:
+    """(same, what differs): two stream states are the same when they have the same parts, white
+    balance mode and time (multipliers within ``rtol``) and, at all but a ``pixels`` fraction of
+    the pixels (and of the chroma cells), the same history weight (so the same resets), the same
+    boolean maps and every other number within ``rtol`` of the other relative to the larger.
+    ``what differs`` is None when nothing does, else a few words (also when within ``pixels``)."""
     if a is None or b is None:
-        return None if a is b else "one stream has no state"
+        return (a is b, None if a is b else "one stream has no state")
     if a.keys() != b.keys():
-        return f"different state parts {sorted(a.keys() ^ b.keys())}"
+        return False, f"different state parts {sorted(a.keys() ^ b.keys())}"
+    masks: dict[tuple[int, ...], np.ndarray] = {}  # differing positions by array shape (pixels, chroma cells)
+    words = []
     for key in sorted(a):
         x, y = a[key], b[key]
         if key == "white_balance":
             (mx, *rx), (my, *ry) = x, y
             if rx != ry or not np.allclose(mx, my, rtol=rtol, atol=0):
-                return f"white balance {x} != {y}"
+                return False, f"white balance {x} != {y}"
             continue
         if x.shape != y.shape or x.dtype != y.dtype:
-            return f"{key}: shape or type differs"
+            return False, f"{key}: shape or type differs"
         if x.dtype == bool or key == "weight":
-            if not np.array_equal(x, y):
-                return f"{key}: {int(np.count_nonzero(x != y))} pixels differ"
-            continue
-        with np.errstate(invalid="ignore", over="ignore"):
-            x64, y64 = x.astype(np.float64), y.astype(np.float64)
-            bad = ~((x64 == y64) | (np.abs(x64 - y64) <= rtol * np.maximum(np.abs(x64), np.abs(y64))))
-        if bad.any():
-            return f"{key}: {int(np.count_nonzero(bad))} values differ by more than {rtol:g}"
-    return None
+            bad = x != y
+        else:
+            with np.errstate(invalid="ignore", over="ignore"):
+                x64, y64 = x.astype(np.float64), y.astype(np.float64)
+                bad = ~((x64 == y64) | (np.abs(x64 - y64) <= rtol * np.maximum(np.abs(x64), np.abs(y64))))
+        count = int(np.count_nonzero(bad))
+        if count:
+            words.append(f"{key}: {count} values differ" + ("" if x.dtype == bool or key == "weight"
+                                                            else f" by more than {rtol:g}"))
+            where = bad.reshape(-1, *x.shape[-2:]).any(axis=0)
+            masks[where.shape] = masks[where.shape] | where if where.shape in masks else where
+    if not words:
+        return True, None
+    spread = {shape: int(np.count_nonzero(m)) for shape, m in masks.items()}
+    same = all(n <= pixels * m.size for n, m in zip(spread.values(), masks.values()))
+    total = sum(m.size for m in masks.values())
+    return same, f"{'; '.join(words)} ({sum(spread.values())} of {total} positions)"
 
 
-def compare_results(before: ChunkResult, after: ChunkResult, rtol: float = STATE_RTOL) -> str | None:
+def compare_results(before: ChunkResult, after: ChunkResult, rtol: float = STATE_RTOL,
+                    pixels: float = 0.0) -> tuple[bool, str | None]:
     """:func:`compare_states` of the state ``before`` ends with and the state ``after`` starts with."""
-    return compare_states(before.end_state, after.start_state, rtol)
+    return compare_states(before.end_state, after.start_state, rtol, pixels)
 
 
 def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = None,
@@ -464,11 +478,13 @@ class Summary:
     reruns: int
     workers: int
     reasons: tuple[str, ...] = ()
+    tolerated: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {"written": self.written, "complete": self.complete, "damaged": list(self.damaged),
                 "reconstructed": self.reconstructed, "seconds": round(self.seconds, 3), "chunks": self.chunks,
-                "reruns": self.reruns, "rerun_reasons": list(self.reasons), "workers": self.workers,
+                "reruns": self.reruns, "rerun_reasons": list(self.reasons),
+                "tolerated_differences": list(self.tolerated), "workers": self.workers,
                 "fps": round(self.written / self.seconds, 3) if self.seconds > 0 else None}
 
 
@@ -518,8 +534,8 @@ class LocalBackend:
             result = run_chunk(job, chunk, stage=stage)
             yield k, result.without_states(), result
 
-    def compare(self, before: Any, after: Any) -> str | None:
-        return compare_results(before, after)
+    def compare(self, before: Any, after: Any, pixels: float = 0.0) -> tuple[bool, str | None]:
+        return compare_results(before, after, STATE_RTOL, pixels)
 
 
 class DaskBackend:
@@ -539,8 +555,8 @@ class DaskBackend:
             k = small[future]
             yield k, future.result(), full[k]
 
-    def compare(self, before: Any, after: Any) -> str | None:
-        return self.client.submit(compare_results, before, after, pure=False).result()
+    def compare(self, before: Any, after: Any, pixels: float = 0.0) -> tuple[bool, str | None]:
+        return self.client.submit(compare_results, before, after, STATE_RTOL, pixels, pure=False).result()
 
 
 @dataclass(frozen=True)
@@ -554,9 +570,11 @@ class Outcome:
     tasks: int
     reruns: int
     reasons: tuple[str, ...] = ()
+    tolerated: tuple[str, ...] = ()
 
 
-def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = None, verify: bool = True) -> Outcome:
+def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = None, verify: bool = True,
+            tolerance: float = 0.0) -> Outcome:
     """Run ``chunks`` on ``backend`` (LocalBackend, DaskBackend) and make the result the sequential run's.
 
     A chunk of a stream with state (:func:`stateful`) that starts cold (``first > 0``) writes into
@@ -565,8 +583,10 @@ def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = Non
     previous chunk's end state when that chunk ends at ``start`` and was accepted itself (or
     starts at frame 0), else the state of a reference run warmed up twice as long. An accepted
     chunk's EXRs are moved into the output; another is run again with twice the warm-up (at most
-    back to frame 0, which is the sequential run). ``verify=False`` accepts every chunk as it
-    comes (no staging).
+    back to frame 0, which is the sequential run). ``tolerance``: the fraction of the pixels whose
+    state may differ (a different reset, a value beyond STATE_RTOL) in an accepted chunk; the
+    differences accepted so are listed (``Outcome.tolerated``). ``verify=False`` accepts every
+    chunk as it comes (no staging).
     """
     pending = list(chunks)
     camera, reader = job_camera(job)
@@ -589,6 +609,7 @@ def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = Non
     ends: dict[int, Any] = {}  # by frame: the reference to the accepted state before it
     reconstructed = tasks = 0
     reasons: list[str] = []
+    tolerated: list[str] = []
     while pending:
         batch = [(job, c, keeps_state and c.first > 0) for c in pending]
         tasks += len(batch)
@@ -622,10 +643,12 @@ def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = Non
                 changed = True
                 before = ends[start]
                 if isinstance(before, _StartOf):  # a reference run's start state against this one's
-                    reason = backend.compare(_as_end(before.ref, backend), ref)
-                else:
-                    reason = backend.compare(before, ref)
-                if reason is None:
+                    before = _as_end(before.ref, backend)
+                same, reason = backend.compare(before, ref, tolerance)
+                where = f"frames {chunk.start}-{chunk.stop - 1} after {chunk.warmup} frames of warm-up: {reason}"
+                if same:
+                    if reason is not None:
+                        tolerated.append(where)
                     commit_staged(job, chunk, result.written)
                     final[start] = result
                     ends.pop(start)
@@ -635,11 +658,11 @@ def execute(job: Job, chunks: Iterable[Chunk], backend: Any, progress: Any = Non
                 else:
                     _remove_staging(job, chunk)
                     pending.append(longer(chunk))
-                    reasons.append(f"frames {chunk.start}-{chunk.stop - 1} after {chunk.warmup} frames of "
-                                   f"warm-up: {reason}")
+                    reasons.append(where)
         if not pending and waiting:  # pragma: no cover - every waiting chunk has a predecessor or a reference
             raise SveliveError("svelive.reprocess: chunks left unchecked")
-    return Outcome(tuple(r for _, r in sorted(final.items())), reconstructed, tasks, len(reasons), tuple(reasons))
+    return Outcome(tuple(r for _, r in sorted(final.items())), reconstructed, tasks, len(reasons), tuple(reasons),
+                   tuple(tolerated))
 
 
 @dataclass(frozen=True)
@@ -661,7 +684,7 @@ def _as_end(ref: Any, backend: Any) -> Any:
     return _end_from_start(ref)
 
 
-def run_local(job: Job, progress: Any = None, warmup: int | None = None) -> Summary:
+def run_local(job: Job, progress: Any = None, warmup: int | None = None, tolerance: float = 0.0) -> Summary:
     """Reprocess in this process, in frame order: from frame 0 when nothing is written yet (the
     sequential result); a resumed run starts its missing runs ``warmup`` frames early, checked
     as a worker's chunk is (:func:`execute`)."""
@@ -674,14 +697,15 @@ def run_local(job: Job, progress: Any = None, warmup: int | None = None) -> Summ
         if complete:
             progress.update(len(complete), skipped=True)
 
-    return _summary(execute(job, work.chunks, LocalBackend(), progress), len(complete), time.perf_counter() - t0, 0)
+    return _summary(execute(job, work.chunks, LocalBackend(), progress, tolerance=tolerance), len(complete),
+                    time.perf_counter() - t0, 0)
 
 
 def _summary(outcome: Outcome, complete: int, seconds: float, workers: int) -> Summary:
     results = outcome.results
     return Summary(sum(len(r.written) for r in results), complete + sum(len(r.complete) for r in results),
                    tuple(sorted(i for r in results for i in r.damaged)), outcome.reconstructed, seconds,
-                   outcome.tasks, outcome.reruns, workers, outcome.reasons)
+                   outcome.tasks, outcome.reruns, workers, outcome.reasons, outcome.tolerated)
 
 
 def connect(workers: int, scheduler: str | None) -> Any:
@@ -702,7 +726,7 @@ def connect(workers: int, scheduler: str | None) -> Any:
 
 
 def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: int | None = None,
-             verify: bool = True) -> Summary:
+             verify: bool = True, tolerance: float = 0.0) -> Summary:
     """Reprocess on the Dask cluster of ``client``: a check of the existing outputs, then the chunks of
     :func:`make_plan` as tasks (the workers read the recording and write the EXRs themselves),
     checked by :func:`execute` (``verify=False``: accepted as they are)."""
@@ -718,5 +742,5 @@ def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: 
         if complete:
             progress.update(len(complete), skipped=True)
 
-    return _summary(execute(job, work.chunks, DaskBackend(client), progress, verify), len(complete),
+    return _summary(execute(job, work.chunks, DaskBackend(client), progress, verify, tolerance), len(complete),
                     time.perf_counter() - t0, workers)

@@ -96,6 +96,25 @@ def test_a_chunk_whose_warmup_was_too_short_is_run_again(recording: Path, client
                                    atol=0)
 
 
+def test_state_comparison_counts_other_resets_and_values_beyond_rounding() -> None:
+    rng = np.random.default_rng(3)
+    mean = rng.uniform(1, 100, (8, 10)).astype(np.float32)
+    a = {"mean": mean, "weight": np.full((8, 10), 0.125, np.float32), "bound": np.zeros((8, 10), bool),
+         "white_balance": ((1.5, 1.0, 2.0), "auto", 7)}
+    b = {**a, "mean": mean * np.float32(1 + 2e-7)}  # a few float32 roundings apart
+    assert reprocess.compare_states(a, b) == (True, None)
+    weight = a["weight"].copy()
+    weight[3, 4] = 1.0  # one pixel reset in one run only
+    c = {**b, "weight": weight}
+    same, why = reprocess.compare_states(a, c)
+    assert not same and why == "weight: 1 values differ (1 of 80 positions)"
+    assert reprocess.compare_states(a, c, pixels=1 / 80) == (True, why)  # within a tolerance of 1 pixel in 80
+    d = {**a, "mean": mean * np.float32(1 + 1e-5)}
+    assert reprocess.compare_states(a, d)[0] is False
+    e = {**a, "white_balance": ((1.5, 1.0, 2.0), "auto", 8)}  # measured at another time
+    assert reprocess.compare_states(a, e)[0] is False
+
+
 def test_resume_skips_complete_exrs_and_redoes_a_truncated_one(recording: Path, client, tmp_path: Path) -> None:
     job = reprocess.Job(str(recording), str(tmp_path), temporal=False, frames=6)
     assert reprocess.run_dask(job, client, 2).written == 6
