@@ -7,7 +7,9 @@ Every image x pattern x light x true noise model is simulated like ``svelive ben
 "dim" is 5 stops darker), and :func:`svelive.noise.estimate_noise` is given the raw frame
 and a camera with the pattern, black and white level but no gain and no read noise.
 Printed per run: the truth, the estimate, the error in % and the estimate's own
-standard uncertainty (sigma, in %), and the time. A summary gives the worst errors
+standard uncertainty (sigma, in %), the worst error of the noise standard deviation the
+estimate predicts over signals 1..white DN ("sd err": what the noise-aware weights feel,
+however gain and read noise split it), and the time. A summary gives the worst errors
 and the share of runs within 15 %. ``--quick`` runs two noise models on three images.
 With ``--colour`` the scenes are simulated in RGB through the colour layouts of
 svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns.
@@ -39,6 +41,15 @@ QUICK_MODELS = ((10_000, 2.0), (3_000, 6.0), (40_000, 0.7))
 BITS, BLACK = 12, 64
 
 
+def sd_error(gain: float, read: float, true_gain: float, true_read: float, white: float = 2**BITS - 1 - BLACK) -> float:
+    """Worst relative error (%) of the noise standard deviation the estimate predicts, over signals
+    1..white DN (log-spaced): what the noise-aware weights feel, however gain and read noise split it."""
+    s = np.geomspace(1.0, white, 64)
+    est = np.sqrt(s / gain + read**2 + 1 / 12)
+    true = np.sqrt(s / true_gain + true_read**2 + 1 / 12)
+    return float(100 * np.max(np.abs(est / true - 1)))
+
+
 def true_sensor(full_well: float, read_noise: float) -> Sensor:
     white = float(2**BITS - 1)
     return Sensor(BITS, BLACK, white, full_well / (white - BLACK), read_noise)
@@ -55,7 +66,7 @@ def load_rgb(path: Path) -> np.ndarray:
 def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed: int, out_csv: Path | None) -> int:
     rows = []
     header = (f"{'image':10s} {'pattern':26s} {'light':6s} {'true g':>7s} {'est g':>7s} {'err':>6s} {'sig':>5s}  "
-              f"{'true r':>6s} {'est r':>6s} {'err':>6s} {'sig':>5s} {'samples':>8s} {'ms':>6s}")
+              f"{'true r':>6s} {'est r':>6s} {'err':>6s} {'sig':>5s} {'sd err':>6s} {'samples':>8s} {'ms':>6s}")
     print(header, flush=True)
     total = len(images) * len(patterns) * len(LIGHTS) * len(models)
     done = 0
@@ -77,22 +88,26 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     er = 100 * (est.read_noise / truth.read_noise - 1)
                     sg = 100 * (est.gain_sigma or float("nan")) / est.gain
                     sr = 100 * (est.read_noise_sigma or float("nan")) / max(est.read_noise, 1e-9)
+                    sde = sd_error(est.gain, est.read_noise, truth.gain, truth.read_noise)
                     name = pattern if cfa is None else f"{pattern} {cfa}"
                     done += 1
                     flag = "" if abs(eg) <= 15 and abs(er) <= 15 else "  <-"
                     print(f"{path.stem[:10]:10s} {name[:26]:26s} {light:6s} {truth.gain:7.3f} {est.gain:7.3f} "
                           f"{eg:+5.0f}% {sg:4.0f}%  {truth.read_noise:6.2f} {est.read_noise:6.2f} {er:+5.0f}% "
-                          f"{sr:4.0f}% {est.samples:8d} {ms:6.0f}{flag}   [{done}/{total}]", flush=True)
+                          f"{sr:4.0f}% {sde:5.0f}% {est.samples:8d} {ms:6.0f}{flag}   [{done}/{total}]", flush=True)
                     rows.append(dict(image=path.stem, pattern=name, light=light, true_gain=truth.gain,
                                      gain=est.gain, gain_error_pct=eg, gain_sigma_pct=sg,
                                      true_read_noise=truth.read_noise, read_noise=est.read_noise,
-                                     read_noise_error_pct=er, read_noise_sigma_pct=sr, samples=est.samples,
+                                     read_noise_error_pct=er, read_noise_sigma_pct=sr, sd_error_pct=sde,
+                                     samples=est.samples,
                                      source=est.source, ms=ms))
     eg = np.array([abs(r["gain_error_pct"]) for r in rows])
     er = np.array([abs(r["read_noise_error_pct"]) for r in rows])
     within = np.mean((eg <= 15) & (er <= 15))
+    sde = np.array([r["sd_error_pct"] for r in rows])
     print(f"\n{len(rows)} runs: gain |error| median {np.median(eg):.1f}% worst {eg.max():.1f}%; read noise |error| "
-          f"median {np.median(er):.1f}% worst {er.max():.1f}%; both within 15%: {within:.0%}; "
+          f"median {np.median(er):.1f}% worst {er.max():.1f}%; both within 15%: {within:.0%}; noise sd (worst over "
+          f"1..white DN) error median {np.median(sde):.1f}%, within 15% in {np.mean(sde <= 15):.0%}; "
           f"median time {np.median([r['ms'] for r in rows]):.0f} ms")
     for key, label in (("gain_error_pct", "gain"), ("read_noise_error_pct", "read noise")):
         worst = sorted(rows, key=lambda r: -abs(r[key]))[:5]

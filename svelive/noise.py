@@ -93,6 +93,7 @@ class EstimatorConfig:
     max_ratio: float = 0.13
     clip_sigma: float = 3.0
     start_fraction: float = 0.25
+    max_shot_ratio: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -245,6 +246,10 @@ class _PhaseData:
         size: float64 (G, 1), readings per group.
         block: int64 (N,), the block of every sample.
         blocks: number of blocks.
+        s_groups: float64 (G, N), each group's own signal, ``max(m / rho, 0)``, DN.
+        scale: float64 (G, N), ``rho^2 / size``: a group prediction's variance over one reading's.
+        others: float64 (N,), the other samples of the sample's block.
+        region_limit: float64 (N,), the region test's limit on their summed standardised squares.
     """
 
     xp: np.ndarray
@@ -253,6 +258,10 @@ class _PhaseData:
     size: np.ndarray
     block: np.ndarray
     blocks: int
+    s_groups: np.ndarray
+    scale: np.ndarray
+    others: np.ndarray
+    region_limit: np.ndarray
 
 
 def _block_lines(first: int, stop: int, period: int, stride: int) -> np.ndarray:
@@ -315,7 +324,12 @@ def _gather(source: np.ndarray, offset: float, pixel_map: np.ndarray | None, til
             m.append(sum(v * c for v, c in zip(values, scales)) / len(group))
             rho.append(sum(scales) / len(group))
         size = np.array([[len(g)] for g in groups], np.float64)
-        out.append(_PhaseData(xp[ok], np.stack(m)[:, ok], np.stack(rho)[:, ok], size, block[ok], by * bx))
+        m_ok, rho_ok = np.ascontiguousarray(np.stack(m)[:, ok]), np.ascontiguousarray(np.stack(rho)[:, ok])
+        block_ok = block[ok]
+        others = np.bincount(block_ok, None, by * bx)[block_ok] - 1.0
+        out.append(_PhaseData(xp[ok], m_ok, rho_ok, size, block_ok, by * bx, np.maximum(m_ok / rho_ok, 0.0),
+                              rho_ok * rho_ok / size, others,
+                              _chi2_quantile_array(config.region_quantile, others)))
     return out
 
 
@@ -351,37 +365,32 @@ def _select(data: _PhaseData, model: tuple[float, float], floor: float, high: fl
     ``flat_quantile`` of both chi-squares are kept here.
     """
     slope, intercept = model
-    rho, size = data.rho, data.size
-    s_groups = np.maximum(data.m / rho, 0.0)  # each group's own signal
-    var_groups = rho * rho * np.maximum(slope * s_groups + intercept, QUANTISATION_VARIANCE) / size
-    weights = 1.0 / var_groups
+    s_groups, others = data.s_groups, data.others
+    weights = 1.0 / (data.scale * np.maximum(slope * s_groups + intercept, QUANTISATION_VARIANCE))
     total = weights.sum(axis=0)
-    m = (weights * data.m).sum(axis=0) / total
-    spread = (weights * (data.m - m) ** 2).sum(axis=0)
-    var_p = np.maximum(slope * np.maximum(m, 0.0) + intercept, QUANTISATION_VARIANCE)
     omega = weights / total
-    coef = omega * omega * rho * rho / size  # var(m) = sum coef (slope s_k + R)
-    big_a = m + (coef * s_groups).sum(axis=0)
+    m = (omega * data.m).sum(axis=0)
+    spread = (weights * (data.m - m) ** 2).sum(axis=0)
+    coef = omega * omega * data.scale  # var(m) = sum coef (slope s_k + R)
     big_b = 1.0 + coef.sum(axis=0)
+    t = (m + (coef * s_groups).sum(axis=0)) / big_b
     r = data.xp - m
     u = r * r / big_b
-    z = u / np.maximum(slope * big_a / big_b + intercept, QUANTISATION_VARIANCE)
+    var_p = np.maximum(slope * np.maximum(m, 0.0) + intercept, QUANTISATION_VARIANCE)
+    z = u / np.maximum(slope * t + intercept, QUANTISATION_VARIANCE)
     block_sum = np.bincount(data.block, z, data.blocks)
-    block_count = np.bincount(data.block, None, data.blocks)
-    others = block_count[data.block] - 1
-    region = (block_sum[data.block] - z) / np.maximum(others, 1)
+    region_sum = block_sum[data.block] - z
     sd_p = np.sqrt(var_p)
     keep = (m - floor >= 4.0 * sd_p) & (m + 4.0 * sd_p < high) & (others >= 4)
     # the neighbours too must be unlikely to clip (their readings near ``high`` were dropped, which
     # would truncate their noise and bias the prediction)
-    sd_groups = np.sqrt(np.maximum(slope * s_groups + intercept, QUANTISATION_VARIANCE))
-    keep &= np.all(s_groups + 4.0 * sd_groups < high, axis=0)
+    top = s_groups.max(axis=0)
+    keep &= top + 4.0 * np.sqrt(np.maximum(slope * top + intercept, QUANTISATION_VARIANCE)) < high
     dof = data.m.shape[0] - 1
     if not ranked:
         keep &= spread <= _chi2_quantile(config.flat_quantile, dof)
-        keep &= region * others <= _chi2_quantile_array(config.region_quantile, others)
-    samples = NoiseSamples(t=big_a[keep] / big_b[keep], u=u[keep])
-    return samples, (spread / dof * region)[keep]
+        keep &= region_sum <= data.region_limit
+    return NoiseSamples(t=t[keep], u=u[keep]), (spread / dof * region_sum / np.maximum(others, 1))[keep]
 
 
 def _chi2_quantile_array(q: float, dof: np.ndarray) -> np.ndarray:
@@ -474,11 +483,14 @@ def _robust_variance(u: np.ndarray, clip_sigma: float, table: tuple[np.ndarray, 
     # below, integer residuals of small noise (mostly 0 and +-1) would stop the clip short
     v = max(_variance_from_median(float(np.median(u)), table), float(np.mean(u[u <= np.quantile(u, 0.99)])))
     corr = _clip_correction(clip_sigma)
+    count = -1
     for _ in range(6):
-        kept = u[u <= clip_sigma * clip_sigma * v]
-        if kept.size == 0:
+        inside = u <= clip_sigma * clip_sigma * v
+        kept = int(np.count_nonzero(inside))
+        if kept == 0 or kept == count:  # the same samples as the last pass: converged
             break
-        v = float(np.mean(kept)) / corr
+        count = kept
+        v = float(np.dot(u, inside)) / kept / corr
     return v
 
 
@@ -671,6 +683,11 @@ def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None 
     fit, samples = None, NoiseSamples(np.zeros(0), np.zeros(0))
     for _ in range(1 + config.iterations):
         samples = _select_all(data, model, floor, high, camera.sensor, config)
+        if model is not None and config.max_shot_ratio:
+            # texture grows as the signal squared, shot noise as the signal: beyond a shot variance of
+            # a few times the read noise's, bins add more bias than information about the gain
+            keep = samples.t * model.slope <= config.max_shot_ratio * max(model.intercept, 1.0)
+            samples = NoiseSamples(samples.t[keep], samples.u[keep])
         fit = fit_line(*bin_samples(samples, config), **fixed, outlier_tolerance=config.outlier_tolerance)
         if fit is None:
             break
