@@ -57,7 +57,7 @@ SETUP_HINT = ("apt-get install gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-bas
 ELEMENTS = ("appsrc", "x264enc", "rtph264pay")
 #: Bits per pixel per frame of the default H.264 rate: about 4.8 Mbit/s at 1920x1200 and 30 fps.
 BITS_PER_PIXEL = 0.07
-#: The media factory role a valid token gives (what it may do: see ``_serve``).
+#: The media factory role a valid token gives (its permissions are set in ``RtspPublisher.start``).
 ROLE = "viewer"
 #: Timecode: bits of the capture time in ms, and the side of one bit's square in pixels.
 TIMECODE_BITS = 48
