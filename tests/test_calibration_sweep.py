@@ -6,42 +6,26 @@ fake GigE camera of Aravis, and a source without exposure control (409)."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 
 from svelive.calibrate import CURVES, simulate_nonlinear
 from svelive.frame import Frame
 
-from service.app import create_app, listen_socket
-from service.pipeline import Pipeline, PipelineConfig
-from service.settings import ServerSettings
+from tests import test_service_helpers as helpers
 from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, SimSource, make_camera
 
 URL = "/api/calibrate/response"
 
 
-class Server(ServerThread):
-    """ServerThread over a pipeline with any source factory."""
-
-    def __init__(self, factory, **config) -> None:  # noqa: D107 - same as ServerThread, own factory
-        defaults = dict(source="sim", offline_after_s=0.6, retry_s=0.2, no_signal_fps=5.0, temporal=False)
-        self.pipeline = Pipeline(PipelineConfig(**{**defaults, **config}), factory)
-        settings = ServerSettings(port=0)
-        self.sock = listen_socket(settings)
-        self.port = self.sock.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.server = uvicorn.Server(uvicorn.Config(create_app(self.pipeline, settings), log_level="warning",
-                                                    timeout_graceful_shutdown=1))
-        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
-
-    def __exit__(self, *exc: object) -> None:
-        super().__exit__(*exc)
-        self.pipeline.stop()
+def server(monkeypatch, factory, **config) -> ServerThread:
+    """The shared ServerThread, its pipeline opening sources from ``factory`` (it looks SimSource up
+    whenever it connects, so the test replaces that name for as long as it runs)."""
+    monkeypatch.setattr(helpers, "SimSource", lambda camera: factory())
+    return ServerThread(Camera(), **config)
 
 
 def chart(shape=(192, 224)) -> np.ndarray:
@@ -101,7 +85,7 @@ def wait_job(srv: ServerThread, job_id: int, timeout: float = 120.0) -> tuple[di
         time.sleep(0.02)
 
 
-def test_sweep_steps_the_exposure_fits_every_frame_applies_and_restores():
+def test_sweep_steps_the_exposure_fits_every_frame_applies_and_restores(monkeypatch):
     camera = Camera(fps=25.0, raws=[np.zeros((192, 224), np.uint16)], paused=True)
     sources: list[ExposureSource] = []
 
@@ -109,7 +93,7 @@ def test_sweep_steps_the_exposure_fits_every_frame_applies_and_restores():
         sources.append(ExposureSource(camera))
         return sources[-1]
 
-    with Server(factory) as srv:
+    with server(monkeypatch, factory) as srv:
         assert srv.state()["calibration"] is None
         assert httpx.post(srv.url + URL, json={"sweep": [10_000, 15_000]}, timeout=10).status_code == 422  # no frame
         camera.paused = False
@@ -179,7 +163,7 @@ from tests.test_capture_gige import _MISSING, ADDRESS, FakeCamera  # noqa: E402
 
 
 @pytest.mark.skipif(_MISSING is not None, reason=str(_MISSING))
-def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it():
+def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it(monkeypatch):
     from svelive.capture import open_source
 
     fake = FakeCamera("SVESWEEP")
@@ -192,7 +176,7 @@ def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it():
                                       exposure_us=8000, pattern="1,4/16,64"))
             return opened[-1]
 
-        with Server(factory, offline_after_s=2.0) as srv:
+        with server(monkeypatch, factory, offline_after_s=2.0) as srv:
             srv.wait_for(lambda s: s["frames"]["captured"] > 2, timeout=15)
             source = opened[-1]
             assert source.exposure_time() == 8000.0
