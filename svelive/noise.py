@@ -693,9 +693,14 @@ def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None 
             break
         model = fit
     if fit is None and fixed["slope"] is None and fixed["intercept"] is None and samples.size:
-        # too narrow a signal range for the slope: the read noise alone, the gain held at the default
-        fit = fit_line(*bin_samples(samples, config), slope=1.0 / camera.sensor.effective_gain,
-                       outlier_tolerance=config.outlier_tolerance)
+        # too narrow a signal range for the slope: the read noise alone, the gain held at the default,
+        # from the bins where even a gain at the prior's low end (a quarter of the default) leaves
+        # shot noise under half the variance (elsewhere a wrong gain would pass its shot noise off
+        # as read noise)
+        slope = 1.0 / camera.sensor.effective_gain
+        t, v, n = bin_samples(samples, config)
+        dark = math.exp(PRIOR_LOG_SIGMA) * slope * t <= 0.5 * v
+        fit = fit_line(t[dark], v[dark], n[dark], slope=slope, outlier_tolerance=config.outlier_tolerance)
     return samples, fit
 
 
