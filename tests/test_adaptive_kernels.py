@@ -51,10 +51,14 @@ def _reference(inp):
     bias2 = np.maximum(smooth(q * ((x - m) ** 2 - var_r), ky, kx) / sum_q
                        - f32(adaptive.CONTRAST_SIGMA) * standard_error, f32(0))
 
-    # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L > 0
+    # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L >= 0
     weight_m = f32(1) / (var_m + bias2)
     total = w + weight_m
     image = _nonnegative((w * x + weight_m * m) / total, total)
+    # every reading of the window at raw 0: 0
+    bottom = cv2.erode((s <= -inp.sensor.black_level).astype(np.uint8), np.ones(window, np.uint8),
+                       borderType=cv2.BORDER_REFLECT_101).astype(bool)
+    image = np.where(bottom, f32(0), image)
     variance = f32(1) / total
 
     # censored pixels: plain mean of the consistent uncensored neighbours, at least the own bound
@@ -72,32 +76,32 @@ def _reference(inp):
 
 
 def _nonnegative(estimate, information):
-    """sigma g(z), g = b(z) P(u) (adaptive.posterior_polynomial) below POSTERIOR_HIGH, the expansion above."""
+    """sigma g(z), g = b(z) P(u) (adaptive.posterior_polynomial) below POSTERIOR_HIGH, the estimate above."""
     sigma = 1 / np.sqrt(information.astype(np.float64))
     z = estimate / sigma
     base, u = adaptive.posterior_base(z)
     inside = sigma * base * np.polynomial.polynomial.polyval(u, adaptive.posterior_polynomial().astype(np.float64))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        high = estimate * (1 - (0.5 + 0.625 / z**2) / z**2)
-    return np.where(z >= adaptive.POSTERIOR_HIGH, high, inside).astype(np.float32)
+    return np.where(z >= adaptive.POSTERIOR_HIGH, estimate, inside).astype(np.float32)
 
 
-def test_posterior_polynomial_against_numerical_integration():
+def test_posterior_against_numerical_integration():
     """g(z) = exp(E[log L]) of the unit normal around z restricted to L > 0, by the trapezoid rule on a fine log
-    grid: the table, and the polynomial the kernel evaluates (within 1e-3), from deep below 0 to POSTERIOR_HIGH."""
+    grid: the table, and the polynomial the kernel evaluates (within 1e-3), deep below 0 up to POSTERIOR_HIGH,
+    where it meets the estimate itself (within 1e-3)."""
     table = adaptive.posterior_table()
-    level = np.geomspace(1e-14, 40, 400_001)
-    for z in (-30.0, -8.0, -2.0, 0.0, 1.5, 3.9):
-        density = np.exp(-0.5 * level * level + z * level)
+    level = np.geomspace(1e-14, 80, 400_001)
+    for z in (-20.0, -6.0, -2.0, 0.0, 1.5, 4.0, 12.0):  # on the table's grid
+        density = np.exp(-0.5 * (level - z) ** 2 + 0.5 * min(z, 0) ** 2)
         expected = np.exp(np.trapezoid(np.log(level) * density, level) / np.trapezoid(density, level))
         base, u = adaptive.posterior_base(np.array(z))
         fitted = base * np.polynomial.polynomial.polyval(u, adaptive.posterior_polynomial().astype(np.float64))
         assert fitted == pytest.approx(expected, rel=1e-3), z
-        if z >= adaptive.POSTERIOR_LOW:
-            got = table[int(round((z - adaptive.POSTERIOR_LOW) / adaptive.POSTERIOR_STEP))]
-            assert got == pytest.approx(expected, rel=2e-3), z
-    z = adaptive.POSTERIOR_HIGH  # meets the expansion the kernel uses beyond
-    assert table[-1] == pytest.approx(z * np.exp(-0.5 / z**2 - 0.75 / z**4), rel=2e-3)
+        got = table[int(round((z - adaptive.POSTERIOR_LOW) / adaptive.POSTERIOR_STEP))]
+        assert got == pytest.approx(expected, rel=1e-4), z
+    assert table[-1] == pytest.approx(adaptive.POSTERIOR_HIGH, rel=1e-3)
+    base, u = adaptive.posterior_base(np.array(-300.0))  # the exponential tail
+    tail = base * np.polynomial.polynomial.polyval(u, adaptive.posterior_polynomial().astype(np.float64))
+    assert tail == pytest.approx(adaptive.TAIL / 300, rel=1e-3)
 
 
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])

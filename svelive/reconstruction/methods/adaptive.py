@@ -253,12 +253,24 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     # Minimum-mean-square blend of the own reading and the neighbour estimate.
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
     _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial())
+    _zero_at_the_bottom(s, -f32(inp.sensor.black_level), (len(ky), len(kx)), image)
 
     if any_censored:
         lower |= _censored_pixels(inp, image, w, x, ky, kx)
     variance = np.divide(f32(1.0), total) if want_variance else None
     fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance)
     return image, lower, variance, np.divide(w, total) if want_share else None
+
+
+def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
+    """image = 0, in place, where every reading of the window lies at the bottom of the raw range (raw 0, a signal
+    of -black): clipped there, such readings say only "at most", as saturated ones say "at least", and their
+    tightest answer is 0 (a black frame stays black; :func:`_nonnegative` would lift it)."""
+    at_bottom = s <= bottom
+    if not at_bottom.any():
+        return
+    everywhere = cv2.erode(at_bottom.view(np.uint8), np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    image[everywhere.view(bool)] = 0
 
 
 @lru_cache(maxsize=16)
@@ -348,7 +360,7 @@ def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
 
 @kernel
 def _blend(image, total, var_m, m, w, x, threshold, coefficients):
-    """The result: the non-negative estimate (:func:`_nonnegative`) from L ~ N(L^, 1 / total), with
+    """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`_nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0).
 
     B = sum excess_q / sum q is the window's estimate of the squared bias, SE its
@@ -358,64 +370,65 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients):
     ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
-    high, half, second = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH), np.float32(0.5), np.float32(0.625)
+    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
     dark = 0
-    for k in range(w.size):  # a loop without branches, which LLVM vectorises: every pixel as if well above 0
+    for k in range(w.size):  # a loop without branches, which LLVM vectorises
         weight = max(total[k], tiny)
         excess = max(image[k] / weight - np.sqrt(threshold / weight), zero) + var_m[k]
         t = one / excess + w[k]
         estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
-        z2 = estimate * estimate * t
-        a = one / max(z2, tiny)
-        image[k] = estimate * (one - a * (half + second * a))
+        image[k] = estimate
         var_m[k] = estimate  # kept for the pixels near 0, below
         total[k] = t
-        dark += (estimate <= zero) | (z2 < high)
+        dark += (estimate <= zero) | (estimate * estimate * t < high)
     if dark > 0:
         _nonnegative(image, var_m, total, coefficients)
 
 
-#: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step.
-POSTERIOR_LOW, POSTERIOR_HIGH, POSTERIOR_STEP = -10.0, 4.0, 1.0 / 64
+#: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step. From
+#: POSTERIOR_HIGH up the result is the estimate itself: exp(E[log L]) is below it by 1/(2 z^2), under 0.08 %.
+POSTERIOR_LOW, POSTERIOR_HIGH, POSTERIOR_STEP = -30.0, 25.0, 1.0 / 16
 #: Degree of the polynomial :func:`posterior_polynomial` fits (5e-4 relative error at most, float32); the kernel
 #: (:func:`_nonnegative`) writes out its Horner scheme for this degree.
-POSTERIOR_DEGREE = 12
+POSTERIOR_DEGREE = 16
 EULER_GAMMA = 0.5772156649015329
+#: exp(-Euler's gamma): exp(E[log L]) of an exponential distribution of mean 1.
+TAIL = math.exp(-EULER_GAMMA)
 
 
 @lru_cache(maxsize=1)
 def posterior_table() -> np.ndarray:
     """g(z) = exp(E[log L]) for L ~ N(z, 1) restricted to L > 0, at z = POSTERIOR_LOW + i POSTERIOR_STEP up to
-    POSTERIOR_HIGH; float32, read-only. Integrated over u = log L (the integrand is smooth there)."""
+    POSTERIOR_HIGH; float64, read-only. Integrated over u = log L (the integrand is smooth there)."""
     z = np.arange(POSTERIOR_LOW, POSTERIOR_HIGH + POSTERIOR_STEP / 2, POSTERIOR_STEP)[:, None]
-    u = np.linspace(-40.0, np.log(POSTERIOR_HIGH + 12.0), 6000)[None, :]
+    u = np.linspace(-50.0, np.log(POSTERIOR_HIGH + 14.0), 12000)[None, :]
     level = np.exp(u)
-    density = np.exp(-0.5 * level * level + z * level + u)  # phi(L - z) dL over phi(z)
-    table = np.exp((u * density).sum(axis=1) / density.sum(axis=1)).astype(np.float32)
+    # phi(L - z) dL, times phi(0) / phi(z) below 0 (no underflow there; the scale cancels)
+    density = np.exp(-0.5 * (level - z) ** 2 + 0.5 * np.minimum(z, 0) ** 2 + u)
+    table = np.exp((u * density).sum(axis=1) / density.sum(axis=1))
     table.setflags(write=False)
     return table
 
 
 def posterior_base(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(b, u) of :func:`posterior_polynomial`: b(z) = (z + r) / 2 = c / ((r - z) / 2), r = sqrt(z^2 + 4c),
-    c = e^-gamma, and u = z / r in (-1, 1); float64."""
-    c = np.exp(-EULER_GAMMA)
-    root = np.sqrt(z * z + 4 * c)
-    return np.where(z > 0, (z + root) / 2, 2 * c / (root - np.minimum(z, 0))), z / root
+    c = TAIL, and u = z / r in (-1, 1); float64."""
+    root = np.sqrt(z * z + 4 * TAIL)
+    return np.where(z > 0, (z + root) / 2, 2 * TAIL / (root - np.minimum(z, 0))), z / root
 
 
 @lru_cache(maxsize=1)
 def posterior_polynomial() -> np.ndarray:
     """Coefficients (lowest first, float32 (POSTERIOR_DEGREE + 1,), read-only) of P(u) with g(z) = b(z) P(u)
-    (:func:`posterior_base`) for z < POSTERIOR_HIGH, least squares on :func:`posterior_table` and, below it, the
+    (:func:`posterior_base`) for z < POSTERIOR_HIGH: least squares on :func:`posterior_table` and, below it, the
     expansion g(z) = e^-gamma / |z| (1 - 1.5 / z^2) (the normal restricted to L > 0 is nearly exponential there).
 
-    b has g's asymptotes (z and e^-gamma / |z|), so P is smooth and near 1 over the whole line, and the kernel
+    b has g's asymptotes (z, and e^-gamma / |z|), so P is smooth and near 1 over the whole line, and the kernel
     evaluates it without a table look-up (which does not vectorise).
     """
     z_table = np.arange(POSTERIOR_LOW, POSTERIOR_HIGH + POSTERIOR_STEP / 2, POSTERIOR_STEP)
-    z_tail = -np.geomspace(2000.0, -POSTERIOR_LOW, 200)[:-1]
-    tail = np.exp(-EULER_GAMMA) / -z_tail * (1 - 1.5 / z_tail**2)
+    z_tail = -np.geomspace(3000.0, -POSTERIOR_LOW, 200)[:-1]
+    tail = TAIL / -z_tail * (1 - 1.5 / z_tail**2)
     z = np.concatenate([z_tail, z_table])
     base, u = posterior_base(z)
     coefficients = np.polynomial.polynomial.polyfit(u, np.concatenate([tail, posterior_table()]) / base,
@@ -426,31 +439,33 @@ def posterior_polynomial() -> np.ndarray:
 
 @kernel
 def _nonnegative(image, estimate, information, coefficients):
-    """image = the estimate of L >= 0 from L ~ N(estimate, 1 / information) that minimises the expected squared
-    error in log L (in stops): sigma g(z), g(z) = exp(E[log L]) of N(z, 1) restricted to L > 0 (a flat prior on
-    L >= 0), z = estimate / sigma, where z < POSTERIOR_HIGH (``image`` holds the result beyond); flat arrays.
+    """image = exp(E[log L]) for L ~ N(estimate, 1 / information) restricted to L > 0 (a flat prior on L >= 0):
+    sigma g(z), z = estimate / sigma, where z < POSTERIOR_HIGH (``image`` holds the estimate beyond); flat arrays.
 
-    Radiance cannot be negative, and the errors that matter in HDR are relative ones: where a reading lies within a
-    few noise deviations of 0 this gives a small positive value instead of 0 (clipping at 0 gives exact zeros, errors
-    of many stops; the plain mean of the restricted normal overshoots dark regions). Well above the noise it is the
-    estimate times exp(-1/(2 z^2) - 3/(4 z^4)): below it by 3 % at z = 4, 0.5 % at z = 10. g = b(z) P(u)
+    Radiance cannot be negative, and the project judges errors in log radiance (log-PSNR, PU21, stops): the
+    estimate that minimises the expected squared error of log L is exp(E[log L]). Where a reading lies within a few
+    noise deviations of 0 it is a small positive value (about half a deviation at 0) instead of 0: clipping at 0
+    gives exact zeros, errors of many stops; the mean and the median of the restricted normal lie higher, and
+    overshoot regions far darker than the noise more. Above 0 it is below the estimate by about 1 / (2 z^2) (3 % at
+    z = 4, 0.5 % at z = 10); from POSTERIOR_HIGH up, the estimate itself. g = b(z) P(u)
     (:func:`posterior_polynomial`, ``coefficients``); without branches, so that LLVM vectorises it.
     """
     zero, half, tiny = np.float32(0.0), np.float32(0.5), np.float32(TINY)
-    high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * np.exp(-EULER_GAMMA))
-    # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 12
-    p0, p1, p2, p3, p4, p5, p6 = (coefficients[0], coefficients[1], coefficients[2], coefficients[3], coefficients[4],
-                                  coefficients[5], coefficients[6])
-    p7, p8, p9, p10, p11, p12 = (coefficients[7], coefficients[8], coefficients[9], coefficients[10], coefficients[11],
-                                 coefficients[12])
+    high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * TAIL)
+    # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 16
+    p0, p1, p2, p3, p4, p5, p6, p7, p8 = (coefficients[0], coefficients[1], coefficients[2], coefficients[3],
+                                          coefficients[4], coefficients[5], coefficients[6], coefficients[7],
+                                          coefficients[8])
+    p9, p10, p11, p12, p13, p14, p15, p16 = (coefficients[9], coefficients[10], coefficients[11], coefficients[12],
+                                             coefficients[13], coefficients[14], coefficients[15], coefficients[16])
     for k in range(image.size):
         root_t = np.sqrt(max(information[k], tiny))
         z = estimate[k] * root_t
         r = np.sqrt(z * z + c4)
         base = (z + r) * half if z > zero else c4 * half / (r - z)
         u = z / r
-        p = (((((((((((p12 * u + p11) * u + p10) * u + p9) * u + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u
-                   + p3) * u + p2) * u + p1) * u + p0
+        p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
+                      + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
         image[k] = base * p / root_t if z < high else image[k]
 
 
