@@ -194,15 +194,14 @@ class Calibration:
                    settle_frames: int, frame_timeout_s: float) -> None:
         frames: list[Frame] = []
         applied: list[float] = []
-        restored = False
+        error: str | None = None
         try:
             for i, t in enumerate(times):
                 self._update(stage=f"exposure {i + 1}/{len(times)}: {t:g}", step=i)
                 applied.append(source.set_exposure_time(t))
                 frames.append(self._frame_after(time.monotonic_ns(), settle_frames, frame_timeout_s))
                 self._update(exposure_times=list(applied), frame_ids=[f.frame_id for f in frames], step=i + 1)
-            self._update(restored=source.set_exposure_time(original))
-            restored = True
+            self._restore(source, original)
             shapes = {f.raw.shape for f in frames}
             if len(shapes) > 1:
                 raise SveliveError(f"the frames of the sweep differ in size ({sorted(shapes)}): the camera's "
@@ -213,19 +212,25 @@ class Calibration:
                                    progress=lambda text: self._update(stage=f"fitting: {text}"))
             data.update(frame_id=frames[-1].frame_id, frame_ids=[f.frame_id for f in frames])
             self._keep(data, apply)
-            self._update(state="done", stage="done", finished_s=time.time())
+            del data
         except Exception as exc:  # reported in the job; the response in use stays
-            message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            self._update(state="failed", stage="failed", error=message, finished_s=time.time())
+            error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         finally:
-            if not restored:
+            if self._job is not None and self._job["restored"] is None:
                 try:
-                    self._update(restored=source.set_exposure_time(original))
+                    self._restore(source, original)
                 except Exception as exc:  # noqa: BLE001 - a camera gone meanwhile
-                    self._update(error=(self._job or {}).get("error") or f"exposure not restored: {exc}")
+                    error = f"{error + '; ' if error else ''}exposure time not restored: {exc}"
             del frames
             self.busy.release()
             release_memory()
+            # last, so that a client seeing the job end can start the next one
+            self._update(state="failed" if error else "done", stage="failed" if error else "done", error=error,
+                         finished_s=time.time())
+
+    def _restore(self, source: Source, original: float) -> None:
+        self._update(stage="restoring the exposure time")
+        self._update(restored=source.set_exposure_time(original))
 
     def _frame_after(self, changed_ns: int, settle_frames: int, timeout_s: float) -> Frame:
         """The ``settle_frames``-th frame after the first one captured after ``changed_ns`` (monotonic ns)."""
