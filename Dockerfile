@@ -35,9 +35,12 @@ from svelive.capture import open_source; \
 warm_up(); warm_up_preview(); open_source('demo').open().close()"
 
 FROM debian:bookworm-slim
-# Runtime only: the interpreter, PyGObject and the Aravis 0.8 typelib (GigE Vision cameras).
+# Runtime only: the interpreter, PyGObject, the Aravis 0.8 typelib (GigE Vision cameras) and
+# GStreamer's RTSP server with x264 (`--rtsp`).
 RUN apt-get update \
  && apt-get install -y --no-install-recommends python3 python3-gi gir1.2-aravis-0.8 \
+      gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base \
+      gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin svelive
 COPY --from=build /opt/svelive /opt/svelive
@@ -57,7 +60,7 @@ ENV PATH=/opt/svelive/bin:$PATH \
     SVELIVE_PORT=8000
 USER svelive
 WORKDIR /tmp
-EXPOSE 8000
+EXPOSE 8000 8554
 HEALTHCHECK --interval=30s --timeout=5s --start-period=20s \
   CMD python3 -c "import os, urllib.request as u; u.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('SVELIVE_PORT', '8000'), timeout=4)"
 CMD ["svelive", "serve"]

@@ -6,10 +6,14 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# Aravis: GigE Vision cameras; GStreamer's RTSP server and x264: `svelive serve --rtsp`.
 packages=(python3 python3-venv python3-dev gcc pkg-config libgirepository1.0-dev libcairo2-dev
-          gir1.2-aravis-0.8 aravis-tools)
+          gir1.2-aravis-0.8 aravis-tools
+          gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
+          gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly)
 if [ "${1:-}" = test ]; then
-    packages+=(chromium chromium-driver)
+    # a browser for the viewer tests; H.264 decoders and ffmpeg as RTSP clients in the tests
+    packages+=(chromium chromium-driver gstreamer1.0-libav ffmpeg)
 fi
 missing=()
 for p in "${packages[@]}"; do
@@ -27,5 +31,5 @@ python=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/pip install -q --upgrade pip
 extras="gige"
-[ "${1:-}" = test ] && extras="gige,test,bench"
+[ "${1:-}" = test ] && extras="gige,test,bench,cluster"
 .venv/bin/pip install -q -e ".[${extras}]"

@@ -291,3 +291,65 @@ source_options = {{ width = 128, height = 64, fps = 10 }}
             proc.kill()
             _, err = proc.communicate()
     assert "/cam/two/" in err and "t0ken" not in err
+
+
+def test_serve_rtsp_for_each_camera_listed_in_the_state(tmp_path):
+    from tests.test_service_rtsp import MISSING
+
+    if MISSING is not None:
+        pytest.skip(f"GStreamer RTSP server not installed: {MISSING}")
+    ports = []
+    for _ in range(3):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            ports.append(probe.getsockname()[1])
+    port, rtsp_port = ports[0], max(ports[1:]) + 100
+    config = write(tmp_path / "cams.toml", f"""
+port = {port}
+[[cameras]]
+name = "one"
+source = "demo"
+source_options = {{ width = 160, height = 96, fps = 10 }}
+[[cameras]]
+name = "two"
+source = "demo"
+cfa = "none"
+pattern = "1,4/16,64"
+source_options = {{ width = 128, height = 64, fps = 10 }}
+""")
+    proc = subprocess.Popen([sys.executable, "-m", "svelive.cli", "serve", "--config", config,
+                             "--rtsp", str(rtsp_port), "--token", "tok"], stderr=subprocess.PIPE, text=True)
+    try:
+        auth = {"Authorization": "Bearer tok"}
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None and time.monotonic() < deadline, "svelive serve did not start"
+            time.sleep(0.2)
+        for index, (name, shape) in enumerate((("one", (96, 160)), ("two", (64, 128)))):
+            state = wait_state(f"http://127.0.0.1:{port}/cam/{name}/api/state",
+                               lambda s: s["frames"]["reconstructed"] > 0, timeout=30, headers=auth)
+            assert state["rtsp"]["url"] == f"rtsp://127.0.0.1:{rtsp_port + index}/live" and state["rtsp"]["auth"]
+            url = state["rtsp"]["url"].replace("rtsp://", "rtsp://viewer:tok@")
+            # ffmpeg, a client of its own (not GStreamer's): two decoded grey frames of the camera's size
+            decoded = subprocess.run(["ffmpeg", "-v", "error", "-rtsp_transport", "tcp", "-i", url, "-frames:v", "2",
+                                      "-f", "rawvideo", "-pix_fmt", "gray", "-"], capture_output=True, timeout=60)
+            assert decoded.returncode == 0, decoded.stderr.decode()[-300:]
+            assert len(decoded.stdout) == 2 * shape[0] * shape[1]
+            refused = subprocess.run(["ffmpeg", "-v", "error", "-rtsp_transport", "tcp", "-i", state["rtsp"]["url"],
+                                      "-frames:v", "1", "-f", "null", "-"], capture_output=True, timeout=60)
+            assert refused.returncode != 0 and b"401" in refused.stderr
+        metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", headers=auth, timeout=5).text
+        assert 'svelive_clients{camera="two",kind="rtsp"}' in metrics
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            _, err = proc.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+    assert f"two as RTSP on rtsp://127.0.0.1:{rtsp_port + 1}/live" in err

@@ -33,6 +33,9 @@ async def camera_state(cam: ServedCamera, settings: ServerSettings) -> dict[str,
     out["clients"] = mjpeg["clients"]
     out["client_list"] = mjpeg["client_list"]
     out["drops"]["client_skipped"] = mjpeg["client_skipped"]
+    if cam.rtsp is not None:
+        out["rtsp"] = cam.rtsp.state()
+        out["fps"]["rtsp"] = out["rtsp"]["fps"]
     out["server"] = {"tasks": len(asyncio.all_tasks()), "host": settings.host, "port": settings.port,
                      "auth": settings.token is not None, **process_stats()}
     return out
