@@ -225,3 +225,44 @@ def test_quick_bench_images_ship_with_the_package():
 
     stems = {p.stem.lower() for p in find_images(shipped_data_dir())}
     assert {name.lower() for name in quick_config().images} <= stems
+
+
+# ----- the default's guard grid ----------------------------------------------------------------------
+
+
+def test_grid_covers_every_cell_and_its_outputs(tmp_path, capsys):
+    from svelive.bench.stability import GRID_SENSORS, GridConfig, markdown_grid, run_grid
+
+    config = GridConfig(patterns=("1,2/4,8", "1/1/8/8"), stops=(0.0, 5.0), models=("estimated", "true", "read x2"),
+                        sensors=GRID_SENSORS)
+    results = run_grid({"desk": load_sample_scene("desk")[:64, :96]}, config, log=None)
+    rows, summary = results["rows"], results["summary"]
+    assert len(rows) == 2 * 2 * 3 * len(GRID_SENSORS) == summary["cells"]
+    assert {(r["pattern"], r["stops"], r["model"], r["sensor"]) for r in rows} == {
+        (p, -s, m, t.name) for p in config.patterns for s in config.stops for m in config.models for t in GRID_SENSORS}
+    key = lambda r: min(r["margin_pu21"], r["margin_log"])  # noqa: E731
+    assert summary["failing"] == sum(key(r) < -0.3 for r in rows)
+    assert [key(r) for r in summary["worst"]] == sorted(key(r) for r in rows)[:len(summary["worst"])]
+    assert summary["means"]["adaptive_pu21"] == pytest.approx(np.mean([r["adaptive_pu21"] for r in rows]))
+    assert "| desk |" in markdown_grid(summary)
+    # aggregate does not use the noise model: one score per frame
+    for p in config.patterns:
+        for s in config.stops:
+            same = {r["aggregate_pu21"] for r in rows if r["pattern"] == p and r["stops"] == -s
+                    and r["sensor"] == GRID_SENSORS[0].name}
+            assert len(same) == 1
+    pytest.importorskip("matplotlib")
+    report.plot_grid(results, tmp_path / "grid.png")
+    assert (tmp_path / "grid.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_bench_grid_alone_writes_its_files(tmp_path):
+    data = tmp_path / "hdr"
+    data.mkdir()
+    write_exr(data / "Desk.exr", {"Y": load_sample_scene("desk")[:48, :48]})
+    out = tmp_path / "out"
+    assert main(["bench", "--quick", "--no-mono", "--no-colour", "--no-stability", "--no-chart", "-o", str(out),
+                 "--data", str(data)]) == 0
+    grid = json.loads((out / "grid.json").read_text())
+    assert len(grid["rows"]) == 4 * 4 * 6 and {r["sensor"] for r in grid["rows"]} == {"10000e-/2DN"}
+    assert (out / "grid.csv").exists() and "mean PU21-PSNR" in (out / "grid.md").read_text()
