@@ -3,7 +3,13 @@
 Every uncensored pixel i gives an unbiased reading x_i = s_i / e_i of the
 radiance at its own position, with the variance of the Poisson-Gaussian model
 (sensor.py) v_i = (e_i L / g + sigma^2) / e_i^2, evaluated at a pilot L0 (the
-shot-noise maximum-likelihood sum(s) / sum(e) over the window). Per pixel p:
+shot-noise maximum-likelihood sum(s) / sum(e) over the window *without pixel
+i*: with its own reading in it, a pixel's weight would fall as it reads high,
+a bias low). sigma^2, the model's read noise and quantisation, is replaced by
+the frame's own evidence where the frame has it (:func:`noise_model`:
+pairs of pixels a tile apart in dark regions, a low quantile of their squared
+differences against chi-square), so a noise model given wrong, or not given,
+does not make noise look like structure. Per pixel p:
 
 1. Neighbour estimate m: the inverse-variance mean of the readings in a
    binomial window around p *without p itself*, m = sum G_i w_i x_i / sum G_i w_i
@@ -11,16 +17,25 @@ shot-noise maximum-likelihood sum(s) / sum(e) over the window). Per pixel p:
    noise plus the bias of structure inside the window (an edge, texture).
 2. Local evidence of that bias: the residuals r_i = x_i - m_i of the pixels
    around p. For a flat scene E[r^2] = v_i + v_m; the excess is the squared
-   bias. b^2 is its inverse-variance weighted mean over the window (weights
-   1 / (v_i + v_m)^2, the inverse variance of r^2), floored at 0.
-3. The result is the minimum-mean-square combination of p's own reading and m:
-   L = (x_p / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)).
-   In flat regions b^2 ~ 0 and the window is averaged with noise-optimal
-   weights; where the neighbours disagree with the pixel beyond their noise
-   (edges, texture) b^2 grows and a well-exposed pixel keeps its own reading at
-   full resolution; a noisy reading (short exposure, low light) counts for
-   little either way. No threshold is tuned to images: every quantity is a
-   variance of the noise model or a moment of the local residuals.
+   bias. B is its inverse-variance weighted mean over the window (weights
+   1 / (v_i + v_m)^2, the inverse variance of r^2), with standard error
+   SE = sqrt(2 sum G^2 q) / sum G q under a flat scene; b^2 = max(B - 2 SE, 0)
+   (CONTRAST_SIGMA): where the window cannot tell structure from noise, b^2 = 0
+   and the result is the window's noise-optimal mean.
+3. The minimum-mean-square combination of p's own reading and m:
+   L^ = (x_p / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), variance
+   1 / (1 / v_p + 1 / (v_m + b^2)). In flat regions the window is averaged with
+   noise-optimal weights; where the neighbours disagree with the pixel beyond
+   their noise (edges, texture) b^2 grows and a well-exposed pixel keeps its own
+   reading at full resolution; a noisy reading (short exposure, low light)
+   counts for little either way.
+4. Radiance is not negative: within 25 deviations of 0 the result is
+   exp(E[log L]) of N(L^, variance) restricted to L >= 0 (:func:`_nonnegative`),
+   the estimate that minimises the expected squared error in log radiance
+   (stops, as the project's metrics judge), never an exact 0; beyond, L^
+   itself. A window whose readings all sit at raw 0 (clipped below) gives 0.
+No threshold is tuned to images: every quantity is a variance of the noise
+model, a moment of the local residuals or a fixed significance level.
 
 Censoring. A censored reading only says L >= T_k = censor / e_k. Its pixel
 takes the plain (equal-weight) window mean of the uncensored neighbours whose
@@ -37,19 +52,20 @@ bound the window's censored pixels imply, flagged in ``lower_bound``.
 
 Cost. Per-pixel weights make the cost independent of the number of exposure
 levels: two separable windows for the pilot, two for m, two for b^2. The
-censored-pixel step (one more pair of windows per level) runs only for the
-levels that actually hold censored pixels in a strip, over the box around
-that level's censored pixels, so a scene whose range fits in the unsaturated
-exposures does not pay for it; so does the lower-bound fill.
+censored-pixel step runs only where a strip holds censored pixels: a 3x3 window
+visits each censored pixel once (:func:`_censored_each`), longer windows get one
+more pair of windows per level with censored pixels, over the box around them;
+so a scene whose range fits in the unsaturated exposures does not pay for it,
+nor for the lower-bound fill. Step 4's polynomial runs only in strips holding
+pixels within 25 deviations of 0. The noise evidence reads 32 rows of the frame.
 Without censored pixels the pilot's exposure window is the same for every
 strip of a frame (strips start on whole tiles), so it is computed once per
 pattern and strip shape; a folded input (a colour frame's luminance, see
 svelive.reconstruction.colour) computes it per strip, and tests each censored
 pixel against its own bound in one compiled pass. Between the windows the per-pixel arithmetic runs as
 compiled kernels (svelive.jit), one pass each: weights (w, x, w x), residuals
-(m, v_m and the two terms whose windows give b^2), blend (the result); and,
-only where pixels are censored, consistency with each level's bound and the
-fill of that level's censored pixels.
+(m, v_m and the two terms whose windows give b^2), blend (the result), and
+where needed step 4 and the censored pixels.
 """
 
 from __future__ import annotations
