@@ -520,7 +520,7 @@ def grid_scene_rows(name: str, scene: np.ndarray, config: GridConfig, default: s
                     noise = given_noise(sensor, model)
                     scores = {m: fixed.get(m) or score(reconstruct(frame.raw, pattern, method=m, **levels, **noise))
                               for m in (default, *GRID_RIVALS)}
-                    row: dict[str, object] = {"image": name, "pattern": pattern, "stops": -stops,
+                    row: dict[str, object] = {"image": name, "pattern": pattern, "stops": 0.0 - stops,
                                               "sensor": true.name, "model": model}
                     for m, (pu21, logp) in scores.items():
                         row[f"{m}_pu21"], row[f"{m}_log"] = pu21, logp
