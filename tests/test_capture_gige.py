@@ -274,3 +274,42 @@ def test_sigterm_stops_serve_within_2_5_s_without_a_traceback(camera: FakeCamera
     err = proc.stderr.read()
     assert took < 2.5, took
     assert "Traceback" not in err and "ERROR" not in err, err[-2000:]
+
+
+# ----- no frame at all: the first camera, and a camera whose image packets go nowhere -------------
+def test_without_an_id_the_first_camera_is_opened_by_its_address_and_streams(camera: FakeCamera) -> None:
+    from svelive.capture import open_source
+
+    # Aravis's own "first camera" may keep the interface of another network (eth0) whose broadcast the
+    # loopback camera answered, and its image packets never reach it
+    with open_source("gige", pixel_format="Mono8", width=64, height=48, fps=30) as s:
+        frames = list(s.frames(limit=5, seconds=10))
+        stats = s.stats()
+    assert len(frames) == 5, stats
+    assert stats["camera"]["address"] == ADDRESS and stats["camera"]["interface"] == ADDRESS
+
+
+def test_a_camera_whose_image_packets_never_arrive_is_named_within_seconds(camera: FakeCamera) -> None:
+    import socket
+
+    from svelive.capture.gige import GigeSource
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((ADDRESS, 0))
+        nowhere = s.getsockname()[1]  # a loopback port that nobody reads once this socket is closed
+
+    class Misdirected(GigeSource):
+        """Streams to a closed loopback port (GVCP register SCP0, the stream channel's port), as a camera
+        whose packets a firewall drops or that cannot reach the interface would."""
+
+        def _connect(self) -> None:
+            super()._connect()
+            self._camera.get_device().write_register(0x0D00, nowhere)
+
+    source = Misdirected("gige", ADDRESS, pixel_format="Mono8", width=64, height=48, fps=30, offline_after_s=1.0)
+    t = time.monotonic()
+    with pytest.raises(SveliveError, match="answers its control channel but sent no image packet") as error:
+        with source:
+            list(source.frames(seconds=15))
+    assert time.monotonic() - t < 8
+    assert "Fake" in str(error.value) and "firewall" in str(error.value) and ADDRESS in str(error.value)

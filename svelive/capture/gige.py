@@ -1,7 +1,19 @@
 """GigE Vision cameras through Aravis 0.8 (PyGObject), as ``gige[:DEVICE_ID]``.
 
 DEVICE_ID is what ``arv-tool-0.8`` lists (e.g. ``Aravis-Fake-GV01``), a serial
-number, or the camera's IP address; without one the first camera found is used.
+number, or the camera's IP address; without one the first GigE camera found is
+used, opened by its address. (Aravis's own "first camera" keeps the interface
+whose broadcast the camera answered first, which need not be one the camera can
+send to: a camera on 127.0.0.1 answers the broadcast of eth0 too, and its image
+packets to eth0's address never leave it. By address, Aravis picks the interface
+that routes to the camera.)
+
+No image: when a connection delivers no frame within ``offline_after_s`` although
+the camera answers on its control channel, the error names the camera, where its
+image packets should go and what to try (open it by address, a firewall, the
+packet size); on the first connection the iteration ends with that error (so
+``svelive record`` says it within seconds), on later ones the source goes offline
+with it and reconnects.
 
 Receiving: a pool of ``n_buffers`` numpy arrays, each wrapped by
 ``Aravis.Buffer.new(size, address)`` so Aravis's stream thread writes packets
@@ -30,6 +42,14 @@ GEV 1.x 16-bit block-id wraps.
 while the camera streams; during a reconnection attempt to an absent camera the
 iterating thread returns when Aravis gives up (about 1 s by name, 2.5 s by IP
 address), while ``close()`` itself returns at once.
+
+Teardown of a camera that vanished takes Aravis seconds (stopping acquisition,
+freeing the stream and releasing the device each wait for GVCP timeouts: 12 s
+measured against the fake camera), so it never runs under the device lock:
+the stream, its buffers and the camera are detached under the lock and released
+in a daemon thread, the stream before its arrays. ``close()`` waits for that at
+most ``CLOSE_WAIT_S`` (a live camera takes milliseconds); a lost camera's is not
+waited for at all, and the source goes on reconnecting.
 """
 
 from __future__ import annotations
@@ -98,6 +118,9 @@ class GigeConfig:
     backoff_max_s: float = 5.0
 
 
+#: Longest ``close()`` waits for the device lock, then again for the teardown (seconds).
+CLOSE_WAIT_S = 0.5
+
 #: Stream counters kept (Aravis names), summed over connections.
 STREAM_COUNTERS = ("n_completed_buffers", "n_failures", "n_underruns", "n_timeouts", "n_aborted",
                    "n_missing_frames", "n_size_mismatch_errors", "n_received_packets", "n_missing_packets",
@@ -130,23 +153,52 @@ class GigeSource(Source):
         self._last_raw_id: int | None = None
         self._last_id: int | None = None
         self.camera_info: dict[str, Any] = {}
+        self._found = ""  # the camera found when no id was given, for messages
 
     # ----- connection ------------------------------------------------------
     def _open(self) -> None:
         self._connect()
 
-    def _connect(self) -> None:
+    def _open_camera(self) -> Any:
+        """The Aravis camera for ``device_id``: by id, name or address, else by serial number; without
+        an id, the first GigE camera found, opened by its address (see the module docstring)."""
         Ar = self._aravis
-        c = self.config
+        target = self.device_id
+        if not target:
+            found = self._first_gige()
+            if found is None:
+                raise SveliveError(f"{self.spec}: no GigE camera found (arv-tool-0.8 lists the cameras Aravis "
+                                   "sees; check the cable, the camera's power and its IP address)")
+            target, self._found = found
         try:
-            camera = Ar.Camera.new(self.device_id)
+            camera = Ar.Camera.new(target)
         except Exception as exc:  # GLib.Error or TypeError (None returned)
             camera = self._open_by_serial()
             if camera is None:
-                what = f"GigE camera {self.device_id!r}" if self.device_id else "any GigE camera"
+                what = f"GigE camera {self.device_id!r}" if self.device_id else f"the GigE camera {self._found}"
                 raise SveliveError(f"cannot open {what}: {_message(exc)}") from None
         if camera is None:
             raise SveliveError(f"no GigE camera {self.device_id or ''} found".replace("  ", " "))
+        return camera
+
+    def _first_gige(self) -> tuple[str, str] | None:
+        """(address, description) of the first GigE Vision camera Aravis finds, or None."""
+        Ar = self._aravis
+        try:
+            Ar.update_device_list()
+            for i in range(Ar.get_n_devices()):
+                if Ar.get_device_protocol(i) == "GigEVision" and Ar.get_device_address(i):
+                    described = (f"{Ar.get_device_vendor(i) or ''} {Ar.get_device_model(i) or ''}".strip()
+                                 + f" (serial {Ar.get_device_serial_nbr(i)}, {Ar.get_device_address(i)})")
+                    return Ar.get_device_address(i), described
+        except Exception:  # noqa: BLE001 - reported by the caller as "no GigE camera found"
+            return None
+        return None
+
+    def _connect(self) -> None:
+        Ar = self._aravis
+        c = self.config
+        camera = self._open_camera()
         stream: Any = None
         arrays: dict[Any, np.ndarray] = {}
         try:
@@ -184,16 +236,24 @@ class GigeSource(Source):
             if isinstance(exc, SveliveError):
                 raise
             raise SveliveError(f"{self.spec}: camera setup failed: {_message(exc)}") from None
+        x, y, w, h = camera.get_region()
+        info = {"device_id": camera.get_device_id(), "vendor": camera.get_vendor_name(),
+                "model": camera.get_model_name(), "pixel_format": pf_name, "region": [x, y, w, h], "payload": payload}
+        if camera.is_gv_device():
+            try:
+                info["address"] = _address(device.get_device_address())
+                info["interface"] = _address(device.get_interface_address())
+            except Exception:  # noqa: BLE001 - informative only
+                pass
+        del device
         with self._io:
             if self._closing.is_set():  # closed while connecting: drop what was built
-                _stop(camera)
-                del stream, camera
+                holder = [(camera, stream, arrays)]
+                del camera, stream, arrays
+                _dispose(holder, wait=0)
                 return
             self._camera, self._stream, self._arrays = camera, stream, arrays
-        x, y, w, h = camera.get_region()
-        self.camera_info = {"device_id": camera.get_device_id(), "vendor": camera.get_vendor_name(),
-                            "model": camera.get_model_name(), "pixel_format": pf_name,
-                            "region": [x, y, w, h], "payload": payload}
+        self.camera_info = info
         self._offline_after = c.offline_after_s
         if c.offline_after_s and camera.is_frame_rate_available():
             try:  # at least five frame periods
@@ -274,30 +334,69 @@ class GigeSource(Source):
             except Exception as exc:  # noqa: BLE001 - GLib.Error
                 raise SveliveError(f"{self.spec}: setting the exposure time failed: {_message(exc)}") from None
 
-    def _teardown(self) -> None:
-        """Stop acquisition and free the stream, then the arrays (in that order). Holds self._io."""
-        camera, stream = self._camera, self._stream
+    def _detach(self) -> tuple[Any, Any, dict[Any, np.ndarray]]:
+        """Take the camera, stream and arrays off the source (their counters added to the totals),
+        for :func:`_dispose`. Holds self._io."""
+        camera, stream, arrays = self._camera, self._stream, self._arrays
         self._camera = self._stream = None
+        self._arrays = {}
         if stream is not None:
             for name in STREAM_COUNTERS:
                 try:
                     self._counters[name] += int(stream.get_info_uint64_by_name(name))
                 except Exception:  # noqa: BLE001 - a counter this Aravis lacks
                     pass
-        _stop(camera)
-        del camera, stream  # the stream's thread stops here, before the arrays go
-        self._arrays = {}
+        return camera, stream, arrays
 
     def _close(self) -> None:
+        if not self._io.acquire(timeout=CLOSE_WAIT_S):
+            # a device call holds the lock (a camera timing out): tear down once it is free
+            threading.Thread(target=self._close_later, name="svelive-gige-close", daemon=True).start()
+            return
+        try:
+            holder = [self._detach()]
+        finally:
+            self._io.release()
+        _dispose(holder, wait=CLOSE_WAIT_S)
+
+    def _close_later(self) -> None:
         with self._io:
-            self._teardown()
+            holder = [self._detach()]
+        _dispose(holder, wait=0)
 
     def _go_offline(self, reason: str) -> None:
+        """The camera is lost: report why, release it in the background (its teardown waits for
+        timeouts), and reconnect (or end with the reason). Holds self._io."""
         self._set_online(False, reason)
-        self._teardown()
+        _dispose([self._detach()], wait=0)
         if not self.config.reconnect:
             raise SveliveError(f"{self.spec}: camera lost ({reason})")
         self._next_attempt = time.monotonic()
+
+    def _no_image(self, stall: float) -> str:
+        """Why a connected camera delivers no frame: what it is, where its image packets should go,
+        what arrived, and what to try (one line)."""
+        info = self.camera_info
+        stream = self._stream
+        received = completed = 0
+        if stream is not None:
+            try:
+                received = int(stream.get_info_uint64_by_name("n_received_packets"))
+                completed = int(stream.get_info_uint64_by_name("n_completed_buffers"))
+            except Exception:  # noqa: BLE001
+                pass
+        who = f"{info.get('vendor', '')} {info.get('model', '')}".strip() or "the camera"
+        who += f" {info.get('device_id', '')}".rstrip() + (f" at {info['address']}" if info.get("address") else "")
+        to = f" to {info['interface']}" if info.get("interface") else ""
+        address = info.get("address")
+        if received == 0:
+            hint = (f"open it by address (gige:{address}), " if address and not self.device_id else "") \
+                + "check that a firewall lets UDP from the camera in, and that its address and this " \
+                  "interface are on one network"
+            return (f"{self.spec}: {who} answers its control channel but sent no image packet{to} in "
+                    f"{stall:.1f} s: {hint}")
+        return (f"{self.spec}: {who}: {received} image packets arrived{to} in {stall:.1f} s but no frame completed "
+                f"({completed}): lower packet_size (e.g. packet_size=1400) or the frame rate")
 
     def _try_reconnect(self) -> bool:
         now = time.monotonic()
@@ -328,7 +427,15 @@ class GigeSource(Source):
             if buf is None:
                 stall = time.monotonic() - self._last_frame_t
                 if self._offline_after and stall > self._offline_after:
-                    self._go_offline(f"no frame for {stall:.1f} s")
+                    if self._last_raw_id is None:  # nothing on this connection: say why it cannot be
+                        reason = self._no_image(stall)
+                        if self._last_id is None:  # the first connection: nothing to reconnect to
+                            self._set_online(False, reason)
+                            _dispose([self._detach()], wait=0)
+                            raise SveliveError(reason)
+                        self._go_offline(reason)
+                    else:
+                        self._go_offline(f"no frame for {stall:.1f} s")
                 return None
             try:
                 return self._decode(buf)
@@ -402,6 +509,34 @@ def _stop(camera: Any) -> None:
             camera.stop_acquisition()
         except Exception:  # noqa: BLE001 - GLib.Error from a lost device
             pass
+
+
+def _address(address: Any) -> str:
+    """Text of a Gio address (an InetSocketAddress's host, without the port)."""
+    inner = getattr(address, "get_address", None)
+    return (inner() if inner is not None else address).to_string()
+
+
+def _release(holder: list) -> None:
+    """Stop acquisition, then free the stream (its thread stops), then the arrays it wrote into."""
+    camera, stream, arrays = holder.pop()
+    _stop(camera)
+    del stream  # the last reference: the stream's thread is joined here, before the arrays go
+    del camera, arrays
+
+
+def _dispose(holder: list, wait: float) -> None:
+    """Release the ``(camera, stream, arrays)`` in ``holder`` (a one-item list holding the only
+    references, from ``_detach``) in a daemon thread, waiting at most ``wait`` seconds: a camera that
+    vanished takes Aravis seconds of timeouts to let go."""
+    camera, stream, _ = holder[0]
+    if camera is None and stream is None:
+        return
+    del camera, stream
+    thread = threading.Thread(target=_release, args=(holder,), name="svelive-gige-release", daemon=True)
+    thread.start()
+    if wait > 0:
+        thread.join(wait)
 
 
 def _message(exc: BaseException) -> str:
