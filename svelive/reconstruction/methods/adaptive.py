@@ -285,8 +285,9 @@ def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, in
     at_bottom = s <= bottom
     if not at_bottom.any():
         return
-    everywhere = cv2.erode(at_bottom.view(np.uint8), np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
-    image[everywhere.view(bool)] = 0
+    at_bottom = at_bottom.view(np.uint8)
+    everywhere = cv2.erode(at_bottom, np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    np.copyto(image, np.float32(0), where=everywhere.view(bool))
 
 
 @lru_cache(maxsize=16)
