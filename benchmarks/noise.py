@@ -10,7 +10,9 @@ Printed per run: the truth, the estimate, the error in % and the estimate's own
 standard uncertainty (sigma, in %), the worst error of the noise standard deviation the
 estimate predicts over signals 1..white DN ("sd err": what the noise-aware weights feel,
 however gain and read noise split it), and the time. A summary gives the worst errors
-and the share of runs within 15 %. ``--quick`` runs two noise models on three images.
+and the share of runs within 15 %. ``--quick`` runs three noise models on three images. ``--psnr`` also reconstructs
+every frame with the default method under the fixed defaults, the estimate and the
+true noise model, and reports PU21-PSNR (slow).
 With ``--colour`` the scenes are simulated in RGB through the colour layouts of
 svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns.
 """
@@ -63,7 +65,22 @@ def load_rgb(path: Path) -> np.ndarray:
     return np.clip(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0), 0, None).astype(np.float32)
 
 
-def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed: int, out_csv: Path | None) -> int:
+def pu21_by_noise_model(raw: np.ndarray, camera: Camera, truth: Sensor, estimate, reference: np.ndarray) -> dict:
+    """PU21-PSNR (dB) of the default method with the fixed defaults, the estimate and the true noise model."""
+    import svelive
+    from svelive.metrics import luminance, pu21_psnr
+
+    def score(image: np.ndarray) -> float:
+        return pu21_psnr(luminance(image) if image.ndim == 3 else image,
+                         luminance(reference) if reference.ndim == 3 else reference)
+
+    return {"pu21_default": score(svelive.reconstruct(raw, camera, noise="default")),
+            "pu21_estimated": score(svelive.reconstruct(raw, camera, noise=estimate)),
+            "pu21_true": score(svelive.reconstruct(raw, camera.replace(sensor=truth)))}
+
+
+def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed: int, out_csv: Path | None,
+        psnr: bool = False) -> int:
     rows = []
     header = (f"{'image':10s} {'pattern':26s} {'light':6s} {'true g':>7s} {'est g':>7s} {'err':>6s} {'sig':>5s}  "
               f"{'true r':>6s} {'est r':>6s} {'err':>6s} {'sig':>5s} {'sd err':>6s} {'samples':>8s} {'ms':>6s}")
@@ -79,7 +96,8 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     truth = true_sensor(full_well, read)
                     p = Pattern.parse(pattern)
                     radiance = scene * np.float32(exposure_scale(scene, p, truth, stops_below_fill=stops))
-                    raw = simulate(radiance, p, truth, cfa=cfa, seed=seed).raw
+                    sim = simulate(radiance, p, truth, cfa=cfa, seed=seed)
+                    raw = sim.raw
                     camera = Camera.build(pattern, cfa, Sensor(BITS, BLACK))
                     t0 = time.perf_counter()
                     est = estimate_noise(raw, camera)
@@ -92,6 +110,9 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     name = pattern if cfa is None else f"{pattern} {cfa}"
                     done += 1
                     flag = "" if abs(eg) <= 15 and abs(er) <= 15 else "  <-"
+                    scores = pu21_by_noise_model(raw, camera, truth, est, sim.truth) if psnr else {}
+                    if scores:
+                        flag += "  PU21 default/estimated/true " + "/".join(f"{v:.2f}" for v in scores.values())
                     print(f"{path.stem[:10]:10s} {name[:26]:26s} {light:6s} {truth.gain:7.3f} {est.gain:7.3f} "
                           f"{eg:+5.0f}% {sg:4.0f}%  {truth.read_noise:6.2f} {est.read_noise:6.2f} {er:+5.0f}% "
                           f"{sr:4.0f}% {sde:5.0f}% {est.samples:8d} {ms:6.0f}{flag}   [{done}/{total}]", flush=True)
@@ -100,7 +121,7 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                                      true_read_noise=truth.read_noise, read_noise=est.read_noise,
                                      read_noise_error_pct=er, read_noise_sigma_pct=sr, sd_error_pct=sde,
                                      samples=est.samples,
-                                     source=est.source, ms=ms))
+                                     source=est.source, ms=ms, **scores))
     eg = np.array([abs(r["gain_error_pct"]) for r in rows])
     er = np.array([abs(r["read_noise_error_pct"]) for r in rows])
     within = np.mean((eg <= 15) & (er <= 15))
@@ -113,6 +134,11 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
         worst = sorted(rows, key=lambda r: -abs(r[key]))[:5]
         print(f"worst {label}: " + "; ".join(f"{r['image']} {r['pattern']} {r['light']} g{r['true_gain']:.2f} "
                                              f"r{r['true_read_noise']:.1f}: {r[key]:+.0f}%" for r in worst))
+    if psnr:
+        pu = np.array([[r["pu21_default"], r["pu21_estimated"], r["pu21_true"]] for r in rows])
+        print(f"PU21-PSNR of the default method, mean: fixed defaults {pu[:, 0].mean():.2f}, estimated "
+              f"{pu[:, 1].mean():.2f}, true {pu[:, 2].mean():.2f} dB; estimated - defaults from "
+              f"{(pu[:, 1] - pu[:, 0]).min():+.2f} to {(pu[:, 1] - pu[:, 0]).max():+.2f} dB")
     if out_csv:
         out_csv.parent.mkdir(parents=True, exist_ok=True)
         with open(out_csv, "w", newline="") as f:
@@ -132,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--images", help="comma-separated image stems")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--csv", type=Path, help="also write the rows as CSV")
+    parser.add_argument("--psnr", action="store_true", help="also reconstruct with the default method under the "
+                                                            "fixed defaults, the estimate and the truth (PU21-PSNR)")
     args = parser.parse_args(argv)
     data = args.data or (default_data_dir() if default_data_dir().is_dir() else shipped_data_dir())
     images = find_images(data)
@@ -147,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     models = QUICK_MODELS if args.quick else NOISE_MODELS
     print(f"data {data}: {len(images)} images, {len(patterns)} patterns, {len(LIGHTS)} lights, "
           f"{len(models)} noise models", file=sys.stderr)
-    return run(images, patterns, models, args.seed, args.csv)
+    return run(images, patterns, models, args.seed, args.csv, args.psnr)
 
 
 if __name__ == "__main__":
