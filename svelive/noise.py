@@ -80,6 +80,9 @@ class EstimatorConfig:
         max_ratio: a neighbour's exposure is at least 1 / max_ratio times the pixel's.
         clip_sigma: per-bin clipping of squared residuals, in standard deviations.
         start_fraction: the first pass keeps this flattest fraction of every signal bin.
+        max_shot_ratio: if > 0, the model passes leave out samples whose shot variance exceeds this
+            many times the read noise's (off: it costs the read noise of bright frames their leverage).
+        block: side of the sample blocks in tiles (odd); the region test uses the other samples of a block.
     """
 
     max_samples: int = 40_000
@@ -94,6 +97,7 @@ class EstimatorConfig:
     clip_sigma: float = 3.0
     start_fraction: float = 0.25
     max_shot_ratio: float = 0.0
+    block: int = 3
 
 
 @dataclass(frozen=True)
@@ -264,11 +268,12 @@ class _PhaseData:
     region_limit: np.ndarray
 
 
-def _block_lines(first: int, stop: int, period: int, stride: int) -> np.ndarray:
-    """Rows (or columns) of 3-tile blocks: centres every ``stride`` tiles from the second tile line on,
-    each with the tile lines before and after it; int64 (3 B,), grouped by block."""
-    centres = np.arange(first + period, stop - period, period * stride)
-    return (centres[:, None] + period * np.array([-1, 0, 1])[None, :]).ravel()
+def _block_lines(first: int, stop: int, period: int, stride: int, side: int) -> np.ndarray:
+    """Rows (or columns) of blocks ``side`` tiles wide (odd): centres every ``stride`` tiles, each with the
+    tile lines around it; int64 (side B,), grouped by block."""
+    half = side // 2
+    centres = np.arange(first + half * period, stop - half * period, period * stride)
+    return (centres[:, None] + period * np.arange(-half, half + 1)[None, :]).ravel()
 
 
 def _gather(source: np.ndarray, offset: float, pixel_map: np.ndarray | None, tile_e: np.ndarray,
@@ -289,19 +294,20 @@ def _gather(source: np.ndarray, offset: float, pixel_map: np.ndarray | None, til
     if not phases:
         return []
     tiles = (h // ph) * (w // pw)
-    # each block holds 9 tiles; one block per stride x stride tiles
-    stride = max(3, int(math.ceil(math.sqrt(9 * tiles * len(phases) / config.max_samples))))
+    side = config.block
+    # each block holds side^2 tiles; one block per stride x stride tiles
+    stride = max(side, int(math.ceil(math.sqrt(side * side * tiles * len(phases) / config.max_samples))))
     out = []
     for a, b, groups in phases:
         first_y = a + ph * (-(-(reach - a) // ph)) if a < reach else a
         first_x = b + pw * (-(-(reach - b) // pw)) if b < reach else b
-        rows = _block_lines(first_y, h - reach, ph, stride)
-        cols = _block_lines(first_x, w - reach, pw, stride)
+        rows = _block_lines(first_y, h - reach, ph, stride, side)
+        cols = _block_lines(first_x, w - reach, pw, stride, side)
         if rows.size == 0 or cols.size == 0:
             continue
-        by, bx = rows.size // 3, cols.size // 3
+        by, bx = rows.size // side, cols.size // side
         block = (np.arange(by)[:, None, None, None] * bx + np.arange(bx)[None, None, :, None])
-        block = np.broadcast_to(block, (by, 3, bx, 3)).ravel()
+        block = np.broadcast_to(block, (by, side, bx, side)).ravel()
 
         def at(dy: int, dx: int) -> np.ndarray:
             values = signal[np.ix_(rows + dy, cols + dx)].astype(np.float64).ravel()
