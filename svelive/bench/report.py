@@ -229,8 +229,8 @@ def plot_grid(results: dict[str, object], path: Path) -> None:
     sensors = list(dict.fromkeys(r["sensor"] for r in rows))
     lines = list(dict.fromkeys((r["image"], r["pattern"]) for r in rows))
     columns = list(dict.fromkeys((r["stops"], r["model"]) for r in rows))
-    fig, axes = plt.subplots(len(sensors), 2, figsize=(2 + 0.22 * len(columns) * 2, 1.2 + 0.2 * len(lines) * len(sensors)),
-                             squeeze=False)
+    size = (2 + 0.44 * len(columns), 1.2 + 0.2 * len(lines) * len(sensors))
+    fig, axes = plt.subplots(len(sensors), 2, figsize=size, squeeze=False)
     for i, sensor in enumerate(sensors):
         for j, metric in enumerate(("pu21", "log")):
             margin = np.full((len(lines), len(columns)), np.nan)

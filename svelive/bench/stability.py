@@ -412,7 +412,8 @@ def run_stability(settings: list[Setting] | None = None, colour: bool = True) ->
 
 # ----- the default's guard grid (issue 12): the default against aggregate and weighted in every cell -----
 
-#: Patterns of the grid: both 2x2 tiles, the line-interleaved one and a 3x3 tile (each row and column holds every exposure).
+#: Patterns of the grid: both 2x2 tiles, the line-interleaved one and a 3x3 tile (each row and column holds
+#: every exposure).
 GRID_PATTERNS: tuple[str, ...] = ("1,4/16,64", "1,2/4,8", "1/1/8/8", "1,4,16/16,1,4/4,16,1")
 #: Light: stops by which the scene's 99.9th percentile lies below the lowest exposure's full scale.
 GRID_STOPS: tuple[float, ...] = (0.0, 3.0, 5.0, 7.0)
@@ -440,7 +441,8 @@ class TrueSensor:
 
 
 #: The true sensors: the issue's (10 000 e- full well, read noise 2 DN) and a small-pixel one (3 000 e-, 4 DN).
-GRID_SENSORS: tuple[TrueSensor, ...] = (TrueSensor("10000e-/2DN", 10_000.0, 2.0), TrueSensor("3000e-/4DN", 3_000.0, 4.0))
+GRID_SENSORS: tuple[TrueSensor, ...] = (TrueSensor("10000e-/2DN", 10_000.0, 2.0),
+                                        TrueSensor("3000e-/4DN", 3_000.0, 4.0))
 
 
 @dataclass(frozen=True)
@@ -556,7 +558,8 @@ def markdown_grid(summary: dict[str, object]) -> str:
              "| method | mean PU21-PSNR | mean log-PSNR |", "|---|---:|---:|"]
     for m in (d, *GRID_RIVALS):
         lines.append(f"| {m} | {means[f'{m}_pu21']:.2f} | {means[f'{m}_log']:.2f} |")
-    lines += ["", "| image | pattern | stops | sensor | model | margin PU21 | margin log |", "|---|---|---:|---|---|---:|---:|"]
+    lines += ["", "| image | pattern | stops | sensor | model | margin PU21 | margin log |",
+              "|---|---|---:|---|---|---:|---:|"]
     for r in summary["worst"]:
         lines.append(f"| {r['image']} | {r['pattern']} | {r['stops']:g} | {r['sensor']} | {r['model']} |"
                      f" {r['margin_pu21']:+.2f} | {r['margin_log']:+.2f} |")
