@@ -14,6 +14,7 @@ from svelive.reconstruction import Reconstructor
 from service.pipeline.calibration import Calibration
 from service.pipeline.frames import Published
 from service.pipeline.meters import DropCounter, LatencyWindow, NewestSlot, RateMeter
+from service.pipeline.noise import NoiseStage
 
 
 class ReconstructionStage:
@@ -26,7 +27,9 @@ class ReconstructionStage:
     result as the newest :class:`Published`, under ``cond``, which it notifies (the
     encoder waits on it). ``method`` may be changed at run time (under ``cond``).
     The confidence map is not computed: nothing in the live path reads it, and at
-    1920x1200 it costs several ms per frame.
+    1920x1200 it costs several ms per frame. A camera whose gain or read noise is
+    unknown gets them from ``noise`` (:class:`NoiseStage`, its own thread), which
+    this loop feeds with the frames and motion masks it made.
     """
 
     def __init__(self, slot: NewestSlot, calibration: Calibration, method: str | None, temporal: bool, workers: int,
@@ -44,6 +47,7 @@ class ReconstructionStage:
         self.error: str | None = None
         self.reconstructed = RateMeter()
         self.latency = {name: LatencyWindow() for name in ("queue", "reconstruct", "arrival_to_hdr")}
+        self.noise = NoiseStage(stop)
 
     def latest(self) -> Published | None:
         """The newest reconstructed frame (an immutable record), or None before the first."""
@@ -63,6 +67,7 @@ class ReconstructionStage:
         """The reconstruction thread: until ``stop`` is set."""
         current: tuple[tuple, Reconstructor] | None = None
         seq = 0
+        self.noise.start()
         try:
             while not self._stop.is_set():
                 frame: Frame | None = self._slot.get(timeout=0.2)
@@ -70,7 +75,8 @@ class ReconstructionStage:
                     continue
                 start_ns = time.monotonic_ns()
                 try:
-                    camera = self._calibration.apply(frame.camera)
+                    calibrated = self._calibration.apply(frame.camera)
+                    camera = self.noise.camera_for(calibrated)
                     current = self._reconstructor(current, camera, self.method)
                     result = current[1].process(frame.raw)
                 except Exception as exc:
@@ -87,6 +93,7 @@ class ReconstructionStage:
                                host_time_ns=frame.host_time_ns, device_time_ns=frame.device_time_ns,
                                method=result.method, motion=result.motion, timings_ms=timings, camera=camera)
                 self.motion_fraction = float(np.count_nonzero(result.motion)) / result.motion.size
+                self.noise.offer(frame, calibrated, result.motion)
                 seq += 1
                 published = Published(hdr, seq, done_ns)
                 self.reconstructed.tick(done_ns)
@@ -97,5 +104,6 @@ class ReconstructionStage:
                     self._latest = published
                     self._cond.notify_all()
         finally:
+            self.noise.join(0.5)
             if current is not None:
                 current[1].close()

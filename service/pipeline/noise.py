@@ -1,0 +1,128 @@
+"""The live noise model: gain and read noise of a camera that was not told them, refined over the stream.
+
+The reconstruction thread offers each frame it reconstructed (a reference, no copy);
+every ``interval_s`` a pair of consecutive frames is handed to this stage's own
+thread, which adds them to a :class:`svelive.noise.NoiseTracker`: the first frame's
+single-frame samples, and the differences of the pixels the motion tests found
+static between the two (texture-free). The reconstruction uses the estimate once
+it has moved from the one in use by more than ``change`` (relative) and more than
+its own standard error: every change starts a new Reconstructor, and so restarts
+temporal fusion, so it must be rare.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from svelive.camera import Camera
+from svelive.frame import Frame
+from svelive.noise import NoiseEstimate, NoiseTracker
+
+
+@dataclass(frozen=True)
+class _Pair:
+    first: Frame
+    second: Frame
+    static: np.ndarray  # bool (H, W): pixels the motion tests found static in the second frame
+    camera: Camera
+
+
+class NoiseStage:
+    """A noise-model thread beside the reconstruction: :meth:`offer` frames, read :meth:`camera_for` and :meth:`state`."""
+
+    def __init__(self, stop: threading.Event, interval_s: float = 5.0, change: float = 0.05) -> None:
+        self._stop = stop
+        self.interval_s = interval_s
+        self.change = change
+        self._tracker = NoiseTracker()
+        self._cond = threading.Condition()
+        self._pending: _Pair | None = None
+        self._previous: tuple[Frame, Camera] | None = None
+        self._last_offer = -math.inf
+        self._estimate: NoiseEstimate | None = None
+        self._applied: NoiseEstimate | None = None
+        self._applied_key: Camera | None = None
+        self.updates = 0
+        self.error: str | None = None
+        self._thread: threading.Thread | None = None
+
+    @staticmethod
+    def needed(camera: Camera) -> bool:
+        """True when the camera's gain or read noise is unknown."""
+        return camera.sensor.gain is None or camera.sensor.read_noise is None
+
+    def camera_for(self, camera: Camera) -> Camera:
+        """``camera`` with the estimate in use filled in where its sensor has no gain or read noise."""
+        applied = self._applied
+        if applied is None or not self.needed(camera) or self._applied_key != camera:
+            return camera
+        return camera.replace(sensor=applied.apply(camera.sensor))
+
+    def offer(self, frame: Frame, camera: Camera, motion: np.ndarray | None) -> None:
+        """The reconstruction thread, after each frame: ``camera`` as calibrated (before :meth:`camera_for`)."""
+        if not self.needed(camera):
+            self._previous = None
+            return
+        previous, self._previous = self._previous, (frame, camera)
+        now = time.monotonic()
+        if (previous is None or motion is None or previous[1] != camera or frame.frame_id != previous[0].frame_id + 1
+                or now - self._last_offer < self.interval_s):
+            return
+        self._last_offer = now
+        with self._cond:
+            self._pending = _Pair(previous[0], frame, ~np.asarray(motion, bool), camera)
+            self._cond.notify()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="svelive-noise", daemon=True)
+        self._thread.start()
+
+    def join(self, timeout: float) -> None:
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with self._cond:
+                if self._pending is None:
+                    self._cond.wait(0.5)
+                pair, self._pending = self._pending, None
+            if pair is None:
+                continue
+            try:
+                self._tracker.update(pair.first.raw, pair.camera)
+                estimate = self._tracker.update(pair.second.raw, pair.camera, pair.static)
+            except Exception as exc:  # a frame the estimator cannot use: say so, keep the estimate in use
+                self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                continue
+            self.error = None
+            self.updates += 1
+            self._estimate = estimate
+            if self._applied_key != pair.camera or self._moved(estimate, self._applied):
+                self._applied, self._applied_key = estimate, pair.camera
+
+    def _moved(self, new: NoiseEstimate, old: NoiseEstimate | None) -> bool:
+        if old is None:
+            return True
+        for value, before, sigma in ((new.gain, old.gain, new.gain_sigma),
+                                     (new.read_noise, old.read_noise, new.read_noise_sigma)):
+            step = abs(value - before)
+            if step > self.change * max(abs(before), 1e-9) and step > (sigma or 0.0):
+                return True
+        return False
+
+    def state(self) -> dict | None:
+        """For /api/state: the newest estimate, the one in use, and how many frame pairs made it; None when the
+        camera's noise model is given (or before the first estimate)."""
+        estimate, applied = self._estimate, self._applied
+        if estimate is None:
+            return None
+        return {**estimate.to_dict(), "in_use": None if applied is None else applied.to_dict(),
+                "pairs": self.updates, "error": self.error}

@@ -1,0 +1,65 @@
+"""The live noise model: a camera not told its gain and read noise gets them from its own frames."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from svelive import Sensor
+from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.pattern import Pattern
+
+from service.pipeline import Pipeline, PipelineConfig
+from tests.test_service_helpers import PATTERN, Camera, SimSource
+
+TRUE = Sensor.from_full_well(12, 6_000, 6)  # gain 1.47 e-/DN, read noise 4.1 DN: far from the defaults
+
+
+class UntoldSource(SimSource):
+    """The simulated camera, its sensor's levels known but not its gain and read noise."""
+
+    def __init__(self, camera: Camera) -> None:
+        super().__init__(camera)
+        self.camera = self.camera.replace(sensor=dataclasses.replace(self.camera.sensor, gain=None, read_noise=None))
+
+
+def static_camera(n: int = 8) -> Camera:
+    """A still view: the same scene in every frame, new noise each time (the true sensor)."""
+    pattern = Pattern.parse(PATTERN)
+    scene = load_sample_scene("desk")[:192, :224]
+    scene = np.maximum(scene, 0) * exposure_scale(scene, pattern, TRUE, stops_below_fill=2)
+    rng = np.random.default_rng(3)
+    return Camera(fps=20, raws=[simulate(np.ascontiguousarray(scene), pattern, TRUE, seed=rng).raw for _ in range(n)])
+
+
+def test_the_live_service_estimates_and_uses_the_noise_model():
+    config = PipelineConfig(source="sim", temporal=True, offline_after_s=0.6, retry_s=0.2)
+    pipeline = Pipeline(config, lambda: UntoldSource(static_camera()))
+    pipeline.reconstruction.noise.interval_s = 0.3
+    with pipeline:
+        deadline = time.monotonic() + 60
+        while (pipeline.reconstruction.noise.updates < 4 or pipeline.latest() is None
+               or pipeline.latest().hdr.camera.sensor.gain is None):
+            assert time.monotonic() < deadline, f"no estimate in use: {pipeline.reconstruction.noise.state()}"
+            time.sleep(0.1)
+        state = pipeline.reconstruction.noise.state()
+        used = pipeline.latest().hdr.camera.sensor
+    assert state["source"] != "given" and state["pairs"] >= 4 and state["in_use"] is not None
+    # the read noise is what the weights need most; the defaults (3 e- at 10 000 e- full well) say 1.2 DN
+    assert abs(used.read_noise - TRUE.read_noise) < 0.15 * TRUE.read_noise, (used, TRUE)
+    assert abs(used.gain - TRUE.gain) < 0.3 * TRUE.gain, (used, TRUE)
+
+
+def test_a_given_noise_model_is_never_replaced():
+    config = PipelineConfig(source="sim", temporal=True, offline_after_s=0.6, retry_s=0.2)
+    pipeline = Pipeline(config, lambda: SimSource(static_camera(4)))
+    pipeline.reconstruction.noise.interval_s = 0.1
+    with pipeline:
+        deadline = time.monotonic() + 30
+        while pipeline.reconstructed.count < 10:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert pipeline.reconstruction.noise.state() is None
+        assert pipeline.latest().hdr.camera.sensor == SimSource(static_camera(1)).camera.sensor
