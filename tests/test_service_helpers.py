@@ -141,7 +141,8 @@ class ServerThread:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        shutdown_streams = getattr(self.app.state, "shutdown_streams", None)
+        app = getattr(self, "app", None) or self.server.config.app
+        shutdown_streams = getattr(app.state, "shutdown_streams", None)
         if shutdown_streams is not None:  # what a SIGTERM does first in `svelive serve`
             shutdown_streams()
         self.server.should_exit = True
