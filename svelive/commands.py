@@ -19,6 +19,7 @@ from svelive.errors import SveliveError
 from svelive.exr import LUMA_WEIGHTS, image_channels, read_luminance, read_rgb, standard_attributes, write_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
     dynamic_range_stops, unique_levels
+from svelive.reconstruction.input import prepare, with_noise_model
 from svelive.reconstruction.single import methods, reconstruct
 from svelive.sensor import Sensor, container_bits
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
@@ -70,6 +71,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=methods(), help=f"default: {methods()[0]}")
     p.add_argument("--confidence", action="store_true", help="also write a 'confidence' channel")
     p.add_argument("--half", action="store_true", help="write half floats instead of float32")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="print the noise model used (given, or estimated from the frame with its uncertainty)")
     add_colour_arguments(p)
     p.add_argument("-o", "--output", type=Path, required=True, help="output .exr")
     p.set_defaults(func=_reconstruct)
@@ -269,13 +272,18 @@ def _reconstruct(args: argparse.Namespace) -> int:
     # one camera: the input preparation applies the response and the per-pixel map (svelive.reconstruction.input)
     camera = camera.replace(pattern=pattern, sensor=sensor, response=response)
     method = args.method or methods()[0]
-    image, confidence = reconstruct(raw, camera, method=args.method, return_confidence=True)
+    # the noise model: given, or estimated from this frame once (and named in the EXR and with -v)
+    noise = with_noise_model(raw, camera, prepare(raw, camera))[2]
+    image, confidence = reconstruct(raw, camera, method=args.method, noise=noise, return_confidence=True)
     channels, colour = colour_exr(image, settings, confidence > 0)
     if args.confidence:
         channels["confidence"] = confidence
-    write_exr(args.output, channels, standard_attributes(camera, method, extra=colour), half=args.half)
+    write_exr(args.output, channels, standard_attributes(camera, method, extra={**noise.attributes(), **colour}),
+              half=args.half)
     kind = "" if camera.cfa is None else f", RGB ({settings.output_space})"
     print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}{kind}, method {method})")
+    if args.verbose:
+        print(noise.describe())
     return 0
 
 

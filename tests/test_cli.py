@@ -219,3 +219,19 @@ def test_reconstruct_sequence_of_a_bayer_recording_writes_rgb(tmp_path, temporal
     rgb = np.dstack([channels[c] for c in "RGB"])
     assert rgb.shape == (64, 96, 3) and np.all(np.isfinite(rgb)) and rgb.min() >= 0
     assert channels["motion"].shape == (64, 96) and channels["confidence"].shape == (64, 96)
+
+
+def test_reconstruct_names_the_noise_model_it_used(raw_png, tmp_path):
+    out = svelive("reconstruct", raw_png, "--pattern", "1,4/16,64", "--black-level", "64", "--white-level", "4095",
+                  "-v", "-o", tmp_path / "est.exr")
+    assert out.returncode == 0, out.stderr
+    line = out.stdout.strip().splitlines()[-1]
+    assert line.startswith("noise (") and "e-/DN" in line, out.stdout
+    _, header = read_exr(tmp_path / "est.exr")
+    assert header["noiseSource"] in ("estimated", "default") and header["noiseGain"] > 0
+    given = svelive("reconstruct", raw_png, "--pattern", "1,4/16,64", "--black-level", "64", "--white-level", "4095",
+                    "--gain", "2.5", "--read-noise", "1.5", "-v", "-o", tmp_path / "given.exr")
+    assert given.returncode == 0, given.stderr
+    assert "noise (given): gain 2.5 e-/DN, read noise 1.5 DN" in given.stdout
+    _, header = read_exr(tmp_path / "given.exr")
+    assert header["noiseSource"] == "given" and header["noiseGain"] == 2.5 and header["noiseReadNoise"] == 1.5
