@@ -6,7 +6,7 @@ import pytest
 
 from svelive import Sensor, simulate
 from svelive.reconstruction.methods import adaptive
-from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
+from svelive.reconstruction.methods.base import binomial_kernel, censored_lower_bound, fill_lower_bounds, smooth
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 
@@ -54,7 +54,21 @@ def _reference(inp):
     # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L >= 0
     weight_m = f32(1) / (var_m + bias2)
     total = w + weight_m
-    image = _nonnegative((w * x + weight_m * m) / total, total)
+    estimate = (w * x + weight_m * m) / total
+    image = _nonnegative(estimate, total)
+    # within 2 deviations of 0: the wide window's shot-noise estimate, where it is more precise
+    wide = binomial_kernel(adaptive.WIDE)
+    square = wide * wide
+    signal_sum, exposure_sum_wide = smooth(s_valid, wide, wide), smooth(e_valid, wide, wide)
+    level = signal_sum / np.where(exposure_sum_wide > 0, exposure_sum_wide, f32(1))
+    wide_variance = ((smooth(e_valid, square, square) * np.maximum(level, 0) * gain_inv
+                      + floor * smooth((e_valid > 0).astype(f32), square, square))
+                     / np.where(exposure_sum_wide > 0, exposure_sum_wide, f32(1)) ** 2)
+    unresolved = ~((estimate > 0) & (estimate * estimate * total >= f32(adaptive.CONTRAST_SIGMA) ** 2))
+    use = unresolved & (exposure_sum_wide > 0) & (wide_variance * total < 1)
+    wide_total = f32(1) / np.maximum(wide_variance, tiny)
+    image = np.where(use, _nonnegative(level, wide_total), image)
+    total = np.where(use, wide_total, total)
     # every reading of the window at raw 0: 0
     bottom = cv2.erode((s <= -inp.sensor.black_level).astype(np.uint8), np.ones(window, np.uint8),
                        borderType=cv2.BORDER_REFLECT_101).astype(bool)

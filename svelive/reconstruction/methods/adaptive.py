@@ -101,7 +101,7 @@ def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1) -> Estimate:
     """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
     ky, kx = kernels(inp.pattern.shape)
-    halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
+    halo = max(3 * (max(len(ky), len(kx)) // 2), WIDE // 2)  # pilot, neighbour estimate, bias: three windows deep
     return in_strips(_run, inp, halo, rows=64, workers=workers, return_variance=return_variance,
                      noise=noise_model(inp))
 
@@ -112,6 +112,9 @@ EVIDENCE_ROWS = 32
 #: value there: a low quantile, so that texture (which only adds to a difference) moves it little, and not lower,
 #: where integer readings' differences of 0 would take over.
 EVIDENCE_QUANTILE, CHI2_1_AT_QUANTILE = 0.25, 0.10153104
+#: Side of the wide window (binomial) whose estimate replaces a result within CONTRAST_SIGMA deviations of 0
+#: (:func:`_wide_window`).
+WIDE = 9
 #: Largest window (taps) whose censored pixels are visited one by one (:func:`_censored_pixels`): measured, a 3x3
 #: window's visits beat the per-level window sums at any share of censored pixels, a 5x3 one's did not.
 DIRECT_TAPS = 9
@@ -268,7 +271,11 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
 
     # Minimum-mean-square blend of the own reading and the neighbour estimate.
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial())
+    dark = _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square,
+                  posterior_polynomial())
+    if dark > 0:  # where the window cannot tell the level from 0: the wide window's estimate
+        readings = (s_valid, e_valid) if any_censored else (s, e)
+        _wide_window(readings, gain_inv, floor, image, var_m, total)
     _zero_at_the_bottom(s, -f32(inp.sensor.black_level), (len(ky), len(kx)), image)
 
     if any_censored:
@@ -276,6 +283,50 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     variance = np.divide(f32(1.0), total) if want_variance else None
     fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance)
     return image, lower, variance, np.divide(w, total) if want_share else None
+
+
+def _wide_window(readings: tuple[np.ndarray, np.ndarray], gain_inv: np.float32, floor: np.float32,
+                 image: np.ndarray, estimate: np.ndarray, information: np.ndarray) -> None:
+    """Where the result is not 2 deviations from 0 (z < CONTRAST_SIGMA), the wide window's estimate, in place.
+
+    A 3x3 window cannot tell a level far below its noise from 0; the shot-noise
+    maximum-likelihood estimate over a binomial window of WIDE x WIDE,
+    L_w = sum G s / sum G e (uncensored readings), has the variance
+    (sum G^2 e L_w / g + sigma^2 sum G^2) / (sum G e)^2. Where the pixel's own
+    estimate (``estimate``, information ``information``, both float32 (H, W)) is
+    within CONTRAST_SIGMA deviations of 0 and the wide one is more precise, the
+    result becomes the wide one's (:func:`_posterior`) and ``information`` its.
+    ``readings``: s and e, censored ones 0.
+    """
+    s, e = readings
+    wide = binomial_kernel(WIDE)
+    square = wide * wide
+    sums = [smooth(s, wide, wide), smooth(e, wide, wide), smooth(e, square, square),
+            smooth((e > 0).view(np.uint8).astype(np.float32), square, square)]
+    _widen(*flat(*sums, image, estimate, information), gain_inv, floor, np.float32(CONTRAST_SIGMA),
+           posterior_polynomial())
+
+
+@kernel
+def _widen(signal_sum, exposure_sum, square_exposure_sum, square_count, image, estimate, information, gain_inv,
+           floor, sigmas, coefficients):
+    """:func:`_wide_window`'s per-pixel rule, flat arrays."""
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    for k in range(image.size):
+        t = information[k]
+        own = estimate[k]
+        if own > zero and own * own * t >= sigmas * sigmas:
+            continue
+        total_e = exposure_sum[k]
+        if total_e <= zero:
+            continue
+        level = signal_sum[k] / total_e
+        variance = (square_exposure_sum[k] * max(level, zero) * gain_inv + floor * square_count[k]) / (total_e * total_e)
+        if variance * t >= one:
+            continue  # not more precise than the pixel's own estimate
+        wide_t = one / max(variance, tiny)
+        image[k] = _posterior(level, wide_t, coefficients)
+        information[k] = wide_t
 
 
 def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
@@ -400,6 +451,7 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients):
         dark += (estimate <= zero) | (estimate * estimate * t < high)
     if dark > 0:
         _nonnegative(image, var_m, total, coefficients)
+    return dark
 
 
 #: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step. From
@@ -467,6 +519,14 @@ def _nonnegative(image, estimate, information, coefficients):
     z = 4, 0.5 % at z = 10); from POSTERIOR_HIGH up, the estimate itself. g = b(z) P(u)
     (:func:`posterior_polynomial`, ``coefficients``); without branches, so that LLVM vectorises it.
     """
+    for k in range(image.size):
+        image[k] = _posterior(estimate[k], information[k], coefficients, image[k])
+
+
+@kernel
+def _posterior(estimate, information, coefficients, beyond=np.float32(np.nan)):
+    """sigma g(z) of :func:`_nonnegative` for one estimate; ``beyond`` where z >= POSTERIOR_HIGH (NaN: the estimate).
+    Branch-free apart from that choice, so loops calling it vectorise."""
     zero, half, tiny = np.float32(0.0), np.float32(0.5), np.float32(TINY)
     high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * TAIL)
     # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 16
@@ -475,15 +535,15 @@ def _nonnegative(image, estimate, information, coefficients):
                                           coefficients[8])
     p9, p10, p11, p12, p13, p14, p15, p16 = (coefficients[9], coefficients[10], coefficients[11], coefficients[12],
                                              coefficients[13], coefficients[14], coefficients[15], coefficients[16])
-    for k in range(image.size):
-        root_t = np.sqrt(max(information[k], tiny))
-        z = estimate[k] * root_t
-        r = np.sqrt(z * z + c4)
-        base = (z + r) * half if z > zero else c4 * half / (r - z)
-        u = z / r
-        p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
-                      + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
-        image[k] = base * p / root_t if z < high else image[k]
+    root_t = np.sqrt(max(information, tiny))
+    z = estimate * root_t
+    r = np.sqrt(z * z + c4)
+    base = (z + r) * half if z > zero else c4 * half / (r - z)
+    u = z / r
+    p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
+                  + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
+    otherwise = estimate if np.isnan(beyond) else beyond
+    return base * p / root_t if z < high else otherwise
 
 
 def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarray, ky: np.ndarray,
