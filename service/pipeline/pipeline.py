@@ -227,7 +227,8 @@ class Pipeline:
             "fps": {"captured": round(self.captured.rate(), 2), "reconstructed": round(self.reconstructed.rate(), 2),
                     "encoded": round(self.encoded.rate(), 2)},
             "frames": {"captured": self.captured.count, "reconstructed": self.reconstructed.count,
-                       "encoded": self.encoded.count,
+                       "encoded": self.encoded.count, "tone_mapped": self.encoder.previews.count,
+                       "not_watched": self.encoder.not_watched,
                        "last_frame_id": None if latest is None else latest.hdr.frame_id},
             "drops": drops,
             "dropped": sum(drops.values()),
@@ -252,6 +253,7 @@ class Pipeline:
             "jpeg_quality": self.encoder.jpeg_quality,
             "preview_width": self.config.preview_width,
             "watchers": watchers,
+            "preview_watchers": self.encoder.preview_watchers,
             "opencv_threads": cv2.getNumThreads(),
             "uptime_s": round((time.monotonic_ns() - self._started_ns) / 1e9, 1),
         }
