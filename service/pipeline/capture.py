@@ -126,7 +126,7 @@ class CaptureStage:
         return self.status()["error"]
 
     def status(self) -> dict[str, Any]:
-        """The source's state for /api/state: ``state`` (online, offline, ended, starting), ``online``,
+        """The source's state for /api/state: ``state`` (online, offline, ended), ``online``,
         ``error`` (why it is offline, one line; None while online), ``since`` (Unix time of the last
         change: the first frame of the current run of frames, or the last frame before an outage, or
         the start), ``for_s`` (seconds since then), ``reconnects``."""
@@ -136,7 +136,7 @@ class CaptureStage:
         if online:
             state, error, since_ns = "online", None, self._online_since_ns
         else:
-            state = "ended" if self.state == "ended" else ("starting" if self.state == "starting" else "offline")
+            state = "ended" if self.state == "ended" else "offline"
             since_ns = self._last_frame_ns if self._last_frame_ns is not None else self._started_ns
             error = self._offline_reason(stats, now_ns) if state != "ended" else None
         since_ns = self._started_ns if since_ns is None else since_ns
