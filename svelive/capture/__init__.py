@@ -3,8 +3,8 @@
 ``open_source(spec, **opts)`` builds a :class:`Source` from a spec string:
 
 =====================  =====================================================
-``gige[:DEVICE_ID]``   GigE Vision camera through Aravis (first one, or by id,
-                       serial, or IP address)
+``gige[:DEVICE_ID]``   GigE Vision camera through Aravis (the first one found,
+                       opened by its address, or by id, serial, or IP address)
 ``v4l2:/dev/videoN``   V4L2 device through OpenCV in raw mode
 ``images:GLOB_OR_DIR`` 8/16-bit PNG, TIFF or PGM files in name order
 ``replay:PATH``        an svelive recording
