@@ -22,6 +22,7 @@ from replay.container import (
     FOOTER, FOOTER_MAGIC, INDEX_HEADER, INDEX_MAGIC, NO_TIME, RECORD_ALIGN, RECORD_HEADER, RECORD_MAGIC,
     Layout, RecordingError, crc32, encode_header,
 )
+from svelive.atomic import check_output_target
 from svelive.capture import formats
 from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
@@ -74,6 +75,7 @@ class RecordingWriter:
             raise RecordingError(f"{self.path}: folder {self.path.parent} does not exist")
         if self.path.exists() and not self.config.overwrite:
             raise RecordingError(f"{self.path}: already exists (use --overwrite to replace it)")
+        check_output_target(self.path)  # --overwrite replaces a regular file, never a device, FIFO or link
 
     @property
     def frames(self) -> int:
@@ -124,6 +126,7 @@ class RecordingWriter:
         self._sensor = frame.sensor
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
         if self.config.overwrite:
+            check_output_target(self.path)
             try:
                 os.unlink(self.path)
             except FileNotFoundError:

@@ -24,7 +24,7 @@ from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
 from svelive.commands import add_colour_arguments, colour_settings, parse_cfa
 from svelive.errors import SveliveError
-from svelive.exr import write_exr
+from svelive.exr import standard_attributes, write_exr
 from svelive.frame import Frame
 from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
@@ -158,10 +158,9 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
             if result.image.ndim == 3:
                 balance = balancer.update(result.image, frame_time_ns(frame, n), ~result.lower_bound)
             channels, colour = exr_output(result.image, balance, settings)
-            attributes = {"svelive_method": result.method, "svelive_pattern": str(camera.pattern),
-                          "svelive_moving_fraction": f"{result.moving_fraction:.6f}", **colour}
-            if camera.cfa is not None:
-                attributes["cfa"] = camera.cfa.name
+            attributes = standard_attributes(camera, result.method, frame_id=getattr(frame, "frame_id", n),
+                                             timestamp=frame_time_ns(frame, n) / 1e9,
+                                             extra={"movingFraction": f"{result.moving_fraction:.6f}", **colour})
             args.output.mkdir(parents=True, exist_ok=True)
             write_exr(args.output / f"frame_{n:06d}.exr",
                       {**channels, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},

@@ -390,7 +390,7 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
     import dataclasses
 
     from replay import CorruptFrameError
-    from svelive.exr import write_exr
+    from svelive.exr import standard_attributes, write_exr
     from svelive.reconstruction.stream import Reconstructor
     from svelive.whitebalance import exr_output
 
@@ -437,11 +437,10 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
             if i < chunk.start or i in done:
                 continue
             data, colour = exr_output(result.image, balance, job.colour)
-            attributes = {"svelive_method": result.method, "svelive_pattern": str(camera.pattern),
-                          "svelive_moving_fraction": f"{result.moving_fraction:.6f}",
-                          "svelive_frame_index": i, "svelive_frame_id": frame.frame_id, **colour}
-            if camera.cfa is not None:
-                attributes["cfa"] = camera.cfa.name
+            attributes = standard_attributes(camera, result.method, frame_id=frame.frame_id,
+                                             timestamp=frame.host_time_ns / 1e9,
+                                             extra={"movingFraction": f"{result.moving_fraction:.6f}",
+                                                    "frameIndex": i, **colour})
             write_exr(frame_path(output, i),
                       {**data, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
                       attributes, half=job.half)

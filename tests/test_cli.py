@@ -195,7 +195,7 @@ def test_reconstruct_sequence_uses_the_recordings_camera_and_response(tmp_path):
         assert main(["reconstruct-sequence", "--source", f"replay:{path}", "--speed", "0", "--no-temporal",
                      "-o", str(out)]) == 0
         channels, header = read_exr(out / "frame_000001.exr")
-        assert set(channels) == {"Y", "confidence", "motion"} and header["svelive_pattern"] == str(PATTERN)
+        assert set(channels) == {"Y", "confidence", "motion"} and header["pattern"] == str(PATTERN)
         errors[name] = float(np.median(np.abs(np.log2(np.maximum(channels["Y"], 1e-3) / np.maximum(scene, 1e-3)))))
     # the response the recording carries linearises every frame; without it the gamma curve stays
     assert errors["with response"] < 0.1 < errors["linear"], errors

@@ -447,3 +447,19 @@ def test_replay_info_verify_checks_every_payload(tmp_path: Path, capsys: pytest.
     path.write_bytes(data)
     assert main(["replay-info", str(path), "--verify", "-q"]) == 1
     assert json.loads(capsys.readouterr().out)["verified"] == {"frames": 5, "intact": 4, "damaged": [3]}
+
+
+def test_record_overwrite_never_replaces_a_fifo_or_a_link(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    fifo, target, link = tmp_path / "fifo", tmp_path / "target.sverec", tmp_path / "link.sverec"
+    os.mkfifo(fifo)
+    target.write_bytes(b"keep me")
+    link.symlink_to(target)
+    for path in (fifo, link):
+        out = subprocess.run([sys.executable, "-m", "svelive.cli", "record", "--source", "demo", "-o", str(path),
+                              "--frames", "1", "--overwrite", "-q"], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert fifo.is_fifo() and link.is_symlink() and target.read_bytes() == b"keep me"
