@@ -6,7 +6,7 @@ import pytest
 
 from svelive import Sensor, simulate
 from svelive.reconstruction.methods import adaptive
-from svelive.reconstruction.methods.base import binomial_kernel, censored_lower_bound, fill_lower_bounds, smooth
+from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 
@@ -56,16 +56,18 @@ def _reference(inp):
     total = w + weight_m
     estimate = (w * x + weight_m * m) / total
     image = _nonnegative(estimate, total)
-    # within 2 deviations of 0: the wide window's shot-noise estimate, where it is more precise
-    wide = binomial_kernel(adaptive.WIDE)
-    square = wide * wide
-    signal_sum, exposure_sum_wide = smooth(s_valid, wide, wide), smooth(e_valid, wide, wide)
-    level = signal_sum / np.where(exposure_sum_wide > 0, exposure_sum_wide, f32(1))
-    wide_variance = ((smooth(e_valid, square, square) * np.maximum(level, 0) * gain_inv
-                      + floor * smooth((e_valid > 0).astype(f32), square, square))
-                     / np.where(exposure_sum_wide > 0, exposure_sum_wide, f32(1)) ** 2)
+    # within 2 deviations of 0: the wide box's shot-noise estimate, where it is more precise
+    def box(a):
+        return cv2.boxFilter(a, cv2.CV_32F, (adaptive.WIDE, adaptive.WIDE), normalize=False,
+                             borderType=cv2.BORDER_REFLECT_101)
+
+    signal_sum, exposure_sum_wide, count = box(s_valid), box(e_valid), box((e_valid > 0).astype(f32))
+    safe = np.maximum(exposure_sum_wide, tiny)
+    level = signal_sum / safe
+    wide_variance = (exposure_sum_wide * np.maximum(level, 0) * gain_inv + floor * count) / np.maximum(safe * safe, tiny)
     unresolved = ~((estimate > 0) & (estimate * estimate * total >= f32(adaptive.CONTRAST_SIGMA) ** 2))
-    use = unresolved & (exposure_sum_wide > 0) & (wide_variance * total < 1)
+    at_bottom = s <= -inp.sensor.black_level
+    use = unresolved & (exposure_sum_wide > 0) & (wide_variance * total < 1) & (box(at_bottom.astype(f32)) <= 0)
     wide_total = f32(1) / np.maximum(wide_variance, tiny)
     image = np.where(use, _nonnegative(level, wide_total), image)
     total = np.where(use, wide_total, total)
