@@ -1,4 +1,4 @@
-"""uvicorn's h11 protocol with two bounds it lacks: time to send request headers, and open connections.
+"""uvicorn's h11 protocol with two bounds it lacks: time to send a request, and open connections.
 
 Without them a client that opens connections and sends headers slowly (or never)
 holds a file descriptor each for as long as it likes. uvicorn's keep-alive timeout
@@ -11,11 +11,13 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import h11
+
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 
 class BoundedH11Protocol(H11Protocol):
-    """An H11Protocol that closes a connection whose request headers are not complete within
+    """An H11Protocol that closes a connection whose request (headers and body) is not complete within
     ``header_timeout`` seconds of connecting (or of the previous response), and refuses connections
     beyond ``max_connections``. Both are class attributes, set by :func:`bounded_protocol`."""
 
@@ -42,13 +44,14 @@ class BoundedH11Protocol(H11Protocol):
 
     def _header_timeout_expired(self) -> None:
         self._header_deadline = None
-        if self.scope is self._waiting_scope and not self.transport.is_closing():
+        if not self.transport.is_closing():
             self.transport.close()
 
     def handle_events(self) -> None:
         super().handle_events()
-        if self._header_deadline is not None and self.scope is not self._waiting_scope:
-            self._disarm_header_deadline()  # a new request's headers arrived in time
+        if (self._header_deadline is not None and self.scope is not self._waiting_scope
+                and self.conn.their_state in (h11.DONE, h11.MUST_CLOSE, h11.CLOSED)):
+            self._disarm_header_deadline()  # a new request arrived whole in time
 
     def on_response_complete(self) -> None:
         super().on_response_complete()

@@ -101,6 +101,10 @@ def parse_white_balance(value: object) -> str | tuple[float, float, float]:
     return (r, 1.0, b)
 
 
+#: Largest magnitude of a colour-matrix entry: real ones are of order 1; beyond this float32 previews overflow.
+MAX_MATRIX_ENTRY = 1000.0
+
+
 def parse_colour_matrix(value: object) -> tuple[float, ...] | None:
     """The camera -> linear Rec.709 matrix as 9 numbers, row-major, or None for none.
 
@@ -116,6 +120,8 @@ def parse_colour_matrix(value: object) -> tuple[float, ...] | None:
     numbers = _numbers(value, what)
     if len(numbers) != 9:
         raise SveliveError(f"{what}: expected 9 numbers, got {len(numbers)}")
+    if not all(abs(x) <= MAX_MATRIX_ENTRY for x in numbers):
+        raise SveliveError(f"{what}: entries must be within +-{MAX_MATRIX_ENTRY:g} (a colour matrix's are of order 1)")
     return tuple(numbers)
 
 

@@ -231,6 +231,11 @@ def test_half_sent_headers_are_cut_off_and_connections_bounded():
         slow.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # and never the blank line
         assert closed_within(slow, 5.0)
         slow.close()
+        trickle = socket.create_connection(("127.0.0.1", srv.port))  # whole headers, then a body that never ends
+        trickle.sendall(b"PUT /api/settings HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                        b"Content-Length: 100\r\n\r\n{\"jpeg")
+        assert closed_within(trickle, 5.0)
+        trickle.close()
         # a whole request in time is answered, and the connection kept alive for the next one
         with httpx.Client(base_url=srv.url, timeout=5) as client:
             assert client.get("/healthz").status_code == 200

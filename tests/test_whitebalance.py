@@ -65,6 +65,7 @@ def test_parse_colour_matrix_forms():
 @pytest.mark.parametrize("bad, words", [
     ("1,0,0,0,1,0,0,0", "expected 9 numbers"), (np.eye(2), "shape"), (np.ones((3, 4)), "shape"),
     ([1, 0, 0, 0, float("inf"), 0, 0, 0, 1], "finite"), ("1,0,0,0,1,0,0,0,x", "not a number"),
+    ([1e308, 0, 0, 0, 1, 0, 0, 0, 1], "within"),
 ])
 def test_bad_colour_matrix_is_one_line(bad, words):
     with pytest.raises(SveliveError, match=words) as info:

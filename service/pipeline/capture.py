@@ -125,6 +125,11 @@ class CaptureStage:
         """Why the source is offline (one line), None while it is online."""
         return self.status()["error"]
 
+    @property
+    def source(self) -> Source | None:
+        """The open source, None between connections."""
+        return self._source
+
     def status(self) -> dict[str, Any]:
         """The source's state for /api/state: ``state`` (online, offline, ended), ``online``,
         ``error`` (why it is offline, one line; None while online), ``since`` (Unix time of the last

@@ -118,6 +118,16 @@ class NoiseStage:
                 return True
         return False
 
+    def model_of(self, used: Camera) -> NoiseEstimate:
+        """The noise model a published frame's camera ``used`` was reconstructed with: the estimate in use,
+        the sensor's given values, or the fixed defaults (for EXR attributes)."""
+        applied, sensor = self._applied, used.sensor
+        if applied is not None and (sensor.gain, sensor.read_noise) == (applied.gain, applied.read_noise):
+            return applied
+        if sensor.gain is not None and sensor.read_noise is not None:
+            return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+        return NoiseEstimate(sensor.effective_gain, sensor.effective_read_noise, None, None, 0, "default")
+
     def state(self) -> dict | None:
         """For /api/state: the newest estimate, the one in use, and how many frame pairs made it; None when the
         camera's noise model is given (or before the first estimate)."""

@@ -159,7 +159,7 @@ class Pipeline:
         """Calibrate the response from frames at the exposure times ``times`` (a background job);
         see :meth:`service.pipeline.calibration.Calibration.start_sweep`. Returns the job."""
         # the capture stage's open source (it has no public accessor yet)
-        return self.calibration.start_sweep(times, self.capture._source, max_degree, apply)
+        return self.calibration.start_sweep(times, self.capture.source, max_degree, apply)
 
     def last_calibration(self) -> dict[str, Any] | None:
         """The result of the last successful calibration, with the newest sweep's ``job``; None if neither."""
@@ -211,18 +211,14 @@ class Pipeline:
         for cause, n in self.capture.source_drops().items():
             drops[f"source_{cause}"] = n
         capture, latest = self.capture, self.latest()
-        online = self.online()
         balance = self.encoder.white_balance(latest)  # colour frames only
         return {
             "source": {
                 "spec": self.config.source,
-                "state": "online" if online else ("ended" if capture.state == "ended" else "offline"),
-                "online": online,
-                "error": capture.error,
+                **capture.status(),
                 "width": None if latest is None else int(latest.hdr.image.shape[1]),
                 "height": None if latest is None else int(latest.hdr.image.shape[0]),
                 "pixel_format": capture.stats.get("pixel_format"),
-                "reconnects": capture.stats.get("reconnects"),
             },
             "fps": {"captured": round(self.captured.rate(), 2), "reconstructed": round(self.reconstructed.rate(), 2),
                     "encoded": round(self.encoded.rate(), 2)},

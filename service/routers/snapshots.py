@@ -6,7 +6,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from svelive.exr import exr_bytes
+from svelive.exr import exr_bytes, standard_attributes
 
 from service.routers import NO_STORE, ServedCamera
 
@@ -29,11 +29,9 @@ def router(cam: ServedCamera) -> APIRouter:
         if published is None:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)
         hdr = published.hdr
-        attributes = {"frameId": int(hdr.frame_id), "timestamp": f"{published.wall_time:.6f}",
-                      "pattern": str(published.camera.pattern), "method": hdr.method,
-                      "blackLevel": float(published.camera.sensor.black_level),
-                      "whiteLevel": float(published.camera.sensor.white_level),
-                      "units": "radiance, DN at relative exposure 1"}
+        noise = pipeline.reconstruction.noise.model_of(published.camera)
+        attributes = standard_attributes(published.camera, hdr.method, frame_id=hdr.frame_id,
+                                         timestamp=published.wall_time, extra=noise.attributes())
 
         def encode() -> bytes:  # colour conversion and compression off the event loop
             channels, colour = pipeline.exr_image(published)
