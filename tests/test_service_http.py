@@ -121,6 +121,10 @@ def _fast_reader(url: str, stop: threading.Event, counts: list[int], index: int)
 
 def test_ten_clients_and_a_slow_one_do_not_hurt_reconstruction_or_leak(server):
     baseline = server.wait_for(lambda s: s["clients"] == 0)
+    time.sleep(3.0)  # the same server without clients, for the ratio below (a shared machine's speed varies)
+    idle = server.state()
+    idle_ratio = ((idle["frames"]["reconstructed"] - baseline["frames"]["reconstructed"])
+                  / max(1, idle["frames"]["captured"] - baseline["frames"]["captured"]))
     stop = threading.Event()
     counts = [0] * 10
     slow_received = [0]
@@ -143,7 +147,8 @@ def test_ten_clients_and_a_slow_one_do_not_hurt_reconstruction_or_leak(server):
     captured = end["frames"]["captured"] - warm["frames"]["captured"]
     reconstructed = end["frames"]["reconstructed"] - warm["frames"]["reconstructed"]
     assert captured > 20
-    assert reconstructed >= 0.9 * captured, (captured, reconstructed)
+    # the clients cost the reconstruction at most 10 % of what it kept up with just before, without them
+    assert reconstructed >= 0.9 * min(idle_ratio, 1.0) * captured, (captured, reconstructed, idle_ratio)
     # every fast client got most frames; the slow one was served newest frames only (it skipped)
     sent_frames = end["frames"]["encoded"] - start["frames"]["encoded"]
     assert min(counts) >= 0.5 * sent_frames, (counts, sent_frames)
