@@ -358,3 +358,17 @@ source_options = {{ width = 128, height = 64, fps = 10 }}
             proc.kill()
             _, err = proc.communicate()
     assert f"two as RTSP on rtsp://127.0.0.1:{rtsp_port + 1}/live" in err
+
+
+def test_latency_histograms_count_every_duration():
+    from service.pipeline.meters import LatencyWindow
+
+    window = LatencyWindow()
+    for ms in (0.5, 1.0, 3.0, 40.0, 40.0, 7000.0):
+        window.add(ms)
+    buckets, total, count = window.histogram()
+    as_dict = dict(buckets)
+    assert (as_dict[1.0], as_dict[2.0], as_dict[5.0], as_dict[50.0], as_dict[5000.0]) == (2, 2, 3, 5, 5)
+    assert count == 6 and total == sum((0.5, 1.0, 3.0, 40.0, 40.0, 7000.0))
+    text = exposition(families({"c": {"frames": {}}}, {"c": {"reconstruct": window.histogram()}}), process=False)
+    assert b'svelive_stage_latency_seconds_bucket{camera="c",le="+Inf",stage="reconstruct"} 6.0' in text

@@ -5,7 +5,9 @@ Every class here is thread-safe: one thread writes, any thread reads.
 
 from __future__ import annotations
 
+import bisect
 import collections
+import itertools
 import threading
 import time
 from typing import Any
@@ -82,16 +84,29 @@ class RateMeter:
         return (len(recent) - 1) / ((recent[-1] - recent[0]) / 1e9)
 
 
+#: Upper bounds (ms) of the latency histograms' buckets (Prometheus-style, cumulative; +Inf implied).
+LATENCY_BUCKETS_MS = (1, 2, 5, 10, 20, 33, 50, 75, 100, 150, 200, 300, 500, 1000, 2000, 5000)
+
+
 class LatencyWindow:
-    """Recent durations in ms of one stage, summarised as p50 / p95 / max."""
+    """Durations in ms of one stage: the recent ones summarised as p50 / p95 / max, and all of them
+    since start counted in :data:`LATENCY_BUCKETS_MS` (for /metrics)."""
 
     def __init__(self) -> None:
         self._values: collections.deque[float] = collections.deque(maxlen=WINDOW)
         self._lock = threading.Lock()
+        self._buckets = [0] * len(LATENCY_BUCKETS_MS)
+        self._sum = 0.0
+        self._count = 0
 
     def add(self, ms: float) -> None:
         with self._lock:
             self._values.append(ms)
+            self._sum += ms
+            self._count += 1
+            index = bisect.bisect_left(LATENCY_BUCKETS_MS, ms)
+            if index < len(self._buckets):
+                self._buckets[index] += 1
 
     def summary(self) -> dict[str, float] | None:
         with self._lock:
@@ -101,6 +116,12 @@ class LatencyWindow:
         p50, p95 = np.percentile(values, [50, 95])
         return {"p50": round(float(p50), 2), "p95": round(float(p95), 2), "max": round(float(values.max()), 2),
                 "n": int(values.size)}
+
+    def histogram(self) -> tuple[list[tuple[float, int]], float, int]:
+        """(cumulative counts [(upper bound ms, count of durations <= it)], sum ms, count) since start."""
+        with self._lock:
+            counts, total, n = list(self._buckets), self._sum, self._count
+        return list(zip(map(float, LATENCY_BUCKETS_MS), itertools.accumulate(counts))), total, n
 
 
 class DropCounter:

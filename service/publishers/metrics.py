@@ -2,8 +2,8 @@
 
 A scrape takes one snapshot of every camera's state (the dict /api/state serves)
 and turns it into metric families labelled by camera; nothing is counted twice and
-nothing here keeps state of its own. Stage latencies are histograms when the
-pipeline's latency windows keep cumulative buckets (``LatencyWindow.histogram``).
+nothing here keeps state of its own. Stage latencies are histograms of the
+pipeline's latency windows' cumulative buckets (``LatencyWindow.histogram``).
 """
 
 from __future__ import annotations

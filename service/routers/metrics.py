@@ -18,8 +18,8 @@ def router(cameras: list[ServedCamera], settings: ServerSettings) -> APIRouter:
     @api.get("/metrics")
     async def metrics() -> Response:
         snapshots = {cam.name: await camera_state(cam, settings) for cam in cameras}
-        histograms = {cam.name: {stage: window.histogram() for stage, window in cam.pipeline.latency.items()
-                                 if hasattr(window, "histogram")} for cam in cameras}
+        histograms = {cam.name: {stage: window.histogram() for stage, window in cam.pipeline.latency.items()}
+                      for cam in cameras}
         body = await run_in_threadpool(lambda: exposition(families(snapshots, histograms)))
         return Response(body, media_type=CONTENT_TYPE_LATEST)
 
