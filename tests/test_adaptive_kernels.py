@@ -54,23 +54,7 @@ def _reference(inp):
     # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L >= 0
     weight_m = f32(1) / (var_m + bias2)
     total = w + weight_m
-    estimate = (w * x + weight_m * m) / total
-    image = _nonnegative(estimate, total)
-    # within 2 deviations of 0: the wide box's shot-noise estimate, where it is more precise
-    def box(a):
-        return cv2.boxFilter(a, cv2.CV_32F, (adaptive.WIDE, adaptive.WIDE), normalize=False,
-                             borderType=cv2.BORDER_REFLECT_101)
-
-    signal_sum, exposure_sum_wide, count = box(s_valid), box(e_valid), box((e_valid > 0).astype(f32))
-    safe = np.maximum(exposure_sum_wide, tiny)
-    level = signal_sum / safe
-    wide_variance = (exposure_sum_wide * np.maximum(level, 0) * gain_inv + floor * count) / np.maximum(safe * safe, tiny)
-    unresolved = ~((estimate > 0) & (estimate * estimate * total >= f32(adaptive.CONTRAST_SIGMA) ** 2))
-    at_bottom = s <= -inp.sensor.black_level
-    use = unresolved & (exposure_sum_wide > 0) & (wide_variance * total < 1) & (box(at_bottom.astype(f32)) <= 0)
-    wide_total = f32(1) / np.maximum(wide_variance, tiny)
-    image = np.where(use, _nonnegative(level, wide_total), image)
-    total = np.where(use, wide_total, total)
+    image = _nonnegative((w * x + weight_m * m) / total, total)
     # every reading of the window at raw 0: 0
     bottom = cv2.erode((s <= -inp.sensor.black_level).astype(np.uint8), np.ones(window, np.uint8),
                        borderType=cv2.BORDER_REFLECT_101).astype(bool)

@@ -72,7 +72,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import Executor
-from functools import lru_cache, partial
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -101,7 +101,7 @@ def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1) -> Estimate:
     """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
     ky, kx = kernels(inp.pattern.shape)
-    halo = max(3 * (max(len(ky), len(kx)) // 2), WIDE // 2)  # pilot, neighbour estimate, bias: three windows deep
+    halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
     return in_strips(_run, inp, halo, rows=64, workers=workers, return_variance=return_variance,
                      noise=noise_model(inp))
 
@@ -112,9 +112,6 @@ EVIDENCE_ROWS = 32
 #: value there: a low quantile, so that texture (which only adds to a difference) moves it little, and not lower,
 #: where integer readings' differences of 0 would take over.
 EVIDENCE_QUANTILE, CHI2_1_AT_QUANTILE = 0.25, 0.10153104
-#: Side of the wide window (a box) whose estimate replaces a result within CONTRAST_SIGMA deviations of 0
-#: (:func:`_wide_window`).
-WIDE = 9
 #: Largest window (taps) whose censored pixels are visited one by one (:func:`_censored_pixels`): measured, a 3x3
 #: window's visits beat the per-level window sums at any share of censored pixels, a 5x3 one's did not.
 DIRECT_TAPS = 9
@@ -271,15 +268,8 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
 
     # Minimum-mean-square blend of the own reading and the neighbour estimate.
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    dark = _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square,
-                  posterior_polynomial())
-    at_bottom = s <= -f32(inp.sensor.black_level)  # raw 0: clipped, "at most"
-    clipped = bool(at_bottom.any())
-    if dark > 0:  # where the window cannot tell the level from 0: the wide window's estimate
-        readings = (s_valid, e_valid, (e_valid > 0).view(np.uint8).astype(f32)) if any_censored else (s, e, None)
-        _wide_window(readings, at_bottom if clipped else None, gain_inv, floor, image, var_m, total)
-    if clipped:
-        _zero_at_the_bottom(at_bottom, (len(ky), len(kx)), image)
+    _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial())
+    _zero_at_the_bottom(s, -f32(inp.sensor.black_level), (len(ky), len(kx)), image)
 
     if any_censored:
         lower |= _censored_pixels(inp, image, w, x, ky, kx)
@@ -288,55 +278,15 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     return image, lower, variance, np.divide(w, total) if want_share else None
 
 
-def _wide_window(readings: tuple[np.ndarray, np.ndarray, np.ndarray | None], at_bottom: np.ndarray | None,
-                 gain_inv: np.float32, floor: np.float32, image: np.ndarray, estimate: np.ndarray,
-                 information: np.ndarray) -> None:
-    """Where the result is not CONTRAST_SIGMA deviations from 0, the wide window's estimate, in place.
-
-    A 3x3 window cannot tell a level far below its noise from 0; the shot-noise
-    maximum-likelihood estimate over a WIDE x WIDE box, L_w = sum s / sum e
-    (uncensored readings), has the variance (sum e L_w / g + n sigma^2) / (sum e)^2
-    (n readings). Where the pixel's own estimate (``estimate``, information
-    ``information``, both float32 (H, W)) is within CONTRAST_SIGMA deviations of
-    0 and the wide one is more precise, the result becomes the wide one's
-    (:func:`_posterior`) and ``information`` its. ``readings``: s and e (censored
-    ones 0) and the 0/1 map of uncensored readings, or None when all are.
-    ``at_bottom``: bool (H, W), readings at raw 0, or None: a box holding any
-    keeps the pixel's own result (clipped noise has a positive mean, which the
-    box's sums would take for signal). A box, not a binomial window: its sums
-    cost the same at any size.
-    """
-    s, e, valid = readings
-    size = (WIDE, WIDE)
-    box = partial(cv2.boxFilter, ddepth=cv2.CV_32F, ksize=size, normalize=False, borderType=cv2.BORDER_REFLECT_101)
-    count = box(valid) if valid is not None else np.full(s.shape, np.float32(WIDE * WIDE))
-    clipped = box(at_bottom.view(np.uint8).astype(np.float32)) if at_bottom is not None else np.zeros_like(s)
-    _widen(*flat(box(s), box(e), count, clipped, image, estimate, information), gain_inv, floor,
-           np.float32(CONTRAST_SIGMA), posterior_polynomial())
-
-
-@kernel
-def _widen(signal_sum, exposure_sum, count, clipped, image, estimate, information, gain_inv, floor, sigmas,
-           coefficients):
-    """:func:`_wide_window`'s per-pixel rule, flat arrays; without branches, so that LLVM vectorises it."""
-    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
-    for k in range(image.size):
-        t, own, total_e = information[k], estimate[k], exposure_sum[k]
-        level = signal_sum[k] / max(total_e, tiny)
-        variance = (total_e * max(level, zero) * gain_inv + floor * count[k]) / max(total_e * total_e, tiny)
-        unresolved = (own <= zero) | (own * own * t < sigmas * sigmas)
-        use = unresolved & (total_e > zero) & (variance * t < one) & (clipped[k] <= zero)
-        wide_t = one / max(variance, tiny)
-        value = _posterior(level, wide_t, coefficients)
-        image[k] = value if use else image[k]
-        information[k] = wide_t if use else t
-
-
-def _zero_at_the_bottom(at_bottom: np.ndarray, window: tuple[int, int], image: np.ndarray) -> None:
-    """image = 0, in place, where every reading of the window lies at the bottom of the raw range (``at_bottom``,
-    bool (H, W): raw 0, a signal of -black): clipped there, such readings say only "at most", as saturated ones say
-    "at least", and their tightest answer is 0 (a black frame stays black; :func:`_nonnegative` would lift it)."""
-    everywhere = cv2.erode(at_bottom.view(np.uint8), np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
+def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
+    """image = 0, in place, where every reading of the window lies at the bottom of the raw range (raw 0, a signal
+    of -black): clipped there, such readings say only "at most", as saturated ones say "at least", and their
+    tightest answer is 0 (a black frame stays black; :func:`_nonnegative` would lift it)."""
+    at_bottom = s <= bottom
+    if not at_bottom.any():
+        return
+    at_bottom = at_bottom.view(np.uint8)
+    everywhere = cv2.erode(at_bottom, np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
     np.copyto(image, np.float32(0), where=everywhere.view(bool))
 
 
@@ -450,7 +400,6 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients):
         dark += (estimate <= zero) | (estimate * estimate * t < high)
     if dark > 0:
         _nonnegative(image, var_m, total, coefficients)
-    return dark
 
 
 #: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step. From
@@ -518,14 +467,6 @@ def _nonnegative(image, estimate, information, coefficients):
     z = 4, 0.5 % at z = 10); from POSTERIOR_HIGH up, the estimate itself. g = b(z) P(u)
     (:func:`posterior_polynomial`, ``coefficients``); without branches, so that LLVM vectorises it.
     """
-    for k in range(image.size):
-        image[k] = _posterior(estimate[k], information[k], coefficients, image[k])
-
-
-@kernel
-def _posterior(estimate, information, coefficients, beyond=np.float32(np.nan)):
-    """sigma g(z) of :func:`_nonnegative` for one estimate; ``beyond`` where z >= POSTERIOR_HIGH (NaN: the estimate).
-    Branch-free apart from that choice, so loops calling it vectorise."""
     zero, half, tiny = np.float32(0.0), np.float32(0.5), np.float32(TINY)
     high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * TAIL)
     # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 16
@@ -534,15 +475,15 @@ def _posterior(estimate, information, coefficients, beyond=np.float32(np.nan)):
                                           coefficients[8])
     p9, p10, p11, p12, p13, p14, p15, p16 = (coefficients[9], coefficients[10], coefficients[11], coefficients[12],
                                              coefficients[13], coefficients[14], coefficients[15], coefficients[16])
-    root_t = np.sqrt(max(information, tiny))
-    z = estimate * root_t
-    r = np.sqrt(z * z + c4)
-    base = (z + r) * half if z > zero else c4 * half / (r - z)
-    u = z / r
-    p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
-                  + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
-    otherwise = estimate if np.isnan(beyond) else beyond
-    return base * p / root_t if z < high else otherwise
+    for k in range(image.size):
+        root_t = np.sqrt(max(information[k], tiny))
+        z = estimate[k] * root_t
+        r = np.sqrt(z * z + c4)
+        base = (z + r) * half if z > zero else c4 * half / (r - z)
+        u = z / r
+        p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
+                      + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
+        image[k] = base * p / root_t if z < high else image[k]
 
 
 def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarray, ky: np.ndarray,
