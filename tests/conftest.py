@@ -2,6 +2,18 @@
 
 from __future__ import annotations
 
+try:
+    # Before anything loads OpenCV and GStreamer: importing matplotlib's font code after both are
+    # loaded aborts the process (measured: `import cv2`, `Gst.init`, then `import matplotlib.font_manager`).
+    # No svelive command uses all three (bench: OpenCV + matplotlib; serve --rtsp: OpenCV + GStreamer);
+    # the test process does.
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
+except ImportError:  # the bench extra is not installed: its tests skip
+    pass
+
 import numpy as np
 import pytest
 

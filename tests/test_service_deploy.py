@@ -3,8 +3,8 @@ timeout, connection limit, tokens kept out of logs): real uvicorn servers on 127
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import os
 import signal
 import socket
 import subprocess
@@ -251,11 +251,9 @@ def test_half_sent_headers_are_cut_off_and_connections_bounded():
         assert httpx.get(f"{srv.url}/healthz", timeout=5).status_code == 200  # and the server still serves
 
 
-def test_serve_two_demo_cameras_from_a_config_file(tmp_path):
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    config = write(tmp_path / "cams.toml", f"""
+def two_demo_cameras(tmp_path, port: int) -> str:
+    """A config file serving on ``port`` a colour demo camera "one" (160x96) and a monochrome "two" (128x64)."""
+    return write(tmp_path / "cams.toml", f"""
 port = {port}
 [[cameras]]
 name = "one"
@@ -268,11 +266,14 @@ cfa = "none"
 pattern = "1,4/16,64"
 source_options = {{ width = 128, height = 64, fps = 10 }}
 """)
-    token = write(tmp_path / "token", "t0ken\n")
-    proc = subprocess.Popen([sys.executable, "-m", "svelive.cli", "serve", "--config", config, "--token-file", token],
-                            stderr=subprocess.PIPE, text=True, cwd=os.getcwd())
+
+
+@contextlib.contextmanager
+def serving(args: list[str], port: int):
+    """``svelive serve ARGS`` in a child process, once /healthz answers on ``port``; yields the process, whose
+    stderr is in ``.err`` after SIGTERM ended it."""
+    proc = subprocess.Popen([sys.executable, "-m", "svelive.cli", "serve", *args], stderr=subprocess.PIPE, text=True)
     try:
-        auth = {"Authorization": "Bearer t0ken"}
         deadline = time.monotonic() + 60
         while True:
             try:
@@ -282,19 +283,31 @@ source_options = {{ width = 128, height = 64, fps = 10 }}
                 pass
             assert proc.poll() is None and time.monotonic() < deadline, "svelive serve did not start"
             time.sleep(0.2)
+        yield proc
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            _, proc.err = proc.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, proc.err = proc.communicate()
+
+
+def test_serve_two_demo_cameras_from_a_config_file(tmp_path):
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    config = two_demo_cameras(tmp_path, port)
+    token = write(tmp_path / "token", "t0ken\n")
+    with serving(["--config", config, "--token-file", token], port) as proc:
+        auth = {"Authorization": "Bearer t0ken"}
         for name, shape in (("one", (96, 160)), ("two", (64, 128))):
             wait_state(f"http://127.0.0.1:{port}/cam/{name}/api/state",
                        lambda s: s["frames"]["reconstructed"] > 0, timeout=30, headers=auth)
             r = httpx.get(f"http://127.0.0.1:{port}/cam/{name}/snapshot.jpg", headers=auth, timeout=5)
             assert cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED).shape[:2] == shape
         assert httpx.get(f"http://127.0.0.1:{port}/cam/one/api/state", timeout=5).status_code == 401
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            _, err = proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
+    err = proc.err
     assert "/cam/two/" in err and "t0ken" not in err
 
 
@@ -309,32 +322,9 @@ def test_serve_rtsp_for_each_camera_listed_in_the_state(tmp_path):
             probe.bind(("127.0.0.1", 0))
             ports.append(probe.getsockname()[1])
     port, rtsp_port = ports[0], max(ports[1:]) + 100
-    config = write(tmp_path / "cams.toml", f"""
-port = {port}
-[[cameras]]
-name = "one"
-source = "demo"
-source_options = {{ width = 160, height = 96, fps = 10 }}
-[[cameras]]
-name = "two"
-source = "demo"
-cfa = "none"
-pattern = "1,4/16,64"
-source_options = {{ width = 128, height = 64, fps = 10 }}
-""")
-    proc = subprocess.Popen([sys.executable, "-m", "svelive.cli", "serve", "--config", config,
-                             "--rtsp", str(rtsp_port), "--token", "tok"], stderr=subprocess.PIPE, text=True)
-    try:
+    config = two_demo_cameras(tmp_path, port)
+    with serving(["--config", config, "--rtsp", str(rtsp_port), "--token", "tok"], port) as proc:
         auth = {"Authorization": "Bearer tok"}
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None and time.monotonic() < deadline, "svelive serve did not start"
-            time.sleep(0.2)
         for index, (name, shape) in enumerate((("one", (96, 160)), ("two", (64, 128)))):
             state = wait_state(f"http://127.0.0.1:{port}/cam/{name}/api/state",
                                lambda s: s["frames"]["reconstructed"] > 0, timeout=30, headers=auth)
@@ -350,13 +340,7 @@ source_options = {{ width = 128, height = 64, fps = 10 }}
             assert refused.returncode != 0 and b"401" in refused.stderr
         metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", headers=auth, timeout=5).text
         assert 'svelive_clients{camera="two",kind="rtsp"}' in metrics
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            _, err = proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
+    err = proc.err
     assert f"two as RTSP on rtsp://127.0.0.1:{rtsp_port + 1}/live" in err
 
 
