@@ -17,8 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dataclasses import replace
-
 from svelive.camera import Camera, camera_for_raw
 from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
@@ -113,10 +111,7 @@ def camera_of(frame: np.ndarray | Frame, args: argparse.Namespace) -> Camera:
                                 white_level=args.white_level)
     camera.require_pattern()
     if args.gain is not None or args.read_noise is not None:
-        sensor = camera.sensor
-        camera = camera.replace(sensor=replace(sensor, gain=args.gain if args.gain is not None else sensor.gain,
-                                               read_noise=args.read_noise if args.read_noise is not None
-                                               else sensor.read_noise))
+        camera = camera.replace(sensor=camera.sensor.with_noise(args.gain, args.read_noise))
     return camera
 
 

@@ -251,10 +251,7 @@ def job_camera(job: Job) -> tuple[Camera, Any]:
     camera = source.camera
     camera.require_pattern()
     if job.gain is not None or job.read_noise is not None:
-        sensor = camera.sensor
-        camera = camera.replace(sensor=replace(sensor, gain=job.gain if job.gain is not None else sensor.gain,
-                                               read_noise=job.read_noise if job.read_noise is not None
-                                               else sensor.read_noise))
+        camera = camera.replace(sensor=camera.sensor.with_noise(job.gain, job.read_noise))
     return camera, RecordingReader(job.recording, warn=False)
 
 

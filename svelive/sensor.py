@@ -9,7 +9,7 @@ Poisson(g e L) electrons (g = electrons per DN) plus Gaussian read noise of
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -68,6 +68,11 @@ class Sensor:
         white = float(2**bits - 1) if white_level is None else float(white_level)
         gain = full_well_e / (white - black_level)
         return cls(bits, black_level, white, gain, read_noise_e / gain)
+
+    def with_noise(self, gain: float | None = None, read_noise: float | None = None) -> Sensor:
+        """This sensor with ``gain`` and ``read_noise`` where given (None keeps the sensor's own)."""
+        return replace(self, gain=self.gain if gain is None else gain,
+                       read_noise=self.read_noise if read_noise is None else read_noise)
 
     @property
     def range_dn(self) -> float:
