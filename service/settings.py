@@ -282,11 +282,6 @@ def settings_table(data: Mapping[str, Any], where: str) -> dict[str, Any]:
     return out
 
 
-def from_file(path: str | os.PathLike) -> dict[str, Any]:
-    """The flat settings of a config file (its camera list aside: see read_config)."""
-    return read_config(path)[0]
-
-
 def from_env(environ: Mapping[str, str]) -> dict[str, Any]:
     """Settings from ``SVELIVE_<NAME>`` variables (empty ones are ignored)."""
     out = {}
