@@ -404,9 +404,10 @@ class RtspPublisher:
         i420 = to_i420(self._fit(preview.image, media))
         if self.timecode and preview.signal:
             stamp_timecode(i420, int(round(preview.wall_time * 1000)))  # into the luma plane
-        media.src.emit("push-buffer", Gst.Buffer.new_wrapped(i420.tobytes()))
+        # counted before the hand-over: appsrc may encode it (and tick ``encoded``) before emit returns
         now = time.monotonic_ns()
         self.pushed.tick(now)
+        media.src.emit("push-buffer", Gst.Buffer.new_wrapped(i420.tobytes()))
         if preview.signal:
             self.arrival_to_push.add((now - preview.host_time_ns) / 1e6)
 
@@ -455,11 +456,13 @@ class RtspPublisher:
         """The RTSP publisher's part of /api/state."""
         with self._lock:
             media, clients = self._media, self._clients
+        encoded = self.encoded.count  # read before pushed, so that a frame pushed meanwhile cannot show encoded > pushed
+        pushed = self.pushed.count
         rate = None if media is None else self.settings.bitrate_for(media.width, media.height)
         return {"url": self.url, "path": self.path, "auth": self.token is not None, "clients": clients,
                 "encoding": media is not None,
                 "width": None if media is None else media.width, "height": None if media is None else media.height,
-                "frames_pushed": self.pushed.count, "frames_encoded": self.encoded.count,
+                "frames_pushed": pushed, "frames_encoded": encoded,
                 "fps": round(self.encoded.rate(), 2), "bitrate_kbps": self.bitrate_kbps(),
                 "arrival_to_push": self.arrival_to_push.summary(),
                 "h264": {"fps": self.settings.fps, "keyframe_s": self.settings.keyframe_s,
