@@ -201,8 +201,41 @@ def read_raw(path: Path) -> np.ndarray:
     return raw
 
 
-def write_raw(path: Path, raw: np.ndarray) -> None:
-    """Write a raw frame (uint8/uint16) as PNG, TIFF, PGM or .npy, atomically."""
+def png_with_sbit(png: bytes, bits: int) -> bytes:
+    """``png`` (an encoded single-channel PNG) with an sBIT chunk saying ``bits`` significant bits.
+
+    OpenCV's PNG writer cannot set sBIT, so the chunk (length, type, one byte for a grey
+    image, CRC-32 of type and data) goes right after IHDR, where the PNG specification wants it
+    (before PLTE and IDAT); an sBIT the file already has is replaced.
+    """
+    import struct
+    import zlib
+
+    signature, ihdr_end = png[:8], 8 + 8 + 13 + 4
+    if signature != b"\x89PNG\r\n\x1a\n" or png[12:16] != b"IHDR":
+        raise SveliveError("not a PNG stream: cannot add its sBIT chunk")
+    depth, colour_type = png[24], png[25]
+    if colour_type != 0 or not 1 <= bits <= depth:
+        raise SveliveError(f"sBIT: {bits} significant bits do not fit a {depth}-bit "
+                           f"{'grey' if colour_type == 0 else 'colour'} PNG; give 1..{depth} bits of a grey frame")
+    chunk = struct.pack(">I4sB", 1, b"sBIT", bits)
+    chunk += struct.pack(">I", zlib.crc32(chunk[4:]) & 0xFFFFFFFF)
+    rest, pos = bytearray(), ihdr_end
+    while pos < len(png):  # drop an existing sBIT (OpenCV writes none; a future version might)
+        length, kind = struct.unpack(">I4s", png[pos:pos + 8])
+        end = pos + 12 + length
+        if kind != b"sBIT":
+            rest += png[pos:end]
+        pos = end
+    return png[:ihdr_end] + chunk + bytes(rest)
+
+
+def write_raw(path: Path, raw: np.ndarray, bits: int | None = None) -> None:
+    """Write a raw frame (uint8/uint16 (H, W)) as PNG, TIFF, PGM or .npy, atomically.
+
+    ``bits``: the sensor's bit depth (e.g. 12 for a 12-bit frame in a 16-bit file), recorded in
+    a PNG's sBIT chunk so that ``svelive calibrate`` reads it back; other formats ignore it.
+    """
     suffix = path.suffix.lower()
     if suffix not in RAW_SUFFIXES:
         raise SveliveError(f"{path}: unsupported raw format {suffix or '(none)'}; use {', '.join(RAW_SUFFIXES)}")
@@ -217,6 +250,11 @@ def write_raw(path: Path, raw: np.ndarray) -> None:
         if not ok:
             raise SveliveError(f"{path}: could not encode the frame as {suffix[1:].upper()}")
         data = encoded.tobytes()
+        if suffix == ".png" and bits is not None:
+            try:
+                data = png_with_sbit(data, bits)
+            except SveliveError as exc:
+                raise SveliveError(f"{path}: {exc}") from None
     write_bytes_atomic(path, data)
 
 
@@ -238,7 +276,7 @@ def _simulate(args: argparse.Namespace) -> int:
     scene = np.maximum(read_luminance(args.hdr) if camera.cfa is None else read_rgb(args.hdr), 0)
     radiance = scene * exposure_scale(scene, pattern, sensor, stops_below_fill=args.stops_below_fill)
     frame = simulate(radiance, pattern, sensor, cfa=camera.cfa, seed=args.seed)
-    write_raw(args.output, frame.raw)
+    write_raw(args.output, frame.raw, bits=sensor.bits)
     if args.truth:
         attributes = {"svelive": svelive_version, "units": TRUTH_UNITS, "pattern": str(pattern)}
         if camera.cfa is not None:

@@ -196,3 +196,48 @@ def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it(monkeyp
             assert load_aravis().Camera.new(ADDRESS).get_exposure_time() == 8000.0
     finally:
         fake.stop()
+
+
+# ----- frames for the offline sweep: simulate writes the sensor's bit depth into its PNG ----------------
+
+def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from svelive.calibrate.commands import png_significant_bits
+    from svelive.cli import main
+    from svelive.commands import png_with_sbit, write_raw
+    from svelive.errors import SveliveError
+    from svelive.simulate import sample_scene_path
+
+    raw = np.random.default_rng(1).integers(0, 3000, (40, 48)).astype(np.uint16)  # nothing saturated
+    write_raw(tmp_path / "f.png", raw, bits=12)
+    assert png_significant_bits(tmp_path / "f.png") == 12
+    assert np.array_equal(cv2.imread(str(tmp_path / "f.png"), cv2.IMREAD_UNCHANGED), raw)
+    write_raw(tmp_path / "g.png", raw)  # without bits: no chunk
+    assert png_significant_bits(tmp_path / "g.png") is None
+    write_raw(tmp_path / "f.tif", raw, bits=12)  # other formats: ignored
+    assert np.array_equal(cv2.imread(str(tmp_path / "f.tif"), cv2.IMREAD_UNCHANGED), raw)
+    # one chunk, replaced rather than repeated
+    twice = png_with_sbit(png_with_sbit((tmp_path / "g.png").read_bytes(), 10), 12)
+    assert twice.count(b"sBIT") == 1 and twice.index(b"sBIT") < twice.index(b"IDAT")
+    (tmp_path / "h.png").write_bytes(twice)
+    assert png_significant_bits(tmp_path / "h.png") == 12
+    with pytest.raises(SveliveError, match="do not fit a 8-bit"):
+        write_raw(tmp_path / "x.png", raw.astype(np.uint8), bits=12)
+    assert not (tmp_path / "x.png").exists()
+
+    # svelive simulate -> svelive calibrate without --bits: the white level of 12 bits, from the file
+    out = tmp_path / "a.png"
+    scene = str(sample_scene_path("desk"))
+    assert main(["simulate", scene, "--pattern", "1,4/16,64", "--bits", "12", "--stops-below-fill", "9",
+                 "-o", str(out)]) == 0
+    assert png_significant_bits(out) == 12
+    simulated = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert simulated.max() < 4095  # 9 stops below fill: no saturated cluster says 12 bits
+    code = main(["calibrate", "response", str(out), "--pattern", "1,4/16,64", "-q", "-o", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert "--bits" not in err, err
+    if code == 0:
+        assert json.loads((tmp_path / "r.json").read_text())["white_level"] == 4095
