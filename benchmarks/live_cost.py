@@ -31,6 +31,11 @@ def main() -> int:
     args = ap.parse_args()
     from svelive.capture.demo import DemoSource
     from svelive.reconstruction import Reconstructor
+    try:  # what svelive serve does at start-up (absent from checkouts before it)
+        from svelive.memory import keep_freed_memory
+        keep_freed_memory()
+    except ImportError:
+        pass
     from svelive.reconstruction.single import methods
 
     width, height = (int(v) for v in args.size.lower().split("x"))

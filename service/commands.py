@@ -78,6 +78,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from svelive.capture import open_source
+    from svelive.memory import keep_freed_memory
     from svelive.reconstruction.warmup import warm_up
     from svelive.tonemap import warm_up as warm_up_preview
 
@@ -101,6 +102,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
               "this address can watch", file=sys.stderr)
     # compile (first run on a machine, a few seconds) or load the kernels before the first live frame
     warm_up()
+    keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
     warm_up_preview()  # the colour preview's kernel too
     app = create_app({name: Pipeline(config) for name, config in configs.items()}, server)
     sock = listen_socket(server)

@@ -24,6 +24,7 @@ from svelive.commands import add_colour_arguments, colour_settings, parse_cfa
 from svelive.errors import SveliveError
 from svelive.exr import standard_attributes, write_exr
 from svelive.frame import Frame
+from svelive.memory import keep_freed_memory
 from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor, default_method
@@ -136,6 +137,7 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
         raise SveliveError("--workers, --scheduler, --warmup and --tolerance reprocess a recording: give --source "
                            "replay:FILE (record other sources first with svelive record)")
     frames, source = _raw_frames(args)
+    keep_freed_memory()  # frame buffers reused from frame to frame
     reconstructor: Reconstructor | None = None
     balancer = WhiteBalancer(settings)
     n = 0

@@ -388,9 +388,11 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
 
     from replay import CorruptFrameError
     from svelive.exr import standard_attributes, write_exr
+    from svelive.memory import keep_freed_memory
     from svelive.reconstruction.stream import Reconstructor
     from svelive.whitebalance import exr_output
 
+    keep_freed_memory()  # in this worker process: frame buffers reused from frame to frame
     t0 = time.perf_counter()
     camera, reader = job_camera(job)
     output = staging_dir(job, chunk) if stage else Path(job.output)

@@ -1,0 +1,60 @@
+"""The process's allocator policy: keep freed frame buffers for the next frame, hand them back on request.
+
+A live stream allocates a few dozen whole-frame arrays per frame (9 MB each at
+1920x1200 float32) and frees them a frame later. glibc's malloc serves arrays
+that large with fresh ``mmap`` pages, or trims them off the heap's top when
+freed, so every frame pays their page faults again: measured on the demo's
+1920x1200 frames, about a fifth of the reconstruction's time went to the kernel
+(``benchmarks/live_cost.py``). :func:`keep_freed_memory` makes freed buffers
+stay in the heap for reuse; :func:`release_memory` returns them after a burst
+that will not repeat (a calibration). Elsewhere than glibc both do nothing.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+
+#: mallopt parameters (glibc's malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: Largest block glibc accepts as an mmap threshold on 64-bit systems (32 MiB): arrays up to that size (a
+#: 1920x1200x3 float32 image is 27.6 MB) come from the heap and are reused.
+MMAP_THRESHOLD = 32 * 1024 * 1024
+#: Free memory at the heap's top kept rather than returned: a frame's worth of temporaries and more.
+TRIM_THRESHOLD = 512 * 1024 * 1024
+
+
+def _libc() -> ctypes.CDLL | None:
+    name = ctypes.util.find_library("c")
+    try:
+        return ctypes.CDLL(name) if name else None
+    except OSError:
+        return None
+
+
+def keep_freed_memory() -> bool:
+    """Make malloc keep freed frame-sized buffers for reuse (glibc); True when the policy was set.
+
+    Call once at the start of a long-running stream (``svelive serve``, ``reconstruct-sequence``).
+    The resident memory then stays at the stream's peak instead of rising and falling every frame.
+    """
+    libc = _libc()
+    if libc is None or not hasattr(libc, "mallopt"):
+        return False
+    return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(libc.mallopt(_M_TRIM_THRESHOLD,
+                                                                                          TRIM_THRESHOLD))
+
+
+def release_memory() -> None:
+    """Hand freed heap back to the system after a burst of allocations that will not repeat.
+
+    A calibration's fit allocates hundreds of MB of short-lived numpy arrays in a worker
+    thread; glibc keeps freed chunks in that thread's arena (all the more under
+    :func:`keep_freed_memory`), so the process's resident memory stayed up after every
+    calibration. ``malloc_trim(0)`` returns the free pages of every arena.
+    """
+    gc.collect()
+    libc = _libc()
+    if libc is not None and hasattr(libc, "malloc_trim"):
+        libc.malloc_trim(0)
