@@ -6,6 +6,8 @@ See docs/recording-format.md for the prose. All integers little-endian.
                   to a multiple of 4096 (HEADER_ALIGN)
     frame record  RECORD_HEADER (64 bytes) | payload (width*height*itemsize bytes, raw little-endian
                   samples in row order) | zero pad to a multiple of 64
+                  RECORD_HEADER: "SVFR" | u32 crc32(bytes 8..63) | i64 index | i64 frame_id | i64 host_ns
+                  | i64 device_ns | u32 payload length | u32 crc32(payload) | f64 exposure time | 8 zero bytes
     index         "SVIX" | u32 count | u32 crc32(table) | u32 0 | table int64 (count, 3):
                   frame_id, host_time_ns, device_time_ns (NO_TIME when absent)
     footer        "SVEREND\\0" | u64 index offset | u32 crc32(the 16 bytes before) | u32 0   (24 bytes)
@@ -15,6 +17,11 @@ so frame i starts at ``data_offset + i * record_size``: seeking is constant time
 with or without the index, and the index (written on a clean close) only spares
 a scan of the record headers. A recording killed mid-way has no index; the
 reader rebuilds it by scanning and drops a torn last record.
+
+The exposure time (the camera's global exposure in its own unit, GigE microseconds) sits in
+bytes that were reserved and zero before it existed: 0.0 means "not recorded", so older
+recordings read as frames without one, and older readers skip the field (it is inside the
+record header's checksum, which they verify as before).
 """
 
 from __future__ import annotations
@@ -34,8 +41,11 @@ VERSION = 1
 HEADER_ALIGN = 4096
 RECORD_ALIGN = 64
 FILE_HEADER = struct.Struct("<8sIII")
-#: magic, crc32 of bytes 8..63, index, frame_id, host_ns, device_ns, payload length, payload crc32, reserved
-RECORD_HEADER = struct.Struct("<4sIqqqqII16x")
+#: magic, crc32 of bytes 8..63, index, frame_id, host_ns, device_ns, payload length, payload crc32,
+#: exposure time (f64; NO_EXPOSURE: not recorded), reserved
+RECORD_HEADER = struct.Struct("<4sIqqqqIId8x")
+#: the exposure time field of a frame recorded without one (the reserved bytes of older recordings)
+NO_EXPOSURE = 0.0
 RECORD_MAGIC = b"SVFR"
 INDEX_HEADER = struct.Struct("<4sIII")
 INDEX_MAGIC = b"SVIX"

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from replay.container import (
-    FILE_HEADER, FOOTER, FOOTER_MAGIC, HEADER_ALIGN, INDEX_HEADER, INDEX_MAGIC, NO_TIME, RECORD_HEADER,
+    FILE_HEADER, FOOTER, FOOTER_MAGIC, HEADER_ALIGN, INDEX_HEADER, INDEX_MAGIC, NO_EXPOSURE, NO_TIME, RECORD_HEADER,
     RECORD_MAGIC, RecordingError, crc32, decode_header,
 )
 from svelive.capture import formats
@@ -110,6 +110,7 @@ class RecordingReader:
             times = self._scan(size)
         self.times = times
         self.times.setflags(write=False)
+        self._exposures: np.ndarray | None = None
         if warn:
             for w in self.warnings:
                 warnings.warn(w, stacklevel=3)
@@ -177,7 +178,7 @@ class RecordingReader:
     def _parse_record_header(self, head: bytes, index: int) -> tuple[int, int, int] | None:
         if len(head) != RECORD_HEADER.size:
             return None
-        magic, hcrc, idx, fid, host, dev, plen, _ = RECORD_HEADER.unpack(head)
+        magic, hcrc, idx, fid, host, dev, plen, _, _ = RECORD_HEADER.unpack(head)
         if magic != RECORD_MAGIC or crc32(head[8:]) != hcrc or idx != index or plen != self.layout.payload_size:
             return None
         return fid, host, dev
@@ -241,6 +242,27 @@ class RecordingReader:
                      device_time_ns=None if dev == NO_TIME else int(dev),
                      pixel_format=self.pixel_format, camera=self.camera)
 
+    def exposure_times(self) -> np.ndarray:
+        """float64 (N,): each frame's recorded global exposure time (the camera's unit, GigE
+        microseconds), NaN where none was recorded (recordings made before the field existed,
+        sources that cannot tell) or the record header is damaged.
+
+        Read from the record headers on the first call (one 64-byte read per frame), then kept.
+        """
+        if self._exposures is None:
+            lay = self.layout
+            fd = self._f.fileno()
+            out = np.full(len(self), np.nan)
+            for i in range(len(self)):
+                head = os.pread(fd, RECORD_HEADER.size, lay.data_offset + i * lay.record_size)
+                if self._parse_record_header(head, i) is not None:
+                    value = RECORD_HEADER.unpack(head)[8]
+                    if value != NO_EXPOSURE and np.isfinite(value):
+                        out[i] = value
+            out.setflags(write=False)
+            self._exposures = out
+        return self._exposures
+
     def verify(self) -> list[int]:
         """Read every frame and check its checksums; returns the indices of the damaged ones (sorted)."""
         bad = []
@@ -267,6 +289,7 @@ class RecordingReader:
             "clock": self.clock,
             "closed_cleanly": self.clean, "source": self.meta.get("source"), "created": self.meta.get("created"),
             "bytes": self._size, "damaged_records": list(self.damaged), "warnings": list(self.warnings),
+            "exposure_times": _exposure_counts(self.exposure_times()),
         }
 
     def close(self) -> None:
@@ -294,6 +317,15 @@ def _fill_damaged(rows: list[tuple[int, int, int] | None]) -> np.ndarray:
         out[i] = rows[k]
         out[i, 0] += i - k
     return out
+
+
+def _exposure_counts(exposures: np.ndarray) -> list[list[float | int]] | None:
+    """[[exposure time, frames], ...] by increasing time for the frames that have one; None when none has."""
+    known = exposures[np.isfinite(exposures)]
+    if known.size == 0:
+        return None
+    values, counts = np.unique(known, return_counts=True)
+    return [[float(v), int(n)] for v, n in zip(values, counts)]
 
 
 def _ranges(indices: tuple[int, ...]) -> str:

@@ -11,6 +11,7 @@ power loss (not only a process kill) loses at most that many frames.
 from __future__ import annotations
 
 import datetime
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from replay.container import (
-    FOOTER, FOOTER_MAGIC, INDEX_HEADER, INDEX_MAGIC, NO_TIME, RECORD_ALIGN, RECORD_HEADER, RECORD_MAGIC,
+    FOOTER, FOOTER_MAGIC, INDEX_HEADER, INDEX_MAGIC, NO_EXPOSURE, NO_TIME, RECORD_ALIGN, RECORD_HEADER, RECORD_MAGIC,
     Layout, RecordingError, crc32, encode_header,
 )
 from svelive.atomic import check_output_target
@@ -152,8 +153,19 @@ class RecordingWriter:
         except OSError as exc:
             raise RecordingError(f"{self.path}: write failed ({exc.strerror})") from None
 
-    def append(self, frame: Frame) -> None:
-        """Append one frame (uint8/uint16 (H, W) of the recording's size, dtype and pixel format)."""
+    def append(self, frame: Frame, exposure_time: float | None = None) -> None:
+        """Append one frame (uint8/uint16 (H, W) of the recording's size, dtype and pixel format).
+
+        ``exposure_time``: the camera's global exposure time for this frame, in its own unit
+        (GigE: microseconds), a positive number; None takes the frame's ``exposure_time``
+        attribute when it has one, else records none. A replay can then be swept
+        (``ReplaySource.set_exposure_time`` plays the frames recorded at one time).
+        """
+        if exposure_time is None:
+            exposure_time = getattr(frame, "exposure_time", None)
+        if exposure_time is not None and not (math.isfinite(exposure_time) and exposure_time > 0):
+            raise RecordingError(f"frame {frame.frame_id}: exposure time must be a positive number, "
+                                 f"got {exposure_time}")
         if self._closed:
             raise RecordingError(f"{self.path}: recording is closed")
         if self._fd is None:
@@ -175,7 +187,8 @@ class RecordingWriter:
         dev = NO_TIME if frame.device_time_ns is None else int(frame.device_time_ns)
         index = len(self._times)
         body = RECORD_HEADER.pack(RECORD_MAGIC, 0, index, int(frame.frame_id), int(frame.host_time_ns), dev,
-                                  lay.payload_size, payload_crc)
+                                  lay.payload_size, payload_crc,
+                                  NO_EXPOSURE if exposure_time is None else float(exposure_time))
         head = body[:4] + (crc32(body[8:])).to_bytes(4, "little") + body[8:]
         pad = b"\0" * (lay.record_size - RECORD_HEADER.size - lay.payload_size)
         self._write([head, memoryview(data).cast("B"), pad] if pad else [head, memoryview(data).cast("B")])

@@ -463,3 +463,94 @@ def test_record_overwrite_never_replaces_a_fifo_or_a_link(tmp_path):
                               "--frames", "1", "--overwrite", "-q"], capture_output=True, text=True, timeout=120)
         assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert fifo.is_fifo() and link.is_symlink() and target.read_bytes() == b"keep me"
+
+
+# ----- recorded exposure times: a replay with exposure control (issue 14) -------------------------------
+
+def write_exposures(path: Path, frames: list[Frame], times: list[float | None]) -> None:
+    with RecordingWriter(path, pattern="1,4/16,64", source="test") as w:
+        for f, t in zip(frames, times):
+            w.append(f, exposure_time=t)
+
+
+def test_exposure_times_round_trip_and_old_recordings_have_none(tmp_path: Path) -> None:
+    frames = make_frames(6)
+    times = [1000.0, 1000.0, 1500.5, None, 1500.5, 2250.0]
+    write_exposures(tmp_path / "e.sverec", frames, times)
+    with RecordingReader(tmp_path / "e.sverec") as r:
+        got = r.exposure_times()
+        assert np.isnan(got[3]) and list(got[[0, 1, 2, 4, 5]]) == [1000.0, 1000.0, 1500.5, 1500.5, 2250.0]
+        assert r.info()["exposure_times"] == [[1000.0, 2], [1500.5, 2], [2250.0, 1]]
+        np.testing.assert_array_equal(r.read(2).raw, frames[2].raw)  # the pixels are untouched
+    # a recording written without them (the bytes were zero before the field existed) has none
+    write(tmp_path / "plain.sverec", frames)
+    with RecordingReader(tmp_path / "plain.sverec") as r:
+        assert np.isnan(r.exposure_times()).all() and r.info()["exposure_times"] is None
+    # the field is inside the record header's checksum, in bytes an older reader skips: its layout of the
+    # other fields is unchanged (the reader of before unpacked "<4sIqqqqII16x")
+    import struct
+    import zlib
+
+    data = (tmp_path / "e.sverec").read_bytes()
+    with RecordingReader(tmp_path / "e.sverec") as r:
+        start, record = r.layout.data_offset, r.layout.record_size
+    head = data[start + 2 * record: start + 2 * record + 64]
+    old = struct.unpack("<4sIqqqqII16x", head)
+    assert old[0] == b"SVFR" and old[2] == 2 and old[3] == frames[2].frame_id
+    assert zlib.crc32(head[8:]) == old[1]
+    assert struct.unpack_from("<d", head, 48)[0] == 1500.5
+    # a damaged exposure field is a damaged record header, found by the checksum
+    bad = bytearray(data)
+    bad[start + 5 * record + 50] ^= 0x01
+    (tmp_path / "bad.sverec").write_bytes(bytes(bad))
+    with RecordingReader(tmp_path / "bad.sverec", warn=False) as r:
+        assert np.isnan(r.exposure_times()[5])
+        with pytest.raises(CorruptFrameError):
+            r.read(5)
+    with RecordingWriter(tmp_path / "x.sverec") as w, pytest.raises(RecordingError, match="positive"):
+        w.append(frames[0], exposure_time=-3.0)
+
+
+def test_replay_source_sets_its_exposure_by_playing_the_frames_recorded_at_it(tmp_path: Path) -> None:
+    frames = make_frames(12, dt_ms=10)
+    # three runs of four frames, as a sweep recorded from a camera would be
+    times = [1000.0] * 4 + [1500.0] * 4 + [2250.0] * 4
+    path = tmp_path / "sweep.sverec"
+    write_exposures(path, frames, times)
+    with open_source(f"replay:{path}", speed=0) as s:
+        first = s.read()
+        assert first.frame_id == 100 and s.exposure_time() == 1000.0  # the frame played last
+        ids = [first.frame_id]
+        for asked, picked in ((1500.0, 1500.0), (2240.0, 2250.0), (1000.0, 1000.0)):  # 2240: the camera rounds
+            assert s.set_exposure_time(asked) == picked and s.exposure_time() == picked
+            got = [s.read() for _ in range(7)]
+            ids += [f.frame_id for f in got]
+            # the recorded frames at that time, less the first of the run, over and over
+            recorded = [(f.frame_id - 100) % 12 for f in got]
+            run = [i for i, t in enumerate(times) if t == picked][1:]
+            assert recorded == (run * 3)[:7], (picked, recorded)
+            for f in got:
+                np.testing.assert_array_equal(f.raw, frames[(f.frame_id - 100) % 12].raw)
+        assert ids == sorted(ids) and len(set(ids)) == len(ids)  # ids keep increasing across choices and cycles
+        assert s.stats()["exposure_time"] == 1000.0
+        with pytest.raises(SveliveError, match="no frame was recorded at exposure time 5000 .*1000, 1500, 2250"):
+            s.set_exposure_time(5000)
+        assert s.exposure_time() == 1000.0  # a refused time changes nothing
+    # a recording without exposure times: no exposure control
+    write(tmp_path / "plain.sverec", frames)
+    with open_source(f"replay:{tmp_path / 'plain.sverec'}", speed=0) as s:
+        assert s.exposure_time() is None
+        with pytest.raises(SveliveError, match="cannot set its exposure time"):
+            s.set_exposure_time(1000)
+
+
+def test_replay_chosen_exposure_plays_at_the_recorded_rate(tmp_path: Path) -> None:
+    frames = make_frames(6, dt_ms=50)  # 20 fps recorded
+    write_exposures(tmp_path / "r.sverec", frames, [1000.0, 1000.0, 1000.0, 2000.0, 2000.0, 2000.0])
+    with open_source(f"replay:{tmp_path / 'r.sverec'}") as s:
+        s.set_exposure_time(2000.0)
+        t = time.monotonic()
+        got = list(s.frames(limit=5, seconds=10))
+        elapsed = time.monotonic() - t
+        assert len(got) == 5 and elapsed >= 0.19  # 4 intervals of 50 ms at least; no upper bound (loaded machine)
+        assert {(f.frame_id - 100) % 6 for f in got} == {4, 5}

@@ -12,16 +12,35 @@ checksum fails is dropped (cause ``checksum``) with a warning.
 recording made with wrong levels); ``pattern`` the recorded pattern. A path
 that is missing, a directory, or not a recording with frames fails when the
 source is built, with a one-line error.
+
+Exposure control: a recording whose frames carry their exposure time (the writer's
+``exposure_time``, e.g. a GigE camera's ``ExposureTime``) behaves like a camera with
+``ExposureTime``: :meth:`ReplaySource.set_exposure_time` picks the recorded time nearest
+the one asked (within :data:`EXPOSURE_TOLERANCE`, as a camera rounds to its steps) and
+from then on plays only the frames recorded at that time, in recorded order, over and
+over (whatever ``loop`` says: a camera keeps delivering) at the recording's mean frame
+rate; it returns the time picked, as a camera reads back the value it applied. The first
+frame of every run of frames at one time is left out when other frames at that time
+remain (it may have been exposed before the change, like the frame in flight of a live
+camera). :meth:`~ReplaySource.exposure_time` is then that time; before any choice, the
+time of the frame played last (or about to be played). A recording without exposure
+times has no exposure control (``exposure_time()`` is None; setting it is refused).
+After a sweep the service sets the time it had before, so the replay goes on with the
+frames recorded at that time only.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import replace
+import math
+import threading
 import time
+from dataclasses import replace
 import warnings
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from replay import CorruptFrameError, RecordingReader
 from svelive.capture import make_config
@@ -29,6 +48,33 @@ from svelive.capture.source import EndOfStream, Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.sensor import Sensor
+
+#: largest relative difference between an exposure time asked of a replay and the recorded one it picks
+EXPOSURE_TOLERANCE = 0.02
+
+
+def frames_at(exposures: np.ndarray, value: float) -> np.ndarray:
+    """Indices (int64, increasing) of the frames recorded at exposure ``value``, less the first of
+    each run of consecutive frames at it when that leaves any (it may have been exposed before the
+    change). ``exposures``: float64 (N,), NaN where none was recorded."""
+    at = exposures == value
+    first = at & ~np.concatenate(([False], at[:-1]))
+    kept = np.flatnonzero(at & ~first)
+    return kept if kept.size else np.flatnonzero(at)
+
+
+def pick_exposure(exposures: np.ndarray, value: float, where: str) -> float:
+    """The recorded exposure time nearest ``value`` within EXPOSURE_TOLERANCE (relative); a one-line
+    SveliveError listing the recorded times otherwise."""
+    recorded = np.unique(exposures[np.isfinite(exposures)])
+    if not (math.isfinite(value) and value > 0):
+        raise SveliveError(f"{where}: exposure time must be a positive number, got {value}")
+    nearest = float(recorded[np.argmin(np.abs(recorded - value))])
+    if abs(nearest - value) > EXPOSURE_TOLERANCE * value:
+        listed = ", ".join(f"{t:g}" for t in recorded[:16]) + (", ..." if recorded.size > 16 else "")
+        raise SveliveError(f"{where}: no frame was recorded at exposure time {value:g} (recorded: {listed}); "
+                           "sweep over recorded times")
+    return nearest
 
 
 @dataclass(frozen=True)
@@ -62,6 +108,14 @@ class ReplaySource(Source):
         self._override = (None if pattern is None else self.camera.pattern, sensor)
         self._levels = {k: v for k, v in (("bits", bits), ("black_level", black_level),
                                           ("white_level", white_level)) if v is not None}
+        # exposure control: the recorded times (read at the first use), the time chosen and its frames
+        self._select_lock = threading.Lock()
+        self._exposures: np.ndarray | None = None
+        self._chosen: float | None = None
+        self._selection: np.ndarray | None = None
+        self._sel_pos = 0
+        self._switched = False  # a new time was chosen: the next frame starts its selection
+        self._last_index: int | None = None
         # a recording that can never be replayed fails here, when the source is built (a service
         # builds its source once at start-up and would otherwise retry it for ever)
         with RecordingReader(self._path) as reader:
@@ -101,14 +155,74 @@ class ReplaySource(Source):
         self._pos = self.config.start % n
         self._loops = 0
         self._anchor: tuple[float, int] | None = None  # (wall time, recorded time) of the pacing origin
+        # playing a chosen exposure time: one frame per mean recorded frame interval
+        self._period_ns = int((self._timeline[-1] - self._timeline[0]) / (n - 1)) if n > 1 else 0
+        self._sel_n = 0
 
     def _close(self) -> None:
         if self._reader is not None:
             self._reader.close()
 
+    # ----- exposure control ------------------------------------------------
+    def _recorded_exposures(self) -> np.ndarray:
+        """float64 (N,) recorded exposure times (NaN: none), read once."""
+        if self._exposures is None:
+            if self._reader is not None:
+                self._exposures = self._reader.exposure_times()
+            else:
+                with RecordingReader(self._path, warn=False) as reader:
+                    self._exposures = reader.exposure_times()
+        return self._exposures
+
+    def exposure_time(self) -> float | None:
+        """The exposure time chosen, else the recorded time of the frame played last (or next); None
+        when the recording has no exposure times."""
+        exposures = self._recorded_exposures()
+        known = np.isfinite(exposures)
+        if not known.any():
+            return None
+        with self._select_lock:
+            if self._chosen is not None:
+                return self._chosen
+            i = self._last_index if self._last_index is not None else getattr(self, "_pos", self.config.start)
+        i %= exposures.size
+        return float(exposures[i]) if known[i] else float(exposures[np.flatnonzero(known)[0]])
+
+    def set_exposure_time(self, value: float) -> float:
+        """Play only the frames recorded at the time nearest ``value`` (see the module docstring);
+        returns that time. A one-line SveliveError when the recording has no exposure times or
+        none near ``value``."""
+        exposures = self._recorded_exposures()
+        if not np.isfinite(exposures).any():
+            raise SveliveError(f"source {self.spec} cannot set its exposure time: the recording has no "
+                               "exposure times (record from a camera that reports them)")
+        chosen = pick_exposure(exposures, float(value), self.spec)
+        with self._select_lock:
+            self._chosen, self._selection, self._sel_pos = chosen, frames_at(exposures, chosen), 0
+            self._switched = True
+        return chosen
+
+    def _selected(self) -> int | None:
+        """The next frame index while an exposure time is chosen (None otherwise), with pacing state."""
+        with self._select_lock:
+            selection = self._selection
+            if selection is None:
+                return None
+            if self._switched:  # a new choice: frame ids jump past every one so far
+                self._switched = False
+                self._loops += 1
+                self._anchor, self._sel_n = None, 0
+            if self._sel_pos >= selection.size:
+                self._sel_pos = 0
+                self._loops += 1
+            return int(selection[self._sel_pos])
+
     def _next(self) -> Frame | None:
         reader = self._reader
         assert reader is not None
+        chosen = self._selected()
+        if chosen is not None:
+            return self._next_selected(reader, chosen)
         if self._pos >= len(reader):
             if not self.config.loop:
                 raise EndOfStream
@@ -126,16 +240,35 @@ class ReplaySource(Source):
             if time.monotonic() < due:
                 return None
         self._pos += 1
+        return self._deliver_index(reader, i)
+
+    def _next_selected(self, reader: RecordingReader, i: int) -> Frame | None:
+        """Frame ``i`` of the chosen exposure time, paced at the recording's mean frame rate."""
+        if self.config.speed > 0 and self._period_ns > 0:
+            if self._anchor is None:
+                self._anchor = (time.monotonic(), 0)
+            due = self._anchor[0] + self._sel_n * self._period_ns / 1e9 / self.config.speed
+            if not self._wait(min(due - time.monotonic(), self.poll_s)):
+                return None
+            if time.monotonic() < due:
+                return None
+        with self._select_lock:
+            self._sel_pos += 1
+        self._sel_n += 1
+        return self._deliver_index(reader, i)
+
+    def _deliver_index(self, reader: RecordingReader, i: int) -> Frame | None:
         try:
             rec = reader.read(i)
         except CorruptFrameError as exc:
-            warnings.warn(str(exc), stacklevel=2)
+            warnings.warn(str(exc), stacklevel=3)
             self._drop("checksum")
             return None
+        self._last_index = i
         return dataclasses.replace(rec, frame_id=rec.frame_id + self._loops * self._id_span,
                                    host_time_ns=time.monotonic_ns(), camera=self.camera)
 
     def _extra_stats(self) -> dict[str, Any]:
         r = self._reader
         return {"position": getattr(self, "_pos", 0), "recording_frames": 0 if r is None else len(r),
-                "loops": getattr(self, "_loops", 0), "speed": self.config.speed}
+                "loops": getattr(self, "_loops", 0), "speed": self.config.speed, "exposure_time": self._chosen}
