@@ -157,6 +157,95 @@ def test_a_source_without_exposure_control_gets_409_and_bad_sweeps_422():
         assert srv.state()["calibration"] is None
 
 
+
+# ----- a replayed recording whose frames carry their exposure times --------------------------------------
+
+def record_sweep(path, times: list[float], per_time: int = 3, scene=None) -> None:
+    """A recording of the chart through gamma 2.2 (the tests' 12-bit sensor), ``per_time`` frames (new
+    noise each) at every exposure time in ``times`` (microseconds; 10 000 is the chart at exposure 1),
+    each with its time, as a camera stepped through them would give."""
+    from replay import RecordingWriter
+
+    from svelive.camera import Camera as SveCamera
+
+    scene = chart() if scene is None else scene
+    cam = SveCamera.build(PATTERN, None, SENSOR)
+    with RecordingWriter(path, source="test") as writer:
+        n = 0
+        for t in times:
+            for k in range(per_time):
+                raw = simulate_nonlinear(scene * (t / 10_000.0), PATTERN, SENSOR, CURVES["gamma2.2"], seed=n)
+                writer.append(Frame(raw=raw, frame_id=n, host_time_ns=n * 40_000_000, device_time_ns=None,
+                                    pixel_format="Mono12", camera=cam), exposure_time=t)
+                n += 1
+
+
+def test_sweep_over_a_replay_plays_the_frames_recorded_at_each_time(monkeypatch, tmp_path):
+    from svelive.capture import open_source
+
+    recorded = [10_000.0, 15_000.0, 22_500.0]
+    path = tmp_path / "sweep.sverec"
+    record_sweep(path, recorded)
+    opened = []
+
+    def factory():
+        opened.append(open_source(f"replay:{path}", loop=True, speed=1.0))
+        return opened[-1]
+
+    with server(monkeypatch, factory) as srv:
+        srv.wait_for(lambda s: s["frames"]["captured"] > 2)
+        assert opened[-1].exposure_time() in recorded  # the time of the frame playing
+        # a time the recording does not hold: the job fails with the times it has, in one line
+        r = httpx.post(srv.url + URL, json={"sweep": [10_000, 40_000]}, timeout=10)
+        assert r.status_code == 202, r.text
+        failed, _ = wait_job(srv, r.json()["id"])
+        assert failed["state"] == "failed" and "\n" not in failed["error"]
+        assert "no frame was recorded at exposure time 40000" in failed["error"] and "22500" in failed["error"]
+        before = failed["exposure_time_before"]
+        assert before in recorded and failed["restored"] == before
+        assert srv.state()["response"] is None
+
+        # the camera rounds: 15 050 asked, 15 000 recorded and used
+        r = httpx.post(srv.url + URL, json={"sweep": [10_000, 15_050, 22_500], "apply": True}, timeout=10)
+        assert r.status_code == 202, r.text
+        done, steps = wait_job(srv, r.json()["id"])
+        assert done["state"] == "done", done
+        assert steps[-1] == 3 and done["exposure_times"] == recorded
+        # each kept frame is one recorded at its step's time (ids are recorded ids shifted by whole spans)
+        assert [recorded[(i % 9) // 3] for i in done["frame_ids"]] == recorded
+        assert done["exposure_time_before"] == before  # the replay held the time put back after the first
+        assert done["restored"] == before and opened[-1].exposure_time() == before
+        result = httpx.get(srv.url + URL, timeout=10).json()
+        stats = result["stats"]
+        assert stats["frames"] == 3 and stats["exposure_times"] == recorded and result["applied"] is True
+        lo, hi = stats["measured_range"]
+        m = np.asarray(result["curve"]["brightness"])
+        inside = (m >= lo) & (m <= hi)
+        error = np.abs(np.asarray(result["curve"]["linear"]) - CURVES["gamma2.2"].inverse(m))[inside]
+        assert hi - lo > 0.9 and error.max() < 0.02, (lo, hi, error.max())
+        # after the sweep the replay goes on with the frames of the time it had before
+        last = srv.state()["frames"]["last_frame_id"]
+        later = srv.wait_for(lambda s: s["frames"]["last_frame_id"] > last + 3)["frames"]["last_frame_id"]
+        assert recorded[(later % 9) // 3] == before
+
+
+def test_sweep_over_a_replay_without_exposure_times_gets_409(monkeypatch, tmp_path):
+    from replay import RecordingWriter
+    from svelive.capture import open_source
+
+    path = tmp_path / "plain.sverec"
+    with RecordingWriter(path, pattern=PATTERN, source="test") as writer:
+        for i in range(3):
+            writer.append(Frame(raw=np.full((32, 32), 100 * i, np.uint16), frame_id=i, host_time_ns=i * 10**8,
+                                pixel_format="Mono12"))
+    with server(monkeypatch, lambda: open_source(f"replay:{path}", loop=True)) as srv:
+        srv.wait_for(lambda s: s["frames"]["captured"] > 1)
+        r = httpx.post(srv.url + URL, json={"sweep": [1000, 1500]}, timeout=10)
+        assert r.status_code == 409, r.text
+        detail = r.json()["detail"]
+        assert f"source replay:{path} cannot set its exposure time" in detail and "\n" not in detail
+        assert srv.state()["calibration"] is None
+
 # ----- the fake GigE camera of Aravis --------------------------------------------------------------
 
 from tests.test_capture_gige import _MISSING, ADDRESS, FakeCamera  # noqa: E402
