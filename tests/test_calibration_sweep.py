@@ -330,3 +330,55 @@ def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsy
     assert "--bits" not in err, err
     if code == 0:
         assert json.loads((tmp_path / "r.json").read_text())["white_level"] == 4095
+
+
+# ----- the demo camera's exposure time -----------------------------------------------------------------
+
+def test_demo_exposure_time_scales_the_light_it_collects():
+    from svelive.capture import open_source
+    from svelive.capture.demo import REFERENCE_EXPOSURE_US
+    from svelive.errors import SveliveError
+
+    with open_source("demo", cfa="none", width=320, height=180, fps=0, period_s=0) as s:
+        assert s.exposure_time() == REFERENCE_EXPOSURE_US == 10_000.0
+        a = s.read().raw.astype(float)
+        assert s.set_exposure_time(15_000) == 15_000.0 and s.exposure_time() == 15_000.0
+        b = s.read().raw.astype(float)
+        assert s.stats()["exposure_us"] == 15_000.0
+        with pytest.raises(SveliveError, match="outside the demo's range") as err:
+            s.set_exposure_time(0)
+        assert "\n" not in str(err.value) and s.exposure_time() == 15_000.0
+        black, white = s.sensor.black_level, s.sensor.white_level
+    # a still scene: the mean signal of pixels far from white in both grows by the exposure ratio
+    ok = (a > black + 20) & ((a - black) * 1.5 < 0.8 * (white - black))
+    assert ok.sum() > 10_000
+    assert (b[ok] - black).mean() / (a[ok] - black).mean() == pytest.approx(1.5, rel=0.005)
+    with pytest.raises(SveliveError, match="period_s"):
+        open_source("demo", period_s=-1)
+    with pytest.raises(SveliveError, match="exposure time 5 us"):
+        open_source("demo", exposure_us=5)
+
+
+def test_sweep_on_the_demo_camera_recovers_its_linear_response(monkeypatch):
+    from svelive.capture import open_source
+
+    opened = []
+
+    def factory():
+        opened.append(open_source("demo", cfa="none", width=320, height=180, fps=20, period_s=0))
+        return opened[-1]
+
+    with server(monkeypatch, factory) as srv:
+        srv.wait_for(lambda s: s["frames"]["captured"] > 2)
+        r = httpx.post(srv.url + URL, json={"sweep": [10_000, 15_000]}, timeout=10)
+        assert r.status_code == 202, r.text
+        done, steps = wait_job(srv, r.json()["id"])
+        assert done["state"] == "done", done
+        assert done["exposure_times"] == [10_000.0, 15_000.0] and steps[-1] == 2
+        assert done["restored"] == 10_000.0 and opened[-1].exposure_time() == 10_000.0
+        result = httpx.get(srv.url + URL, timeout=10).json()
+        assert result["degree"] == 1 and result["applied"] is False
+        lo, hi = result["stats"]["measured_range"]
+        m = np.asarray(result["curve"]["brightness"])
+        inside = (m >= lo) & (m <= hi)
+        assert hi - lo > 0.9 and np.abs(np.asarray(result["curve"]["linear"]) - m)[inside].max() < 0.01

@@ -30,6 +30,15 @@ compiled pass (shift, light, colour filter, exposure, noise, rounding); the
 standard normal deviates come from a bank of twice the frame's size drawn once,
 read from a random start each frame (with a random sign), so a pixel sees a
 different deviate in every frame.
+
+Exposure time (``exposure_us``, microseconds, default :data:`REFERENCE_EXPOSURE_US`): the
+light collected scales with it, so a frame at 15 000 us is rendered from 1.5 times the
+radiance of one at 10 000 us (the scene's fill above is for the reference time), with the
+noise of that signal. :meth:`DemoSource.set_exposure_time` changes it from the next frame
+rendered on, within :data:`EXPOSURE_RANGE_US`, as ``ExposureTime`` does on a GigE camera, so
+``svelive serve --source demo`` can show the live exposure sweep (``POST
+/api/calibrate/response {"sweep": [...]}``). The sweep compares frames taken at different
+moments, so it wants a still scene: ``period_s=0`` stops the pan and the moving light.
 """
 
 from __future__ import annotations
@@ -67,6 +76,10 @@ LIGHT_RGB = (1.0, 0.86, 0.7)
 LIGHT_PEAK = 0.8
 #: Light profile values below this fraction of the peak are zero (no denormals; far below 1 DN).
 LIGHT_FLOOR = 1e-12
+#: Exposure time (microseconds) at which the scene fills the sensor as described; others scale the light.
+REFERENCE_EXPOSURE_US = 10_000.0
+#: Exposure times the demo accepts, microseconds (a GigE camera's typical range).
+EXPOSURE_RANGE_US = (10.0, 1_000_000.0)
 #: Largest demo frame: 8K UHD. The demo holds about 40 bytes per pixel (scene planes, noise bank,
 #: exposure and channel maps), so this is ~1.3 GB; a larger request is refused, not attempted.
 MAX_SIZE = (7680, 4320)
@@ -81,7 +94,9 @@ class DemoConfig:
             other from the scene's aspect ratio).
         fps: frame rate (frames per second); 0 renders as fast as possible.
         scene: ``mttamwest-wide`` or a 256x256 sample scene (see svelive.simulate.SAMPLE_SCENES).
-        period_s: seconds for one full pan ellipse.
+        period_s: seconds for one full pan ellipse (and one pass of the light); 0: a still scene.
+        exposure_us: exposure time in microseconds (REFERENCE_EXPOSURE_US fills the sensor
+            as described above; the light collected scales with it).
         exact: render with the exact Poisson-Gaussian simulator (slow).
         frames: stop after this many frames (None: endless).
         seed: noise seed.
@@ -94,6 +109,7 @@ class DemoConfig:
     fps: float = 30.0
     scene: str = "mttamwest-wide"
     period_s: float = 20.0
+    exposure_us: float = REFERENCE_EXPOSURE_US
     exact: bool = False
     frames: int | None = None
     seed: int = 0
@@ -172,6 +188,10 @@ class DemoSource(Source):
         c = self.config
         if c.fps < 0 or any(v is not None and v < 16 for v in (c.width, c.height)):
             raise SveliveError(f"demo: need width, height >= 16 and fps >= 0, got {c.width}x{c.height} @ {c.fps}")
+        if c.period_s < 0 or not math.isfinite(c.period_s):
+            raise SveliveError(f"demo: period_s must be >= 0 (0: a still scene), got {c.period_s}")
+        self._exposure_us = self._check_exposure(c.exposure_us)
+        self._pattern_exposure: np.ndarray | None = None  # the pattern's exposure map, once open
         check_size(c.width, c.height)
         if c.scene not in scene_names():
             raise SveliveError(f"demo: unknown scene {c.scene!r}; choose from {', '.join(scene_names())}")
@@ -215,7 +235,8 @@ class DemoSource(Source):
         rows = self._channels[: 1 if cfa is None else min(cfa.shape[0], height)]
         self._masks = np.stack([rows == ch for ch in range(scene.shape[2])], axis=1).astype(np.float32)
         self._present = np.ascontiguousarray(self._masks.any(axis=2))
-        self._exposure = np.ascontiguousarray(pattern.exposure_map((height, width)), dtype=np.float32)
+        self._pattern_exposure = np.ascontiguousarray(pattern.exposure_map((height, width)), dtype=np.float32)
+        self._exposure = self._scaled_exposure(self._exposure_us)
         self._rng = np.random.default_rng(c.seed)
         self._noise = self._rng.standard_normal(max(2 * width * height, 1 << 16), dtype=np.float32)
         self._dtype = np.uint8 if sensor.bits <= 8 else np.uint16
@@ -223,12 +244,41 @@ class DemoSource(Source):
         self._n = 0
         self._t0 = time.monotonic()
 
+    # ----- exposure control ------------------------------------------------
+    @staticmethod
+    def _check_exposure(value: float) -> float:
+        lo, hi = EXPOSURE_RANGE_US
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise SveliveError(f"demo: exposure time {value:g} us is outside the demo's range {lo:g}..{hi:g} us")
+        return float(value)
+
+    def _scaled_exposure(self, exposure_us: float) -> np.ndarray:
+        """The pattern's exposure map times exposure_us / REFERENCE_EXPOSURE_US, float32 (H, W)."""
+        assert self._pattern_exposure is not None
+        scale = exposure_us / REFERENCE_EXPOSURE_US
+        if scale == 1.0:
+            return self._pattern_exposure
+        return np.ascontiguousarray(self._pattern_exposure * np.float32(scale))
+
+    def exposure_time(self) -> float | None:
+        """The exposure time in microseconds."""
+        return self._exposure_us
+
+    def set_exposure_time(self, value: float) -> float:
+        """Set the exposure time (microseconds, within EXPOSURE_RANGE_US) from the next frame on;
+        returns it."""
+        value = self._check_exposure(float(value))
+        if self._pattern_exposure is not None:  # open: the map the next frame is rendered with
+            self._exposure = self._scaled_exposure(value)
+        self._exposure_us = value
+        return value
+
     def _geometry(self, t: float) -> tuple[int, int, float, float, np.ndarray, np.ndarray]:
         """At time ``t`` s: the integer and fractional offsets (rows, cols) of the frame in the scene,
         and the light's row and column profiles."""
         c = self.config
         width, height = self.size
-        phase = 2 * math.pi * t / c.period_s
+        phase = 2 * math.pi * t / c.period_s if c.period_s else 0.0
         dx = self._span[0] * (1 - math.cos(phase))
         dy = self._span[1] * (1 - math.cos(2 * phase)) / 2 + self._span[1] / 2
         oy, ox = int(math.floor(dy)), int(math.floor(dx))
@@ -276,8 +326,9 @@ class DemoSource(Source):
         if self.config.exact:
             from svelive.simulate import simulate
 
-            return simulate(self.radiance(t), self.camera.require_pattern(), self.sensor, cfa=self.camera.cfa,
-                            seed=self._rng).raw
+            scale = np.float32(self._exposure_us / REFERENCE_EXPOSURE_US)
+            return simulate(self.radiance(t) * scale, self.camera.require_pattern(), self.sensor,
+                            cfa=self.camera.cfa, seed=self._rng).raw
         out = np.empty(self._channels.shape, self._dtype)
         _render_kernel(*self._kernel_args(t, out))
         return out
@@ -303,7 +354,7 @@ class DemoSource(Source):
 
     def _extra_stats(self) -> dict[str, Any]:
         c = self.config
-        return {"scene": c.scene, "pattern": self.pattern, "target_fps": c.fps}
+        return {"scene": c.scene, "pattern": self.pattern, "target_fps": c.fps, "exposure_us": self._exposure_us}
 
 
 @kernel
