@@ -7,6 +7,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
@@ -127,3 +128,58 @@ def test_viewer_shows_a_colour_preview_and_the_white_balance(tmp_path):
             time.sleep(0.1)
         if os.environ.get("SVELIVE_VIEWER_SCREENSHOT"):
             page.screenshot(path=os.environ["SVELIVE_VIEWER_SCREENSHOT"].replace(".png", "-colour.png"))
+
+
+def test_viewer_runs_an_exposure_sweep_shows_its_progress_and_the_curve_with_its_band(tmp_path, monkeypatch):
+    from tests.test_calibration_sweep import ExposureSource, server
+
+    camera = Camera(fps=25.0, raws=[np.zeros((192, 224), np.uint16)])
+    sources = []
+
+    def factory():
+        sources.append(ExposureSource(camera))
+        return sources[-1]
+
+    with server(monkeypatch, factory) as srv, browser_page(tmp_path, 900, 180_000) as page:
+        page.goto(srv.url + "/")
+        page.wait_for_function("document.getElementById('status').textContent === 'online'")
+        assert page.locator("#sweep-bar").is_hidden()
+        # every text the progress line shows, kept by the page as it changes
+        page.evaluate("""() => { window.sweepTexts = [];
+            new MutationObserver(() => window.sweepTexts.push(document.getElementById('sweep-state').textContent))
+              .observe(document.getElementById('sweep-state'), { childList: true, characterData: true, subtree: true }); }""")
+        # refused by the server: the reason is shown, nothing starts
+        page.fill("#sweep-times", "5000, 5000")
+        page.click("#sweep")
+        page.wait_for_function("document.getElementById('sweep-state').textContent.includes('refused')")
+        assert "differ" in page.text_content("#sweep-state") and srv.state()["calibration"] is None
+        page.fill("#sweep-times", "10000; 15000 22500")  # commas, semicolons or spaces
+        page.check("#cal-apply")
+        page.click("#sweep")
+        page.wait_for_function("document.getElementById('sweep-state').textContent.includes('done')")
+        texts = page.evaluate("window.sweepTexts")
+        assert any("fitting" in t for t in texts), texts  # the progress was shown while it ran
+        assert "3 frames at 10000, 15000, 22500" in texts[-1] and "exposure back to 10000" in texts[-1], texts[-1]
+        assert page.evaluate("[document.getElementById('sweep-bar').value, document.getElementById('sweep-bar').max]") \
+            == [4, 4]
+        assert not page.is_disabled("#sweep")
+        assert sources[-1].changes == [10_000.0, 15_000.0, 22_500.0, 10_000.0]
+        # the result: its curve (gamma 2.2's inverse bows below the diagonal) and its band, from the job's result
+        page.wait_for_function("document.getElementById('cal-info').textContent.includes('3 frames (sweep')")
+        info = page.text_content("#cal-info")
+        assert "sweep 10000, 15000, 22500" in info and "band" in info and "applied" in info, info
+        points = [tuple(map(float, p.split(","))) for p in page.get_attribute("#curve-path", "d")[1:].split(" L")]
+        assert len(points) == 65 and abs(points[32][1] - (160 - 150 * 0.5 ** 2.2)) < 150 * 0.02, points[32]
+        band = page.get_attribute("#curve-band", "d")
+        assert band.startswith("M") and band.endswith("Z")
+        edge = [tuple(map(float, p.split(","))) for p in band[1:-2].split(" L")]
+        result = httpx.get(srv.url + "/api/calibrate/response", timeout=10).json()
+        n = len(result["stats"]["band"]["brightness"])
+        assert len(edge) == 2 * n
+        upper, lower = edge[:n], edge[n:][::-1]
+        assert all(u[1] <= l[1] for u, l in zip(upper, lower))  # +2 SE above -2 SE (SVG y grows downwards)
+        lo, hi = result["stats"]["measured_range"]
+        assert upper[0][0] == pytest.approx(30 + 220 * lo, abs=0.06) and upper[-1][0] == pytest.approx(30 + 220 * hi, abs=0.06)
+        page.wait_for_function("document.getElementById('response').textContent.includes('calibrated live')")
+        if os.environ.get("SVELIVE_VIEWER_SCREENSHOT"):
+            page.screenshot(path=os.environ["SVELIVE_VIEWER_SCREENSHOT"].replace(".png", "-sweep.png"), full_page=True)
