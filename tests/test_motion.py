@@ -415,3 +415,36 @@ def test_cli_writes_one_exr_per_frame(tmp_path):
     assert set(channels) == {"Y", "confidence", "motion"}
     assert pu21_psnr(channels["Y"], frames[-1].truth) > 25
     assert main(["reconstruct-sequence", "--source", str(src), "-o", str(out)]) == 2  # no pattern
+
+
+@pytest.mark.parametrize("timing", ["mask", "integration"])
+def test_estimates_made_on_two_threads_and_fused_in_order_equal_the_sequential_stream(timing):
+    from concurrent.futures import ThreadPoolExecutor
+
+    background = scene_dn("desk", 2, 96)
+    scene = moving_disc(background, float(background.max()) * 2, 8, (48, 10), (0, 6))
+    frames = [f.raw for f in render_sequence(scene, 8, PATTERN, SENSOR, timing=timing, seed=5)]
+    sequential = Reconstructor(PATTERN, exposure_timing=timing, **KW)
+    expected = [sequential.process(raw) for raw in frames]
+    split = Reconstructor(PATTERN, exposure_timing=timing, **KW)
+    with ThreadPoolExecutor(2) as pool:
+        estimates = list(pool.map(split.estimate, frames))  # two frames at a time, finishing in any order
+    got = [split.fuse(e) for e in estimates]
+    assert got[-1].frame_index == len(frames) - 1
+    assert any(r.moving_fraction > 0 for r in got) and float(got[-1].weight.min()) < 1  # fused, and moved
+    for a, b in zip(expected, got):
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.motion, b.motion)
+
+
+def test_a_frame_estimated_before_a_reset_starts_from_no_history_and_leaves_none():
+    frames = [f.raw for f in render_sequence(static(scene_dn("desk", 2, 64)), 4, PATTERN, SENSOR, seed=2)]
+    stream = Reconstructor(PATTERN, **KW)
+    for raw in frames[:2]:
+        stream.process(raw)
+    stale = stream.estimate(frames[2])
+    stream.reset()
+    result = stream.fuse(stale)
+    assert result.frame_index == 0 and float(result.weight.min()) == 1.0  # no history used
+    assert stream.state()["frames"] == 0  # and none kept: the next frame is the stream's first
+    assert stream.process(frames[3]).frame_index == 0

@@ -44,7 +44,7 @@ from svelive.pattern import Pattern
 from svelive.jit import flat, kernel
 from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
-from svelive.reconstruction.consistency import exposure_consistency
+from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
 from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.numerics import window_estimate
@@ -165,8 +165,11 @@ class Reconstructor:
             The results do not depend on it; 1 keeps everything on the caller's thread.
         **method_options: passed to the method.
 
-    ``process`` is meant for one worker thread; ``method``, ``reset()`` and
-    ``state()`` may be called from any thread.
+    ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
+    frames at once on several threads) then ``fuse`` (in frame order, one thread at a time),
+    which uses each core for a whole frame instead of spreading one frame's strips over them
+    (``workers``), whose threads wait on each other; ``method``, ``reset()`` and ``state()``
+    may be called from any thread.
     """
 
     def __init__(self, pattern: Pattern | str | Camera, *, cfa: ColourFilter | str | None = None,
@@ -302,31 +305,53 @@ class Reconstructor:
 
     def process(self, raw: np.ndarray | Frame) -> SequenceResult:
         """Reconstruct the next frame of the stream: a Frame, or a raw uint8/uint16 (H, W) array
-        (black level included) of this stream's camera."""
+        (black level included) of this stream's camera. ``fuse(estimate(raw))``."""
+        return self.fuse(self.estimate(raw))
+
+    def estimate(self, raw: np.ndarray | Frame) -> Estimated:
+        """The part of :meth:`process` that does not depend on the stream's history: the method's
+        estimate and what the motion tests compare. Safe to call from several threads at once, on
+        different frames (a live service estimates two frames on two cores while it fuses in
+        order); pass each result to :meth:`fuse` in frame order."""
         with self._lock:
-            method, history, index, generation = self._method, self._history, self._frames, self._generation
-            chroma_history = self._chroma
+            method, generation = self._method, self._generation
         t0 = time.perf_counter()
         inp, est, parts = self._estimate(raw, method)
         t1 = time.perf_counter()
-        image, variance = est.image, est.variance
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
         inconsistency = window = None
         if self.temporal or self.consistency:
             # what the motion tests compare: a window mean beside the method's estimate, whatever the method
-            window = window_estimate(lum, image, variance, self._threads)
+            window = window_estimate(lum, est.image, est.variance, self._threads)
         if self.consistency:
             # the test reads each level's readings with its nominal exposure: a colour frame's
             # readings divided by their channel's share instead of the share folded into e
             tested = lum if not lum.folded else colour.luminance_input(inp, parts.interpolation, exposures=False)
             inconsistency = exposure_consistency(*window, tested, self.motion_config, workers=self.workers,
                                                  executor=self._pool)
+        frame = None
         if self.temporal:
             rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor) if parts is None
                     else own_reading_map(lum.exposure, inp.sensor))
-            frame = FrameEstimate(image, variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
-            fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency, detail=self.detail,
-                         workers=self.workers, executor=self._pool)
+            frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
+        return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
+                         (time.perf_counter() - t1) * 1e3)
+
+    def fuse(self, estimated: Estimated) -> SequenceResult:
+        """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
+        (with temporal fusion), the within-frame test applied, colour added. Call it with the
+        stream's frames in order, from one thread at a time. A frame estimated before a
+        ``reset()`` or a method change starts from no history and leaves none."""
+        t1 = time.perf_counter()
+        est, parts, inconsistency = estimated.estimate, estimated.parts, estimated.inconsistency
+        with self._lock:
+            current = estimated.generation == self._generation
+            history, index = (self._history, self._frames) if current else (None, 0)
+            chroma_history = self._chroma if current else None
+        image, variance = est.image, est.variance
+        if self.temporal:
+            fused = fuse(history, estimated.frame, self.motion_config, self.pattern.shape, inconsistency,
+                         detail=self.detail, workers=self.workers, executor=self._pool)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
         else:
@@ -345,15 +370,39 @@ class Reconstructor:
                 luminance, inter = image, parts.interpolation
             image = colour.colourise(luminance, inter, self._threads)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
-        t2 = time.perf_counter()
+        motion_ms = estimated.motion_ms + (time.perf_counter() - t1) * 1e3
         with self._lock:
-            if self._generation == generation:
+            if self._generation == estimated.generation:
                 self._history = history if self.temporal else None
                 self._chroma = chroma_history if self.temporal and parts is not None else None
                 self._frames = index + 1
             self._last_moving = moving_fraction
         return SequenceResult(image, motion, variance_of, est.lower_bound, weight, moving_fraction, ratio,
-                              method, index, {"method": (t1 - t0) * 1e3, "motion": (t2 - t1) * 1e3}, luminance)
+                              estimated.method, index, {"method": estimated.method_ms, "motion": motion_ms}, luminance)
+
+
+@dataclass(frozen=True)
+class Estimated:
+    """One frame's part of :meth:`Reconstructor.process` that needs no history (:meth:`Reconstructor.estimate`).
+
+    Attributes:
+        estimate: the method's estimate with its variance (of the luminance for a colour frame).
+        parts: a colour frame's joint parts (svelive.reconstruction.colour.Joint), or None.
+        frame: what the frame contributes to the temporal fusion, or None without it.
+        inconsistency: the within-frame test's finding, or None without the test.
+        method: the method that made ``estimate``.
+        generation: the stream's generation then (reset and method changes bump it).
+        method_ms, motion_ms: wall time of the method and of the motion tests' inputs so far.
+    """
+
+    estimate: Estimate
+    parts: colour.Joint | None
+    frame: FrameEstimate | None
+    inconsistency: Inconsistency | None
+    method: str
+    generation: int
+    method_ms: float
+    motion_ms: float
 
 
 def own_reading_map(exposure: np.ndarray, sensor: Sensor, scale: float = 1.0) -> tuple[np.ndarray, ...]:
