@@ -4,7 +4,7 @@
 
 Every image x pattern x light x true noise model is simulated like ``svelive bench``
 (12-bit, black 64, the lowest exposure just filling at the scene's 99.9th percentile;
-"dim" is 5 stops darker), and :func:`svelive.noise.estimate_noise` is given the raw frame
+then 3, 5 and 7 stops darker), and :func:`svelive.noise.estimate_noise` is given the raw frame
 and a camera with the pattern, black and white level but no gain and no read noise.
 Printed per run: the truth, the estimate, the error in % and the estimate's own
 standard uncertainty (sigma, in %), the worst error of the noise standard deviation the
@@ -14,7 +14,11 @@ and the share of runs within 15 %. ``--quick`` runs three noise models on three 
 every frame with the default method under the fixed defaults, the estimate and the
 true noise model, and reports PU21-PSNR (slow).
 With ``--colour`` the scenes are simulated in RGB through the colour layouts of
-svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns.
+svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`` a second
+frame of the same static scene (the next seed) is given to a :class:`svelive.noise.NoiseTracker`
+after the first (all pixels static), which is what the live service can do; its errors are
+reported too ("pair"). A run is "confidently wrong" when a value misses by more than 15 % and by
+more than two of its own stated standard uncertainties.
 """
 
 from __future__ import annotations
@@ -30,13 +34,14 @@ import numpy as np
 from svelive.bench.scenes import default_data_dir, find_images, load_scene, shipped_data_dir
 from svelive.camera import COLOUR_LAYOUTS, Camera
 from svelive.exr import read_exr
-from svelive.noise import estimate_noise
+from svelive.noise import NoiseTracker, estimate_noise
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale, simulate
 
-PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8", "1,2,4/8,16,32/64,128,256")
-LIGHTS = {"bright": 0.0, "dim": 5.0}
+PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
+#: light levels: stops below the fill of the lowest exposure (issue 12: bright, -3, -5, -7)
+LIGHTS = {"bright": 0.0, "-3": 3.0, "-5": 5.0, "-7": 7.0}
 #: (full well e-, read noise DN): the bench sensor's (10 000 e-, 2 DN) and the corners of a wide range.
 NOISE_MODELS = ((10_000, 2.0), (3_000, 6.0), (40_000, 0.7), (3_000, 0.7), (40_000, 6.0), (20_000, 1.2))
 QUICK_MODELS = ((10_000, 2.0), (3_000, 6.0), (40_000, 0.7))
@@ -50,6 +55,42 @@ def sd_error(gain: float, read: float, true_gain: float, true_read: float, white
     est = np.sqrt(s / gain + read**2 + 1 / 12)
     true = np.sqrt(s / true_gain + true_read**2 + 1 / 12)
     return float(100 * np.max(np.abs(est / true - 1)))
+
+
+def confidently_wrong(error_pct: float, sigma_pct: float) -> bool:
+    """A miss of more than 15 % that the stated uncertainty does not cover (more than 2 sigma; no sigma
+    stated counts as not covered)."""
+    return abs(error_pct) > 15 and not abs(error_pct) <= 2 * (sigma_pct if np.isfinite(sigma_pct) else 0.0)
+
+
+def summary_table(rows: list[dict]) -> str:
+    """Markdown table: per light, pattern, noise model and image, the share within 15 % and the share
+    confidently wrong (single frame; and the two-frame tracker when it ran)."""
+    groups: list[tuple[str, list[dict]]] = [("all", rows)]
+    for key in ("light", "pattern", "image"):
+        for value in dict.fromkeys(r[key] for r in rows):
+            groups.append((f"{key} {value}", [r for r in rows if r[key] == value]))
+    for model in dict.fromkeys((r["full_well"], r["true_read_noise"]) for r in rows):
+        groups.append((f"{model[0]:.0f} e-, {model[1]:.1f} DN",
+                       [r for r in rows if (r["full_well"], r["true_read_noise"]) == model]))
+    pair = "pair_gain_error_pct" in rows[0]
+    head = ("| runs | n | gain within 15 % | gain confidently wrong | read noise within 15 % | "
+            "read noise confidently wrong | gain median abs error |" + (" pair: gain within 15 % | pair: read "
+                                                                        "noise within 15 % |" if pair else ""))
+    lines = [head, "|" + " --- |" * (head.count("|") - 1)]
+    for label, mine in groups:
+        eg = np.array([r["gain_error_pct"] for r in mine])
+        er = np.array([r["read_noise_error_pct"] for r in mine])
+        wg = np.mean([confidently_wrong(r["gain_error_pct"], r["gain_sigma_pct"]) for r in mine])
+        wr = np.mean([confidently_wrong(r["read_noise_error_pct"], r["read_noise_sigma_pct"]) for r in mine])
+        line = (f"| {label} | {len(mine)} | {np.mean(abs(eg) <= 15):.0%} | {wg:.0%} | {np.mean(abs(er) <= 15):.0%} | "
+                f"{wr:.0%} | {np.median(abs(eg)):.0f} % |")
+        if pair:
+            pg = np.array([r["pair_gain_error_pct"] for r in mine])
+            pr = np.array([r["pair_read_noise_error_pct"] for r in mine])
+            line += f" {np.mean(abs(pg) <= 15):.0%} | {np.mean(abs(pr) <= 15):.0%} |"
+        lines.append(line)
+    return "\n".join(lines)
 
 
 def true_sensor(full_well: float, read_noise: float) -> Sensor:
@@ -80,18 +121,18 @@ def pu21_by_noise_model(raw: np.ndarray, camera: Camera, truth: Sensor, estimate
 
 
 def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed: int, out_csv: Path | None,
-        psnr: bool = False) -> int:
+        psnr: bool = False, pair: bool = False, lights: dict[str, float] = LIGHTS) -> int:
     rows = []
     header = (f"{'image':10s} {'pattern':26s} {'light':6s} {'true g':>7s} {'est g':>7s} {'err':>6s} {'sig':>5s}  "
               f"{'true r':>6s} {'est r':>6s} {'err':>6s} {'sig':>5s} {'sd err':>6s} {'samples':>8s} {'ms':>6s}")
     print(header, flush=True)
-    total = len(images) * len(patterns) * len(LIGHTS) * len(models)
+    total = len(images) * len(patterns) * len(lights) * len(models)
     done = 0
     for path in images:
         colour = any(cfa for _, cfa in patterns)
         scene = load_rgb(path) if colour else load_scene(path)
         for pattern, cfa in patterns:
-            for light, stops in LIGHTS.items():
+            for light, stops in lights.items():
                 for full_well, read in models:
                     truth = true_sensor(full_well, read)
                     p = Pattern.parse(pattern)
@@ -111,12 +152,24 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     done += 1
                     flag = "" if abs(eg) <= 15 and abs(er) <= 15 else "  <-"
                     scores = pu21_by_noise_model(raw, camera, truth, est, sim.truth) if psnr else {}
-                    if scores:
-                        flag += "  PU21 default/estimated/true " + "/".join(f"{v:.2f}" for v in scores.values())
+                    if pair:
+                        tracker = NoiseTracker()
+                        tracker.update(raw, camera)
+                        second = simulate(radiance, p, truth, cfa=cfa, seed=seed + 1000).raw
+                        two = tracker.update(second, camera, np.ones(raw.shape, bool))
+                        scores.update(pair_gain_error_pct=100 * (two.gain / truth.gain - 1),
+                                      pair_read_noise_error_pct=100 * (two.read_noise / truth.read_noise - 1),
+                                      pair_gain_sigma_pct=100 * (two.gain_sigma or float("nan")) / two.gain)
+                        flag += (f"  pair {scores['pair_gain_error_pct']:+.0f}%/"
+                                 f"{scores['pair_read_noise_error_pct']:+.0f}%")
+                    if psnr:
+                        flag += "  PU21 default/estimated/true " + "/".join(f"{scores[k]:.2f}" for k in
+                                                                   ("pu21_default", "pu21_estimated", "pu21_true"))
                     print(f"{path.stem[:10]:10s} {name[:26]:26s} {light:6s} {truth.gain:7.3f} {est.gain:7.3f} "
                           f"{eg:+5.0f}% {sg:4.0f}%  {truth.read_noise:6.2f} {est.read_noise:6.2f} {er:+5.0f}% "
                           f"{sr:4.0f}% {sde:5.0f}% {est.samples:8d} {ms:6.0f}{flag}   [{done}/{total}]", flush=True)
-                    rows.append(dict(image=path.stem, pattern=name, light=light, true_gain=truth.gain,
+                    rows.append(dict(image=path.stem, pattern=name, light=light, full_well=full_well,
+                                     true_gain=truth.gain,
                                      gain=est.gain, gain_error_pct=eg, gain_sigma_pct=sg,
                                      true_read_noise=truth.read_noise, read_noise=est.read_noise,
                                      read_noise_error_pct=er, read_noise_sigma_pct=sr, sd_error_pct=sde,
@@ -130,6 +183,7 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
           f"median {np.median(er):.1f}% worst {er.max():.1f}%; both within 15%: {within:.0%}; noise sd (worst over "
           f"1..white DN) error median {np.median(sde):.1f}%, within 15% in {np.mean(sde <= 15):.0%}; "
           f"median time {np.median([r['ms'] for r in rows]):.0f} ms")
+    print(summary_table(rows))
     for key, label in (("gain_error_pct", "gain"), ("read_noise_error_pct", "read noise")):
         worst = sorted(rows, key=lambda r: -abs(r[key]))[:5]
         print(f"worst {label}: " + "; ".join(f"{r['image']} {r['pattern']} {r['light']} g{r['true_gain']:.2f} "
@@ -158,6 +212,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--images", help="comma-separated image stems")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--csv", type=Path, help="also write the rows as CSV")
+    parser.add_argument("--pair", action="store_true", help="also a two-frame estimate (NoiseTracker, static)")
+    parser.add_argument("--patterns", help="patterns separated by ';' (default: " + "; ".join(PATTERNS) + ")")
+    parser.add_argument("--lights", help="comma-separated light names of " + ",".join(LIGHTS))
+    parser.add_argument("--models", help="noise models 'full_well:read_dn' separated by ','")
     parser.add_argument("--psnr", action="store_true", help="also reconstruct with the default method under the "
                                                             "fixed defaults, the estimate and the truth (PU21-PSNR)")
     args = parser.parse_args(argv)
@@ -171,11 +229,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.colour:
         patterns = [COLOUR_LAYOUTS[name] for name in COLOUR_LAYOUTS]
     else:
-        patterns = [(p, None) for p in PATTERNS]
+        patterns = [(p, None) for p in (args.patterns.split(";") if args.patterns else PATTERNS)]
     models = QUICK_MODELS if args.quick else NOISE_MODELS
-    print(f"data {data}: {len(images)} images, {len(patterns)} patterns, {len(LIGHTS)} lights, "
+    if args.models:
+        models = tuple(tuple(float(v) for v in m.split(":")) for m in args.models.split(","))
+    lights = {k: LIGHTS[k] for k in args.lights.split(",")} if args.lights else LIGHTS
+    print(f"data {data}: {len(images)} images, {len(patterns)} patterns, {len(lights)} lights, "
           f"{len(models)} noise models", file=sys.stderr)
-    return run(images, patterns, models, args.seed, args.csv, args.psnr)
+    return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights)
 
 
 if __name__ == "__main__":
