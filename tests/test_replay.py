@@ -554,3 +554,21 @@ def test_replay_chosen_exposure_plays_at_the_recorded_rate(tmp_path: Path) -> No
         elapsed = time.monotonic() - t
         assert len(got) == 5 and elapsed >= 0.19  # 4 intervals of 50 ms at least; no upper bound (loaded machine)
         assert {(f.frame_id - 100) % 6 for f in got} == {4, 5}
+
+
+def test_writer_records_a_frames_own_exposure_time_attribute(tmp_path: Path) -> None:
+    """A frame that carries its exposure time (a source stamping it) needs no argument to append."""
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class TimedFrame(Frame):
+        exposure_time: float | None = None
+
+    frames = make_frames(3)
+    with RecordingWriter(tmp_path / "t.sverec", pattern="1,4/16,64") as w:
+        w.append(TimedFrame(**vars(frames[0]), exposure_time=800.0))
+        w.append(TimedFrame(**vars(frames[1])))  # none
+        w.append(TimedFrame(**vars(frames[2]), exposure_time=800.0), exposure_time=1200.0)  # the argument wins
+    with RecordingReader(tmp_path / "t.sverec") as r:
+        got = r.exposure_times()
+        assert got[0] == 800.0 and np.isnan(got[1]) and got[2] == 1200.0
