@@ -202,8 +202,9 @@ class ReplaySource(Source):
             self._switched = True
         return chosen
 
-    def _selected(self) -> int | None:
-        """The next frame index while an exposure time is chosen (None otherwise), with pacing state."""
+    def _selected(self) -> tuple[int, np.ndarray] | None:
+        """The next frame index while an exposure time is chosen and the selection it is from (None
+        while none is chosen); starts a new choice's pacing and frame ids."""
         with self._select_lock:
             selection = self._selection
             if selection is None:
@@ -215,14 +216,14 @@ class ReplaySource(Source):
             if self._sel_pos >= selection.size:
                 self._sel_pos = 0
                 self._loops += 1
-            return int(selection[self._sel_pos])
+            return int(selection[self._sel_pos]), selection
 
     def _next(self) -> Frame | None:
         reader = self._reader
         assert reader is not None
         chosen = self._selected()
         if chosen is not None:
-            return self._next_selected(reader, chosen)
+            return self._next_selected(reader, *chosen)
         if self._pos >= len(reader):
             if not self.config.loop:
                 raise EndOfStream
@@ -242,8 +243,9 @@ class ReplaySource(Source):
         self._pos += 1
         return self._deliver_index(reader, i)
 
-    def _next_selected(self, reader: RecordingReader, i: int) -> Frame | None:
-        """Frame ``i`` of the chosen exposure time, paced at the recording's mean frame rate."""
+    def _next_selected(self, reader: RecordingReader, i: int, selection: np.ndarray) -> Frame | None:
+        """Frame ``i`` of the chosen exposure time's ``selection``, paced at the recording's mean
+        frame rate; None when another time was chosen meanwhile (its frames come next)."""
         if self.config.speed > 0 and self._period_ns > 0:
             if self._anchor is None:
                 self._anchor = (time.monotonic(), 0)
@@ -253,6 +255,8 @@ class ReplaySource(Source):
             if time.monotonic() < due:
                 return None
         with self._select_lock:
+            if self._selection is not selection:
+                return None
             self._sel_pos += 1
         self._sel_n += 1
         return self._deliver_index(reader, i)
