@@ -36,7 +36,8 @@ class PipelineConfig:
             is linearised through it before reconstruction; None: the camera is linear.
         mask: path of a mask file (``svelive calibrate mask``): its per-pixel exposure
             map replaces the nominal tile's exposures; None: the nominal pattern.
-        workers: threads the reconstruction spreads one frame over; 0: one per core.
+        workers: frames reconstructed at once, each on a thread of its own (fused in arrival order);
+            0: one per core.
         queue: frames the capture -> reconstruction hand-off holds (1..8).
         tone: preview tone-mapping parameters.
         colour: colour output of a colour camera (svelive.whitebalance.ColourSettings: white
