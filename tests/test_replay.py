@@ -564,11 +564,15 @@ def test_writer_records_a_frames_own_exposure_time_attribute(tmp_path: Path) -> 
     class TimedFrame(Frame):
         exposure_time: float | None = None
 
+    def timed(f: Frame, exposure_time: float | None = None) -> TimedFrame:
+        return TimedFrame(raw=f.raw, frame_id=f.frame_id, host_time_ns=f.host_time_ns, device_time_ns=f.device_time_ns,
+                          pixel_format=f.pixel_format, camera=f.camera, exposure_time=exposure_time)
+
     frames = make_frames(3)
     with RecordingWriter(tmp_path / "t.sverec", pattern="1,4/16,64") as w:
-        w.append(TimedFrame(**vars(frames[0]), exposure_time=800.0))
-        w.append(TimedFrame(**vars(frames[1])))  # none
-        w.append(TimedFrame(**vars(frames[2]), exposure_time=800.0), exposure_time=1200.0)  # the argument wins
+        w.append(timed(frames[0], 800.0))
+        w.append(timed(frames[1]))  # none
+        w.append(timed(frames[2], 800.0), exposure_time=1200.0)  # the argument wins
     with RecordingReader(tmp_path / "t.sverec") as r:
         got = r.exposure_times()
         assert got[0] == 800.0 and np.isnan(got[1]) and got[2] == 1200.0
