@@ -107,6 +107,11 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     from service.pipeline import Pipeline, PipelineConfig
     from service.settings import ServerSettings
 
+    try:  # what svelive serve does at start-up (absent from checkouts before it)
+        from svelive.memory import keep_freed_memory
+        keep_freed_memory()
+    except ImportError:
+        pass
     factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa)
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
     settings = ServerSettings(port=port, log_level="warning")
