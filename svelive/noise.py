@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
@@ -83,6 +83,8 @@ class EstimatorConfig:
         max_shot_ratio: if > 0, the model passes leave out samples whose shot variance exceeds this
             many times the read noise's (off: it costs the read noise of bright frames their leverage).
         block: side of the sample blocks in tiles (odd); the region test uses the other samples of a block.
+        texture_uncertainty: add to the fit's covariance the shift a texture term would make
+            (:func:`_with_texture_uncertainty`).
     """
 
     max_samples: int = 40_000
@@ -98,6 +100,7 @@ class EstimatorConfig:
     start_fraction: float = 0.25
     max_shot_ratio: float = 0.0
     block: int = 3
+    texture_uncertainty: bool = True
 
 
 @dataclass(frozen=True)
@@ -107,8 +110,9 @@ class NoiseEstimate:
     Attributes:
         gain: electrons per DN.
         read_noise: read noise, DN (standard deviation, quantisation excluded).
-        gain_sigma: standard uncertainty of ``gain`` (e-/DN); 0 when given, None when unknown.
-        read_noise_sigma: standard uncertainty of ``read_noise`` (DN); 0 when given, None when unknown.
+        gain_sigma: standard uncertainty of ``gain`` (e-/DN); 0 when given; the prior's (``ln 4`` times the
+            value) when the data did not tell it; None when unknown.
+        read_noise_sigma: standard uncertainty of ``read_noise`` (DN), likewise.
         samples: noise samples (pixel pairs) the estimate rests on.
         source: "given" (both from the user or datasheet), "estimated" (from the data,
             a given value kept), "default" (the data could not tell; the sensor defaults).
@@ -194,6 +198,7 @@ class LineFit:
     bins_n: np.ndarray
     inlier: np.ndarray
     fixed_slope: bool = False
+    texture: float = 0.0
 
     def variance(self, t: np.ndarray | float) -> np.ndarray | float:
         return np.maximum(self.slope * np.asarray(t) + self.intercept, QUANTISATION_VARIANCE)
@@ -535,33 +540,57 @@ def bin_samples(samples: NoiseSamples, config: EstimatorConfig) -> tuple[np.ndar
 
 
 def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None = None,
-             intercept: float | None = None, outlier_tolerance: float = 0.1) -> LineFit | None:
+             intercept: float | None = None, outlier_tolerance: float = 0.1,
+             texture: bool = False) -> LineFit | None:
     """Weighted least squares of ``v = slope * t + intercept`` over bins, dropping bins well above the line.
 
     Each bin weighs ``n / (2 model^2)`` (a variance estimate's variance is ``2 v^2 / n``). A bin
     more than ``outlier_tolerance`` plus three standard errors above the line is dropped (texture only
     inflates); one far below (four standard errors and the tolerance) too. A given ``slope`` or
-    ``intercept`` is held fixed. None when fewer than 2 bins (3 for both free) remain or the slope is not positive.
+    ``intercept`` is held fixed. With ``texture`` a term ``k t^2`` (``k >= 0``) is fitted too and
+    left out of the noise: texture that survives the flatness tests is a contrast, its variance
+    grows as the signal squared where shot noise grows as the signal (``LineFit.texture`` is ``k``;
+    the covariance of slope and intercept then includes what not knowing ``k`` costs).
+    None when fewer than 2 bins (3 for both free) remain or the slope is not positive.
     """
     t, v, n = (np.asarray(a, np.float64) for a in (t, v, n))
     free = [slope is None, intercept is None]
     need = 1 + sum(free)
     if t.size < need:
         return None
+    quad = texture and free[0] and t.size >= need + 2
     inlier = np.ones(t.size, bool)
     model = np.maximum(v, QUANTISATION_VARIANCE)
-    coef = np.array([slope or 0.0, intercept or 0.0])
+    coef = np.array([slope or 0.0, intercept or 0.0, 0.0])
     cov = np.zeros((2, 2))
+
+    def design(with_quad: bool) -> np.ndarray:
+        cols = [c for c, f in zip((t, np.ones_like(t)), free) if f] + ([t * t] if with_quad else [])
+        return np.stack(cols, axis=1)
+
+    def solve(w: np.ndarray) -> tuple[np.ndarray, bool]:
+        target = v - (0.0 if slope is None else slope * t) - (0.0 if intercept is None else intercept)
+        for with_quad in ((True, False) if quad else (False,)):
+            sol, *_ = np.linalg.lstsq(design(with_quad) * w[:, None], target * w, rcond=None)
+            if not with_quad or sol[-1] >= 0:
+                break
+        k = 0
+        out = np.array([slope or 0.0, intercept or 0.0, 0.0])
+        for j, f in enumerate(free):
+            if f:
+                out[j] = sol[k]
+                k += 1
+        if with_quad:
+            out[2] = sol[-1]
+        return out, with_quad
+
+    used_quad = False
     for _ in range(8):
         w = np.sqrt(n / 2.0) / model * inlier
-        target = v - (0.0 if slope is None else slope * t) - (0.0 if intercept is None else intercept)
-        cols = [c for c, f in zip((t, np.ones_like(t)), free) if f]
-        a = np.stack(cols, axis=1)
-        if int(inlier.sum()) < need:
+        if int(inlier.sum()) < need + used_quad:
             return None
-        sol, *_ = np.linalg.lstsq(a * w[:, None], target * w, rcond=None)
-        coef = np.array([sol[0] if free[0] else slope, sol[-1] if free[1] else intercept], np.float64)
-        model_new = np.maximum(coef[0] * t + coef[1], QUANTISATION_VARIANCE)
+        coef, used_quad = solve(w)
+        model_new = np.maximum(coef[0] * t + coef[1] + coef[2] * t * t, QUANTISATION_VARIANCE)
         se = model_new * np.sqrt(2.0 / n)
         new_inlier = ((v <= model_new * (1 + outlier_tolerance) + 3 * se)
                       & (v >= model_new * (1 - outlier_tolerance) - 4 * se))
@@ -569,12 +598,11 @@ def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None
         model, inlier = model_new, new_inlier
         if converged:
             break
-        if int(inlier.sum()) < need:
+        if int(inlier.sum()) < need + used_quad:
             return None
     w = np.sqrt(n / 2.0) / model * inlier
-    cols = [c for c, f in zip((t, np.ones_like(t)), free) if f]
-    a = np.stack(cols, axis=1) * w[:, None]
-    dof = max(int(inlier.sum()) - need, 1)
+    a = design(used_quad) * w[:, None]
+    dof = max(int(inlier.sum()) - need - used_quad, 1)
     resid = (v - model) * w
     chi2 = float(np.sum(resid * resid)) / dof
     try:
@@ -587,12 +615,19 @@ def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None
             cov[ki, kj] = sub[i, j]
     if not coef[0] > 0:
         return None
-    return LineFit(float(coef[0]), float(coef[1]), cov, t, v, n.astype(np.int64), inlier, not free[0])
+    return LineFit(float(coef[0]), float(coef[1]), cov, t, v, n.astype(np.int64), inlier, not free[0],
+                   float(coef[2]))
 
 
 #: The prior every estimate is combined with: log-normal around the sensor defaults (sensor.py), one
 #: standard deviation a factor of 4 (full wells of 2 500-40 000 e- for 12 bits are within one sigma).
 PRIOR_LOG_SIGMA = math.log(4.0)
+
+
+def _prior_sigma(default: float) -> float:
+    """The standard uncertainty of a value the data did not tell (the prior's alone): its log-sigma times
+    the value, so that ``2 sigma`` spans the factor the prior allows (about 16 either way)."""
+    return PRIOR_LOG_SIGMA * default
 
 
 def _with_prior(value: float, sigma: float, default: float) -> tuple[float, float]:
@@ -620,12 +655,12 @@ def estimate_from_fit(fit: LineFit | None, sensor: Sensor, samples: int) -> Nois
     default_read = DEFAULT_READ_NOISE_E / default_gain
     if fit is None:
         read = given_read if given_read is not None else default_read
-        return NoiseEstimate(default_gain, read, None if given_gain is None else 0.0,
-                             None if given_read is None else 0.0, samples, "default")
+        return NoiseEstimate(default_gain, read, 0.0 if given_gain is not None else _prior_sigma(default_gain),
+                             0.0 if given_read is not None else _prior_sigma(read), samples, "default")
     if given_gain is not None:
         gain, gain_sigma = given_gain, 0.0
-    elif fit.fixed_slope:  # the data told only the read noise; the gain stays the default
-        gain, gain_sigma = default_gain, None
+    elif fit.fixed_slope:  # the data told only the read noise; the gain stays the default, as uncertain as the prior
+        gain, gain_sigma = default_gain, _prior_sigma(default_gain)
     else:
         gain = 1.0 / fit.slope
         gain, gain_sigma = _with_prior(gain, math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain, default_gain)
@@ -707,7 +742,24 @@ def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None 
         t, v, n = bin_samples(samples, config)
         dark = math.exp(PRIOR_LOG_SIGMA) * slope * t <= 0.5 * v
         fit = fit_line(t[dark], v[dark], n[dark], slope=slope, outlier_tolerance=config.outlier_tolerance)
+    elif fit is not None and config.texture_uncertainty and not fit.fixed_slope:
+        fit = _with_texture_uncertainty(fit, fixed, config)
     return samples, fit
+
+
+def _with_texture_uncertainty(fit: LineFit, fixed: dict, config: EstimatorConfig) -> LineFit:
+    """``fit`` with what texture may have added to it in its covariance.
+
+    Texture that passed the flatness tests is a contrast: its variance grows as the signal squared.
+    The same bins fitted with a term ``k t^2`` (k >= 0) give another line; the shift from ``fit`` to
+    it is what the frame cannot tell between shot noise and texture, and is added to the
+    covariance (as a systematic error, its outer product)."""
+    alt = fit_line(fit.bins_t, fit.bins_v, fit.bins_n, **fixed, outlier_tolerance=config.outlier_tolerance,
+                   texture=True)
+    if alt is None:
+        return replace(fit, cov=fit.cov + np.diag([fit.slope, 0.0]) ** 2)
+    delta = np.array([alt.slope - fit.slope, alt.intercept - fit.intercept])
+    return replace(fit, cov=fit.cov + np.outer(delta, delta))
 
 
 def _fixed(sensor: Sensor) -> dict:

@@ -133,7 +133,9 @@ def test_blank_or_saturated_frame_falls_back_to_the_defaults():
         assert est.source == "default"
         assert est.gain == pytest.approx(sensor.effective_gain)
         assert est.read_noise == pytest.approx(sensor.effective_read_noise)
-        assert est.gain_sigma is None
+        # the frame told nothing: the uncertainty is the prior's, wide enough to cover any real sensor
+        assert est.gain_sigma == pytest.approx(np.log(4) * est.gain)
+        assert est.read_noise_sigma == pytest.approx(np.log(4) * est.read_noise)
 
 
 def test_report_forms_are_json_safe():
