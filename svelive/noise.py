@@ -432,10 +432,14 @@ def _select_all(data: list[_PhaseData], model: LineFit | tuple[float, float] | N
         return joined
     spread = np.concatenate(spreads)
     which, _ = _bin_index(joined.t, config.bins)
-    keep = np.zeros(joined.size, bool)
-    for k in np.unique(which):
-        members = np.flatnonzero(which == k)
-        keep[members[spread[members] <= np.quantile(spread[members], config.start_fraction)]] = True
+    # within every bin, keep the spreads at or below its start_fraction quantile (linear interpolation):
+    # exactly those at or below the value of sorted rank floor((n - 1) q)
+    order = np.lexsort((spread, which))
+    counts = np.bincount(which, minlength=config.bins)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = starts + np.floor((np.maximum(counts, 1) - 1) * config.start_fraction).astype(np.int64)
+    limit = spread[order[np.minimum(rank, joined.size - 1)]]
+    keep = spread <= limit[which]
     return NoiseSamples(joined.t[keep], joined.u[keep])
 
 
@@ -483,6 +487,20 @@ def _clip_correction(k: float) -> float:
     return 1.0 - 2.0 * k * phi / math.erf(k / math.sqrt(2))
 
 
+def _median_and_quantile(u: np.ndarray, q: float) -> tuple[float, float]:
+    """``np.median(u)`` and ``np.quantile(u, q)`` (linear interpolation, numpy's formula) from one
+    partial sort of ``u`` (float64 (N,), N >= 1)."""
+    n = u.size
+    pos = q * (n - 1)
+    lo = int(math.floor(pos))
+    kth = sorted({(n - 1) // 2, n // 2, lo, min(lo + 1, n - 1)})
+    part = np.partition(u, kth)
+    median = float(part[n // 2]) if n % 2 else 0.5 * (float(part[n // 2 - 1]) + float(part[n // 2]))
+    a, b, frac = float(part[lo]), float(part[min(lo + 1, n - 1)]), pos - lo
+    top = b - (b - a) * (1.0 - frac) if frac >= 0.5 else a + (b - a) * frac
+    return median, top
+
+
 def _robust_variance(u: np.ndarray, clip_sigma: float, table: tuple[np.ndarray, np.ndarray]) -> float:
     """Variance (DN^2) from squared residuals ``u`` (noise, plus texture and edges in a minority).
 
@@ -492,7 +510,8 @@ def _robust_variance(u: np.ndarray, clip_sigma: float, table: tuple[np.ndarray, 
     """
     # start from above (the mean of all but the top percent) and clip down to the fixed point: from
     # below, integer residuals of small noise (mostly 0 and +-1) would stop the clip short
-    v = max(_variance_from_median(float(np.median(u)), table), float(np.mean(u[u <= np.quantile(u, 0.99)])))
+    median, top = _median_and_quantile(u, 0.99)
+    v = max(_variance_from_median(median, table), float(np.mean(u[u <= top])))
     corr = _clip_correction(clip_sigma)
     count = -1
     for _ in range(6):
