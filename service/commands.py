@@ -47,8 +47,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="close a connection whose request headers take longer than this (default 10)")
     p.add_argument("--max-connections", type=int, help="refuse connections beyond this many (default 512)")
     p.add_argument("--rtsp", dest="rtsp_port", type=int, metavar="PORT",
-                   help="also serve the preview as H.264 over RTSP at rtsp://HOST:PORT/live (several cameras: "
-                        "PORT, PORT+1, ... in the order of the config file; default 0: off)")
+                   help="also serve the preview as H.264 over RTSP at rtsp://HOST:PORT/cam/NAME for every "
+                        "camera, the first also at rtsp://HOST:PORT/live (default 0: off)")
     p.add_argument("--metrics-public", action="store_const", const=True,
                    help="serve /metrics (Prometheus) without the token")
     p.add_argument("--cors-origin", dest="cors_origins", action="append", metavar="ORIGIN",
@@ -111,23 +111,27 @@ def cmd_serve(args: argparse.Namespace) -> int:
         paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])
         print(f"svelive serve: {config.source} on {' and '.join(reversed(paths))}", file=sys.stderr, flush=True)
     redact_tokens(logging.getLogger("uvicorn.access"))
-    publishers = []
+    rtsp = None
     if server.rtsp_port:
-        from service.publishers.rtsp import RtspPublisher
+        from service.publishers.rtsp import RtspPublisher, RtspServer
 
+        # one port for every camera: /cam/NAME each, the first camera also at /live (the same encoding)
+        rtsp = RtspServer(host=server.host, port=server.rtsp_port, token=server.token)
         for index, cam in enumerate(app.state.cameras):
-            cam.rtsp = RtspPublisher(cam.pipeline, host=server.host, port=server.rtsp_port + index,
-                                     token=server.token).start()
-            publishers.append(cam.rtsp)
-            print(f"svelive serve: {cam.name} as RTSP on {cam.rtsp.url}", file=sys.stderr, flush=True)
+            cam.rtsp = RtspPublisher(cam.pipeline, server=rtsp, path=f"/cam/{cam.name}",
+                                     aliases=("/live",) if index == 0 else ())
+        rtsp.start()
+        for index, cam in enumerate(app.state.cameras):
+            urls = [rtsp.url(path) for path in reversed(cam.rtsp.paths)]
+            print(f"svelive serve: {cam.name} as RTSP on {' and '.join(urls)}", file=sys.stderr, flush=True)
     try:
         uvicorn.Server(uvicorn.Config(app, log_level=server.log_level, timeout_graceful_shutdown=2,
                                       access_log=server.log_level in ("debug", "trace"),
                                       http=bounded_protocol(server.header_timeout_s, server.max_connections),
                                       timeout_keep_alive=5)).run(sockets=[sock])
     finally:
-        for publisher in publishers:
-            publisher.stop()
+        if rtsp is not None:
+            rtsp.stop()
         sock.close()
     return 0
 

@@ -52,7 +52,8 @@ class ServerSettings:
         header_timeout_s: a connection whose request headers are not complete this long after
             it opened (or after its previous response) is closed.
         max_connections: open connections beyond this are refused.
-        rtsp_port: serve the preview as H.264 over RTSP on this port; 0: no RTSP.
+        rtsp_port: serve every camera's preview as H.264 over RTSP on this port (``/cam/NAME``, the
+            first camera also ``/live``); 0: no RTSP.
         metrics_public: serve /metrics without the token (for a Prometheus that cannot send one).
     """
 

@@ -311,7 +311,7 @@ def test_serve_two_demo_cameras_from_a_config_file(tmp_path):
     assert "/cam/two/" in err and "t0ken" not in err
 
 
-def test_serve_rtsp_for_each_camera_listed_in_the_state(tmp_path):
+def test_serve_rtsp_for_each_camera_on_one_port_listed_in_the_state(tmp_path):
     from tests.test_service_rtsp import MISSING
 
     if MISSING is not None:
@@ -323,25 +323,34 @@ def test_serve_rtsp_for_each_camera_listed_in_the_state(tmp_path):
             ports.append(probe.getsockname()[1])
     port, rtsp_port = ports[0], max(ports[1:]) + 100
     config = two_demo_cameras(tmp_path, port)
+
+    def decode(url: str, shape: tuple[int, int]) -> None:
+        # ffmpeg, a client of its own (not GStreamer's): two decoded grey frames of the camera's size
+        decoded = subprocess.run(["ffmpeg", "-v", "error", "-rtsp_transport", "tcp", "-i", url, "-frames:v", "2",
+                                  "-f", "rawvideo", "-pix_fmt", "gray", "-"], capture_output=True, timeout=60)
+        assert decoded.returncode == 0, decoded.stderr.decode()[-300:]
+        assert len(decoded.stdout) == 2 * shape[0] * shape[1]
+
     with serving(["--config", config, "--rtsp", str(rtsp_port), "--token", "tok"], port) as proc:
         auth = {"Authorization": "Bearer tok"}
-        for index, (name, shape) in enumerate((("one", (96, 160)), ("two", (64, 128)))):
+        for name, shape in (("one", (96, 160)), ("two", (64, 128))):
             state = wait_state(f"http://127.0.0.1:{port}/cam/{name}/api/state",
                                lambda s: s["frames"]["reconstructed"] > 0, timeout=30, headers=auth)
-            assert state["rtsp"]["url"] == f"rtsp://127.0.0.1:{rtsp_port + index}/live" and state["rtsp"]["auth"]
-            url = state["rtsp"]["url"].replace("rtsp://", "rtsp://viewer:tok@")
-            # ffmpeg, a client of its own (not GStreamer's): two decoded grey frames of the camera's size
-            decoded = subprocess.run(["ffmpeg", "-v", "error", "-rtsp_transport", "tcp", "-i", url, "-frames:v", "2",
-                                      "-f", "rawvideo", "-pix_fmt", "gray", "-"], capture_output=True, timeout=60)
-            assert decoded.returncode == 0, decoded.stderr.decode()[-300:]
-            assert len(decoded.stdout) == 2 * shape[0] * shape[1]
+            # every camera on the one port, at its own path
+            assert state["rtsp"]["url"] == f"rtsp://127.0.0.1:{rtsp_port}/cam/{name}" and state["rtsp"]["auth"]
+            decode(state["rtsp"]["url"].replace("rtsp://", "rtsp://viewer:tok@"), shape)
             refused = subprocess.run(["ffmpeg", "-v", "error", "-rtsp_transport", "tcp", "-i", state["rtsp"]["url"],
                                       "-frames:v", "1", "-f", "null", "-"], capture_output=True, timeout=60)
             assert refused.returncode != 0 and b"401" in refused.stderr
+        # the first camera is also at /live, the same media as /cam/one
+        decode(f"rtsp://viewer:tok@127.0.0.1:{rtsp_port}/live", (96, 160))
+        state = httpx.get(f"http://127.0.0.1:{port}/cam/one/api/state", headers=auth, timeout=5).json()
+        assert state["rtsp"]["paths"] == ["/cam/one", "/live"]
         metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", headers=auth, timeout=5).text
         assert 'svelive_clients{camera="two",kind="rtsp"}' in metrics
     err = proc.err
-    assert f"two as RTSP on rtsp://127.0.0.1:{rtsp_port + 1}/live" in err
+    assert (f"one as RTSP on rtsp://127.0.0.1:{rtsp_port}/live and rtsp://127.0.0.1:{rtsp_port}/cam/one" in err
+            and f"two as RTSP on rtsp://127.0.0.1:{rtsp_port}/cam/two" in err)
 
 
 def test_latency_histograms_count_every_duration():

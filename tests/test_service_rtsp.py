@@ -247,7 +247,7 @@ def test_stop_disconnects_clients_and_frees_the_port(mono_pipeline):
     with RtspClient(publisher.url, publisher=publisher) as client:
         client.frames(2)
         publisher.stop()
-        assert publisher._thread is None
+        assert publisher.server._thread is None
         assert mono_pipeline.encoder.preview_watchers == 0
         with pytest.raises((RtspClientError, AssertionError)):
             client.frames(200, timeout=5)  # the server went away: an error, or at least no 200 more frames
@@ -321,3 +321,28 @@ def test_no_signal_frames_while_the_source_is_offline():
         assert all(frame.shape == SHAPE for frame in frames)
         no_signal = no_signal_image(SHAPE[1], SHAPE[0])
         assert psnr(frames[-1], no_signal) > 25 and psnr(live, no_signal) < 20
+
+
+def test_two_cameras_on_one_port_and_a_path_alias_shares_the_camera_encoding(mono_pipeline):
+    from service.publishers.rtsp import RtspServer
+
+    small = (96, 128)
+    other = Pipeline(PipelineConfig(source="sim", temporal=False), lambda: SimSource(make_camera(fps=20.0, n=1,
+                                                                                                shape=small)))
+    with other:
+        wait_until(lambda: other.latest() is not None, timeout=60, what="the second camera's first frame")
+        server = RtspServer(host="127.0.0.1", port=0, token=TOKEN)
+        first = RtspPublisher(mono_pipeline, server=server, path="/cam/one", aliases=("/live",))
+        second = RtspPublisher(other, server=server, path="/cam/two")
+        with pytest.raises(SveliveError, match="served twice"):
+            RtspPublisher(other, server=server, path="/live")
+        with server:
+            assert first.port == second.port == server.port and first.url.endswith("/cam/one")
+            with RtspClient(first.url, TOKEN, publisher=first) as a, \
+                    RtspClient(server.url("/live"), TOKEN, publisher=first) as b, \
+                    RtspClient(second.url, TOKEN, publisher=second) as c:
+                assert all(f.shape == SHAPE for f in a.frames(3) + b.frames(3))
+                assert all(f.shape == small for f in c.frames(3))
+                assert first.state()["clients"] == 2 and second.state()["clients"] == 1
+            assert first.medias == 1 and second.medias == 1  # both paths of the first camera: one encoding
+        assert server._thread is None

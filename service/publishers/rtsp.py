@@ -1,12 +1,15 @@
 """RTSP/H.264 publisher: the tone-mapped preview for media servers, recorders and players.
 
-GStreamer's RTSP server (``gst-rtsp-server`` through PyGObject) serves one shared
-media per mount point:
+GStreamer's RTSP server (``gst-rtsp-server`` through PyGObject): one :class:`RtspServer`
+(one port) for every camera of the service, an :class:`RtspPublisher` per camera
+mounted at its paths (``/cam/NAME``, the first camera also ``/live``), each one
+shared media:
 
     encoder thread ──PreviewFrame──> I420 (OpenCV/numpy) ─> appsrc (holds 1 frame, drops the older)
                                      ─> x264enc (zerolatency, no B-frames, 1 s GOP) ─> rtph264pay ─> clients
 
-- Encoded once for every client: the media is shared (``set_shared(True)``).
+- Encoded once for every client: the media is shared (``set_shared(True)``), whichever
+  of the camera's paths or ``?token=`` query a client uses (one media key per factory).
 - Encoded only while a client is connected: the media is built when the first
   client asks for it and torn down after the last one leaves; only between the
   two does the publisher ask the encoder stage for previews (``watch_previews``),
@@ -25,6 +28,7 @@ media per mount point:
   ``?token=TOKEN`` in the URL; a missing or wrong one gets ``401 Unauthorized``
   with a basic challenge, so clients that hold credentials in the URL retry with them.
 - The GLib main loop of the server runs in a thread of its own (its own main context).
+- ``clients`` in the state counts the clients playing the stream (counted at PLAY, by path).
 
 Debian packages: gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
 gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly (x264enc); clients in the tests: gstreamer1.0-plugins-good
@@ -57,7 +61,7 @@ SETUP_HINT = ("apt-get install gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-bas
 ELEMENTS = ("appsrc", "x264enc", "rtph264pay")
 #: Bits per pixel per frame of the default H.264 rate: about 4.8 Mbit/s at 1920x1200 and 30 fps.
 BITS_PER_PIXEL = 0.07
-#: The media factory role a valid token gives (its permissions are set in ``RtspPublisher.start``).
+#: The media factory role a valid token gives (its permissions are set in ``RtspServer.start``).
 ROLE = "viewer"
 #: Timecode: bits of the capture time in ms, and the side of one bit's square in pixels.
 TIMECODE_BITS = 48
@@ -214,55 +218,52 @@ class _Media:
         self.height = height
 
 
-class RtspPublisher:
-    """Serves a pipeline's tone-mapped preview as H.264 over RTSP at ``url``.
+def check_path(path: str) -> str:
+    """``path`` if it names an RTSP mount point (``/live``, ``/cam/dock``); a one-line SveliveError otherwise."""
+    if not path.startswith("/") or len(path) < 2 or any(c in path for c in "?# ") or path.endswith("/"):
+        raise SveliveError(f"RTSP path must start with / and name a mount point (e.g. /live), got {path!r}")
+    return path
 
-    ``start()`` binds ``host:port`` (port 0: a free one) and runs the server's GLib
-    main loop in its own thread; ``stop()`` closes every client and ends it (within a second).
-    ``timecode``: write each frame's arrival time into its top-left corner (a
-    measuring aid for benchmarks/service.py, see :func:`read_timecode`; off by default).
+
+class RtspServer:
+    """One RTSP server: one port, one GLib main loop (a thread of its own), one token, and a mount
+    point per stream (:class:`RtspPublisher`), so that every camera of a service is on one port
+    (``rtsp://HOST:PORT/cam/NAME``), as media servers (MediaMTX, go2rtc) serve their paths.
+
+    ``add`` the publishers, then ``start()`` binds ``host:port`` (port 0: a free one); ``stop()``
+    closes every client and ends the loop (within a second).
     """
 
-    def __init__(self, pipeline: Pipeline, *, host: str = "127.0.0.1", port: int = 8554, path: str = "/live",
-                 token: str | None = None, settings: H264Settings | None = None, timecode: bool = False) -> None:
-        if not path.startswith("/") or len(path) < 2 or any(c in path for c in "?# "):
-            raise SveliveError(f"RTSP path must start with / and name a mount point (e.g. /live), got {path!r}")
+    def __init__(self, *, host: str = "127.0.0.1", port: int = 8554, token: str | None = None) -> None:
         if not 0 <= port <= 65535:
             raise SveliveError(f"RTSP port must be 0..65535, got {port}")
-        self.pipeline = pipeline
         self.host = host
         self.port = port
-        self.path = path
         self.token = token
-        self.settings = settings or H264Settings()
-        self.timecode = timecode
-        self._lock = threading.Lock()
-        self._media: _Media | None = None
-        self._watching = False
-        self._clients = 0
+        self.publishers: list[RtspPublisher] = []
         self._thread: threading.Thread | None = None
         self._loop: Any = None
         self._context: Any = None
         self._server: Any = None
         self._source_id = 0
-        self.pushed = RateMeter()
-        self.encoded = RateMeter()
-        self._bytes: collections.deque[tuple[int, int]] = collections.deque(maxlen=512)
-        self.arrival_to_push = LatencyWindow()
-        #: medias made so far (one per period with clients: the media is shared)
-        self.medias = 0
-        #: how long a client arriving before the first reconstructed frame waits for it (blocks the RTSP loop)
-        self.first_frame_wait_s = 3.0
 
-    # ----- lifecycle ---------------------------------------------------
-    @property
-    def url(self) -> str:
-        """The stream's URL (the bound port once started; 127.0.0.1 when bound to every address)."""
+    def add(self, publisher: RtspPublisher) -> None:
+        """Serve ``publisher`` at its paths (before ``start``); a path already served is a SveliveError."""
+        if self._thread is not None:
+            raise SveliveError("add RTSP streams before the server starts")
+        taken = {path for other in self.publishers for path in other.paths}
+        clash = sorted(taken & set(publisher.paths))
+        if clash:
+            raise SveliveError(f"RTSP path {clash[0]} is served twice: give every camera its own name")
+        self.publishers.append(publisher)
+
+    def url(self, path: str) -> str:
+        """The URL of ``path`` (the bound port once started; 127.0.0.1 when bound to every address)."""
         shown = "127.0.0.1" if self.host in ("0.0.0.0", "::", "") else self.host
         shown = f"[{shown}]" if ":" in shown else shown
-        return f"rtsp://{shown}:{self.port}{self.path}"
+        return f"rtsp://{shown}:{self.port}{path}"
 
-    def start(self) -> RtspPublisher:
+    def start(self) -> RtspServer:
         """Bind and serve; returns self. A busy port or missing GStreamer parts are a one-line SveliveError."""
         if self._thread is not None:
             return self
@@ -270,16 +271,19 @@ class RtspPublisher:
         server = GstRtspServer.RTSPServer()
         server.set_address(self.host)
         server.set_service(str(self.port))
-        factory = _make_factory(Gst, GstRtspServer, self._description)
-        factory.set_shared(True)
-        factory.connect("media-configure", self._on_media_configure)
+        role = None
         if self.token is not None:
             role = GstRtspServer.RTSPToken()
             role.set_string("media.factory.role", ROLE)
-            factory.add_role_from_structure(Gst.Structure.new_from_string(
-                f"{ROLE}, media.factory.access=(boolean)true, media.factory.construct=(boolean)true"))
             server.set_auth(_make_auth(GstRtspServer, GstRtsp, self.token, role))
-        server.get_mount_points().add_factory(self.path, factory)
+        mounts = server.get_mount_points()
+        for publisher in self.publishers:
+            factory = publisher.factory(Gst, GstRtspServer)
+            if role is not None:
+                factory.add_role_from_structure(Gst.Structure.new_from_string(
+                    f"{ROLE}, media.factory.access=(boolean)true, media.factory.construct=(boolean)true"))
+            for path in publisher.paths:  # one factory at every path: one shared media, one encoding
+                mounts.add_factory(path, factory)
         server.connect("client-connected", self._on_client_connected)
         context = GLib.MainContext.new()
         source_id = server.attach(context)
@@ -289,7 +293,8 @@ class RtspPublisher:
         self.port = server.get_bound_port()
         self._server, self._context, self._source_id = server, context, source_id
         self._loop = GLib.MainLoop.new(context, False)
-        self.pipeline.encoder.add_preview_listener(self._on_preview)
+        for publisher in self.publishers:
+            publisher.attach()
         self._thread = threading.Thread(target=self._loop.run, name="svelive-rtsp", daemon=True)
         self._thread.start()
         return self
@@ -300,7 +305,8 @@ class RtspPublisher:
             return
         from gi.repository import GstRtspServer
 
-        self.pipeline.encoder.remove_preview_listener(self._on_preview)
+        for publisher in self.publishers:
+            publisher.detach()
         done = threading.Event()
 
         def shut_down() -> bool:
@@ -315,20 +321,148 @@ class RtspPublisher:
         self._context.invoke_full(0, shut_down)
         done.wait(timeout)
         self._thread.join(max(0.0, timeout - 0.1))
-        with self._lock:
-            media, self._media = self._media, None
-            watching, self._watching = self._watching, False
-        if watching:
-            self.pipeline.encoder.watch_previews(-1)
-        if media is not None:
-            media.media.unprepare()
+        for publisher in self.publishers:
+            publisher.release()
         self._thread = None
+
+    def __enter__(self) -> RtspServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def publisher_at(self, path: str) -> RtspPublisher | None:
+        """The publisher serving ``path`` (a mount point, or a stream's control URL below one), or None."""
+        for publisher in self.publishers:
+            if any(path == p or path.startswith(p + "/") for p in publisher.paths):
+                return publisher
+        return None
+
+    def _on_client_connected(self, server: Any, client: Any) -> None:
+        client.connect("play-request", self._on_play)
+
+    def _on_play(self, client: Any, ctx: Any) -> None:
+        """GLib thread, a client starts playing: it counts as a client of the stream it plays (once)."""
+        publisher = self.publisher_at(ctx.uri.abspath if ctx.uri is not None else "")
+        if publisher is None:
+            return
+        if getattr(client, "svelive_publisher", None) is None:
+            client.svelive_publisher = publisher
+            publisher.client_started()
+            client.connect("closed", self._on_client_closed)
+        publisher.force_keyframe()
+
+    @staticmethod
+    def _on_client_closed(client: Any) -> None:
+        publisher = getattr(client, "svelive_publisher", None)
+        if publisher is not None:
+            client.svelive_publisher = None
+            publisher.client_ended()
+
+
+class RtspPublisher:
+    """Serves a pipeline's tone-mapped preview as H.264 over RTSP at ``paths`` of an :class:`RtspServer`.
+
+    Without ``server``, it runs a server of its own (``host``, ``port``, ``token``), started and
+    stopped with it; with one, the server starts and stops it. ``paths``: the mount points
+    (the first is the one ``url`` names); all of them share one media, so one encoding.
+    ``timecode``: write each frame's arrival time into its top-left corner (a measuring aid for
+    benchmarks/service.py, see :func:`read_timecode`; off by default).
+    """
+
+    def __init__(self, pipeline: Pipeline, *, host: str = "127.0.0.1", port: int = 8554, path: str = "/live",
+                 token: str | None = None, settings: H264Settings | None = None, timecode: bool = False,
+                 server: RtspServer | None = None, aliases: tuple[str, ...] = ()) -> None:
+        self.paths = tuple(check_path(p) for p in (path, *aliases))
+        self.path = self.paths[0]
+        self.pipeline = pipeline
+        self.settings = settings or H264Settings()
+        self.timecode = timecode
+        self._own = server is None
+        self.server = RtspServer(host=host, port=port, token=token) if server is None else server
+        self.server.add(self)
+        self._lock = threading.Lock()
+        self._media: _Media | None = None
+        self._watching = False
+        self._attached = False
+        self._clients = 0
+        self.pushed = RateMeter()
+        self.encoded = RateMeter()
+        self._bytes: collections.deque[tuple[int, int]] = collections.deque(maxlen=512)
+        self.arrival_to_push = LatencyWindow()
+        #: medias made so far (one per period with clients: the media is shared)
+        self.medias = 0
+        #: how long a client arriving before the first reconstructed frame waits for it (blocks the RTSP loop)
+        self.first_frame_wait_s = 3.0
+
+    # ----- lifecycle ---------------------------------------------------
+    @property
+    def url(self) -> str:
+        """The stream's URL (its first path)."""
+        return self.server.url(self.path)
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    @property
+    def token(self) -> str | None:
+        return self.server.token
+
+    def start(self) -> RtspPublisher:
+        """Start the publisher's own server (a shared server is started by its owner); returns self."""
+        if self._own:
+            self.server.start()
+        return self
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop the publisher's own server (idempotent, within ``timeout`` s)."""
+        if self._own:
+            self.server.stop(timeout)
 
     def __enter__(self) -> RtspPublisher:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    def factory(self, Gst: Any, GstRtspServer: Any) -> Any:
+        """GLib objects: the shared-media factory of this stream (called by the server at start)."""
+        factory = _make_factory(Gst, GstRtspServer, self._description)
+        factory.set_shared(True)
+        factory.connect("media-configure", self._on_media_configure)
+        return factory
+
+    def attach(self) -> None:
+        """The server started: take previews from the encoder stage (pushed only while a media exists)."""
+        if not self._attached:
+            self.pipeline.encoder.add_preview_listener(self._on_preview)
+            self._attached = True
+
+    def detach(self) -> None:
+        """The server stops: no more previews."""
+        if self._attached:
+            self.pipeline.encoder.remove_preview_listener(self._on_preview)
+            self._attached = False
+
+    def release(self) -> None:
+        """The server stopped: let the encoder stage stop making previews for us, drop the media."""
+        with self._lock:
+            media, self._media = self._media, None
+            watching, self._watching = self._watching, False
+            self._clients = 0
+        if watching:
+            self.pipeline.encoder.watch_previews(-1)
+        if media is not None:
+            media.media.unprepare()
+
+    def client_started(self) -> None:
+        with self._lock:
+            self._clients += 1
+
+    def client_ended(self) -> None:
+        with self._lock:
+            self._clients = max(0, self._clients - 1)
 
     # ----- the media -----------------------------------------------------
     def _description(self) -> str:
@@ -420,13 +554,7 @@ class RtspPublisher:
                 cv2.resize(image, (media.width, media.height), interpolation=cv2.INTER_AREA)
         return image
 
-    def _on_client_connected(self, server: Any, client: Any) -> None:
-        with self._lock:
-            self._clients += 1
-        client.connect("closed", self._on_client_closed)
-        client.connect("play-request", self._on_play)
-
-    def _on_play(self, client: Any, ctx: Any) -> None:
+    def force_keyframe(self) -> None:
         """GLib thread, a client starts playing: the next frame is a keyframe with SPS/PPS, so that it shows a
         picture at once instead of after up to a keyframe interval (or more frames than that when the
         pipeline runs slower than its nominal rate)."""
@@ -437,10 +565,6 @@ class RtspPublisher:
         if media is not None:
             event = GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
             media.encoder.get_static_pad("src").send_event(event)
-
-    def _on_client_closed(self, client: Any) -> None:
-        with self._lock:
-            self._clients = max(0, self._clients - 1)
 
     # ----- state -------------------------------------------------------
     def bitrate_kbps(self) -> float:
@@ -459,7 +583,8 @@ class RtspPublisher:
         encoded = self.encoded.count  # read before pushed, so that a frame pushed meanwhile cannot show encoded > pushed
         pushed = self.pushed.count
         rate = None if media is None else self.settings.bitrate_for(media.width, media.height)
-        return {"url": self.url, "path": self.path, "auth": self.token is not None, "clients": clients,
+        return {"url": self.url, "path": self.path, "paths": list(self.paths), "auth": self.token is not None,
+                "clients": clients,
                 "encoding": media is not None,
                 "width": None if media is None else media.width, "height": None if media is None else media.height,
                 "frames_pushed": pushed, "frames_encoded": encoded,
@@ -477,6 +602,10 @@ def _make_factory(Gst: Any, GstRtspServer: Any, description: Any) -> Any:
     class PreviewFactory(GstRtspServer.RTSPMediaFactory):
         def do_create_element(self, url: Any) -> Any:
             return Gst.parse_launch(description())
+
+        def do_gen_key(self, url: Any) -> str:
+            # one media for every path and query (?token=) this factory is reached by: one encoding
+            return "preview"
 
     return PreviewFactory()
 
