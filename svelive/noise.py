@@ -84,7 +84,9 @@ class EstimatorConfig:
             many times the read noise's (off: it costs the read noise of bright frames their leverage).
         block: side of the sample blocks in tiles (odd); the region test uses the other samples of a block.
         texture_uncertainty: add to the fit's covariance the shift a texture term would make
-            (:func:`_with_texture_uncertainty`).
+            (:func:`_with_texture_uncertainty`),
+        strict_fraction: and the shift a stricter selection makes (flat quantile times this, region
+            median; 0: off; :func:`_with_selection_uncertainty`).
     """
 
     max_samples: int = 40_000
@@ -101,6 +103,7 @@ class EstimatorConfig:
     max_shot_ratio: float = 0.0
     block: int = 3
     texture_uncertainty: bool = True
+    strict_fraction: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -763,7 +766,39 @@ def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None 
         fit = fit_line(t[dark], v[dark], n[dark], slope=slope, outlier_tolerance=config.outlier_tolerance)
     elif fit is not None and config.texture_uncertainty and not fit.fixed_slope:
         fit = _with_texture_uncertainty(fit, fixed, config)
+        if config.strict_fraction:
+            fit = _with_selection_uncertainty(fit, data, floor, high, camera.sensor, fixed, config)
     return samples, fit
+
+
+def _with_selection_uncertainty(fit: LineFit, data: list[_PhaseData], floor: float, high: float,
+                                sensor: Sensor, fixed: dict, config: EstimatorConfig) -> LineFit:
+    """``fit`` with the shift a stricter selection makes in its covariance.
+
+    Neither flatness test sees the pixel's own reading, so a stricter selection changes only how much
+    texture gets through, never the noise measured: the line moves only if texture is biasing it.
+    Texture that passed the tests scales with the noise they test against (its contribution grows
+    with the signal like shot noise, and the bins cannot tell them apart), so this shift, not the
+    scatter of the bins, is what says that a textured frame cannot give the gain. The estimate
+    itself stays the one of the usual selection (the strict one has fewer samples)."""
+    strict = replace(config, flat_quantile=config.flat_quantile * config.strict_fraction, region_quantile=0.5)
+    other = fit_line(*bin_samples(_select_all(data, fit, floor, high, sensor, strict), config), **fixed,
+                     outlier_tolerance=config.outlier_tolerance)
+    if other is None:
+        return fit
+    return _add_systematic(fit, other)
+
+
+def _add_systematic(fit: LineFit, other: LineFit) -> LineFit:
+    """``fit`` with the shift of the slope to ``other`` (a fit of the same bins with a texture term, or of
+    a subset of its samples: noisier either way) added to the slope's variance as a systematic error
+    when it is significant, beyond two standard deviations of the noise the two fits do not share
+    (for nested estimates the difference has variance ``var_other - var_fit``). Texture vanishes at
+    zero signal, so it biases the slope (the gain); the intercept is left as fitted."""
+    delta = other.slope - fit.slope
+    if delta * delta <= 4.0 * max(other.cov[0, 0] - fit.cov[0, 0], 0.0):
+        return fit
+    return replace(fit, cov=fit.cov + np.diag([delta * delta, 0.0]))
 
 
 def _with_texture_uncertainty(fit: LineFit, fixed: dict, config: EstimatorConfig) -> LineFit:
@@ -772,13 +807,10 @@ def _with_texture_uncertainty(fit: LineFit, fixed: dict, config: EstimatorConfig
     Texture that passed the flatness tests is a contrast: its variance grows as the signal squared.
     The same bins fitted with a term ``k t^2`` (k >= 0) give another line; the shift from ``fit`` to
     it is what the frame cannot tell between shot noise and texture, and is added to the
-    covariance (as a systematic error, its outer product)."""
+    covariance (:func:`_add_systematic`)."""
     alt = fit_line(fit.bins_t, fit.bins_v, fit.bins_n, **fixed, outlier_tolerance=config.outlier_tolerance,
                    texture=True)
-    if alt is None:
-        return replace(fit, cov=fit.cov + np.diag([fit.slope, 0.0]) ** 2)
-    delta = np.array([alt.slope - fit.slope, alt.intercept - fit.intercept])
-    return replace(fit, cov=fit.cov + np.outer(delta, delta))
+    return fit if alt is None else _add_systematic(fit, alt)
 
 
 def _fixed(sensor: Sensor) -> dict:
