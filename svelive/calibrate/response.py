@@ -29,7 +29,12 @@ Steps (:func:`fit_response`):
 5. The measured range is the longest brightness interval with data in every
    1/16 of full scale and a standard error of ``f`` (from the fit's covariance)
    under 1 %: gaps in the data end it.
-6. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
+6. Optionally (``max_knots``, sweeps without a common exposure ratio only) a log-spline
+   competes with the polynomials: ``log f`` a natural cubic spline in ``log M`` with knots
+   evenly spaced in logit(M) over the data and the last at white, fitted by least squares
+   on ``log f(M_hi) - log f(M_lo) = log R`` (:func:`_solve_spline`); the number of knots
+   is chosen with the degree, by the same held-out rule. Off by default (see the docs).
+7. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
    fitted curve and the fit repeated; the ratio of the extreme exposures is kept
    at its nominal value because ``f^g`` with ratios ``R^g`` fits the same data
    for any ``g`` (the exponential ambiguity of ratio-based calibration).
@@ -59,13 +64,22 @@ from svelive.sensor import Sensor
 
 @dataclass(frozen=True)
 class Response:
-    """A fitted inverse response ``I = f(M)``.
+    """A fitted inverse response ``I = f(M)``, normalised by f(1) = 1.
+
+    Two forms:
+
+    - polynomial (``knots`` empty): ``f(M) = sum c_n M^n``, ``coefficients`` c_0 first;
+    - log-spline (``knots`` given): ``log f(M) = c_0 + c_1 u + sum_j c_(j+2) x_j(u)`` in
+      ``u = log M``, with ``x_j`` the restricted (natural) cubic spline basis on the knots
+      (:func:`log_spline_basis`): a power law ``f = e^c_0 M^c_1`` below the first knot and
+      above the last, cubic in ``u`` between them. ``f(0) = 0``.
 
     Attributes:
-        coefficients: c_0 first; f(M) = sum c_n M^n with f(1) = 1.
-        domain: (low, high) brightness range the polynomial takes; inputs are clipped to it.
+        coefficients: see above.
+        domain: (low, high) brightness range the curve takes; inputs are clipped to it.
         black_level, white_level: DN; M = (raw - black) / (white - black).
-        stats: fit statistics (measured range, samples, held-out errors per degree, ...).
+        stats: fit statistics (measured range, samples, held-out errors per model, ...).
+        knots: brightness M of the log-spline's knots, increasing, in (0, 1]; empty for a polynomial.
     """
 
     coefficients: tuple[float, ...]
@@ -73,19 +87,39 @@ class Response:
     black_level: float = 0.0
     white_level: float = 255.0
     stats: dict = field(default_factory=dict, compare=False)
+    knots: tuple[float, ...] = ()
+
+    @property
+    def model(self) -> str:
+        """``"polynomial"`` or ``"log-spline"``."""
+        return "log-spline" if self.knots else "polynomial"
 
     @property
     def degree(self) -> int:
-        return len(self.coefficients) - 1
+        """The polynomial's degree; for a log-spline the degree of its pieces in log M (3)."""
+        return 3 if self.knots else len(self.coefficients) - 1
 
     def __call__(self, brightness: np.ndarray | float) -> np.ndarray:
         """Linear radiance I (float64, f(1) = 1) of normalised brightness M."""
         m = np.clip(np.asarray(brightness, dtype=np.float64), *self.domain)
-        return P.polyval(m, np.asarray(self.coefficients))
+        if not self.knots:
+            return P.polyval(m, np.asarray(self.coefficients))
+        return _log_spline_value(np.asarray(self.coefficients), np.log(self.knots), m)[0]
+
+    def slope(self, brightness: np.ndarray | float) -> np.ndarray:
+        """dI/dM (float64) at normalised brightness M (clipped to the domain)."""
+        m = np.clip(np.asarray(brightness, dtype=np.float64), *self.domain)
+        if not self.knots:
+            return P.polyval(m, P.polyder(np.asarray(self.coefficients)))
+        return _log_spline_value(np.asarray(self.coefficients), np.log(self.knots), m)[1]
 
     def to_dict(self) -> dict:
-        return {"degree": self.degree, "coefficients": list(self.coefficients), "domain": list(self.domain),
+        data = {"degree": self.degree, "coefficients": list(self.coefficients), "domain": list(self.domain),
                 "black_level": self.black_level, "white_level": self.white_level, "stats": self.stats}
+        if self.knots:
+            data["model"] = self.model
+            data["knots"] = list(self.knots)
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> Response:
@@ -94,15 +128,61 @@ class Response:
             domain = tuple(float(d) for d in data.get("domain", (0.0, 1.0)))
             black = float(data.get("black_level", 0.0))
             white = float(data["white_level"])
+            knots = tuple(float(k) for k in data.get("knots") or ())
         except (KeyError, TypeError, ValueError) as exc:
             raise SveliveError(f"response data is missing or has a bad field: {exc}") from None
         if not coefficients or len(domain) != 2 or not domain[0] < domain[1]:
             raise SveliveError("response needs at least one coefficient and a domain [low, high] with low < high")
-        if "degree" in data and int(data["degree"]) != len(coefficients) - 1:
+        if knots:
+            if (len(knots) < 2 or len(coefficients) != len(knots) or not all(0 < k <= 1 for k in knots)
+                    or any(b <= a for a, b in zip(knots, knots[1:]))):
+                raise SveliveError(f"log-spline response needs 2 or more increasing knots in (0, 1] and one "
+                                   f"coefficient per knot, got {len(knots)} knots and {len(coefficients)} "
+                                   "coefficients")
+        elif "degree" in data and int(data["degree"]) != len(coefficients) - 1:
             raise SveliveError(f"response degree {data['degree']} does not match its {len(coefficients)} coefficients")
         if not white > black:
             raise SveliveError(f"response white level {white:g} must be above its black level {black:g}")
-        return cls(coefficients, domain, black, white, dict(data.get("stats", {})))
+        return cls(coefficients, domain, black, white, dict(data.get("stats", {})), knots)
+
+
+def log_spline_basis(u: np.ndarray, knots: np.ndarray, derivative: bool = False) -> np.ndarray:
+    """Restricted (natural) cubic spline basis in ``u`` without the constant, float64 (..., K - 1).
+
+    Columns ``u`` and ``x_j(u)``, j = 1..K-2 (Harrell's form, scaled by the knot span squared):
+    cubic between the knots, linear below the first and above the last, so a combination is
+    a natural cubic spline. With ``derivative`` the columns' derivatives in ``u``.
+
+    Args:
+        u: float64 (...,) points, here log brightness.
+        knots: float64 (K,) increasing, K >= 2.
+    """
+    u = np.asarray(u, np.float64)[..., None]
+    t = np.asarray(knots, np.float64)
+    last, second_last = t[-1], t[-2]
+    if derivative:
+        power = lambda x: 3.0 * np.maximum(x, 0.0) ** 2
+        lead = np.ones_like(u)
+    else:
+        power = lambda x: np.maximum(x, 0.0) ** 3
+        lead = u
+    tj = t[:-2]
+    gap = last - second_last
+    x = (power(u - tj) - power(u - second_last) * (last - tj) / gap
+         + power(u - last) * (second_last - tj) / gap) / (last - t[0]) ** 2
+    return np.concatenate([lead, x], axis=-1)
+
+
+def _log_spline_value(coef: np.ndarray, knots_u: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(f, df/dM) float64 of the log-spline with coefficients ``coef`` (constant first) at brightness ``m``;
+    0 at m <= 0."""
+    m = np.asarray(m, np.float64)
+    positive = m > 0
+    safe = np.where(positive, m, 1.0)
+    u = np.log(safe)
+    f = np.exp(coef[0] + log_spline_basis(u, knots_u) @ coef[1:])
+    elasticity = log_spline_basis(u, knots_u, derivative=True) @ coef[1:]
+    return np.where(positive, f, 0.0), np.where(positive, f * elasticity / safe, 0.0)
 
 
 @dataclass(frozen=True)
@@ -127,6 +207,12 @@ class ResponseFitConfig:
         seed: seed of the fold assignment.
         max_equations: with several frames, locations are left out at random beyond this
             many ratio equations (time and memory grow with them; one frame is never cut).
+        max_knots: most knots of the log-spline model tried (2 .. max_knots; below 2, the
+            default, none), which then competes with the polynomials by held-out error on sweeps
+            without a common exposure ratio (never on one frame). Off by default: its choice of
+            knots is unstable at the shoulder of S-shaped curves (docs/calibration.md).
+        dark_snr: when the log-spline is offered, equations whose darker window value is under
+            this many single-reading noise standard deviations are left out (for every model).
     """
 
     max_degree: int = 6
@@ -142,6 +228,8 @@ class ResponseFitConfig:
     coverage_count: int = 1
     seed: int = 0
     max_equations: int = 250_000
+    max_knots: int = 0
+    dark_snr: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -417,13 +505,19 @@ def _subset(pairs: _Pairs, sel) -> _Pairs:
 
 def _monotone(coef: np.ndarray, measured: tuple[float, float], tolerance: float = 1e-3,
               outside_tolerance: float = 0.01) -> bool:
-    """True when f is non-decreasing on the measured range (to ``tolerance`` of full scale)
-    and nearly so (``outside_tolerance``) where it extrapolates, on the rest of [0, 1]."""
+    """True when the polynomial f is non-decreasing on the measured range (to ``tolerance`` of full
+    scale) and nearly so (``outside_tolerance``) where it extrapolates, on the rest of [0, 1]."""
+    return _monotone_curve(lambda m: P.polyval(m, coef), measured, tolerance, outside_tolerance)
+
+
+def _monotone_curve(curve: Callable[[np.ndarray], np.ndarray], measured: tuple[float, float],
+                    tolerance: float = 1e-3, outside_tolerance: float = 0.01) -> bool:
+    """:func:`_monotone` for any curve f(M)."""
     grid = np.linspace(0.0, 1.0, 1025)
-    f = P.polyval(grid, coef)
+    f = curve(grid)
     drop = np.maximum.accumulate(f) - f
     inside = (grid >= measured[0]) & (grid <= measured[1])
-    inside_drop = P.polyval(grid[inside], coef)
+    inside_drop = curve(grid[inside])
     inside_drop = np.maximum.accumulate(inside_drop) - inside_drop
     return bool(inside_drop.max(initial=0.0) <= tolerance and drop.max() <= outside_tolerance)
 
@@ -448,7 +542,106 @@ def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int,
     return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size)), fits
 
 
-def _jackknife_error(fold_fits: list[np.ndarray], grid: np.ndarray) -> np.ndarray:
+def spline_knots(low: float, high: float, count: int) -> np.ndarray:
+    """``count`` knots (brightness, float64) uniform in logit(M) = log(M / (1 - M)) from ``low`` to ``high``.
+
+    A film's characteristic curve is close to a logistic function of log exposure, so its
+    inverse is close to linear in logit(M): toe and shoulder are both spread out in that
+    variable (the inverse S-curve's complex singularities, 0.05 from M = 0 and M = 1, lie
+    about pi/2 from the real axis there), and evenly spaced knots in it resolve both ends.
+    """
+    w = np.linspace(math.log(low / (1.0 - low)), math.log(high / (1.0 - high)), count)
+    return 1.0 / (1.0 + np.exp(-w))
+
+
+def _spline_design(pairs: _Pairs, exposures: np.ndarray, knots_u: np.ndarray):
+    """Rows of log f(m_hi) - log f(m_lo) = log R (constant cancelled): (design (P, K-1), target (P,),
+    basis slopes at m_lo and m_hi (P, K-1) each)."""
+    u_lo, u_hi = np.log(pairs.m_lo), np.log(pairs.m_hi)
+    design = log_spline_basis(u_hi, knots_u) - log_spline_basis(u_lo, knots_u)
+    target = np.log(exposures[pairs.k_hi] / exposures[pairs.k_lo])
+    return (design, target, log_spline_basis(u_lo, knots_u, derivative=True),
+            log_spline_basis(u_hi, knots_u, derivative=True))
+
+
+def _log_sigma(pairs: _Pairs, e_lo: np.ndarray | float, e_hi: np.ndarray | float) -> np.ndarray:
+    """Standard deviation of log f(m_hi) - log f(m_lo) from the brightness noise, with elasticities
+    d log f / d log M ``e_lo``, ``e_hi``."""
+    return np.sqrt((e_hi / pairs.m_hi) ** 2 * pairs.var_hi + (e_lo / pairs.m_lo) ** 2 * pairs.var_lo)
+
+
+def _solve_spline(pairs: _Pairs, exposures: np.ndarray, knots_u: np.ndarray, sel: np.ndarray | None = None,
+                  iterations: int = 3, min_elasticity: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Log-spline coefficients (constant first, log f(1) = 0) minimising the normalised log ratio residuals.
+
+    In ``log f`` a ratio equation is linear with a known right side,
+    ``h(m_hi) - h(m_lo) = log R``, so the fit is plain weighted least squares, with no scale to
+    fix and no drift where there are no data. Each equation is weighted by its noise
+    propagated through ``d log f / dM`` of the previous iteration (a linear camera first);
+    the elasticity floor keeps a nearly flat stretch of a bad iterate from taking all the weight.
+
+    Returns (coefficients (K,), weighted design (P, K-1), weighted target (P,)) of the last pass.
+    """
+    sub = _subset(pairs, slice(None) if sel is None else sel)
+    sub = _subset(sub, (sub.m_lo > 0) & (sub.m_hi > 0))
+    design, target, d_lo, d_hi = _spline_design(sub, exposures, knots_u)
+    e_lo = e_hi = 1.0
+    for _ in range(iterations):
+        w = 1.0 / _log_sigma(sub, e_lo, e_hi)
+        a, b = design * w[:, None], target * w
+        rest, *_ = np.linalg.lstsq(a, b, rcond=None)
+        e_lo = np.maximum(d_lo @ rest, min_elasticity)
+        e_hi = np.maximum(d_hi @ rest, min_elasticity)
+    constant = -float(log_spline_basis(np.zeros(1), knots_u)[0] @ rest)
+    return np.concatenate([[constant], rest]), a, b
+
+
+def _held_out_curve(pairs: _Pairs, exposures: np.ndarray, fit: Callable[[np.ndarray], np.ndarray],
+                    curve: Callable[[np.ndarray], Response], folds: int) -> tuple[float, float, list[np.ndarray]]:
+    """:func:`_held_out` for any model: ``fit(training selection) -> coefficients``,
+    ``curve(coefficients) -> Response``; the held-out loss is the polynomial's, the ratio residual
+    ``f(m_hi) / R - f(m_lo)`` over its noise through the model's own slope, so the two compare."""
+    inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
+    loss = np.zeros(pairs.m_lo.size)
+    fits = []
+    for f in range(folds):
+        test = pairs.fold == f
+        if not test.any():
+            continue
+        coef = fit(~test)
+        fits.append(coef)
+        response = curve(coef)
+        sub = _subset(pairs, test)
+        sigma = _slope_sigma(sub, inv_r[test], response.slope(sub.m_lo), response.slope(sub.m_hi))
+        loss[test] = ((response(sub.m_hi) * inv_r[test] - response(sub.m_lo)) / sigma) ** 2
+    _, inverse = np.unique(pairs.location, return_inverse=True)
+    per_location = np.bincount(inverse, weights=loss)
+    return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size)), fits
+
+
+def _slope_sigma(pairs: _Pairs, inv_r: np.ndarray, slope_lo: np.ndarray, slope_hi: np.ndarray,
+                 min_slope: float = 0.01) -> np.ndarray:
+    """:func:`_residual_sigma` from given slopes of f at m_lo and m_hi."""
+    d_lo, d_hi = np.maximum(slope_lo, min_slope), np.maximum(slope_hi, min_slope)
+    return np.sqrt((d_hi * inv_r) ** 2 * pairs.var_hi + d_lo**2 * pairs.var_lo)
+
+
+def _spline_uncertainty(weighted_design: np.ndarray, scale: float, knots_u: np.ndarray, coef: np.ndarray,
+                        grid: np.ndarray) -> np.ndarray:
+    """Standard error of f on ``grid`` for a log-spline: that of log f(M) - log f(1) from the least-squares
+    covariance (scaled by the reduced chi-square), times f."""
+    try:
+        cov = np.linalg.inv(weighted_design.T @ weighted_design) * scale
+    except np.linalg.LinAlgError:
+        return np.full(grid.shape, math.inf)
+    f, _ = _log_spline_value(coef, knots_u, grid)
+    positive = grid > 0
+    g = log_spline_basis(np.log(np.where(positive, grid, 1.0)), knots_u) - log_spline_basis(np.zeros(1), knots_u)
+    se = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", g, cov, g), 0.0))
+    return np.where(positive, f * se, 0.0)
+
+
+def _jackknife_error(fold_fits: list[Response], grid: np.ndarray) -> np.ndarray:
     """Delete-a-group jackknife standard error of f on ``grid`` from the fits without each spatial fold.
 
     Unlike the covariance it sees that neighbouring equations share pixels and scene
@@ -458,7 +651,7 @@ def _jackknife_error(fold_fits: list[np.ndarray], grid: np.ndarray) -> np.ndarra
     n = len(fold_fits)
     if n < 2:
         return np.full(grid.shape, math.inf)
-    curves = np.stack([P.polyval(grid, c) for c in fold_fits])
+    curves = np.stack([curve(grid) for curve in fold_fits])
     return np.sqrt((n - 1) / n * np.sum((curves - curves.mean(axis=0)) ** 2, axis=0))
 
 
@@ -501,9 +694,9 @@ def _pinned_range(pairs: _Pairs, uncertainty: np.ndarray, grid: np.ndarray, max_
     return lo, hi
 
 
-def _refine_exposures(pairs: _Pairs, exposures: np.ndarray, coef: np.ndarray) -> np.ndarray:
+def _refine_exposures(pairs: _Pairs, exposures: np.ndarray, curve: Response) -> np.ndarray:
     """Exposures re-estimated from f(m_hi) / f(m_lo), with the extreme ratio kept nominal."""
-    f_lo, f_hi = P.polyval(pairs.m_lo, coef), P.polyval(pairs.m_hi, coef)
+    f_lo, f_hi = curve(pairs.m_lo), curve(pairs.m_hi)
     ok = (f_lo > 0.01) & (f_hi > 0.01)
     K = exposures.size
     if not ok.any():
@@ -607,6 +800,8 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
     raws, times = _check_frames(raw, exposure_times)
     if not 1 <= config.max_degree <= 10:
         raise SveliveError(f"max degree must be 1..10, got {config.max_degree}")
+    if not 0 <= config.max_knots <= 16:
+        raise SveliveError(f"max knots must be 0..16 (0: polynomials only), got {config.max_knots}")
     if config.window < 3 or config.window % 2 == 0:
         raise SveliveError(f"window must be odd and >= 3 tiles, got {config.window}")
     pattern = Pattern.parse(pattern)
@@ -633,41 +828,89 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
         raise SveliveError(
             f"the constant regions only cover brightness {measured[0]:.2f}..{measured[1]:.2f} of full scale "
             f"(need a span of {config.min_span:.2f}): use a scene with smooth areas over a wider range of brightness")
+    ratio = common_ratio(nominal) if len(raws) == 1 else common_ratio(nominal, max_power=4)
+    # the log-spline follows film curves but would also follow the log-periodic ripple one frame cannot
+    # see: it is offered only to sweeps, whose exposure ratios are not all powers of one number
+    candidates = [("polynomial", d) for d in range(1, config.max_degree + 1)]
+    if len(raws) > 1 and ratio is None and config.max_knots >= 2:
+        # windows are kept only when no reading is clipped, so a dark one survives when its noise
+        # happened to lift it off 0: its value reads high (and its log is biased besides). A flexible
+        # model would follow that bias, and held-out error would reward it, so equations whose darker
+        # value is within ``dark_snr`` single-reading noise sd of 0 are left to no model here.
+        reading_sd = np.sqrt(pairs.var_lo * config.window**2)
+        clear = _subset(pairs, pairs.m_lo > config.dark_snr * reading_sd)
+        if np.unique(clear.location).size >= config.min_locations:
+            pairs = clear
+            n_locations = int(np.unique(pairs.location).size)
+            ends = (float(pairs.m_lo.min()), float(pairs.m_hi.max()))
+            measured = ends
+            candidates += [("log-spline", k) for k in range(2, config.max_knots + 1)]
     exposures = nominal
     iterations = 8 if config.refine_ratios else 1
     for _ in range(iterations):
         scores = {}
         fits = {}
         fold_fits = {}
-        for d in range(1, config.max_degree + 1):
-            if progress is not None:
-                progress(f"degree {d}/{config.max_degree} ({pairs.m_lo.size} equations)")
-            coef = _solve(pairs, exposures, d)
-            if not _monotone(coef, measured):
-                continue
-            mean, se, held = _held_out(pairs, exposures, d, config.folds)
-            scores[d] = (mean, se)
-            fits[d] = coef
-            fold_fits[d] = held
+        for kind, size in candidates:
+            if kind == "polynomial":
+                if progress is not None:
+                    progress(f"degree {size}/{config.max_degree} ({pairs.m_lo.size} equations)")
+                coef = _solve(pairs, exposures, size)
+                if not _monotone(coef, measured):
+                    continue
+                mean, se, held = _held_out(pairs, exposures, size, config.folds)
+                held = [Response(tuple(c)) for c in held]
+            else:
+                if progress is not None:
+                    progress(f"log-spline, {size}/{config.max_knots} knots ({pairs.m_lo.size} equations)")
+                # the last knot at white, where f(1) = 1 is set: the curve between the brightest data
+                # and white is then the spline's own last piece, not a straight line in log-log
+                knots = tuple(np.append(spline_knots(*ends, size - 1), 1.0))
+                knots_u = np.log(knots)
+                coef = _solve_spline(pairs, exposures, knots_u)[0]
+                if not _monotone_curve(Response(tuple(coef), knots=knots), measured):
+                    continue
+                mean, se, held = _held_out_curve(
+                    pairs, exposures, lambda sel, ku=knots_u: _solve_spline(pairs, exposures, ku, sel)[0],
+                    lambda c, kn=knots: Response(tuple(c), knots=kn), config.folds)
+                held = [Response(tuple(c), knots=knots) for c in held]
+                coef = (coef, knots)
+            scores[kind, size] = (mean, se)
+            fits[kind, size] = coef
+            fold_fits[kind, size] = held
         if not scores:
             raise SveliveError("no polynomial degree gives a monotone response on this data; use a frame with "
                                "more smooth areas, or check the pattern and the black and white levels")
-        best = min(scores, key=lambda d: scores[d][0])
-        degree = min(d for d in scores if scores[d][0] <= scores[best][0] + scores[best][1])
-        coef = fits[degree]
+        best = min(scores, key=lambda key: scores[key][0])
+        # the simplest model within one standard error of the best: fewest free parameters (a polynomial
+        # of degree d has d, a log-spline with k knots k - 1), a polynomial before a spline of as many
+        chosen = min((key for key in scores if scores[key][0] <= scores[best][0] + scores[best][1]),
+                     key=lambda key: (key[1] - (key[0] == "log-spline"), key[0] == "log-spline"))
+        if chosen[0] == "polynomial":
+            coef, knots = fits[chosen], ()
+        else:
+            coef, knots = fits[chosen]
+        curve = Response(tuple(float(c) for c in coef), knots=knots)
         if not config.refine_ratios:
             break
-        new = _refine_exposures(pairs, exposures, coef)
+        new = _refine_exposures(pairs, exposures, curve)
         converged = np.max(np.abs(np.log(new / exposures))) < 1e-4
         exposures = new
         if converged:
             break
-    A, y = _design(pairs, exposures, degree)
-    sigma = _residual_sigma(pairs, exposures, coef)
-    chi2 = float(np.mean(((A @ coef[1:] - y) / sigma) ** 2))
     grid = np.linspace(0.0, 1.0, 513)
-    profile = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), grid)
-    del A, y, sigma
+    if chosen[0] == "polynomial":
+        degree = chosen[1]
+        A, y = _design(pairs, exposures, degree)
+        sigma = _residual_sigma(pairs, exposures, coef)
+        chi2 = float(np.mean(((A @ coef[1:] - y) / sigma) ** 2))
+        profile = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), grid)
+        del A, y, sigma
+    else:
+        _, a, b = _solve_spline(pairs, exposures, np.log(knots))
+        chi2 = float(np.mean((a @ coef[1:] - b) ** 2))
+        profile = _spline_uncertainty(a, max(chi2, 1.0), np.log(knots), coef, grid)
+        del a, b
     pinned = _pinned_range(pairs, profile, grid, config.max_uncertainty, config.coverage_bins,
                            config.coverage_count)
     if pinned[1] - pinned[0] < config.min_span:
@@ -679,16 +922,16 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
     inside = (grid >= pinned[0]) & (grid <= pinned[1])
     uncertainty = float(profile[inside].max())
     band_m = np.linspace(pinned[0], pinned[1], 33)
-    band_se = np.maximum(np.interp(band_m, grid, profile), _jackknife_error(fold_fits[degree], band_m))
+    band_se = np.maximum(np.interp(band_m, grid, profile), _jackknife_error(fold_fits[chosen], band_m))
     stats = {
         "measured_range": list(pinned),
         "data_range": list(measured),
         "uncertainty": {"brightness": grid[::16].tolist(), "standard_error": profile[::16].tolist()},
-        "band": {"brightness": band_m.tolist(), "linear": P.polyval(band_m, coef).tolist(),
+        "band": {"brightness": band_m.tolist(), "linear": curve(band_m).tolist(),
                  "standard_error": band_se.tolist()},
         "locations": n_locations,
         "equations": int(pairs.m_lo.size),
-        "held_out_error": {str(d): {"mean": m, "standard_error": s} for d, (m, s) in scores.items()},
+        "held_out_error": {_model_name(*key): {"mean": m, "standard_error": s} for key, (m, s) in scores.items()},
         "reduced_chi2": chi2,
         "curve_uncertainty": uncertainty,
         "exposures": exposures.tolist(),
@@ -698,10 +941,15 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
         "exposure_times": times.tolist() if exposure_times is not None else None,
         # a sweep's near-coincidences (1.5 against 4 agree to 1e-3 at the 12th root) give ripples no
         # polynomial can follow: only common ratios within the fourth root of the smallest step count
-        "common_ratio": common_ratio(nominal) if len(raws) == 1 else common_ratio(nominal, max_power=4),
+        "common_ratio": ratio,
     }
-    return Response(tuple(float(c) for c in coef), (0.0, 1.0), float(sensor.black_level),
-                    float(sensor.white_level), stats)
+    return Response(curve.coefficients, (0.0, 1.0), float(sensor.black_level), float(sensor.white_level), stats,
+                    knots)
+
+
+def _model_name(kind: str, size: int) -> str:
+    """Key of a candidate model in ``stats.held_out_error``: the degree ("3") or "log-spline 6" (knots)."""
+    return str(size) if kind == "polynomial" else f"log-spline {size}"
 
 
 def linearise(raw: np.ndarray, response: Response, sensor: Sensor | None = None) -> np.ndarray:
