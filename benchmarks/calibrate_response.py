@@ -4,10 +4,11 @@ with ``--sweep``, SVE frames at several global exposure times fitted together (i
 Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings]
        [--curves linear,gamma2.2,poly3,s-curve] [--diagnose]
        python benchmarks/calibrate_response.py --sweep "1,1.5;1,1.5,2.25" [--bits 8,12] [--scenes ...] [--curves ...]
+           [--max-knots 10]
 
 ``--sweep``: for every scene, curve, bit depth and sweep (global exposure times, ``;`` between
 sweeps), the frames at those times (independent noise) are fitted together; the row gives the
-chosen degree, the largest error over the measured range, that range, the largest standard error
+chosen model (``deg d``: polynomial of degree d; ``spline k``: log-spline with k knots), the largest error over the measured range, that range, the largest standard error
 of the uncertainty band and the fraction of the band's 33 points whose true value lies within
 +-2 standard errors.
 Both see the same scene through the same known response (CURVES) and sensor noise;
@@ -90,21 +91,22 @@ def diagnose(raw: np.ndarray, pattern: Pattern, sensor: Sensor, curve) -> str:
 
 
 def sweep_rows(radiance: np.ndarray, pattern: Pattern, sensor: Sensor, curve, sweeps: list[list[float]],
-               seed: int = 1) -> list[str]:
+               seed: int = 1, config: ResponseFitConfig = ResponseFitConfig()) -> list[str]:
     """One table row per sweep: frames, degree, error, measured range, band, band coverage, seconds."""
     rows = []
     for times in sweeps:
         frames = [simulate_nonlinear(radiance * t, pattern, sensor, curve, seed=seed + i) for i, t in enumerate(times)]
         t0 = time.perf_counter()
         try:
-            r = fit_response(frames if len(frames) > 1 else frames[0], pattern, sensor,
+            r = fit_response(frames if len(frames) > 1 else frames[0], pattern, sensor, config,
                              exposure_times=times if len(frames) > 1 else None)
             lo, hi = r.stats["measured_range"]
             m = np.linspace(lo, hi, 1000)
             band = r.stats["band"]
             bm, se = np.asarray(band["brightness"]), np.asarray(band["standard_error"])
             covered = float(np.mean(np.abs(np.asarray(band["linear"]) - curve.inverse(bm)) <= 2 * se))
-            row = (f"{r.degree} | {np.max(np.abs(r(m) - curve.inverse(m))):.4f} | {lo:.3f}-{hi:.3f} | "
+            model = f"deg {r.degree}" if r.model == "polynomial" else f"spline {len(r.knots)}"
+            row = (f"{model} | {np.max(np.abs(r(m) - curve.inverse(m))):.4f} | {lo:.3f}-{hi:.3f} | "
                    f"{se.max():.4f} | {covered:.2f}")
         except Exception as exc:  # report, keep going
             row = f"- | refused: {exc} | - | - | -"
@@ -121,11 +123,13 @@ def main() -> None:
     ap.add_argument("--sweep", help="global exposure times of the frames fitted together, ';' between sweeps, "
                                     "e.g. '1,1.5;1,1.5,2.25' (no Debevec)")
     ap.add_argument("--bits", default="8", help="bit depths, comma-separated (default 8)")
+    ap.add_argument("--max-knots", type=int, default=0,
+                    help="with --sweep: also try the log-spline model with 2..N knots (default 0: polynomials only)")
     args = ap.parse_args()
     if args.sweep:
         sweeps = [[float(t) for t in part.split(",")] for part in args.sweep.split(";")]
         pattern = Pattern.parse("1,4/16,64")
-        print("scene | curve | bits | frames (times) | degree | max error | measured range | band max s.e. | "
+        print("scene | curve | bits | frames (times) | model | max error | measured range | band max s.e. | "
               "truth within 2 s.e. | s")
         for scene_name in args.scenes.split(","):
             scene = read_luminance(f"{args.data}/{scene_name}.exr")
@@ -133,7 +137,8 @@ def main() -> None:
                 sensor = Sensor.from_full_well(bits, 10000, 3)
                 radiance = scene * exposure_scale(scene, pattern, sensor)
                 for name in args.curves.split(","):
-                    for row in sweep_rows(radiance, pattern, sensor, CURVES[name], sweeps):
+                    for row in sweep_rows(radiance, pattern, sensor, CURVES[name], sweeps,
+                                          config=ResponseFitConfig(max_knots=args.max_knots)):
                         print(f"{scene_name} | {name} | {bits} | {row}", flush=True)
         return
     sensor = Sensor.from_full_well(8, 10000, 3)

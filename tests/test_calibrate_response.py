@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, SveliveError
-from svelive.calibrate import (CURVES, Response, calibrate_frame, fit_response, linearise, load_response,
-                               save_response, simulate_nonlinear)
+from svelive.calibrate import (CURVES, Response, ResponseFitConfig, calibrate_frame, fit_response, linearise,
+                               load_response, save_response, simulate_nonlinear)
 from svelive.calibrate.response import common_ratio
 from svelive.cli import main
 from svelive.simulate import exposure_scale, load_sample_scene
@@ -366,3 +366,74 @@ def test_known_curve_recovered_on_sample_scenes_from_two_frames(scene_name, name
     assert hi - lo >= 0.75
     assert response.stats["curve_uncertainty"] <= 0.01
     assert max_error(response, CURVES[name]) < 0.01
+
+
+# ----- the log-spline model (sweeps without a common exposure ratio) ------------------------------
+
+def test_log_spline_basis_is_a_natural_cubic_spline():
+    from svelive.calibrate.response import log_spline_basis
+
+    knots = np.log([0.01, 0.05, 0.2, 0.6, 1.0])
+    below, above = np.linspace(-9.0, knots[0], 7), np.linspace(knots[-1], 2.0, 7)
+    for u in (below, above):  # straight lines outside the knots
+        np.testing.assert_allclose(np.diff(log_spline_basis(u, knots), 2, axis=0), 0.0, atol=1e-9)
+    u = np.linspace(-6.0, 0.5, 301)
+    step = 1e-6
+    numeric = (log_spline_basis(u + step, knots) - log_spline_basis(u - step, knots)) / (2 * step)
+    np.testing.assert_allclose(log_spline_basis(u, knots, derivative=True), numeric, atol=1e-6)
+    assert log_spline_basis(u, knots).shape == (301, 4)
+
+
+def test_log_spline_response_evaluates_round_trips_and_linearises(tmp_path):
+    knots = (0.01, 0.1, 0.5, 1.0)
+    # log f = 1.1 log M + small curvature, f(1) = 1
+    from svelive.calibrate.response import log_spline_basis
+
+    rest = np.array([1.1, 0.05, -0.02])
+    constant = -float(log_spline_basis(np.zeros(1), np.log(knots))[0] @ rest)
+    response = Response((constant, *rest), white_level=4095.0, knots=knots)
+    m = np.linspace(0.0, 1.0, 2001)
+    f = response(m)
+    assert response.model == "log-spline" and f[0] == 0.0 and abs(f[-1] - 1.0) < 1e-12
+    assert np.all(np.diff(f) > 0)
+    np.testing.assert_allclose(response(np.array([0.001, 0.005])), np.array([0.001, 0.005]) ** 1.1 * np.exp(constant),
+                               rtol=1e-9)  # a power law below the first knot
+    step = 1e-7
+    mid = m[10:-10]
+    np.testing.assert_allclose(response.slope(mid), (response(mid + step) - response(mid - step)) / (2 * step),
+                               rtol=1e-5, atol=1e-7)
+    back = load_response(save_response(response, tmp_path / "s.json"))
+    assert back == response and back.knots == knots
+    data = json.loads((tmp_path / "s.json").read_text())
+    assert data["model"] == "log-spline" and data["knots"] == list(knots)
+    raw = np.arange(0, 4096, 5, dtype=np.uint16).reshape(1, -1)
+    np.testing.assert_allclose(linearise(raw, response)[0], 4095 * response(raw[0] / 4095.0), rtol=1e-5, atol=1e-3)
+    data["knots"] = [0.5, 0.1, 0.9, 1.0]
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(SveliveError, match="increasing knots"):
+        load_response(tmp_path / "bad.json")
+    assert "knots" not in Response((0.0, 1.0)).to_dict()  # polynomial files as before
+
+
+def test_log_spline_offered_to_sweeps_only_when_asked():
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene(128, 16)
+    scene *= sensor.range_dn / scene.max()
+    frames = sweep_frames(scene, sensor, "gamma2.2")
+    spline = ResponseFitConfig(max_knots=6)
+    one = fit_response(frames[0], PATTERN, sensor, spline)
+    assert one.model == "polynomial" and all(k.isdigit() for k in one.stats["held_out_error"])
+    default = fit_response(frames, PATTERN, sensor, exposure_times=[1, 1.5])
+    assert all(k.isdigit() for k in default.stats["held_out_error"])
+    two = fit_response(frames, PATTERN, sensor, spline, exposure_times=[1, 1.5])
+    assert {f"log-spline {k}" for k in range(2, 7)} <= set(two.stats["held_out_error"])
+    # gamma 2.2 is a power law, the log-spline's simplest form (2 knots: one free parameter)
+    assert two.model == "log-spline" and len(two.knots) == 2 and two.knots[-1] == 1.0
+    assert max_error(two, CURVES["gamma2.2"]) < min(0.005, max_error(default, CURVES["gamma2.2"]))
+    band = two.stats["band"]
+    np.testing.assert_allclose(band["linear"], two(np.asarray(band["brightness"])), atol=1e-12)
+    # 1 and 4 (powers of the pattern's 4): the ripple is invisible again, so no spline
+    four = fit_response([frames[0], sweep_frames(scene / 4, sensor, "gamma2.2")[0]], PATTERN, sensor, spline,
+                        exposure_times=[4, 1])
+    assert four.stats["common_ratio"] == 4 and four.model == "polynomial"
+    assert not any(k.startswith("log-spline") for k in four.stats["held_out_error"])
