@@ -202,6 +202,7 @@ class LineFit:
     inlier: np.ndarray
     fixed_slope: bool = False
     texture: float = 0.0
+    texture_sigma: float = 0.0
 
     def variance(self, t: np.ndarray | float) -> np.ndarray | float:
         return np.maximum(self.slope * np.asarray(t) + self.intercept, QUANTISATION_VARIANCE)
@@ -637,8 +638,9 @@ def fit_line(t: np.ndarray, v: np.ndarray, n: np.ndarray, *, slope: float | None
             cov[ki, kj] = sub[i, j]
     if not coef[0] > 0:
         return None
+    texture_sigma = math.sqrt(max(float(sub[-1, -1]), 0.0)) if used_quad else 0.0
     return LineFit(float(coef[0]), float(coef[1]), cov, t, v, n.astype(np.int64), inlier, not free[0],
-                   float(coef[2]))
+                   float(coef[2]), texture_sigma)
 
 
 #: The prior every estimate is combined with: log-normal around the sensor defaults (sensor.py), one
@@ -810,7 +812,13 @@ def _with_texture_uncertainty(fit: LineFit, fixed: dict, config: EstimatorConfig
     covariance (:func:`_add_systematic`)."""
     alt = fit_line(fit.bins_t, fit.bins_v, fit.bins_n, **fixed, outlier_tolerance=config.outlier_tolerance,
                    texture=True)
-    return fit if alt is None else _add_systematic(fit, alt)
+    if alt is None:
+        return fit
+    if alt.texture > 2.0 * alt.texture_sigma:
+        cov = fit.cov.copy()
+        cov[0, 0] = max(cov[0, 0], alt.cov[0, 0])
+        fit = replace(fit, cov=cov)
+    return _add_systematic(fit, alt)
 
 
 def _fixed(sensor: Sensor) -> dict:
