@@ -208,7 +208,7 @@ class RecordingReader:
         """int64 (N,) presentation times in ns: device timestamps if all frames have them, else host."""
         return self.times[:, 2] if self.clock == "device" else self.times[:, 1]
 
-    def _payload(self, i: int) -> tuple[np.ndarray, tuple[int, int, int]]:
+    def _payload(self, i: int) -> tuple[np.ndarray, tuple[int, int, int], float]:
         lay = self.layout
         buf = bytearray(RECORD_HEADER.size + lay.payload_size)
         n = os.preadv(self._f.fileno(), [buf], lay.data_offset + i * lay.record_size)
@@ -219,11 +219,12 @@ class RecordingReader:
         if parsed is None:
             raise CorruptFrameError(f"{self.path}: frame {i} has a damaged record header")
         body = memoryview(buf)[RECORD_HEADER.size:]
-        if crc32(body) != RECORD_HEADER.unpack(head)[7]:
+        fields = RECORD_HEADER.unpack(head)
+        if crc32(body) != fields[7]:
             raise CorruptFrameError(f"{self.path}: frame {i} checksum mismatch (damaged data)")
         arr = np.frombuffer(buf, dtype=np.dtype(lay.dtype).newbyteorder("<"), offset=RECORD_HEADER.size,
                             count=lay.width * lay.height).reshape(lay.height, lay.width)
-        return arr, parsed
+        return arr, parsed, fields[8]
 
     def read(self, i: int) -> Frame:
         """Frame ``i`` (0-based; negative counts from the end), checksum verified.
@@ -235,12 +236,13 @@ class RecordingReader:
         if not -n <= i < n:
             raise RecordingError(f"{self.path}: frame {i} out of range (the recording has {n} frames)")
         i %= n
-        arr, (fid, host, dev) = self._payload(i)
+        arr, (fid, host, dev), exposure = self._payload(i)
         if arr.dtype.byteorder not in ("=", "|"):
             arr = arr.astype(arr.dtype.newbyteorder("="))
         return Frame(raw=arr, frame_id=int(fid), host_time_ns=int(host),
                      device_time_ns=None if dev == NO_TIME else int(dev),
-                     pixel_format=self.pixel_format, camera=self.camera)
+                     pixel_format=self.pixel_format, camera=self.camera,
+                     exposure_time=None if exposure == NO_EXPOSURE or not np.isfinite(exposure) else float(exposure))
 
     def exposure_times(self) -> np.ndarray:
         """float64 (N,): each frame's recorded global exposure time (the camera's unit, GigE

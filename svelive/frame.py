@@ -22,6 +22,8 @@ class Frame:
         pixel_format: the wire format it was decoded from, e.g. ``"Mono12Packed"``.
         camera: what the frame is: exposure pattern, colour filter, sensor, response
             (svelive.camera.Camera). Reconstruction reads it from here.
+        exposure_time: the camera's global exposure time for this frame in its own unit
+            (GigE: microseconds), None when the source cannot tell. Recordings keep it.
     """
 
     raw: np.ndarray
@@ -30,6 +32,7 @@ class Frame:
     device_time_ns: int | None = None
     pixel_format: str = "Mono16"
     camera: Camera = field(default_factory=Camera)
+    exposure_time: float | None = None
 
     @property
     def sensor(self) -> Sensor:

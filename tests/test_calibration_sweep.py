@@ -275,6 +275,10 @@ def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it(monkeyp
             assert steps[-1] == 3 and job["exposure_times"] == [4000.0, 6000.0, 9000.0]
             assert len(job["frame_ids"]) == 3 and job["frame_ids"] == sorted(job["frame_ids"])
             assert job["restored"] == 8000.0 and source.exposure_time() == 8000.0
+            # the frames carry the exposure they were taken at (what a recording keeps for a replayed sweep)
+            restored_from = srv.pipeline.captured.count
+            srv.wait_for(lambda s: s["frames"]["captured"] > restored_from + 2, timeout=15)
+            assert srv.pipeline.latest_raw().exposure_time == 8000.0
             # the fake camera's moving ramp is no still SVE scene: the fit refuses it, with the reason
             assert job["state"] in ("done", "failed")
             if job["state"] == "failed":

@@ -556,23 +556,24 @@ def test_replay_chosen_exposure_plays_at_the_recorded_rate(tmp_path: Path) -> No
         assert {(f.frame_id - 100) % 6 for f in got} == {4, 5}
 
 
-def test_writer_records_a_frames_own_exposure_time_attribute(tmp_path: Path) -> None:
+def test_a_frames_exposure_time_is_recorded_and_read_back_with_it(tmp_path: Path) -> None:
     """A frame that carries its exposure time (a source stamping it) needs no argument to append."""
-    from dataclasses import dataclass
-
-    @dataclass(frozen=True)
-    class TimedFrame(Frame):
-        exposure_time: float | None = None
-
-    def timed(f: Frame, exposure_time: float | None = None) -> TimedFrame:
-        return TimedFrame(raw=f.raw, frame_id=f.frame_id, host_time_ns=f.host_time_ns, device_time_ns=f.device_time_ns,
-                          pixel_format=f.pixel_format, camera=f.camera, exposure_time=exposure_time)
+    import dataclasses
 
     frames = make_frames(3)
     with RecordingWriter(tmp_path / "t.sverec", pattern="1,4/16,64") as w:
-        w.append(timed(frames[0], 800.0))
-        w.append(timed(frames[1]))  # none
-        w.append(timed(frames[2], 800.0), exposure_time=1200.0)  # the argument wins
+        w.append(dataclasses.replace(frames[0], exposure_time=800.0))
+        w.append(frames[1])  # none
+        w.append(dataclasses.replace(frames[2], exposure_time=800.0), exposure_time=1200.0)  # the argument wins
     with RecordingReader(tmp_path / "t.sverec") as r:
         got = r.exposure_times()
         assert got[0] == 800.0 and np.isnan(got[1]) and got[2] == 1200.0
+        assert [r.read(i).exposure_time for i in range(3)] == [800.0, None, 1200.0]
+
+
+def test_demo_frames_carry_their_exposure_time(tmp_path: Path) -> None:
+    with open_source("demo", width=64, height=48, fps=0, cfa="none", exposure_us=5000) as source:
+        frame = next(iter(source))
+        assert frame.exposure_time == 5000.0
+        assert source.set_exposure_time(7500.0) == 7500.0
+        assert next(iter(source)).exposure_time == 7500.0

@@ -222,7 +222,7 @@ def _export(args: argparse.Namespace) -> int:
                     print(f"svelive export: warning: {exc}; skipped", file=sys.stderr)
                     damaged.append(i)
                 else:
-                    write_raw(out / f"frame_{i:06d}.png", raw)
+                    write_raw(out / f"frame_{i:06d}.png", raw, bits=reader.sensor.bits)  # sBIT: the depth
                 progress.update()
     n = len(indices) - len(damaged)
     skipped = f" ({len(damaged)} damaged frames skipped: {', '.join(map(str, damaged))})" if damaged else ""

@@ -348,7 +348,8 @@ class DemoSource(Source):
                 self._t0 += late
         raw = self._render(scene_t)
         frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(),
-                      device_time_ns=int(round(scene_t * 1e9)), pixel_format=self._label, camera=self.camera)
+                      device_time_ns=int(round(scene_t * 1e9)), pixel_format=self._label, camera=self.camera,
+                      exposure_time=self._exposure_us)
         self._n += 1
         return frame
 

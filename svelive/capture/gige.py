@@ -151,6 +151,7 @@ class GigeSource(Source):
         self._next_attempt = 0.0
         self._backoff = self.config.backoff_s
         self._last_raw_id: int | None = None
+        self._exposure: float | None = None  # ExposureTime last read back (us), stamped on every frame
         self._last_id: int | None = None
         self.camera_info: dict[str, Any] = {}
         self._found = ""  # the camera found when no id was given, for messages
@@ -203,6 +204,7 @@ class GigeSource(Source):
         arrays: dict[Any, np.ndarray] = {}
         try:
             self._configure(camera)
+            self._exposure = float(camera.get_exposure_time()) if camera.is_exposure_time_available() else None
             pf_name = camera.get_pixel_format_as_string()
             self._format = formats.lookup(pf_name)
             # a Bayer format names the colour of the first delivered pixel, whatever the region offset
@@ -328,7 +330,8 @@ class GigeSource(Source):
                     raise SveliveError(f"{self.spec}: exposure time {value:g} us is outside the camera's "
                                        f"range {lo:g}..{hi:g} us")
                 camera.set_exposure_time(float(value))
-                return float(camera.get_exposure_time())
+                self._exposure = float(camera.get_exposure_time())
+                return self._exposure
             except SveliveError:
                 raise
             except Exception as exc:  # noqa: BLE001 - GLib.Error
@@ -466,8 +469,10 @@ class GigeSource(Source):
             return None
         self._last_frame_t = time.monotonic()
         ts = int(buf.get_timestamp())
+        # the time last applied: the frame in flight at a change is labelled with the new one
         return Frame(raw=raw, frame_id=self._unwrap(int(buf.get_frame_id())), host_time_ns=host_ns,
-                     device_time_ns=ts if ts else None, pixel_format=self._format.name, camera=self.camera)
+                     device_time_ns=ts if ts else None, pixel_format=self._format.name, camera=self.camera,
+                     exposure_time=self._exposure)
 
     def _unwrap(self, raw_id: int) -> int:
         """Device frame id made monotonic across 16-bit wraps and reconnects."""
