@@ -4,9 +4,6 @@ exposure sweep that calibrates it from several frames, and the mask's pixel map.
 from __future__ import annotations
 
 import copy
-import ctypes
-import ctypes.util
-import gc
 import math
 import threading
 import time
@@ -21,6 +18,7 @@ from svelive.camera import Camera
 from svelive.capture import Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
+from svelive.memory import release_memory
 
 #: most exposure times one sweep takes
 MAX_SWEEP = 16
@@ -32,25 +30,6 @@ class CalibrationBusy(SveliveError):
 
 class ExposureUnsupported(SveliveError):
     """The source cannot set its exposure time (a sweep is impossible)."""
-
-
-def release_memory() -> None:
-    """Hand freed heap back to the system after a calibration.
-
-    A fit allocates hundreds of MB of short-lived numpy arrays in a worker thread; glibc
-    keeps freed chunks in that thread's arena (and raises its mmap threshold after large
-    frees, so the next large arrays come from the heap too), so the process's resident
-    memory stayed up after every calibration. ``malloc_trim(0)`` returns the free pages of
-    every arena; elsewhere than glibc this does nothing.
-    """
-    gc.collect()
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name) if name else None
-        if libc is not None and hasattr(libc, "malloc_trim"):
-            libc.malloc_trim(0)
-    except OSError:
-        pass
 
 
 def check_sweep(times: list[float]) -> list[float]:
