@@ -362,7 +362,8 @@ def _normal_quantile(q: float) -> float:
 
 
 def _select(data: _PhaseData, model: tuple[float, float], floor: float, high: float,
-            config: EstimatorConfig, ranked: bool) -> tuple[NoiseSamples, np.ndarray]:
+            config: EstimatorConfig, ranked: bool,
+            strict: EstimatorConfig | None = None) -> tuple[NoiseSamples, np.ndarray, NoiseSamples | None]:
     """The phase's samples at flat, unclipped places under the model ``(slope, intercept)``.
 
     Two flatness tests, neither of which sees the pixel's own reading (so selecting on them does
@@ -377,7 +378,8 @@ def _select(data: _PhaseData, model: tuple[float, float], floor: float, high: fl
       chance in a textured region is caught.
 
     With ``ranked`` the caller keeps the flattest by ``T * Z`` (returned), else places below the
-    ``flat_quantile`` of both chi-squares are kept here.
+    ``flat_quantile`` of both chi-squares are kept here; with ``strict`` also the samples that pass
+    that configuration's quantiles (third item, else None).
     """
     slope, intercept = model
     s_groups, others = data.s_groups, data.others
@@ -402,10 +404,16 @@ def _select(data: _PhaseData, model: tuple[float, float], floor: float, high: fl
     top = s_groups.max(axis=0)
     keep &= top + 4.0 * np.sqrt(np.maximum(slope * top + intercept, QUANTISATION_VARIANCE)) < high
     dof = data.m.shape[0] - 1
+    stricter = None
     if not ranked:
+        if strict is not None:
+            sel = (keep & (spread <= _chi2_quantile(strict.flat_quantile, dof))
+                   & (region_sum <= _chi2_quantile_array(strict.region_quantile, others)))
+            stricter = NoiseSamples(t=t[sel], u=u[sel])
         keep &= spread <= _chi2_quantile(config.flat_quantile, dof)
         keep &= region_sum <= data.region_limit
-    return NoiseSamples(t=t[keep], u=u[keep]), (spread / dof * region_sum / np.maximum(others, 1))[keep]
+    return (NoiseSamples(t=t[keep], u=u[keep]), (spread / dof * region_sum / np.maximum(others, 1))[keep],
+            stricter)
 
 
 def _chi2_quantile_array(q: float, dof: np.ndarray) -> np.ndarray:
@@ -417,8 +425,10 @@ def _chi2_quantile_array(q: float, dof: np.ndarray) -> np.ndarray:
 
 
 def _select_all(data: list[_PhaseData], model: LineFit | tuple[float, float] | None, floor: float,
-                high: float, sensor: Sensor, config: EstimatorConfig) -> NoiseSamples:
-    """Samples of every phase. Without a model (the first pass) the weights take the sensor defaults
+                high: float, sensor: Sensor, config: EstimatorConfig,
+                strict: EstimatorConfig | None = None) -> tuple[NoiseSamples, NoiseSamples | None]:
+    """Samples of every phase, and with ``strict`` (and a model) those that pass its quantiles too.
+    Without a model (the first pass) the weights take the sensor defaults
     and the flattest ``start_fraction`` of every signal bin is kept, by T times Z: within a bin the
     samples have about the same noise, so the ranking does not depend on the noise scale."""
     ranked = model is None
@@ -426,14 +436,16 @@ def _select_all(data: list[_PhaseData], model: LineFit | tuple[float, float] | N
         model = (1.0 / sensor.effective_gain, sensor.floor_variance)
     elif isinstance(model, LineFit):
         model = (model.slope, model.intercept)
-    parts, spreads = [], []
+    parts, spreads, stricter = [], [], []
     for phase in data:
-        samples, spread = _select(phase, model, floor, high, config, ranked)
+        samples, spread, strict_samples = _select(phase, model, floor, high, config, ranked, strict)
         parts.append(samples)
         spreads.append(spread)
+        if strict_samples is not None:
+            stricter.append(strict_samples)
     joined = NoiseSamples.join(parts)
     if not ranked or joined.size == 0:
-        return joined
+        return joined, (NoiseSamples.join(stricter) if strict is not None and not ranked else None)
     spread = np.concatenate(spreads)
     which, _ = _bin_index(joined.t, config.bins)
     # within every bin, keep the spreads at or below its start_fraction quantile (linear interpolation):
@@ -444,7 +456,7 @@ def _select_all(data: list[_PhaseData], model: LineFit | tuple[float, float] | N
     rank = starts + np.floor((np.maximum(counts, 1) - 1) * config.start_fraction).astype(np.int64)
     limit = spread[order[np.minimum(rank, joined.size - 1)]]
     keep = spread <= limit[which]
-    return NoiseSamples(joined.t[keep], joined.u[keep])
+    return NoiseSamples(joined.t[keep], joined.u[keep]), None
 
 
 # ----- robust statistics and the line fit -------------------------------------------------------------
@@ -745,9 +757,11 @@ def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None 
         return NoiseSamples(np.zeros(0), np.zeros(0)), None
     fixed = _fixed(camera.sensor)
     model: LineFit | None = None
-    fit, samples = None, NoiseSamples(np.zeros(0), np.zeros(0))
-    for _ in range(1 + config.iterations):
-        samples = _select_all(data, model, floor, high, camera.sensor, config)
+    fit, samples, stricter = None, NoiseSamples(np.zeros(0), np.zeros(0)), None
+    strict = replace(config, flat_quantile=config.flat_quantile * config.strict_fraction, region_quantile=0.5)
+    for step in range(1 + config.iterations):
+        last = step == config.iterations and config.strict_fraction > 0
+        samples, stricter = _select_all(data, model, floor, high, camera.sensor, config, strict if last else None)
         if model is not None and config.max_shot_ratio:
             # texture grows as the signal squared, shot noise as the signal: beyond a shot variance of
             # a few times the read noise's, bins add more bias than information about the gain
@@ -768,14 +782,15 @@ def frame_samples(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None 
         fit = fit_line(t[dark], v[dark], n[dark], slope=slope, outlier_tolerance=config.outlier_tolerance)
     elif fit is not None and config.texture_uncertainty and not fit.fixed_slope:
         fit = _with_texture_uncertainty(fit, fixed, config)
-        if config.strict_fraction:
-            fit = _with_selection_uncertainty(fit, data, floor, high, camera.sensor, fixed, config)
+        if stricter is not None:
+            fit = _with_selection_uncertainty(fit, stricter, fixed, config)
     return samples, fit
 
 
-def _with_selection_uncertainty(fit: LineFit, data: list[_PhaseData], floor: float, high: float,
-                                sensor: Sensor, fixed: dict, config: EstimatorConfig) -> LineFit:
-    """``fit`` with the shift a stricter selection makes in its covariance.
+def _with_selection_uncertainty(fit: LineFit, stricter: NoiseSamples, fixed: dict,
+                                config: EstimatorConfig) -> LineFit:
+    """``fit`` with the shift a stricter selection (``stricter``: the samples of the last pass that
+    passed it) makes in its covariance.
 
     Neither flatness test sees the pixel's own reading, so a stricter selection changes only how much
     texture gets through, never the noise measured: the line moves only if texture is biasing it.
@@ -783,9 +798,7 @@ def _with_selection_uncertainty(fit: LineFit, data: list[_PhaseData], floor: flo
     with the signal like shot noise, and the bins cannot tell them apart), so this shift, not the
     scatter of the bins, is what says that a textured frame cannot give the gain. The estimate
     itself stays the one of the usual selection (the strict one has fewer samples)."""
-    strict = replace(config, flat_quantile=config.flat_quantile * config.strict_fraction, region_quantile=0.5)
-    other = fit_line(*bin_samples(_select_all(data, fit, floor, high, sensor, strict), config), **fixed,
-                     outlier_tolerance=config.outlier_tolerance)
+    other = fit_line(*bin_samples(stricter, config), **fixed, outlier_tolerance=config.outlier_tolerance)
     if other is None:
         return fit
     return _add_systematic(fit, other)
