@@ -67,7 +67,7 @@ class ExposureSource(SimSource):
                                                       CURVES["gamma2.2"], seed=int(used))
         self.exposure_of[frame.frame_id] = used
         return Frame(raw=self._rendered[used], frame_id=frame.frame_id, host_time_ns=frame.host_time_ns,
-                     pixel_format=frame.pixel_format, camera=frame.camera)
+                     pixel_format=frame.pixel_format, camera=frame.camera, exposure_time=used)
 
 
 def wait_job(srv: ServerThread, job_id: int, timeout: float = 120.0) -> tuple[dict, list[int]]:

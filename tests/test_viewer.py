@@ -137,13 +137,16 @@ def test_viewer_runs_an_exposure_sweep_shows_its_progress_and_the_curve_with_its
     sources = []
 
     def factory():
-        sources.append(ExposureSource(camera))
+        sources.append(ExposureSource(camera, exposure_us=8000.0))
         return sources[-1]
 
     with server(monkeypatch, factory) as srv, browser_page(tmp_path, 900, 180_000) as page:
         page.goto(srv.url + "/")
         page.wait_for_function("document.getElementById('status').textContent === 'online'")
         assert page.locator("#sweep-bar").is_hidden()
+        # the sweep is offered around the camera's own exposure, which the state reports
+        page.wait_for_function("document.getElementById('sweep-times').value === '8000, 12000'")
+        assert srv.state()["source"]["exposure_time"] == 8000.0
         # every text the progress line shows, kept by the page as it changes
         page.evaluate("""() => { window.sweepTexts = [];
             new MutationObserver(() => window.sweepTexts.push(document.getElementById('sweep-state').textContent))
@@ -159,11 +162,11 @@ def test_viewer_runs_an_exposure_sweep_shows_its_progress_and_the_curve_with_its
         page.wait_for_function("document.getElementById('sweep-state').textContent.includes('done')")
         texts = page.evaluate("window.sweepTexts")
         assert any("fitting" in t for t in texts), texts  # the progress was shown while it ran
-        assert "3 frames at 10000, 15000, 22500" in texts[-1] and "exposure back to 10000" in texts[-1], texts[-1]
+        assert "3 frames at 10000, 15000, 22500" in texts[-1] and "exposure back to 8000" in texts[-1], texts[-1]
         assert page.evaluate("[document.getElementById('sweep-bar').value, document.getElementById('sweep-bar').max]") \
             == [4, 4]
         assert not page.is_disabled("#sweep")
-        assert sources[-1].changes == [10_000.0, 15_000.0, 22_500.0, 10_000.0]
+        assert sources[-1].changes == [10_000.0, 15_000.0, 22_500.0, 8_000.0]  # and back
         # the result: its curve (gamma 2.2's inverse bows below the diagonal) and its band, from the job's result
         page.wait_for_function("document.getElementById('cal-info').textContent.includes('3 frames (sweep')")
         info = page.text_content("#cal-info")

@@ -219,6 +219,8 @@ class Pipeline:
                 "width": None if latest is None else int(latest.hdr.image.shape[1]),
                 "height": None if latest is None else int(latest.hdr.image.shape[0]),
                 "pixel_format": capture.stats.get("pixel_format"),
+                # the exposure the newest frame was taken at (the camera's unit), null when the source cannot tell
+                "exposure_time": getattr(capture.latest_raw(), "exposure_time", None),
             },
             "fps": {"captured": round(self.captured.rate(), 2), "reconstructed": round(self.reconstructed.rate(), 2),
                     "encoded": round(self.encoded.rate(), 2)},
