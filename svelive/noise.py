@@ -40,7 +40,11 @@ history, and the line is refitted.
 
 The uncertainty is the weighted fit's covariance (bins weighted by the variance
 of a variance estimate, ``2 v^2 / n``), scaled up by the reduced chi-square when
-the bins scatter more than that.
+the bins scatter more than that. Texture that passes the flatness tests is a
+fraction of the noise they test against, so it grows with the signal like shot
+noise and the bins' scatter cannot show it: the slope's shift under a stricter
+selection and under a texture term ``k t^2`` is added to its variance when
+significant. A value the frame does not tell carries the prior's uncertainty.
 """
 
 from __future__ import annotations
