@@ -15,10 +15,11 @@ every frame with the default method under the fixed defaults, the estimate and t
 true noise model, and reports PU21-PSNR (slow).
 With ``--colour`` the scenes are simulated in RGB through the colour layouts of
 svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`` a second
-frame of the same static scene (the next seed) is given to a :class:`svelive.noise.NoiseTracker`
+frame of the same static scene (another noise seed) is given to a :class:`svelive.noise.NoiseTracker`
 after the first (all pixels static), which is what the live service can do; its errors are
 reported too ("pair"). A run is "confidently wrong" when a value misses by more than 15 % and by
-more than two of its own stated standard uncertainties.
+more than two of its own stated standard uncertainties (in log space). ``--table CSV`` prints the
+summary of an earlier run again.
 """
 
 from __future__ import annotations

@@ -875,7 +875,8 @@ def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarr
     ``x1 - k x2`` has variance ``(1 + k^2) (s / g + R)`` where the scene did not change (``k``
     removes a global brightness change, flicker), whatever the texture. Samples are binned by the
     pair's mean (for a Gaussian pair independent of the difference), corrected for its own noise by
-    :func:`_tweedie` (binning by a noisy signal dilutes the slope where pixels crowd the dark end). Pixels whose mean lies within four noise standard deviations (under ``model``,
+    :func:`_tweedie` (binning by a noisy signal dilutes the slope where pixels crowd the dark end).
+    Pixels whose mean lies within four noise standard deviations (under ``model``,
     ``(slope, intercept)``) of either clip level are dropped by that mean, not by either reading:
     dropping readings at 0 or at white truncates the noise (the cause of the low read noise the
     older pair estimate gave with a black level of 0).
@@ -907,7 +908,8 @@ def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span
     Binning noise variances by a noisy signal dilutes the slope: where most pixels are dark, those
     observed a little brighter are mostly dark ones with positive noise, so their bin's mean signal
     overstates their true one (and the lowest bin understates). The correction needs only the
-    observed density ``p`` (of the pixels ``where``), here a histogram on 1 DN steps over the lowest ``span`` DN smoothed by
+    observed density ``p`` (of the pixels ``where``), here a histogram on 1 DN steps over the lowest
+    ``span`` DN smoothed by
     2 DN; above that the noise is small against the signal's spread and nothing is changed.
     """
     lo = float(observed[where].min()) if where.any() else 0.0
