@@ -226,3 +226,15 @@ def test_two_static_frames_give_the_gain_one_textured_frame_misses(full_well, re
     two = tracker.update(second, camera, np.ones(first.shape, bool))
     assert two.gain == pytest.approx(truth.gain, rel=0.15)
     assert covered(two.gain, two.gain_sigma, truth.gain)
+
+
+def test_calibrate_single_frame_does_not_state_a_default_gain_as_exact():
+    """A black frame (no signal range) gives the read noise but not the gain: ``svelive calibrate noise``
+    keeps the default gain and must state the prior's uncertainty for it, not 0."""
+    from svelive.calibrate.noise import estimate_noise as calibrate_noise
+
+    truth = true_sensor(10_000, 2.0)
+    raw = simulate(np.zeros((256, 256), np.float32), Pattern.parse("1,4/16,64"), truth, seed=1).raw
+    model = calibrate_noise([raw], Sensor(BITS, BLACK), "1,4/16,64")
+    assert model.read_noise == pytest.approx(truth.read_noise, rel=0.15)
+    assert model.gain_sigma == pytest.approx(np.log(4) * model.gain)

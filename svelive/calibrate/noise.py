@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from svelive.errors import SveliveError
-from svelive.noise import EstimatorConfig, LineFit, frame_samples, pair_fit
+from svelive.noise import PRIOR_LOG_SIGMA, EstimatorConfig, LineFit, frame_samples, pair_fit
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
@@ -174,7 +174,9 @@ def _model(fit: LineFit, samples: int, method: str) -> NoiseModel:
                       slope=fit.slope, intercept=fit.intercept,
                       signal_range=(float(fit.bins_t[keep].min()), float(fit.bins_t[keep].max())),
                       samples=samples, method=method, residual_rms=resid,
-                      gain_sigma=math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain, read_noise_sigma=read_sigma)
+                      gain_sigma=(PRIOR_LOG_SIGMA * gain if fit.fixed_slope  # the default gain, not a measurement
+                                  else math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain),
+                      read_noise_sigma=read_sigma)
 
 
 def _chi2_quantile(q: float, dof: int) -> float:
