@@ -21,7 +21,7 @@ import numpy as np
 
 from svelive.camera import Camera
 from svelive.frame import Frame
-from svelive.noise import NoiseEstimate, NoiseTracker
+from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate, NoiseTracker
 
 
 @dataclass(frozen=True)
@@ -126,7 +126,10 @@ class NoiseStage:
             return applied
         if sensor.gain is not None and sensor.read_noise is not None:
             return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
-        return NoiseEstimate(sensor.effective_gain, sensor.effective_read_noise, None, None, 0, "default")
+        # the defaults are a guess: stated with the prior's uncertainty, as the library states them
+        return NoiseEstimate(sensor.effective_gain, sensor.effective_read_noise,
+                             PRIOR_LOG_SIGMA * sensor.effective_gain, PRIOR_LOG_SIGMA * sensor.effective_read_noise,
+                             0, "default")
 
     def state(self) -> dict | None:
         """For /api/state: the newest estimate, the one in use, and how many frame pairs made it; None when the
