@@ -1,7 +1,8 @@
 """The live service under load: replayed 1920x1200 12-bit frames at 30 fps, 10 MJPEG clients.
 
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
-                                 [--no-temporal] [--workers N] [--scene pan|static] [--size 1920x1200]
+                                 [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
+                                 [--size 1920x1200]
                                  [--cfa none|RGGB] [--rtsp]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
@@ -98,7 +99,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
-          size: tuple[int, int], cfa: str, rtsp_port: int = 0) -> None:
+          size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1) -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
     ``/bench/rtsp``)."""
     import uvicorn
@@ -113,7 +114,8 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     except ImportError:
         pass
     factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa)
-    pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers), factory)
+    pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers,
+                                       parallel_frames=parallel_frames), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
     app = create_app(pipeline, settings)
@@ -383,7 +385,8 @@ def main() -> None:
     parser.add_argument("--idle-s", type=float, default=15.0)
     parser.add_argument("--method", default=None)
     parser.add_argument("--no-temporal", action="store_true", help="single-frame reconstruction (no fusion)")
-    parser.add_argument("--workers", type=int, default=0, help="reconstruction threads per frame (0: one per core)")
+    parser.add_argument("--workers", type=int, default=0, help="reconstruction threads (0: one per core)")
+    parser.add_argument("--parallel-frames", type=int, default=1, help="frames reconstructed at once (default 1)")
     parser.add_argument("--scene", choices=("pan", "static"), default="pan",
                         help="pan: the whole view moves every frame; static: a still view (default pan)")
     parser.add_argument("--size", default="1920x1200", help="frame size WxH (default 1920x1200)")
@@ -405,11 +408,11 @@ def main() -> None:
         return
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
-              args.cfa, args.rtsp_port)
+              args.cfa, args.rtsp_port, args.parallel_frames)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
-           "--scene", args.scene, "--size", args.size, "--cfa", args.cfa]
+           "--parallel-frames", str(args.parallel_frames), "--scene", args.scene, "--size", args.size, "--cfa", args.cfa]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -451,7 +454,7 @@ def main() -> None:
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average before the run "
           f"{load_before}; {args.size} 12-bit "
           f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
-          f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, {args.scene} scene, "
+          f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, parallel frames {args.parallel_frames}, {args.scene} scene, "
           f"{args.clients} clients, {args.minutes:g} min per phase")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
           f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "

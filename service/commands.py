@@ -34,7 +34,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="response file (svelive calibrate response): linearise every frame before reconstruction")
     p.add_argument("--mask", metavar="NPZ",
                    help="mask file (svelive calibrate mask): the per-pixel exposure map of the sensor")
-    p.add_argument("--workers", type=int, help="frames reconstructed at once, one thread each (default 0: one per core)")
+    p.add_argument("--workers", type=int, help="threads for the reconstruction (default 0: one per core)")
+    p.add_argument("--parallel-frames", type=int, metavar="N",
+                   help="frames reconstructed at once, the threads shared among them (default 1: each frame over "
+                        "every thread, the lowest latency; 2: more frames per second at a higher latency)")
     p.add_argument("--host", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (default 8000)")
     p.add_argument("--token", help="require Authorization: Bearer TOKEN (or ?token=) on every endpoint but /healthz; "

@@ -149,8 +149,8 @@ def test_frames_nobody_watched_are_not_drops():
         h.close()
 
 
-@pytest.mark.parametrize("workers", [1, 2, 3])
-def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers):
+@pytest.mark.parametrize("workers, frames", [(1, 1), (2, 1), (2, 2), (3, 3), (4, 2)])
+def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, frames):
     """The live stage's threads each estimate a frame and fuse in arrival order: what it publishes is
     exactly the sequential stream's output, frame for frame."""
     from svelive.camera import Camera
@@ -174,7 +174,8 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers):
             super()._publish(*args)
             published.append(self.latest())
 
-    stage = Recorded(slot, Calibration(None, None, lambda: None, stop), None, True, workers, cond, DropCounter(), stop)
+    stage = Recorded(slot, Calibration(None, None, lambda: None, stop), None, True, workers, cond, DropCounter(), stop,
+                     frames=frames)
     thread = threading.Thread(target=stage.run)
     thread.start()
     deadline = time.monotonic() + 60

@@ -36,8 +36,11 @@ class PipelineConfig:
             is linearised through it before reconstruction; None: the camera is linear.
         mask: path of a mask file (``svelive calibrate mask``): its per-pixel exposure
             map replaces the nominal tile's exposures; None: the nominal pattern.
-        workers: frames reconstructed at once, each on a thread of its own (fused in arrival order);
-            0: one per core.
+        workers: threads the reconstruction uses; 0: one per core.
+        parallel_frames: frames reconstructed at once (1..4), the threads shared out among them; fused
+            and published in arrival order. 1: each frame spread over every thread (the lowest
+            latency); 2: more frames per second when the cores are otherwise free, at the latency of
+            a frame on fewer threads (measured in docs/service.md).
         queue: frames the capture -> reconstruction hand-off holds (1..8).
         tone: preview tone-mapping parameters.
         colour: colour output of a colour camera (svelive.whitebalance.ColourSettings: white
@@ -60,6 +63,7 @@ class PipelineConfig:
     response: str | None = None
     mask: str | None = None
     workers: int = 0
+    parallel_frames: int = 1
     queue: int = 1
     tone: ToneSettings = field(default_factory=ToneSettings)
     colour: ColourSettings = field(default_factory=ColourSettings)
@@ -78,6 +82,9 @@ class PipelineConfig:
         check_jpeg_quality(self.jpeg_quality)
         if not 0 <= self.workers <= 64:
             raise SveliveError(f"workers must be 0..64 (0: one per core), got {self.workers}")
+        if isinstance(self.parallel_frames, bool) or not isinstance(self.parallel_frames, int) \
+                or not 1 <= self.parallel_frames <= 4:
+            raise SveliveError(f"parallel_frames must be 1..4, got {self.parallel_frames!r}")
         if not 1 <= self.queue <= 8:
             raise SveliveError(f"queue must hold 1..8 frames, got {self.queue}")
         if not 0 <= self.preview_width <= 16384:

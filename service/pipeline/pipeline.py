@@ -69,7 +69,8 @@ class Pipeline:
         # the configured response and mask are read now, so a bad file fails before serving
         self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw, self._stop)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, config.method, config.temporal,
-                                                  self.workers, self._cond, self.drops, self._stop)
+                                                  self.workers, self._cond, self.drops, self._stop,
+                                                  frames=min(config.parallel_frames, self.workers))
         self.encoder = EncoderStage(config, self.reconstruction.latest, self.capture.online, self._cond, self.drops,
                                     self._stop)
         self.captured = self.capture.captured
@@ -239,6 +240,7 @@ class Pipeline:
             "calibration": self.calibration.job_state(),
             "mask": self.config.mask,
             "workers": self.workers,
+            "parallel_frames": self.reconstruction.frames,
             "reconstruct_error": self.reconstruction.error,
             "pattern": None if capture.camera is None else str(capture.camera.pattern),
             "cfa": None if capture.camera is None or capture.camera.cfa is None else capture.camera.cfa.name,

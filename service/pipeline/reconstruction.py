@@ -26,12 +26,14 @@ class ReconstructionStage:
     result as the newest :class:`Published`, under ``cond``, which it notifies (the
     encoder waits on it). ``method`` may be changed at run time (under ``cond``).
 
-    ``workers`` threads each take the next frame and make its history-free part
-    (``Reconstructor.estimate``) on their own core, then fuse and publish it when
-    every frame taken before it has been (``Reconstructor.fuse``, in arrival order):
-    whole frames in parallel, not one frame's strips, whose threads would wait on
-    each other (measured on 2 cores: 1.75x one thread's frame rate, against 1.2x
-    with two strip threads per frame). A frame's latency is one thread's time.
+    ``frames`` threads each take the next frame and make its history-free part
+    (``Reconstructor.estimate``, spread over ``workers // frames`` strip threads), then
+    fuse and publish it when every frame taken before it has been
+    (``Reconstructor.fuse``, in arrival order). One frame at a time over every
+    thread has the lowest latency; whole frames in parallel waste less on the strips'
+    hand-offs (on 2 cores, no viewer: 12.0 against 9.8 fps) but each frame takes one
+    thread's time (with 10 MJPEG viewers: 8.2 against 7.8 fps, latency p95 443
+    against 252 ms), so the default is one (docs/service.md).
 
     The confidence map is not computed: nothing in the live path reads it, and at
     1920x1200 it costs several ms per frame. A camera whose gain or read noise is
@@ -40,12 +42,13 @@ class ReconstructionStage:
     """
 
     def __init__(self, slot: NewestSlot, calibration: Calibration, method: str | None, temporal: bool, workers: int,
-                 cond: threading.Condition, drops: DropCounter, stop: threading.Event) -> None:
+                 cond: threading.Condition, drops: DropCounter, stop: threading.Event, frames: int = 1) -> None:
         self._slot = slot
         self._calibration = calibration
         self.method = method
         self.temporal = temporal
         self.workers = workers
+        self.frames = frames
         self._cond = cond
         self._drops = drops
         self._stop = stop
@@ -74,7 +77,8 @@ class ReconstructionStage:
             if self._current[0] == key:
                 return self._current[1]
             self._current[1].close()
-        self._current = key, Reconstructor(camera, method=method, temporal=self.temporal, workers=1)
+        self._current = key, Reconstructor(camera, method=method, temporal=self.temporal,
+                                           workers=max(1, self.workers // self.frames))
         return self._current[1]
 
     def _failed(self, exc: BaseException, stream: Reconstructor | None) -> None:
@@ -87,10 +91,10 @@ class ReconstructionStage:
                 self._current = None
 
     def run(self) -> None:
-        """The reconstruction threads (this one and ``workers - 1`` more): until ``stop`` is set."""
+        """The reconstruction threads (this one and ``frames - 1`` more): until ``stop`` is set."""
         self.noise.start()
         others = [threading.Thread(target=self._loop, name=f"svelive-reconstruct-{i + 1}", daemon=True)
-                  for i in range(self.workers - 1)]
+                  for i in range(self.frames - 1)]
         for thread in others:
             thread.start()
         try:
