@@ -81,6 +81,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from svelive.capture import open_source
+    from svelive.exr import compress_on
     from svelive.memory import keep_freed_memory
     from svelive.reconstruction.warmup import warm_up
     from svelive.tonemap import warm_up as warm_up_preview
@@ -106,6 +107,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # compile (first run on a machine, a few seconds) or load the kernels before the first live frame
     warm_up()
     keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
+    compress_on()  # EXR snapshots compressed on every core
     warm_up_preview()  # the colour preview's kernel too
     app = create_app({name: Pipeline(config) for name, config in configs.items()}, server)
     sock = listen_socket(server)

@@ -16,7 +16,8 @@ from svelive.capture.images import decode_image
 from svelive.capture.source import MONO_WORDS
 from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
-from svelive.exr import LUMA_WEIGHTS, image_channels, read_luminance, read_rgb, standard_attributes, write_exr
+from svelive.exr import (LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, standard_attributes,
+                         write_exr)
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
     dynamic_range_stops, unique_levels
 from svelive.reconstruction.input import prepare, with_noise_model
@@ -289,6 +290,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
+    compress_on()  # the output's compression on every core
     camera = Camera.build(args.pattern, parse_cfa(args.cfa))
     settings = colour_settings(args)
     raw = read_raw(args.raw)

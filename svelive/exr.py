@@ -140,6 +140,20 @@ def image_channels(image: np.ndarray) -> dict[str, np.ndarray]:
     raise SveliveError(f"an EXR image must be (H, W) or (H, W, 3), got shape {image.shape}")
 
 
+def compress_on(threads: int | None = None) -> int:
+    """Let OpenEXR compress the blocks of each file on ``threads`` threads (None: one per core);
+    returns the count set. A process-wide setting of the library, off (0: the caller's thread)
+    by default: a 1920x1200 frame's ZIP compression is most of the cost of writing it (measured
+    443 ms on the caller's thread, 286 on two). The bytes written do not depend on it. Set it where
+    one process writes a stream of files (``reconstruct``, ``reconstruct-sequence``, ``serve``), not
+    in worker processes that share the cores with each other."""
+    count = (os.cpu_count() or 1) if threads is None else threads
+    if count < 0:
+        raise SveliveError(f"EXR threads must be >= 0, got {count}")
+    OpenEXR.set_global_thread_count(count)
+    return count
+
+
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attributes: Mapping[str, object] | None = None,
               *, half: bool = False, compression: str = "zip") -> Path:
     """Write named 2-D channels (float32, or half with ``half=True``) to ``path``.

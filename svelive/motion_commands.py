@@ -22,7 +22,7 @@ from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
 from svelive.commands import add_colour_arguments, colour_settings, parse_cfa
 from svelive.errors import SveliveError
-from svelive.exr import standard_attributes, write_exr
+from svelive.exr import compress_on, standard_attributes, write_exr
 from svelive.frame import Frame
 from svelive.memory import keep_freed_memory
 from svelive.reconstruction.methods import METHODS
@@ -131,6 +131,7 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
     if not 0 <= args.tolerance < 1:
         raise SveliveError(f"--tolerance is a fraction of the pixels, 0 <= F < 1, got {args.tolerance}")
     settings = colour_settings(args)
+    compress_on()  # this process's EXRs compressed on every core (Dask's workers keep one thread each)
     if args.source.strip().lower().startswith("replay:"):
         return _reprocess(args, settings)
     if args.workers is not None or args.scheduler is not None or args.warmup is not None or args.tolerance:

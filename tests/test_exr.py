@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -101,3 +103,24 @@ def test_standard_attributes_one_name_for_each(tmp_path):
     assert "cfa" not in mono and "frameId" not in mono and "timestamp" not in mono
     with pytest.raises(SveliveError, match="standard"):
         standard_attributes(camera, "weighted", extra={"method": "other"})
+
+
+def test_compressing_on_threads_writes_the_same_bytes():
+    import OpenEXR
+
+    from svelive.exr import compress_on, exr_bytes
+
+    rng = np.random.default_rng(3)
+    image = np.cumsum(rng.random((300, 480), np.float32), axis=1).astype(np.float32)
+    channels = {"Y": image, "motion": (image > image.mean()).astype(np.float32)}
+    before = OpenEXR.global_thread_count()
+    try:
+        assert compress_on(0) == 0
+        alone = exr_bytes(channels, {"note": "x"})
+        assert compress_on() == (os.cpu_count() or 1) and OpenEXR.global_thread_count() == compress_on()
+        threaded = exr_bytes(channels, {"note": "x"})
+        with pytest.raises(SveliveError, match="threads"):
+            compress_on(-1)
+    finally:
+        OpenEXR.set_global_thread_count(before)
+    assert threaded == alone
