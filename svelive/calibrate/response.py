@@ -522,24 +522,35 @@ def _monotone_curve(curve: Callable[[np.ndarray], np.ndarray], measured: tuple[f
     return bool(inside_drop.max(initial=0.0) <= tolerance and drop.max() <= outside_tolerance)
 
 
-def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int,
-              folds: int) -> tuple[float, float, list[np.ndarray]]:
-    """Mean and standard error over locations of the held-out squared normalised residual,
-    and the coefficients fitted without each fold (for the jackknife band)."""
-    A, y = _design(pairs, exposures, degree)
+def _cross_validated(pairs: _Pairs, folds: int, fit: Callable[[np.ndarray], np.ndarray],
+                     fold_loss: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> tuple[float, float, list[np.ndarray]]:
+    """Mean and standard error over locations of a held-out loss, and the coefficients fitted without
+    each fold (for the jackknife band): ``fit(training selection) -> coefficients``,
+    ``fold_loss(coefficients, test selection) -> the loss of the test rows``."""
     loss = np.zeros(pairs.m_lo.size)
     fits = []
     for f in range(folds):
         test = pairs.fold == f
         if not test.any():
             continue
-        coef = _solve(pairs, exposures, degree, ~test)
+        coef = fit(~test)
         fits.append(coef)
-        sigma = _residual_sigma(_subset(pairs, test), exposures, coef)
-        loss[test] = ((A[test] @ coef[1:] - y[test]) / sigma) ** 2
+        loss[test] = fold_loss(coef, test)
     _, inverse = np.unique(pairs.location, return_inverse=True)
     per_location = np.bincount(inverse, weights=loss)
     return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size)), fits
+
+
+def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int,
+              folds: int) -> tuple[float, float, list[np.ndarray]]:
+    """:func:`_cross_validated` of the polynomial of ``degree``: the held-out squared normalised residual."""
+    A, y = _design(pairs, exposures, degree)
+
+    def fold_loss(coef: np.ndarray, test: np.ndarray) -> np.ndarray:
+        sigma = _residual_sigma(_subset(pairs, test), exposures, coef)
+        return ((A[test] @ coef[1:] - y[test]) / sigma) ** 2
+
+    return _cross_validated(pairs, folds, lambda train: _solve(pairs, exposures, degree, train), fold_loss)
 
 
 def spline_knots(low: float, high: float, count: int) -> np.ndarray:
@@ -602,21 +613,14 @@ def _held_out_curve(pairs: _Pairs, exposures: np.ndarray, fit: Callable[[np.ndar
     ``curve(coefficients) -> Response``; the held-out loss is the polynomial's, the ratio residual
     ``f(m_hi) / R - f(m_lo)`` over its noise through the model's own slope, so the two compare."""
     inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
-    loss = np.zeros(pairs.m_lo.size)
-    fits = []
-    for f in range(folds):
-        test = pairs.fold == f
-        if not test.any():
-            continue
-        coef = fit(~test)
-        fits.append(coef)
+
+    def fold_loss(coef: np.ndarray, test: np.ndarray) -> np.ndarray:
         response = curve(coef)
         sub = _subset(pairs, test)
         sigma = _slope_sigma(sub, inv_r[test], response.slope(sub.m_lo), response.slope(sub.m_hi))
-        loss[test] = ((response(sub.m_hi) * inv_r[test] - response(sub.m_lo)) / sigma) ** 2
-    _, inverse = np.unique(pairs.location, return_inverse=True)
-    per_location = np.bincount(inverse, weights=loss)
-    return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size)), fits
+        return ((response(sub.m_hi) * inv_r[test] - response(sub.m_lo)) / sigma) ** 2
+
+    return _cross_validated(pairs, folds, fit, fold_loss)
 
 
 def _slope_sigma(pairs: _Pairs, inv_r: np.ndarray, slope_lo: np.ndarray, slope_hi: np.ndarray,
