@@ -132,11 +132,10 @@ class ReconstructionStage:
                 while self._next != ticket:  # the frames taken before this one fuse first
                     self._turn.wait(0.5)
                 try:
-                    if failure is None:
-                        try:
-                            result = stream.fuse(estimated)
-                        except Exception as exc:
-                            failure = exc
+                    result = None if failure is not None else stream.fuse(estimated)
+                except Exception as exc:
+                    failure = exc
+                try:
                     if failure is not None:
                         self._failed(failure, stream)
                     else:

@@ -174,9 +174,7 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
                               np.ascontiguousarray(censored), kept, signal, exposure))
             summed = smooth(signal, ky, kx)[keep]
             tables = (smooth(exposure, ky, kx)[keep], smooth(exposure, ky2, kx2)[keep], smooth(kept, ky2, kx2)[keep])
-            row_of, first = None, 0
-        if row_of is None:
-            row_of = np.arange(core.stop - core.start, dtype=np.intp)
+            row_of, first = np.arange(core.stop - core.start, dtype=np.intp), 0  # the strip's own rows
         lost = _window_rows(np.ascontiguousarray(summed), row_of, first, *tables, out[core], out_var[core],
                             inv_gain, floor)
         if lost:  # windows without an uncensored reading (rare): the method's bound and variance
