@@ -384,7 +384,6 @@ class RtspPublisher:
         self._lock = threading.Lock()
         self._media: _Media | None = None
         self._watching = False
-        self._attached = False
         self._clients = 0
         self.pushed = RateMeter()
         self.encoded = RateMeter()
@@ -434,16 +433,12 @@ class RtspPublisher:
         return factory
 
     def attach(self) -> None:
-        """The server started: take previews from the encoder stage (pushed only while a media exists)."""
-        if not self._attached:
-            self.pipeline.encoder.add_preview_listener(self._on_preview)
-            self._attached = True
+        """The server started (once): take previews from the encoder stage (pushed only while a media exists)."""
+        self.pipeline.encoder.add_preview_listener(self._on_preview)
 
     def detach(self) -> None:
-        """The server stops: no more previews."""
-        if self._attached:
-            self.pipeline.encoder.remove_preview_listener(self._on_preview)
-            self._attached = False
+        """The server stops (once, after ``attach``): no more previews."""
+        self.pipeline.encoder.remove_preview_listener(self._on_preview)
 
     def release(self) -> None:
         """The server stopped: let the encoder stage stop making previews for us, drop the media."""
