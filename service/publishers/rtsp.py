@@ -384,6 +384,7 @@ class RtspPublisher:
         self._lock = threading.Lock()
         self._media: _Media | None = None
         self._watching = False
+        self._keyframe_wanted = False  # a client started playing: the encoder thread forces a keyframe
         self._clients = 0
         self.pushed = RateMeter()
         self.encoded = RateMeter()
@@ -533,6 +534,13 @@ class RtspPublisher:
         i420 = to_i420(self._fit(preview.image, media))
         if self.timecode and preview.signal:
             stamp_timecode(i420, int(round(preview.wall_time * 1000)))  # into the luma plane
+        with self._lock:
+            keyframe, self._keyframe_wanted = self._keyframe_wanted, False
+        if keyframe:
+            from gi.repository import GstVideo
+
+            event = GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
+            media.encoder.get_static_pad("src").send_event(event)
         # counted before the hand-over: appsrc may encode it (and tick ``encoded``) before emit returns
         now = time.monotonic_ns()
         self.pushed.tick(now)
@@ -552,14 +560,12 @@ class RtspPublisher:
     def force_keyframe(self) -> None:
         """GLib thread, a client starts playing: the next frame is a keyframe with SPS/PPS, so that it shows a
         picture at once instead of after up to a keyframe interval (or more frames than that when the
-        pipeline runs slower than its nominal rate)."""
-        from gi.repository import Gst, GstVideo
-
+        pipeline runs slower than its nominal rate). Only noted here: the encoder thread asks x264 for it
+        before its next frame (:meth:`_on_preview`). Sent from this thread, the event could wait for
+        x264's stream lock, held while the media, paused until this very PLAY is answered, blocks its
+        first frame: the loop that would answer it then waited too (seen as a client stuck paused)."""
         with self._lock:
-            media = self._media
-        if media is not None:
-            event = GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
-            media.encoder.get_static_pad("src").send_event(event)
+            self._keyframe_wanted = True
 
     # ----- state -------------------------------------------------------
     def bitrate_kbps(self) -> float:
