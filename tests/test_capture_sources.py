@@ -73,7 +73,14 @@ def test_demo_renders_moving_hdr_scene_at_rate() -> None:
         frames = list(s.frames(limit=16))
         elapsed = time.monotonic() - t
         stats = s.stats()
-    assert 0.4 < elapsed < 1.5 and stats["fps"] == pytest.approx(30, rel=0.2)
+    # Paced by its schedule, not by the machine's speed (a loaded machine only makes it later):
+    # scene time steps 1/30 s, delivery never runs ahead of it, and the reported rate is the
+    # rate the frames were really handed out at.
+    steps = np.diff([f.device_time_ns for f in frames])
+    assert np.all(steps == pytest.approx(1e9 / 30, abs=1))
+    assert elapsed >= 15 / 30 - 0.01 and stats["target_fps"] == 30
+    delivered = np.diff([f.host_time_ns for f in frames]).mean() / 1e9
+    assert stats["fps"] == pytest.approx(1 / delivered, rel=0.05)
     raw = frames[0].raw
     assert raw.shape == (180, 320) and raw.dtype == np.uint16 and frames[0].pixel_format == "Mono12"
     assert s.pattern == "1,4/16,64" and frames[0].sensor.bits == 12
