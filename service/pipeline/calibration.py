@@ -150,6 +150,10 @@ class Calibration:
             raise ExposureUnsupported(f"source {source.spec} cannot set its exposure time, so it cannot sweep; "
                                       "calibrate from one frame (POST without \"sweep\") or sweep offline "
                                       "(svelive calibrate response FRAMES --exposure-times)")
+        try:
+            source.check_exposure_times(times)
+        except SveliveError as exc:
+            raise ExposureUnsupported(str(exc)) from None
         if not self.busy.acquire(blocking=False):
             raise CalibrationBusy("a response calibration is already running")
         with self._lock:

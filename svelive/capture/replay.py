@@ -174,6 +174,14 @@ class ReplaySource(Source):
                     self._exposures = reader.exposure_times()
         return self._exposures
 
+    def _settable_exposures(self) -> np.ndarray:
+        """The recorded exposure times; a one-line SveliveError when the recording has none."""
+        exposures = self._recorded_exposures()
+        if not np.isfinite(exposures).any():
+            raise SveliveError(f"source {self.spec} cannot set its exposure time: the recording has no "
+                               "exposure times (record from a camera that reports them)")
+        return exposures
+
     def exposure_time(self) -> float | None:
         """The exposure time chosen, else the recorded time of the frame played last (or next); None
         when the recording has no exposure times."""
@@ -192,15 +200,18 @@ class ReplaySource(Source):
         """Play only the frames recorded at the time nearest ``value`` (see the module docstring);
         returns that time. A one-line SveliveError when the recording has no exposure times or
         none near ``value``."""
-        exposures = self._recorded_exposures()
-        if not np.isfinite(exposures).any():
-            raise SveliveError(f"source {self.spec} cannot set its exposure time: the recording has no "
-                               "exposure times (record from a camera that reports them)")
+        exposures = self._settable_exposures()
         chosen = pick_exposure(exposures, float(value), self.spec)
         with self._select_lock:
             self._chosen, self._selection, self._sel_pos = chosen, frames_at(exposures, chosen), 0
             self._switched = True
         return chosen
+
+    def check_exposure_times(self, values: list[float]) -> None:
+        """A one-line SveliveError naming the first of ``values`` the recording holds no frame at."""
+        exposures = self._settable_exposures()
+        for value in values:
+            pick_exposure(exposures, float(value), self.spec)
 
     def _selected(self) -> tuple[int, np.ndarray] | None:
         """The next frame index while an exposure time is chosen and the selection it is from (None

@@ -142,6 +142,11 @@ class Source:
         value the camera applied (it may round). Sources without the control raise SveliveError."""
         raise SveliveError(f"source {self.spec} cannot set its exposure time")
 
+    def check_exposure_times(self, values: list[float]) -> None:
+        """Raise a one-line SveliveError when :meth:`set_exposure_time` could not take one of
+        ``values``, before anything is changed. A camera takes any time (it clamps or rounds, and
+        reports what it applied), so the default accepts them all."""
+
     # ----- lifecycle ---------------------------------------------------
     def open(self) -> Source:
         """Connect to the source and start it. Idempotent; returns self."""
