@@ -290,6 +290,67 @@ def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it(monkeyp
         fake.stop()
 
 
+@pytest.mark.skipif(_MISSING is not None, reason=str(_MISSING))
+def test_record_steps_the_fake_gige_cameras_exposure_and_tags_every_frame(tmp_path, capsys):
+    import json
+
+    from replay import RecordingReader
+    from svelive.capture.gige import load_aravis
+    from svelive.cli import main
+
+    fake = FakeCamera("SVEREC")
+    fake.start()
+    try:
+        out = tmp_path / "steps.sverec"
+        rc = main(["record", "--source", f"gige:{ADDRESS}", "--pixel-format", "Mono8", "--width", "64",
+                   "--height", "48", "--fps", "40", "--pattern", "1,4/16,64", "--opt", "exposure_us=8000",
+                   "--exposure-times", "4000,6000", "--frames", "3", "-o", str(out), "-q"])
+        assert rc == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary["exposure_times"] == [4000.0, 6000.0] and summary["exposure_time_restored"] == 8000.0
+        assert load_aravis().Camera.new(ADDRESS).get_exposure_time() == 8000.0  # put back on the camera
+        with RecordingReader(out) as reader:
+            times = list(reader.exposure_times())
+            frames = [reader.read(i) for i in range(len(reader))]
+        assert times == [4000.0] * 3 + [6000.0] * 3
+        # each frame carries the time the camera reported applying, as the recording does
+        assert [f.exposure_time for f in frames] == times
+    finally:
+        fake.stop()
+
+
+def test_record_steps_the_demo_exposure_and_refuses_before_writing(tmp_path, capsys):
+    import json
+
+    from replay import RecordingReader
+    from svelive.cli import main
+
+    out = tmp_path / "demo.sverec"
+    args = ["record", "--source", "demo", "--width", "96", "--height", "64", "--fps", "0", "--cfa", "none",
+            "--opt", "period_s=0", "--opt", "exposure_us=10000", "-q"]
+    assert main(args + ["--exposure-times", "2000,4000", "--frames", "2", "-o", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["exposure_time_restored"] == 10000.0
+    with RecordingReader(out) as reader:
+        assert list(reader.exposure_times()) == [2000.0, 2000.0, 4000.0, 4000.0]
+        raws = [reader.read(i).raw.astype(float) for i in range(4)]
+    dark = np.minimum(raws[0], raws[2]) < 1000  # unclipped at both times
+    ratio = (raws[2][dark].mean() + raws[3][dark].mean()) / (raws[0][dark].mean() + raws[1][dark].mean())
+    assert ratio == pytest.approx(2.0, rel=0.1)  # twice the time, twice the light
+    # refused in one line, and no file written: no --frames, a time a replay lacks, a bad list
+    for extra, words in ((["--exposure-times", "2000,3000"], "needs --frames"),
+                         (["--exposure-times", "2000,x", "--frames", "1"], "expected numbers"),
+                         (["--exposure-times", "2000,2000", "--frames", "1"], "distinct positive")):
+        bad = tmp_path / "bad.sverec"
+        assert main(args + extra + ["-o", str(bad)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err and not bad.exists()
+    bad = tmp_path / "bad.sverec"
+    assert main(["record", "--source", f"replay:{out}", "--exposure-times", "2000,3000", "--frames", "1",
+                 "-o", str(bad), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no frame was recorded at exposure time 3000" in err and not bad.exists()
+
+
 # ----- frames for the offline sweep: simulate writes the sensor's bit depth into its PNG ----------------
 
 def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsys):

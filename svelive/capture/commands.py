@@ -7,13 +7,14 @@ every source records the same way.
 from __future__ import annotations
 
 import argparse
+import math
 import queue
 import signal
 import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from replay import CorruptFrameError, RecordingReader, RecordingWriter, WriterConfig
 from svelive.capture import open_source
@@ -32,6 +33,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     limit = p.add_mutually_exclusive_group()
     limit.add_argument("--frames", type=int, help="stop after N frames")
     limit.add_argument("--seconds", type=float, help="stop after S seconds")
+    p.add_argument("--exposure-times", metavar="T1,T2,...",
+                   help="step the camera's global exposure time through these (its unit, GigE: us) and record "
+                        "--frames frames at each, every frame tagged with the time the camera applied; the "
+                        "exposure is put back afterwards (for `svelive calibrate response` or a replayed sweep)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording")
     p.add_argument("--sync-every", type=int, default=0, metavar="N",
                    help="fdatasync every N frames (survives power loss; default 0: only a process kill)")
@@ -115,20 +120,29 @@ def _record(args: argparse.Namespace) -> int:
         raise SveliveError("--frames must be > 0")
     if args.seconds is not None and args.seconds <= 0:
         raise SveliveError("--seconds must be > 0")
+    times = parse_exposure_times(args.exposure_times)
+    if times and args.frames is None:
+        raise SveliveError("--exposure-times needs --frames (the frames recorded at each time)")
     source = source_from_args(args)
     # the frames carry the camera (the user's pattern and colour filter included), which the writer stores
+    if times:  # refused before the file exists: a camera without the control, a time a replay lacks
+        try:
+            stepped = exposure_steps(source.open(), times)
+        except BaseException:
+            source.close()
+            raise
     writer = RecordingWriter(args.output, source=args.source,
                              config=WriterConfig(overwrite=args.overwrite, sync_every=args.sync_every))
-    frames: queue.Queue[Frame | None] = queue.Queue(maxsize=max(1, args.queue))
+    frames: queue.Queue[tuple[Frame, float | None] | None] = queue.Queue(maxsize=max(1, args.queue))
     failure: list[BaseException] = []
     dropped = 0
 
     def write_loop() -> None:
-        while (frame := frames.get()) is not None:
+        while (item := frames.get()) is not None:
             if failure:
                 continue
             try:
-                writer.append(frame)
+                writer.append(*item)
             except BaseException as exc:  # noqa: BLE001 - reported by the main thread
                 failure.append(exc)
 
@@ -136,21 +150,27 @@ def _record(args: argparse.Namespace) -> int:
     thread = threading.Thread(target=write_loop, name="recorder", daemon=True)
     t0 = time.monotonic()
     interrupted = False
-    progress = Progress("recording", total=args.frames, quiet=args.quiet)
+    progress = Progress("recording", total=None if args.frames is None else args.frames * max(1, len(times)),
+                        quiet=args.quiet)
     try:
         with source, progress:
             thread.start()
             try:
-                for frame in source.frames(limit=args.frames, seconds=args.seconds):
+                tagged = (stepped.frames(args.frames) if times else
+                          ((f, None) for f in source.frames(limit=args.frames, seconds=args.seconds)))
+                for item in tagged:
                     if failure:
                         break
                     try:
-                        frames.put_nowait(frame)
+                        frames.put_nowait(item)
                     except queue.Full:
                         dropped += 1
                     progress.update()
             except KeyboardInterrupt:
                 interrupted = True
+            finally:
+                if times:
+                    stepped.restore()
             stats = source.stats()
     finally:
         if thread.is_alive():
@@ -162,12 +182,71 @@ def _record(args: argparse.Namespace) -> int:
         raise failure[0] if isinstance(failure[0], SveliveError) else SveliveError(str(failure[0]))
     summary = {"output": str(args.output), "frames": writer.frames, "seconds": round(time.monotonic() - t0, 3),
                "dropped_by_recorder": dropped, "source_drops": stats["drops"], "interrupted": interrupted}
+    if times:
+        summary.update(exposure_times=stepped.applied, exposure_time_restored=stepped.restored)
     from svelive.cli import print_json
 
     print_json(summary)
     if writer.frames == 0:
         raise SveliveError(f"{args.source}: no frame was recorded, so no file was written")
     return 0
+
+
+def parse_exposure_times(text: str | None) -> list[float]:
+    """``"T1,T2,..."`` as positive, distinct floats ([] for None); a one-line SveliveError otherwise."""
+    if text is None:
+        return []
+    try:
+        times = [float(t) for t in text.split(",")]
+    except ValueError:
+        raise SveliveError(f"--exposure-times: expected numbers separated by commas, got {text!r}") from None
+    if not all(math.isfinite(t) and t > 0 for t in times) or len(set(times)) != len(times):
+        raise SveliveError(f"--exposure-times: expected distinct positive numbers, got {text!r}")
+    return times
+
+
+class ExposureSteps:
+    """Frames of a source at each of several global exposure times in turn, then the time it had put back.
+
+    After each change the first ``settle`` frames captured after it are skipped: a camera's frame
+    in flight may have been exposed before the change. Each kept frame is tagged with the time
+    the camera reported it applied.
+    """
+
+    def __init__(self, source: Any, times: list[float], settle: int = 1, timeout_s: float = 5.0) -> None:
+        self.source, self.times, self.settle, self.timeout_s = source, times, settle, timeout_s
+        self.original: float = source.exposure_time()
+        self.applied: list[float] = []
+        self.restored: float | None = None
+
+    def frames(self, per_time: int) -> Iterator[tuple[Frame, float]]:
+        """``per_time`` (frame, exposure time) pairs at each time, in order."""
+        for t in self.times:
+            applied = self.source.set_exposure_time(t)
+            self.applied.append(applied)
+            changed_ns = time.monotonic_ns()
+            kept = skipped = 0
+            while kept < per_time:
+                frame = self.source.read(timeout=self.timeout_s)
+                if frame.host_time_ns <= changed_ns or skipped < self.settle:
+                    skipped += frame.host_time_ns > changed_ns
+                    continue
+                kept += 1
+                yield frame, applied
+
+    def restore(self) -> None:
+        """Put back the exposure time the source had before the first step."""
+        self.restored = self.source.set_exposure_time(self.original)
+
+
+def exposure_steps(source: Any, times: list[float]) -> ExposureSteps:
+    """An :class:`ExposureSteps` over an open ``source``; a one-line SveliveError when it cannot set
+    its exposure time or cannot take one of ``times`` (nothing is changed then)."""
+    if source.exposure_time() is None:
+        raise SveliveError(f"source {source.spec} cannot set its exposure time, so --exposure-times cannot "
+                           "step it (GigE cameras with ExposureTime, the demo, and replays of recorded times can)")
+    source.check_exposure_times(times)
+    return ExposureSteps(source, times)
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
