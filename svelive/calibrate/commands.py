@@ -84,18 +84,6 @@ def sensor_from_args(raw: np.ndarray, args: argparse.Namespace, path: Path | Non
     return sensor
 
 
-def parse_times(text: str) -> list[float]:
-    """argparse type of --exposure-times: comma-separated positive numbers."""
-    try:
-        times = [float(t) for t in text.split(",") if t.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: exposure times are numbers separated by commas, "
-                                         "e.g. 10000,15000") from None
-    if not times or not all(math.isfinite(t) and t > 0 for t in times):
-        raise argparse.ArgumentTypeError(f"{text!r}: exposure times must be positive numbers")
-    return times
-
-
 def _progress(args: argparse.Namespace):
     """A callback printing progress lines with the elapsed time on stderr, or None with -q."""
     if args.quiet:
@@ -167,7 +155,7 @@ def _levels(p: argparse.ArgumentParser) -> None:
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    from svelive.cli import existing_file
+    from svelive.cli import existing_file, parse_times
 
     cal = sub.add_parser("calibrate", help="calibrate the response, the exposure mask or the noise from data")
     verbs = cal.add_subparsers(dest="calibration", required=True, metavar="WHAT")

@@ -7,7 +7,6 @@ every source records the same way.
 from __future__ import annotations
 
 import argparse
-import math
 import queue
 import signal
 import sys
@@ -25,6 +24,8 @@ from svelive.progress import Progress, add_quiet_argument
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add the capture verbs to the ``svelive`` parser."""
+    from svelive.cli import parse_times
+
     p = sub.add_parser("record", help="record raw frames from a source into a crash-safe recording",
                        description="Record raw frames losslessly with pattern, sensor metadata and timestamps. "
                                    "Import an image sequence with --source images:DIR.")
@@ -33,7 +34,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     limit = p.add_mutually_exclusive_group()
     limit.add_argument("--frames", type=int, help="stop after N frames")
     limit.add_argument("--seconds", type=float, help="stop after S seconds")
-    p.add_argument("--exposure-times", metavar="T1,T2,...",
+    p.add_argument("--exposure-times", type=parse_times, metavar="T1,T2,...",
                    help="step the camera's global exposure time through these (its unit, GigE: us) and record "
                         "--frames frames at each, every frame tagged with the time the camera applied; the "
                         "exposure is put back afterwards (for `svelive calibrate response` or a replayed sweep)")
@@ -120,7 +121,7 @@ def _record(args: argparse.Namespace) -> int:
         raise SveliveError("--frames must be > 0")
     if args.seconds is not None and args.seconds <= 0:
         raise SveliveError("--seconds must be > 0")
-    times = parse_exposure_times(args.exposure_times)
+    times = args.exposure_times or []
     if times and args.frames is None:
         raise SveliveError("--exposure-times needs --frames (the frames recorded at each time)")
     source = source_from_args(args)
@@ -190,19 +191,6 @@ def _record(args: argparse.Namespace) -> int:
     if writer.frames == 0:
         raise SveliveError(f"{args.source}: no frame was recorded, so no file was written")
     return 0
-
-
-def parse_exposure_times(text: str | None) -> list[float]:
-    """``"T1,T2,..."`` as positive, distinct floats ([] for None); a one-line SveliveError otherwise."""
-    if text is None:
-        return []
-    try:
-        times = [float(t) for t in text.split(",")]
-    except ValueError:
-        raise SveliveError(f"--exposure-times: expected numbers separated by commas, got {text!r}") from None
-    if not all(math.isfinite(t) and t > 0 for t in times) or len(set(times)) != len(times):
-        raise SveliveError(f"--exposure-times: expected distinct positive numbers, got {text!r}")
-    return times
 
 
 class ExposureSteps:
