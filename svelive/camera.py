@@ -168,6 +168,39 @@ class Camera:
                          None if response is None else Response.from_dict(response))
 
 
+def one_colour_plane(raw: np.ndarray, camera: Camera) -> tuple[np.ndarray, Pattern]:
+    """The pixels of one colour of a colour SVE frame, as a monochrome SVE frame with its own pattern.
+
+    For what must compare readings of one radiance only (the response fit): neighbouring pixels
+    of different colour filters see different light. The colour is the CFA's most frequent one
+    (green on a Bayer mosaic), its first phase; for a CFA of same-colour blocks (quad-RGGB)
+    whole blocks are kept, so each keeps the block's exposures. ``raw`` (H, W) any dtype;
+    returns (H', W') of it (a copy) and the sub-pattern (per-pixel exposure map cut alike).
+    A monochrome camera's frame comes back as it is, with its pattern.
+    """
+    from svelive.reconstruction.colour import _minimal_tile, block_shape
+
+    pattern = camera.require_pattern()
+    cfa = camera.cfa
+    if cfa is None:
+        return raw, pattern
+    (by, bx), (h, w) = block_shape(cfa), raw.shape
+    reduced = cfa.tile[::by, ::bx]
+    counts = np.bincount(reduced.ravel(), minlength=3)
+    qy, qx = (int(v[0]) for v in np.nonzero(reduced == int(np.argmax(counts))))
+    period = joint_period(pattern.shape, cfa.shape)
+    nominal = Pattern(pattern.tile).exposure_map(period)
+
+    def keep(n: int, axis: int, q: int) -> np.ndarray:
+        return np.flatnonzero(np.arange(n) // (by, bx)[axis] % reduced.shape[axis] == q)
+
+    rows, cols = keep(h, 0, qy), keep(w, 1, qx)
+    sub_tile = _minimal_tile(nominal[np.ix_(keep(period[0], 0, qy), keep(period[1], 1, qx))])
+    where = np.ix_(rows, cols)
+    sub_map = None if pattern.pixel_map is None else np.ascontiguousarray(pattern.pixel_map[where])
+    return np.ascontiguousarray(raw[where]), Pattern(sub_tile, sub_map)
+
+
 def camera_for_raw(raw: np.ndarray, pattern: Pattern | str | None, *, cfa: ColourFilter | str | None = None,
                    black_level: float = 0, white_level: float | None = None, gain: float | None = None,
                    read_noise: float | None = None, response: Response | None = None) -> Camera:

@@ -357,6 +357,33 @@ def test_record_steps_the_demo_exposure_and_refuses_before_writing(tmp_path, cap
 
 # ----- frames for the offline sweep: simulate writes the sensor's bit depth into its PNG ----------------
 
+def test_calibrate_response_of_colour_frames_reads_one_filters_pixels(tmp_path, capsys):
+    from svelive.calibrate import load_response
+    from svelive.capture import open_source
+    from svelive.cli import main
+
+    paths = []
+    for t in (10_000, 15_000):  # the colour demo (dual-ISO on RGGB), linear, at two global exposures
+        with open_source("demo", width=640, height=360, fps=0, period_s=0, exposure_us=t) as source:
+            paths.append(tmp_path / f"f{t}.npy")
+            np.save(paths[-1], source.read().raw)
+    args = ["calibrate", "response", *map(str, paths), "--exposure-times", "10000,15000", "--pattern", "1/1/8/8",
+            "--bits", "12", "-q"]
+    assert main(args + ["--cfa", "RGGB", "-o", str(tmp_path / "r.json")]) == 0
+    response = load_response(tmp_path / "r.json")
+    lo, hi = response.stats["measured_range"]
+    m = np.linspace(lo, hi, 200)
+    assert hi - lo > 0.9 and np.abs(response(m) - m).max() < 0.01
+    # read as monochrome, the filters' differences look like exposure differences: no fit of a linear camera
+    code = main(args + ["-o", str(tmp_path / "mono.json")])
+    capsys.readouterr()
+    if code == 0:
+        mono = load_response(tmp_path / "mono.json")
+        assert np.abs(mono(m) - m).max() > 0.01
+    else:
+        assert code == 2 and not (tmp_path / "mono.json").exists()
+
+
 def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsys):
     import json
 
@@ -427,13 +454,14 @@ def test_demo_exposure_time_scales_the_light_it_collects():
         open_source("demo", exposure_us=5)
 
 
-def test_sweep_on_the_demo_camera_recovers_its_linear_response(monkeypatch):
+@pytest.mark.parametrize("cfa", ["none", "RGGB"])  # RGGB: the colour demo, dual-ISO on a Bayer mosaic
+def test_sweep_on_the_demo_camera_recovers_its_linear_response(monkeypatch, cfa):
     from svelive.capture import open_source
 
     opened = []
 
     def factory():
-        opened.append(open_source("demo", cfa="none", width=320, height=180, fps=20, period_s=0))
+        opened.append(open_source("demo", cfa=cfa, width=640, height=360, fps=20, period_s=0))
         return opened[-1]
 
     with server(monkeypatch, factory) as srv:

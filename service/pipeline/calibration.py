@@ -14,7 +14,7 @@ import numpy as np
 
 from svelive.calibrate import Response, load_mask, load_response
 from svelive.calibrate.response import calibrate_frame
-from svelive.camera import Camera
+from svelive.camera import Camera, one_colour_plane
 from svelive.capture import Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
@@ -109,7 +109,9 @@ class Calibration:
         if not self.busy.acquire(blocking=False):
             raise CalibrationBusy("a response calibration is already running")
         try:
-            data = calibrate_frame(frame.raw, frame.camera.require_pattern(), frame.sensor, max_degree=max_degree)
+            raw, pattern = one_colour_plane(frame.raw, frame.camera)  # a colour camera: one filter's pixels
+            data = calibrate_frame(raw, pattern, frame.sensor, max_degree=max_degree)
+            del raw
             data["frame_id"] = frame.frame_id
         finally:
             self.busy.release()
@@ -176,6 +178,7 @@ class Calibration:
     def _run_sweep(self, times: list[float], source: Source, original: float, max_degree: int, apply: bool,
                    settle_frames: int, frame_timeout_s: float) -> None:
         frames: list[Frame] = []
+        planes: list[tuple[np.ndarray, Any]] = []
         applied: list[float] = []
         error: str | None = None
         try:
@@ -190,7 +193,8 @@ class Calibration:
                 raise SveliveError(f"the frames of the sweep differ in size ({sorted(shapes)}): the camera's "
                                    "region changed during the sweep; try again")
             self._update(stage="fitting")
-            data = calibrate_frame([f.raw for f in frames], frames[0].camera.require_pattern(), frames[0].sensor,
+            planes = [one_colour_plane(f.raw, f.camera) for f in frames]  # a colour camera: one filter's pixels
+            data = calibrate_frame([raw for raw, _ in planes], planes[0][1], frames[0].sensor,
                                    max_degree=max_degree, exposure_times=applied,
                                    progress=lambda text: self._update(stage=f"fitting: {text}"))
             data.update(frame_id=frames[-1].frame_id, frame_ids=[f.frame_id for f in frames])
@@ -204,7 +208,7 @@ class Calibration:
                     self._restore(source, original)
                 except Exception as exc:  # noqa: BLE001 - a camera gone meanwhile
                     error = f"{error + '; ' if error else ''}exposure time not restored: {exc}"
-            del frames
+            del frames, planes
             self.busy.release()
             release_memory()
             # last, so that a client seeing the job end can start the next one

@@ -15,6 +15,7 @@ import numpy as np
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
 from svelive.calibrate.noise import estimate_noise
 from svelive.calibrate.response import ResponseFitConfig, fit_response, save_response, write_json
+from svelive.camera import Camera, one_colour_plane
 from svelive.commands import read_raw
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
@@ -105,8 +106,10 @@ def _response(args: argparse.Namespace) -> int:
     if times is not None and len(times) != len(raws):
         raise SveliveError(f"--exposure-times gives {len(times)} times for {len(raws)} frames: give one per frame")
     config = ResponseFitConfig(max_degree=args.max_degree, window=args.window, refine_ratios=args.refine_ratios)
-    response = fit_response(raws if len(raws) > 1 else raws[0], Pattern.parse(args.pattern), sensors[0], config,
-                            exposure_times=times, progress=_progress(args))
+    camera = Camera.build(args.pattern, args.cfa, sensors[0])
+    planes = [one_colour_plane(camera.check(raw), camera) for raw in raws]  # colour: one filter's pixels
+    response = fit_response([p for p, _ in planes] if len(raws) > 1 else planes[0][0], planes[0][1], sensors[0],
+                            config, exposure_times=times, progress=_progress(args))
     save_response(response, args.output)
     lo, hi = response.stats["measured_range"]
     band = max(response.stats["band"]["standard_error"])
@@ -167,6 +170,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--exposure-times", type=parse_times, metavar="T1,T2,...",
                    help="global exposure time of every frame, in any one unit (needed for two or more frames)")
     p.add_argument("--pattern", required=True, help="exposure tile, e.g. 1,4/16,64, or a preset")
+    p.add_argument("--cfa", help="colour filter layout of the frames, e.g. RGGB or quad-RGGB (default: none, "
+                                 "monochrome); the fit then reads one filter's pixels (green on a Bayer mosaic)")
     _levels(p)
     p.add_argument("--max-degree", type=int, default=6, help="highest polynomial degree tried (default 6)")
     p.add_argument("--window", type=int, default=3, help="local window side in tiles (odd, default 3)")
