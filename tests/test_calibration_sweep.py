@@ -384,6 +384,34 @@ def test_calibrate_response_of_colour_frames_reads_one_filters_pixels(tmp_path, 
         assert code == 2 and not (tmp_path / "mono.json").exists()
 
 
+def test_calibrate_response_from_a_recorded_sweep(tmp_path, capsys):
+    """Record a sweep of the colour demo, then fit from the recording alone: its camera and times."""
+    from svelive.calibrate import load_response
+    from svelive.cli import main
+
+    sweep = tmp_path / "sweep.sverec"
+    assert main(["record", "--source", "demo", "--width", "640", "--height", "360", "--fps", "0",
+                 "--opt", "period_s=0", "--exposure-times", "10000,15000", "--frames", "3", "-o", str(sweep),
+                 "-q"]) == 0
+    assert main(["calibrate", "response", str(sweep), "-q", "-o", str(tmp_path / "r.json")]) == 0
+    assert "from 2 frames" in capsys.readouterr().out
+    response = load_response(tmp_path / "r.json")
+    lo, hi = response.stats["measured_range"]
+    m = np.linspace(lo, hi, 200)
+    assert response.stats["exposure_times"] == [10000.0, 15000.0]
+    assert hi - lo > 0.9 and np.abs(response(m) - m).max() < 0.01
+    # refusals in one line: times given twice, a recording without times
+    assert main(["calibrate", "response", str(sweep), "--exposure-times", "1,2", "-o", str(tmp_path / "x.json")]) == 2
+    assert "drop --exposure-times" in capsys.readouterr().err
+    from replay import RecordingWriter
+
+    plain = tmp_path / "plain.sverec"
+    with RecordingWriter(plain, pattern=PATTERN, source="test") as writer:
+        writer.append(Frame(raw=np.full((32, 32), 100, np.uint16), frame_id=0, host_time_ns=0, pixel_format="Mono12"))
+    assert main(["calibrate", "response", str(plain), "-o", str(tmp_path / "x.json")]) == 2
+    assert "has no exposure times" in capsys.readouterr().err
+
+
 def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsys):
     import json
 

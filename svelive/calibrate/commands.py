@@ -93,7 +93,10 @@ def _progress(args: argparse.Namespace):
     return lambda text: print(f"[{time.monotonic() - start:5.1f} s] {text}", file=sys.stderr, flush=True)
 
 
-def _response(args: argparse.Namespace) -> int:
+def _frame_files(args: argparse.Namespace) -> tuple[list[np.ndarray], list[float] | None, Camera]:
+    """The raw frames given as image files, their --exposure-times and the camera the options describe."""
+    if args.pattern is None:
+        raise SveliveError("image frames need --pattern (the exposure tile, e.g. 1,4/16,64)")
     raws = [read_raw(p) for p in args.raw]
     sensors = [sensor_from_args(raw, args, path) for raw, path in zip(raws, args.raw)]
     if len({(s.bits, s.white_level) for s in sensors}) > 1:
@@ -105,10 +108,46 @@ def _response(args: argparse.Namespace) -> int:
                            f"--exposure-times {','.join(str(10000 + 5000 * i) for i in range(len(raws)))}")
     if times is not None and len(times) != len(raws):
         raise SveliveError(f"--exposure-times gives {len(times)} times for {len(raws)} frames: give one per frame")
+    return raws, times, Camera.build(args.pattern, args.cfa, sensors[0])
+
+
+def _recorded_sweep(args: argparse.Namespace) -> tuple[list[np.ndarray], list[float] | None, Camera]:
+    """One frame per recorded exposure time of a recording (the middle one of the frames at that time;
+    ``svelive record --exposure-times``), the times, and the recording's camera (--pattern, --cfa
+    and the levels override it)."""
+    from replay import RecordingReader
+
+    if len(args.raw) != 1:
+        raise SveliveError("give one recording (.sverec) alone, not with other frames")
+    if args.exposure_times is not None:
+        raise SveliveError("a recording carries its frames' exposure times: drop --exposure-times")
+    with RecordingReader(args.raw[0]) as reader:
+        recorded = reader.exposure_times()
+        known = np.unique(recorded[np.isfinite(recorded)])
+        if known.size == 0:
+            raise SveliveError(f"{args.raw[0]}: the recording has no exposure times: record a sweep with "
+                               "'svelive record --exposure-times T1,T2 --frames N', or give frames and --exposure-times")
+        picks = [int(np.flatnonzero(recorded == t)[np.count_nonzero(recorded == t) // 2]) for t in known]
+        raws = [reader.read(i).raw for i in picks]
+        camera = reader.camera
+    sensor = camera.sensor
+    if args.bits is not None or args.black is not None or args.white is not None:
+        bits = args.bits if args.bits is not None else sensor.bits
+        sensor = Sensor(bits=bits, black_level=sensor.black_level if args.black is None else args.black,
+                        white_level=args.white if args.white is not None else
+                        (sensor.white_level if args.bits is None else None))
+    camera = Camera.build(args.pattern or camera.require_pattern(), args.cfa or camera.cfa, sensor)
+    return raws, [float(t) for t in known] if known.size > 1 else None, camera
+
+
+def _response(args: argparse.Namespace) -> int:
+    if any(p.suffix.lower() == ".sverec" for p in args.raw):
+        raws, times, camera = _recorded_sweep(args)
+    else:
+        raws, times, camera = _frame_files(args)
     config = ResponseFitConfig(max_degree=args.max_degree, window=args.window, refine_ratios=args.refine_ratios)
-    camera = Camera.build(args.pattern, args.cfa, sensors[0])
     planes = [one_colour_plane(camera.check(raw), camera) for raw in raws]  # colour: one filter's pixels
-    response = fit_response([p for p, _ in planes] if len(raws) > 1 else planes[0][0], planes[0][1], sensors[0],
+    response = fit_response([p for p, _ in planes] if len(raws) > 1 else planes[0][0], planes[0][1], camera.sensor,
                             config, exposure_times=times, progress=_progress(args))
     save_response(response, args.output)
     lo, hi = response.stats["measured_range"]
@@ -166,10 +205,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p = verbs.add_parser("response", help="camera response polynomial from SVE frames of a still scene (one, or "
                                           "several at different global exposure times)")
     p.add_argument("raw", type=existing_file, nargs="+", metavar="FRAME",
-                   help="raw frame(s) (.npy, PNG, TIFF, PGM) of one still scene")
+                   help="raw frame(s) (.npy, PNG, TIFF, PGM) of one still scene, or one recording (.sverec) of "
+                        "a sweep ('svelive record --exposure-times'): a frame per recorded time")
     p.add_argument("--exposure-times", type=parse_times, metavar="T1,T2,...",
                    help="global exposure time of every frame, in any one unit (needed for two or more frames)")
-    p.add_argument("--pattern", required=True, help="exposure tile, e.g. 1,4/16,64, or a preset")
+    p.add_argument("--pattern", help="exposure tile, e.g. 1,4/16,64, or a preset (needed for image frames; a "
+                                     "recording has its own)")
     p.add_argument("--cfa", help="colour filter layout of the frames, e.g. RGGB or quad-RGGB (default: none, "
                                  "monochrome); the fit then reads one filter's pixels (green on a Bayer mosaic)")
     _levels(p)
