@@ -17,7 +17,7 @@ import numpy as np
 
 from svelive.cfa import ColourFilter, joint_period
 from svelive.errors import SveliveError
-from svelive.pattern import Pattern, check_depth
+from svelive.pattern import Pattern, check_depth, minimal_tile
 from svelive.sensor import Sensor, container_bits
 
 if TYPE_CHECKING:
@@ -178,13 +178,11 @@ def one_colour_plane(raw: np.ndarray, camera: Camera) -> tuple[np.ndarray, Patte
     returns (H', W') of it (a copy) and the sub-pattern (per-pixel exposure map cut alike).
     A monochrome camera's frame comes back as it is, with its pattern.
     """
-    from svelive.reconstruction.colour import _minimal_tile, block_shape
-
     pattern = camera.require_pattern()
     cfa = camera.cfa
     if cfa is None:
         return raw, pattern
-    (by, bx), (h, w) = block_shape(cfa), raw.shape
+    (by, bx), (h, w) = cfa.block_shape(), raw.shape
     reduced = cfa.tile[::by, ::bx]
     counts = np.bincount(reduced.ravel(), minlength=3)
     qy, qx = (int(v[0]) for v in np.nonzero(reduced == int(np.argmax(counts))))
@@ -195,7 +193,7 @@ def one_colour_plane(raw: np.ndarray, camera: Camera) -> tuple[np.ndarray, Patte
         return np.flatnonzero(np.arange(n) // (by, bx)[axis] % reduced.shape[axis] == q)
 
     rows, cols = keep(h, 0, qy), keep(w, 1, qx)
-    sub_tile = _minimal_tile(nominal[np.ix_(keep(period[0], 0, qy), keep(period[1], 1, qx))])
+    sub_tile = minimal_tile(nominal[np.ix_(keep(period[0], 0, qy), keep(period[1], 1, qx))])
     where = np.ix_(rows, cols)
     sub_map = None if pattern.pixel_map is None else np.ascontiguousarray(pattern.pixel_map[where])
     return np.ascontiguousarray(raw[where]), Pattern(sub_tile, sub_map)

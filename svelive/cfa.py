@@ -56,6 +56,21 @@ class ColourFilter:
         tile.setflags(write=False)
         object.__setattr__(self, "tile", tile)
 
+    def block_shape(self) -> tuple[int, int]:
+        """The largest (rows, cols) blocks of one colour the tile is made of ((2, 2) for quad-RGGB)."""
+        tile = self.tile
+
+        def along(axis: int) -> int:
+            n = tile.shape[axis]
+            for size in range(n, 0, -1):
+                if n % size == 0:
+                    starts = np.take(tile, np.arange(n) // size * size, axis=axis)
+                    if np.array_equal(starts, tile):
+                        return size
+            return 1
+
+        return along(0), along(1)
+
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, ColourFilter):
             return NotImplemented

@@ -171,6 +171,18 @@ class Pattern:
         return np.tile(idx, (-(-h // th), -(-w // tw)))[:h, :w]
 
 
+def minimal_tile(tile: np.ndarray) -> np.ndarray:
+    """The smallest tile that repeats to ``tile`` (per axis), e.g. the exposures of one colour-filter
+    phase cut out of a joint tile; (th, tw) -> (th', tw'), same dtype."""
+    for axis in (0, 1):
+        n = tile.shape[axis]
+        for size in range(1, n + 1):
+            if n % size == 0 and np.array_equal(np.take(tile, np.arange(n) % size, axis=axis), tile):
+                tile = np.take(tile, np.arange(size), axis=axis)
+                break
+    return tile
+
+
 def check_exposures(exposures: np.ndarray) -> None:
     """Refuse relative exposures (finite, > 0) that float32 reconstruction cannot represent.
 

@@ -149,3 +149,27 @@ def test_contradictions_are_refused_with_the_fix(given, fmt_cfa, fmt, word):
     with pytest.raises(SveliveError, match=word) as info:
         resolve_cfa(given, fmt_cfa, fmt, where="gige:x")
     assert str(info.value).startswith("gige:x: ") and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("layout, sub_pattern, first_cols", [
+    ("dual-iso", "1/8", [1, 3, 5, 7]),        # G of RGGB (row 0, odd columns): rows 1, 1, 8, 8 -> 1/8
+    ("quad-bayer", "1,8/8,1", [2, 3, 6, 7]),  # the first G block of quad-RGGB, whole 2x2 blocks
+    ("column-bayer", "1,8", [1, 3, 5, 7]),
+    ("assorted-4x4", "1,4/16,64", [1, 3, 5, 7]),
+])
+def test_one_colour_plane_keeps_one_filters_pixels_with_their_exposures(layout, sub_pattern, first_cols):
+    from svelive.camera import one_colour_plane
+
+    camera = Camera.build(layout)
+    raw = np.arange(16 * 16, dtype=np.uint16).reshape(16, 16)
+    plane, pattern = one_colour_plane(raw, camera)
+    assert str(pattern) == sub_pattern and plane.shape == (8, 8)
+    assert plane[0, :4].tolist() == first_cols
+    # every kept pixel is behind the same filter, and has the exposure its sub-pattern says
+    channels = camera.cfa.channel_map(raw.shape)
+    exposures = camera.pattern.exposure_map(raw.shape)
+    kept = np.isin(raw, plane)
+    assert np.unique(channels[kept]).tolist() == [1]
+    assert np.array_equal(exposures[kept].reshape(plane.shape), pattern.exposure_map(plane.shape))
+    mono = Camera.build("1,4/16,64")
+    assert one_colour_plane(raw, mono)[0] is raw

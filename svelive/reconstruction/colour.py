@@ -117,7 +117,7 @@ import numpy as np
 from svelive.cfa import ColourFilter, joint_period
 from svelive.errors import SveliveError
 from svelive.jit import kernel
-from svelive.pattern import Pattern
+from svelive.pattern import Pattern, minimal_tile
 from svelive.reconstruction.methods import MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput, binomial_kernel, exposure_maps, map_on, smooth
 
@@ -840,37 +840,10 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 
 # ----- split (the baseline) -----------------------------------------------------------------
 
-def block_shape(cfa: ColourFilter) -> tuple[int, int]:
-    """The largest (rows, cols) blocks of one colour the CFA tile is made of ((2, 2) for quad-RGGB)."""
-    tile = cfa.tile
-
-    def along(axis: int) -> int:
-        n = tile.shape[axis]
-        for size in range(n, 0, -1):
-            if n % size == 0:
-                starts = np.take(tile, np.arange(n) // size * size, axis=axis)
-                if np.array_equal(starts, tile):
-                    return size
-        return 1
-
-    return along(0), along(1)
-
-
-def _minimal_tile(tile: np.ndarray) -> np.ndarray:
-    """The smallest tile that repeats to ``tile`` (per axis)."""
-    for axis in (0, 1):
-        n = tile.shape[axis]
-        for size in range(1, n + 1):
-            if n % size == 0 and np.array_equal(np.take(tile, np.arange(n) % size, axis=axis), tile):
-                tile = np.take(tile, np.arange(size), axis=axis)
-                break
-    return tile
-
-
 def split(inp: SveInput, spec: MethodSpec, **options) -> Estimate:
     """The baseline (module docstring): the mono method per CFA-phase sub-image, then demosaicing."""
     cfa, pattern = inp.cfa, inp.pattern
-    (by, bx), (h, w) = block_shape(cfa), inp.shape
+    (by, bx), (h, w) = cfa.block_shape(), inp.shape
     reduced = cfa.tile[::by, ::bx]
     period = joint_period(pattern.shape, cfa.shape)
     nominal = Pattern(pattern.tile).exposure_map(period)
@@ -884,7 +857,7 @@ def split(inp: SveInput, spec: MethodSpec, **options) -> Estimate:
                 continue
             tile_rows = np.flatnonzero(np.arange(period[0]) // by % reduced.shape[0] == qy)
             tile_cols = np.flatnonzero(np.arange(period[1]) // bx % reduced.shape[1] == qx)
-            sub_tile = _minimal_tile(nominal[np.ix_(tile_rows, tile_cols)])
+            sub_tile = minimal_tile(nominal[np.ix_(tile_rows, tile_cols)])
             where = np.ix_(rows, cols)
             sub_map = None if pattern.pixel_map is None else np.ascontiguousarray(pattern.pixel_map[where])
             sub_pattern = Pattern(sub_tile, sub_map)
