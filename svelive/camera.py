@@ -168,35 +168,43 @@ class Camera:
                          None if response is None else Response.from_dict(response))
 
 
+def colour_phase(pattern: Pattern, cfa: ColourFilter, shape: tuple[int, int],
+                 phase: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, Pattern]:
+    """The pixels of one phase ``(qy, qx)`` of ``cfa.block_tile()`` in a frame of ``shape``: intp row
+    and column indices (the frame's ``np.ix_(rows, cols)``, all behind one colour filter; whole
+    same-colour blocks, so each keeps its block's exposures) and the exposure pattern they form
+    (per-pixel exposure map cut alike)."""
+    (by, bx), reduced = cfa.block_shape(), cfa.block_tile()
+    period = joint_period(pattern.shape, cfa.shape)
+
+    def keep(n: int, axis: int) -> np.ndarray:
+        return np.flatnonzero(np.arange(n) // (by, bx)[axis] % reduced.shape[axis] == phase[axis])
+
+    rows, cols = keep(shape[0], 0), keep(shape[1], 1)
+    nominal = Pattern(pattern.tile).exposure_map(period)
+    sub_tile = minimal_tile(nominal[np.ix_(keep(period[0], 0), keep(period[1], 1))])
+    sub_map = None if pattern.pixel_map is None else np.ascontiguousarray(pattern.pixel_map[np.ix_(rows, cols)])
+    return rows, cols, Pattern(sub_tile, sub_map)
+
+
 def one_colour_plane(raw: np.ndarray, camera: Camera) -> tuple[np.ndarray, Pattern]:
     """The pixels of one colour of a colour SVE frame, as a monochrome SVE frame with its own pattern.
 
     For what must compare readings of one radiance only (the response fit): neighbouring pixels
     of different colour filters see different light. The colour is the CFA's most frequent one
-    (green on a Bayer mosaic), its first phase; for a CFA of same-colour blocks (quad-RGGB)
-    whole blocks are kept, so each keeps the block's exposures. ``raw`` (H, W) any dtype;
-    returns (H', W') of it (a copy) and the sub-pattern (per-pixel exposure map cut alike).
-    A monochrome camera's frame comes back as it is, with its pattern.
+    (green on a Bayer mosaic), its first phase (:func:`colour_phase`). ``raw`` (H, W) any dtype;
+    returns (H', W') of it (a copy) and the sub-pattern. A monochrome camera's frame comes back
+    as it is, with its pattern.
     """
     pattern = camera.require_pattern()
     cfa = camera.cfa
     if cfa is None:
         return raw, pattern
-    (by, bx), (h, w) = cfa.block_shape(), raw.shape
-    reduced = cfa.tile[::by, ::bx]
+    reduced = cfa.block_tile()
     counts = np.bincount(reduced.ravel(), minlength=3)
-    qy, qx = (int(v[0]) for v in np.nonzero(reduced == int(np.argmax(counts))))
-    period = joint_period(pattern.shape, cfa.shape)
-    nominal = Pattern(pattern.tile).exposure_map(period)
-
-    def keep(n: int, axis: int, q: int) -> np.ndarray:
-        return np.flatnonzero(np.arange(n) // (by, bx)[axis] % reduced.shape[axis] == q)
-
-    rows, cols = keep(h, 0, qy), keep(w, 1, qx)
-    sub_tile = minimal_tile(nominal[np.ix_(keep(period[0], 0, qy), keep(period[1], 1, qx))])
-    where = np.ix_(rows, cols)
-    sub_map = None if pattern.pixel_map is None else np.ascontiguousarray(pattern.pixel_map[where])
-    return np.ascontiguousarray(raw[where]), Pattern(sub_tile, sub_map)
+    phase = tuple(int(v[0]) for v in np.nonzero(reduced == int(np.argmax(counts))))
+    rows, cols, sub_pattern = colour_phase(pattern, cfa, raw.shape, phase)
+    return np.ascontiguousarray(raw[np.ix_(rows, cols)]), sub_pattern
 
 
 def camera_for_raw(raw: np.ndarray, pattern: Pattern | str | None, *, cfa: ColourFilter | str | None = None,

@@ -71,6 +71,12 @@ class ColourFilter:
 
         return along(0), along(1)
 
+    def block_tile(self) -> np.ndarray:
+        """The tile with each block of one colour (:meth:`block_shape`) as one entry: uint8, (2, 2)
+        RGGB for both RGGB and quad-RGGB."""
+        by, bx = self.block_shape()
+        return self.tile[::by, ::bx]
+
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, ColourFilter):
             return NotImplemented

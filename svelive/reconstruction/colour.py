@@ -114,10 +114,11 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from svelive.camera import colour_phase
 from svelive.cfa import ColourFilter, joint_period
 from svelive.errors import SveliveError
 from svelive.jit import kernel
-from svelive.pattern import Pattern, minimal_tile
+from svelive.pattern import Pattern
 from svelive.reconstruction.methods import MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput, binomial_kernel, exposure_maps, map_on, smooth
 
@@ -843,24 +844,15 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 def split(inp: SveInput, spec: MethodSpec, **options) -> Estimate:
     """The baseline (module docstring): the mono method per CFA-phase sub-image, then demosaicing."""
     cfa, pattern = inp.cfa, inp.pattern
-    (by, bx), (h, w) = cfa.block_shape(), inp.shape
-    reduced = cfa.tile[::by, ::bx]
-    period = joint_period(pattern.shape, cfa.shape)
-    nominal = Pattern(pattern.tile).exposure_map(period)
+    reduced = cfa.block_tile()
     mosaic, variance = np.empty(inp.shape, np.float32), np.empty(inp.shape, np.float32)
     lower = np.empty(inp.shape, bool)
     for qy in range(reduced.shape[0]):
         for qx in range(reduced.shape[1]):
-            rows = np.flatnonzero(np.arange(h) // by % reduced.shape[0] == qy)
-            cols = np.flatnonzero(np.arange(w) // bx % reduced.shape[1] == qx)
+            rows, cols, sub_pattern = colour_phase(pattern, cfa, inp.shape, (qy, qx))
             if rows.size == 0 or cols.size == 0:
                 continue
-            tile_rows = np.flatnonzero(np.arange(period[0]) // by % reduced.shape[0] == qy)
-            tile_cols = np.flatnonzero(np.arange(period[1]) // bx % reduced.shape[1] == qx)
-            sub_tile = minimal_tile(nominal[np.ix_(tile_rows, tile_cols)])
             where = np.ix_(rows, cols)
-            sub_map = None if pattern.pixel_map is None else np.ascontiguousarray(pattern.pixel_map[where])
-            sub_pattern = Pattern(sub_tile, sub_map)
             sub = SveInput(np.ascontiguousarray(inp.signal[where]), exposure_maps(sub_pattern, (rows.size, cols.size))[0],
                            np.ascontiguousarray(inp.censored[where]), sub_pattern, inp.sensor, inp.integral)
             est = spec.run(sub, **options)
