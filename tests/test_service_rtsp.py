@@ -282,6 +282,40 @@ def test_launch_description_is_low_latency():
     assert "key-int-max=10" in rtsp.launch_description(640, 480, H264Settings(keyframe_s=0.5, fps=20))
 
 
+def test_running_time_is_zero_until_the_base_time_is_set():
+    assert rtsp.running_time_ns(5_000_000_000, 4_000_000_000) == 1_000_000_000
+    assert rtsp.running_time_ns(5_000_000_000, 0) == 0  # the clock came, the base time not yet
+    assert rtsp.running_time_ns(5_000_000_000, 6_000_000_000) == 0
+
+
+def test_a_frame_pushed_between_the_clock_and_the_base_time_is_stamped_near_zero():
+    # The window of the PAUSED -> PLAYING change in which appsrc has the clock but a base time of 0: appsrc's
+    # do-timestamp stamped such a frame with the clock's absolute time (the uptime), and the stream's
+    # synchronised sink held it, and the stream, until then.
+    Gst = rtsp.gstreamer()[0]
+    pipeline = Gst.Pipeline.new("t")
+    pipeline.add(Gst.parse_launch(rtsp.launch_description(64, 48, H264Settings())))
+    src, encoder = pipeline.get_by_name("src"), pipeline.get_by_name("enc")
+    stamps: list[int] = []
+
+    def seen(pad, info):
+        stamps.append(info.get_buffer().pts)
+        return Gst.PadProbeReturn.OK
+
+    encoder.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, seen)
+    clock = Gst.SystemClock.obtain()
+    assert clock.get_time() > Gst.SECOND  # else an absolute stamp could not be told from a running time
+    src.set_clock(clock)
+    assert src.get_base_time() == 0
+    rtsp.push_frame(src, bytes(64 * 48 * 3 // 2))
+    pipeline.set_state(Gst.State.PLAYING)
+    try:
+        wait_until(lambda: stamps, timeout=10, what="the frame at the encoder")
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    assert 0 <= stamps[0] < Gst.SECOND
+
+
 def test_i420_of_grey_and_colour():
     rng = np.random.default_rng(3)
     # uniform 2x2 blocks: 4:2:0 keeps them; what is left is the rounding of the limited range

@@ -149,6 +149,32 @@ def launch_description(width: int, height: int, settings: H264Settings) -> str:
             f"! rtph264pay name=pay0 pt=96 config-interval=-1 aggregate-mode=zero-latency )")
 
 
+def running_time_ns(now_ns: int, base_time_ns: int) -> int:
+    """The running time (ns) to stamp on a frame pushed at clock time ``now_ns`` into an element whose
+    base time is ``base_time_ns``: ``now - base``, or 0 while the base time is not set yet (0) or ahead.
+
+    appsrc's own ``do-timestamp`` computes ``now - base`` at push time, and a push in the short window of
+    the PAUSED -> PLAYING change where the element already has the pipeline's clock but not yet its base
+    time gave the frame the absolute clock time (the machine's uptime) as running time: the RTSP stream's
+    synchronised sink then held it, and every frame after it, until that time (seen as a client stuck
+    paused after PLAY with one frame encoded). In that window the running time is about 0.
+    """
+    return now_ns - base_time_ns if 0 < base_time_ns <= now_ns else 0
+
+
+def push_frame(src: Any, data: bytes) -> None:
+    """Push one raw frame into the appsrc ``src``, stamped with the running time (:func:`running_time_ns`)
+    when the element has a clock; without one (before the pipeline plays) it goes unstamped and the
+    source stamps it when its streaming thread takes it, which it does only once playing."""
+    from gi.repository import Gst
+
+    buffer = Gst.Buffer.new_wrapped(data)
+    clock = src.get_clock()
+    if clock is not None:
+        buffer.pts = buffer.dts = running_time_ns(clock.get_time(), src.get_base_time())
+    src.emit("push-buffer", buffer)
+
+
 def even_size(image: np.ndarray) -> np.ndarray:
     """``image`` cropped to an even width and height (4:2:0 H.264 needs both), a view."""
     return image[:image.shape[0] // 2 * 2, :image.shape[1] // 2 * 2]
@@ -544,7 +570,7 @@ class RtspPublisher:
         # counted before the hand-over: appsrc may encode it (and tick ``encoded``) before emit returns
         now = time.monotonic_ns()
         self.pushed.tick(now)
-        media.src.emit("push-buffer", Gst.Buffer.new_wrapped(i420.tobytes()))
+        push_frame(media.src, i420.tobytes())
         if preview.signal:
             self.arrival_to_push.add((now - preview.host_time_ns) / 1e6)
 
@@ -561,9 +587,7 @@ class RtspPublisher:
         """GLib thread, a client starts playing: the next frame is a keyframe with SPS/PPS, so that it shows a
         picture at once instead of after up to a keyframe interval (or more frames than that when the
         pipeline runs slower than its nominal rate). Only noted here: the encoder thread asks x264 for it
-        before its next frame (:meth:`_on_preview`). Sent from this thread, the event could wait for
-        x264's stream lock, held while the media, paused until this very PLAY is answered, blocks its
-        first frame: the loop that would answer it then waited too (seen as a client stuck paused)."""
+        before its next frame (:meth:`_on_preview`), so that this loop never waits on x264."""
         with self._lock:
             self._keyframe_wanted = True
 
