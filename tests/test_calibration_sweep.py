@@ -506,3 +506,17 @@ def test_sweep_on_the_demo_camera_recovers_its_linear_response(monkeypatch, cfa)
         m = np.asarray(result["curve"]["brightness"])
         inside = (m >= lo) & (m <= hi)
         assert hi - lo > 0.9 and np.abs(np.asarray(result["curve"]["linear"]) - m)[inside].max() < 0.01
+
+
+def test_after_change_keeps_frames_captured_after_it_from_the_settle_th_on():
+    from svelive.capture import AfterChange
+
+    raw = np.zeros((2, 2), np.uint16)
+    frames = [Frame(raw, frame_id=i, host_time_ns=100 * i) for i in range(10)]
+    settled = AfterChange(changed_ns=250, settle=1)
+    # 0-2 were captured before the change; 3 was in flight at it; 4 on show it
+    assert [f.frame_id for f in frames if settled.shows(f)] == [4, 5, 6, 7, 8, 9]
+    # polling the newest frame only: a frame missed in between counts towards the settling
+    newest = AfterChange(changed_ns=250, settle=2)
+    assert [newest.shows(f) for f in (frames[1], frames[3], frames[4], frames[6])] == [False, False, False, True]
+    assert AfterChange(changed_ns=250, settle=0).shows(frames[3])

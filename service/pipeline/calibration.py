@@ -15,7 +15,7 @@ import numpy as np
 from svelive.calibrate import Response, load_mask, load_response
 from svelive.calibrate.response import calibrate_frame
 from svelive.camera import Camera, one_colour_plane
-from svelive.capture import Source
+from svelive.capture import AfterChange, Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.memory import release_memory
@@ -222,14 +222,11 @@ class Calibration:
     def _frame_after(self, changed_ns: int, settle_frames: int, timeout_s: float) -> Frame:
         """The ``settle_frames``-th frame after the first one captured after ``changed_ns`` (monotonic ns)."""
         deadline = time.monotonic() + timeout_s
-        first: int | None = None
+        settled = AfterChange(changed_ns, settle_frames)
         while not self._stop.is_set() and time.monotonic() < deadline:
             frame = self._newest_raw()
-            if frame is not None and frame.host_time_ns > changed_ns:
-                if first is None:
-                    first = frame.frame_id
-                if frame.frame_id >= first + settle_frames:
-                    return frame
+            if frame is not None and settled.shows(frame):
+                return frame
             self._stop.wait(0.005)
         if self._stop.is_set():
             raise SveliveError("the service is stopping")

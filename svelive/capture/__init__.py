@@ -27,11 +27,11 @@ import dataclasses
 import importlib
 from typing import Any
 
-from svelive.capture.source import EndOfStream, Source
+from svelive.capture.source import AfterChange, EndOfStream, Source
 from svelive.errors import SveliveError
 from svelive.sensor import Sensor
 
-__all__ = ["EndOfStream", "KINDS", "Source", "open_source", "parse_spec"]
+__all__ = ["AfterChange", "EndOfStream", "KINDS", "Source", "open_source", "parse_spec"]
 
 #: spec prefix -> (module, class name, whether the part after ':' is required)
 KINDS: dict[str, tuple[str, str, bool]] = {

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from replay import CorruptFrameError, RecordingReader, RecordingWriter, WriterConfig
-from svelive.capture import open_source
+from svelive.capture import AfterChange, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.progress import Progress, add_quiet_argument
@@ -196,9 +196,8 @@ def _record(args: argparse.Namespace) -> int:
 class ExposureSteps:
     """Frames of a source at each of several global exposure times in turn, then the time it had put back.
 
-    After each change the first ``settle`` frames captured after it are skipped: a camera's frame
-    in flight may have been exposed before the change. Each kept frame is tagged with the time
-    the camera reported it applied.
+    After each change the frames that do not show it yet are skipped (:class:`AfterChange`, ``settle``
+    frames). Each kept frame is tagged with the time the camera reported it applied.
     """
 
     def __init__(self, source: Any, times: list[float], settle: int = 1, timeout_s: float = 5.0) -> None:
@@ -212,15 +211,13 @@ class ExposureSteps:
         for t in self.times:
             applied = self.source.set_exposure_time(t)
             self.applied.append(applied)
-            changed_ns = time.monotonic_ns()
-            kept = skipped = 0
+            settled = AfterChange(time.monotonic_ns(), self.settle)
+            kept = 0
             while kept < per_time:
                 frame = self.source.read(timeout=self.timeout_s)
-                if frame.host_time_ns <= changed_ns or skipped < self.settle:
-                    skipped += frame.host_time_ns > changed_ns
-                    continue
-                kept += 1
-                yield frame, applied
+                if settled.shows(frame):
+                    kept += 1
+                    yield frame, applied
 
     def restore(self) -> None:
         """Put back the exposure time the source had before the first step."""

@@ -20,6 +20,7 @@ import collections
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 from svelive.camera import Camera
@@ -74,6 +75,29 @@ def resolve_cfa(given: str | ColourFilter | None, format_cfa: str | None, format
         raise SveliveError(f"{where}: the camera delivers {format_name} (colour filter {native.name} at this "
                            f"region), but --cfa {user.name} was given: drop --cfa")
     return user
+
+
+@dataclass
+class AfterChange:
+    """Which frames show a setting a camera just applied (a new exposure time).
+
+    A frame shows it when it was captured after ``changed_ns`` (monotonic ns, taken once the
+    camera accepted the change) and it is at least the ``settle``-th frame (by frame id) after the
+    first such frame: a frame in flight at the change may have been exposed before it. Used by
+    ``svelive record --exposure-times`` and by the service's calibration sweep alike.
+    """
+
+    changed_ns: int
+    settle: int = 1
+    _first_id: int | None = field(default=None, init=False, repr=False)
+
+    def shows(self, frame: Frame) -> bool:
+        """True when ``frame`` (frames in capture order; the newest only, or every one) shows the change."""
+        if frame.host_time_ns <= self.changed_ns:
+            return False
+        if self._first_id is None:
+            self._first_id = frame.frame_id
+        return frame.frame_id >= self._first_id + self.settle
 
 
 class EndOfStream(Exception):
