@@ -520,3 +520,8 @@ def test_after_change_keeps_frames_captured_after_it_from_the_settle_th_on():
     newest = AfterChange(changed_ns=250, settle=2)
     assert [newest.shows(f) for f in (frames[1], frames[3], frames[4], frames[6])] == [False, False, False, True]
     assert AfterChange(changed_ns=250, settle=0).shows(frames[3])
+    # ids that start again (a source rebuilt after a failure) count from the new start, not from the old ids
+    restarted = AfterChange(changed_ns=250, settle=1)
+    assert not restarted.shows(frames[5])
+    again = [Frame(raw, frame_id=i, host_time_ns=1000 + 100 * i) for i in range(3)]
+    assert [restarted.shows(f) for f in again] == [False, True, True]

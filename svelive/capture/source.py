@@ -95,7 +95,7 @@ class AfterChange:
         """True when ``frame`` (frames in capture order; the newest only, or every one) shows the change."""
         if frame.host_time_ns <= self.changed_ns:
             return False
-        if self._first_id is None:
+        if self._first_id is None or frame.frame_id < self._first_id:  # first, or ids restarted (a new source)
             self._first_id = frame.frame_id
         return frame.frame_id >= self._first_id + self.settle
 
