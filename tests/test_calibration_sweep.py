@@ -254,9 +254,7 @@ from tests.test_capture_gige import _MISSING, ADDRESS, FakeCamera  # noqa: E402
 def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it(monkeypatch):
     from svelive.capture import open_source
 
-    fake = FakeCamera("SVESWEEP")
-    fake.start()
-    try:
+    with FakeCamera("SVESWEEP"):
         opened = []
 
         def factory():
@@ -286,8 +284,6 @@ def test_sweep_steps_the_fake_gige_cameras_exposure_time_and_restores_it(monkeyp
             from svelive.capture.gige import load_aravis
 
             assert load_aravis().Camera.new(ADDRESS).get_exposure_time() == 8000.0
-    finally:
-        fake.stop()
 
 
 @pytest.mark.skipif(_MISSING is not None, reason=str(_MISSING))
@@ -298,9 +294,7 @@ def test_record_steps_the_fake_gige_cameras_exposure_and_tags_every_frame(tmp_pa
     from svelive.capture.gige import load_aravis
     from svelive.cli import main
 
-    fake = FakeCamera("SVEREC")
-    fake.start()
-    try:
+    with FakeCamera("SVEREC"):
         out = tmp_path / "steps.sverec"
         rc = main(["record", "--source", f"gige:{ADDRESS}", "--pixel-format", "Mono8", "--width", "64",
                    "--height", "48", "--fps", "40", "--pattern", "1,4/16,64", "--opt", "exposure_us=8000",
@@ -315,8 +309,6 @@ def test_record_steps_the_fake_gige_cameras_exposure_and_tags_every_frame(tmp_pa
         assert times == [4000.0] * 3 + [6000.0] * 3
         # each frame carries the time the camera reported applying, as the recording does
         assert [f.exposure_time for f in frames] == times
-    finally:
-        fake.stop()
 
 
 def test_record_steps_the_demo_exposure_and_refuses_before_writing(tmp_path, capsys):

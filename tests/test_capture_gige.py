@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import os
 import shutil
+import fcntl
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -40,15 +42,55 @@ if _MISSING and os.environ.get("CI") != "true":
     pytestmark = pytest.mark.skip(reason=_MISSING)
 
 
+#: Every fake camera answers on 127.0.0.1:3956 (it serves only an interface's own address), so test runs on one
+#: machine take turns through this lock file instead of talking to each other's cameras.
+LOCK_PATH = os.path.join(tempfile.gettempdir(), "svelive-fake-gige.lock")
+LOCK_WAIT_S = 600
+
+
 class FakeCamera:
-    """One arv-fake-gv-camera-0.8 process on 127.0.0.1, stopped by its pid."""
+    """One arv-fake-gv-camera-0.8 process on 127.0.0.1, stopped by its pid.
+
+    Use it as a context manager: it holds the machine's fake-camera lock (LOCK_PATH) from entry to exit, so
+    that a test may stop and start the camera in between without another run's camera taking its place.
+    """
 
     def __init__(self, serial: str, loss_per_thousand: int = 0) -> None:
         self.args = [FAKE, "-i", ADDRESS, "-s", serial] + (["-r", str(loss_per_thousand)] if loss_per_thousand else [])
         self.proc: subprocess.Popen | None = None
+        self._lock: int | None = None
+
+    def __enter__(self) -> FakeCamera:
+        fd = os.open(LOCK_PATH, os.O_RDWR | os.O_CREAT, 0o666)
+        deadline = time.monotonic() + LOCK_WAIT_S
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    os.close(fd)
+                    raise AssertionError(f"another test run held {LOCK_PATH} for {LOCK_WAIT_S} s") from None
+                time.sleep(0.2)
+        self._lock = fd
+        try:
+            self.start()
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.stop()
+        finally:
+            if self._lock is not None:
+                os.close(self._lock)  # releases the lock
+                self._lock = None
 
     def start(self) -> None:
         assert _MISSING is None, _MISSING
+        assert self._lock is not None, "start the fake camera inside `with FakeCamera(...)`"
         self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         from svelive.capture.gige import load_aravis
 
@@ -71,18 +113,14 @@ class FakeCamera:
 
 @pytest.fixture
 def camera() -> Iterator[FakeCamera]:
-    cam = FakeCamera("SVETEST")
-    cam.start()
-    yield cam
-    cam.stop()
+    with FakeCamera("SVETEST") as cam:
+        yield cam
 
 
 @pytest.fixture
 def lossy_camera() -> Iterator[FakeCamera]:
-    cam = FakeCamera("SVELOSSY", loss_per_thousand=20)
-    cam.start()
-    yield cam
-    cam.stop()
+    with FakeCamera("SVELOSSY", loss_per_thousand=20) as cam:
+        yield cam
 
 
 def ramp_is_consistent(raw: np.ndarray, step: int, modulus: int) -> bool:

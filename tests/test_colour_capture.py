@@ -29,10 +29,8 @@ gige = pytest.mark.skipif(bool(_MISSING) and os.environ.get("CI") != "true", rea
 
 @pytest.fixture
 def camera() -> Iterator[FakeCamera]:
-    cam = FakeCamera("SVECOLOUR")
-    cam.start()
-    yield cam
-    cam.stop()
+    with FakeCamera("SVECOLOUR") as cam:
+        yield cam
 
 
 def green_sites_in_data(raw: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:

@@ -85,10 +85,8 @@ def reconstruction_fails(state: dict[str, Any]) -> str | None:
 
 @pytest.fixture(scope="module")
 def camera() -> Iterator[FakeCamera]:
-    cam = FakeCamera("SVESERVE")
-    cam.start()
-    yield cam
-    cam.stop()
+    with FakeCamera("SVESERVE") as cam:
+        yield cam
 
 
 @pytest.fixture(scope="module")
