@@ -17,8 +17,10 @@ With ``--colour`` the scenes are simulated in RGB through the colour layouts of
 svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`` a second
 frame of the same static scene (another noise seed) is given to a :class:`svelive.noise.NoiseTracker`
 after the first (all pixels static), which is what the live service can do; its errors are
-reported too ("pair"). A run is "confidently wrong" when a value misses by more than 15 % and by
-more than two of its own stated standard uncertainties (in log space). ``--table CSV`` prints the
+reported too ("pair"); ``--no-cancellation`` runs the single-frame estimate without texture
+cancellation across exposures (the estimator before issue 12.1's third pass). A run is
+"confidently wrong" when a value misses by more than 15 % and by more than two of its own stated
+standard uncertainties (in log space). ``--table CSV`` prints the
 summary of an earlier run again.
 """
 
@@ -35,7 +37,7 @@ import numpy as np
 from svelive.bench.scenes import default_data_dir, find_images, load_scene, shipped_data_dir
 from svelive.camera import COLOUR_LAYOUTS, Camera
 from svelive.exr import read_exr
-from svelive.noise import NoiseTracker, estimate_noise
+from svelive.noise import EstimatorConfig, NoiseTracker, estimate_noise
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale, simulate
@@ -126,7 +128,8 @@ def pu21_by_noise_model(raw: np.ndarray, camera: Camera, truth: Sensor, estimate
 
 
 def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed: int, out_csv: Path | None,
-        psnr: bool = False, pair: bool = False, lights: dict[str, float] = LIGHTS) -> int:
+        psnr: bool = False, pair: bool = False, lights: dict[str, float] = LIGHTS,
+        config: EstimatorConfig = EstimatorConfig()) -> int:
     rows = []
     header = (f"{'image':10s} {'pattern':26s} {'light':6s} {'true g':>7s} {'est g':>7s} {'err':>6s} {'sig':>5s}  "
               f"{'true r':>6s} {'est r':>6s} {'err':>6s} {'sig':>5s} {'sd err':>6s} {'samples':>8s} {'ms':>6s}")
@@ -146,7 +149,7 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     raw = sim.raw
                     camera = Camera.build(pattern, cfa, Sensor(BITS, BLACK))
                     t0 = time.perf_counter()
-                    est = estimate_noise(raw, camera)
+                    est = estimate_noise(raw, camera, config=config)
                     ms = (time.perf_counter() - t0) * 1e3
                     eg = 100 * (est.gain / truth.gain - 1)
                     er = 100 * (est.read_noise / truth.read_noise - 1)
@@ -222,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--patterns", help="patterns separated by ';' (default: " + "; ".join(PATTERNS) + ")")
     parser.add_argument("--lights", help="comma-separated light names of " + ",".join(LIGHTS))
     parser.add_argument("--models", help="noise models 'full_well:read_dn' separated by ','")
+    parser.add_argument("--no-cancellation", action="store_true",
+                        help="the single-frame estimate without texture cancellation across exposures (the "
+                             "residual fit alone, as before issue 12.1's third pass)")
     parser.add_argument("--psnr", action="store_true", help="also reconstruct with the default method under the "
                                                             "fixed defaults, the estimate and the truth (PU21-PSNR)")
     args = parser.parse_args(argv)
@@ -248,7 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     lights = {k: LIGHTS[k] for k in args.lights.split(",")} if args.lights else LIGHTS
     print(f"data {data}: {len(images)} images, {len(patterns)} patterns, {len(lights)} lights, "
           f"{len(models)} noise models", file=sys.stderr)
-    return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights)
+    config = EstimatorConfig(cancellation=not args.no_cancellation)
+    return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights, config)
 
 
 if __name__ == "__main__":
