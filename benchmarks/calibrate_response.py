@@ -4,7 +4,7 @@ with ``--sweep``, SVE frames at several global exposure times fitted together (i
 Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings]
        [--curves linear,gamma2.2,poly3,s-curve] [--diagnose]
        python benchmarks/calibrate_response.py --sweep "1,1.5;1,1.5,2.25" [--bits 8,12] [--scenes ...] [--curves ...]
-           [--max-knots 10]
+           [--max-knots 12]
 
 ``--sweep``: for every scene, curve, bit depth and sweep (global exposure times, ``;`` between
 sweeps), the frames at those times (independent noise) are fitted together; the row gives the
@@ -124,7 +124,8 @@ def main() -> None:
                                     "e.g. '1,1.5;1,1.5,2.25' (no Debevec)")
     ap.add_argument("--bits", default="8", help="bit depths, comma-separated (default 8)")
     ap.add_argument("--max-knots", type=int, default=0,
-                    help="with --sweep: also try the log-spline model with 2..N knots (default 0: polynomials only)")
+                    help="with --sweep: also offer the log-spline model, with N knots and as a power law (2 knots) "
+                         "(default 0: polynomials only)")
     args = ap.parse_args()
     if args.sweep:
         sweeps = [[float(t) for t in part.split(",")] for part in args.sweep.split(";")]

@@ -350,8 +350,8 @@ def _two_frame_case(scene_name: str, name: str):
             "off. The sweep removes the log-periodic ambiguity, but the polynomial cannot follow this inverse "
             "curve in relative terms near M = 0 (its Taylor series converges only within 0.05 of 0 and of 1), "
             "and the dark equations, the most numerous and precise, then bend the curve; with the "
-            "equations made exact it is still off. The opt-in log-spline (max_knots) does not fix it either: "
-            "2.4 %, 3.3 % and 0.9 % on a range under 0.75 (docs/calibration.md)")))
+            "equations made exact it is still off. The opt-in log-spline (max_knots=12) fixes the desk crop "
+            "(test_log_spline_s_curve_on_sample_scenes_from_two_frames) but not the other two (docs/calibration.md)")))
     return pytest.param(scene_name, name, marks=marks)
 
 
@@ -427,9 +427,12 @@ def test_log_spline_offered_to_sweeps_only_when_asked():
     default = fit_response(frames, PATTERN, sensor, exposure_times=[1, 1.5])
     assert all(k.isdigit() for k in default.stats["held_out_error"])
     two = fit_response(frames, PATTERN, sensor, spline, exposure_times=[1, 1.5])
-    assert {f"log-spline {k}" for k in range(2, 7)} <= set(two.stats["held_out_error"])
+    # two sizes, the power law and max_knots, not a choice of the knot count
+    assert {k for k in two.stats["held_out_error"] if k.startswith("log-spline")} == {"log-spline 2", "log-spline 6"}
     # gamma 2.2 is a power law, the log-spline's simplest form (2 knots: one free parameter)
-    assert two.model == "log-spline" and len(two.knots) == 2 and two.knots[-1] == 1.0
+    assert two.model == "log-spline" and len(two.knots) == 2
+    # the last knot at the top of the data; above it, up to white, the power law of the last slope
+    assert two.knots[-1] == two.stats["data_range"][1] < 1.0 and abs(float(two(1.0)) - 1.0) < 1e-12
     assert max_error(two, CURVES["gamma2.2"]) < min(0.005, max_error(default, CURVES["gamma2.2"]))
     band = two.stats["band"]
     np.testing.assert_allclose(band["linear"], two(np.asarray(band["brightness"])), atol=1e-12)
@@ -438,3 +441,33 @@ def test_log_spline_offered_to_sweeps_only_when_asked():
                         exposure_times=[4, 1])
     assert four.stats["common_ratio"] == 4 and four.model == "polynomial"
     assert not any(k.startswith("log-spline") for k in four.stats["held_out_error"])
+
+
+S_CURVE_SPLINE_FAILS = {
+    "mttamwest": "4.1 % off: the data end at M = 0.957, and the shoulder from there to white is the power law "
+                 "of the last slope",
+    "cannon": "0.3 % off, but the measured range is 0.01-0.56 (under 0.75): the standard error passes 1 % above",
+}
+
+
+def _spline_case(scene_name: str):
+    marks = []
+    if scene_name in S_CURVE_SPLINE_FAILS:
+        marks.append(pytest.mark.xfail(strict=True, reason=f"S-curve on the {scene_name} crop with the log-spline: "
+                                                           f"{S_CURVE_SPLINE_FAILS[scene_name]}"))
+    return pytest.param(scene_name, marks=marks)
+
+
+@pytest.mark.parametrize("scene_name", [_spline_case(s) for s in ("desk", "mttamwest", "cannon")])
+def test_log_spline_s_curve_on_sample_scenes_from_two_frames(scene_name):
+    """The opt-in log-spline (12 knots) on the S-curve at global exposures 1 and 1.5: within 1 % of full
+    scale on a measured range of at least 0.75, as the polynomial is for the other curves."""
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = load_sample_scene(scene_name)
+    frames = sweep_frames(scene * exposure_scale(scene, PATTERN, sensor), sensor, "s-curve")
+    response = fit_response(frames, PATTERN, sensor, ResponseFitConfig(max_knots=12), exposure_times=[1.0, 1.5])
+    assert response.model == "log-spline" and len(response.knots) == 12
+    lo, hi = response.stats["measured_range"]
+    assert hi - lo >= 0.75
+    assert response.stats["curve_uncertainty"] <= 0.01
+    assert max_error(response, CURVES["s-curve"]) < 0.01
