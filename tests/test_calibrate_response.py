@@ -471,3 +471,27 @@ def test_log_spline_s_curve_on_sample_scenes_from_two_frames(scene_name):
     assert hi - lo >= 0.75
     assert response.stats["curve_uncertainty"] <= 0.01
     assert max_error(response, CURVES["s-curve"]) < 0.01
+
+
+def test_cli_max_knots_offers_the_log_spline_to_a_sweep(tmp_path, capsys):
+    sensor = Sensor.from_full_well(12, 10000, 3)
+    scene = chart_scene()
+    scene *= sensor.range_dn / scene.max()
+    for i, raw in enumerate(sweep_frames(scene, sensor, "s-curve")):
+        np.save(tmp_path / f"f{i}.npy", raw)
+    frames = [str(tmp_path / "f0.npy"), str(tmp_path / "f1.npy")]
+    args = ["calibrate", "response", *frames, "--exposure-times", "8000,12000", "--pattern", "1,4/16,64", "-q"]
+    assert main([*args, "-o", str(tmp_path / "poly.json")]) == 0
+    without = json.loads((tmp_path / "poly.json").read_text())
+    assert not any(key.startswith("log-spline") for key in without["stats"]["held_out_error"])
+    capsys.readouterr()
+    assert main([*args, "--max-knots", "8", "-o", str(tmp_path / "spline.json")]) == 0
+    line = capsys.readouterr().out
+    spline = json.loads((tmp_path / "spline.json").read_text())
+    offered = [key for key in spline["stats"]["held_out_error"] if key.startswith("log-spline")]
+    assert sorted(offered) == ["log-spline 2", "log-spline 8"]
+    # the summary names the model the held-out rule chose
+    chosen = load_response(tmp_path / "spline.json")
+    assert line.startswith(f"log-spline, {len(chosen.knots)} knots" if chosen.knots else f"degree {chosen.degree}")
+    assert main([*args, "--max-knots", "40", "-o", str(tmp_path / "bad.json")]) == 2
+    assert "max knots must be 0..16" in capsys.readouterr().err and not (tmp_path / "bad.json").exists()

@@ -145,14 +145,16 @@ def _response(args: argparse.Namespace) -> int:
         raws, times, camera = _recorded_sweep(args)
     else:
         raws, times, camera = _frame_files(args)
-    config = ResponseFitConfig(max_degree=args.max_degree, window=args.window, refine_ratios=args.refine_ratios)
+    config = ResponseFitConfig(max_degree=args.max_degree, window=args.window, refine_ratios=args.refine_ratios,
+                               max_knots=args.max_knots)
     planes = [one_colour_plane(camera.check(raw), camera) for raw in raws]  # colour: one filter's pixels
     response = fit_response([p for p, _ in planes] if len(raws) > 1 else planes[0][0], planes[0][1], camera.sensor,
                             config, exposure_times=times, progress=_progress(args))
     save_response(response, args.output)
     lo, hi = response.stats["measured_range"]
     band = max(response.stats["band"]["standard_error"])
-    print(f"degree {response.degree}, measured brightness {lo:.3f}..{hi:.3f} (standard error up to {band:.2%} of "
+    model = f"log-spline, {len(response.knots)} knots" if response.knots else f"degree {response.degree}"
+    print(f"{model}, measured brightness {lo:.3f}..{hi:.3f} (standard error up to {band:.2%} of "
           f"full scale), {response.stats['locations']} constant regions, {response.stats['equations']} equations "
           f"from {len(raws)} frame{'s' if len(raws) > 1 else ''} -> {args.output}")
     ratio = response.stats["common_ratio"]
@@ -217,6 +219,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-degree", type=int, default=6, help="highest polynomial degree tried (default 6)")
     p.add_argument("--window", type=int, default=3, help="local window side in tiles (odd, default 3)")
     p.add_argument("--refine-ratios", action="store_true", help="re-estimate intermediate exposure ratios")
+    p.add_argument("--max-knots", type=int, default=0,
+                   help="also offer a log-spline of this many knots (and a power law) for a sweep of two or more "
+                        "frames: film-like S-shaped responses at 12 bits or more; not at 8 bits "
+                        "(docs/calibration.md; default 0, polynomials only)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("-o", "--output", type=Path, required=True, help="response JSON to write")
     p.set_defaults(func=_response)
