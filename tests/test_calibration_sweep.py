@@ -151,7 +151,8 @@ def test_a_source_without_exposure_control_gets_409_and_bad_sweeps_422():
         detail = r.json()["detail"]
         assert "source sim cannot set its exposure time" in detail and "\n" not in detail
         for body, word in (({"sweep": []}, "sweep"), ({"sweep": [1, -2]}, "positive"), ({"sweep": [5, 5]}, "differ"),
-                           ({"sweep": list(range(1, 30))}, "sweep"), ({"sweep": "fast"}, "sweep")):
+                           ({"sweep": list(range(1, 30))}, "sweep"), ({"sweep": "fast"}, "sweep"),
+                           ({"max_knots": 6}, "max_knots needs a sweep"), ({"sweep": [1, 2], "max_knots": 40}, "max_knots")):
             r = httpx.post(srv.url + URL, json=body, timeout=10)
             assert r.status_code in (409, 422) and word in r.text, (body, r.status_code, r.text)
         assert srv.state()["calibration"] is None
@@ -204,8 +205,11 @@ def test_sweep_over_a_replay_plays_the_frames_recorded_at_each_time(monkeypatch,
         assert srv.state()["calibration"] is None and srv.state()["response"] is None
 
         # the camera rounds: 15 050 asked, 15 000 recorded and used
-        r = httpx.post(srv.url + URL, json={"sweep": [10_000, 15_050, 22_500], "apply": True}, timeout=10)
+        # the log-spline offered to the fit too (its power law is exact for gamma 2.2)
+        r = httpx.post(srv.url + URL, json={"sweep": [10_000, 15_050, 22_500], "apply": True, "max_knots": 6},
+                       timeout=10)
         assert r.status_code == 202, r.text
+        assert r.json()["max_knots"] == 6
         done, steps = wait_job(srv, r.json()["id"])
         assert done["state"] == "done", done
         assert steps[-1] == 3 and done["exposure_times"] == recorded
@@ -217,6 +221,7 @@ def test_sweep_over_a_replay_plays_the_frames_recorded_at_each_time(monkeypatch,
         result = httpx.get(srv.url + URL, timeout=10).json()
         stats = result["stats"]
         assert stats["frames"] == 3 and stats["exposure_times"] == recorded and result["applied"] is True
+        assert {"log-spline 2", "log-spline 6"} <= set(stats["held_out_error"])
         lo, hi = stats["measured_range"]
         m = np.asarray(result["curve"]["brightness"])
         inside = (m >= lo) & (m <= hi)

@@ -130,7 +130,7 @@ class Calibration:
 
     # ----- the exposure sweep (a background job) ----------------------------
     def start_sweep(self, times: list[float], source: Source | None, max_degree: int = 6, apply: bool = False,
-                    settle_frames: int = 1, frame_timeout_s: float = 5.0) -> dict[str, Any]:
+                    settle_frames: int = 1, frame_timeout_s: float = 5.0, max_knots: int = 0) -> dict[str, Any]:
         """Start stepping ``source``'s exposure time through ``times`` in a background thread.
 
         At each step the exposure is set, the frame that arrives ``settle_frames`` frames after
@@ -144,6 +144,8 @@ class Calibration:
         """
         if not 1 <= max_degree <= 10:
             raise SveliveError(f"max_degree must be 1..10, got {max_degree}")
+        if not 0 <= max_knots <= 16:
+            raise SveliveError(f"max_knots must be 0..16 (0: polynomials only), got {max_knots}")
         times = check_sweep(times)
         if source is None or self._newest_raw() is None:
             raise SveliveError("no frame yet: the sweep needs a connected camera")
@@ -162,11 +164,13 @@ class Calibration:
             self._jobs += 1
             self._job = {"id": self._jobs, "state": "running", "stage": "starting", "step": 0, "steps": len(times),
                          "sweep": times, "exposure_time_before": original, "exposure_times": [], "frame_ids": [],
-                         "restored": None, "error": None, "apply": bool(apply), "started_s": time.time(),
+                         "restored": None, "error": None, "apply": bool(apply), "max_knots": max_knots,
+                         "started_s": time.time(),
                          "finished_s": None}
             job = copy.deepcopy(self._job)
         thread = threading.Thread(target=self._run_sweep, name="svelive-sweep", daemon=True,
-                                  args=(times, source, original, max_degree, apply, settle_frames, frame_timeout_s))
+                                  args=(times, source, original, max_degree, max_knots, apply, settle_frames,
+                                        frame_timeout_s))
         thread.start()
         return job
 
@@ -175,8 +179,8 @@ class Calibration:
             if self._job is not None:
                 self._job.update(changes)
 
-    def _run_sweep(self, times: list[float], source: Source, original: float, max_degree: int, apply: bool,
-                   settle_frames: int, frame_timeout_s: float) -> None:
+    def _run_sweep(self, times: list[float], source: Source, original: float, max_degree: int, max_knots: int,
+                   apply: bool, settle_frames: int, frame_timeout_s: float) -> None:
         frames: list[Frame] = []
         planes: list[tuple[np.ndarray, Any]] = []
         applied: list[float] = []
@@ -195,7 +199,7 @@ class Calibration:
             self._update(stage="fitting")
             planes = [one_colour_plane(f.raw, f.camera) for f in frames]  # a colour camera: one filter's pixels
             data = calibrate_frame([raw for raw, _ in planes], planes[0][1], frames[0].sensor,
-                                   max_degree=max_degree, exposure_times=applied,
+                                   max_degree=max_degree, max_knots=max_knots, exposure_times=applied,
                                    progress=lambda text: self._update(stage=f"fitting: {text}"))
             data.update(frame_id=frames[-1].frame_id, frame_ids=[f.frame_id for f in frames])
             self._keep(data, apply)
@@ -235,7 +239,7 @@ class Calibration:
     def job_state(self) -> dict[str, Any] | None:
         """The newest sweep: id, state ("running", "done", "failed"), stage, step/steps, sweep,
         exposure_times (as the camera applied them), frame_ids, exposure_time_before, restored,
-        error; None before the first."""
+        error, apply, max_knots; None before the first."""
         with self._lock:
             return copy.deepcopy(self._job)
 

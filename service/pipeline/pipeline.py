@@ -156,11 +156,12 @@ class Pipeline:
         """See :meth:`service.pipeline.calibration.Calibration.calibrate_response`."""
         return self.calibration.calibrate_response(max_degree, apply)
 
-    def start_sweep(self, times: list[float], max_degree: int = 6, apply: bool = False) -> dict[str, Any]:
+    def start_sweep(self, times: list[float], max_degree: int = 6, apply: bool = False,
+                    max_knots: int = 0) -> dict[str, Any]:
         """Calibrate the response from frames at the exposure times ``times`` (a background job);
         see :meth:`service.pipeline.calibration.Calibration.start_sweep`. Returns the job."""
         # the capture stage's open source (it has no public accessor yet)
-        return self.calibration.start_sweep(times, self.capture.source, max_degree, apply)
+        return self.calibration.start_sweep(times, self.capture.source, max_degree, apply, max_knots=max_knots)
 
     def last_calibration(self) -> dict[str, Any] | None:
         """The result of the last successful calibration, with the newest sweep's ``job``; None if neither."""

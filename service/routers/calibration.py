@@ -6,7 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from starlette.concurrency import run_in_threadpool
 
 from service.pipeline.calibration import MAX_SWEEP, ExposureUnsupported
@@ -15,12 +15,20 @@ from service.routers import NO_STORE, ServedCamera
 
 class CalibrateRequest(BaseModel):
     """Body of POST /api/calibrate/response (optional). ``sweep``: exposure times (the camera's
-    unit, GigE: microseconds) to step through, one frame each, fitted together in the background."""
+    unit, GigE: microseconds) to step through, one frame each, fitted together in the background.
+    ``max_knots``: offer the sweep's fit a log-spline of that many knots too (docs/calibration.md)."""
 
     model_config = ConfigDict(extra="forbid")
     max_degree: int = Field(6, ge=1, le=10)
     apply: bool = False
     sweep: list[float] | None = Field(None, min_length=1, max_length=MAX_SWEEP)
+    max_knots: int = Field(0, ge=0, le=16)
+
+    @model_validator(mode="after")
+    def _knots_need_a_sweep(self) -> CalibrateRequest:
+        if self.max_knots and self.sweep is None:
+            raise ValueError("max_knots needs a sweep: one frame cannot fit a log-spline (give \"sweep\")")
+        return self
 
 
 def router(cam: ServedCamera) -> APIRouter:
@@ -33,7 +41,8 @@ def router(cam: ServedCamera) -> APIRouter:
         request = request or CalibrateRequest()
         if request.sweep is not None:  # a background job: 202 with it, progress in the state and GET
             try:
-                job = pipeline.start_sweep(request.sweep, request.max_degree, request.apply)
+                job = pipeline.start_sweep(request.sweep, request.max_degree, request.apply,
+                                           max_knots=request.max_knots)
             except ExposureUnsupported as exc:
                 return JSONResponse({"detail": str(exc)}, status_code=409)
             return JSONResponse(job, status_code=202, headers=NO_STORE)

@@ -995,15 +995,15 @@ def linearise(raw: np.ndarray, response: Response, sensor: Sensor | None = None)
 
 
 def calibrate_frame(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sensor: Sensor, *,
-                    max_degree: int = 6, points: int = 65, exposure_times=None,
+                    max_degree: int = 6, max_knots: int = 0, points: int = 65, exposure_times=None,
                     progress: Callable[[str], None] | None = None) -> dict:
     """Response calibration of live raw frames, for the service: the response file's content
     plus ``curve``, ``points`` samples {"brightness": [...], "linear": [...]} of I = f(M) over
     [0, 1] for plotting (``stats.band`` has the uncertainty band over the measured range).
     ``raw`` is one frame, or a list of frames at ``exposure_times`` (a sweep). Raises
     SveliveError when the frames cannot calibrate (too few constant regions, too narrow a
-    brightness range)."""
-    response = fit_response(raw, pattern, sensor, ResponseFitConfig(max_degree=max_degree),
+    brightness range). ``max_knots``: see :class:`ResponseFitConfig`."""
+    response = fit_response(raw, pattern, sensor, ResponseFitConfig(max_degree=max_degree, max_knots=max_knots),
                             exposure_times=exposure_times, progress=progress)
     m = np.linspace(0.0, 1.0, points)
     data = response.to_dict()
