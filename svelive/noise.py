@@ -712,6 +712,15 @@ def _with_prior(value: float, sigma: float, default: float) -> tuple[float, floa
     return post, post / math.sqrt(w_est + w_prior)
 
 
+def _gain_log_sigma(fit: LineFit) -> float:
+    """The gain's uncertainty as a log-sigma: ``-ln(1 - sigma / slope)``, the gain's rise where the slope
+    is one standard deviation lower (the side on which ``1 / slope`` grows without bound). For a
+    well-measured slope this is ``sigma / slope``; for a slope hardly above its noise it is large,
+    where ``sigma / slope`` would state an overestimated slope's gain to within a factor of 2."""
+    rel = math.sqrt(max(fit.cov[0, 0], 0.0)) / fit.slope
+    return -math.log(max(1.0 - rel, 1e-6))
+
+
 def estimate_from_fit(fit: LineFit | None, sensor: Sensor, samples: int) -> NoiseEstimate:
     """The NoiseEstimate of a fitted line: the sensor's given values kept, each estimated value combined
     with the prior (:func:`_with_prior`), the defaults where the fit failed (source "default")."""
@@ -730,7 +739,7 @@ def estimate_from_fit(fit: LineFit | None, sensor: Sensor, samples: int) -> Nois
         gain, gain_sigma = default_gain, _prior_sigma(default_gain)
     else:
         gain = 1.0 / fit.slope
-        gain, gain_sigma = _with_prior(gain, math.sqrt(max(fit.cov[0, 0], 0.0)) * gain * gain, default_gain)
+        gain, gain_sigma = _with_prior(gain, gain * _gain_log_sigma(fit), default_gain)
     if given_read is not None:
         read, read_sigma = given_read, 0.0
     else:
@@ -1224,15 +1233,16 @@ def _preferred(fit: LineFit | None, joint: LineFit | None, config: EstimatorConf
 
     Texture biases the residual fit's slope (the gain reads low) but not the joint fit's, which is
     noisier. The joint fit is taken where it tells the gain to within ``config.cancel_max_sigma``
-    (relative) and the two slopes differ by more than two of its standard deviations (the residual
-    fit's own, with what it states for texture, would hide the bias it tests for); where they agree
-    the frame shows no texture bias and the residual fit, the more precise, is kept."""
+    (relative), unless the two slopes agree within two of its standard deviations (the residual
+    fit's own, with what it states for texture, would hide the bias tested for) and the residual fit
+    states the smaller uncertainty: then the frame shows no texture bias and the more precise fit
+    is kept (a smooth scene)."""
     if joint is None or joint.fixed_slope:
         return fit
     if math.sqrt(max(joint.cov[0, 0], 0.0)) > config.cancel_max_sigma * joint.slope:
         return fit
     if fit is not None and not fit.fixed_slope:
-        if (joint.slope - fit.slope) ** 2 <= 4.0 * joint.cov[0, 0]:
+        if (joint.slope - fit.slope) ** 2 <= 4.0 * joint.cov[0, 0] and fit.cov[0, 0] <= joint.cov[0, 0]:
             return fit
     return joint
 
