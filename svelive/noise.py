@@ -147,7 +147,8 @@ class NoiseEstimate:
         gain_sigma: standard uncertainty of ``gain`` (e-/DN); 0 when given; the prior's (``ln 4`` times the
             value) when the data did not tell it; None when unknown.
         read_noise_sigma: standard uncertainty of ``read_noise`` (DN), likewise.
-        samples: noise samples (pixel pairs) the estimate rests on.
+        samples: noise samples (pixel pairs; residuals when the texture-cancelled fit was taken) the
+            estimate rests on.
         source: "given" (both from the user or datasheet), "estimated" (from the data,
             a given value kept), "default" (the data could not tell; the sensor defaults).
     """
@@ -1222,10 +1223,13 @@ def estimate_noise(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None
     if sensor.gain is not None and sensor.read_noise is not None:
         return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
     samples, fit = frame_samples(raw, camera, signal=signal, config=config)
+    count = samples.size
     if config.cancellation and sensor.gain is None:
         source, offset, floor = _signal_of(raw, camera, signal)
-        fit = _preferred(fit, cancellation_fit(source, offset, floor, camera, config), config)
-    return estimate_from_fit(fit, sensor, samples.size)
+        joint = cancellation_fit(source, offset, floor, camera, config)
+        if joint is not None and _preferred(fit, joint, config) is joint:
+            fit, count = joint, int(joint.bins_n.sum())  # residuals in the joint fit's bins
+    return estimate_from_fit(fit, sensor, count)
 
 
 def _preferred(fit: LineFit | None, joint: LineFit | None, config: EstimatorConfig) -> LineFit | None:

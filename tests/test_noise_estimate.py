@@ -308,3 +308,15 @@ def test_cancellation_needs_one_geometry_at_two_base_exposures():
         raw = frame(smooth_scene(), pattern, truth, 0).raw
         fit = cancellation_fit(raw, float(BLACK), -float(BLACK), unknown(pattern))
         assert (fit is not None) == expected, pattern
+
+
+def test_texture_cancellation_holds_a_given_read_noise():
+    """A datasheet read noise is kept and held fixed in the joint fit too; the gain still comes out of the
+    textured frame within 15 %, and the samples counted are the joint fit's residuals."""
+    truth = true_sensor(40_000, 0.7)
+    raw = frame(textured_scene(), "1,2/4,8", truth, 0).raw
+    est = estimate_noise(raw, Camera.build("1,2/4,8", None, Sensor(BITS, BLACK, None, None, truth.read_noise)))
+    assert est.read_noise == truth.read_noise and est.read_noise_sigma == 0.0
+    assert est.gain == pytest.approx(truth.gain, rel=0.15)
+    residual_only = estimate_noise(raw, unknown("1,2/4,8"), config=EstimatorConfig(cancellation=False))
+    assert est.samples > residual_only.samples
