@@ -1341,7 +1341,10 @@ class NoiseTracker:
     Static pixels between consecutive frames give texture-free samples (their difference removes
     the scene); once the recent frames hold enough of them (``temporal_enough``) the line is fitted
     to those alone, else to them pooled with the single-frame samples of the recent frames (which
-    texture can bias). A given gain or read noise in the camera is kept. Not thread-safe: one per stream.
+    texture can bias); without any temporal samples (a moving camera, no static mask) that line is
+    weighed against the recent frames' texture-cancelled fits (:func:`cancellation_fit`, combined by
+    inverse variance) as :func:`estimate_noise` does. A given gain or read noise in the camera is
+    kept. Not thread-safe: one per stream.
     """
 
     def __init__(self, history: int = 16, config: EstimatorConfig = EstimatorConfig(),
@@ -1351,6 +1354,7 @@ class NoiseTracker:
         self.temporal_enough = temporal_enough
         self._frame_parts: deque[NoiseSamples] = deque(maxlen=history)
         self._temporal_parts: deque[NoiseSamples] = deque(maxlen=history)
+        self._joint_fits: deque[LineFit] = deque(maxlen=history)
         self._previous: np.ndarray | None = None
         self._estimate: NoiseEstimate | None = None
         self._camera_key: tuple | None = None
@@ -1364,6 +1368,7 @@ class NoiseTracker:
         """Forget every frame (the camera changed)."""
         self._frame_parts.clear()
         self._temporal_parts.clear()
+        self._joint_fits.clear()
         self._previous = None
         self._estimate = None
         self._camera_key = None
@@ -1401,14 +1406,45 @@ class NoiseTracker:
                                     self.temporal_per_frame)
             self._temporal_parts.append(part)
         temporal = NoiseSamples.join(list(self._temporal_parts))
+        config = self.config
+        joint = None
         if temporal.size >= self.temporal_enough:
             pooled = temporal
         else:
-            samples, _ = frame_samples(raw, camera, signal=sig, config=self.config)
+            samples, _ = frame_samples(raw, camera, signal=sig, config=config)
             self._frame_parts.append(samples)
             pooled = NoiseSamples.join([*self._frame_parts, temporal])
+            # temporal samples are texture-free: with any, the pooled line is the better evidence
+            if config.cancellation and sensor.gain is None and temporal.size == 0:
+                frame_joint = cancellation_fit(sig, 0.0, floor, camera, config)
+                if frame_joint is not None:
+                    self._joint_fits.append(frame_joint)
+                joint = _combined(list(self._joint_fits))
         self._previous = np.array(sig, copy=True)
-        config = self.config
         fit = fit_line(*bin_samples(pooled, config), **_fixed(sensor), outlier_tolerance=config.outlier_tolerance)
-        self._estimate = estimate_from_fit(fit, sensor, pooled.size)
+        count = pooled.size
+        if joint is not None and _preferred(fit, joint, config) is joint:
+            fit, count = joint, int(joint.bins_n.sum())
+        self._estimate = estimate_from_fit(fit, sensor, count)
         return self._estimate
+
+
+def _combined(fits: list[LineFit]) -> LineFit | None:
+    """Texture-cancelled fits of several frames as one: slope and intercept weighted by the inverse of
+    their variances, the covariance that of the weighted mean (the frames' noise is independent; the
+    texture the fits removed is not, and is no part of their covariance). None for no fits."""
+    if not fits:
+        return None
+    if len(fits) == 1:
+        return fits[0]
+    out = []
+    for k in (0, 1):
+        var = np.array([max(f.cov[k, k], 1e-300) for f in fits])
+        values = np.array([(f.slope, f.intercept)[k] for f in fits])
+        w = 1.0 / var
+        out.append((float(np.sum(w * values) / np.sum(w)), 1.0 / float(np.sum(w))))
+    first = fits[0]
+    return replace(first, slope=out[0][0], intercept=out[1][0], cov=np.diag([out[0][1], out[1][1]]),
+                   bins_n=np.concatenate([f.bins_n for f in fits]), bins_t=np.concatenate([f.bins_t for f in fits]),
+                   bins_v=np.concatenate([f.bins_v for f in fits]),
+                   inlier=np.concatenate([f.inlier for f in fits]))

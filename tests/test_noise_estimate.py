@@ -320,3 +320,19 @@ def test_texture_cancellation_holds_a_given_read_noise():
     assert est.gain == pytest.approx(truth.gain, rel=0.15)
     residual_only = estimate_noise(raw, unknown("1,2/4,8"), config=EstimatorConfig(cancellation=False))
     assert est.samples > residual_only.samples
+
+
+def test_tracker_without_static_pixels_cancels_texture_too():
+    """A moving camera gives the tracker no static pixels, so it has only single-frame evidence: it takes
+    the recent frames' texture-cancelled fits as estimate_noise does, and the gain of a textured scene
+    comes out within 15 % where the residual samples alone read it low."""
+    truth = true_sensor(40_000, 0.7)
+    scene = textured_scene()
+    tracker, residual_only = NoiseTracker(), NoiseTracker(config=EstimatorConfig(cancellation=False))
+    for seed in (1, 2):
+        raw = frame(scene, "1/1/8/8", truth, 0, seed=seed).raw
+        est = tracker.update(raw, unknown("1/1/8/8"))
+        old = residual_only.update(raw, unknown("1/1/8/8"))
+    assert est.gain == pytest.approx(truth.gain, rel=0.15)
+    assert covered(est.gain, est.gain_sigma, truth.gain)
+    assert old.gain < 0.85 * truth.gain
