@@ -1047,12 +1047,14 @@ def joint_texture_fit(gid: np.ndarray, t: np.ndarray, c: np.ndarray, u: np.ndarr
 
 
 def cancellation_fit(source: np.ndarray, offset: float, floor: float, camera: Camera,
-                     config: EstimatorConfig = EstimatorConfig()) -> LineFit | None:
+                     config: EstimatorConfig = EstimatorConfig(), start: LineFit | None = None) -> LineFit | None:
     """The noise line of one frame with texture cancelled across exposures (see the module docstring and
     docs/noise.md), or None where the pattern, the frame or the fit cannot give it (no geometry at two
     base exposures, a calibrated per-pixel exposure map, too few flat cells, an ill-posed fit).
 
     ``source - offset`` is the signal above black; ``floor`` the lowest signal a reading can take (DN).
+    ``start``: a line the selection's first pass may use (the residual fit of the same frame), which
+    saves the pass under the sensor defaults.
     """
     tile_e, tile_c, pixel_map = _layout(camera)
     groups = _cancellation_geometries(tile_e, tile_c, config.reach)
@@ -1064,8 +1066,11 @@ def cancellation_fit(source: np.ndarray, offset: float, floor: float, camera: Ca
     fixed = _fixed(sensor)
     model = (fixed["slope"] or 1.0 / sensor.effective_gain,
              fixed["intercept"] if fixed["intercept"] is not None else sensor.floor_variance)
+    passes = 1 + config.cancel_iterations
+    if start is not None:
+        model, passes = (start.slope, max(start.intercept, QUANTISATION_VARIANCE)), config.cancel_iterations
     fit = None
-    for _ in range(1 + config.cancel_iterations):
+    for _ in range(max(passes, 1)):
         parts = [p for d in data if (p := _cancellation_select(d, model, floor, high, config)) is not None]
         if not parts:
             return None
@@ -1226,7 +1231,7 @@ def estimate_noise(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None
     count = samples.size
     if config.cancellation and sensor.gain is None:
         source, offset, floor = _signal_of(raw, camera, signal)
-        joint = cancellation_fit(source, offset, floor, camera, config)
+        joint = cancellation_fit(source, offset, floor, camera, config, start=fit)
         if joint is not None and _preferred(fit, joint, config) is joint:
             fit, count = joint, int(joint.bins_n.sum())  # residuals in the joint fit's bins
     return estimate_from_fit(fit, sensor, count)
@@ -1407,22 +1412,22 @@ class NoiseTracker:
             self._temporal_parts.append(part)
         temporal = NoiseSamples.join(list(self._temporal_parts))
         config = self.config
-        joint = None
         if temporal.size >= self.temporal_enough:
             pooled = temporal
         else:
             samples, _ = frame_samples(raw, camera, signal=sig, config=config)
             self._frame_parts.append(samples)
             pooled = NoiseSamples.join([*self._frame_parts, temporal])
-            # temporal samples are texture-free: with any, the pooled line is the better evidence
-            if config.cancellation and sensor.gain is None and temporal.size == 0:
-                frame_joint = cancellation_fit(sig, 0.0, floor, camera, config)
-                if frame_joint is not None:
-                    self._joint_fits.append(frame_joint)
-                joint = _combined(list(self._joint_fits))
-        self._previous = np.array(sig, copy=True)
         fit = fit_line(*bin_samples(pooled, config), **_fixed(sensor), outlier_tolerance=config.outlier_tolerance)
         count = pooled.size
+        joint = None
+        # temporal samples are texture-free: with any, the pooled line is the better evidence
+        if config.cancellation and sensor.gain is None and temporal.size == 0:
+            frame_joint = cancellation_fit(sig, 0.0, floor, camera, config, start=fit)
+            if frame_joint is not None:
+                self._joint_fits.append(frame_joint)
+            joint = _combined(list(self._joint_fits))
+        self._previous = np.array(sig, copy=True)
         if joint is not None and _preferred(fit, joint, config) is joint:
             fit, count = joint, int(joint.bins_n.sum())
         self._estimate = estimate_from_fit(fit, sensor, count)
