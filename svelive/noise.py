@@ -1227,14 +1227,23 @@ def estimate_noise(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None
     sensor = camera.sensor
     if sensor.gain is not None and sensor.read_noise is not None:
         return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+    fit, count = frame_fit(raw, camera, signal=signal, config=config)
+    return estimate_from_fit(fit, sensor, count)
+
+
+def frame_fit(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None = None,
+              config: EstimatorConfig = EstimatorConfig()) -> tuple[LineFit | None, int]:
+    """The noise line :func:`estimate_noise` takes from one frame and the samples behind it: the
+    residual fit (:func:`frame_samples`), or the texture-cancelled one (:func:`cancellation_fit`)
+    where :func:`_preferred` takes it; (None, n) when the frame gives no line."""
     samples, fit = frame_samples(raw, camera, signal=signal, config=config)
     count = samples.size
-    if config.cancellation and sensor.gain is None:
+    if config.cancellation and camera.sensor.gain is None:
         source, offset, floor = _signal_of(raw, camera, signal)
         joint = cancellation_fit(source, offset, floor, camera, config, start=fit)
         if joint is not None and _preferred(fit, joint, config) is joint:
             fit, count = joint, int(joint.bins_n.sum())  # residuals in the joint fit's bins
-    return estimate_from_fit(fit, sensor, count)
+    return fit, count
 
 
 def _preferred(fit: LineFit | None, joint: LineFit | None, config: EstimatorConfig) -> LineFit | None:

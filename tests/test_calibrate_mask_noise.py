@@ -148,3 +148,21 @@ def test_noise_bad_input():
         estimate_noise([flat, flat[:32]], sensor)
     with pytest.raises(SveliveError, match="saturated"):
         estimate_noise([flat * 5, flat * 5], sensor)
+
+
+def test_calibrate_noise_from_one_textured_frame_uses_the_reconstructions_estimator():
+    # a real crop's texture: the residual line alone read this frame's gain 2.3x too high; the
+    # texture-cancelled fit that svelive.reconstruct uses gets it within 15 %
+    from svelive.camera import Camera
+    from svelive.noise import estimate_noise as library_estimate
+    from svelive.simulate import load_sample_scene
+
+    pattern = "1,4/16,64"
+    sensor = Sensor.from_full_well(12, 10_000, 3, black_level=64)
+    scene = load_sample_scene("mttamwest")
+    raw = simulate(scene * exposure_scale(scene, Pattern.parse(pattern), sensor), pattern, sensor, seed=1).raw
+    told = Sensor(bits=12, black_level=64)
+    model = estimate_noise([raw], told, pattern)
+    assert model.method == "single-frame"
+    assert model.gain == pytest.approx(sensor.gain, rel=0.15)
+    assert model.gain == pytest.approx(library_estimate(raw, Camera(Pattern.parse(pattern), None, told)).gain, rel=0.02)

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from svelive.errors import SveliveError
-from svelive.noise import PRIOR_LOG_SIGMA, EstimatorConfig, LineFit, frame_samples, pair_fit
+from svelive.noise import PRIOR_LOG_SIGMA, EstimatorConfig, LineFit, frame_fit, pair_fit
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
@@ -294,9 +294,9 @@ def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | 
 
         raw = np.asarray(frames[0])
         camera = Camera(Pattern.parse(pattern), None, replace(sensor, gain=None, read_noise=None))
-        samples, fit = frame_samples(raw, camera)
+        fit, count = frame_fit(raw, camera)  # what svelive.reconstruct estimates, texture cancelled
         if fit is None:
             raise SveliveError("this frame has too few flat, unclipped places for a noise estimate; use a pair "
                                "of frames of a still scene, or a frame with smooth areas at several brightnesses")
-        return _model(fit, samples.size, "single-frame")
+        return _model(fit, count, "single-frame")
     raise SveliveError(f"noise estimation takes one frame of a static scene or a pair of frames, got {len(frames)}")
