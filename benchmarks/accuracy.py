@@ -16,15 +16,19 @@ with each method given (cubic is left out unless named: seconds per frame).
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
-import svelive
-from svelive import Pattern, Sensor, simulate
-from svelive.exr import read_luminance
-from svelive.metrics import pu21_psnr
-from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
+
+import svelive  # noqa: E402
+from svelive import Pattern, Sensor, simulate  # noqa: E402
+from svelive.exr import read_luminance  # noqa: E402
+from svelive.metrics import pu21_psnr  # noqa: E402
+from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene  # noqa: E402
 
 PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
 BRIGHTNESS = {"bright": 0.0, "dim": 5.0}

@@ -75,8 +75,10 @@ def main() -> int:
         config = os.path.join(tmp, "cameras.toml")
         with open(config, "w") as f:
             f.write(config_text(port, args.cameras, width, height, args.fps, args.cfa))
+        # run from this checkout's root: "-m" imports its svelive, not the one an editable install points at
         server = subprocess.Popen([sys.executable, "-m", "svelive.cli", "serve", "--config", config,
-                                   "--log-level", "warning"], stderr=subprocess.DEVNULL)
+                                   "--log-level", "warning"], stderr=subprocess.DEVNULL,
+                                  cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         base = f"http://127.0.0.1:{port}"
         names = [f"cam{i}" for i in range(args.cameras)]
         try:

@@ -25,6 +25,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
+
 from svelive import Pattern, Sensor  # noqa: E402
 from svelive.exr import read_luminance  # noqa: E402
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode  # noqa: E402

@@ -28,19 +28,22 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from svelive.bench.scenes import default_data_dir, find_images, load_scene, shipped_data_dir
-from svelive.camera import COLOUR_LAYOUTS, Camera
-from svelive.exr import read_exr
-from svelive.noise import EstimatorConfig, NoiseTracker, estimate_noise
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
-from svelive.simulate import exposure_scale, simulate
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
+
+from svelive.bench.scenes import default_data_dir, find_images, load_scene, shipped_data_dir  # noqa: E402
+from svelive.camera import COLOUR_LAYOUTS, Camera  # noqa: E402
+from svelive.exr import read_exr  # noqa: E402
+from svelive.noise import EstimatorConfig, NoiseTracker, estimate_noise  # noqa: E402
+from svelive.pattern import Pattern  # noqa: E402
+from svelive.sensor import Sensor  # noqa: E402
+from svelive.simulate import exposure_scale, simulate  # noqa: E402
 
 PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
 #: light levels: stops below the fill of the lowest exposure (issue 12: bright, -3, -5, -7)

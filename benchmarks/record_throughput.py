@@ -13,15 +13,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 
 import numpy as np
 
-from replay import RecordingReader, RecordingWriter, WriterConfig
-from svelive.camera import Camera
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
+
+from replay import RecordingReader, RecordingWriter, WriterConfig  # noqa: E402
+from svelive.camera import Camera  # noqa: E402
+from svelive.frame import Frame  # noqa: E402
+from svelive.sensor import Sensor  # noqa: E402
 
 
 def main() -> None:

@@ -53,6 +53,7 @@ import numpy as np
 # would hide the ``service`` package.
 _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
+sys.path.insert(0, os.path.dirname(_HERE))  # this checkout, not an editable install's
 
 
 def replay_source_factory(fps: float, width: int, height: int, n: int = 24, static: bool = False,
