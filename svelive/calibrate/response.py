@@ -34,7 +34,8 @@ Steps (:func:`fit_response`):
    ``max_knots`` knots evenly spaced in logit(M) over the data (a power law above the top
    of the data, up to white), fitted by least squares on ``log f(M_hi) - log f(M_lo) =
    log R`` (:func:`_solve_spline`), and a power law (2 knots); the same held-out rule
-   chooses among them and the degrees. Off by default (see the docs).
+   chooses among them and the degrees, on the equations whose darker value rounding cannot
+   move by more than 1 % (:func:`_undithered` has why). Off by default (see the docs).
 7. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
    fitted curve and the fit repeated; the ratio of the extreme exposures is kept
    at its nominal value because ``f^g`` with ratios ``R^g`` fits the same data
@@ -47,7 +48,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -211,9 +212,15 @@ class ResponseFitConfig:
         max_knots: knots of the log-spline model (below 2, the default: none), offered with that
             many knots and as a power law (2 knots), which then compete with the polynomials by
             held-out error on sweeps without a common exposure ratio (never on one frame). Off by
-            default: it recovers S-shaped curves within 1 % at 12 bits but not at 8 (docs/calibration.md).
+            default: it recovers S-shaped curves within 1 % at 12 bits but only to 0.1-1.8 % at 8, and
+            moves polynomial cameras' fits by up to 0.05 % (docs/calibration.md).
         dark_snr: when the log-spline is offered, equations whose darker window value is under
             this many single-reading noise standard deviations are left out (for every model).
+        rounding_tolerance: when the log-spline is offered, the held-out errors that choose among the
+            models count only equations whose darker value is at least half a quantisation step divided
+            by this (0.01: 50 DN): there rounding, whatever the noise, moves it by less than this
+            fraction. Rounding leaves an error that every window of one brightness shares, which a
+            flexible model follows and held-out locations (sharing it) cannot reveal.
     """
 
     max_degree: int = 6
@@ -231,6 +238,7 @@ class ResponseFitConfig:
     max_equations: int = 250_000
     max_knots: int = 0
     dark_snr: float = 3.0
+    rounding_tolerance: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -245,6 +253,8 @@ class _Pairs:
     k_hi: np.ndarray
     location: np.ndarray  # int (P,), index of the location
     fold: np.ndarray      # int (P,), spatial fold of the location
+    noise_lo: np.ndarray  # float64 (P,), analog noise sd of one reading at m_lo (DN, quantisation excluded)
+    noise_hi: np.ndarray
 
 
 def _window_sums(sub: np.ndarray, window: int) -> np.ndarray:
@@ -356,6 +366,19 @@ def _window_mean_variance(reading_var: np.ndarray, var_factor: float, range_dn: 
     return ((var_dn - bias) * var_factor + bias) / range_dn**2
 
 
+def _undithered(pairs: _Pairs, range_dn: float) -> _Pairs:
+    """``pairs`` with the window values' shared rounding variance at its undithered value, 1/12 DN^2.
+
+    :func:`_window_mean_variance` lets the noise dither the rounding, with the noise of the frame's
+    own noise curve; from one photographed frame that curve reads high (texture looks like noise),
+    so it can declare dithered a dark window whose readings all round alike. The worst case
+    instead: the error of a value a few DN above black then weighs as the step it can be.
+    """
+    extra_lo = (QUANTISATION_VARIANCE - quantisation_bias_variance(pairs.noise_lo)) / range_dn**2
+    extra_hi = (QUANTISATION_VARIANCE - quantisation_bias_variance(pairs.noise_hi)) / range_dn**2
+    return replace(pairs, var_lo=pairs.var_lo + extra_lo, var_hi=pairs.var_hi + extra_hi)
+
+
 def _too_few(found: int, needed: int) -> str:
     return (f"only {found} locally constant regions show two or more exposures unclipped (need {needed}): "
             "use a frame of a still scene with large smooth areas (walls, sky, a grey card) from dark to "
@@ -363,21 +386,23 @@ def _too_few(found: int, needed: int) -> str:
 
 
 def _flat_levels(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: ResponseFitConfig,
-                 statistics: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """(variance of each level's window value float64 (K, Y, X), flat bool (K, Y, X)) of one frame
-    from its :func:`level_window_statistics`: flat windows are unclipped and pass the chi-square
-    test against the frame's own noise curve."""
+                 statistics: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(variance of each level's window value float64 (K, Y, X), flat bool (K, Y, X), analog noise sd
+    of one reading in DN float64 (K, Y, X)) of one frame from its :func:`level_window_statistics`:
+    flat windows are unclipped and pass the chi-square test against the frame's own noise curve."""
     mean, var, var_factor, count, usable = statistics
     noise_var = _noise_variance_fn(raw, pattern, sensor)
     flat = np.zeros_like(usable)
     var_mean = np.zeros_like(mean)
+    analog = np.zeros_like(mean)
     for k in range(mean.shape[0]):
         dof = int(count[k]) - 3
         limit = _chi2_quantile(cfg.flat_quantile, dof) / dof
         nv = noise_var(mean[k])
         flat[k] = usable[k] & (var[k] <= nv * limit)
         var_mean[k] = _window_mean_variance(nv, var_factor[k], sensor.range_dn)
-    return var_mean, flat
+        analog[k] = np.sqrt(np.maximum(nv * sensor.range_dn**2 - QUANTISATION_VARIANCE, 0.0))
+    return var_mean, flat, analog
 
 
 def _collect_pairs(raws: np.ndarray | list[np.ndarray], pattern: Pattern, sensor: Sensor, cfg: ResponseFitConfig,
@@ -408,6 +433,7 @@ def _collect_pairs(raws: np.ndarray | list[np.ndarray], pattern: Pattern, sensor
     mean = np.concatenate([st[0] for st in statistics])
     var_mean = np.concatenate([fp[0] for fp in flat_parts])
     flat = np.concatenate([fp[1] for fp in flat_parts])
+    analog = np.concatenate([fp[2] for fp in flat_parts])
     del statistics, flat_parts, usable
     V = mean.shape[0]
     Y, X = mean.shape[1:]
@@ -430,8 +456,9 @@ def _collect_pairs(raws: np.ndarray | list[np.ndarray], pattern: Pattern, sensor
     for lo, hi in pairs:
         sel = flat[lo] & flat[hi] & keep
         parts.append((mean[lo][sel], mean[hi][sel], var_mean[lo][sel], var_mean[hi][sel],
-                      np.full(sel.sum(), lo), np.full(sel.sum(), hi), loc[sel], fold[sel]))
-    cols = [np.concatenate([p[i] for p in parts]) for i in range(8)]
+                      np.full(sel.sum(), lo), np.full(sel.sum(), hi), loc[sel], fold[sel],
+                      analog[lo][sel], analog[hi][sel]))
+    cols = [np.concatenate([p[i] for p in parts]) for i in range(10)]
     return _Pairs(*cols)
 
 
@@ -524,10 +551,13 @@ def _monotone_curve(curve: Callable[[np.ndarray], np.ndarray], measured: tuple[f
 
 
 def _cross_validated(pairs: _Pairs, folds: int, fit: Callable[[np.ndarray], np.ndarray],
-                     fold_loss: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> tuple[float, float, list[np.ndarray]]:
+                     fold_loss: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                     scored: np.ndarray | None = None) -> tuple[float, float, list[np.ndarray]]:
     """Mean and standard error over locations of a held-out loss, and the coefficients fitted without
     each fold (for the jackknife band): ``fit(training selection) -> coefficients``,
-    ``fold_loss(coefficients, test selection) -> the loss of the test rows``."""
+    ``fold_loss(coefficients, test selection) -> the loss of the test rows``. ``scored`` (bool (P,),
+    None: all): the equations the loss counts (the fits use every training equation); the mean is
+    over the locations that have one."""
     loss = np.zeros(pairs.m_lo.size)
     fits = []
     for f in range(folds):
@@ -537,13 +567,16 @@ def _cross_validated(pairs: _Pairs, folds: int, fit: Callable[[np.ndarray], np.n
         coef = fit(~test)
         fits.append(coef)
         loss[test] = fold_loss(coef, test)
-    _, inverse = np.unique(pairs.location, return_inverse=True)
+    location = pairs.location
+    if scored is not None:
+        loss, location = loss[scored], location[scored]
+    _, inverse = np.unique(location, return_inverse=True)
     per_location = np.bincount(inverse, weights=loss)
     return float(per_location.mean()), float(per_location.std(ddof=1) / math.sqrt(per_location.size)), fits
 
 
-def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int,
-              folds: int) -> tuple[float, float, list[np.ndarray]]:
+def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int, folds: int,
+              scored: np.ndarray | None = None) -> tuple[float, float, list[np.ndarray]]:
     """:func:`_cross_validated` of the polynomial of ``degree``: the held-out squared normalised residual."""
     A, y = _design(pairs, exposures, degree)
 
@@ -551,7 +584,7 @@ def _held_out(pairs: _Pairs, exposures: np.ndarray, degree: int,
         sigma = _residual_sigma(_subset(pairs, test), exposures, coef)
         return ((A[test] @ coef[1:] - y[test]) / sigma) ** 2
 
-    return _cross_validated(pairs, folds, lambda train: _solve(pairs, exposures, degree, train), fold_loss)
+    return _cross_validated(pairs, folds, lambda train: _solve(pairs, exposures, degree, train), fold_loss, scored)
 
 
 def spline_knots(low: float, high: float, count: int) -> np.ndarray:
@@ -609,7 +642,8 @@ def _solve_spline(pairs: _Pairs, exposures: np.ndarray, knots_u: np.ndarray, sel
 
 
 def _held_out_curve(pairs: _Pairs, exposures: np.ndarray, fit: Callable[[np.ndarray], np.ndarray],
-                    curve: Callable[[np.ndarray], Response], folds: int) -> tuple[float, float, list[np.ndarray]]:
+                    curve: Callable[[np.ndarray], Response], folds: int,
+                    scored: np.ndarray | None = None) -> tuple[float, float, list[np.ndarray]]:
     """:func:`_held_out` for any model: ``fit(training selection) -> coefficients``,
     ``curve(coefficients) -> Response``; the held-out loss is the polynomial's, the ratio residual
     ``f(m_hi) / R - f(m_lo)`` over its noise through the model's own slope, so the two compare."""
@@ -621,7 +655,7 @@ def _held_out_curve(pairs: _Pairs, exposures: np.ndarray, fit: Callable[[np.ndar
         sigma = _slope_sigma(sub, inv_r[test], response.slope(sub.m_lo), response.slope(sub.m_hi))
         return ((response(sub.m_hi) * inv_r[test] - response(sub.m_lo)) / sigma) ** 2
 
-    return _cross_validated(pairs, folds, fit, fold_loss)
+    return _cross_validated(pairs, folds, fit, fold_loss, scored)
 
 
 def _slope_sigma(pairs: _Pairs, inv_r: np.ndarray, slope_lo: np.ndarray, slope_hi: np.ndarray,
@@ -837,6 +871,7 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
     # the log-spline follows film curves but would also follow the log-periodic ripple one frame cannot
     # see: it is offered only to sweeps, whose exposure ratios are not all powers of one number
     candidates = [("polynomial", d) for d in range(1, config.max_degree + 1)]
+    scored = None
     if len(raws) > 1 and ratio is None and config.max_knots >= 2:
         # windows are kept only when no reading is clipped, so a dark one survives when its noise
         # happened to lift it off 0: its value reads high (and its log is biased besides). A flexible
@@ -853,6 +888,12 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
             # equations, cannot see the shoulder, and with no knot beyond the data the fit is stable in
             # the count (docs/calibration.md). A power law (2 knots) for linear and gamma cameras.
             candidates += [("log-spline", k) for k in sorted({2, config.max_knots})]
+            pairs = _undithered(pairs, sensor.range_dn)
+            # the rounding error of a window is the same at every location of that brightness, so
+            # held-out locations share it: models are compared where it is small against the value
+            far = pairs.m_lo * sensor.range_dn >= 0.5 / config.rounding_tolerance
+            if np.unique(pairs.location[far]).size >= config.min_locations:
+                scored = far
     exposures = nominal
     iterations = 8 if config.refine_ratios else 1
     for _ in range(iterations):
@@ -866,7 +907,7 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
                 coef = _solve(pairs, exposures, size)
                 if not _monotone(coef, measured):
                     continue
-                mean, se, held = _held_out(pairs, exposures, size, config.folds)
+                mean, se, held = _held_out(pairs, exposures, size, config.folds, scored)
                 held = [Response(tuple(c)) for c in held]
             else:
                 if progress is not None:
@@ -882,7 +923,7 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
                     continue
                 mean, se, held = _held_out_curve(
                     pairs, exposures, lambda sel, ku=knots_u: _solve_spline(pairs, exposures, ku, sel)[0],
-                    lambda c, kn=knots: Response(tuple(c), knots=kn), config.folds)
+                    lambda c, kn=knots: Response(tuple(c), knots=kn), config.folds, scored)
                 held = [Response(tuple(c), knots=knots) for c in held]
                 coef = (coef, knots)
             scores[kind, size] = (mean, se)
