@@ -32,17 +32,21 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
+import sys
 import time
 
 import cv2
 import numpy as np
 from numpy.polynomial import polynomial as P
 
-from svelive import Pattern, Sensor
-from svelive.calibrate import CURVES, ResponseFitConfig, fit_response, simulate_nonlinear
-from svelive.calibrate import response as response_module
-from svelive.exr import read_luminance
-from svelive.simulate import exposure_scale
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
+
+from svelive import Pattern, Sensor  # noqa: E402
+from svelive.calibrate import CURVES, ResponseFitConfig, fit_response, simulate_nonlinear  # noqa: E402
+from svelive.calibrate import response as response_module  # noqa: E402
+from svelive.exr import read_luminance  # noqa: E402
+from svelive.simulate import exposure_scale  # noqa: E402
 
 
 def debevec_error(radiance: np.ndarray, levels: np.ndarray, sensor: Sensor, curve, seed: int) -> float:
