@@ -53,7 +53,10 @@ the bins scatter more than that. Texture that passes the flatness tests is a
 fraction of the noise they test against, so it grows with the signal like shot
 noise and the bins' scatter cannot show it: the slope's shift under a stricter
 selection and under a texture term ``k t^2`` is added to its variance when
-significant. A value the frame does not tell carries the prior's uncertainty.
+significant. The texture-cancelled fit's bins are correlated (shared readings, shared texture,
+texture that differs between exposures over the frame): its variance is at least that of a
+delete-one-band jackknife (:func:`_with_jackknife`). A value the frame does not tell carries the
+prior's uncertainty.
 """
 
 from __future__ import annotations
@@ -109,7 +112,9 @@ class EstimatorConfig:
             exposure's noise variance;
         cancel_mismatch: the relative difference allowed between the texture two exposures see;
         cancel_max_samples: residuals read at most (a strided subset of the frame beyond that);
-        cancel_iterations: passes of select-fit there after the first (under the sensor defaults).
+        cancel_iterations: passes of select-fit there after the first (under the sensor defaults);
+        cancel_jackknife: horizontal bands of the frame left out one at a time to measure the joint
+            fit's spread (:func:`_with_jackknife`; 0: its own covariance alone).
     """
 
     max_samples: int = 40_000
@@ -135,6 +140,7 @@ class EstimatorConfig:
     cancel_max_sigma: float = 0.5
     cancel_max_samples: int = 400_000
     cancel_iterations: int = 1
+    cancel_jackknife: int = 16
 
 
 @dataclass(frozen=True)
@@ -908,12 +914,15 @@ class _CancellationSamples:
         u: float64 (J, N), squared residuals normalised so that ``E[u] = t / gain + R + c D``, DN^2.
         t: float64 (J, N), the shot coordinate from the cell's own readings (unbiased), DN.
         c: float64 (J,), the texture coefficient ``e_p^2 / sum coef^2``.
+        region: int64 (N,), the horizontal band of the frame the cell's block lies in, in
+            ``[0, config.cancel_jackknife)`` (the units :func:`_with_jackknife` leaves out).
     """
 
     coord: np.ndarray
     u: np.ndarray
     t: np.ndarray
     c: np.ndarray
+    region: np.ndarray
 
 
 def _cancellation_select(data: _CellData, model: tuple[float, float], floor: float, high: float,
@@ -964,7 +973,8 @@ def _cancellation_select(data: _CellData, model: tuple[float, float], floor: flo
     keep &= region <= limit[which]
     if np.count_nonzero(keep) < config.min_bin:
         return None
-    return _CancellationSamples(coord[keep], u[:, keep], t[:, keep], data.c)
+    region = data.block[keep] * max(config.cancel_jackknife, 1) // data.blocks
+    return _CancellationSamples(coord[keep], u[:, keep], t[:, keep], data.c, region)
 
 
 def _bins_of(coord: np.ndarray, where: np.ndarray, bins: int) -> np.ndarray:
@@ -1078,7 +1088,57 @@ def cancellation_fit(source: np.ndarray, offset: float, floor: float, camera: Ca
         if fit is None:
             return None
         model = (fit.slope, max(fit.intercept, QUANTISATION_VARIANCE))
+    if fit is not None and config.cancel_jackknife > 1:
+        fit = _with_jackknife(fit, parts, fixed, config)
     return fit
+
+
+def _with_jackknife(fit: LineFit, parts: list[_CancellationSamples], fixed: dict,
+                    config: EstimatorConfig) -> LineFit:
+    """``fit`` with its covariance raised to the delete-one-band jackknife's where that is larger.
+
+    The fit's own covariance treats every bin mean as independent with the variance of ``n``
+    independent squared residuals. They are not: a cell's residuals share readings, neighbouring
+    cells share texture, and what the two exposures of a geometry see differs by a texture that
+    varies over the frame. Leaving out one horizontal band of blocks at a time
+    (``config.cancel_jackknife`` bands, all geometries together, the bins kept) and refitting the
+    same selected cells measures the spread all of these give, whatever their correlation, without
+    a model of it. The line itself is left as fitted."""
+    bands = config.cancel_jackknife
+    sums = []  # per geometry: counts (bands, bins), sums of t and u (J, bands, bins), c (J,)
+    for part in parts:
+        which = _bins_of(part.coord, np.ones(part.coord.shape, bool), config.cancel_bins)
+        index = part.region * config.cancel_bins + which
+        size = bands * config.cancel_bins
+        counts = np.bincount(index, minlength=size).reshape(bands, config.cancel_bins)
+        sum_t = np.stack([np.bincount(index, tj, size) for tj in part.t]).reshape(-1, bands, config.cancel_bins)
+        sum_u = np.stack([np.bincount(index, uj, size) for uj in part.u]).reshape(-1, bands, config.cancel_bins)
+        sums.append((counts, sum_t, sum_u, part.c))
+    estimates = []
+    for g in range(bands):
+        gid, t, c, u, n = [], [], [], [], []
+        group = 0
+        for counts, sum_t, sum_u, coef in sums:
+            cnt = counts.sum(axis=0) - counts[g]
+            st = sum_t.sum(axis=1) - sum_t[:, g]
+            su = sum_u.sum(axis=1) - sum_u[:, g]
+            for k in np.flatnonzero(cnt >= config.min_bin):
+                gid += [group] * coef.size
+                t += list(st[:, k] / cnt[k])
+                c += list(coef)
+                u += list(su[:, k] / cnt[k])
+                n += [cnt[k]] * coef.size
+                group += 1
+        other = joint_texture_fit(np.array(gid, np.int64), np.array(t), np.array(c), np.array(u),
+                                  np.array(n, np.int64), **fixed, mismatch=config.cancel_mismatch)
+        if other is None:
+            return fit  # a band the fit cannot do without: the jackknife is undefined
+        estimates.append((other.slope, other.intercept))
+    est = np.array(estimates)
+    dev = est - est.mean(axis=0)
+    jack = (bands - 1) / bands * (dev.T @ dev)
+    extra = np.maximum(np.diag(jack) - np.diag(fit.cov), 0.0)
+    return replace(fit, cov=fit.cov + np.diag(extra))
 
 
 # ----- the public single-frame estimate ---------------------------------------------------------------
