@@ -273,13 +273,20 @@ def test_sweep_input_refused_with_the_fix():
         fit_response([a, b], PATTERN, sensor, exposure_times=[1.5, 1])
 
 
-def test_cli_sweep_progress_quiet_and_bits_from_the_file(tmp_path, capsys):
+def saved_chart_sweep(tmp_path, curve: str) -> list[str]:
+    """Two 12-bit frames of the chart through ``curve`` at exposures 1 and 1.5, saved as .npy; their paths."""
     sensor = Sensor.from_full_well(12, 10000, 3)
     scene = chart_scene()
     scene *= sensor.range_dn / scene.max()
-    for i, raw in enumerate(sweep_frames(scene, sensor, "gamma2.2")):
+    paths = []
+    for i, raw in enumerate(sweep_frames(scene, sensor, curve)):
         np.save(tmp_path / f"f{i}.npy", raw)
-    frames = [str(tmp_path / "f0.npy"), str(tmp_path / "f1.npy")]
+        paths.append(str(tmp_path / f"f{i}.npy"))
+    return paths
+
+
+def test_cli_sweep_progress_quiet_and_bits_from_the_file(tmp_path, capsys):
+    frames = saved_chart_sweep(tmp_path, "gamma2.2")
     out = tmp_path / "r.json"
     # no --bits: the saturated patches hold 4095, a 12-bit white
     assert main(["calibrate", "response", *frames, "--exposure-times", "8000,12000", "--pattern", "1,4/16,64",
@@ -490,12 +497,7 @@ def test_log_spline_on_offer_keeps_polynomial_cameras_at_8_bits(scene_name, name
 
 
 def test_cli_max_knots_offers_the_log_spline_to_a_sweep(tmp_path, capsys):
-    sensor = Sensor.from_full_well(12, 10000, 3)
-    scene = chart_scene()
-    scene *= sensor.range_dn / scene.max()
-    for i, raw in enumerate(sweep_frames(scene, sensor, "s-curve")):
-        np.save(tmp_path / f"f{i}.npy", raw)
-    frames = [str(tmp_path / "f0.npy"), str(tmp_path / "f1.npy")]
+    frames = saved_chart_sweep(tmp_path, "s-curve")
     args = ["calibrate", "response", *frames, "--exposure-times", "8000,12000", "--pattern", "1,4/16,64", "-q"]
     assert main([*args, "-o", str(tmp_path / "poly.json")]) == 0
     without = json.loads((tmp_path / "poly.json").read_text())
