@@ -115,6 +115,9 @@ EVIDENCE_QUANTILE, CHI2_1_AT_QUANTILE = 0.25, 0.10153104
 #: Largest window (taps) whose censored pixels are visited one by one (:func:`_censored_pixels`): measured, a 3x3
 #: window's visits beat the per-level window sums at any share of censored pixels, a 5x3 one's did not.
 DIRECT_TAPS = 9
+#: A row of :func:`_censored_each` with more than one censored pixel in this many sums every pixel's window at
+#: once.
+DENSE_ROW = 8
 #: Variance of rounding to integer DN, the least signal-independent noise a reading has.
 QUANTISATION_VARIANCE = 1.0 / 12.0
 #: Fixed-point steps of the floor's evidence (each a partition of the pairs; 3 settle it to about 1 %).
@@ -545,42 +548,126 @@ def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
     as the window sums elsewhere) of the readings consistent with p's own bound censor / e_p, x_p); ``bound_only``
     where none is. Consistent (:func:`_consistent_row`): w > 0 and x + 2 / sqrt(w) >= bound, tested squared.
 
-    One pass over the censored pixels alone: its cost follows their number, not the levels they are at.
+    Its cost follows the number of censored pixels, not the levels they are at: a row with few of them visits
+    each one's window (:func:`_censored_pixel`); a row with many (more than one in DENSE_ROW) sums every
+    pixel's window at once, a loop over the row per tap (:func:`_censored_row`), which LLVM vectorises. Both add
+    the same terms in the same order.
     """
     h, width = censored.shape
     ry, rx = ky.size // 2, kx.size // 2
-    zero, tiny = np.float32(0.0), np.float32(TINY)
-    reach2 = np.float32(CONSISTENT_SIGMA * CONSISTENT_SIGMA)
     rows = np.empty(ky.size, np.int64)
     cols = np.empty(kx.size, np.int64)
+    count, total, bound = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
     for r in range(h):
-        if not censored[r].any():
+        n = 0
+        for c in range(width):
+            n += censored[r, c]
+        if n == 0:
             continue
         for dy in range(ky.size):
             rows[dy] = _reflect(r + dy - ry, h)
+        if n * DENSE_ROW > width and width > 2 * rx:
+            _censored_row(exposure[r], w, x, rows, ky, kx, censor, count, total, bound)
+            for i in range(2 * rx):  # the row's ends: their windows reflect
+                c = i if i < rx else width - 2 * rx + i
+                for dx in range(kx.size):
+                    cols[dx] = _reflect(c + dx - rx, width)
+                count[c], total[c] = _censored_pixel(w, x, rows, cols, ky, kx, bound[c])
+            _censored_fill(censored[r], x[r], count, total, image[r], bound_only[r])
+            continue
         for c in range(width):
             if not censored[r, c]:
                 continue
-            if rx <= c < width - rx:
-                for dx in range(kx.size):
-                    cols[dx] = c + dx - rx
-            else:
-                for dx in range(kx.size):
-                    cols[dx] = _reflect(c + dx - rx, width)
-            bound = censor / exposure[r, c]
-            count, total = zero, zero
-            for dy in range(ky.size):
-                wr, xr, gy = w[rows[dy]], x[rows[dy]], ky[dy]
-                for dx in range(kx.size):
-                    wq, xq = wr[cols[dx]], xr[cols[dx]]
-                    gap = bound - xq
-                    if wq > zero and (gap <= zero or wq * gap * gap <= reach2):
-                        g = gy * kx[dx]
-                        count += g
-                        total += g * xq
-            image[r, c] = max(total / max(count, tiny), x[r, c])
-            if count <= zero:
+            for dx in range(kx.size):
+                cols[dx] = _reflect(c + dx - rx, width)
+            count_c, total_c = _censored_pixel(w, x, rows, cols, ky, kx, censor / exposure[r, c])
+            image[r, c] = max(total_c / max(count_c, np.float32(TINY)), x[r, c])
+            if count_c <= np.float32(0.0):
                 bound_only[r, c] = True
+
+
+@kernel
+def _censored_fill(censored, x, count, total, image, bound_only):
+    """One row of :func:`_censored_each`'s result at its censored pixels from the window sums (vectorised)."""
+    zero, tiny = np.float32(0.0), np.float32(TINY)
+    for c in range(x.size):
+        estimate = max(total[c] / max(count[c], tiny), x[c])
+        image[c] = estimate if censored[c] else image[c]
+        bound_only[c] |= censored[c] & (count[c] <= zero)
+
+
+@kernel
+def _censored_pixel(w, x, rows, cols, ky, kx, bound):
+    """(weight, weighted sum) of the readings consistent with ``bound`` in the window of ``rows`` x ``cols``."""
+    zero = np.float32(0.0)
+    reach2 = np.float32(CONSISTENT_SIGMA * CONSISTENT_SIGMA)
+    count, total = zero, zero
+    for dy in range(ky.size):
+        wr, xr, gy = w[rows[dy]], x[rows[dy]], ky[dy]
+        for dx in range(kx.size):
+            wq, xq = wr[cols[dx]], xr[cols[dx]]
+            gap = bound - xq
+            if wq > zero and (gap <= zero or wq * gap * gap <= reach2):
+                g = gy * kx[dx]
+                count += g
+                total += g * xq
+    return count, total
+
+
+@kernel
+def _censored_row(exposure, w, x, rows, ky, kx, censor, count, total, bound):
+    """:func:`_censored_pixel` of every pixel of a row (``exposure`` its exposures) away from its ends, censored
+    or not, into ``count`` and ``total``; the window's rows are ``rows``; ``bound`` gets censor / exposure."""
+    zero = np.float32(0.0)
+    width, rx = exposure.size, kx.size // 2
+    for c in range(width):
+        bound[c] = censor / exposure[c]
+        count[c] = zero
+        total[c] = zero
+    n = width - 2 * rx
+    inner_bound, inner_count, inner_total = bound[rx:rx + n], count[rx:rx + n], total[rx:rx + n]
+    for dy in range(ky.size):
+        gy, wr, xr = ky[dy], w[rows[dy]], x[rows[dy]]
+        if kx.size == 3:
+            _censored_taps3(wr, xr, inner_bound, gy * kx[0], gy * kx[1], gy * kx[2], inner_count, inner_total)
+            continue
+        for dx in range(kx.size):
+            _censored_tap(wr[dx:dx + n], xr[dx:dx + n], inner_bound, gy * kx[dx], inner_count, inner_total)
+
+
+@kernel
+def _censored_taps3(w, x, bound, g0, g1, g2, count, total):
+    """Three taps of :func:`_censored_row` in a row, w and x one row of the window (2 longer than ``bound``): one
+    loop, which LLVM vectorises, adding them in :func:`_censored_tap`'s order."""
+    zero = np.float32(0.0)
+    reach2 = np.float32(CONSISTENT_SIGMA * CONSISTENT_SIGMA)
+    for c in range(bound.size):
+        b, n, t = bound[c], count[c], total[c]
+        w0, x0, w1, x1, w2, x2 = w[c], x[c], w[c + 1], x[c + 1], w[c + 2], x[c + 2]
+        gap = b - x0
+        keep = (w0 > zero) & ((gap <= zero) | (w0 * gap * gap <= reach2))
+        n += g0 if keep else zero
+        t += g0 * x0 if keep else zero
+        gap = b - x1
+        keep = (w1 > zero) & ((gap <= zero) | (w1 * gap * gap <= reach2))
+        n += g1 if keep else zero
+        t += g1 * x1 if keep else zero
+        gap = b - x2
+        keep = (w2 > zero) & ((gap <= zero) | (w2 * gap * gap <= reach2))
+        count[c] = n + (g2 if keep else zero)
+        total[c] = t + (g2 * x2 if keep else zero)
+
+
+@kernel
+def _censored_tap(w, x, bound, g, count, total):
+    """One tap of :func:`_censored_row`, over aligned 1-D arrays (a loop of its own, which LLVM vectorises)."""
+    zero = np.float32(0.0)
+    reach2 = np.float32(CONSISTENT_SIGMA * CONSISTENT_SIGMA)
+    for c in range(bound.size):
+        gap = bound[c] - x[c]
+        keep = (w[c] > zero) & ((gap <= zero) | (w[c] * gap * gap <= reach2))
+        count[c] += g if keep else zero
+        total[c] += g * x[c] if keep else zero
 
 
 @kernel
