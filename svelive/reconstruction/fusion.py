@@ -38,7 +38,7 @@ from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import binomial_kernel, map_on, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
-from svelive.reconstruction.numerics import STRIP_ROWS, _confirmed, _grow, _maximum, _strips, _widen
+from svelive.reconstruction.numerics import STRIP_ROWS, _grow, _maximum, _strips
 
 
 @dataclass(frozen=True)
@@ -348,18 +348,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         changed = np.not_equal(frame.censored[ext], state.censored[ext])
         grown = _grow(changed, window) if changed.any() else changed
         flagged = np.empty(changed.shape, bool)
+        flagged_rows = np.empty(changed.shape[0], np.intp)
         count = _test_rows(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
-                           state.bound[ext], grown, scale, inv_k2, flagged, reset[core], keep.start)
+                           state.bound[ext], grown, scale, inv_k2, flagged, flagged_rows, reset[core], keep.start)
         if count == 0:  # nothing flagged near the strip: nothing to confirm or widen
             motion[core] = False
             return 0
-        confirmed = _confirmed(flagged)
-        if not confirmed.any():  # isolated flags only (noise)
-            motion[core] = False
-            return 0
-        moving = _widen(confirmed, config.widen)[keep]
-        motion[core] = moving
-        return int(np.count_nonzero(moving))
+        return _moving_rows(flagged, flagged_rows, keep.start, int(config.widen), motion[core])
 
     fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     separate = frame.test is not None  # the test's estimate has a history of its own
@@ -374,16 +369,12 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
     def update(core: slice, short: np.ndarray | None) -> None:
-        _update_rows(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
-                     frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
-                     weight[core], fused[core], own[core])
-        if separate:
-            _running_rows(weight[core], history[core], tested[core], scale, fused_test[core])
-        if detail:
-            # a history scaled up by the brightness ratio carries up to ratio times the (shot)
-            # noise variance the model gives at its new level
-            _evidence_rows(core.start, weight[core], fused[core], own[core], frame.own_slope, frame.own_floor,
-                           max(scale, np.float32(1)), evidence[core])
+        # a history scaled up by the brightness ratio carries up to ratio times the (shot)
+        # noise variance the model gives at its new level
+        _update_strip(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
+                      frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
+                      weight[core], fused[core], own[core], history[core], tested[core], fused_test[core],
+                      separate, frame.own_slope, frame.own_floor, max(scale, np.float32(1)), evidence[core], detail)
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -470,33 +461,77 @@ def _test_pixel(x, mean, weight, variance, bound, old_bound, grown, scale, inv_k
 
 
 @kernel
-def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, inv_k2, flagged, reset, first):
-    """The noise test of a strip with its halo, (R, W) arrays: writes ``flagged`` and, for rows
-    ``first:first + len(reset)``, ``reset`` (flagged or unstable); returns the count flagged."""
+def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, inv_k2, flagged, flagged_rows, reset,
+               first):
+    """The noise test of a strip with its halo, (R, W) arrays: writes ``flagged``, its count per row
+    (``flagged_rows``, (R,)) and, for rows ``first:first + len(reset)``, ``reset`` (flagged or
+    unstable); returns the count flagged."""
     count = 0
     for r in range(image.shape[0]):
         core = first <= r < first + reset.shape[0]
+        n = 0
         for c in range(image.shape[1]):
             f, unstable = _test_pixel(image[r, c], mean[r, c], weight[r, c], variance[r, c], bound[r, c],
                                       old_bound[r, c], grown[r, c], scale, inv_k2)
             flagged[r, c] = f
-            count += f
+            n += f
             if core:
                 reset[r - first, c] = f or unstable
+        flagged_rows[r] = n
+        count += n
     return count
 
 
 @kernel
-def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
-                 floor_weight, scale, reset, weight, fused, own):
+def _moving_rows(flagged, flagged_rows, first, widen, motion):
+    """motion (the core rows ``first:first + len(motion)`` of the strip) = the ``flagged`` pixels of the
+    strip with a flagged 8-neighbour (none beyond the strip), widened by a square of ``2 widen + 1``;
+    ``flagged_rows``: the count flagged per row (rows without any are skipped). Returns motion's count."""
+    rows, cols = flagged.shape
+    motion[:] = False
+    count = 0
+    last = first + motion.shape[0] - 1
+    for r in range(rows):
+        if flagged_rows[r] == 0:
+            continue
+        top, bottom = max(r - widen, first), min(r + widen, last)
+        if top > bottom:  # its square does not reach the core rows
+            continue
+        for c in range(cols):
+            if not flagged[r, c]:
+                continue
+            confirmed = False
+            for rr in range(max(r - 1, 0), min(r + 2, rows)):
+                if flagged_rows[rr] == 0:
+                    continue
+                for cc in range(max(c - 1, 0), min(c + 2, cols)):
+                    if (rr != r or cc != c) and flagged[rr, cc]:
+                        confirmed = True
+            if confirmed:
+                for rr in range(top, bottom + 1):
+                    for cc in range(max(c - widen, 0), min(c + widen + 1, cols)):
+                        count += not motion[rr - first, cc]
+                        motion[rr - first, cc] = True
+    return count
+
+
+@kernel
+def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
+                  floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
+                  own_slope, own_floor, noisier, evidence, detail):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
-    (R, W) arrays but for ``inverse``, (P, W) by row phase (:class:`FrameEstimate`). Writes
-    weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where reset), the fused image and
-    own readings. (Few arrays per kernel: with many, LLVM stops vectorising the loop.)
+    (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
+    (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where
+    reset), the fused image and own readings; with ``separate`` the running mean of the tested
+    estimate ``tested`` with its history ``old_test`` (``fused_test``); with ``detail`` the evidence:
+    (own - fused)^2 over the fused own reading's variance (one reading's, from the row-phase tables,
+    times the weight and ``noisier``). Row by row, each step a loop of its own over few arrays (with
+    many, LLVM stops vectorising), while the row's results are still in cache.
     """
-    one = np.float32(1)
+    one, zero = np.float32(1), np.float32(0)
     period = inverse.shape[0]
+    tables = own_slope.shape[0]
     for r in range(image.shape[0]):
         p = (first_row + r) % period
         for c in range(image.shape[1]):
@@ -508,28 +543,16 @@ def _update_rows(first_row, old_weight, motion, old_mean, old_own, image, signal
             fused[r, c] = _running_mean(old_mean[r, c], x, w, scale)
             own[r, c] = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x),
                                       w, scale)
-
-
-@kernel
-def _running_rows(weight, mean, new, scale, out):
-    """out = the running mean of ``mean`` (times ``scale``) and ``new`` with ``weight``, (R, W) arrays."""
-    for r in range(out.shape[0]):
-        for c in range(out.shape[1]):
-            out[r, c] = _running_mean(mean[r, c], new[r, c], weight[r, c], scale)
-
-
-@kernel
-def _evidence_rows(first_row, weight, fused, own, own_slope, own_floor, noisier, evidence):
-    """evidence = (own - fused)^2 over the fused own reading's variance (one reading's, from the
-    (P, W) row-phase tables, times the weight and ``noisier``), (R, W) rows from ``first_row`` on."""
-    zero = np.float32(0)
-    period = own_slope.shape[0]
-    for r in range(fused.shape[0]):
-        p = (first_row + r) % period
-        for c in range(fused.shape[1]):
-            f = fused[r, c]
-            d = own[r, c] - f
-            evidence[r, c] = d * d / ((own_slope[p, c] * _maximum(f, zero) + own_floor[p, c]) * weight[r, c] * noisier)
+        if separate:
+            for c in range(image.shape[1]):
+                fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], weight[r, c], scale)
+        if detail:
+            q = (first_row + r) % tables
+            for c in range(image.shape[1]):
+                f = fused[r, c]
+                d = own[r, c] - f
+                evidence[r, c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c]
+                                          * noisier)
 
 
 @kernel
