@@ -401,8 +401,42 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients):
         var_m[k] = estimate  # kept for the pixels near 0, below
         total[k] = t
         dark += (estimate <= zero) | (estimate * estimate * t < high)
-    if dark > 0:
+    if dark == 0:
+        return
+    if dark * FEW_NEAR_ZERO >= w.size:
         _nonnegative(image, var_m, total, coefficients)
+        return
+    # Few pixels near 0 (a bright scene): packed into short arrays, the same pass on them alone.
+    index = np.empty(w.size, np.int64)
+    n = _near_zero(var_m, total, index)
+    near_image, near_estimate, near_information = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(
+        n, np.float32)
+    for j in range(n):
+        k = index[j]
+        near_image[j], near_estimate[j], near_information[j] = image[k], var_m[k], total[k]
+    _nonnegative(near_image, near_estimate, near_information, coefficients)
+    for j in range(n):
+        image[index[j]] = near_image[j]
+
+
+#: :func:`_blend` runs :func:`_nonnegative` on the pixels near 0 alone when fewer than one in this many are.
+FEW_NEAR_ZERO = 4
+#: Margin of :func:`_near_zero`'s test over :func:`_nonnegative`'s own: z = L^ sqrt(information) < POSTERIOR_HIGH,
+#: rounded to float32, implies L^^2 information < POSTERIOR_HIGH^2 (1 + 1e-6) rounded, so this margin misses none.
+NEAR_MARGIN = 1.0 + 1e-5
+
+
+@kernel
+def _near_zero(estimate, information, index):
+    """The indices of the flat arrays' pixels that :func:`_nonnegative` may change (L^ <= 0 or within a little
+    more than POSTERIOR_HIGH deviations of 0), packed into the front of ``index``; their count. Without branches."""
+    zero, loose = np.float32(0.0), np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH * NEAR_MARGIN)
+    n = 0
+    for k in range(estimate.size):
+        e = estimate[k]
+        index[n] = k
+        n += (e <= zero) | (e * e * information[k] < loose)
+    return n
 
 
 #: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step. From
