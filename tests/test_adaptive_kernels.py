@@ -205,3 +205,39 @@ def test_bounds_only_in_the_box_of_lower_pixels_equal_whole_frame_ones(box):
     fill_lower_bounds(inp, lower, (3, 3), image, variance)
     np.testing.assert_array_equal(image, expected_image)
     np.testing.assert_array_equal(variance, expected_variance)
+
+
+@pytest.mark.parametrize("pattern", ["1/1/8/8", "1,4/16,64"])
+@pytest.mark.parametrize("blob", [900.0, 20000.0])  # few censored pixels per row, and rows mostly censored
+def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
+    """Each censored pixel: max(mean of the window's readings consistent with its level's bound, its own), from
+    per-level window sums (``smooth``); bit for bit for the 5x3 window (its sums reproduce OpenCV's arithmetic),
+    within rounding for the 3x3 one (a pixel's taps added in turn), in rows with few and with many censored
+    pixels, up to the frame's edges."""
+    rng = np.random.default_rng(3)
+    shape = (40, 61)
+    truth = cv2.GaussianBlur(rng.uniform(2, 60, shape).astype(np.float32), (0, 0), 1.5)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    truth += blob * np.exp(-((yy - 20) ** 2 / 150.0 + (xx - 50) ** 2 / 300.0))
+    truth[:2, :3] = truth[-3:, -2:] = 8000.0  # corners: every exposure censored
+    inp = prepare(simulate(truth, pattern, SENSOR, seed=9).raw, pattern, SENSOR)
+    f32, tiny = np.float32, np.float32(adaptive.TINY)
+    w = np.where(inp.censored, f32(0), rng.uniform(1e-4, 0.05, shape).astype(f32))
+    x = inp.signal / inp.exposure
+    ky, kx = adaptive.kernels(inp.pattern.shape)
+    image = np.full(shape, -1, f32)
+    lower = adaptive._censored_pixels(inp, image, w, x, ky, kx)
+    expected, expected_lower = np.full(shape, -1, f32), np.zeros(shape, bool)
+    reach = np.where(w > 0, np.sqrt(f32(1) / np.maximum(w, tiny)) * f32(adaptive.CONSISTENT_SIGMA) + x, -np.inf)
+    for level in inp.pattern.levels:
+        at = inp.censored & (inp.exposure == f32(level))
+        consistent = (reach >= f32(inp.sensor.censor_level / level)).astype(f32)
+        count, total = smooth(consistent, ky, kx), smooth(consistent * x, ky, kx)
+        expected = np.where(at, np.maximum(total / np.maximum(count, tiny), x), expected)
+        expected_lower |= at & (count <= 0)
+    assert expected_lower.any() and (inp.censored & ~expected_lower).any()
+    np.testing.assert_array_equal(lower, expected_lower)
+    if len(ky) * len(kx) > adaptive.DIRECT_TAPS:
+        np.testing.assert_array_equal(image, expected)
+    else:
+        np.testing.assert_allclose(image, expected, rtol=1e-6)
