@@ -144,10 +144,13 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
         workers: threads (or an Executor) over which strips of ``strip_rows`` rows are spread;
             the result depends on neither.
 
-    Cost: a strip without censored readings reads the tile's sums of e, G^2 e and G^2,
-    computed once per pattern and frame size; a strip with some takes four windows over its
-    uncensored readings (on the demo's 1920x1200 frame, 12 % censored, measured 2.6x faster
-    than visiting the windows near censored readings one by one).
+    Cost: with windows of up to :data:`INLINE_TAPS` taps (tiles of up to 4 rows and 2 columns), one
+    compiled pass per strip reads the readings, their exposures (a row per tile row unless they
+    are per pixel) and censoring once and writes the two results, the window sums made inside
+    it, bit-identical to OpenCV's (:func:`_window_strip`); wider tiles' sums along rows are
+    OpenCV's (four windows of a row each). Tiles of more rows: a strip without censored
+    readings reads the tile's sums of e, G^2 e and G^2, computed once per pattern and frame
+    size; a strip with some takes four OpenCV windows over its uncensored readings.
     """
     h, w = inp.shape
     per_pixel = inp.folded or inp.pattern.pixel_map is not None
@@ -157,6 +160,22 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
     sensor = inp.sensor
     inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
     out, out_var = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+    if kernels[0].size <= INLINE_TAPS[0]:
+        # one pass over the readings: each strip's window sums inside the kernel (along rows
+        # longer than INLINE_TAPS[1], OpenCV's sums of the strip's rows)
+        period = h if per_pixel else min(inp.pattern.shape[0], h)
+        exposure = inp.exposure[:period]
+        along = None if kernels[1].size <= INLINE_TAPS[1] else kernels[1::2]
+        no_rows = np.empty((4, 0, w), np.float32)
+
+        def inline(core: slice) -> None:
+            rows = no_rows if along is None else _row_sums(inp, slice(max(core.start - radius, 0),
+                                                                      min(core.stop + radius, h)), *along)
+            _window_strip(inp.signal, exposure, inp.censored, core.start, core.stop, *kernels, inv_gain, floor,
+                          image, variance, out, out_var, rows)
+
+        map_on(workers, inline, _strips(h, strip_rows))
+        return out, out_var
 
     def strip(core: slice) -> None:
         ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
@@ -215,3 +234,139 @@ def _window_rows(summed, row_of, first, exposure, exposure_squares, squares, out
             out_var[r, c] = noise if ok else inf
             lost += not ok
     return lost
+
+
+#: The longest windows (rows, columns) :func:`window_estimate` sums inside its kernel, in the order
+#: of OpenCV's sums, which :func:`_symmetric_row` repeats for these lengths only (tested; OpenCV
+#: sums a row of 5 taps otherwise): longer rows take OpenCV's sums along them, more rows OpenCV's
+#: windows.
+INLINE_TAPS = (5, 3)
+
+
+def _row_sums(inp: SveInput, rows: slice, kernel: np.ndarray, squares: np.ndarray) -> np.ndarray:
+    """float32 (4, R, W): the ``rows`` of the frame's uncensored s, e, e and 1 (0 where censored)
+    each summed along its row (OpenCV, ends mirrored), with ``kernel``, ``kernel``, ``squares``
+    and ``squares`` (:func:`_window_strip`'s rows)."""
+    one = np.ones(1, np.float32)
+    kept = np.logical_not(inp.censored[rows]).astype(np.float32)
+    signal, exposure = inp.signal[rows] * kept, inp.exposure[rows] * kept
+    return np.stack([smooth(signal, one, kernel), smooth(exposure, one, kernel), smooth(exposure, one, squares),
+                     smooth(kept, one, squares)])
+
+
+@kernel
+def _reflect(i, n):
+    """Index ``i`` mirrored into 0..n-1 without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
+    if n == 1:
+        return 0
+    while i < 0 or i >= n:
+        if i < 0:
+            i = -i
+        if i >= n:
+            i = 2 * n - 2 - i
+    return i
+
+
+@kernel
+def _symmetric_row(x, k, out):
+    """out = x (1-D) filtered with the symmetric kernel ``k`` (odd length), ends mirrored
+    (BORDER_REFLECT_101), summed in the order OpenCV sums rows of up to 3 taps and columns of up
+    to 5 (:data:`INLINE_TAPS`): the centre tap, then each pair of taps added before its weight is
+    applied, so the result is bit-identical to methods.base.smooth's."""
+    n, a = x.size, k.size // 2
+    centre = k[a]
+    for c in range(n):
+        out[c] = x[c] * centre
+    for j in range(1, a + 1):
+        kj = k[a + j]
+        inner = n - 2 * j
+        if inner > 0:  # slices, so that LLVM vectorises the loop
+            left, right, middle = x[:inner], x[2 * j:], out[j:n - j]
+            for c in range(inner):
+                middle[c] = middle[c] + (left[c] + right[c]) * kj
+        for c in range(min(j, n)):
+            out[c] = out[c] + (x[_reflect(c - j, n)] + x[_reflect(c + j, n)]) * kj
+        for c in range(max(n - j, j), n):
+            out[c] = out[c] + (x[_reflect(c - j, n)] + x[_reflect(c + j, n)]) * kj
+
+
+@kernel
+def _symmetric_column(ring, q, slots, k, out):
+    """out = the rows ``ring[q, slots[0..]]`` (the window's rows, top to bottom) combined with the
+    symmetric kernel ``k`` in :func:`_symmetric_row`'s order."""
+    a = k.size // 2
+    centre = ring[q, slots[a]]
+    kc = k[a]
+    for c in range(out.size):
+        out[c] = centre[c] * kc
+    for j in range(1, a + 1):
+        above, below = ring[q, slots[a - j]], ring[q, slots[a + j]]
+        kj = k[a + j]
+        for c in range(out.size):
+            out[c] = out[c] + (above[c] + below[c]) * kj
+
+
+@kernel
+def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv_gain, floor, image, variance,
+                  out, out_var, row_sums):
+    """:func:`window_estimate` of rows ``first:stop`` of the (H, W) frame (``exposure``: (P, W), row r's
+    exposures are row r % P), written to those rows of ``out`` and ``out_var``.
+
+    Each row of the window is summed along once (s, e and 1 over the uncensored readings, with
+    the kernels and their squares) into a ring of the window's rows, which are then summed down;
+    rows beyond the frame mirror (BORDER_REFLECT_101). Sums, estimate and variance are
+    bit-identical to the four OpenCV windows of the readings and :func:`_window_rows`: the method's
+    ``image`` and ``variance`` where the window holds no uncensored reading. ``row_sums``: the
+    sums along the frame's rows max(first - a, 0) on (a: the window's rows // 2), as
+    :func:`_row_sums` makes them, or (4, 0, W) to make them here.
+    """
+    rows, cols = signal.shape
+    period = exposure.shape[0]
+    size = ky.size
+    a = size // 2
+    zero, one, tiny, inf = np.float32(0), np.float32(1), np.float32(1e-12), np.float32(np.inf)
+    ring = np.empty((4, size, cols), np.float32)  # per window row: sum G s, sum G e, sum G^2 e, sum G^2
+    kept, kept_signal, kept_exposure = np.empty(cols, np.float32), np.empty(cols, np.float32), np.empty(cols, np.float32)
+    sums = np.empty((4, cols), np.float32)
+    slots = np.empty(size, np.intp)
+    following = first - a  # the next window row to sum along
+    for r in range(first, stop):
+        while following <= r + a:
+            src = _reflect(following, rows)
+            slot = (following - first + a) % size
+            following += 1
+            if row_sums.shape[1]:
+                for q in range(4):
+                    ring[q, slot] = row_sums[q, src - max(first - a, 0)]
+                continue
+            e_row, s_row, c_row = exposure[src % period], signal[src], censored[src]
+            for c in range(cols):
+                u = zero if c_row[c] else one
+                kept[c] = u
+                kept_signal[c] = s_row[c] * u
+                kept_exposure[c] = e_row[c] * u
+            _symmetric_row(kept_signal, kx, ring[0, slot])
+            _symmetric_row(kept_exposure, kx, ring[1, slot])
+            _symmetric_row(kept_exposure, kx2, ring[2, slot])
+            _symmetric_row(kept, kx2, ring[3, slot])
+        for j in range(size):
+            slots[j] = (r - a + j - first + a) % size
+        _symmetric_column(ring, 0, slots, ky, sums[0])
+        _symmetric_column(ring, 1, slots, ky, sums[1])
+        _symmetric_column(ring, 2, slots, ky2, sums[2])
+        _symmetric_column(ring, 3, slots, ky2, sums[3])
+        level_row, noise_row = out[r], out_var[r]
+        summed, exposures, exposure_squares, squares = sums[0], sums[1], sums[2], sums[3]
+        lost = 0
+        for c in range(cols):
+            b, s_, e2, g2 = exposures[c], summed[c], exposure_squares[c], squares[c]
+            ok = b > tiny
+            inverse = one / b
+            level = _maximum(s_ * inverse, zero)
+            noise = (level * inv_gain * e2 + floor * g2) * inverse * inverse
+            level_row[c] = level if ok else zero
+            noise_row[c] = noise if ok else inf
+            lost += not ok
+        for c in range(cols if lost else 0):
+            if np.isinf(noise_row[c]):
+                level_row[c], noise_row[c] = image[r, c], variance[r, c]

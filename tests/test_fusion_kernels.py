@@ -1,0 +1,102 @@
+"""The motion stage's compiled kernels against the OpenCV/numpy formulations they replace (bit for bit)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from svelive import Pattern, Sensor, simulate
+from svelive.camera import camera_for_raw
+from svelive.camera import COLOUR_LAYOUTS
+from svelive.reconstruction import numerics
+from svelive.reconstruction.fusion import _moving_rows
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods.base import binomial_kernel, smooth
+from svelive.reconstruction.numerics import _confirmed, _symmetric_row, _widen, window_estimate
+
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
+
+
+@pytest.mark.parametrize("length", [1, 2, 3, 4, 7, 64, 1923])
+@pytest.mark.parametrize("squared", [False, True])
+def test_symmetric_sums_as_opencv(length, squared):
+    """Along rows up to INLINE_TAPS[1] taps, down columns up to INLINE_TAPS[0]."""
+    rng = np.random.default_rng(length)
+    one = np.ones(1, np.float32)
+    x = (rng.random((1, length), dtype=np.float32) * 4000 - 100).astype(np.float32)
+    out = np.empty(length, np.float32)
+    for taps in range(1, numerics.INLINE_TAPS[1] + 1, 2):
+        k = binomial_kernel(taps)
+        k = k * k if squared else k
+        _symmetric_row(x[0], k, out)
+        assert np.array_equal(out, smooth(x, one, k)[0])
+    for taps in range(1, numerics.INLINE_TAPS[0] + 1, 2):
+        k = binomial_kernel(taps)
+        k = k * k if squared else k
+        _symmetric_row(x[0], k, out)
+        assert np.array_equal(out, smooth(x.T.copy(), k, one)[:, 0])
+
+
+def _input(shape, pattern="1,4/16,64", cfa=None, seed=0, bright=1.0):
+    rng = np.random.default_rng(seed)
+    scene = np.float32(300 * bright) * rng.random((shape[0], shape[1]) + ((3,) if cfa else ()), dtype=np.float32)
+    scene[: shape[0] // 3] *= np.float32(40)  # plenty of censored readings
+    raw = simulate(scene, pattern, SENSOR, cfa=cfa, seed=seed).raw
+    camera = camera_for_raw(raw, Pattern.parse(pattern), cfa=cfa, white_level=SENSOR.white_level, gain=SENSOR.gain,
+                            read_noise=SENSOR.read_noise)
+    return prepare(raw, camera)
+
+
+@pytest.mark.parametrize("shape", [(1, 5), (3, 4), (7, 9), (37, 61), (130, 97)])
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,8", "1/4/16", "1,2,4,8/16,32,64,128", "1/2/4/8/16/32"])
+def test_window_estimate_inline_is_the_opencv_one(shape, pattern, monkeypatch):
+    inp = _input(shape, pattern, seed=shape[0])
+    image = np.full(shape, 7.0, np.float32)
+    variance = np.full(shape, 3.0, np.float32)
+    inline = window_estimate(inp, image, variance, strip_rows=16)
+    monkeypatch.setattr(numerics, "INLINE_TAPS", (0, 0))  # the OpenCV windows
+    reference = window_estimate(inp, image, variance, strip_rows=16)
+    for a, b in zip(inline, reference):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("layout", ["assorted-4x4", "dual-iso", "quad-bayer", "column-bayer"])
+def test_window_estimate_inline_is_the_opencv_one_colour(layout, monkeypatch):
+    from svelive.reconstruction import colour
+    from svelive.reconstruction.methods import DEFAULT_METHOD
+    from svelive.reconstruction.single import method_spec
+
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    inp = _input((48, 40), pattern, cfa=cfa)
+    lum = colour.joint(inp, method_spec(DEFAULT_METHOD), rgb=False).luminance_input
+    image = np.full(lum.shape, 7.0, np.float32)
+    variance = np.full(lum.shape, 3.0, np.float32)
+    inline = window_estimate(lum, image, variance, strip_rows=8)
+    monkeypatch.setattr(numerics, "INLINE_TAPS", (0, 0))
+    reference = window_estimate(lum, image, variance, strip_rows=8)
+    for a, b in zip(inline, reference):
+        assert np.array_equal(a, b)
+
+
+def test_window_estimate_without_uncensored_readings_takes_the_method():
+    inp = _input((12, 12), bright=1e6)  # every reading censored
+    assert inp.censored.all()
+    image = np.full(inp.shape, 5.0, np.float32)
+    variance = np.full(inp.shape, 2.0, np.float32)
+    level, noise = window_estimate(inp, image, variance)
+    assert np.array_equal(level, image) and np.array_equal(noise, variance)
+
+
+@pytest.mark.parametrize("widen", [0, 1, 2])
+@pytest.mark.parametrize("density", [0.001, 0.05, 0.6])
+def test_moving_rows_is_confirmation_then_widening(widen, density):
+    rng = np.random.default_rng(int(density * 1000) + widen)
+    flagged = rng.random((40, 53)) < density
+    flagged[10, :] = False
+    flagged[20, 5:7] = True  # a confirmed pair
+    first, rows = 6, 28
+    motion = np.empty((rows, 53), bool)
+    count = _moving_rows(flagged, np.count_nonzero(flagged, axis=1).astype(np.intp), first, widen, motion)
+    expected = _widen(_confirmed(flagged), widen)[first:first + rows]
+    assert np.array_equal(motion, expected)
+    assert count == np.count_nonzero(expected)
