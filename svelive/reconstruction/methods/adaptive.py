@@ -79,7 +79,7 @@ import numpy as np
 
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips,
-                                  smooth, support_size)
+                                  reflect_101, smooth, support_size)
 from svelive.pattern import Pattern
 
 #: Significance, in standard deviations of a reading, of "consistent with a censored bound".
@@ -604,13 +604,13 @@ def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
         if n == 0:
             continue
         for dy in range(ky.size):
-            rows[dy] = _reflect(r + dy - ry, h)
+            rows[dy] = reflect_101(r + dy - ry, h)
         if n * DENSE_ROW > width and width > 2 * rx:
             _censored_row(exposure[r], w, x, rows, ky, kx, censor, count, total, bound)
             for i in range(2 * rx):  # the row's ends: their windows reflect
                 c = i if i < rx else width - 2 * rx + i
                 for dx in range(kx.size):
-                    cols[dx] = _reflect(c + dx - rx, width)
+                    cols[dx] = reflect_101(c + dx - rx, width)
                 count[c], total[c] = _censored_pixel(w, x, rows, cols, ky, kx, bound[c])
             _censored_fill(censored[r], x[r], count, total, image[r], bound_only[r])
             continue
@@ -618,7 +618,7 @@ def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
             if not censored[r, c]:
                 continue
             for dx in range(kx.size):
-                cols[dx] = _reflect(c + dx - rx, width)
+                cols[dx] = reflect_101(c + dx - rx, width)
             count_c, total_c = _censored_pixel(w, x, rows, cols, ky, kx, censor / exposure[r, c])
             image[r, c] = max(total_c / max(count_c, np.float32(TINY)), x[r, c])
             if count_c <= np.float32(0.0):
@@ -734,7 +734,7 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
         if n == 0:
             continue
         for dy in range(ky.size):
-            rows[dy] = _reflect(r + dy - ry, h)
+            rows[dy] = reflect_101(r + dy - ry, h)
         dense = n * DENSE_ROW > width
         _level_bounds(exposure[r], values, bounds, bound)
         for dy in range(ky.size):
@@ -777,7 +777,7 @@ def _consistent_pixel_sums(reach, x, c, bound, k0, k1):
     """:func:`_consistent_row_sums` at pixel ``c`` of one row alone."""
     n = reach.size
     zero, one = np.float32(0.0), np.float32(1.0)
-    left, right = _reflect(c - 1, n), _reflect(c + 1, n)
+    left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
     a = zero if reach[left] < bound else one
     m = zero if reach[c] < bound else one
     d = zero if reach[right] < bound else one
@@ -809,7 +809,7 @@ def _consistent_row_sums(reach, x, bound, k0, k1, count, total):
     zero, one = np.float32(0.0), np.float32(1.0)
     if n < 3:
         for c in range(n):
-            left, right = _reflect(c - 1, n), _reflect(c + 1, n)
+            left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
             a = zero if reach[left] < bound[c] else one
             b = zero if reach[c] < bound[c] else one
             d = zero if reach[right] < bound[c] else one
@@ -817,7 +817,7 @@ def _consistent_row_sums(reach, x, bound, k0, k1, count, total):
             total[c] = k1 * (b * x[c]) + k0 * (a * x[left] + d * x[right])
         return
     for c in (0, n - 1):
-        left, right = _reflect(c - 1, n), _reflect(c + 1, n)
+        left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
         a = zero if reach[left] < bound[c] else one
         b = zero if reach[c] < bound[c] else one
         d = zero if reach[right] < bound[c] else one
@@ -848,16 +848,6 @@ def _column_sums(rows, ky, out):
         k0, k1, k2 = ky[0], ky[1], ky[2]
         for i in range(out.size):
             out[i] = k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + e[i])
-
-
-@kernel
-def _reflect(i, n):
-    """Index ``i`` reflected into [0, n) without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
-    if n == 1:
-        return 0
-    while i < 0 or i >= n:
-        i = -i if i < 0 else 2 * (n - 1) - i
-    return i
 
 
 @kernel

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from svelive.cfa import ColourFilter, joint_period
+from svelive.jit import kernel
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor
 
@@ -168,22 +169,84 @@ def fill_lower_bounds(inp: SveInput, lower: np.ndarray, window: tuple[int, int],
     """Set ``image`` to :func:`censored_lower_bound` at the ``lower`` pixels (bool (H, W)), in place.
 
     ``variance``, if given, becomes bound^2 there: a bound is known to within
-    itself (relative error 1). The bound is dilated only over the box of the
-    ``lower`` pixels, one window radius wider (cut at the frame's edges), so
-    inside it it equals the whole frame's.
+    itself (relative error 1). The bound is taken only at the ``lower`` pixels,
+    from the censored bounds of the rows their windows reach (:func:`_fill_bounds`),
+    so the cost follows the rows holding them; the values are the whole frame's.
     """
-    rows = np.flatnonzero(lower.any(axis=1))
-    if rows.size == 0:
+    if not lower.any():
         return
-    cols = np.flatnonzero(lower[rows[0]:rows[-1] + 1].any(axis=0))
-    (ry, rx), (h, w) = (window[0] // 2, window[1] // 2), inp.shape
-    box = (slice(max(rows[0] - ry, 0), min(rows[-1] + ry + 1, h)),
-           slice(max(cols[0] - rx, 0), min(cols[-1] + rx + 1, w)))
-    piece = inp.crop(*box)
-    bound, where = censored_lower_bound(piece, window), lower[box]
-    np.copyto(image[box], bound, where=where)
-    if variance is not None:
-        np.copyto(variance[box], bound * bound, where=where)
+    _fill_bounds(inp.signal, inp.exposure, inp.censored, lower, window[0] // 2, window[1] // 2, image,
+                 np.empty((0, 0), np.float32) if variance is None else variance)
+
+
+@kernel
+def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance):
+    """image = the largest censored bound s / e within (2 ry + 1, 2 rx + 1) around each ``lower`` pixel of (H, W)
+    arrays (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance = its square (unless
+    ``variance`` is empty). A row with many lower pixels (more than one in 8) takes the window's maximum over
+    rows, then over columns, as whole-row loops; a row with few visits their windows."""
+    h, width = lower.shape
+    bound = np.empty((h, width), np.float32)
+    ready = np.zeros(h, np.bool_)
+    rows = np.empty(2 * ry + 1, np.int64)
+    column_max = np.empty(width, np.float32)
+    for r in range(h):
+        n = 0
+        for c in range(width):
+            n += lower[r, c]
+        if n == 0:
+            continue
+        for dy in range(2 * ry + 1):
+            rr = reflect_101(r + dy - ry, h)
+            rows[dy] = rr
+            if not ready[rr]:
+                _bound_row(signal[rr], exposure[rr], censored[rr], bound[rr])
+                ready[rr] = True
+        dense = n * 8 > width
+        if dense:
+            _rows_max(bound, rows, column_max)
+        for c in range(width):
+            if not lower[r, c]:
+                continue
+            m = np.float32(-np.inf)
+            for dx in range(2 * rx + 1):
+                cc = reflect_101(c + dx - rx, width)
+                if dense:
+                    m = max(m, column_max[cc])
+                else:
+                    for dy in range(2 * ry + 1):
+                        m = max(m, bound[rows[dy], cc])
+            image[r, c] = m
+            if variance.size:
+                variance[r, c] = m * m
+
+
+@kernel
+def _bound_row(signal, exposure, censored, bound):
+    """bound = s / e at censored readings, 0 elsewhere (s / e times 0, as numpy's product with the mask)."""
+    for k in range(signal.size):
+        bound[k] = signal[k] / exposure[k] * np.float32(censored[k])
+
+
+@kernel
+def _rows_max(values, rows, out):
+    """out = the largest of ``values``' rows ``rows``, column by column."""
+    out[:] = values[rows[0]]
+    for i in range(1, rows.size):
+        row = values[rows[i]]
+        for c in range(out.size):
+            out[c] = max(out[c], row[c])
+
+
+@kernel
+def reflect_101(i, n):
+    """Index ``i`` reflected into [0, n) without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
+    if n == 1:
+        return 0
+    while i < 0 or i >= n:
+        i = -i if i < 0 else 2 * (n - 1) - i
+    return i
+
 
 def pad_same_phase(image: np.ndarray, period: tuple[int, int], before: tuple[int, int],
                    after: tuple[int, int]) -> np.ndarray:
