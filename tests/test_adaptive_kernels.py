@@ -241,3 +241,20 @@ def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
         np.testing.assert_array_equal(image, expected)
     else:
         np.testing.assert_allclose(image, expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5)])
+@pytest.mark.parametrize("shape", [(40, 57), (7, 1), (6, 2), (9, 3), (1, 9)])
+def test_zero_where_the_whole_window_sits_at_the_bottom(window, shape):
+    """image = 0 exactly where every reading of the window (borders reflect-101) is at the raw range's bottom."""
+    rng = np.random.default_rng(sum(shape) + window[0])
+    s = np.where(rng.random(shape) < 0.85, -8.0, rng.uniform(-8, 30, shape)).astype(np.float32)
+    bottom = np.float32(-8.0)
+    image = rng.uniform(1, 2, shape).astype(np.float32)
+    everywhere = cv2.erode((s <= bottom).astype(np.uint8), np.ones(window, np.uint8),
+                           borderType=cv2.BORDER_REFLECT_101).astype(bool)
+    expected = np.where(everywhere, np.float32(0), image)
+    adaptive._zero_at_the_bottom(s, bottom, window, image)
+    np.testing.assert_array_equal(image, expected)
+    if shape[0] > 10:
+        assert everywhere.any() and not everywhere.all()

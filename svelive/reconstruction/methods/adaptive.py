@@ -284,13 +284,53 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
 def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
     """image = 0, in place, where every reading of the window lies at the bottom of the raw range (raw 0, a signal
     of -black): clipped there, such readings say only "at most", as saturated ones say "at least", and their
-    tightest answer is 0 (a black frame stays black; :func:`_nonnegative` would lift it)."""
-    at_bottom = s <= bottom
-    if not at_bottom.any():
-        return
-    at_bottom = at_bottom.view(np.uint8)
-    everywhere = cv2.erode(at_bottom, np.ones(window, np.uint8), borderType=cv2.BORDER_REFLECT_101)
-    np.copyto(image, np.float32(0), where=everywhere.view(bool))
+    tightest answer is 0 (a black frame stays black; :func:`_nonnegative` would lift it). Borders reflect-101."""
+    _zero_bottom(s, bottom, window[0] // 2, window[1] // 2, image)
+
+
+@kernel
+def _zero_bottom(s, bottom, ry, rx, image):
+    """:func:`_zero_at_the_bottom` on (H, W) arrays: rows whose window's rows all hold a reading at the bottom are
+    tested whole (the window's rows, then its columns, as vectorised loops); the others cannot hold such a pixel."""
+    h, width = s.shape
+    at_bottom = np.zeros(h, np.int64)
+    for r in range(h):
+        n = 0
+        row = s[r]
+        for c in range(width):
+            n += row[c] <= bottom
+        at_bottom[r] = n
+    rows = np.empty(2 * ry + 1, np.int64)
+    low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
+    inner = width - 2 * rx
+    for r in range(h):
+        candidate = True
+        for dy in range(2 * ry + 1):
+            rows[dy] = reflect_101(r + dy - ry, h)
+            candidate &= at_bottom[rows[dy]] > 0
+        if not candidate:
+            continue
+        low[:] = True
+        for dy in range(2 * ry + 1):
+            row = s[rows[dy]]
+            for c in range(width):
+                low[c] &= row[c] <= bottom
+        ends = min(rx, width)  # the row's ends, whose windows reflect: [0, ends) and [max(width - rx, ends), width)
+        for i in range(ends + width - max(width - rx, ends)):
+            c = i if i < ends else max(width - rx, ends) + i - ends
+            everywhere[c] = True
+            for dx in range(2 * rx + 1):
+                everywhere[c] &= low[reflect_101(c + dx - rx, width)]
+        if inner > 0:
+            middle = everywhere[rx:rx + inner]
+            middle[:] = True
+            for dx in range(2 * rx + 1):
+                shifted = low[dx:dx + inner]
+                for i in range(inner):
+                    middle[i] &= shifted[i]
+        out = image[r]
+        for c in range(width):
+            out[c] = np.float32(0.0) if everywhere[c] else out[c]
 
 
 @lru_cache(maxsize=16)
