@@ -15,13 +15,19 @@ every frame with the default method under the fixed defaults, the estimate and t
 true noise model, and reports PU21-PSNR (slow).
 With ``--colour`` the scenes are simulated in RGB through the colour layouts of
 svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`` a second
-frame of the same static scene (another noise seed) is given to a :class:`svelive.noise.NoiseTracker`
-after the first (all pixels static), which is what the live service can do; its errors are
-reported too ("pair"); ``--no-cancellation`` runs the single-frame estimate without texture
+and a third frame of the same static scene (other noise seeds) are given to a
+:class:`svelive.noise.NoiseTracker` after the first (all pixels static), which is what the live
+service does; its errors after two and three frames are reported too ("pair", "three"); ``--no-cancellation`` runs the single-frame estimate without texture
 cancellation across exposures (the estimator before issue 12.1's third pass). A run is
 "confidently wrong" when a value misses by more than 15 % and by more than two of its own stated
 standard uncertainties (in log space). ``--table CSV`` prints the
 summary of an earlier run again.
+
+"bound" is what no estimator can beat: the Cramer-Rao bounds on gain and read noise from
+that frame for an estimator that knew every pixel's expected signal (:func:`oracle_sigma_pct`).
+The summary splits the runs by it: where both bounds are under 7.5 % the frame tells the
+noise model to 15 % at two standard deviations; where one is over, no method can promise 15 %
+(e.g. a read noise of 0.7 DN in a bright frame, where shot noise swamps it everywhere).
 """
 
 from __future__ import annotations
@@ -52,6 +58,8 @@ LIGHTS = {"bright": 0.0, "-3": 3.0, "-5": 5.0, "-7": 7.0}
 NOISE_MODELS = ((10_000, 2.0), (3_000, 6.0), (40_000, 0.7), (3_000, 0.7), (40_000, 6.0), (20_000, 1.2))
 QUICK_MODELS = ((10_000, 2.0), (3_000, 6.0), (40_000, 0.7))
 BITS, BLACK = 12, 64
+#: a one-frame Cramer-Rao bound (oracle_sigma_pct) above this, in %, puts 15 % within two standard deviations
+BOUND_TOLD_PCT = 7.5
 
 
 def sd_error(gain: float, read: float, true_gain: float, true_read: float, white: float = 2**BITS - 1 - BLACK) -> float:
@@ -61,6 +69,36 @@ def sd_error(gain: float, read: float, true_gain: float, true_read: float, white
     est = np.sqrt(s / gain + read**2 + 1 / 12)
     true = np.sqrt(s / true_gain + true_read**2 + 1 / 12)
     return float(100 * np.max(np.abs(est / true - 1)))
+
+
+def oracle_sigma_pct(truth: np.ndarray, pattern: Pattern, sensor: Sensor, cfa: str | None = None
+                     ) -> tuple[float, float]:
+    """The Cramer-Rao bounds on gain and read noise from one frame, relative standard deviations in %.
+
+    What an estimator could reach that knew every pixel's expected signal (the
+    scene's texture exactly) and had only to read gain and read noise from the
+    readings' spread: readings are Gaussian with variance v = mu / gain + r^2 +
+    1/12 (DN^2), so the Fisher information of (1/gain, r^2) is the sum over
+    unclipped pixels of [mu, 1]^T [mu, 1] / (2 v^2). A run whose bound is above
+    7.5 % cannot be within 15 % reliably by any estimator (15 % is then under two
+    of its standard deviations); n frames divide the bound by sqrt(n). The same for
+    the read noise r (half the relative bound of r^2).
+
+    ``truth``: float32 (H, W), or (H, W, 3) with ``cfa``, radiance in DN at
+    relative exposure 1 (``SimulatedFrame.truth``).
+    """
+    if truth.ndim == 3:
+        from svelive.cfa import ColourFilter
+        index = ColourFilter.parse(cfa).channel_map(truth.shape[:2])
+        truth = np.take_along_axis(truth, index[..., None], axis=-1)[..., 0]
+    mu = (truth * pattern.exposure_map(truth.shape)).astype(np.float64).ravel()
+    mu = mu[mu + 3 * np.sqrt(sensor.signal_variance(mu)) < sensor.censor_level]
+    v = sensor.signal_variance(mu)
+    w = 0.5 / (v * v)
+    fisher = np.array([[np.sum(w * mu * mu), np.sum(w * mu)], [np.sum(w * mu), np.sum(w)]])
+    cov = np.linalg.inv(fisher)
+    return (float(100 * np.sqrt(cov[0, 0]) * sensor.gain),
+            float(100 * 0.5 * np.sqrt(cov[1, 1]) / sensor.read_noise**2))
 
 
 def confidently_wrong(error_pct: float, sigma_pct: float) -> bool:
@@ -78,26 +116,32 @@ def summary_table(rows: list[dict]) -> str:
     for key in ("light", "pattern", "image"):
         for value in dict.fromkeys(r[key] for r in rows):
             groups.append((f"{key} {value}", [r for r in rows if r[key] == value]))
+    if "bound_gain_pct" in rows[0]:
+        told = [max(r["bound_gain_pct"], r["bound_read_noise_pct"]) <= BOUND_TOLD_PCT for r in rows]
+        groups.append((f"frame tells both (bounds <= {BOUND_TOLD_PCT} %)", [r for r, t in zip(rows, told) if t]))
+        groups.append(("frame does not tell both", [r for r, t in zip(rows, told) if not t]))
     for model in dict.fromkeys((r["full_well"], r["true_read_noise"]) for r in rows):
         groups.append((f"{model[0]:.0f} e-, {model[1]:.1f} DN",
                        [r for r in rows if (r["full_well"], r["true_read_noise"]) == model]))
-    pair = "pair_gain_error_pct" in rows[0]
+    tracked = [n for n in ("pair", "three") if f"{n}_gain_error_pct" in rows[0]]
     head = ("| runs | n | gain within 15 % | gain confidently wrong | read noise within 15 % | "
-            "read noise confidently wrong | gain median abs error |" + (" pair: gain within 15 % | pair: gain "
-                                                                        "confidently wrong | pair: read noise "
-                                                                        "within 15 % |" if pair else ""))
+            "read noise confidently wrong | gain median abs error |"
+            + "".join(f" {n}: gain within 15 % | {n}: gain confidently wrong | {n}: read noise within 15 % |"
+                      for n in tracked))
     lines = [head, "|" + " --- |" * (head.count("|") - 1)]
     for label, mine in groups:
+        if not mine:
+            continue
         eg = np.array([r["gain_error_pct"] for r in mine])
         er = np.array([r["read_noise_error_pct"] for r in mine])
         wg = np.mean([confidently_wrong(r["gain_error_pct"], r["gain_sigma_pct"]) for r in mine])
         wr = np.mean([confidently_wrong(r["read_noise_error_pct"], r["read_noise_sigma_pct"]) for r in mine])
         line = (f"| {label} | {len(mine)} | {np.mean(abs(eg) <= 15):.0%} | {wg:.0%} | {np.mean(abs(er) <= 15):.0%} | "
                 f"{wr:.0%} | {np.median(abs(eg)):.0f} % |")
-        if pair:
-            pg = np.array([r["pair_gain_error_pct"] for r in mine])
-            pr = np.array([r["pair_read_noise_error_pct"] for r in mine])
-            pw = np.mean([confidently_wrong(r["pair_gain_error_pct"], r["pair_gain_sigma_pct"]) for r in mine])
+        for n in tracked:
+            pg = np.array([r[f"{n}_gain_error_pct"] for r in mine])
+            pr = np.array([r[f"{n}_read_noise_error_pct"] for r in mine])
+            pw = np.mean([confidently_wrong(r[f"{n}_gain_error_pct"], r[f"{n}_gain_sigma_pct"]) for r in mine])
             line += f" {np.mean(abs(pg) <= 15):.0%} | {pw:.0%} | {np.mean(abs(pr) <= 15):.0%} |"
         lines.append(line)
     return "\n".join(lines)
@@ -159,20 +203,27 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     sg = 100 * (est.gain_sigma or float("nan")) / est.gain
                     sr = 100 * (est.read_noise_sigma or float("nan")) / max(est.read_noise, 1e-9)
                     sde = sd_error(est.gain, est.read_noise, truth.gain, truth.read_noise)
+                    bound_g, bound_r = oracle_sigma_pct(sim.truth, p, truth, cfa)
                     name = pattern if cfa is None else f"{pattern} {cfa}"
                     done += 1
-                    flag = "" if abs(eg) <= 15 and abs(er) <= 15 else "  <-"
+                    flag = ("" if abs(eg) <= 15 and abs(er) <= 15 else "  <-") + f"  bound {bound_g:.1f}%/{bound_r:.1f}%"
                     scores = pu21_by_noise_model(raw, camera, truth, est, sim.truth) if psnr else {}
                     if pair:
                         tracker = NoiseTracker()
                         tracker.update(raw, camera)
                         second = simulate(radiance, p, truth, cfa=cfa, seed=seed + 1000).raw
                         two = tracker.update(second, camera, np.ones(raw.shape, bool))
-                        scores.update(pair_gain_error_pct=100 * (two.gain / truth.gain - 1),
-                                      pair_read_noise_error_pct=100 * (two.read_noise / truth.read_noise - 1),
-                                      pair_gain_sigma_pct=100 * (two.gain_sigma or float("nan")) / two.gain)
-                        flag += (f"  pair {scores['pair_gain_error_pct']:+.0f}%/"
-                                 f"{scores['pair_read_noise_error_pct']:+.0f}%")
+                        third = simulate(radiance, p, truth, cfa=cfa, seed=seed + 2000).raw
+                        three = tracker.update(third, camera, np.ones(raw.shape, bool))
+                        for name_, est_ in (("pair", two), ("three", three)):
+                            scores.update({
+                                f"{name_}_gain_error_pct": 100 * (est_.gain / truth.gain - 1),
+                                f"{name_}_read_noise_error_pct": 100 * (est_.read_noise / truth.read_noise - 1),
+                                f"{name_}_gain_sigma_pct": 100 * (est_.gain_sigma or float("nan")) / est_.gain,
+                                f"{name_}_read_noise_sigma_pct":
+                                    100 * (est_.read_noise_sigma or float("nan")) / max(est_.read_noise, 1e-9)})
+                            flag += (f"  {name_} {scores[f'{name_}_gain_error_pct']:+.0f}%/"
+                                     f"{scores[f'{name_}_read_noise_error_pct']:+.0f}%")
                     if psnr:
                         flag += "  PU21 default/estimated/true " + "/".join(f"{scores[k]:.2f}" for k in
                                                                    ("pu21_default", "pu21_estimated", "pu21_true"))
@@ -184,6 +235,7 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                                      gain=est.gain, gain_error_pct=eg, gain_sigma_pct=sg,
                                      true_read_noise=truth.read_noise, read_noise=est.read_noise,
                                      read_noise_error_pct=er, read_noise_sigma_pct=sr, sd_error_pct=sde,
+                                     bound_gain_pct=bound_g, bound_read_noise_pct=bound_r,
                                      samples=est.samples,
                                      source=est.source, ms=ms, **scores))
     eg = np.array([abs(r["gain_error_pct"]) for r in rows])
@@ -251,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--csv", type=Path, help="also write the rows as CSV")
     parser.add_argument("--table", type=Path, help="only print the summary table of a CSV this script wrote")
-    parser.add_argument("--pair", action="store_true", help="also a two-frame estimate (NoiseTracker, static)")
+    parser.add_argument("--pair", action="store_true", help="also the tracker's estimates after a second and a "
+                                                            "third frame (NoiseTracker, static)")
     parser.add_argument("--patterns", help="patterns separated by ';' (default: " + "; ".join(PATTERNS) + ")")
     parser.add_argument("--lights", help="comma-separated light names of " + ",".join(LIGHTS))
     parser.add_argument("--models", help="noise models 'full_well:read_dn' separated by ','")

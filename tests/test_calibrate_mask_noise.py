@@ -117,7 +117,8 @@ def test_noise_from_one_smooth_frame_within_ten_percent():
 
 DIM_BLACK0_HIGH_READ = pytest.mark.xfail(
     strict=True, reason="known limit: dim frame, 5.4 DN read noise, black level 0: few pixels clear the "
-                        "4-sigma margin from raw 0 and the gain reads about 16 % high (docs/noise.md)")
+                        "4-sigma margin from raw 0, and over three noise draws the gain reads -25 % to +5 % off "
+                        "and the read noise -38 % to +10 % (docs/noise.md)")
 
 
 @pytest.mark.parametrize("black,full_well,read_e,stops", [
@@ -125,18 +126,18 @@ DIM_BLACK0_HIGH_READ = pytest.mark.xfail(
     else pytest.param(black, fw, re, stops, marks=DIM_BLACK0_HIGH_READ)
     for black in (0, 64) for fw, re in ((10_000, 3), (3_000, 4), (40_000, 6)) for stops in (0, 5)])
 def test_noise_from_a_scene_pair_at_several_truths(black, full_well, read_e, stops):
-    """Two frames of a real scene (texture cancels in the difference). With a black level of 0 the
-    dark pixels clip at raw 0; dropping the readings that hit 0 truncated their noise and the older
-    estimate gave 0.0-0.98 DN read noise for a truth of 1.23 DN (10 000 e-, 3 e-)."""
+    """Two frames of a real scene (texture cancels in the difference), three noise draws each. With a
+    black level of 0 the dark pixels clip at raw 0; dropping the readings that hit 0 truncated their
+    noise and the older estimate gave 0.0-0.98 DN read noise for a truth of 1.23 DN (10 000 e-, 3 e-)."""
     sensor = Sensor.from_full_well(12, full_well, read_e, black_level=black)
     scene = load_sample_scene("desk")
     radiance = scene * exposure_scale(scene, PATTERN, sensor, stops_below_fill=stops)
-    a = simulate(radiance, PATTERN, sensor, seed=1).raw
-    b = simulate(radiance, PATTERN, sensor, seed=2).raw
-    model = estimate_noise([a, b], Sensor(bits=12, black_level=black))
-    assert model.gain == pytest.approx(sensor.gain, rel=0.15)
-    assert model.read_noise == pytest.approx(sensor.read_noise, rel=0.15)
-    assert model.read_noise_sigma is not None and model.gain_sigma is not None
+    for seeds in ((1, 2), (3, 4), (5, 6)):
+        a, b = (simulate(radiance, PATTERN, sensor, seed=seed).raw for seed in seeds)
+        model = estimate_noise([a, b], Sensor(bits=12, black_level=black))
+        assert model.gain == pytest.approx(sensor.gain, rel=0.15), seeds
+        assert model.read_noise == pytest.approx(sensor.read_noise, rel=0.15), seeds
+        assert model.read_noise_sigma is not None and model.gain_sigma is not None
 
 
 def test_noise_bad_input():

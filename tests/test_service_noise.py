@@ -49,7 +49,7 @@ def test_the_live_service_estimates_and_uses_the_noise_model():
         used = published.hdr.camera.sensor
         described = pipeline.reconstruction.noise.model_of(published.hdr.camera).attributes()
     assert described["noiseSource"] == state["in_use"]["source"] and described["noiseGain"] == used.gain
-    assert state["source"] != "given" and state["pairs"] >= 4 and state["in_use"] is not None
+    assert state["source"] != "given" and state["runs"] >= 4 and state["in_use"] is not None
     # the read noise is what the weights need most; the defaults (3 e- at 10 000 e- full well) say 1.2 DN
     assert abs(used.read_noise - TRUE.read_noise) < 0.15 * TRUE.read_noise, (used, TRUE)
     assert abs(used.gain - TRUE.gain) < 0.3 * TRUE.gain, (used, TRUE)

@@ -1,10 +1,11 @@
 """The live noise model: gain and read noise of a camera that was not told them, refined over the stream.
 
 The reconstruction thread offers each frame it reconstructed (a reference, no copy);
-every ``interval_s`` a pair of consecutive frames is handed to this stage's own
+every ``interval_s`` three consecutive frames are handed to this stage's own
 thread, which adds them to a :class:`svelive.noise.NoiseTracker`: the first frame's
 single-frame samples, and the differences of the pixels the motion tests found
-static between the two (texture-free). The reconstruction uses the estimate once
+static over the three (texture-free; the third frame groups them by signal without
+the bias of grouping by their own noisy values, :func:`svelive.noise.triple_samples`). The reconstruction uses the estimate once
 it has moved from the one in use by more than ``change`` (relative) and more than
 its own standard error: every change starts a new Reconstructor, and so restarts
 temporal fusion, so it must be rare.
@@ -24,11 +25,16 @@ from svelive.frame import Frame
 from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate, NoiseTracker
 
 
+#: consecutive frames per update of the tracker: three give texture-free samples without the pairs' binning bias
+RUN_FRAMES = 3
+
+
 @dataclass(frozen=True)
-class _Pair:
-    first: Frame
-    second: Frame
-    static: np.ndarray  # bool (H, W): pixels the motion tests found static in the second frame
+class _Run:
+    """Consecutive frames of one camera, and for each after the first the pixels the motion tests found
+    static in it (bool (H, W))."""
+    frames: tuple[Frame, ...]
+    static: tuple[np.ndarray, ...]
     camera: Camera
 
 
@@ -41,8 +47,9 @@ class NoiseStage:
         self.change = change
         self._tracker = NoiseTracker()
         self._cond = threading.Condition()
-        self._pending: _Pair | None = None
-        self._previous: tuple[Frame, Camera] | None = None
+        self._pending: _Run | None = None
+        self._recent: list[tuple[Frame, np.ndarray | None]] = []  # the newest consecutive frames, oldest first
+        self._recent_camera: Camera | None = None
         self._last_offer = -math.inf
         self._estimate: NoiseEstimate | None = None
         self._applied: NoiseEstimate | None = None
@@ -66,16 +73,21 @@ class NoiseStage:
     def offer(self, frame: Frame, camera: Camera, motion: np.ndarray | None) -> None:
         """The reconstruction thread, after each frame: ``camera`` as calibrated (before :meth:`camera_for`)."""
         if not self.needed(camera):
-            self._previous = None
+            self._recent = []
             return
-        previous, self._previous = self._previous, (frame, camera)
+        recent = self._recent
+        if (not recent or self._recent_camera != camera or motion is None
+                or frame.frame_id != recent[-1][0].frame_id + 1):
+            recent = []
+        recent = [*recent[-(RUN_FRAMES - 1):], (frame, None if motion is None else ~np.asarray(motion, bool))]
+        self._recent, self._recent_camera = recent, camera
         now = time.monotonic()
-        if (previous is None or motion is None or previous[1] != camera or frame.frame_id != previous[0].frame_id + 1
-                or now - self._last_offer < self.interval_s):
+        if len(recent) < RUN_FRAMES or now - self._last_offer < self.interval_s:
             return
         self._last_offer = now
+        self._recent = []  # the next run starts afresh: no frame is handed over twice
         with self._cond:
-            self._pending = _Pair(previous[0], frame, ~np.asarray(motion, bool), camera)
+            self._pending = _Run(tuple(f for f, _ in recent), tuple(m for _, m in recent[1:]), camera)
             self._cond.notify()
 
     def start(self) -> None:
@@ -93,20 +105,21 @@ class NoiseStage:
             with self._cond:
                 if self._pending is None:
                     self._cond.wait(0.5)
-                pair, self._pending = self._pending, None
-            if pair is None:
+                run, self._pending = self._pending, None
+            if run is None:
                 continue
             try:
-                self._tracker.update(pair.first.raw, pair.camera)
-                estimate = self._tracker.update(pair.second.raw, pair.camera, pair.static)
+                estimate = self._tracker.update(run.frames[0].raw, run.camera)
+                for frame, static in zip(run.frames[1:], run.static):
+                    estimate = self._tracker.update(frame.raw, run.camera, static)
             except Exception as exc:  # a frame the estimator cannot use: say so, keep the estimate in use
                 self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 continue
             self.error = None
             self.updates += 1
             self._estimate = estimate
-            if self._applied_key != pair.camera or self._moved(estimate, self._applied):
-                self._applied, self._applied_key = estimate, pair.camera
+            if self._applied_key != run.camera or self._moved(estimate, self._applied):
+                self._applied, self._applied_key = estimate, run.camera
 
     def _moved(self, new: NoiseEstimate, old: NoiseEstimate | None) -> bool:
         if old is None:
@@ -132,10 +145,10 @@ class NoiseStage:
                              0, "default")
 
     def state(self) -> dict | None:
-        """For /api/state: the newest estimate, the one in use, and how many frame pairs made it; None when the
+        """For /api/state: the newest estimate, the one in use, and how many runs of consecutive frames made it; None when the
         camera's noise model is given (or before the first estimate)."""
         estimate, applied = self._estimate, self._applied
         if estimate is None:
             return None
         return {**estimate.to_dict(), "in_use": None if applied is None else applied.to_dict(),
-                "pairs": self.updates, "error": self.error}
+                "runs": self.updates, "error": self.error}
