@@ -5,8 +5,10 @@
 Renders ``--frames`` frames of the demo scene (a still view, new noise in each)
 and times ``svelive.Reconstructor`` on them: the default method alone, with
 temporal fusion (what the service runs), and ``weighted`` with temporal fusion;
-median over the frames after the first two (kernel loading). Run it on two
-checkouts in turn (``git worktree``) to compare versions on one machine.
+median over the frames after the first two (kernel loading): wall time, and the
+thread's CPU time (everything runs on the caller's thread), which other
+processes sharing the cores inflate far less. Run it on two checkouts in turn
+(``git worktree``) to compare versions on one machine.
 """
 
 from __future__ import annotations
@@ -48,12 +50,14 @@ def main() -> int:
           f"cfa {args.cfa}, pattern {camera.pattern}, one thread", flush=True)
     for method, temporal in ((methods()[0], False), (methods()[0], True), ("weighted", True)):
         with Reconstructor(camera, method=method, temporal=temporal, workers=1) as stream:
-            times = []
+            times, cpu = [], []
             for frame in frames:
-                start = time.perf_counter()
+                start, start_cpu = time.perf_counter(), time.thread_time()
                 stream.process(frame)
                 times.append(time.perf_counter() - start)
-        print(f"{method:9s} temporal={temporal!s:5s} median {np.median(times[2:]) * 1e3:7.1f} ms", flush=True)
+                cpu.append(time.thread_time() - start_cpu)
+        print(f"{method:9s} temporal={temporal!s:5s} median {np.median(times[2:]) * 1e3:7.1f} ms, "
+              f"CPU {np.median(cpu[2:]) * 1e3:7.1f} ms", flush=True)
     return 0
 
 

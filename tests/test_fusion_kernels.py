@@ -100,3 +100,28 @@ def test_moving_rows_is_confirmation_then_widening(widen, density):
     expected = _widen(_confirmed(flagged), widen)[first:first + rows]
     assert np.array_equal(motion, expected)
     assert count == np.count_nonzero(expected)
+
+
+@pytest.mark.parametrize("window", [(3, 3), (5, 1), (5, 3), (1, 3)])
+@pytest.mark.parametrize("shape", [(1, 4), (6, 9), (70, 33)])
+def test_detail_rows_is_the_window_mean_then_the_detail_pass(window, shape):
+    from svelive.jit import flat
+    from svelive.reconstruction.fusion import _detail_pass, _detail_rows
+
+    rng = np.random.default_rng(window[0] * 100 + shape[0])
+    ky, kx = (binomial_kernel(n) for n in window)
+    evidence = (rng.random(shape, dtype=np.float32) * 3).astype(np.float32)
+    evidence[0, 0] = 0
+    fused = (rng.random(shape, dtype=np.float32) * 100).astype(np.float32)
+    own = (fused + rng.normal(0, 5, shape)).astype(np.float32)
+    reset = rng.random(shape) < 0.2
+    threshold = np.float32(1.4)
+    expected = np.empty(shape, np.float32)
+    _detail_pass(*flat(smooth(evidence, ky, kx), fused, own, reset, expected), threshold, True)
+    along = np.empty(shape, np.float32)
+    for r in range(shape[0]):
+        _symmetric_row(evidence[r], kx, along[r])
+    out = np.empty(shape, np.float32)
+    for first in range(0, shape[0], 4):  # in strips of 4 rows
+        _detail_rows(along, first, min(first + 4, shape[0]), ky, fused, own, reset, out, threshold, True)
+    assert np.array_equal(out, expected)

@@ -38,7 +38,7 @@ from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import binomial_kernel, map_on, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
-from svelive.reconstruction.numerics import STRIP_ROWS, _grow, _maximum, _strips
+from svelive.reconstruction.numerics import INLINE_TAPS, STRIP_ROWS, _grow, _maximum, _reflect, _strips, _symmetric_row
 
 
 @dataclass(frozen=True)
@@ -363,8 +363,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     out = np.empty_like(image) if detail or inconsistency is not None else fused
     floor_weight = np.float32(1.0 / config.max_history)
     # with detail: each pixel's squared difference own - fused over its variance, whose window
-    # mean is the local evidence of detail (a second pass, once every strip's rows are fused)
+    # mean is the local evidence of detail (a second pass, once every strip's rows are fused);
+    # summed along rows in the update where the detail pass sums the columns itself
     evidence = np.empty_like(image) if detail else image
+    ky, kx = (binomial_kernel(n) for n in window)
+    radius = ky.size // 2
+    inline = ky.size <= INLINE_TAPS[0] and kx.size <= INLINE_TAPS[1]
+    along = kx if inline else np.ones(1, np.float32)
     # the shortest exposure's estimate, kept from the test of a strip to the detail pass
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
@@ -374,7 +379,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         _update_strip(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
                       frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
                       weight[core], fused[core], own[core], history[core], tested[core], fused_test[core],
-                      separate, frame.own_slope, frame.own_floor, max(scale, np.float32(1)), evidence[core], detail)
+                      separate, frame.own_slope, frame.own_floor, max(scale, np.float32(1)), evidence[core], detail,
+                      along)
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -399,17 +405,18 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if not restarts:
             update(core, short)
 
-    ky, kx = (binomial_kernel(n) for n in window)
-    radius = ky.size // 2
     threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
     sharpens = config.max_history > 1  # else no pixel has history to sharpen with
 
     def sharpen_strip(core: slice) -> None:
         """The detail step of a strip, once the evidence of its rows and a window around them is in."""
-        ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
-        local = smooth(evidence[ext], ky, kx)[core.start - ext.start:core.stop - ext.start]
-        _detail_pass(*flat(np.ascontiguousarray(local), fused[core], own[core], reset[core], out[core]),
-                     threshold, sharpens)
+        if inline:  # the evidence is summed along rows: down the columns in the pass
+            _detail_rows(evidence, core.start, core.stop, ky, fused, own, reset, out, threshold, sharpens)
+        else:
+            ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
+            local = smooth(evidence[ext], ky, kx)[core.start - ext.start:core.stop - ext.start]
+            _detail_pass(*flat(np.ascontiguousarray(local), fused[core], own[core], reset[core], out[core]),
+                         threshold, sharpens)
         if inconsistency is not None:  # output only: the history keeps estimates of one kind
             _replace(*flat(reset[core], inconsistency._flagged[core], shortest[core], out[core], motion[core]))
 
@@ -518,7 +525,7 @@ def _moving_rows(flagged, flagged_rows, first, widen, motion):
 @kernel
 def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
                   floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
-                  own_slope, own_floor, noisier, evidence, detail):
+                  own_slope, own_floor, noisier, evidence, detail, along):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
     (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
@@ -526,12 +533,14 @@ def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signa
     reset), the fused image and own readings; with ``separate`` the running mean of the tested
     estimate ``tested`` with its history ``old_test`` (``fused_test``); with ``detail`` the evidence:
     (own - fused)^2 over the fused own reading's variance (one reading's, from the row-phase tables,
-    times the weight and ``noisier``). Row by row, each step a loop of its own over few arrays (with
-    many, LLVM stops vectorising), while the row's results are still in cache.
+    times the weight and ``noisier``), summed along its row with the symmetric kernel ``along``
+    (numerics._symmetric_row; a single tap of 1: as it is). Row by row, each step a loop of its own
+    over few arrays (with many, LLVM stops vectorising), while the row's results are still in cache.
     """
     one, zero = np.float32(1), np.float32(0)
     period = inverse.shape[0]
     tables = own_slope.shape[0]
+    row = np.empty(image.shape[1], np.float32)
     for r in range(image.shape[0]):
         p = (first_row + r) % period
         for c in range(image.shape[1]):
@@ -551,8 +560,8 @@ def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signa
             for c in range(image.shape[1]):
                 f = fused[r, c]
                 d = own[r, c] - f
-                evidence[r, c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c]
-                                          * noisier)
+                row[c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c] * noisier)
+            _symmetric_row(row, along, evidence[r])
 
 
 @kernel
@@ -586,6 +595,32 @@ def detail_threshold(kernel_y: np.ndarray, kernel_x: np.ndarray, sigmas: float) 
     squares = float(np.sum(np.square(kernel_y, dtype=np.float64))) * float(np.sum(np.square(kernel_x,
                                                                                             dtype=np.float64)))
     return 1.0 + sigmas * float(np.sqrt(2.0 * squares))
+
+
+@kernel
+def _detail_rows(evidence, first, stop, kernel, fused, own, reset, out, threshold, sharpens):
+    """:func:`_detail_pass` of rows ``first:stop`` of the (H, W) arrays, ``local`` made here: the window
+    mean of ``evidence`` (summed along rows already) down the columns with the symmetric ``kernel``,
+    rows beyond the frame mirrored, in OpenCV's order (numerics._symmetric_row): bit-identical to
+    methods.base.smooth's for kernels of up to numerics.INLINE_TAPS taps."""
+    rows, cols = evidence.shape
+    a = kernel.size // 2
+    zero, one = np.float32(0), np.float32(1)
+    local = np.empty(cols, np.float32)
+    for r in range(first, stop):
+        centre, kc = evidence[r], kernel[a]
+        for c in range(cols):
+            local[c] = centre[c] * kc
+        for j in range(1, a + 1):
+            above, below, kj = evidence[_reflect(r - j, rows)], evidence[_reflect(r + j, rows)], kernel[a + j]
+            for c in range(cols):
+                local[c] = local[c] + (above[c] + below[c]) * kj
+        f_row, o_row, reset_row, out_row = fused[r], own[r], reset[r], out[r]
+        for c in range(cols):
+            f, o, z, restart = f_row[c], o_row[c], local[c], reset_row[c]
+            beta = _maximum(one - threshold / z, zero)  # 0 where z is 0 (threshold / 0 = inf)
+            sharp = _maximum(f + beta * (o - f), zero)
+            out_row[c] = f if restart or not sharpens else sharp
 
 
 @kernel
