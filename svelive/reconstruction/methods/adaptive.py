@@ -52,12 +52,16 @@ bound the window's censored pixels imply, flagged in ``lower_bound``.
 
 Cost. Per-pixel weights make the cost independent of the number of exposure
 levels: two separable windows for the pilot, two for m, two for b^2. The
-censored-pixel step runs only where a strip holds censored pixels: a 3x3 window
-visits each censored pixel once (:func:`_censored_each`), longer windows get one
-more pair of windows per level with censored pixels, over the box around them;
-so a scene whose range fits in the unsaturated exposures does not pay for it,
-nor for the lower-bound fill. Step 4's polynomial runs only in strips holding
-pixels within 25 deviations of 0. The noise evidence reads 32 rows of the frame.
+censored-pixel step runs only in the rows holding censored pixels: a 3x3 window
+visits each censored pixel once (:func:`_censored_each`) or, in a row with many,
+every pixel of the row a tap at a time (vectorised); a 5x3 window (line-interleaved
+patterns) computes the per-level window sums at the censored pixels alone
+(:func:`_censored_separable`); longer windows get one more pair of windows per
+level with censored pixels, over the box around them; so a scene whose range
+fits in the unsaturated exposures does not pay for it, nor for the lower-bound
+fill, which also follows the rows holding lower bounds. Step 4's polynomial runs
+only in strips holding pixels within 25 deviations of 0, on those pixels alone
+(packed) where they are few. The noise evidence reads 32 rows of the frame.
 Without censored pixels the pilot's exposure window is the same for every
 strip of a frame (strips start on whole tiles), so it is computed once per
 pattern and strip shape; a folded input (a colour frame's luminance, see
@@ -240,7 +244,11 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
 
     # Pilot, inverse variances w of the readings (0 where censored), and the neighbours' weights wn.
-    if any_censored:
+    if any_censored and _exact_windows(ky, kx):
+        exposure_sum, wn = np.empty(shape, f32), np.empty(shape, f32)
+        _pilot_censored(s, e, censored, ky, kx, gain_inv, floor, centre, exposure_sum, w, x, wn, wx)
+        lower = exposure_sum <= 0
+    elif any_censored:
         s_valid, e_valid, censored_exposure = (np.empty(shape, f32) for _ in range(3))
         _split_censored(*flat(s, e, censored, s_valid, e_valid, censored_exposure))
         exposure_sum = smooth(e_valid, ky, kx)
@@ -395,6 +403,74 @@ def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn
         wnk = zero if lowest[k] <= e[k] else wk
         wn[k] = wnk
         wx[k] = wnk * xk
+
+
+def _exact_windows(ky: np.ndarray, kx: np.ndarray) -> bool:
+    """Whether compiled window sums (:func:`_valid_row_sums`, :func:`_column_sums`) give ``smooth``'s values bit
+    for bit: OpenCV filters rows first, then columns, each as the centre tap and then the pairs of mirrored taps
+    outwards, for rows of 3 taps and columns of 3 or 5 (measured; others differ in rounding)."""
+    return kx.size == 3 and ky.size in (3, 5)
+
+
+@kernel
+def _pilot_censored(s, e, censored, ky, kx, gain_inv, floor, centre, exposure_sum, w, x, wn, wx):
+    """The pilot's step of a strip holding censored pixels, (H, W) arrays, windows of :func:`_exact_windows`:
+    the window sums of the uncensored readings and exposures (``exposure_sum`` out), the lowest censored exposure
+    in the window, and :func:`_weights_censored`, in two passes over the rows (row filters, then the columns
+    and the weights) instead of masked copies, two window sums and an erosion over the whole strip."""
+    h, width = s.shape
+    ry = ky.size // 2
+    signal_rows, exposure_rows = np.empty((h, width), np.float32), np.empty((h, width), np.float32)
+    lowest_rows = np.empty((h, width), np.float32)
+    for r in range(h):
+        _valid_row_sums(s[r], e[r], censored[r], kx[0], kx[1], signal_rows[r], exposure_rows[r], lowest_rows[r])
+    rows = np.empty(ky.size, np.int64)
+    signal_sum, lowest = np.empty(width, np.float32), np.empty(width, np.float32)
+    for r in range(h):
+        for dy in range(ky.size):
+            rows[dy] = reflect_101(r + dy - ry, h)
+        _column_sums(signal_rows, rows, ky, signal_sum)
+        _column_sums(exposure_rows, rows, ky, exposure_sum[r])
+        lowest[:] = lowest_rows[rows[0]]
+        for dy in range(1, ky.size):
+            _at_most(lowest, lowest_rows[rows[dy]])
+        _weights_censored(signal_sum, exposure_sum[r], s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], wx[r],
+                          gain_inv, floor, centre)
+
+
+@kernel
+def _valid_row_sums(s, e, censored, k0, k1, signal, exposure, lowest):
+    """One row: the row filter (k0, k1, k0) of s and of e with censored readings as 0 (OpenCV's arithmetic,
+    borders reflect-101), and the least exposure of the censored readings among each pixel and its two
+    neighbours (BIG where none)."""
+    n = s.size
+    zero, big = np.float32(0.0), np.float32(BIG)
+    for c in range(n):
+        if 0 < c < n - 1:
+            continue
+        left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
+        signal[c] = k1 * (zero if censored[c] else s[c]) + k0 * ((zero if censored[left] else s[left])
+                                                                  + (zero if censored[right] else s[right]))
+        exposure[c] = k1 * (zero if censored[c] else e[c]) + k0 * ((zero if censored[left] else e[left])
+                                                                    + (zero if censored[right] else e[right]))
+        lowest[c] = min(min(e[left] if censored[left] else big, e[c] if censored[c] else big),
+                        e[right] if censored[right] else big)
+    if n < 3:
+        return
+    s0, s1, s2, e0, e1, e2 = s[:n - 2], s[1:n - 1], s[2:], e[:n - 2], e[1:n - 1], e[2:]
+    c0, c1, c2 = censored[:n - 2], censored[1:n - 1], censored[2:]
+    out_s, out_e, out_l = signal[1:n - 1], exposure[1:n - 1], lowest[1:n - 1]
+    for i in range(n - 2):
+        out_s[i] = k1 * (zero if c1[i] else s1[i]) + k0 * ((zero if c0[i] else s0[i]) + (zero if c2[i] else s2[i]))
+        out_e[i] = k1 * (zero if c1[i] else e1[i]) + k0 * ((zero if c0[i] else e0[i]) + (zero if c2[i] else e2[i]))
+        out_l[i] = min(min(e0[i] if c0[i] else big, e1[i] if c1[i] else big), e2[i] if c2[i] else big)
+
+
+@kernel
+def _at_most(a, b):
+    """a = min(a, b), elementwise, in place."""
+    for i in range(a.size):
+        a[i] = min(a[i], b[i])
 
 
 @kernel
@@ -575,15 +651,19 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
     neighbour the pixel is returned for the caller to give it the largest bound
     of its window.
 
-    Two ways to the same sums. A folded input (SveInput.folded: a colour frame's
+    Three ways to the same sums. A folded input (SveInput.folded: a colour frame's
     luminance, whose exposures vary off the levels), and a tile whose window has
     at most DIRECT_TAPS taps, visit each censored pixel's window once, testing
     its neighbours against its own bound censor / e (:func:`_censored_each`):
-    the cost follows the number of censored pixels. Otherwise (longer windows,
-    and calibrated per-pixel exposure maps, tested against the bound of their
-    nominal level) each level with censored pixels gets two window sums over the
-    box around them, one window radius wider (cut at the frame's edges), so that
-    inside it they equal whole-frame sums: the cost follows the levels' boxes.
+    the cost follows the number of censored pixels. A 5x3 window computes, at
+    each censored pixel, the window sums of its own level's consistent readings
+    with OpenCV's arithmetic (:func:`_censored_separable`): the same values as
+    the per-level sums below, at a cost that follows the rows holding censored
+    pixels. Otherwise (longer windows, and calibrated per-pixel exposure maps,
+    tested against the bound of their nominal level) each level with censored
+    pixels gets two window sums over the box around them, one window radius
+    wider (cut at the frame's edges), so that inside it they equal whole-frame
+    sums: the cost follows the levels' boxes.
     """
     f32 = np.float32
     censor = inp.sensor.censor_level
@@ -767,6 +847,7 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     bound = np.empty(width, np.float32)
     level_count, level_sum = np.empty((ky.size, width), np.float32), np.empty((ky.size, width), np.float32)
     count, total = np.empty(width, np.float32), np.empty(width, np.float32)
+    window_rows = np.arange(ky.size)
     for r in range(h):
         n = 0
         for c in range(width):
@@ -786,8 +867,8 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
             for dy in range(ky.size):
                 _consistent_row_sums(reach[rows[dy]], x[rows[dy]], bound, kx[0], kx[1], level_count[dy],
                                      level_sum[dy])
-            _column_sums(level_count, ky, count)
-            _column_sums(level_sum, ky, total)
+            _column_sums(level_count, window_rows, ky, count)
+            _column_sums(level_sum, window_rows, ky, total)
         for c in range(width):
             if not censored[r, c] or bound[c] == np.inf:
                 continue
@@ -875,16 +956,16 @@ def _consistent_row_sums(reach, x, bound, k0, k1, count, total):
 
 
 @kernel
-def _column_sums(rows, ky, out):
-    """The column filter ``ky`` (3 or 5 taps) of ``rows`` (ky.size, W), the window's rows top to bottom:
+def _column_sums(values, rows, ky, out):
+    """The column filter ``ky`` (3 or 5 taps) over ``values``' rows ``rows`` (the window's, top to bottom):
     OpenCV's arithmetic, centre tap first, then the pairs outwards."""
     if ky.size == 3:
-        a, b, c = rows[0], rows[1], rows[2]
+        a, b, c = values[rows[0]], values[rows[1]], values[rows[2]]
         k0, k1 = ky[0], ky[1]
         for i in range(out.size):
             out[i] = k1 * b[i] + k0 * (a[i] + c[i])
     else:
-        a, b, c, d, e = rows[0], rows[1], rows[2], rows[3], rows[4]
+        a, b, c, d, e = values[rows[0]], values[rows[1]], values[rows[2]], values[rows[3]], values[rows[4]]
         k0, k1, k2 = ky[0], ky[1], ky[2]
         for i in range(out.size):
             out[i] = k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + e[i])
