@@ -445,9 +445,7 @@ def _valid_row_sums(s, e, censored, k0, k1, signal, exposure, lowest):
     neighbours (BIG where none)."""
     n = s.size
     zero, big = np.float32(0.0), np.float32(BIG)
-    for c in range(n):
-        if 0 < c < n - 1:
-            continue
+    for c in (0, n - 1):  # the ends (the same pixel when n is 1)
         left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
         signal[c] = k1 * (zero if censored[c] else s[c]) + k0 * ((zero if censored[left] else s[left])
                                                                   + (zero if censored[right] else s[right]))
