@@ -85,7 +85,10 @@ class FrameEstimate:
             whole map, so that the per-pixel pass reads a few rows that stay in cache.
         own_slope, own_floor: float32 (P, W), by row phase likewise, the variance of one frame's
             own reading, ``own_slope * L + own_floor`` at radiance L (1 / (e g) and sigma^2 / e^2),
-            which the detail step compares the fused own readings' differences with.
+            which the detail step compares the fused own readings' differences with; or two
+            numbers a and b standing for the tables ``inverse * a`` and ``inverse * inverse * b``
+            (float32 products), which the kernels then compute instead of reading them (a
+            per-pixel exposure map's tables are whole frames).
         test, test_variance: float32 (H, W), the estimate the temporal test compares with the
             history, and its noise variance (DN, DN^2): a window mean whose loss of resolution
             is the same in every frame of a static scene
@@ -99,8 +102,8 @@ class FrameEstimate:
     censored: np.ndarray
     signal: np.ndarray
     inverse: np.ndarray
-    own_slope: np.ndarray
-    own_floor: np.ndarray
+    own_slope: np.ndarray | float
+    own_floor: np.ndarray | float
     test: np.ndarray | None = None
     test_variance: np.ndarray | None = None
 
@@ -257,6 +260,10 @@ def _subsampled_exceeding(image, mean, weight, variance, bound, old_bound, censo
             counts[1] += d * d * inv_s2 > (weight[i, j] + one) * variance[i, j]
 
 
+#: The row-phase tables of :func:`_update_strip` when it computes them (:class:`FrameEstimate`).
+_NO_TABLE = np.empty((0, 0), np.float32)
+_NO_TABLE.setflags(write=False)
+
 #: Global brightness ratios closer to 1 than this are not divided out (far below any noise).
 RATIO_TOLERANCE = 2e-3
 
@@ -373,14 +380,18 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # the shortest exposure's estimate, kept from the test of a strip to the detail pass
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
+    if np.ndim(frame.own_slope) == 0:  # the tables' scales: the kernel computes them from ``inverse``
+        own_tables = (_NO_TABLE, _NO_TABLE, np.float32(frame.own_slope), np.float32(frame.own_floor))
+    else:
+        own_tables = (frame.own_slope, frame.own_floor, np.float32(0), np.float32(0))
+
     def update(core: slice, short: np.ndarray | None) -> None:
         # a history scaled up by the brightness ratio carries up to ratio times the (shot)
         # noise variance the model gives at its new level
         _update_strip(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
                       frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
                       weight[core], fused[core], own[core], history[core], tested[core], fused_test[core],
-                      separate, frame.own_slope, frame.own_floor, max(scale, np.float32(1)), evidence[core], detail,
-                      along)
+                      separate, *own_tables, max(scale, np.float32(1)), evidence[core], detail, along)
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -525,11 +536,12 @@ def _moving_rows(flagged, flagged_rows, first, widen, motion):
 @kernel
 def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
                   floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
-                  own_slope, own_floor, noisier, evidence, detail, along):
+                  own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
     (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
-    (:class:`FrameEstimate`). Writes weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where
+    (:class:`FrameEstimate`; tables of no rows: ``inverse`` times ``slope_scale``, and squared
+    times ``floor_scale``). Writes weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where
     reset), the fused image and own readings; with ``separate`` the running mean of the tested
     estimate ``tested`` with its history ``old_test`` (``fused_test``); with ``detail`` the evidence:
     (own - fused)^2 over the fused own reading's variance (one reading's, from the row-phase tables,
@@ -556,11 +568,20 @@ def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signa
             for c in range(image.shape[1]):
                 fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], weight[r, c], scale)
         if detail:
-            q = (first_row + r) % tables
-            for c in range(image.shape[1]):
-                f = fused[r, c]
-                d = own[r, c] - f
-                row[c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c] * noisier)
+            if tables:
+                q = (first_row + r) % tables
+                for c in range(image.shape[1]):
+                    f = fused[r, c]
+                    d = own[r, c] - f
+                    row[c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c]
+                                      * noisier)
+            else:
+                for c in range(image.shape[1]):
+                    f = fused[r, c]
+                    d = own[r, c] - f
+                    i = inverse[p, c]
+                    row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
+                                      * noisier)
             _symmetric_row(row, along, evidence[r])
 
 

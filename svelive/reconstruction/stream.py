@@ -332,7 +332,7 @@ class Reconstructor:
         frame = None
         if self.temporal:
             rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor) if parts is None
-                    else own_reading_map(lum.exposure, inp.sensor))
+                    else own_reading_scales(lum.exposure, inp.sensor))
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3)
@@ -403,6 +403,23 @@ class Estimated:
     generation: int
     method_ms: float
     motion_ms: float
+
+
+def own_reading_scales(exposure: np.ndarray, sensor: Sensor) -> tuple[np.ndarray, np.float32, np.float32]:
+    """(inverse, slope, floor) for per-pixel exposures (a colour frame's e', which no tile repeats):
+    1 / e, float32 (H, W), and the numbers the fusion multiplies it (and its square) with for the
+    own reading's variance (svelive.reconstruction.fusion.FrameEstimate); the same values as
+    :func:`own_reading_map`'s tables, without writing and reading two more whole frames."""
+    inverse = np.empty(exposure.shape, np.float32)
+    _inverse_pass(*flat(np.ascontiguousarray(exposure, np.float32), inverse))
+    return inverse, np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
+
+
+@kernel
+def _inverse_pass(exposure, inverse):
+    one = np.float32(1.0)
+    for k in range(exposure.size):
+        inverse[k] = one / exposure[k]
 
 
 def own_reading_map(exposure: np.ndarray, sensor: Sensor, scale: float = 1.0) -> tuple[np.ndarray, ...]:
