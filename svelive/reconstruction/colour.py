@@ -40,12 +40,31 @@ Each channel's cell value stands for the centroid of its samples in the cell
 bilinear interpolation over the cells: without that, channels sampled half a
 cell apart read different points of any edge, which is false colour at every
 neutral edge. At the centres, L = sum_c n_c C_c (n_c the channel's share of the
-CFA tile: 1/4, 1/2, 1/4 for Bayer) and the shares k_c = C_c / L. Where a
+CFA tile: 1/4, 1/2, 1/4 for Bayer) and the shares k_c = C_c / L. The same
+shares from each cell's own readings alone (unsmoothed, centred alike) hold
+colour finer than 3x3 cells: the smoothed shares move towards them by the
+garrote of (b') below where the two differ beyond their noise (the variance of
+own - smoothed is v_own - v_smoothed for nested estimates; the evidence is the
+3x3 cells' mean squared difference), so bright scenes keep fine colour and the
+dark keeps the smoothed shares. Where a
 share's deviation from a neutral surface's is within its noise over the 3x3
 cells (the colour noise of dark regions), it is shrunk towards the neutral by
-the garrote of (b') below: noise in the dark is not painted as colour (5 stops
+the same garrote: noise in the dark is not painted as colour (5 stops
 dim, dual-ISO, mean of the shipped crops: CIEDE2000 mean 8.6 -> 7.8, p99
-21.7 -> 20.4; PU21 on luminance unchanged). All of
+21.7 -> 20.4; PU21 on luminance unchanged). Last, each channel's shares take
+the median of the 3x3 cells around, and are scaled back to sum_c n_c k_c = 1.
+A cell whose channels read different sides of an edge (its samples sit at
+different places in the cell, and the centring and smoothing shift each
+channel's profile of the edge differently) has shares that neither side has:
+up to twice the neutral's at a black/white edge, and the luminance folded with
+them alternated from pixel to pixel along the edge (zipper). Among its
+neighbours such a cell is an outlier, and a median rejects it while it keeps
+an edge between two colours (a straight edge keeps the majority of the 3x3
+cells on each side); colour features narrower than two cells go. Measured
+(neutral black/white edge of docs/stability.md, luminance error within 3 px at
+2 stops): dual-ISO 0.150 -> 0.036 stop (split 0.061), column-Bayer 0.156 ->
+0.041 (0.062), assorted-4x4 0.151 -> 0.067 (0.077), quad-Bayer 0.193 -> 0.045
+(0.247). All of
 this is computed at cell resolution and interpolated bilinearly on the fly by
 the compiled passes below (no full-resolution chroma planes are written).
 
@@ -94,11 +113,13 @@ favoured cells where that channel read high: 10 % too red and blue on a dark
 grey frame. Too few cells, or none where a 64x exposure clips over a whole
 bright ground, left it at 1, 1, 1: highlights went magenta.)
 
-Known limit: at a sharp edge a cell straddling it gives its channels ratios
-from different sides; the folded readings then disagree and the luminance
-alternates from pixel to pixel along the edge (zipper: about twice the split
-baseline's luminance error within 3 px on dual-ISO, docs/stability.md), while
-the false colour stays below the baseline's.
+Known limit: the chroma is that of cells (4x2 pixels for dual-ISO), so colour
+that changes within a few pixels (thin coloured lines, fine colour texture)
+is folded with the cells' shares, and the luminance there inherits their
+error: with the true shares of every pixel the luminance would be about 2 dB
+PU21 better on the shared images at bright exposure. On a neutral edge the
+zipper is gone (above); at 1 stop of contrast on assorted-4x4 the luminance
+error near the edge is still 0.074 stop against the baseline's 0.062.
 
 Units: radiance in DN at relative exposure 1 per channel (before white
 balance); the luminance Y in that unit, which ``variance`` and
@@ -242,7 +263,10 @@ def chroma(inp: SveInput) -> Chroma:
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
     the share of each cell's information its uncensored readings hold), the censoring and
     highlight rules give C_c, which is moved from the centroid of the channel's samples to the
-    cells' centres (bilinearly), and the shares are k_c = C_c / L there.
+    cells' centres (bilinearly), and the shares are k_c = C_c / L there. The same from each
+    cell's own readings moves them where the two differ beyond noise (:func:`_blend`), the
+    garrote towards the neutral follows (:func:`_shrink`), then each channel's median over 3x3
+    cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1.
     """
     layout = cell_layout(inp.pattern, inp.cfa)
     (cy, cx), (h, w) = layout.cell, inp.shape
@@ -266,19 +290,35 @@ def chroma(inp: SveInput) -> Chroma:
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
-    values = np.empty((3, hc, wc), f32)
+    values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
     _cell_values(numerator, denominator, mean, info, bound, white, values, np.empty(wc, f32))
-    shares = np.empty((3, hc, wc), f32)
-    for c, (ky, kx) in enumerate(_centring_kernels(layout)):  # from the centroid of the samples to the centres
-        cv2.sepFilter2D(values[c], cv2.CV_32F, kx, ky, dst=shares[c], borderType=cv2.BORDER_REPLICATE)
+    _cell_values(weighted, kept, mean, info, bound, white, own, np.empty(wc, f32))  # each cell's own readings
+    shares, own_shares = _centred(values, layout), _centred(own, layout)
     neutral = (white / f32(layout.share @ white)).astype(f32)
     coarse = np.empty((2, hc, wc), f32)
-    noise, deviation = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
+    noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
     _shares(shares, info, bound, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation)
+    _own_shares(own_shares, info, layout.share, neutral, f32(SHARE_FLOOR), shares, own_noise, residual,
+                np.empty(wc, f32))
+    for c in range(3):
+        cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
+    _blend(shares, noise, own_shares, own_noise, residual, neutral, deviation)
     for c in range(3):
         cv2.sepFilter2D(deviation[c], cv2.CV_32F, k, k, dst=deviation[c], borderType=cv2.BORDER_REFLECT_101)
-    _shrink(shares, neutral, noise, deviation, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
+    _shrink(shares, neutral, noise, deviation)
+    for c in range(3):  # a cell whose channels read different sides of an edge is an outlier among its neighbours
+        cv2.medianBlur(shares[c], 3, dst=shares[c])
+    _normalise(shares, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
+
+
+def _centred(values: np.ndarray, layout: CellLayout) -> np.ndarray:
+    """Cell values (3, Hc, Wc) moved from the centroid of each channel's samples to the cells'
+    centres (bilinearly, :func:`_centring_kernels`), float32 (3, Hc, Wc)."""
+    out = np.empty_like(values)
+    for c, (ky, kx) in enumerate(_centring_kernels(layout)):
+        cv2.sepFilter2D(values[c], cv2.CV_32F, kx, ky, dst=out[c], borderType=cv2.BORDER_REPLICATE)
+    return out
 
 
 @lru_cache(maxsize=16)
@@ -511,25 +551,85 @@ def _shares(values, info, bound, censored, share, neutral, floor, spread, coarse
 
 
 @kernel
-def _shrink(shares, neutral, noise, deviation, share, floor, total):
+def _own_shares(values, info, share, neutral, floor, smoothed, noise, residual, lum):
+    """values (3, Hc, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
+    neutral's where L <= 0), in place, as :func:`_shares` with the cell's own readings alone
+    (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE). ``residual`` (out):
+    (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
+    zero, one, none, tiny = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE), np.float32(1e-30)
+    for i in range(values.shape[1]):
+        r, g, b = values[0, i], values[1, i], values[2, i]
+        for j in range(lum.size):
+            lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+        for c in range(3):
+            k, n, e, inf, ks, level = values[c, i], noise[c, i], residual[c, i], info[c, i], smoothed[c, i], neutral[c]
+            for j in range(lum.size):
+                ok = lum[j] > zero
+                inverse = one / lum[j] if ok else zero
+                v = one / max(inf[j], tiny)
+                kc = max(k[j] * inverse, floor) if ok else level
+                k[j] = kc
+                n[j] = min(v * inverse * inverse, none) if ok else none
+                e[j] = (kc - ks[j]) * (kc - ks[j])
+
+
+@kernel
+def _blend(shares, noise, own, own_noise, residual, neutral, deviation):
+    """The smoothed shares moved towards each cell's own where they differ beyond noise, in place.
+
+    ``shares`` and ``noise`` (3, Hc, Wc): the shares of the 3x3 cells' smoothed values and their
+    variance v_s; ``own`` and ``own_noise``: those of each cell's own readings, v_o. The smoothed
+    estimate holds the own readings, so own - smoothed has variance v_o - v_s (nested
+    inverse-variance estimates, as :func:`refine`) plus the squared difference of what they
+    estimate, which ``residual`` (the 3x3 cells' mean of (own - smoothed)^2) measures:
+    k = k_s + beta (k_o - k_s), beta = max(0, 1 - t / E), t = max(v_o - v_s, 0); the variance
+    becomes v_s + beta t. Colour finer than the 3x3 cells is kept where the readings show it
+    beyond their noise (bright scenes), and the dark keeps the smoothed shares. ``deviation``
+    (out): (k_c - neutral_c)^2.
+    """
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
+    for c in range(3):
+        level = neutral[c]
+        for i in range(shares.shape[1]):
+            k, v, ko, vo, e, d = shares[c, i], noise[c, i], own[c, i], own_noise[c, i], residual[c, i], deviation[c, i]
+            for j in range(k.size):
+                t = max(vo[j] - v[j], zero)
+                beta = max(one - t / max(e[j], tiny), zero)
+                kc = k[j] + beta * (ko[j] - k[j])
+                k[j] = kc
+                v[j] += beta * t
+                d[j] = (kc - level) * (kc - level)
+
+
+@kernel
+def _shrink(shares, neutral, noise, deviation):
     """Shares towards the neutral's where their deviation from it is within their noise, in place:
     k_c = neutral_c + beta_c (k_c - neutral_c), beta_c = max(0, 1 - noise_c / E_c) with E_c the
-    3x3 cells' mean squared deviation (``deviation``, smoothed), then scaled so sum_c n_c k_c = 1.
-    ``total``: (Wc,) scratch.
+    3x3 cells' mean squared deviation (``deviation``, smoothed).
 
     The chroma's own garrote (as :func:`refine`'s for luminance): a colour is kept where the
     cells around show it beyond the noise, and noise in the dark is not painted as colour.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
     for i in range(shares.shape[1]):
-        total[:] = zero
         for c in range(3):
-            k, n, d, level, weight = shares[c, i], noise[c, i], deviation[c, i], neutral[c], share[c]
+            k, n, d, level = shares[c, i], noise[c, i], deviation[c, i], neutral[c]
             for j in range(k.size):
                 beta = max(one - n[j] / max(d[j], tiny), zero)
-                kc = level + beta * (k[j] - level)
-                k[j] = kc
-                total[j] += weight * kc
+                k[j] = level + beta * (k[j] - level)
+
+
+@kernel
+def _normalise(shares, share, floor, total):
+    """Shares (3, Hc, Wc) scaled so that sum_c n_c k_c = 1 in each cell, then at least ``floor``,
+    in place. ``total``: (Wc,) scratch."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for i in range(shares.shape[1]):
+        total[:] = zero
+        for c in range(3):
+            k, weight = shares[c, i], share[c]
+            for j in range(k.size):
+                total[j] += weight * k[j]
         for j in range(total.size):
             total[j] = one / total[j]
         for c in range(3):
