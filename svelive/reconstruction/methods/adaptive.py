@@ -845,6 +845,7 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     bound = np.empty(width, np.float32)
     level_count, level_sum = np.empty((ky.size, width), np.float32), np.empty((ky.size, width), np.float32)
     count, total = np.empty(width, np.float32), np.empty(width, np.float32)
+    leveled = np.empty(width, np.bool_)
     window_rows = np.arange(ky.size)
     for r in range(h):
         n = 0
@@ -867,16 +868,19 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
                                      level_sum[dy])
             _column_sums(level_count, window_rows, ky, count)
             _column_sums(level_sum, window_rows, ky, total)
+            for c in range(width):
+                leveled[c] = censored[r, c] & (bound[c] < np.inf)
+            _censored_fill(leveled, x[r], count, total, image[r], bound_only[r])
+            continue
         for c in range(width):
             if not censored[r, c] or bound[c] == np.inf:
                 continue
-            if not dense:
-                for dy in range(ky.size):
-                    level_count[dy, 0], level_sum[dy, 0] = _consistent_pixel_sums(reach[rows[dy]], x[rows[dy]],
-                                                                                  c, bound[c], kx[0], kx[1])
-                count[c], total[c] = _column_sum_pixel(level_count[:, 0], ky), _column_sum_pixel(level_sum[:, 0], ky)
-            image[r, c] = max(total[c] / max(count[c], tiny), x[r, c])
-            if count[c] <= zero:
+            for dy in range(ky.size):
+                level_count[dy, 0], level_sum[dy, 0] = _consistent_pixel_sums(reach[rows[dy]], x[rows[dy]], c,
+                                                                              bound[c], kx[0], kx[1])
+            count_c, total_c = _column_sum_pixel(level_count[:, 0], ky), _column_sum_pixel(level_sum[:, 0], ky)
+            image[r, c] = max(total_c / max(count_c, tiny), x[r, c])
+            if count_c <= zero:
                 bound_only[r, c] = True
 
 
