@@ -669,12 +669,12 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
         bound_only = np.zeros(inp.shape, bool)
         _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor))
         return bound_only
-    levels = inp.pattern.levels.tolist()
     if inp.pattern.pixel_map is None and kx.size == 3 and ky.size == 5:  # OpenCV's sums, computed per pixel
         bound_only = np.zeros(inp.shape, bool)
-        _censored_separable(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, np.array(levels, f32),
-                            np.array([censor / level for level in levels], f32))
+        _censored_separable(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx,
+                            *_level_bounds_of(inp.pattern, censor))
         return bound_only
+    levels = inp.pattern.levels.tolist()
     if inp.pattern.pixel_map is None:
         key, values = inp.exposure, np.array(levels, f32)
     else:
@@ -697,6 +697,17 @@ def _censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndar
         _fill_censored(*flat(inp.censored, key, x, image, bound_only, count, sum_x), width, value, r0, c0, c1 - c0,
                        top, bottom + 1, left, right + 1)
     return bound_only
+
+
+@lru_cache(maxsize=16)
+def _level_bounds_of(pattern: Pattern, censor: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pattern's levels and the bound a censored reading at each implies (censor / level, rounded as the
+    per-level sums of :func:`_censored_pixels` round it); float32 (K,), read-only."""
+    levels = pattern.levels.tolist()
+    values, bounds = np.array(levels, np.float32), np.array([censor / level for level in levels], np.float32)
+    values.setflags(write=False)
+    bounds.setflags(write=False)
+    return values, bounds
 
 
 @kernel
