@@ -431,9 +431,7 @@ def _pilot_censored(s, e, censored, ky, kx, gain_inv, floor, centre, exposure_su
             rows[dy] = reflect_101(r + dy - ry, h)
         _column_sums(signal_rows, rows, ky, signal_sum)
         _column_sums(exposure_rows, rows, ky, exposure_sum[r])
-        lowest[:] = lowest_rows[rows[0]]
-        for dy in range(1, ky.size):
-            _at_most(lowest, lowest_rows[rows[dy]])
+        _column_min(lowest_rows, rows, lowest)
         _weights_censored(signal_sum, exposure_sum[r], s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], wx[r],
                           gain_inv, floor, centre)
 
@@ -465,10 +463,16 @@ def _valid_row_sums(s, e, censored, k0, k1, signal, exposure, lowest):
 
 
 @kernel
-def _at_most(a, b):
-    """a = min(a, b), elementwise, in place."""
-    for i in range(a.size):
-        a[i] = min(a[i], b[i])
+def _column_min(values, rows, out):
+    """out = the least of ``values``' rows ``rows`` (3 or 5), column by column, in one loop."""
+    if rows.size == 3:
+        a, b, c = values[rows[0]], values[rows[1]], values[rows[2]]
+        for i in range(out.size):
+            out[i] = min(min(a[i], b[i]), c[i])
+    else:
+        a, b, c, d, e = values[rows[0]], values[rows[1]], values[rows[2]], values[rows[3]], values[rows[4]]
+        for i in range(out.size):
+            out[i] = min(min(min(a[i], b[i]), min(c[i], d[i])), e[i])
 
 
 @kernel
