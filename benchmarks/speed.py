@@ -2,6 +2,7 @@
 
     python benchmarks/speed.py [--repeats 7] [--methods weighted,aggregate] [--pattern 1,4/16,64]
     python benchmarks/speed.py --colour [--layout dual-iso] [--colour-methods adaptive,weighted]
+    python benchmarks/speed.py --bench [DIR] [--methods adaptive] [--repeats 5]
 
 Simulates one frame from a shipped sample scene (upscaled to 1920x1200) and
 reports the median wall time of several runs per method. OpenCV is limited to
@@ -9,7 +10,11 @@ one thread and numpy's BLAS is not used by the methods, so this is one core.
 With --colour the mono methods are timed as without it (so that a mono
 regression shows in the same run), then a 12-bit colour SVE frame of the
 layout (svelive.camera.COLOUR_LAYOUTS; the shipped RGB crop upscaled) is
-reconstructed joint and split with each colour method.
+reconstructed joint and split with each colour method. With --bench, each method
+is timed instead on the benchmark's own timing frames (svelive.bench: every HDR
+image of DIR, default ../shared/data/hdr, under every pattern and noise level,
+resized to 1920x1200), prepare + method as the benchmark times them: one line per
+frame, then the median and the worst over the frames.
 """
 
 from __future__ import annotations
@@ -69,8 +74,13 @@ def main() -> None:
     parser.add_argument("--colour", action="store_true", help="also time colour frames, joint and split")
     parser.add_argument("--layout", default="dual-iso", choices=list(COLOUR_LAYOUTS))
     parser.add_argument("--colour-methods", default="adaptive,weighted")
+    parser.add_argument("--bench", nargs="?", const="", default=None, metavar="DIR",
+                        help="time on the benchmark's frames of the HDR images in DIR (default ../shared/data/hdr)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
+    if args.bench is not None:
+        bench_frames(args.bench, args.methods.split(","), args.repeats)
+        return
     raw, sensor = test_frame(args.pattern)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; "
           f"pattern {args.pattern}, 1920x1200 12-bit, median of {args.repeats}; "
@@ -87,6 +97,30 @@ def main() -> None:
             for mode in ("joint", "split"):
                 ms = time_method(raw, pattern, sensor, method, args.repeats, cfa=cfa, colour=mode)
                 print(f"{mode + ' ' + method:20s} {ms:8.1f} ms", flush=True)
+
+
+def bench_frames(data: str, methods: list[str], repeats: int) -> None:
+    """Median time (ms) of prepare + method on each benchmark timing frame; then median and worst per method."""
+    from pathlib import Path
+
+    from svelive.bench.runner import Setting, time_reconstruct, timing_frame
+    from svelive.bench.scenes import NOISE_LEVELS, PATTERNS, Condition, default_data_dir, find_images, load_scene
+
+    times: dict[str, list[float]] = {m: [] for m in methods}
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; bench frames "
+          f"1920x1200, median of {repeats}; load average {os.getloadavg()[0]:.1f} at start")
+    for path in find_images(Path(data) if data else default_data_dir()):
+        scene = load_scene(path)
+        for pattern in PATTERNS:
+            for noise in NOISE_LEVELS:
+                raw = timing_frame(scene, Condition(pattern, noise), 0)
+                row = []
+                for method in methods:
+                    times[method].append(time_reconstruct(Setting(method, method), raw, pattern, repeats))
+                    row.append(f"{method} {times[method][-1]:7.1f} ms")
+                print(f"{path.stem:12s} {pattern:10s} {noise:6s} " + "  ".join(row), flush=True)
+    for method, ms in times.items():
+        print(f"{method:20s} median {np.median(ms):7.1f} ms, worst {max(ms):7.1f} ms over {len(ms)} frames")
 
 
 if __name__ == "__main__":
