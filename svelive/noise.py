@@ -592,13 +592,19 @@ def _bin_index(t: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
     return which, np.exp(np.linspace(lo, hi, bins + 1)) - 2.0
 
 
-def bin_samples(samples: NoiseSamples, config: EstimatorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bin_samples(samples: NoiseSamples, config: EstimatorConfig, *,
+                temporal: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signal bins, equally spaced in log(t + 2 DN): (mean t, robust variance, count), float64/float64/int64 (B,).
 
     The variance of a bin is read from the median of its squared residuals (half the samples may
     be texture or edges without moving it), through the rounded-Gaussian table; bins with fewer
-    than ``config.min_bin`` samples are left out.
+    than ``config.min_bin`` samples are left out. ``temporal`` (samples that hold no texture): clipped
+    at ``config.temporal_clip_sigma``, and the count is the effective one, ``2 v^2 / var(u)`` times the
+    count, so that the fit's Gaussian weights give the bin's measured standard error (shot noise of a
+    few electrons is heavier-tailed than a Gaussian, and its variance estimates scatter more).
     """
+    if temporal:
+        config = replace(config, clip_sigma=config.temporal_clip_sigma)
     if samples.size < config.min_bin:
         return np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
     table = _median_table()
@@ -613,7 +619,13 @@ def bin_samples(samples: NoiseSamples, config: EstimatorConfig) -> tuple[np.ndar
         idx = order[starts[k]:starts[k + 1]]
         t.append(float(np.mean(samples.t[idx])))
         v.append(_robust_variance(samples.u[idx], config.clip_sigma, table))
-        c.append(int(counts[k]))
+        count = int(counts[k])
+        if temporal:
+            u = samples.u[idx]
+            u = u[u <= config.clip_sigma**2 * v[-1]]
+            spread = float(np.var(u)) if u.size > 1 else 0.0
+            count = int(min(count, max(2.0 * v[-1] ** 2 * u.size / spread, 1.0))) if spread > 0 else count
+        c.append(count)
     return np.array(t), np.array(v), np.array(c, np.int64)
 
 
@@ -1333,76 +1345,79 @@ def _preferred(fit: LineFit | None, joint: LineFit | None, config: EstimatorConf
 # ----- over a stream ------------------------------------------------------------------------------------
 
 
+def _strided(size: int, max_samples: int) -> int:
+    """Every how many pixels in raster order to sample a frame of ``size`` pixels: at least
+    ``size / max_samples``, and prime to 2, 3, 5 and 7 so that every tile phase (every exposure) is
+    sampled (a step shared with the tile would keep one exposure only)."""
+    need = max(1, int(math.ceil(size / max_samples)))
+    return next(k for k in range(need, need + 210) if math.gcd(k, 210) == 1)
+
+
+def _grouped(signal: np.ndarray, by: np.ndarray) -> np.ndarray:
+    """Each sample's group mean of ``signal`` (float64 (N,)), the groups cut from ``by`` (float (N,), DN):
+    1 DN wide below 256 DN, 1 % wide above."""
+    group = np.where(by < 256.0, np.floor(by), 256.0 + np.floor(np.log(np.maximum(by, 256.0) / 256.0) / np.log(1.01)))
+    _, index = np.unique(group, return_inverse=True)
+    return (np.bincount(index, weights=signal) / np.bincount(index))[index]
+
+
+def _clear_of_clipping(by: np.ndarray, floor: float, high: float, model: tuple[float, float]) -> np.ndarray:
+    """bool (N,): values ``by`` (DN) four noise standard deviations (under ``model``) clear of both clip levels."""
+    slope, intercept = model
+    sd = np.sqrt(np.maximum(slope * np.maximum(by, 0.0) + intercept, QUANTISATION_VARIANCE))
+    return (by - floor >= 4.0 * sd) & (by + 4.0 * sd < high)
+
+
 def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarray | None, floor: float,
-                     high: float, model: tuple[float, float], max_samples: int = 100_000) -> NoiseSamples:
+                     high: float, model: tuple[float, float], max_samples: int = 100_000,
+                     period: tuple[int, int] | None = None) -> NoiseSamples:
     """Samples from two frames' signals (float (H, W), DN above black) at static pixels.
 
-    ``x1 - k x2`` has variance ``(1 + k^2) (s / g + R)`` where the scene did not change (``k``
-    removes a global brightness change, flicker), whatever the texture. Samples are binned by the
-    pair's mean (for a Gaussian pair independent of the difference), corrected for its own noise by
-    :func:`_tweedie` (binning by a noisy signal dilutes the slope where pixels crowd the dark end).
-    Pixels whose mean lies within four noise standard deviations (under ``model``,
-    ``(slope, intercept)``) of either clip level are dropped by that mean, not by either reading:
-    dropping readings at 0 or at white truncates the noise (the cause of the low read noise the
-    older pair estimate gave with a black level of 0).
+    ``d = x1 - k x2`` has variance ``(1 + k^2) (s / g + R)`` where the scene did not change (``k``
+    removes a global brightness change, flicker), whatever the texture. The pixels are grouped by
+    their neighbours one tile (``period``, rows and columns) to the left and right, both frames
+    averaged: a value whose noise is independent of the pixel's. Within any group so chosen the
+    mean of ``d^2 / (1 + k^2)`` is ``E[s | group] / g + R`` and the mean of ``(x1 + k x2) / 2`` is
+    ``E[s | group]``, exactly, for any noise distribution and any texture (the variance is linear in
+    the signal). Without a ``period`` (a layout not known: neighbours may have other exposures,
+    and groups that mix them follow the signal too loosely to fit a line) the pixels are grouped by
+    the pair's own mean, corrected for its noise by :func:`_tweedie`: grouping by a noisy value
+    dilutes the slope where pixels crowd the dark end, and the correction, exact only for Gaussian
+    noise of one variance, reads a low read noise beside strong shot noise 10-20 % high. A pixel is dropped when its pair's mean lies within four noise standard deviations
+    (under ``model``, ``(slope, intercept)``) of a clip level, not by either reading: dropping readings
+    at 0 or at white truncates their noise (the low read noise the older pair estimate gave with a
+    black level of 0), while the mean is independent of the difference (Gaussian noise). Its
+    neighbours may clip: they only choose the group.
     """
-    # every step-th pixel in raster order, the step prime to 2, 3, 5 and 7 so that every tile phase
-    # (every exposure) is sampled: a step shared with the tile would keep one exposure only
-    need = max(1, int(math.ceil(np.size(previous) / max_samples)))
-    step = next(k for k in range(need, need + 210) if math.gcd(k, 210) == 1)
-    a = np.asarray(previous).ravel()[::step].astype(np.float64)
-    b = np.asarray(current).ravel()[::step].astype(np.float64)
-    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[::step]
-    slope, intercept = model
+    h, w = np.shape(previous)
+    step = _strided(h * w, max_samples)
+    idx = np.arange(0, h * w, step)
+    a = np.asarray(previous).ravel()[idx].astype(np.float64)
+    b = np.asarray(current).ravel()[idx].astype(np.float64)
+    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[idx]
     k = float(np.sum(a[keep]) / np.sum(b[keep])) if np.sum(b[keep]) > 0 else 1.0
-    mean = 0.5 * (a + k * b)
-    var_mean = 0.5 * np.maximum(slope * np.maximum(mean, 0.0) + intercept, QUANTISATION_VARIANCE)
-    # the signal estimate of every pixel, from the density of all of them (before any cut by the mean)
-    signal = _tweedie(mean, var_mean, keep)
-    sd = np.sqrt(2.0 * var_mean)
-    keep &= (mean - floor >= 4.0 * sd) & (mean + 4.0 * sd < high)
+    if period is None:
+        mean = 0.5 * (a + k * b)
+        var_mean = 0.5 * np.maximum(model[0] * np.maximum(mean, 0.0) + model[1], QUANTISATION_VARIANCE)
+        signal = _tweedie(mean, var_mean, keep)  # from the density of all pixels, before any cut
+        keep &= _clear_of_clipping(mean, floor, high, model)
+        if keep.sum() < 100:
+            return NoiseSamples(np.zeros(0), np.zeros(0))
+        d = a[keep] - k * b[keep]
+        return NoiseSamples(t=signal[keep], u=d * d / (1.0 + k * k))
+    pw = period[1] if w > period[1] else 1
+    x = idx % w
+    pair_mean = 0.5 * (np.asarray(previous, np.float64) + k * np.asarray(current, np.float64)).ravel()
+    left, right = x >= pw, x + pw < w
+    total = np.where(left, pair_mean[np.where(left, idx - pw, idx)], 0.0)
+    total += np.where(right, pair_mean[np.where(right, idx + pw, idx)], 0.0)
+    by = total / np.maximum(left.astype(np.float64) + right, 1.0)
+    keep &= (left | right) & _clear_of_clipping(0.5 * (a + k * b), floor, high, model)
     if keep.sum() < 100:
         return NoiseSamples(np.zeros(0), np.zeros(0))
-    d = a[keep] - k * b[keep]
-    return NoiseSamples(t=signal[keep], u=d * d / (1.0 + k * k))
-
-
-def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, static: np.ndarray | None,
-                   floor: float, high: float, model: tuple[float, float], max_samples: int = 100_000) -> NoiseSamples:
-    """Samples from three frames' signals (float (H, W), DN above black) at pixels static in all three.
-
-    The difference ``d = x1 - k x2`` of the first two frames carries the noise; the pixels are
-    grouped by the third frame's value ``x3`` alone, whose noise is independent of theirs. Within
-    any group defined by ``x3``, the mean of ``d^2 / (1 + k^2)`` is ``E[s | group] / g + R`` and the
-    mean of ``(x1 + k x2) / 2`` is ``E[s | group]``, exactly, for any noise distribution, because the
-    variance is linear in the signal: no correction for binning by a noisy signal is needed (the
-    pair's :func:`_tweedie` is one for Gaussian noise of one variance, and reads the read noise
-    about 10-20 % high where a low read noise meets strong shot noise at the dark end). Every
-    sample's ``t`` is its group's mean signal; groups are 1 DN wide in ``x3`` below 256 DN and 1 %
-    wide above. Pixels are dropped by ``x3`` alone (within four noise standard deviations of a clip
-    level), never by the readings that carry the noise. ``k`` removes global brightness changes.
-    """
-    need = max(1, int(math.ceil(np.size(first) / max_samples)))
-    step = next(k for k in range(need, need + 210) if math.gcd(k, 210) == 1)
-    a, b, c = (np.asarray(x).ravel()[::step].astype(np.float64) for x in (first, second, third))
-    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[::step]
-    sums = [float(np.sum(x[keep])) for x in (a, b, c)]
-    if min(sums) <= 0:
-        return NoiseSamples(np.zeros(0), np.zeros(0))
-    k, kc = sums[0] / sums[1], sums[0] / sums[2]
-    c = c * kc
-    slope, intercept = model
-    sd = np.sqrt(np.maximum(slope * np.maximum(c, 0.0) + intercept, QUANTISATION_VARIANCE))
-    keep &= (c - floor >= 4.0 * sd) & (c + 4.0 * sd < high)
-    if keep.sum() < 100:
-        return NoiseSamples(np.zeros(0), np.zeros(0))
-    a, b, c = a[keep], b[keep], c[keep]
-    group = np.where(c < 256.0, np.floor(c), 256.0 + np.floor(np.log(np.maximum(c, 256.0) / 256.0) / np.log(1.01)))
-    _, index = np.unique(group, return_inverse=True)
-    mean = 0.5 * (a + k * b)
-    t = np.bincount(index, weights=mean) / np.bincount(index)
+    a, b, by = a[keep], b[keep], by[keep]
     d = a - k * b
-    return NoiseSamples(t=t[index], u=d * d / (1.0 + k * k))
+    return NoiseSamples(t=_grouped(0.5 * (a + k * b), by), u=d * d / (1.0 + k * k))
 
 
 def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span: float = 400.0) -> np.ndarray:
@@ -1428,25 +1443,52 @@ def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span
     return out
 
 
+def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, static: np.ndarray | None,
+                   floor: float, high: float, model: tuple[float, float], max_samples: int = 100_000) -> NoiseSamples:
+    """Samples from three frames' signals (float (H, W), DN above black) at pixels static in all three.
+
+    As :func:`temporal_samples`, but the pixels are grouped by the third frame's own value, whose
+    noise is independent of the first two's: the grouping value is the pixel's own light, so the
+    groups follow the signal more closely than its neighbours do where the scene has texture.
+    Pixels are dropped by ``x3`` alone (within four noise standard deviations of a clip level).
+    """
+    step = _strided(np.size(first), max_samples)
+    a, b, c = (np.asarray(x).ravel()[::step].astype(np.float64) for x in (first, second, third))
+    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[::step]
+    sums = [float(np.sum(x[keep])) for x in (a, b, c)]
+    if min(sums) <= 0:
+        return NoiseSamples(np.zeros(0), np.zeros(0))
+    k = sums[0] / sums[1]
+    c = c * (sums[0] / sums[2])
+    keep &= _clear_of_clipping(c, floor, high, model)
+    if keep.sum() < 100:
+        return NoiseSamples(np.zeros(0), np.zeros(0))
+    a, b, c = a[keep], b[keep], c[keep]
+    d = a - k * b
+    return NoiseSamples(t=_grouped(0.5 * (a + k * b), c), u=d * d / (1.0 + k * k))
+
+
 def pair_fit(previous: np.ndarray, current: np.ndarray, sensor: Sensor, *, floor: float | None = None,
              static: np.ndarray | None = None, config: EstimatorConfig = EstimatorConfig(),
-             max_samples: int = 4_000_000) -> tuple[NoiseSamples, LineFit | None]:
+             max_samples: int = 4_000_000, period: tuple[int, int] | None = None
+             ) -> tuple[NoiseSamples, LineFit | None]:
     """The noise line from two frames of a static scene (signals above black, float (H, W)).
 
     Iterated: the clip margins of :func:`temporal_samples` start from twice the default sensor's
     noise (generous) and then follow the fit. ``floor``: the lowest signal a reading can take
-    (``-black`` for raw frames).
+    (``-black`` for raw frames). ``period``: the frames' tile (rows, columns), when known: the pixels
+    are grouped by neighbours of the same exposure and colour (:func:`temporal_samples`).
     """
     floor = -float(sensor.black_level) if floor is None else floor
     high = _high_level(sensor)
     model = (4.0 / (DEFAULT_FULL_WELL_E / sensor.range_dn),
              4.0 * ((DEFAULT_READ_NOISE_E * sensor.range_dn / DEFAULT_FULL_WELL_E) ** 2 + QUANTISATION_VARIANCE))
     fixed = _fixed(sensor)
-    binning = replace(config, clip_sigma=config.temporal_clip_sigma)
     samples, fit = NoiseSamples(np.zeros(0), np.zeros(0)), None
     for _ in range(3):
-        samples = temporal_samples(previous, current, static, floor, high, model, max_samples)
-        fit = fit_line(*bin_samples(samples, binning), **fixed, outlier_tolerance=config.outlier_tolerance)
+        samples = temporal_samples(previous, current, static, floor, high, model, max_samples, period)
+        fit = fit_line(*bin_samples(samples, config, temporal=True), **fixed,
+                       outlier_tolerance=config.outlier_tolerance)
         if fit is None:
             break
         model = (fit.slope, fit.intercept)
@@ -1532,19 +1574,22 @@ class NoiseTracker:
                                                          _high_level(sensor), model, self.temporal_per_frame))
             else:
                 self._temporal_parts.append(temporal_samples(self._previous, sig, static, floor,
-                                                             _high_level(sensor), model, self.temporal_per_frame))
+                                                             _high_level(sensor), model, self.temporal_per_frame,
+                                                             camera.period))
         # three frames' samples need no correction for binning by a noisy signal: alone once enough
         temporal = NoiseSamples.join(list(self._triple_parts))
         if temporal.size < self.temporal_enough:
             temporal = NoiseSamples.join([*self._triple_parts, *self._temporal_parts])
         config = self.config
-        if temporal.size >= self.temporal_enough:
-            pooled, binning = temporal, replace(config, clip_sigma=config.temporal_clip_sigma)
+        only_temporal = temporal.size >= self.temporal_enough
+        if only_temporal:
+            pooled = temporal
         else:
             samples, _ = frame_samples(raw, camera, signal=sig, config=config)
             self._frame_parts.append(samples)
-            pooled, binning = NoiseSamples.join([*self._frame_parts, temporal]), config
-        fit = fit_line(*bin_samples(pooled, binning), **_fixed(sensor), outlier_tolerance=config.outlier_tolerance)
+            pooled = NoiseSamples.join([*self._frame_parts, temporal])
+        fit = fit_line(*bin_samples(pooled, config, temporal=only_temporal), **_fixed(sensor),
+                       outlier_tolerance=config.outlier_tolerance)
         count = pooled.size
         joint = None
         # temporal samples are texture-free: with any, the pooled line is the better evidence

@@ -138,7 +138,8 @@ def noise_curve_pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, *, bins
     return _curve(_pair(raw1, raw2, sensor, bins, min_count)[1])
 
 
-def _pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, bins: int = 32, min_count: int = 200):
+def _pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, bins: int = 32, min_count: int = 200,
+          period: tuple[int, int] | None = None):
     a = _check_frame(raw1, "first frame")
     b = _check_frame(raw2, "second frame")
     if a.shape != b.shape:
@@ -149,7 +150,7 @@ def _pair(raw1: np.ndarray, raw2: np.ndarray, sensor: Sensor, bins: int = 32, mi
         raise SveliveError(f"only {usable} pixels are neither saturated nor black in both frames; "
                            "use frames exposed well below saturation")
     config = EstimatorConfig(bins=bins, min_bin=min_count)
-    samples, fit = pair_fit(a - black, b - black, sensor, config=config)
+    samples, fit = pair_fit(a - black, b - black, sensor, config=config, period=period)
     if fit is None:
         raise SveliveError("the pair gives too few signal levels clear of black and white for a noise fit; "
                            "use frames with a range of brightness well below saturation")
@@ -280,12 +281,14 @@ def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | 
     Args:
         frames: one or two (H, W) raw frames, DN including black.
         sensor: black and white level.
-        pattern: the exposure pattern, required for a single frame.
+        pattern: the exposure pattern, required for a single frame; for a pair it says which
+            neighbours share a pixel's exposure (the pair is grouped by them).
     A single frame uses the SVE estimator of :mod:`svelive.noise` (residuals of each pixel against
     its more exposed neighbours at flat places); a pair, the difference of the frames.
     """
     if len(frames) == 2:
-        samples, fit = _pair(frames[0], frames[1], sensor)
+        samples, fit = _pair(frames[0], frames[1], sensor,
+                             period=None if pattern is None else Pattern.parse(pattern).shape)
         return _model(fit, samples.size, "pair")
     if len(frames) == 1:
         if pattern is None:
