@@ -66,3 +66,27 @@ def test_a_given_noise_model_is_never_replaced():
             time.sleep(0.05)
         assert pipeline.reconstruction.noise.state() is None
         assert pipeline.latest().hdr.camera.sensor == SimSource(static_camera(1)).camera.sensor
+
+
+def test_frames_dropped_between_reconstructed_ones_still_make_runs():
+    """Live at full size the reconstruction takes the newest frame and the ids between are dropped; three
+    frames reconstructed one after another (static by their motion masks against the fused history) still
+    make a run for the tracker, and a frame id that goes back (a replay loop) starts afresh."""
+    import threading
+
+    from service.pipeline.noise import NoiseStage
+    from svelive.frame import Frame
+
+    camera = static_camera(1)
+    untold = UntoldSource(camera).camera
+    stage = NoiseStage(threading.Event(), interval_s=0.0)
+    still = np.zeros((8, 8), bool)
+    raw = np.zeros((8, 8), np.uint16)
+    for frame_id in (0, 4, 9):
+        stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
+    run = stage._pending
+    assert run is not None and [f.frame_id for f in run.frames] == [0, 4, 9] and len(run.static) == 2
+    stage._pending = None
+    for frame_id in (12, 3, 5):
+        stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
+    assert stage._pending is None

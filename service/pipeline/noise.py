@@ -1,7 +1,8 @@
 """The live noise model: gain and read noise of a camera that was not told them, refined over the stream.
 
 The reconstruction thread offers each frame it reconstructed (a reference, no copy);
-every ``interval_s`` three consecutive frames are handed to this stage's own
+every ``interval_s`` three consecutively reconstructed frames (frames dropped at the
+hand-off between them do not matter) are handed to this stage's own
 thread, which adds them to a :class:`svelive.noise.NoiseTracker`: the first frame's
 single-frame samples, and the differences of the pixels the motion tests found
 static over the three (texture-free; the third frame groups them by signal without
@@ -76,8 +77,10 @@ class NoiseStage:
             self._recent = []
             return
         recent = self._recent
+        # consecutive reconstructed frames, not ids: frames dropped at the hand-off between them do not
+        # matter, as each frame's motion mask compares it with the fused history, which holds the last one
         if (not recent or self._recent_camera != camera or motion is None
-                or frame.frame_id != recent[-1][0].frame_id + 1):
+                or frame.frame_id <= recent[-1][0].frame_id):
             recent = []
         recent = [*recent[-(RUN_FRAMES - 1):], (frame, None if motion is None else ~np.asarray(motion, bool))]
         self._recent, self._recent_camera = recent, camera
