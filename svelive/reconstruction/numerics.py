@@ -326,7 +326,8 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
     a = size // 2
     zero, one, tiny, inf = np.float32(0), np.float32(1), np.float32(1e-12), np.float32(np.inf)
     ring = np.empty((4, size, cols), np.float32)  # per window row: sum G s, sum G e, sum G^2 e, sum G^2
-    kept, kept_signal, kept_exposure = np.empty(cols, np.float32), np.empty(cols, np.float32), np.empty(cols, np.float32)
+    kept, kept_signal, kept_exposure = (np.empty(cols, np.float32), np.empty(cols, np.float32),
+                                        np.empty(cols, np.float32))
     sums = np.empty((4, cols), np.float32)
     slots = np.empty(size, np.intp)
     following = first - a  # the next window row to sum along
