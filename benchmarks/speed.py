@@ -14,7 +14,8 @@ reconstructed joint and split with each colour method. With --bench, each method
 is timed instead on the benchmark's own timing frames (svelive.bench: every HDR
 image of DIR, default ../shared/data/hdr, under every pattern and noise level,
 resized to 1920x1200), prepare + method as the benchmark times them: one line per
-frame, then the median and the worst over the frames.
+frame, then the median and the worst over the frames; --clock thread counts this
+thread's CPU time only, which other processes on a shared machine do not inflate.
 """
 
 from __future__ import annotations
@@ -76,10 +77,12 @@ def main() -> None:
     parser.add_argument("--colour-methods", default="adaptive,weighted")
     parser.add_argument("--bench", nargs="?", const="", default=None, metavar="DIR",
                         help="time on the benchmark's frames of the HDR images in DIR (default ../shared/data/hdr)")
+    parser.add_argument("--clock", choices=("wall", "thread"), default="wall",
+                        help="with --bench: wall time, or this thread's CPU time (steadier on a shared machine)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     if args.bench is not None:
-        bench_frames(args.bench, args.methods.split(","), args.repeats)
+        bench_frames(args.bench, args.methods.split(","), args.repeats, args.clock)
         return
     raw, sensor = test_frame(args.pattern)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; "
@@ -99,16 +102,21 @@ def main() -> None:
                 print(f"{mode + ' ' + method:20s} {ms:8.1f} ms", flush=True)
 
 
-def bench_frames(data: str, methods: list[str], repeats: int) -> None:
-    """Median time (ms) of prepare + method on each benchmark timing frame; then median and worst per method."""
+def bench_frames(data: str, methods: list[str], repeats: int, clock: str = "wall") -> None:
+    """Median time (ms) of prepare + method on each benchmark timing frame; then median and worst per method.
+    ``clock``: "wall" (perf_counter) or "thread" (this thread's CPU time, which other processes do not add to)."""
     from pathlib import Path
 
-    from svelive.bench.runner import Setting, time_reconstruct, timing_frame
-    from svelive.bench.scenes import NOISE_LEVELS, PATTERNS, Condition, default_data_dir, find_images, load_scene
+    from svelive.bench.runner import timing_frame
+    from svelive.bench.scenes import (BENCH_SENSOR, NOISE_LEVELS, PATTERNS, Condition, default_data_dir, find_images,
+                                      load_scene)
+    from svelive.reconstruction.input import prepare
+    from svelive.reconstruction.single import run_method
 
+    now = time.perf_counter if clock == "wall" else time.thread_time
     times: dict[str, list[float]] = {m: [] for m in methods}
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; bench frames "
-          f"1920x1200, median of {repeats}; load average {os.getloadavg()[0]:.1f} at start")
+          f"1920x1200, median of {repeats}, {clock} clock; load average {os.getloadavg()[0]:.1f} at start")
     for path in find_images(Path(data) if data else default_data_dir()):
         scene = load_scene(path)
         for pattern in PATTERNS:
@@ -116,7 +124,14 @@ def bench_frames(data: str, methods: list[str], repeats: int) -> None:
                 raw = timing_frame(scene, Condition(pattern, noise), 0)
                 row = []
                 for method in methods:
-                    times[method].append(time_reconstruct(Setting(method, method), raw, pattern, repeats))
+                    run = lambda: run_method(prepare(raw, pattern, BENCH_SENSOR), method)  # noqa: E731
+                    run()
+                    runs = []
+                    for _ in range(repeats):
+                        start = now()
+                        run()
+                        runs.append(now() - start)
+                    times[method].append(float(np.median(runs)) * 1e3)
                     row.append(f"{method} {times[method][-1]:7.1f} ms")
                 print(f"{path.stem:12s} {pattern:10s} {noise:6s} " + "  ".join(row), flush=True)
     for method, ms in times.items():
