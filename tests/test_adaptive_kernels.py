@@ -215,7 +215,7 @@ def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
     within rounding for the 3x3 one (a pixel's taps added in turn), in rows with few and with many censored
     pixels, up to the frame's edges."""
     rng = np.random.default_rng(3)
-    shape = (40, 61)
+    shape = (40, 160)
     truth = cv2.GaussianBlur(rng.uniform(2, 60, shape).astype(np.float32), (0, 0), 1.5)
     yy, xx = np.mgrid[:shape[0], :shape[1]]
     truth += blob * np.exp(-((yy - 20) ** 2 / 150.0 + (xx - 50) ** 2 / 300.0))
@@ -236,6 +236,9 @@ def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
         expected = np.where(at, np.maximum(total / np.maximum(count, tiny), x), expected)
         expected_lower |= at & (count <= 0)
     assert expected_lower.any() and (inp.censored & ~expected_lower).any()
+    per_row = inp.censored.sum(axis=1)
+    assert (per_row * adaptive.DENSE_ROW > shape[1]).any()  # rows summed whole
+    assert blob > 1000 or ((per_row > 0) & (per_row * adaptive.DENSE_ROW <= shape[1])).any()  # and visited
     np.testing.assert_array_equal(lower, expected_lower)
     if len(ky) * len(kx) > adaptive.DIRECT_TAPS:
         np.testing.assert_array_equal(image, expected)
