@@ -134,6 +134,8 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 from svelive.camera import colour_phase
 from svelive.cfa import ColourFilter, joint_period
@@ -668,9 +670,52 @@ def _full_width(planes: np.ndarray, cx: int, w: int) -> np.ndarray:
     """Cell planes (P, Hc, Wc) interpolated bilinearly along rows from the cells' centres to
     every column, float32 (P, Hc, W): one resize (it puts cell j at column j cx + (cx - 1) / 2)."""
     p, hc, wc = planes.shape
-    rows = cv2.resize(np.ascontiguousarray(planes).reshape(p * hc, wc), (wc * cx, p * hc),
-                      interpolation=cv2.INTER_LINEAR)
+    flat_rows = np.ascontiguousarray(planes).reshape(p * hc, wc)
+    if cx in (2, 4):  # OpenCV's own arithmetic, in one pass without its row buffers (2.5x faster)
+        rows = np.empty((p * hc, wc * cx), np.float32)
+        _widen(flat_rows, cx, rows)
+    else:
+        rows = cv2.resize(flat_rows, (wc * cx, p * hc), interpolation=cv2.INTER_LINEAR)
     return rows.reshape(p, hc, wc * cx)[:, :, :w]
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a b + c rounded once (float32), as OpenCV's linear resize computes its taps."""
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return types.float32(types.float32, types.float32, types.float32), codegen
+
+
+@kernel
+def _widen(planes, cx, out):
+    """out (N, cx Wc) = ``planes`` (N, Wc) float32 interpolated linearly along rows, cell j at column
+    j cx + (cx - 1) / 2, the ends held (cx 2 or 4): bit for bit OpenCV's INTER_LINEAR resize, each
+    value a + (b - a) f with one rounding of the product and sum, f = (k + 1/2) / cx."""
+    wc = planes.shape[1]
+    c0 = cx // 2  # the first column past cell 0's centre
+    for i in range(planes.shape[0]):
+        p, o = planes[i], out[i]
+        for x in range(c0):
+            o[x] = p[0]
+        if cx == 2:
+            q, t = np.float32(0.25), np.float32(0.75)
+            for j in range(wc - 1):
+                a = p[j]
+                d = p[j + 1] - a
+                o[2 * j + 1] = _fma(d, q, a)
+                o[2 * j + 2] = _fma(d, t, a)
+        else:
+            f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
+            for j in range(wc - 1):
+                a = p[j]
+                d = p[j + 1] - a
+                o[4 * j + 2] = _fma(d, f0, a)
+                o[4 * j + 3] = _fma(d, f1, a)
+                o[4 * j + 4] = _fma(d, f2, a)
+                o[4 * j + 5] = _fma(d, f3, a)
+        for x in range(cx * (wc - 1) + c0, o.size):
+            o[x] = p[wc - 1]
 
 
 @lru_cache(maxsize=16)
@@ -722,8 +767,11 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
     out = np.empty((*luminance.shape, 3), np.float32)
     luminance = np.ascontiguousarray(luminance, np.float32)
 
+    interleaved = out.reshape(luminance.shape[0], -1)  # (H, 3 W): the kernel's stores, one flat row each
+
     def piece(rows: slice) -> None:
-        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows], out[rows])
+        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows], interleaved[rows],
+                   np.empty(interleaved.shape[1], np.float32))
 
     map_on(workers, piece, _pieces(luminance.shape[0]))
     return out
@@ -750,19 +798,25 @@ def _fold(exposure, channel_rows, first, rows, top, frac, shares, out):
 
 
 @kernel
-def _colourise(luminance, rows, top, frac, out):
-    """out (H, W, 3) = Y k_c, the shares interpolated between each row's two cell rows in the loop."""
+def _colourise(luminance, rows, top, frac, out, shares):
+    """out (H, 3 W), the rows of (H, W, 3) = Y k_c; ``shares`` (3 W,) scratch: the row's shares,
+    interpolated between its two cell rows and interleaved as the output (two loops that vectorise,
+    where one that interpolated while it stored three channels did not)."""
     last = rows.shape[1] - 1
     for r in range(luminance.shape[0]):
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
         a0, b0, a1, b1, a2, b2 = rows[0, t0], rows[0, t1], rows[1, t0], rows[1, t1], rows[2, t0], rows[2, t1]
+        for x in range(a0.size):
+            shares[3 * x] = a0[x] + (b0[x] - a0[x]) * f
+            shares[3 * x + 1] = a1[x] + (b1[x] - a1[x]) * f
+            shares[3 * x + 2] = a2[x] + (b2[x] - a2[x]) * f
         y, o = luminance[r], out[r]
         for x in range(y.size):
             v = y[x]
-            o[x, 0] = v * (a0[x] + (b0[x] - a0[x]) * f)
-            o[x, 1] = v * (a1[x] + (b1[x] - a1[x]) * f)
-            o[x, 2] = v * (a2[x] + (b2[x] - a2[x]) * f)
+            o[3 * x] = v * shares[3 * x]
+            o[3 * x + 1] = v * shares[3 * x + 1]
+            o[3 * x + 2] = v * shares[3 * x + 2]
 
 
 # ----- joint ----------------------------------------------------------------------------------
