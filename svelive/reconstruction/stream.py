@@ -452,15 +452,14 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     running mean with it, the variance is this frame's times it (as the luminance's). This frame's
     alone without a history of that shape.
     """
-    new = np.concatenate([chroma.shares, chroma.coarse])
-    if history is None or history.shape != new.shape:
-        return new
-    (cy, cx), (hc, wc) = chroma.layout.cell, new.shape[1:]
+    (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
+    if history is None or history.shape != (5, hc, wc):
+        return np.concatenate([chroma.shares, chroma.coarse])
     cells = np.empty((hc, wc), np.float32)
     _cell_maximum(weight, cy, cx, cells)
     cells = cv2.dilate(cells, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
-    out = np.empty_like(new)
-    _running_chroma(history, new, cells, np.float32(ratio), out)
+    out = np.empty_like(history)
+    _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio), out)
     return out
 
 
@@ -495,8 +494,12 @@ def _cell_maximum(weight, cy, cx, out):
             row = weight[r]
             for x in range(w):
                 column[x] = max(column[x], row[x])
-        o = out[i]
-        for j in range(o.size):
+        o, start = out[i], 0
+        if cx == 2:  # cells of two columns spelt out: a loop that vectorises
+            start = w // 2
+            for j in range(start):
+                o[j] = max(column[2 * j], column[2 * j + 1])
+        for j in range(start, o.size):
             top = column[j * cx]
             for x in range(j * cx + 1, min(j * cx + cx, w)):
                 top = max(top, column[x])
@@ -504,13 +507,14 @@ def _cell_maximum(weight, cy, cx, out):
 
 
 @kernel
-def _running_chroma(history, new, weight, ratio, out):
+def _running_chroma(history, shares, coarse, weight, ratio, out):
     """out = history + weight (new - history) per cell for the shares (planes 0-2), the same with
-    the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4)."""
+    the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4);
+    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc)."""
     for c in range(5):
         scale = ratio if c == 3 else np.float32(1.0)
         for i in range(weight.shape[0]):
-            a, b, w, o = history[c, i], new[c, i], weight[i], out[c, i]
+            a, b, w, o = history[c, i], shares[c, i] if c < 3 else coarse[c - 3, i], weight[i], out[c, i]
             if c == 4:
                 for j in range(o.size):
                     o[j] = b[j] * w[j]
