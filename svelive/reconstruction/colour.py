@@ -748,13 +748,17 @@ def _pieces(h: int, align: int = 1) -> list[slice]:
     return [slice(r, min(r + step, h)) for r in range(0, h, step)]
 
 
-def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor = 1) -> np.ndarray:
-    """e' = e k_c of every pixel, float32 (H, W) (module docstring, step b); ``workers``: base.map_on."""
+def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor = 1,
+                    inverse: np.ndarray | None = None) -> np.ndarray:
+    """e' = e k_c of every pixel, float32 (H, W) (module docstring, step b); ``workers``: base.map_on.
+    With ``inverse`` (float32 (H, W)), 1 / e' is written there in the same pass."""
     out = np.empty(inp.shape, np.float32)
     channel_rows = _channel_rows(inp.cfa, inp.shape[1])
+    none = np.empty((0, 0), np.float32)
 
     def piece(rows: slice) -> None:
-        _fold(inp.exposure[rows], channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows])
+        _fold(inp.exposure[rows], channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows],
+              none if inverse is None else inverse[rows])
 
     map_on(workers, piece, _pieces(inp.shape[0]))
     return out
@@ -784,11 +788,12 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
 
 
 @kernel
-def _fold(exposure, channel_rows, first, rows, top, frac, out):
+def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse):
     """out = e k_c of each pixel's channel c (``channel_rows``: the CFA's rows; the arrays' row r is
     frame row ``first`` + r), k_c interpolated between the pixel's two cell rows: the two values of
     its channel chosen first (every value loaded before the choice, which vectorises), then one
-    interpolation per pixel (not three into a scratch row, then the choice: 25 % faster)."""
+    interpolation per pixel (not three into a scratch row, then the choice: 25 % faster).
+    ``inverse``: 1 / out where it is not empty."""
     period, last = channel_rows.shape[0], rows.shape[1] - 1
     for r in range(exposure.shape[0]):
         t0, f = top[r], frac[r]
@@ -800,6 +805,10 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out):
             a = p0 if c == 0 else (p1 if c == 1 else p2)
             b = q0 if c == 0 else (q1 if c == 1 else q2)
             o[x] = e[x] * (a + (b - a) * f)
+        if inverse.size > 0:
+            v, one = inverse[r], np.float32(1.0)
+            for x in range(o.size):
+                v[x] = one / o[x]
 
 
 @kernel
@@ -837,19 +846,23 @@ class Joint:
         chroma: the frame's chroma.
         interpolation: its interpolation (shares, and the coarse luminance after them when the
             luminance was refined).
+        inverse_exposure: float32 (H, W), 1 / e' of ``luminance_input`` where it was asked for
+            with folded exposures (a stream's fusion reads it), else None.
     """
 
     estimate: Estimate
     luminance_input: SveInput
     chroma: Chroma
     interpolation: Interpolation
+    inverse_exposure: np.ndarray | None = None
 
 
 def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True,
-                    workers: int | Executor = 1) -> SveInput:
+                    workers: int | Executor = 1, inverse: np.ndarray | None = None) -> SveInput:
     """The monochrome SVE frame of the luminance: exposures e' (``exposures``, folded) or, for a
-    method that reads only the pattern's tile, readings s e / e' with the nominal exposures."""
-    folded = folded_exposure(inp, inter, workers)
+    method that reads only the pattern's tile, readings s e / e' with the nominal exposures.
+    ``inverse`` (float32 (H, W)): where 1 / e' is written, with the folding (folded_exposure)."""
+    folded = folded_exposure(inp, inter, workers, inverse)
     if exposures:  # a calibrated map is in e' already: the nominal tile keeps the method's strips
         pattern = inp.pattern if inp.pattern.pixel_map is None else Pattern(inp.pattern.tile)
         return SveInput(inp.signal, folded, inp.censored, pattern, inp.sensor, inp.integral, folded=True)
@@ -858,18 +871,22 @@ def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True,
     return SveInput(signal, inp.exposure, inp.censored, inp.pattern, inp.sensor, False)
 
 
-def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, **options) -> Joint:
+def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
+          **options) -> Joint:
     """The joint reconstruction (module docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
     chroma's scale (:func:`refine`); the estimate's variance is then the refined one's.
     ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
+    ``inverse_exposure``: also 1 / e' (Joint.inverse_exposure), made while e' is (a method that
+    reads per-pixel exposures only).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
     ch = chroma(inp)
     inter = interpolation(ch, coarse=spec.variance and refined)
-    lum = luminance_input(inp, inter, spec.exposures, workers)
+    inverse = np.empty(inp.shape, np.float32) if inverse_exposure and spec.exposures else None
+    lum = luminance_input(inp, inter, spec.exposures, workers, inverse)
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
@@ -877,7 +894,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     if variance is not None and refined:
         refine(luminance, variance, inter, ch.layout.cell, out=luminance, out_variance=variance, workers=workers)
     image = colourise(luminance, inter, workers) if rgb else luminance
-    return Joint(Estimate(image, est.lower_bound, variance, luminance), lum, ch, inter)
+    return Joint(Estimate(image, est.lower_bound, variance, luminance), lum, ch, inter, inverse)
 
 
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,

@@ -299,7 +299,8 @@ class Reconstructor:
             estimate = run_method(inp, method, **options)
             return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
         spec.check_options(options)
-        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal, **options)
+        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal, inverse_exposure=self.temporal,
+                             **options)
         estimate = parts.estimate
         return inp, replace(estimate, variance=estimate_variance(estimate, parts.luminance_input)), parts
 
@@ -332,7 +333,7 @@ class Reconstructor:
         frame = None
         if self.temporal:
             rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor) if parts is None
-                    else own_reading_scales(lum.exposure, inp.sensor))
+                    else own_reading_scales(lum.exposure, inp.sensor, parts.inverse_exposure))
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3)
@@ -405,13 +406,16 @@ class Estimated:
     motion_ms: float
 
 
-def own_reading_scales(exposure: np.ndarray, sensor: Sensor) -> tuple[np.ndarray, np.float32, np.float32]:
+def own_reading_scales(exposure: np.ndarray, sensor: Sensor,
+                       inverse: np.ndarray | None = None) -> tuple[np.ndarray, np.float32, np.float32]:
     """(inverse, slope, floor) for per-pixel exposures (a colour frame's e', which no tile repeats):
     1 / e, float32 (H, W), and the numbers the fusion multiplies it (and its square) with for the
     own reading's variance (svelive.reconstruction.fusion.FrameEstimate); the same values as
-    :func:`own_reading_map`'s tables, without writing and reading two more whole frames."""
-    inverse = np.empty(exposure.shape, np.float32)
-    _inverse_pass(*flat(np.ascontiguousarray(exposure, np.float32), inverse))
+    :func:`own_reading_map`'s tables, without writing and reading two more whole frames.
+    ``inverse``: 1 / e made already (the colour fold writes it beside e'), or None."""
+    if inverse is None:
+        inverse = np.empty(exposure.shape, np.float32)
+        _inverse_pass(*flat(np.ascontiguousarray(exposure, np.float32), inverse))
     return inverse, np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
 
 
