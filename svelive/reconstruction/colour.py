@@ -887,14 +887,18 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     est = spec.run(lum, **options)
     luminance, variance = est.image, est.variance
     if variance is not None and refined:
-        refine(luminance, variance, inter, ch.layout.cell, out=luminance, out_variance=variance, workers=workers)
+        refined_variance = np.empty_like(variance)
+        luminance = refine(luminance, variance, inter, ch.layout.cell, out_variance=refined_variance,
+                           new_variance=True, workers=workers)
+        variance = refined_variance
     image = colourise(luminance, inter, workers) if rgb else luminance
     return Joint(Estimate(image, est.lower_bound, variance, luminance), lum, ch, inter, inverse)
 
 
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,
            weight: np.ndarray | None = None, out: np.ndarray | None = None,
-           out_variance: np.ndarray | None = None, workers: int | Executor = 1) -> np.ndarray:
+           out_variance: np.ndarray | None = None, new_variance: bool = False,
+           workers: int | Executor = 1) -> np.ndarray:
     """Move the luminance Y towards the coarse L where they differ by no more than noise.
 
     Y (the mono method's, variance v_Y) and L (the chroma cells', variance v_L; module
@@ -917,6 +921,8 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
         weight: float32 (H, W) or None: v_Y is ``variance`` times it (a stream's history weight).
         out, out_variance: where to write the result and its variance (a new array, and not
             computed, when None).
+        new_variance: ``out_variance`` is none of the inputs (with ``out`` None, both are
+            written in one loop that vectorises, without a scratch row).
         workers: threads for its pieces of rows (base.map_on); the result does not depend on it.
 
     Returns:
@@ -933,12 +939,13 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
     map_on(workers, cells, _pieces(h, cy))
     residual_rows = _full_width((residual,), cx, w)[0]
     none = np.empty((0, 0), np.float32)
-    if out is None and out_variance is None:  # a new array, written in the loop (no scratch row: 40 % faster)
+    if out is None and (out_variance is None or new_variance):  # written in the loop (no scratch row: 40 % faster)
         out = np.empty((h, w), np.float32)
 
         def fresh(rows: slice) -> None:
             _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
-                         inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows])
+                         inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows],
+                         none if out_variance is None else out_variance[rows])
 
         map_on(workers, fresh, _pieces(h))
         return out
@@ -1016,11 +1023,11 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 
 
 @kernel
-def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out):
-    """:func:`_refine` without the variance, into ``out`` that is none of the inputs: the same
-    arithmetic per pixel, stored in the loop."""
+def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out, out_variance):
+    """:func:`_refine` into ``out`` and ``out_variance`` (may be empty) that are none of the inputs:
+    the same arithmetic per pixel, stored in the loop."""
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
-    weighted = weight.size > 0
+    weighted, with_variance = weight.size > 0, out_variance.size > 0
     last = coarse.shape[0] - 1
     for r in range(luminance.shape[0]):
         t0, f = top[r], frac[r]
@@ -1037,6 +1044,8 @@ def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual,
             t = max(v - var, zero)  # v_Y - v_L: the noise of Y - L
             beta = max(one - t / max(res, tiny), zero)
             o[x] = lum + (y[x] - lum) * beta
+            if with_variance:
+                out_variance[r, x] = v if t <= zero else (var if beta <= zero else var + beta * t)
 
 
 # ----- split (the baseline) -----------------------------------------------------------------
