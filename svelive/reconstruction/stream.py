@@ -479,7 +479,7 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, va
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)
-        colour.refine(luminance, variance_of(), inter, cell, out=np.empty_like(out), out_variance=out)
+        colour.refine(luminance, variance_of(), inter, cell, out_variance=out, new_variance=True)
         return out
 
     return refined, refined_variance, inter
