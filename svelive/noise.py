@@ -1368,6 +1368,13 @@ def _clear_of_clipping(by: np.ndarray, floor: float, high: float, model: tuple[f
     return (by - floor >= 4.0 * sd) & (by + 4.0 * sd < high)
 
 
+def _difference_samples(a: np.ndarray, b: np.ndarray, k: float, t: np.ndarray) -> NoiseSamples:
+    """Samples ``u = (a - k b)^2 / (1 + k^2)`` (float64 (N,), the readings of two frames of a static scene,
+    ``k`` their brightness ratio) with their signal coordinates ``t``: ``E[u] = t / g + R``."""
+    d = a - k * b
+    return NoiseSamples(t=t, u=d * d / (1.0 + k * k))
+
+
 def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarray | None, floor: float,
                      high: float, model: tuple[float, float], max_samples: int = 100_000,
                      period: tuple[int, int] | None = None) -> NoiseSamples:
@@ -1383,41 +1390,39 @@ def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarr
     and groups that mix them follow the signal too loosely to fit a line) the pixels are grouped by
     the pair's own mean, corrected for its noise by :func:`_tweedie`: grouping by a noisy value
     dilutes the slope where pixels crowd the dark end, and the correction, exact only for Gaussian
-    noise of one variance, reads a low read noise beside strong shot noise 10-20 % high. A pixel is dropped when its pair's mean lies within four noise standard deviations
-    (under ``model``, ``(slope, intercept)``) of a clip level, not by either reading: dropping readings
+    noise of one variance, reads a low read noise beside strong shot noise 10-20 % high. A pixel is
+    dropped when its pair's mean lies within four noise standard deviations (under ``model``,
+    ``(slope, intercept)``) of a clip level, not by either reading: dropping readings
     at 0 or at white truncates their noise (the low read noise the older pair estimate gave with a
     black level of 0), while the mean is independent of the difference (Gaussian noise). Its
     neighbours may clip: they only choose the group.
     """
     h, w = np.shape(previous)
-    step = _strided(h * w, max_samples)
-    idx = np.arange(0, h * w, step)
-    a = np.asarray(previous).ravel()[idx].astype(np.float64)
-    b = np.asarray(current).ravel()[idx].astype(np.float64)
+    first, second = np.asarray(previous).ravel(), np.asarray(current).ravel()
+    idx = np.arange(0, h * w, _strided(h * w, max_samples))
+    a, b = first[idx].astype(np.float64), second[idx].astype(np.float64)
     keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[idx]
     k = float(np.sum(a[keep]) / np.sum(b[keep])) if np.sum(b[keep]) > 0 else 1.0
+    mean = 0.5 * (a + k * b)
     if period is None:
-        mean = 0.5 * (a + k * b)
         var_mean = 0.5 * np.maximum(model[0] * np.maximum(mean, 0.0) + model[1], QUANTISATION_VARIANCE)
         signal = _tweedie(mean, var_mean, keep)  # from the density of all pixels, before any cut
         keep &= _clear_of_clipping(mean, floor, high, model)
         if keep.sum() < 100:
             return NoiseSamples(np.zeros(0), np.zeros(0))
-        d = a[keep] - k * b[keep]
-        return NoiseSamples(t=signal[keep], u=d * d / (1.0 + k * k))
+        return _difference_samples(a[keep], b[keep], k, signal[keep])
     pw = period[1] if w > period[1] else 1
     x = idx % w
-    pair_mean = 0.5 * (np.asarray(previous, np.float64) + k * np.asarray(current, np.float64)).ravel()
     left, right = x >= pw, x + pw < w
-    total = np.where(left, pair_mean[np.where(left, idx - pw, idx)], 0.0)
-    total += np.where(right, pair_mean[np.where(right, idx + pw, idx)], 0.0)
-    by = total / np.maximum(left.astype(np.float64) + right, 1.0)
-    keep &= (left | right) & _clear_of_clipping(0.5 * (a + k * b), floor, high, model)
+    by = np.zeros(idx.size)
+    for side, at in ((left, idx - pw), (right, idx + pw)):  # the neighbours' pair means, where they exist
+        j = at[side]
+        by[side] += 0.5 * (first[j].astype(np.float64) + k * second[j].astype(np.float64))
+    by /= np.maximum(left.astype(np.float64) + right, 1.0)
+    keep &= (left | right) & _clear_of_clipping(mean, floor, high, model)
     if keep.sum() < 100:
         return NoiseSamples(np.zeros(0), np.zeros(0))
-    a, b, by = a[keep], b[keep], by[keep]
-    d = a - k * b
-    return NoiseSamples(t=_grouped(0.5 * (a + k * b), by), u=d * d / (1.0 + k * k))
+    return _difference_samples(a[keep], b[keep], k, _grouped(mean[keep], by[keep]))
 
 
 def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span: float = 400.0) -> np.ndarray:
@@ -1454,7 +1459,7 @@ def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, sta
     """
     step = _strided(np.size(first), max_samples)
     a, b, c = (np.asarray(x).ravel()[::step].astype(np.float64) for x in (first, second, third))
-    keep = np.ones(a.shape, bool) if static is None else np.asarray(static, bool).ravel()[::step]
+    keep = np.ones(a.shape, bool) if static is None else np.array(np.asarray(static, bool).ravel()[::step])
     sums = [float(np.sum(x[keep])) for x in (a, b, c)]
     if min(sums) <= 0:
         return NoiseSamples(np.zeros(0), np.zeros(0))
@@ -1464,8 +1469,7 @@ def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, sta
     if keep.sum() < 100:
         return NoiseSamples(np.zeros(0), np.zeros(0))
     a, b, c = a[keep], b[keep], c[keep]
-    d = a - k * b
-    return NoiseSamples(t=_grouped(0.5 * (a + k * b), c), u=d * d / (1.0 + k * k))
+    return _difference_samples(a, b, k, _grouped(0.5 * (a + k * b), c))
 
 
 def pair_fit(previous: np.ndarray, current: np.ndarray, sensor: Sensor, *, floor: float | None = None,

@@ -409,3 +409,20 @@ def test_temporal_samples_group_means_follow_the_noise_line_exactly(three):
         assert sel.sum() > 5000
         expected = np.mean(samples.t[sel]) / truth.gain + model[1]
         assert np.mean(samples.u[sel]) == pytest.approx(expected, rel=0.03), (lo, hi)
+
+
+def test_temporal_samples_leave_the_callers_static_mask_alone():
+    """The samplers drop pixels from their own copy of the static mask, never from the caller's (the
+    tracker keeps the mask it was given to relate the next frame)."""
+    from svelive.noise import QUANTISATION_VARIANCE, temporal_samples, triple_samples
+
+    truth = true_sensor(10_000, 2.0)
+    sig = [frame(smooth_scene(128), "1/1/8/8", truth, 0, seed=seed).raw.astype(np.float32) - BLACK
+           for seed in (1, 2, 3)]
+    model = (1 / truth.gain, truth.read_noise**2 + QUANTISATION_VARIANCE)
+    static = np.ones(sig[0].shape, bool)
+    for samples in (triple_samples(*sig, static, -BLACK, 0.5 * (truth.white_level - BLACK), model),
+                    temporal_samples(*sig[:2], static, -BLACK, 0.5 * (truth.white_level - BLACK), model,
+                                     period=(4, 1))):
+        assert 0 < samples.size < static.size  # the half-range clip level dropped some pixels
+    assert static.all()

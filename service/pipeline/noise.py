@@ -6,8 +6,8 @@ hand-off between them do not matter) are handed to this stage's own
 thread, which adds them to a :class:`svelive.noise.NoiseTracker`: the first frame's
 single-frame samples, and the differences of the pixels the motion tests found
 static over the three (texture-free; the third frame groups them by signal without
-the bias of grouping by their own noisy values, :func:`svelive.noise.triple_samples`). The reconstruction uses the estimate once
-it has moved from the one in use by more than ``change`` (relative) and more than
+the bias of grouping by their own noisy values, :func:`svelive.noise.triple_samples`).
+The reconstruction uses the estimate once it has moved from the one in use by more than ``change`` (relative) and more than
 its own standard error: every change starts a new Reconstructor, and so restarts
 temporal fusion, so it must be rare.
 """
@@ -148,8 +148,8 @@ class NoiseStage:
                              0, "default")
 
     def state(self) -> dict | None:
-        """For /api/state: the newest estimate, the one in use, and how many runs of consecutive frames made it; None when the
-        camera's noise model is given (or before the first estimate)."""
+        """For /api/state: the newest estimate, the one in use, and how many runs of consecutive frames made
+        it; None when the camera's noise model is given (or before the first estimate)."""
         estimate, applied = self._estimate, self._applied
         if estimate is None:
             return None
