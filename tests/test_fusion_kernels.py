@@ -125,3 +125,45 @@ def test_detail_rows_is_the_window_mean_then_the_detail_pass(window, shape):
     for first in range(0, shape[0], 4):  # in strips of 4 rows
         _detail_rows(along, first, min(first + 4, shape[0]), ky, fused, own, reset, out, threshold, True)
     assert np.array_equal(out, expected)
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/4/16/64", "1,2,4,8/16,32,64,128"])
+@pytest.mark.parametrize("shape", [(5, 9), (41, 33), (130, 70)])
+def test_fusion_detail_in_the_update_is_the_detail_pass(pattern, shape):
+    """The update sharpens the rows whose detail window lies within its strip; strips of one row
+    leave every row to the detail pass (_detail_rows, tested above): the same output either way,
+    on one thread and on two, the within-frame finding applied alike."""
+    from svelive.reconstruction.config import MotionConfig
+    from svelive.reconstruction.consistency import exposure_consistency
+    from svelive.reconstruction.fusion import FrameEstimate, fuse
+    from svelive.reconstruction.single import estimate_variance, run_method
+    from svelive.reconstruction.stream import own_reading_rows
+
+    config = MotionConfig()
+    tile = Pattern.parse(pattern).shape
+    rows = own_reading_rows(Pattern.parse(pattern), shape, SENSOR)
+    scene = np.float32(300) * np.random.default_rng(1).random(shape, dtype=np.float32)
+    scene[: shape[0] // 3] *= np.float32(40)  # censored readings
+    scene[shape[0] // 2:, : shape[1] // 4] = 0  # where the read noise decides
+    camera = camera_for_raw(np.zeros(1, np.uint16), Pattern.parse(pattern), white_level=SENSOR.white_level,
+                            gain=SENSOR.gain, read_noise=SENSOR.read_noise)
+    states = {}
+    for seed in range(4):
+        inp = prepare(simulate(scene, pattern, SENSOR, seed=seed).raw, camera)  # a still scene, new noise
+        est = run_method(inp, "weighted", return_variance=True)
+        variance = estimate_variance(est, inp)
+        frame = FrameEstimate(est.image, variance, est.lower_bound, inp.censored, inp.signal, *rows)
+        results = {}
+        for strip_rows, workers in ((1, 1), (2, 1), (3, 2), (7, 1), (16, 2), (64, 1), (1000, 1)):
+            for within in (False, True):
+                found = exposure_consistency(est.image, variance, inp, config) if within else None
+                results[strip_rows, workers, within] = fuse(states.get(within), frame, config, tile, found,
+                                                            workers=workers, strip_rows=strip_rows)
+        for within in (False, True):
+            reference = results[1, 1, within]
+            for key, fused in results.items():
+                if key[2] == within:
+                    for name in ("image", "motion", "history"):
+                        assert np.array_equal(getattr(fused, name), getattr(reference, name)), (key, name)
+            states[within] = reference.state
+    assert (reference.history < 1).any()  # pixels with history: the detail step ran

@@ -385,16 +385,38 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     else:
         own_tables = (frame.own_slope, frame.own_floor, np.float32(0), np.float32(0))
 
+    threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
+    sharpens = config.max_history > 1  # else no pixel has history to sharpen with
+
+    def inner(core: slice) -> slice:
+        """The strip's rows whose detail window lies within it (mirrored at the frame's ends): the
+        update sharpens them as it goes, while their evidence and fused readings are in cache."""
+        if not (detail and inline) or core.stop - core.start <= 2 * radius:
+            return slice(core.start, core.start)
+        return slice(core.start if core.start == 0 else core.start + radius,
+                     core.stop if core.stop == h else core.stop - radius)
+
+    def outer(core: slice) -> list[slice]:
+        """The strip's rows the update does not sharpen (:func:`inner`), in order: once the strips
+        around hold the rows their window reads."""
+        done = inner(core)
+        return [rows for rows in (slice(core.start, done.start), slice(done.stop, core.stop))
+                if rows.stop > rows.start]
+
     def update(core: slice, short: np.ndarray | None) -> None:
         # a history scaled up by the brightness ratio carries up to ratio times the (shot)
         # noise variance the model gives at its new level
+        done = inner(core)
         _update_strip(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
                       frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
                       weight[core], fused[core], own[core], history[core], tested[core], fused_test[core],
-                      separate, *own_tables, max(scale, np.float32(1)), evidence[core], detail, along)
+                      separate, *own_tables, max(scale, np.float32(1)), evidence[core], detail, along,
+                      done.start, done.stop, h, ky, threshold, sharpens, out[core])
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
+        elif inconsistency is not None and done.stop > done.start:
+            _replace(*flat(reset[done], inconsistency._flagged[done], shortest[done], out[done], motion[done]))
 
     limit = config.global_motion * motion.size
     lock = threading.Lock()
@@ -416,11 +438,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if not restarts:
             update(core, short)
 
-    threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
-    sharpens = config.max_history > 1  # else no pixel has history to sharpen with
-
     def sharpen_strip(core: slice) -> None:
-        """The detail step of a strip, once the evidence of its rows and a window around them is in."""
+        """The detail step of rows the update did not sharpen, once the evidence of their rows and a
+        window around them is in."""
         if inline:  # the evidence is summed along rows: down the columns in the pass
             _detail_rows(evidence, core.start, core.stop, ky, fused, own, reset, out, threshold, sharpens)
         else:
@@ -432,20 +452,22 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             _replace(*flat(reset[core], inconsistency._flagged[core], shortest[core], out[core], motion[core]))
 
     if detail and executor is None and workers == 1:
-        # on one thread, each strip's detail step follows as soon as the next strips hold the rows
-        # its window reads, while they are still in cache
-        ready = 0
+        # on one thread, the detail step of the rows the update left follows as soon as the next
+        # strips hold the rows its window reads, while they are still in cache
+        ready, left = 0, []
         for i, core in enumerate(strips):
             strip(core)
+            left += outer(core)
             last = i == len(strips) - 1
-            while ready <= i and (last or strips[ready].stop + radius <= core.stop):
+            while ready < len(left) and (last or left[ready].stop + radius <= core.stop):
                 if moved[0] <= limit:  # else the frame restarts: nothing to do
-                    sharpen_strip(strips[ready])
+                    sharpen_strip(left[ready])
                 ready += 1
     else:
         map_on(executor if executor is not None else workers, strip, strips)
         if detail and moved[0] <= limit:
-            map_on(executor if executor is not None else workers, sharpen_strip, strips)
+            map_on(executor if executor is not None else workers, sharpen_strip,
+                   [rows for core in strips for rows in outer(core)])
     if moved[0] > limit:
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
@@ -536,7 +558,8 @@ def _moving_rows(flagged, flagged_rows, first, widen, motion):
 @kernel
 def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
                   floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
-                  own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along):
+                  own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along,
+                  sharp_first, sharp_stop, frame_rows, kernel_y, threshold, sharpens, out):
     """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
 
     (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
@@ -548,11 +571,16 @@ def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signa
     times the weight and ``noisier``), summed along its row with the symmetric kernel ``along``
     (numerics._symmetric_row; a single tap of 1: as it is). Row by row, each step a loop of its own
     over few arrays (with many, LLVM stops vectorising), while the row's results are still in cache.
+    Frame rows ``sharp_first:sharp_stop`` (within the strip, their window's rows too, mirrored at
+    the ends of a frame of ``frame_rows`` rows) then take the detail step (:func:`_detail_rows`,
+    ``kernel_y`` down the columns) into ``out`` (R, W), each as soon as the rows below it are in.
     """
     one, zero = np.float32(1), np.float32(0)
     period = inverse.shape[0]
     tables = own_slope.shape[0]
     row = np.empty(image.shape[1], np.float32)
+    local = np.empty(image.shape[1], np.float32)
+    a = kernel_y.size // 2
     for r in range(image.shape[0]):
         p = (first_row + r) % period
         for c in range(image.shape[1]):
@@ -583,6 +611,13 @@ def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signa
                     row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
                                       * noisier)
             _symmetric_row(row, along, evidence[r])
+            g = first_row + r - a  # the rows below it are in
+            if sharp_first <= g < sharp_stop:
+                _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold,
+                             sharpens, local)
+    for g in range(max(sharp_first, first_row + image.shape[0] - a), sharp_stop):  # at the frame's bottom
+        _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold, sharpens,
+                     local)
 
 
 @kernel
@@ -624,24 +659,32 @@ def _detail_rows(evidence, first, stop, kernel, fused, own, reset, out, threshol
     mean of ``evidence`` (summed along rows already) down the columns with the symmetric ``kernel``,
     rows beyond the frame mirrored, in OpenCV's order (numerics._symmetric_row): bit-identical to
     methods.base.smooth's for kernels of up to numerics.INLINE_TAPS taps."""
-    rows, cols = evidence.shape
+    local = np.empty(evidence.shape[1], np.float32)
+    for r in range(first, stop):
+        _sharpen_row(evidence, r, 0, evidence.shape[0], kernel, fused, own, reset, out, threshold, sharpens, local)
+
+
+@kernel(inline="always")
+def _sharpen_row(evidence, r, first, rows, kernel, fused, own, reset, out, threshold, sharpens, local):
+    """:func:`_detail_rows` of frame row ``r`` of a frame of ``rows`` rows, the arrays holding frame
+    rows from ``first`` on; ``local``: (W,) scratch."""
     a = kernel.size // 2
     zero, one = np.float32(0), np.float32(1)
-    local = np.empty(cols, np.float32)
-    for r in range(first, stop):
-        centre, kc = evidence[r], kernel[a]
+    cols = local.size
+    centre, kc = evidence[r - first], kernel[a]
+    for c in range(cols):
+        local[c] = centre[c] * kc
+    for j in range(1, a + 1):
+        above, below = evidence[_reflect(r - j, rows) - first], evidence[_reflect(r + j, rows) - first]
+        kj = kernel[a + j]
         for c in range(cols):
-            local[c] = centre[c] * kc
-        for j in range(1, a + 1):
-            above, below, kj = evidence[_reflect(r - j, rows)], evidence[_reflect(r + j, rows)], kernel[a + j]
-            for c in range(cols):
-                local[c] = local[c] + (above[c] + below[c]) * kj
-        f_row, o_row, reset_row, out_row = fused[r], own[r], reset[r], out[r]
-        for c in range(cols):
-            f, o, z, restart = f_row[c], o_row[c], local[c], reset_row[c]
-            beta = _maximum(one - threshold / z, zero)  # 0 where z is 0 (threshold / 0 = inf)
-            sharp = _maximum(f + beta * (o - f), zero)
-            out_row[c] = f if restart or not sharpens else sharp
+            local[c] = local[c] + (above[c] + below[c]) * kj
+    f_row, o_row, reset_row, out_row = fused[r - first], own[r - first], reset[r - first], out[r - first]
+    for c in range(cols):
+        f, o, z, restart = f_row[c], o_row[c], local[c], reset_row[c]
+        beta = _maximum(one - threshold / z, zero)  # 0 where z is 0 (threshold / 0 = inf)
+        sharp = _maximum(f + beta * (o - f), zero)
+        out_row[c] = f if restart or not sharpens else sharp
 
 
 @kernel
