@@ -9,7 +9,7 @@ from svelive import Pattern, Sensor, simulate
 from svelive.camera import camera_for_raw
 from svelive.camera import COLOUR_LAYOUTS
 from svelive.reconstruction import numerics
-from svelive.reconstruction.fusion import _moving_rows
+from svelive.reconstruction.fusion import _paint_row
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods.base import binomial_kernel, smooth
 from svelive.reconstruction.numerics import _confirmed, _symmetric_row, _widen, window_estimate
@@ -95,8 +95,9 @@ def test_moving_rows_is_confirmation_then_widening(widen, density):
     flagged[10, :] = False
     flagged[20, 5:7] = True  # a confirmed pair
     first, rows = 6, 28
-    motion = np.empty((rows, 53), bool)
-    count = _moving_rows(flagged, np.count_nonzero(flagged, axis=1).astype(np.intp), first, widen, motion)
+    motion = np.zeros((rows, 53), bool)
+    counts = np.count_nonzero(flagged, axis=1).astype(np.intp)
+    count = sum(_paint_row(flagged, counts, r, len(flagged), first, widen, motion) for r in range(len(flagged)))
     expected = _widen(_confirmed(flagged), widen)[first:first + rows]
     assert np.array_equal(motion, expected)
     assert count == np.count_nonzero(expected)
@@ -167,3 +168,54 @@ def test_fusion_detail_in_the_update_is_the_detail_pass(pattern, shape):
                         assert np.array_equal(getattr(fused, name), getattr(reference, name)), (key, name)
             states[within] = reference.state
     assert (reference.history < 1).any()  # pixels with history: the detail step ran
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/4/16/64", "1,2,4,8/16,32,64,128"])
+@pytest.mark.parametrize("widen", [0, 1, 2])
+def test_fusion_masks_are_the_whole_frame_test(pattern, widen):
+    """The strips' one pass (test, confirmation and widening, update) gives the whole-frame masks:
+    flagged where the noise test fires and the pixel is stable (or a lower bound proves motion),
+    unstable within a tile window of a censoring change (OpenCV's dilation) or at a bound; motion
+    the flagged pixels with a flagged 8-neighbour, widened; reset (weight 1) where flagged,
+    unstable or moving."""
+    from svelive.reconstruction.config import MotionConfig
+    from svelive.reconstruction.fusion import FrameEstimate, fuse
+    from svelive.reconstruction.numerics import _confirmed, _grow
+    from svelive.reconstruction.stream import own_reading_rows
+
+    shape = (77, 45)
+    config = MotionConfig(widen=widen, compensate_illumination=False)
+    tile = Pattern.parse(pattern).shape
+    window = tuple(n + 1 if n % 2 == 0 else n for n in tile)
+    rng = np.random.default_rng(widen)
+    scene = np.float32(200) * rng.random(shape, dtype=np.float32)
+    scene[20:30, 5:40] = 3000  # readings around the censor level: their censoring changes with the noise
+    moved = scene.copy()
+    moved[50:60, 10:20] = 900  # an object appears
+    camera = camera_for_raw(np.zeros(1, np.uint16), Pattern.parse(pattern), white_level=SENSOR.white_level,
+                            gain=SENSOR.gain, read_noise=SENSOR.read_noise)
+    rows = own_reading_rows(Pattern.parse(pattern), shape, SENSOR)
+    frames = []
+    for seed, radiance in enumerate((scene, moved)):
+        inp = prepare(simulate(radiance, pattern, SENSOR, seed=seed).raw, camera)
+        image = np.where(inp.censored, np.float32(SENSOR.white_level), inp.signal * inp.exposure ** -1)
+        image = smooth(image.astype(np.float32), *(binomial_kernel(n) for n in window))
+        variance = (image / np.float32(SENSOR.effective_gain) + np.float32(4)).astype(np.float32)
+        bound = inp.censored & (rng.random(shape) < 0.5)
+        frames.append(FrameEstimate(image, variance, bound, inp.censored, inp.signal, *rows))
+    first, second = frames
+    state = fuse(None, first, config, tile).state
+    changed = first.censored != second.censored
+    assert changed.any()
+    grown = _grow(changed, window)
+    d = second.image - state.mean
+    flagged = d * d * np.float32(1 / config.temporal_sigmas ** 2) > (state.weight + np.float32(1)) * second.variance
+    proven = flagged & (second.bound != state.bound) & ((second.image > state.mean) == second.bound)
+    unstable = grown | second.bound | state.bound
+    flagged = (flagged & ~unstable) | proven
+    motion = _widen(_confirmed(flagged), widen)
+    assert motion.any() and (flagged & ~motion).any()
+    for strip_rows, workers in ((1, 1), (4, 2), (9, 1), (64, 1)):
+        fused = fuse(state, second, config, tile, workers=workers, strip_rows=strip_rows)
+        assert np.array_equal(fused.motion, motion)
+        assert np.array_equal(fused.history == 1, flagged | unstable | motion)

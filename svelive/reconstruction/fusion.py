@@ -38,7 +38,7 @@ from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import binomial_kernel, map_on, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
-from svelive.reconstruction.numerics import INLINE_TAPS, STRIP_ROWS, _grow, _maximum, _reflect, _strips, _symmetric_row
+from svelive.reconstruction.numerics import INLINE_TAPS, STRIP_ROWS, _maximum, _reflect, _strips, _symmetric_row
 
 
 @dataclass(frozen=True)
@@ -260,7 +260,7 @@ def _subsampled_exceeding(image, mean, weight, variance, bound, old_bound, censo
             counts[1] += d * d * inv_s2 > (weight[i, j] + one) * variance[i, j]
 
 
-#: The row-phase tables of :func:`_update_strip` when it computes them (:class:`FrameEstimate`).
+#: The row-phase tables of :func:`_update_row` when it computes them (:class:`FrameEstimate`).
 _NO_TABLE = np.empty((0, 0), np.float32)
 _NO_TABLE.setflags(write=False)
 
@@ -314,14 +314,15 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     (``frame.test``: window means, whatever the method), whose loss of resolution
     is the same in every frame of a static scene and so cancels.
 
-    Work is done in strips of ``strip_rows`` rows, small enough for a strip's
-    arrays to stay in cache from its test to its update: each strip is tested
-    (reading a halo of rows around it for the neighbourhood operations, so strips
-    join without a seam), then updated at once unless the moving pixels found so
-    far already exceed ``config.global_motion`` of the frame; from then on the
-    frame restarts whatever the other strips hold, so they are skipped. The
-    within-frame test of a strip's rows (``inconsistency``, computed on demand)
-    runs just before its temporal test. The global brightness ratio is measured
+    Work is done in strips of ``strip_rows`` rows, each in one pass down its rows
+    (:func:`_fuse_strip`: every row tested, then updated and sharpened a few rows
+    later, while what the next step reads is in cache), reading a halo of rows
+    around the strip for the neighbourhood operations, so strips join without a
+    seam; the rows whose detail window crosses a join are sharpened once the strip
+    beyond is in. Once the moving pixels found exceed ``config.global_motion`` of
+    the frame, the frame restarts whatever the other strips hold, so they are
+    skipped. The within-frame test of a strip's rows (``inconsistency``, computed
+    on demand) runs just before its pass. The global brightness ratio is measured
     first, on a subsample.
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
@@ -345,24 +346,6 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     motion = np.empty(image.shape, bool)
     reset = np.empty(image.shape, bool)
 
-    def test(core: slice) -> int:
-        """Motion and reset masks of the strip's rows; returns its count of moving pixels."""
-        top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
-        ext, keep = slice(top, stop), slice(core.start - top, core.stop - top)
-        # A reading that crossed the censor level changes which exposures a method
-        # uses nearby, and so its resolution loss: not evidence of motion, but not
-        # averageable either (grown by a tile window).
-        changed = np.not_equal(frame.censored[ext], state.censored[ext])
-        grown = _grow(changed, window) if changed.any() else changed
-        flagged = np.empty(changed.shape, bool)
-        flagged_rows = np.empty(changed.shape[0], np.intp)
-        count = _test_rows(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
-                           state.bound[ext], grown, scale, inv_k2, flagged, flagged_rows, reset[core], keep.start)
-        if count == 0:  # nothing flagged near the strip: nothing to confirm or widen
-            motion[core] = False
-            return 0
-        return _moving_rows(flagged, flagged_rows, keep.start, int(config.widen), motion[core])
-
     fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     separate = frame.test is not None  # the test's estimate has a history of its own
     fused_test = np.empty_like(image) if separate else fused
@@ -370,8 +353,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     out = np.empty_like(image) if detail or inconsistency is not None else fused
     floor_weight = np.float32(1.0 / config.max_history)
     # with detail: each pixel's squared difference own - fused over its variance, whose window
-    # mean is the local evidence of detail (a second pass, once every strip's rows are fused);
-    # summed along rows in the update where the detail pass sums the columns itself
+    # mean is the local evidence of detail (once the rows of the window are fused); summed along
+    # rows in the update where the detail step sums the columns itself
     evidence = np.empty_like(image) if detail else image
     ky, kx = (binomial_kernel(n) for n in window)
     radius = ky.size // 2
@@ -403,20 +386,28 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         return [rows for rows in (slice(core.start, done.start), slice(done.stop, core.stop))
                 if rows.stop > rows.start]
 
-    def update(core: slice, short: np.ndarray | None) -> None:
+    def update(core: slice, short: np.ndarray | None) -> int:
+        """Test, confirm, update and sharpen the strip's rows (:func:`_fuse_strip`), reading its
+        halo's rows too; returns its count of moving pixels."""
+        top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
+        ext = slice(top, stop)
+        done = inner(core)
         # a history scaled up by the brightness ratio carries up to ratio times the (shot)
         # noise variance the model gives at its new level
-        done = inner(core)
-        _update_strip(core.start, state.weight[core], motion[core], state.mean[core], state.own[core], image[core],
-                      frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale, reset[core],
-                      weight[core], fused[core], own[core], history[core], tested[core], fused_test[core],
-                      separate, *own_tables, max(scale, np.float32(1)), evidence[core], detail, along,
-                      done.start, done.stop, h, ky, threshold, sharpens, out[core])
+        count = _fuse_strip(core.start - top, tested[ext], history[ext], state.weight[ext], tested_variance[ext],
+                            bound[ext], state.bound[ext], frame.censored[ext], state.censored[ext], window[0] // 2,
+                            window[1] // 2, int(config.widen), inv_k2,
+                            core.start, state.weight[core], motion[core], state.mean[core], state.own[core],
+                            image[core], frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale,
+                            reset[core], weight[core], fused[core], own[core], history[core], tested[core],
+                            fused_test[core], separate, *own_tables, max(scale, np.float32(1)), evidence[core],
+                            detail, along, done.start, done.stop, h, ky, threshold, sharpens, out[core])
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
         elif inconsistency is not None and done.stop > done.start:
             _replace(*flat(reset[done], inconsistency._flagged[done], shortest[done], out[done], motion[done]))
+        return count
 
     limit = config.global_motion * motion.size
     lock = threading.Lock()
@@ -431,12 +422,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             short = (shortest[core] if shortest is not None
                      else np.empty((core.stop - core.start, image.shape[1]), np.float32))
             inconsistency.test(core, short)
-        count = test(core)
+        count = update(core, short)  # (a strip that takes the count past the limit is updated for nothing)
         with lock:
             moved[0] += count
-            restarts = moved[0] > limit
-        if not restarts:
-            update(core, short)
 
     def sharpen_strip(core: slice) -> None:
         """The detail step of rows the update did not sharpen, once the evidence of their rows and a
@@ -501,66 +489,156 @@ def _test_pixel(x, mean, weight, variance, bound, old_bound, grown, scale, inv_k
 
 
 @kernel
-def _test_rows(image, mean, weight, variance, bound, old_bound, grown, scale, inv_k2, flagged, flagged_rows, reset,
-               first):
-    """The noise test of a strip with its halo, (R, W) arrays: writes ``flagged``, its count per row
-    (``flagged_rows``, (R,)) and, for rows ``first:first + len(reset)``, ``reset`` (flagged or
-    unstable); returns the count flagged."""
-    count = 0
-    for r in range(image.shape[0]):
-        core = first <= r < first + reset.shape[0]
-        n = 0
-        for c in range(image.shape[1]):
-            f, unstable = _test_pixel(image[r, c], mean[r, c], weight[r, c], variance[r, c], bound[r, c],
-                                      old_bound[r, c], grown[r, c], scale, inv_k2)
-            flagged[r, c] = f
-            n += f
-            if core:
-                reset[r - first, c] = f or unstable
-        flagged_rows[r] = n
-        count += n
-    return count
-
-
-@kernel
 def _moving_rows(flagged, flagged_rows, first, widen, motion):
     """motion (the core rows ``first:first + len(motion)`` of the strip) = the ``flagged`` pixels of the
     strip with a flagged 8-neighbour (none beyond the strip), widened by a square of ``2 widen + 1``;
     ``flagged_rows``: the count flagged per row (rows without any are skipped). Returns motion's count."""
-    rows, cols = flagged.shape
     motion[:] = False
     count = 0
-    last = first + motion.shape[0] - 1
-    for r in range(rows):
-        if flagged_rows[r] == 0:
-            continue
-        top, bottom = max(r - widen, first), min(r + widen, last)
-        if top > bottom:  # its square does not reach the core rows
-            continue
-        for c in range(cols):
-            if not flagged[r, c]:
-                continue
-            confirmed = False
-            for rr in range(max(r - 1, 0), min(r + 2, rows)):
-                if flagged_rows[rr] == 0:
-                    continue
-                for cc in range(max(c - 1, 0), min(c + 2, cols)):
-                    if (rr != r or cc != c) and flagged[rr, cc]:
-                        confirmed = True
-            if confirmed:
-                for rr in range(top, bottom + 1):
-                    for cc in range(max(c - widen, 0), min(c + widen + 1, cols)):
-                        count += not motion[rr - first, cc]
-                        motion[rr - first, cc] = True
+    for r in range(flagged.shape[0]):
+        count += _paint_row(flagged, flagged_rows, r, flagged.shape[0], first, widen, motion)
     return count
 
 
 @kernel
-def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
-                  floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
-                  own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along,
-                  sharp_first, sharp_stop, frame_rows, kernel_y, threshold, sharpens, out):
-    """The running means of a strip starting at row ``first_row``; also sets ``reset`` where ``motion`` is.
+def _paint_row(flagged, flagged_rows, r, rows, first, widen, motion):
+    """:func:`_moving_rows` of the strip's row ``r``: its confirmed pixels (8-neighbours among the
+    strip's first ``rows`` rows) widened into ``motion``; returns the count newly set."""
+    if flagged_rows[r] == 0:
+        return 0
+    cols = flagged.shape[1]
+    top, bottom = max(r - widen, first), min(r + widen, first + motion.shape[0] - 1)
+    if top > bottom:  # its square does not reach the core rows
+        return 0
+    count = 0
+    for c in range(cols):
+        if not flagged[r, c]:
+            continue
+        confirmed = False
+        for rr in range(max(r - 1, 0), min(r + 2, rows)):
+            if flagged_rows[rr] == 0:
+                continue
+            for cc in range(max(c - 1, 0), min(c + 2, cols)):
+                if (rr != r or cc != c) and flagged[rr, cc]:
+                    confirmed = True
+        if confirmed:
+            for rr in range(top, bottom + 1):
+                for cc in range(max(c - widen, 0), min(c + widen + 1, cols)):
+                    count += not motion[rr - first, cc]
+                    motion[rr - first, cc] = True
+    return count
+
+
+@kernel
+def _grown_row(changed, changed_rows, start, stop, wx, column, grown):
+    """grown (W,) = the reading's censoring changed within rows ``start:stop`` of ``changed`` and
+    ``wx`` columns either side (a dilation whose border repeats the edge: what lies beyond adds
+    nothing); ``changed_rows``: their counts; ``column``: (W,) scratch."""
+    total = 0
+    for i in range(start, stop):
+        total += changed_rows[i]
+    if total == 0:
+        grown[:] = False
+        return
+    column[:] = False
+    for i in range(start, stop):
+        if changed_rows[i]:
+            row = changed[i]
+            for c in range(column.size):
+                column[c] = column[c] | row[c]
+    grown[:] = column
+    cols = column.size
+    for x in range(1, min(wx, cols - 1) + 1):  # shifted slices, so that LLVM vectorises the loops
+        inner = cols - x
+        left, right = grown[:inner], column[x:]
+        for c in range(inner):
+            left[c] = left[c] | right[c]
+        left, right = grown[x:], column[:inner]
+        for c in range(inner):
+            left[c] = left[c] | right[c]
+
+
+@kernel
+def _fuse_strip(keep, test_image, test_mean, test_weight, test_variance, test_bound, test_old_bound, test_censored,
+                test_old_censored, wy, wx, widen, inv_k2, first_row, old_weight, motion, old_mean, old_own, image,
+                signal, censored, inverse, floor_weight, scale, reset, weight, fused, own, old_test, tested,
+                fused_test, separate, own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail,
+                along, sharp_first, sharp_stop, frame_rows, kernel_y, threshold, sharpens, out):
+    """One strip of :func:`fuse` in one pass down its rows: the noise test, confirmation and
+    widening (``motion``, ``reset``), the running means (:func:`_update_row`) and the detail step.
+    Returns the strip's count of moving pixels.
+
+    ``test_*``: (E, W) rows of the strip with its halo (the strip's rows from ``keep`` on): the
+    tested estimate, the history's, its weight, the estimate's variance, both lower bounds and
+    censorings; a reading whose censoring changed makes its window (``wy`` rows, ``wx`` columns
+    either side, within these rows) unstable. Flagged pixels count as moving where an 8-neighbour
+    is flagged too (within these rows), widened by ``widen``. Each row is updated once every row
+    whose widening reaches it is tested, a few rows after its own test, and sharpened ``kernel_y``'s
+    radius rows later (:func:`_detail_rows` into ``out``; frame rows ``sharp_first:sharp_stop``,
+    whose window's rows are the strip's too, mirrored at the ends of a frame of ``frame_rows``
+    rows), so that each row is read from memory once and its results are still in cache when
+    the next step reads them. The other arguments are :func:`_update_row`'s, (R, W) rows of the strip.
+    """
+    rows_e, cols = test_image.shape
+    rows = image.shape[0]
+    changed = np.empty((rows_e, cols), np.bool_)
+    changed_rows = np.empty(rows_e, np.intp)
+    flagged = np.empty((rows_e, cols), np.bool_)
+    flagged_rows = np.empty(rows_e, np.intp)
+    column, grown = np.empty(cols, np.bool_), np.empty(cols, np.bool_)
+    row, local = np.empty(cols, np.float32), np.empty(cols, np.float32)
+    a = kernel_y.size // 2
+    motion[:] = False
+    count = 0
+    known = 0  # rows whose censoring change is known
+    following = 0  # the next strip row to update
+    for t in range(rows_e + 1):
+        if t < rows_e:
+            while known < min(t + wy + 1, rows_e):
+                n = 0
+                for c in range(cols):
+                    d = test_censored[known, c] != test_old_censored[known, c]
+                    changed[known, c] = d
+                    n += d
+                changed_rows[known] = n
+                known += 1
+            _grown_row(changed, changed_rows, max(t - wy, 0), min(t + wy + 1, rows_e), wx, column, grown)
+            core = keep <= t < keep + rows
+            n = 0
+            for c in range(cols):
+                f, unstable = _test_pixel(test_image[t, c], test_mean[t, c], test_weight[t, c], test_variance[t, c],
+                                          test_bound[t, c], test_old_bound[t, c], grown[c], scale, inv_k2)
+                flagged[t, c] = f
+                n += f
+                if core:
+                    reset[t - keep, c] = f or unstable
+            flagged_rows[t] = n
+        if t >= 1:  # row t - 1's neighbours are tested
+            count += _paint_row(flagged, flagged_rows, t - 1, rows_e, keep, widen, motion)
+        # rows every widened row that reaches them has painted
+        last = rows if t == rows_e else min(t - widen - keep, rows)
+        while following < last:
+            _update_row(following, first_row, old_weight, motion, old_mean, old_own, image, signal, censored,
+                        inverse, floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test,
+                        separate, own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along,
+                        row)
+            g = first_row + following - a  # the rows below it are in
+            if sharp_first <= g < sharp_stop:
+                _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold,
+                             sharpens, local)
+            following += 1
+    for g in range(max(sharp_first, first_row + rows - a), sharp_stop):  # at the frame's bottom
+        _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold, sharpens,
+                     local)
+    return count
+
+
+@kernel
+def _update_row(r, first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
+                floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
+                own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along, row):
+    """The running means of row ``r`` of a strip starting at frame row ``first_row``; also sets
+    ``reset`` where ``motion`` is. ``row``: (W,) scratch.
 
     (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
     (:class:`FrameEstimate`; tables of no rows: ``inverse`` times ``slope_scale``, and squared
@@ -571,53 +649,39 @@ def _update_strip(first_row, old_weight, motion, old_mean, old_own, image, signa
     times the weight and ``noisier``), summed along its row with the symmetric kernel ``along``
     (numerics._symmetric_row; a single tap of 1: as it is). Row by row, each step a loop of its own
     over few arrays (with many, LLVM stops vectorising), while the row's results are still in cache.
-    Frame rows ``sharp_first:sharp_stop`` (within the strip, their window's rows too, mirrored at
-    the ends of a frame of ``frame_rows`` rows) then take the detail step (:func:`_detail_rows`,
-    ``kernel_y`` down the columns) into ``out`` (R, W), each as soon as the rows below it are in.
     """
     one, zero = np.float32(1), np.float32(0)
     period = inverse.shape[0]
     tables = own_slope.shape[0]
-    row = np.empty(image.shape[1], np.float32)
-    local = np.empty(image.shape[1], np.float32)
-    a = kernel_y.size // 2
-    for r in range(image.shape[0]):
-        p = (first_row + r) % period
+    p = (first_row + r) % period
+    for c in range(image.shape[1]):
+        restart = reset[r, c] or motion[r, c]
+        reset[r, c] = restart
+        w = one if restart else _maximum(old_weight[r, c] / (old_weight[r, c] + one), floor_weight)
+        weight[r, c] = w
+        x = image[r, c]
+        fused[r, c] = _running_mean(old_mean[r, c], x, w, scale)
+        own[r, c] = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x),
+                                  w, scale)
+    if separate:
         for c in range(image.shape[1]):
-            restart = reset[r, c] or motion[r, c]
-            reset[r, c] = restart
-            w = one if restart else _maximum(old_weight[r, c] / (old_weight[r, c] + one), floor_weight)
-            weight[r, c] = w
-            x = image[r, c]
-            fused[r, c] = _running_mean(old_mean[r, c], x, w, scale)
-            own[r, c] = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x),
-                                      w, scale)
-        if separate:
+            fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], weight[r, c], scale)
+    if detail:
+        if tables:
+            q = (first_row + r) % tables
             for c in range(image.shape[1]):
-                fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], weight[r, c], scale)
-        if detail:
-            if tables:
-                q = (first_row + r) % tables
-                for c in range(image.shape[1]):
-                    f = fused[r, c]
-                    d = own[r, c] - f
-                    row[c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c]
-                                      * noisier)
-            else:
-                for c in range(image.shape[1]):
-                    f = fused[r, c]
-                    d = own[r, c] - f
-                    i = inverse[p, c]
-                    row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
-                                      * noisier)
-            _symmetric_row(row, along, evidence[r])
-            g = first_row + r - a  # the rows below it are in
-            if sharp_first <= g < sharp_stop:
-                _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold,
-                             sharpens, local)
-    for g in range(max(sharp_first, first_row + image.shape[0] - a), sharp_stop):  # at the frame's bottom
-        _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold, sharpens,
-                     local)
+                f = fused[r, c]
+                d = own[r, c] - f
+                row[c] = d * d / ((own_slope[q, c] * _maximum(f, zero) + own_floor[q, c]) * weight[r, c]
+                                  * noisier)
+        else:
+            for c in range(image.shape[1]):
+                f = fused[r, c]
+                d = own[r, c] - f
+                i = inverse[p, c]
+                row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
+                                  * noisier)
+        _symmetric_row(row, along, evidence[r])
 
 
 @kernel
