@@ -293,15 +293,14 @@ def chroma(inp: SveInput) -> Chroma:
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
     values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    _cell_values(numerator, denominator, mean, info, bound, white, values, np.empty(wc, f32))
-    _cell_values(weighted, kept, mean, info, bound, white, own, np.empty(wc, f32))  # each cell's own readings
+    # the smoothed values, and each cell's own readings' (own), in one pass over the cells' statistics
+    _cell_values(numerator, denominator, weighted, kept, mean, info, bound, white, values, own, np.empty(wc, f32))
     shares, own_shares = _centred(values, layout), _centred(own, layout)
     neutral = (white / f32(layout.share @ white)).astype(f32)
     coarse = np.empty((2, hc, wc), f32)
     noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
-    _shares(shares, info, bound, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation)
-    _own_shares(own_shares, info, layout.share, neutral, f32(SHARE_FLOOR), shares, own_noise, residual,
-                np.empty(wc, f32))
+    _shares(shares, info, bound, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation,
+            own_shares, own_noise, residual, np.empty(wc, f32))
     for c in range(3):
         cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
     _blend(shares, noise, own_shares, own_noise, residual, neutral, deviation)
@@ -484,63 +483,75 @@ def _add_pairs_of_four(row, lost, half, xs0, ns0, alls0, xs1, ns1, alls1):
 
 
 @kernel
-def _cell_values(numerator, denominator, mean, info, bound, white, out, brightest):
+def _cell_values(numerator, denominator, weighted, kept, mean, info, bound, white, out, own, brightest):
     """Each cell's C_c (3, Hc, Wc) from the smoothed sums (``numerator`` / ``denominator``) and
     the cells' statistics (:func:`_cell_stats`): the censoring and highlight rules (module
-    docstring). ``brightest``: (Wc,) scratch. Loops over the cells of a row (which vectorise)."""
-    zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
+    docstring); ``own``: the same from each cell's own readings alone (``weighted`` / ``kept``).
+    Cell row by cell row, both while the row's statistics are in cache. ``brightest``: (Wc,) scratch."""
     for i in range(out.shape[1]):
-        # brightest: max over the measured channels of C / white (-1: none measured)
-        brightest[:] = none
-        for c in range(3):
-            num, den, m, n, b, o = numerator[c, i], denominator[c, i], mean[c, i], info[c, i], bound[c, i], out[c, i]
-            inverse = one / white[c]
-            for j in range(o.size):
-                smoothed = num[j] / den[j] if den[j] > zero else zero
-                # censored readings: the uncensored neighbours are the darker ones (and those
-                # consistent with the bound the brighter): the cell's own readings alone
-                value = max(m[j], b[j]) if b[j] > zero else smoothed
-                o[j] = max(value, zero)
-                # measured: an uncensored reading in the cell, or (a cell at the frame's edge
-                # without the channel's pixels) none censored and some around
-                measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
-                brightest[j] = max(brightest[j], o[j] * inverse if measured else none)
-        for c in range(3):  # clipped channels at least the white-balanced level of the measured ones
-            n, b, den, o, level = info[c, i], bound[c, i], denominator[c, i], out[c, i], white[c]
-            for j in range(o.size):
-                measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
-                o[j] = o[j] if measured else max(o[j], level * brightest[j])
-        for j in range(out.shape[2]):
-            if brightest[j] < zero:  # every channel only a bound: neutral white at the largest
-                top = max(out[0, i, j] / white[0], max(out[1, i, j] / white[1], out[2, i, j] / white[2]))
-                for c in range(3):
-                    out[c, i, j] = white[c] * top
+        _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i)
 
 
 @kernel
-def _shares(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, deviation):
+def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i):
+    """:func:`_cell_values` of cell row ``i`` into ``out``. Loops over the cells of the row (which vectorise)."""
+    zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
+    # brightest: max over the measured channels of C / white (-1: none measured)
+    brightest[:] = none
+    for c in range(3):
+        num, den, m, n, b, o = numerator[c, i], denominator[c, i], mean[c, i], info[c, i], bound[c, i], out[c, i]
+        inverse = one / white[c]
+        for j in range(o.size):
+            smoothed = num[j] / den[j] if den[j] > zero else zero
+            # censored readings: the uncensored neighbours are the darker ones (and those
+            # consistent with the bound the brighter): the cell's own readings alone
+            value = max(m[j], b[j]) if b[j] > zero else smoothed
+            o[j] = max(value, zero)
+            # measured: an uncensored reading in the cell, or (a cell at the frame's edge
+            # without the channel's pixels) none censored and some around
+            measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
+            brightest[j] = max(brightest[j], o[j] * inverse if measured else none)
+    for c in range(3):  # clipped channels at least the white-balanced level of the measured ones
+        n, b, den, o, level = info[c, i], bound[c, i], denominator[c, i], out[c, i], white[c]
+        for j in range(o.size):
+            measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
+            o[j] = o[j] if measured else max(o[j], level * brightest[j])
+    for j in range(out.shape[2]):
+        if brightest[j] < zero:  # every channel only a bound: neutral white at the largest
+            top = max(out[0, i, j] / white[0], max(out[1, i, j] / white[1], out[2, i, j] / white[2]))
+            for c in range(3):
+                out[c, i, j] = white[c] * top
+
+
+@kernel
+def _shares(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, deviation,
+            own, own_noise, residual, lum):
     """values (3, Hc, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place.
 
     ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
     censored readings, ``bound`` > 0, which keeps its own), COARSE_NONE where ``censored`` (Hc, Wc)
     is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's
-    noise; ``deviation``: (k_c - neutral_c)^2. Loops over the cells of a row (which vectorise).
+    noise; ``deviation``: (k_c - neutral_c)^2. ``own`` (3, Hc, Wc): each cell's own C_c in, its
+    shares out (:func:`_own_shares_row`, ``own_noise`` and ``residual``), cell row by cell row
+    after the smoothed ones while the row's are in cache. ``lum``: (Wc,) scratch. Loops over the
+    cells of a row (which vectorise).
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
     tiny = np.float32(1e-30)
     for i in range(values.shape[1]):
-        lum, var = coarse[0, i], coarse[1, i]
+        lum_row, var = coarse[0, i], coarse[1, i]
         r, g, b = values[0, i], values[1, i], values[2, i]
-        for j in range(lum.size):
-            lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+        for j in range(lum_row.size):
+            lum_row[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
             var[j] = zero
         for c in range(3):
             k, n, d, inf, level, weight = values[c, i], noise[c, i], deviation[c, i], info[c, i], neutral[c], share[c]
             b = bound[c, i]
-            for j in range(lum.size):
-                ok = lum[j] > zero
-                inverse = one / lum[j] if ok else zero
+            for j in range(lum_row.size):
+                ok = lum_row[j] > zero
+                inverse = one / lum_row[j] if ok else zero
                 v = (spread if b[j] <= zero else one) / max(inf[j], tiny)
                 kc = max(k[j] * inverse, floor) if ok else level
                 k[j] = kc
@@ -548,31 +559,31 @@ def _shares(values, info, bound, censored, share, neutral, floor, spread, coarse
                 d[j] = (kc - level) * (kc - level)
                 var[j] += weight * weight * v
         lost = censored[i]
-        for j in range(lum.size):
+        for j in range(lum_row.size):
             var[j] = none if lost[j] else min(var[j], none)
+        _own_shares_row(own, info, share, neutral, floor, values, own_noise, residual, lum, i)
 
 
 @kernel
-def _own_shares(values, info, share, neutral, floor, smoothed, noise, residual, lum):
+def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i):
     """values (3, Hc, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
-    neutral's where L <= 0), in place, as :func:`_shares` with the cell's own readings alone
-    (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE). ``residual`` (out):
-    (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
+    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares` with the cell's own
+    readings alone (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE).
+    ``residual`` (out): (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
     zero, one, none, tiny = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE), np.float32(1e-30)
-    for i in range(values.shape[1]):
-        r, g, b = values[0, i], values[1, i], values[2, i]
+    r, g, b = values[0, i], values[1, i], values[2, i]
+    for j in range(lum.size):
+        lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+    for c in range(3):
+        k, n, e, inf, ks, level = values[c, i], noise[c, i], residual[c, i], info[c, i], smoothed[c, i], neutral[c]
         for j in range(lum.size):
-            lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
-        for c in range(3):
-            k, n, e, inf, ks, level = values[c, i], noise[c, i], residual[c, i], info[c, i], smoothed[c, i], neutral[c]
-            for j in range(lum.size):
-                ok = lum[j] > zero
-                inverse = one / lum[j] if ok else zero
-                v = one / max(inf[j], tiny)
-                kc = max(k[j] * inverse, floor) if ok else level
-                k[j] = kc
-                n[j] = min(v * inverse * inverse, none) if ok else none
-                e[j] = (kc - ks[j]) * (kc - ks[j])
+            ok = lum[j] > zero
+            inverse = one / lum[j] if ok else zero
+            v = one / max(inf[j], tiny)
+            kc = max(k[j] * inverse, floor) if ok else level
+            k[j] = kc
+            n[j] = min(v * inverse * inverse, none) if ok else none
+            e[j] = (kc - ks[j]) * (kc - ks[j])
 
 
 @kernel
