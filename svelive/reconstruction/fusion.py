@@ -38,7 +38,7 @@ from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import binomial_kernel, map_on, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
-from svelive.reconstruction.numerics import INLINE_TAPS, STRIP_ROWS, _maximum, _reflect, _strips, _symmetric_row
+from svelive.reconstruction.numerics import INLINE_TAPS, _maximum, _reflect, _strips, _symmetric_row
 
 
 @dataclass(frozen=True)
@@ -264,6 +264,11 @@ def _subsampled_exceeding(image, mean, weight, variance, bound, old_bound, censo
 _NO_TABLE = np.empty((0, 0), np.float32)
 _NO_TABLE.setflags(write=False)
 
+#: Rows per strip of :func:`fuse`. Its pass keeps each row's arrays in cache from the test to the
+#: update whatever the strip's height (:func:`_fuse_strip`); taller strips test fewer halo rows
+#: twice and make fewer calls (128 against 64: x0.94-0.95 CPU mono, x0.98 RGGB, demo 1920x1200).
+FUSE_ROWS = 128
+
 #: Global brightness ratios closer to 1 than this are not divided out (far below any noise).
 RATIO_TOLERANCE = 2e-3
 
@@ -276,7 +281,7 @@ def start(frame: FrameEstimate) -> TemporalState:
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
          inconsistency: Inconsistency | None = None, detail: bool = True, workers: int = 1,
-         strip_rows: int = STRIP_ROWS, executor: Executor | None = None) -> Fused:
+         strip_rows: int = FUSE_ROWS, executor: Executor | None = None) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
