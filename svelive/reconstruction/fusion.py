@@ -359,7 +359,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     floor_weight = np.float32(1.0 / config.max_history)
     # with detail: each pixel's squared difference own - fused over its variance, whose window
     # mean is the local evidence of detail (once the rows of the window are fused); summed along
-    # rows in the update where the detail step sums the columns itself
+    # rows in the update where the detail step sums the columns itself. Written only where the
+    # detail step of the rows around the strips' joins reads it (the strips' pass keeps a ring).
     evidence = np.empty_like(image) if detail else image
     ky, kx = (binomial_kernel(n) for n in window)
     radius = ky.size // 2
@@ -582,7 +583,9 @@ def _fuse_strip(keep, test_image, test_mean, test_weight, test_variance, test_bo
     radius rows later (:func:`_detail_rows` into ``out``; frame rows ``sharp_first:sharp_stop``,
     whose window's rows are the strip's too, mirrored at the ends of a frame of ``frame_rows``
     rows), so that each row is read from memory once and its results are still in cache when
-    the next step reads them. The other arguments are :func:`_update_row`'s, (R, W) rows of the strip.
+    the next step reads them. The evidence goes to a ring of the window's rows, and to
+    ``evidence`` only for the rows the later detail step reads (all when the strip sharpens none).
+    The other arguments are :func:`_update_row`'s, (R, W) rows of the strip.
     """
     rows_e, cols = test_image.shape
     rows = image.shape[0]
@@ -593,6 +596,8 @@ def _fuse_strip(keep, test_image, test_mean, test_weight, test_variance, test_bo
     column, grown = np.empty(cols, np.bool_), np.empty(cols, np.bool_)
     row, local = np.empty(cols, np.float32), np.empty(cols, np.float32)
     a = kernel_y.size // 2
+    # the evidence of the last rows, the detail window's: frame row x in ring[(x - first_row) % len(ring)]
+    ring = np.empty((2 * a + 1, cols), np.float32)
     motion[:] = False
     count = 0
     known = 0  # rows whose censoring change is known
@@ -623,18 +628,19 @@ def _fuse_strip(keep, test_image, test_mean, test_weight, test_variance, test_bo
         # rows every widened row that reaches them has painted
         last = rows if t == rows_e else min(t - widen - keep, rows)
         while following < last:
+            slot = ring[following % ring.shape[0]]
             _update_row(following, first_row, old_weight, motion, old_mean, old_own, image, signal, censored,
                         inverse, floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test,
-                        separate, own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along,
-                        row)
-            g = first_row + following - a  # the rows below it are in
-            if sharp_first <= g < sharp_stop:
-                _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold,
+                        separate, own_slope, own_floor, slope_scale, floor_scale, noisier, slot, detail, along, row)
+            g = first_row + following
+            if detail and (sharp_stop <= sharp_first or g < sharp_first + a or g >= sharp_stop - a):
+                evidence[following] = slot  # read by the detail step of rows it does not sharpen
+            if sharp_first <= g - a < sharp_stop:  # the rows below it are in
+                _sharpen_row(ring, g - a, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold,
                              sharpens, local)
             following += 1
     for g in range(max(sharp_first, first_row + rows - a), sharp_stop):  # at the frame's bottom
-        _sharpen_row(evidence, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold, sharpens,
-                     local)
+        _sharpen_row(ring, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold, sharpens, local)
     return count
 
 
@@ -643,7 +649,7 @@ def _update_row(r, first_row, old_weight, motion, old_mean, old_own, image, sign
                 floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
                 own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along, row):
     """The running means of row ``r`` of a strip starting at frame row ``first_row``; also sets
-    ``reset`` where ``motion`` is. ``row``: (W,) scratch.
+    ``reset`` where ``motion`` is. ``row``: (W,) scratch; ``evidence``: the row's, (W,).
 
     (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
     (:class:`FrameEstimate`; tables of no rows: ``inverse`` times ``slope_scale``, and squared
@@ -686,7 +692,7 @@ def _update_row(r, first_row, old_weight, motion, old_mean, old_own, image, sign
                 i = inverse[p, c]
                 row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
                                   * noisier)
-        _symmetric_row(row, along, evidence[r])
+        _symmetric_row(row, along, evidence)
 
 
 @kernel
@@ -736,15 +742,17 @@ def _detail_rows(evidence, first, stop, kernel, fused, own, reset, out, threshol
 @kernel(inline="always")
 def _sharpen_row(evidence, r, first, rows, kernel, fused, own, reset, out, threshold, sharpens, local):
     """:func:`_detail_rows` of frame row ``r`` of a frame of ``rows`` rows, the arrays holding frame
-    rows from ``first`` on; ``local``: (W,) scratch."""
+    rows from ``first`` on (``evidence`` frame row x at ``(x - first) % len(evidence)``: also a ring
+    of the rows around ``r``); ``local``: (W,) scratch."""
     a = kernel.size // 2
     zero, one = np.float32(0), np.float32(1)
-    cols = local.size
-    centre, kc = evidence[r - first], kernel[a]
+    cols, n = local.size, evidence.shape[0]
+    centre, kc = evidence[(r - first) % n], kernel[a]
     for c in range(cols):
         local[c] = centre[c] * kc
     for j in range(1, a + 1):
-        above, below = evidence[_reflect(r - j, rows) - first], evidence[_reflect(r + j, rows) - first]
+        above = evidence[(_reflect(r - j, rows) - first) % n]
+        below = evidence[(_reflect(r + j, rows) - first) % n]
         kj = kernel[a + j]
         for c in range(cols):
             local[c] = local[c] + (above[c] + below[c]) * kj
