@@ -54,7 +54,8 @@ def _reference(inp):
     # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L >= 0
     weight_m = f32(1) / (var_m + bias2)
     total = w + weight_m
-    image = _nonnegative((w * x + weight_m * m) / total, total)
+    estimate = (w * x + weight_m * m) / total
+    image = _nonnegative(estimate, total)
     # every reading of the window at raw 0: 0
     bottom = cv2.erode((s <= -inp.sensor.black_level).astype(np.uint8), np.ones(window, np.uint8),
                        borderType=cv2.BORDER_REFLECT_101).astype(bool)
@@ -72,7 +73,62 @@ def _reference(inp):
         image = np.where(at, mean, image)
         lower |= at & (count <= 0)
     bound = censored_lower_bound(inp, window)
-    return np.where(lower, bound, image), lower, np.where(lower, bound * bound, variance)
+    image, variance = np.where(lower, bound, image), np.where(lower, bound * bound, variance)
+
+    # the wide fallback where the result cannot tell the level from 0
+    candidates = (((estimate <= 0) | (estimate * estimate * total < f32(adaptive.CONTRAST_SIGMA ** 2)))
+                  & (image > 0) & ~censored & ~lower)
+    estimate, total, changed = _wide_reference(estimate, total, wn, x, censored, candidates, window)
+    image = np.where(changed, _nonnegative(estimate, total), image)
+    return image, lower, np.where(changed, f32(1) / total, variance)
+
+
+def _wide_reference(estimate, information, wn, x, flags, active, window):
+    """The wide fallback (adaptive._wide_fallback) in numpy: (estimate, information, changed), float32 (H, W)."""
+    f32, tiny = np.float32, np.float32(adaptive.TINY)
+    h, width = wn.shape
+    by, bx = window
+    changed = np.zeros_like(active)
+    box = lambda a: cv2.boxFilter(a, cv2.CV_32F, (bx, by), normalize=False,  # noqa: E731
+                                  borderType=cv2.BORDER_REFLECT_101)
+    for _ in range(adaptive.WIDE_SCALES):
+        if 3 * by > h or 3 * bx > width:
+            break
+        block_w = box(wn)
+        means = np.where(block_w > tiny, box(wn * x) / np.maximum(block_w, tiny), f32(0))
+        means = np.where(box(flags.astype(f32)) > 0.5, f32(np.nan), means)
+        rows, cols = np.arange(h), np.arange(width)
+        blocks = [(block_w[np.ix_(_reflect(rows + dy * by, h), _reflect(cols + dx * bx, width))],
+                   means[np.ix_(_reflect(rows + dy * by, h), _reflect(cols + dx * bx, width))])
+                  for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+        sum_w, sum_wx, count, bad = f32(0), f32(0), f32(0), np.zeros_like(active)
+        for bw, bm in blocks:
+            sum_w = sum_w + np.where(bw > tiny, bw, f32(0))
+            sum_wx = sum_wx + np.where(bw > tiny, bw * bm, f32(0))
+            count = count + (bw > tiny).astype(f32)
+            bad |= np.isnan(bm)
+        mean = sum_wx / np.maximum(sum_w, tiny)
+        chi2 = f32(0)
+        for bw, bm in blocks:
+            chi2 = chi2 + np.where(bw > tiny, bw * (bm - mean) ** 2, f32(0))
+        dof = count - f32(1)
+        sigmas = f32(adaptive.CONTRAST_SIGMA)
+        bias2 = np.maximum(chi2 - dof - sigmas * np.sqrt(f32(2) * dof), f32(0)) / sum_w
+        weight = f32(1) / (f32(1) / sum_w + bias2)
+        go = active & ~bad & (count >= 2)
+        t = information + weight
+        value = (estimate * information + mean * weight) / t
+        estimate, information = np.where(go, value, estimate), np.where(go, t, information)
+        changed |= go
+        active = go & (bias2 <= 0) & ((estimate <= 0) | (estimate * estimate * information < sigmas * sigmas))
+        by, bx = 3 * by, 3 * bx
+    return estimate, information, changed
+
+
+def _reflect(index, n):
+    """Indices reflected into [0, n) as OpenCV's BORDER_REFLECT_101 (once is enough here)."""
+    index = np.abs(index)
+    return np.where(index >= n, 2 * (n - 1) - index, index)
 
 
 def _nonnegative(estimate, information):
@@ -137,11 +193,12 @@ def test_noise_floor_from_the_frame(pattern):
     assert adaptive.floor_evidence(inp, g, f) == pytest.approx(level / f, rel=1e-4)
 
 
-def _frame(pattern, shape, seed):
-    """A textured scene whose bright blob saturates some exposures, censored only in the middle rows."""
+def _frame(pattern, shape, seed, scale=1.0):
+    """A textured scene whose bright blob saturates some exposures, censored only in the middle rows; ``scale``
+    below 1 darkens the texture (not the blob) to levels a 3x3 window cannot tell from 0."""
     rng = np.random.default_rng(seed)
     h, w = shape
-    truth = cv2.GaussianBlur(rng.uniform(2, 60, shape).astype(np.float32), (0, 0), 1.5)
+    truth = cv2.GaussianBlur(rng.uniform(2, 60, shape).astype(np.float32), (0, 0), 1.5) * np.float32(scale)
     points = rng.random(shape) < 0.02
     points[:h // 4] = False
     truth[points] *= 8  # isolated bright points: edges for b^2, some saturated
@@ -150,15 +207,22 @@ def _frame(pattern, shape, seed):
     return simulate(truth, pattern, SENSOR, seed=seed).raw
 
 
-@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,2,4/8,16,32/1,4,64"])
-@pytest.mark.parametrize("shape", [(37, 41), (300, 50)])  # one strip, and strips with and without censored pixels
-def test_kernels_agree_with_the_numpy_formulas(pattern, shape):
-    inp = prepare(_frame(pattern, shape, seed=5), pattern, SENSOR)
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,2,4/8,16,32/1,4,64", "1/1/8/8"])
+@pytest.mark.parametrize("shape", [(37, 41), (300, 50), (130, 200)])  # one strip, strips with and without censored
+@pytest.mark.parametrize("scale", [1.0, 0.003])  # bright texture, and texture a 3x3 window cannot tell from 0
+def test_kernels_agree_with_the_numpy_formulas(pattern, shape, scale, monkeypatch):
+    inp = prepare(_frame(pattern, shape, seed=5, scale=scale), pattern, SENSOR)
     assert 0.005 < inp.censored.mean() < 0.5
-    if shape[0] > 100:
+    if shape[0] >= 300:
         assert not inp.censored[:60].any()  # whole strips without censored pixels
     image, lower, variance = _reference(inp)
     est = run_method(inp, "adaptive", return_variance=True)
+    if scale < 1:  # the wide fallback took part: its scales lowered the variance of many pixels
+        with monkeypatch.context() as patch:
+            patch.setattr(adaptive, "WIDE_SCALES", 0)
+            narrow = adaptive.run(inp, return_variance=True).variance
+        assert (est.variance < narrow * 0.5).sum() >= 20
+        assert (est.variance < narrow * 0.1).any()  # some through the second scale
     np.testing.assert_array_equal(est.lower_bound, lower)
     # float32 rounding: the kernels order a few operations differently from this statement of the formulas
     np.testing.assert_allclose(est.image, image, rtol=1e-5, atol=1e-5 * float(image.max()))
@@ -261,3 +325,49 @@ def test_zero_where_the_whole_window_sits_at_the_bottom(window, shape):
     np.testing.assert_array_equal(image, expected)
     if shape[0] > 10:
         assert everywhere.any() and not everywhere.all()
+
+
+@pytest.mark.parametrize("pattern", ["1,2/4,8", "1,4/16,64", "1/1/8/8", "1,4,16/16,1,4/4,16,1"])
+def test_wide_fallback_resolves_the_dark_without_the_bright_beside_it(pattern, monkeypatch):
+    """A flat region 7 stops below a 4 DN read noise beside a bright one (the grid's small-pixel sensor): far from
+    the edge the wide windows' level is much nearer the truth (in stops) than the 3x3 window's answer; next to the
+    edge, where a wide window would reach the bright side, the blocks' structure test keeps it out (no pixel
+    lifted: the dark side's median does not rise, its error does not grow); the bright side is untouched."""
+    sensor = Sensor(12, 64.0, 4095.0, 3000.0 / 4031.0, 4.0)
+    truth = np.full((120, 180), 0.02, np.float32)
+    truth[:, 90:] = 400.0
+    inp = prepare(simulate(truth, pattern, sensor, seed=1).raw, pattern, sensor)
+    wide = adaptive.run(inp).image
+    with monkeypatch.context() as patch:
+        patch.setattr(adaptive, "WIDE_SCALES", 0)
+        narrow = adaptive.run(inp).image
+
+    def stops(image, cols):
+        return float(np.abs(np.log2(image[:, cols] / truth[:, cols])).mean())
+
+    far, near = slice(10, 60), slice(75, 88)
+    assert stops(wide, far) < 0.5 * stops(narrow, far)
+    assert np.median(wide[:, near]) <= np.median(narrow[:, near])
+    assert stops(wide, near) <= stops(narrow, near)
+    np.testing.assert_array_equal(wide[:, 95:], narrow[:, 95:])
+
+
+def test_wide_fallback_does_not_depend_on_strips_or_threads(monkeypatch):
+    """The same result from one strip, from strips, with threads, and with each pixel summing its blocks itself
+    (few pixels) or box filters (many): bit for bit."""
+    pattern = "1,2/4,8"
+    inp = prepare(_frame(pattern, (300, 120), seed=2, scale=0.003), pattern, SENSOR)
+    est = adaptive.run(inp, return_variance=True)
+    threads = adaptive.run(inp, return_variance=True, workers=3)
+    np.testing.assert_array_equal(est.image, threads.image)
+    with monkeypatch.context() as patch:
+        patch.setattr(adaptive, "_spans", lambda inp, halo, rows: [(0, 0, inp.shape[0], inp.shape[0])])
+        whole = adaptive.run(inp, return_variance=True)
+    for direct in (0, 10**9):
+        with monkeypatch.context() as patch:
+            patch.setattr(adaptive, "WIDE_DIRECT", direct)
+            other = adaptive.run(inp, return_variance=True)
+        np.testing.assert_array_equal(est.image, other.image)
+        np.testing.assert_array_equal(est.variance, other.variance)
+    np.testing.assert_array_equal(est.image, whole.image)
+    np.testing.assert_array_equal(est.variance, whole.variance)
