@@ -4,13 +4,14 @@ with ``--sweep``, SVE frames at several global exposure times fitted together (i
 Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings]
        [--curves linear,gamma2.2,poly3,s-curve] [--diagnose]
        python benchmarks/calibrate_response.py --sweep "1,1.5;1,1.5,2.25" [--bits 8,12] [--scenes ...] [--curves ...]
-           [--max-knots 12]
+           [--max-knots 12] [--seed 1]
 
 ``--sweep``: for every scene, curve, bit depth and sweep (global exposure times, ``;`` between
 sweeps), the frames at those times (independent noise) are fitted together; the row gives the
 chosen model (``deg d``: polynomial of degree d; ``spline k``: log-spline with k knots), the largest error over the measured range, that range, the largest standard error
 of the uncertainty band and the fraction of the band's 33 points whose true value lies within
-+-2 standard errors.
++-2 standard errors. ``--seed``: the noise of the first frame (the others take the next seeds), to
+tell a fit's noise from its bias.
 Both see the same scene through the same known response (CURVES) and sensor noise;
 the error is the largest |f_fit(M) - f_true(M)| over the brightness range each
 method measured (Debevec's curve is scaled so f(255) = 1, like ours).
@@ -130,6 +131,7 @@ def main() -> None:
     ap.add_argument("--max-knots", type=int, default=0,
                     help="with --sweep: also offer the log-spline model, with N knots and as a power law (2 knots) "
                          "(default 0: polynomials only)")
+    ap.add_argument("--seed", type=int, default=1, help="with --sweep: noise seed of the first frame (default 1)")
     args = ap.parse_args()
     if args.sweep:
         sweeps = [[float(t) for t in part.split(",")] for part in args.sweep.split(";")]
@@ -142,7 +144,7 @@ def main() -> None:
                 sensor = Sensor.from_full_well(bits, 10000, 3)
                 radiance = scene * exposure_scale(scene, pattern, sensor)
                 for name in args.curves.split(","):
-                    for row in sweep_rows(radiance, pattern, sensor, CURVES[name], sweeps,
+                    for row in sweep_rows(radiance, pattern, sensor, CURVES[name], sweeps, seed=args.seed,
                                           config=ResponseFitConfig(max_knots=args.max_knots)):
                         print(f"{scene_name} | {name} | {bits} | {row}", flush=True)
         return
