@@ -264,6 +264,11 @@ def _subsampled_exceeding(image, mean, weight, variance, bound, old_bound, censo
 _NO_TABLE = np.empty((0, 0), np.float32)
 _NO_TABLE.setflags(write=False)
 
+#: The row sums' kernel when the detail step's window is OpenCV's: a single tap of 1, read-only as
+#: binomial kernels are (a kernel's compiled signature tells the two apart).
+_ONE_TAP = np.ones(1, np.float32)
+_ONE_TAP.setflags(write=False)
+
 #: Rows per strip of :func:`fuse`. Its pass keeps each row's arrays in cache from the test to the
 #: update whatever the strip's height (:func:`_fuse_strip`); taller strips test fewer halo rows
 #: twice and make fewer calls (128 against 64: x0.94-0.95 CPU mono, x0.98 RGGB, demo 1920x1200).
@@ -365,7 +370,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     ky, kx = (binomial_kernel(n) for n in window)
     radius = ky.size // 2
     inline = ky.size <= INLINE_TAPS[0] and kx.size <= INLINE_TAPS[1]
-    along = kx if inline else np.ones(1, np.float32)
+    along = kx if inline else _ONE_TAP
     # the shortest exposure's estimate, kept from the test of a strip to the detail pass
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 

@@ -10,6 +10,7 @@ import numpy as np
 from svelive.camera import Camera
 from svelive.pattern import Pattern
 from svelive.reconstruction.methods import METHODS
+from svelive.reconstruction.fusion import FUSE_ROWS
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor
 from svelive.sensor import Sensor
 
@@ -34,7 +35,9 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
     from svelive.tonemap import ToneMapper  # only the preview uses it
 
     rng = np.random.default_rng(0)
-    scene = rng.uniform(0, 200, (24, 32))  # still, so that frames after the first fuse with the history
+    # still, so that frames after the first fuse with the history; taller than a strip of the fusion,
+    # whose rows around the strips' joins take a detail step of their own
+    scene = rng.uniform(0, 200, (FUSE_ROWS + 8, 32))
     clean = [np.clip(rng.normal(scene, 3), 0, 4095).astype(np.uint16) for _ in range(3)]
     saturated = [frame.copy() for frame in clean]
     for frame in saturated:
