@@ -18,7 +18,8 @@ svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`
 and a third frame of the same static scene (other noise seeds) are given to a
 :class:`svelive.noise.NoiseTracker` after the first (all pixels static), which is what the live
 service does; its errors after two and three frames are reported too ("pair", "three"); ``--no-cancellation`` runs the single-frame estimate without texture
-cancellation across exposures (the estimator before issue 12.1's third pass). A run is
+cancellation across exposures (the estimator before issue 12.1's third pass), ``--quarter-cells`` with
+the cancellation's selection before its fifth pass (the flattest quarter of every bin only). A run is
 "confidently wrong" when a value misses by more than 15 % and by more than two of its own stated
 standard uncertainties (in log space). ``--table CSV`` prints the
 summary of an earlier run again.
@@ -311,6 +312,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-cancellation", action="store_true",
                         help="the single-frame estimate without texture cancellation across exposures (the "
                              "residual fit alone, as before issue 12.1's third pass)")
+    parser.add_argument("--quarter-cells", action="store_true",
+                        help="the texture cancellation's selection as before issue 12.1's fifth pass: the flattest "
+                             "quarter of every bin only, not also every cell whose block is as flat as noise")
     parser.add_argument("--psnr", action="store_true", help="also reconstruct with the default method under the "
                                                             "fixed defaults, the estimate and the truth (PU21-PSNR)")
     parser.add_argument("--time", action="store_true",
@@ -343,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
     lights = {k: LIGHTS[k] for k in args.lights.split(",")} if args.lights else LIGHTS
     print(f"data {data}: {len(images)} images, {len(patterns)} patterns, {len(lights)} lights, "
           f"{len(models)} noise models", file=sys.stderr)
-    config = EstimatorConfig(cancellation=not args.no_cancellation)
+    config = EstimatorConfig(cancellation=not args.no_cancellation, cancel_flat=not args.quarter_cells)
     return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights, config)
 
 

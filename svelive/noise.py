@@ -111,7 +111,10 @@ class EstimatorConfig:
             where the pattern allows it, and keep it where it is known to within ``cancel_max_sigma``
             (relative); else the residuals above.
         cancel_bins: signal bins per geometry there;
-        cancel_fraction: the flattest fraction of every bin kept (by the other cells of the block);
+        cancel_fraction: the flattest fraction of every bin kept (by the other cells of the block),
+        cancel_flat: and every cell whose block's other cells are as flat as noise (their standardised
+            residuals below the ``region_quantile`` of the chi-square noise alone gives; False: the
+            fraction alone, as before issue 12.1's fifth pass);
         cancel_level: a cell's level may differ from its block's by this many times the lowest
             exposure's noise variance;
         cancel_mismatch: the relative difference allowed between the texture two exposures see;
@@ -140,6 +143,7 @@ class EstimatorConfig:
     cancellation: bool = True
     cancel_bins: int = 16
     cancel_fraction: float = 0.25
+    cancel_flat: bool = True
     cancel_level: float = 1.0
     cancel_mismatch: float = 0.1
     cancel_max_sigma: float = 0.5
@@ -953,7 +957,11 @@ def _cancellation_select(data: _CellData, model: tuple[float, float], floor: flo
     - Flat at the cell scale: the lowest exposure sees the cell's level and its block's differ by
       at most its noise (``config.cancel_level`` times its variance).
     - Flat around it: within every bin the ``config.cancel_fraction`` of cells whose block's other
-      cells have the smallest standardised residuals are kept.
+      cells have the smallest standardised residuals are kept, and (``config.cancel_flat``) every cell
+      whose block's other cells are as flat as noise: their standardised residuals, chi-square with
+      (residuals x cells) degrees of freedom where the block is flat, below its ``config.region_quantile``.
+      Where texture is small against the noise (dark or flat places) a fixed fraction would throw
+      usable cells away; where it dominates, the fraction still applies.
     None when fewer than ``config.min_bin`` cells remain.
     """
     slope, intercept = model
@@ -987,7 +995,12 @@ def _cancellation_select(data: _CellData, model: tuple[float, float], floor: flo
         inside = region[keep & (which == k)]
         if inside.size:
             limit[k] = np.quantile(inside, config.cancel_fraction)
-    keep &= region <= limit[which]
+    flattest = region <= limit[which]
+    if config.cancel_flat:
+        # and wherever the block is as flat as noise: the others' summed z is chi-square with J per cell
+        cells = np.maximum(count, 1.0)
+        flattest |= region <= _chi2_quantile_array(config.region_quantile, u.shape[0] * cells) / cells
+    keep &= flattest
     if np.count_nonzero(keep) < config.min_bin:
         return None
     region = data.block[keep] * max(config.cancel_jackknife, 1) // data.blocks
