@@ -447,19 +447,18 @@ def _wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks:
         active = {i: darks[i].candidates.copy() for i in members}
         changed = {i: np.zeros_like(active[i]) for i in members}
         count, by, bx = sum(darks[i].count for i in members), len(ky), len(kx)
-        weighted = flags = None
+        weighted = None
         for _ in range(WIDE_SCALES):
             if 3 * by > h or 3 * bx > width:
                 break
             boxes = count * by * bx * WIDE_DIRECT > weights.size  # many: box filters over the rows
             if boxes:
                 if weighted is None:
-                    weighted, flags = np.empty_like(weights), np.empty_like(weights)
-                    if not _wide_prepare(*flat(weights, signal, exposure, censored, weighted, flags)):
-                        flags = none
+                    weighted = np.empty_like(weights)
+                    flagged = _wide_prepare(*flat(weights, signal, exposure, censored, weighted))
                 box_w, means = _box(weights, by, bx), _box(weighted, by, bx)
-                _block_means(*flat(box_w, means, box_w if flags.size == 0 else _box(flags, by, bx)),
-                             flags.size > 0)
+                held = _held(censored, by, bx) if flagged else censored  # unused when none is censored
+                _block_means(*flat(box_w, means, held), flagged)
             count = 0
             for i in members:
                 d, offset = darks[i], spans[i][1] - r0
@@ -484,29 +483,33 @@ def _box(a: np.ndarray, by: int, bx: int) -> np.ndarray:
     return cv2.boxFilter(a, cv2.CV_32F, (bx, by), normalize=False, borderType=cv2.BORDER_REFLECT_101)
 
 
+def _held(censored: np.ndarray, by: int, bx: int) -> np.ndarray:
+    """Where the by x bx box around a pixel holds a censored reading: bool (H, W) of ``censored`` (bool (H, W)),
+    borders reflect-101 (the boxes of :func:`_box`)."""
+    return cv2.dilate(censored.view(np.uint8), np.ones((by, bx), np.uint8),
+                      borderType=cv2.BORDER_REFLECT_101).view(bool)
+
+
 @kernel
-def _wide_prepare(weights, signal, exposure, censored, weighted, flags):
-    """weighted = w x (x = s / e), flags = 1 where a reading is censored, else 0; flat arrays; whether any is."""
-    zero, one = np.float32(0.0), np.float32(1.0)
-    flagged = 0
+def _wide_prepare(weights, signal, exposure, censored, weighted):
+    """weighted = w x (x = s / e); flat arrays; whether any reading is censored."""
     for k in range(weights.size):
-        c = censored[k]
         weighted[k] = weights[k] * (signal[k] / exposure[k])
-        flags[k] = one if c else zero
-        flagged += c
+    flagged = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
+    for k in range(censored.size):
+        flagged += censored[k]
     return flagged > 0
 
 
 @kernel
-def _block_means(box_w, box_wx, box_flags, flagged):
+def _block_means(box_w, box_wx, held, flagged):
     """box_wx = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
-    flagged reading (``box_flags`` > 0.5, if ``flagged``); flat arrays, in place."""
-    tiny, half, nan = np.float32(TINY), np.float32(0.5), np.float32(np.nan)
-    limit = half if flagged else np.float32(np.inf)
+    censored reading (``held``, if ``flagged``); flat arrays, in place."""
+    tiny, nan = np.float32(TINY), np.float32(np.nan)
     for k in range(box_w.size):
         w = box_w[k]
         level = box_wx[k] / max(w, tiny) if w > tiny else np.float32(0.0)
-        box_wx[k] = nan if box_flags[k] > limit else level
+        box_wx[k] = nan if flagged and held[k] else level
 
 
 @kernel
@@ -592,8 +595,9 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
         if whole:
             kept += _wide_row(box_w, means, rows, bx, active[r, bx:bx + inner], changed[r, bx:bx + inner],
                               estimate[r, bx:bx + inner], information[r, bx:bx + inner])
-        for c in range(width):
-            if not active[r, c] or (whole and bx <= c < width - bx):
+        for k in range(2 * bx if whole else width):  # a whole row: its ends alone are left
+            c = k if k < bx or not whole else k + inner
+            if not active[r, c]:
                 continue
             for i in range(3):
                 cols[i] = reflect_101(c + (i - 1) * bx, width)
