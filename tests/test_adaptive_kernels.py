@@ -371,3 +371,17 @@ def test_wide_fallback_does_not_depend_on_strips_or_threads(monkeypatch):
         np.testing.assert_array_equal(est.variance, other.variance)
     np.testing.assert_array_equal(est.image, whole.image)
     np.testing.assert_array_equal(est.variance, whole.variance)
+
+
+@pytest.mark.parametrize("block", [(3, 3), (9, 9), (5, 3), (15, 5), (27, 27)])
+def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
+    """The wide fallback's blocks that hold a censored reading (a dilation of the mask) are those whose box sum
+    of 0/1 flags is positive, borders reflect-101 included, at any density of censored pixels."""
+    by, bx = block
+    rng = np.random.default_rng(by * 100 + bx)
+    for density in (0.0005, 0.01, 0.2):
+        censored = rng.random((3 * by + 17, 3 * bx + 11)) < density
+        censored[0, -1] = True  # a corner: blocks reflected across both edges hold it
+        flags = cv2.boxFilter(censored.astype(np.float32), cv2.CV_32F, (bx, by), normalize=False,
+                              borderType=cv2.BORDER_REFLECT_101)
+        np.testing.assert_array_equal(adaptive._held(censored, by, bx), flags > 0.5)
