@@ -294,8 +294,7 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         _wide_fallback(inp, spans, darks, image, variance, ky, kx, workers)
     share = None
     if want_share:
-        information = np.concatenate([d.information for d in darks]) if len(darks) > 1 else darks[0].information
-        share = np.divide(own, information)
+        share = np.divide(own, _joined([d.information for d in darks]))
     return image, lower, variance, share
 
 
