@@ -577,3 +577,66 @@ def test_demo_frames_carry_their_exposure_time(tmp_path: Path) -> None:
         assert frame.exposure_time == 5000.0
         assert source.set_exposure_time(7500.0) == 7500.0
         assert next(iter(source)).exposure_time == 7500.0
+
+
+def test_a_rebuilt_replay_source_resumes_after_the_last_frame_delivered(tmp_path: Path) -> None:
+    path = tmp_path / "r.sverec"
+    write(path, make_frames(6))  # ids 100..105
+    with open_source(f"replay:{path}", speed=0, loop=True) as s:
+        first = list(s.frames(limit=8))
+    assert [f.frame_id for f in first] == list(range(100, 108))  # into the second loop
+    with open_source(f"replay:{path}", speed=0, loop=True) as s:
+        s.resume_after(first[-1])
+        after = list(s.frames(limit=3))
+    assert [f.frame_id for f in after] == [108, 109, 110]
+    np.testing.assert_array_equal(after[0].raw, first[2].raw)  # recorded frame 2 again, in loop 2
+    with open_source(f"replay:{path}", speed=0, loop=True) as s:  # not a frame of this recording: from the start
+        s.resume_after(replace_id(first[0], 7))
+        assert next(iter(s)).frame_id == 100
+    with open_source(f"replay:{path}", speed=0) as s:  # after the last frame of a replay without loop: ended
+        s.resume_after(first[5])
+        assert list(s) == [] and s.stats()["state"] == "ended"
+
+
+def replace_id(frame: Frame, frame_id: int) -> Frame:
+    import dataclasses
+    return dataclasses.replace(frame, frame_id=frame_id)
+
+
+def test_the_service_reopens_a_failed_replay_where_it_stopped(tmp_path: Path) -> None:
+    """A read that fails mid-replay (an I/O error) makes the capture stage rebuild the source; the
+    replay goes on after the last frame delivered, not again from its start."""
+    import threading
+    from service.pipeline.capture import CaptureStage
+    from service.pipeline.config import PipelineConfig
+    from service.pipeline.meters import DropCounter, NewestSlot
+    from svelive.capture.replay import ReplaySource
+
+    path = tmp_path / "f.sverec"
+    write(path, make_frames(6, dt_ms=30))
+    failed: list[int] = []
+
+    class FailsOnce(ReplaySource):
+        def _deliver_index(self, reader, i):
+            if i == 3 and not failed:
+                failed.append(i)
+                raise OSError("read error (injected)")
+            return super()._deliver_index(reader, i)
+
+    config = PipelineConfig(source=f"replay:{path}", queue=8, retry_s=0.05)
+    slot, stop = NewestSlot(config.queue), threading.Event()
+    stage = CaptureStage(config, lambda: FailsOnce(config.source, str(path)), slot, DropCounter(), stop)
+    thread = threading.Thread(target=stage.run, daemon=True)
+    thread.start()
+    ids: list[int] = []
+    deadline = time.monotonic() + 20
+    while stage.state != "ended" and time.monotonic() < deadline:
+        frame = slot.get(0.05)
+        if frame is not None:
+            ids.append(frame.frame_id)
+    while (frame := slot.get(0.01)) is not None:
+        ids.append(frame.frame_id)
+    stop.set()
+    thread.join(5)
+    assert failed == [3] and stage.reconnects() == 1
+    assert ids == [100, 101, 102, 103, 104, 105]  # before: 100, 101, 102, then 100 ... 105 again

@@ -61,6 +61,8 @@ class CaptureStage:
                 if self._stop.is_set():
                     break
                 source.open()
+                if self._newest_raw is not None:  # a rebuilt source goes on where the last one stopped
+                    source.resume_after(self._newest_raw)
                 self._reopens += opened > 0
                 opened += 1
                 self.state, self._error = "online", None

@@ -6,7 +6,9 @@ possible. ``loop`` starts again after the last frame, ``start`` is the first
 frame index (constant-time seek). Frames keep their recorded ``frame_id``
 (shifted by the recording's id span on each loop so ids keep increasing) and
 ``device_time_ns``; ``host_time_ns`` is the delivery time. A frame whose
-checksum fails is dropped (cause ``checksum``) with a warning.
+checksum fails is dropped (cause ``checksum``) with a warning. A source rebuilt after a
+failure (the service reopens it) goes on after the last frame the failed one delivered
+(:meth:`ReplaySource.resume_after`).
 
 ``bits``, ``black_level`` and ``white_level`` replace the recorded sensor's (a
 recording made with wrong levels); ``pattern`` the recorded pattern. A path
@@ -158,6 +160,21 @@ class ReplaySource(Source):
         # playing a chosen exposure time: one frame per mean recorded frame interval
         self._period_ns = int((self._timeline[-1] - self._timeline[0]) / (n - 1)) if n > 1 else 0
         self._sel_n = 0
+
+    def resume_after(self, frame: Frame) -> None:
+        """Continue after ``frame`` (delivered by an earlier source of this recording): the next frame is the
+        one recorded after it, and the ids go on from its loop. A frame that is not from this recording
+        changes nothing. The exposure time chosen on the earlier source is not carried over."""
+        reader = self._reader
+        if reader is None:
+            raise SveliveError(f"{self.spec}: resume_after needs an open source")
+        ids = reader.times[:, 0]
+        first = int(ids.min())
+        loops, offset = divmod(int(frame.frame_id) - first, self._id_span)
+        at = np.flatnonzero(ids == first + offset)
+        if loops < 0 or at.size == 0:
+            return
+        self._loops, self._pos, self._anchor = loops, int(at[0]) + 1, None
 
     def _close(self) -> None:
         if self._reader is not None:

@@ -172,6 +172,12 @@ class Source:
         reports what it applied), so the default accepts them all."""
 
     # ----- lifecycle ---------------------------------------------------
+    def resume_after(self, frame: Frame) -> None:
+        """Go on after ``frame``, the last frame a source of the same spec delivered before it was
+        rebuilt (the service reopens a source that failed). Called once, after :meth:`open`. A live
+        source has nothing to do; a finite one (replay) continues after that frame instead of from
+        its start, with frame ids that keep increasing."""
+
     def open(self) -> Source:
         """Connect to the source and start it. Idempotent; returns self."""
         if self._closing.is_set():
