@@ -1,10 +1,13 @@
 """The adaptive method's compiled kernels against a plain-numpy statement of its formulas (module docstring)."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
 
-from svelive import Sensor, simulate
+from svelive import Pattern, Sensor, simulate
+from svelive.jit import flat
 from svelive.reconstruction.methods import adaptive
 from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
 from svelive.reconstruction.input import prepare
@@ -385,3 +388,97 @@ def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
         flags = cv2.boxFilter(censored.astype(np.float32), cv2.CV_32F, (bx, by), normalize=False,
                               borderType=cv2.BORDER_REFLECT_101)
         np.testing.assert_array_equal(adaptive._held(censored, by, bx), flags > 0.5)
+
+
+def _passes(inp, noise):
+    """Steps 1-4 of adaptive._solve as separate passes over whole arrays, OpenCV's window sums between the
+    kernels (the method before they were fused into one pass): dict of (H, W) arrays."""
+    f32 = np.float32
+    ky, kx = adaptive.kernels(inp.pattern.shape)
+    window = (len(ky), len(kx))
+    gain_inv, floor = f32(noise[0]), f32(noise[1])
+    centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
+    kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
+    s, e, censored = inp.signal, inp.exposure, inp.censored
+    w, x, wn, wx = (np.empty(inp.shape, f32) for _ in range(4))
+    exposure_sum = smooth(np.where(censored, f32(0), e), ky, kx)
+    lowest = cv2.erode(np.where(censored, e, f32(adaptive.BIG)), np.ones(window, np.uint8),
+                       borderType=cv2.BORDER_REFLECT_101)
+    adaptive._weights_censored(*flat(smooth(np.where(censored, f32(0), s), ky, kx), exposure_sum, s, e, censored,
+                                     lowest, w, x, wn, wx), gain_inv, floor, centre)
+    var_m, m = smooth(wn, ky, kx), smooth(wx, ky, kx)
+    excess_q, q = wx, np.empty(inp.shape, f32)
+    adaptive._residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
+    image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
+    adaptive._blend(*flat(image, total, var_m, m, w, x), f32(adaptive.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
+                    adaptive.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
+    adaptive._zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
+    lower = exposure_sum <= 0
+    if censored.any():
+        lower |= adaptive._censored_pixels(inp, image, w, x, ky, kx)
+    variance = f32(1) / total
+    fill_lower_bounds(inp, lower, window, image, variance)
+    candidates = np.empty(inp.shape, bool)
+    adaptive._candidates(*flat(var_m, total, image, censored, lower, candidates), f32(adaptive.CONTRAST_SIGMA**2))
+    return dict(image=image, lower=lower, variance=variance, w=w, wn=wn, estimate=var_m, information=total,
+                candidates=candidates)
+
+
+def _inputs(pattern, shape, seed):
+    """Random readings (dark and bright, some at raw 0 under a black level), a simulated frame with censored
+    pixels (_frame), and each with its exposures scaled per pixel as a folded colour input's are."""
+    rng = np.random.default_rng(seed)
+    sensor = Sensor(12, black_level=64, gain=0.4, read_noise=2.0)
+    raw = rng.uniform(0, 4095, shape) * (rng.random(shape) < 0.7) ** 2 * rng.uniform(0.001, 1, shape[1])
+    raw = np.where(rng.random(shape) < 0.1, 0, raw).astype(np.uint16)
+    raw[: shape[0] // 3, : shape[1] // 2] = 0  # a corner at raw 0: the whole window at the bottom
+    inputs = [prepare(raw, pattern, sensor), prepare(_frame(pattern, shape, seed), pattern, SENSOR)]
+    for inp in inputs[:2]:
+        share = rng.uniform(0.2, 1.5, shape).astype(np.float32)
+        inputs.append(dataclasses.replace(inp, exposure=inp.exposure * share, folded=True))
+    return inputs
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8", "1,2,4,8/16,32,64,1", "1/2/4/8/16/32"])
+@pytest.mark.parametrize("shape", [(300, 67), (130, 1), (7, 33), (3, 5), (2, 2), (13, 4)])
+def test_fused_pass_equals_the_separate_passes(pattern, shape):
+    """adaptive._solve's one compiled pass (_fused: row and column filters into rings of rows) against the
+    chain of OpenCV window sums and kernels it replaced, strip by strip as the method cuts the frame (the rows
+    kept, the halo's reflected borders at the strip's ends), odd and tiny widths and heights: bit for bit where
+    OpenCV's sums are computed in the same order (3-tap rows, 3- or 5-tap columns), else within float32 rounding."""
+    ky, kx = adaptive.kernels(Pattern.parse(pattern).shape)
+    exact = len(kx) == 3 and len(ky) in (3, 5)
+    z2 = np.float32(adaptive.CONTRAST_SIGMA**2)
+    checked = {"strips": 0, "censored": 0, "bottom": 0, "candidates": 0}
+    for inp in _inputs(pattern, shape, seed=shape[0] + 7 * shape[1]):
+        noise = adaptive.noise_model(inp)
+        for start, top, bottom, stop in adaptive._spans(inp, 3 * (max(len(ky), len(kx)) // 2), 64):
+            crop = inp.crop(slice(start, stop))
+            keep = slice(top - start, bottom - start)
+            expected = {name: a[keep] for name, a in _passes(crop, noise).items()}
+            image, lower, variance, own, dark = adaptive._solve(crop, noise, True, True, keep)
+            got = dict(image=image, lower=lower, variance=variance, w=own, wn=dark.weights, estimate=dark.estimate,
+                       information=dark.information, candidates=dark.candidates)
+            got = {name: a[keep] for name, a in got.items()}
+            assert dark.count == np.count_nonzero(got["candidates"])
+            checked["strips"] += 1
+            checked["censored"] += bool(crop.censored[keep].any())
+            checked["bottom"] += bool((expected["image"] == 0).any())
+            checked["candidates"] += bool(expected["candidates"].any())
+            np.testing.assert_array_equal(got["lower"], expected["lower"])
+            if exact:
+                for name in expected:
+                    np.testing.assert_array_equal(got[name], expected[name], err_msg=name)
+                continue
+            # sums rounded in another order: the weights within a few ulps; the quantities after the squared-bias
+            # step more where its estimate B nearly cancels its shrinkage 2 SE (a difference of near-equal sums)
+            for name, rtol in (("w", 4e-6), ("wn", 4e-6), ("estimate", 1e-4), ("image", 1e-4),
+                               ("information", 1e-3), ("variance", 1e-3)):
+                a, b = expected[name], got[name]
+                np.testing.assert_allclose(b, a, rtol=rtol, atol=rtol * float(np.abs(a).max()), err_msg=name)
+            # a candidate may flip only where its test sits within rounding of the threshold
+            estimate, information = expected["estimate"], expected["information"]
+            near = np.abs(estimate * estimate * information - z2) <= 1e-4 * z2
+            assert not (got["candidates"] != expected["candidates"])[~near].any()
+    if shape[0] > 64 and shape[1] > 1:  # strips of a frame, holding each kind of pixel
+        assert checked["strips"] >= 8 and checked["censored"] and checked["bottom"] and checked["candidates"]

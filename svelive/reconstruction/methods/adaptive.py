@@ -71,19 +71,23 @@ patterns) computes the per-level window sums at the censored pixels alone
 level with censored pixels, over the box around them; so a scene whose range
 fits in the unsaturated exposures does not pay for it, nor for the lower-bound
 fill, which also follows the rows holding lower bounds. Step 4's polynomial runs
-only in strips holding pixels within 25 deviations of 0, on those pixels alone
+only in rows holding pixels within 25 deviations of 0, on those pixels alone
 (packed) where they are few. Step 5 runs only over strips holding pixels it
 applies to (and as far as its widest blocks reach): two box filters per scale
 where they are many, each pixel summing its own blocks where they are few. The
 noise evidence reads 32 rows of the frame.
-Without censored pixels the pilot's exposure window is the same for every
-strip of a frame (strips start on whole tiles), so it is computed once per
-pattern and strip shape; a folded input (a colour frame's luminance, see
-svelive.reconstruction.colour) computes it per strip, and tests each censored
-pixel against its own bound in one compiled pass. Between the windows the per-pixel arithmetic runs as
-compiled kernels (svelive.jit), one pass each: weights (w, x, w x), residuals
-(m, v_m and the two terms whose windows give b^2), blend (the result), and
-where needed step 4 and the censored pixels.
+Steps 1-4 but the censored pixels' own values run as one compiled pass down a
+strip's rows (:func:`_fused`, svelive.jit): each window sum a row filter into a
+ring of the window's height of rows and a column filter of the ring, each
+per-pixel stage (weights w, x, w x; residuals: m, v_m and the two terms whose
+windows give b^2; blend: the result, step 4) a window's half height behind the
+one it reads, so the strip's intermediate arrays are a few rows in cache, and
+each stage computes only the rows the next one reads (the result only in the
+rows the strip keeps). Without censored pixels the pilot's exposure window is
+the same for every strip of a frame (strips start on whole tiles), so it is
+computed once per pattern and strip shape; a folded input (a colour frame's
+luminance, see svelive.reconstruction.colour) computes it in the pass, and
+tests each censored pixel against its own bound in one compiled pass.
 """
 
 from __future__ import annotations
@@ -282,8 +286,8 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
     def strip(span: tuple[int, int, int, int]):
         start, top, bottom, stop = span
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
-        image, lower, variance, own, dark = _solve(crop, noise, want_variance, want_share)
         keep = slice(top - start, bottom - start)
+        image, lower, variance, own, dark = _solve(crop, noise, want_variance, want_share, keep)
         return (image[keep], lower[keep], None if variance is None else variance[keep],
                 None if own is None else own[keep], dark.rows(keep))
 
@@ -317,65 +321,266 @@ def _spans(inp: SveInput, halo: int, rows: int) -> list[tuple[int, int, int, int
     return [(max(top - halo, 0), top, min(top + rows, h), min(top + rows + halo, h)) for top in range(0, h, rows)]
 
 
-def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = False, want_share: bool = False):
-    """Steps 1-4 on a whole frame or strip: (image, lower_bound, variance or None, w or None, _Dark).
+def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = False, want_share: bool = False,
+           keep: slice | None = None):
+    """Steps 1-4 on a whole frame or strip: (image, lower_bound, variance or None, w or None, _Dark), (H, W)
+    arrays whose rows ``keep`` (default all) hold the results; other rows are not set.
 
-    ``noise``: (1 / gain, floor variance) of the noise model (:func:`noise_model`)."""
+    ``noise``: (1 / gain, floor variance) of the noise model (:func:`noise_model`). The window sums and the
+    per-pixel arithmetic between them run as one compiled pass (:func:`_fused`), then the censored pixels."""
     ky, kx = kernels(inp.pattern.shape)
     f32 = np.float32
-    gain_inv, floor = f32(noise[0]), f32(noise[1])
-    e, s, censored = inp.exposure, inp.signal, inp.censored
     shape = inp.shape
-    any_censored = bool(censored.any())
-    w, x, wx = (np.empty(shape, f32) for _ in range(3))
-    centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
-
-    # Pilot, inverse variances w of the readings (0 where censored), and the neighbours' weights wn.
-    if any_censored and _exact_windows(ky, kx):
-        exposure_sum, wn = np.empty(shape, f32), np.empty(shape, f32)
-        _pilot_censored(s, e, censored, ky, kx, gain_inv, floor, centre, exposure_sum, w, x, wn, wx)
-        lower = exposure_sum <= 0
-    elif any_censored:
-        s_valid, e_valid, censored_exposure = (np.empty(shape, f32) for _ in range(3))
-        _split_censored(*flat(s, e, censored, s_valid, e_valid, censored_exposure))
-        exposure_sum = smooth(e_valid, ky, kx)
-        lower = exposure_sum <= 0
-        lowest = cv2.erode(censored_exposure, np.ones((len(ky), len(kx)), np.uint8),
-                           borderType=cv2.BORDER_REFLECT_101)
-        wn = np.empty(shape, f32)
-        _weights_censored(*flat(smooth(s_valid, ky, kx), exposure_sum, s, e, censored, lowest, w, x, wn, wx),
-                          gain_inv, floor, centre)
-    elif inp.folded:  # exposures of this frame alone (colour folded in): nothing to cache
-        exposure_sum, no_exposure = smooth(e, ky, kx), None
-        lower = exposure_sum <= 0
-        wn = w
-        _weights(*flat(smooth(s, ky, kx), exposure_sum, s, e, w, x, wx), gain_inv, floor, centre)
-    else:
-        exposure_sum, no_exposure, first_tile = _exposure_sum(inp.pattern, shape)
-        if not np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):
-            exposure_sum, no_exposure = smooth(e, ky, kx), None  # not the pattern's phase: compute it here
-        lower = exposure_sum <= 0 if no_exposure is None else no_exposure.copy()
-        wn = w
-        _weights(*flat(smooth(s, ky, kx), exposure_sum, s, e, w, x, wx), gain_inv, floor, centre)
-
-    # Neighbour estimate m and its variance (written over the window sums they come from); the terms of b^2.
+    first, last = (0, shape[0]) if keep is None else (keep.start, keep.stop)
+    e, censored = inp.exposure, inp.censored
+    flagged = bool(censored.any())
+    exposure_sum = np.empty((0, 0), f32)  # computed in the pass
+    if not (flagged or inp.folded):  # the pattern's, the same for every strip (a folded input's vary)
+        cached, first_tile = _exposure_sum(inp.pattern, shape)
+        if np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):  # the pattern's phase
+            exposure_sum = cached
+    w, image, estimate, total = (np.empty(shape, f32) for _ in range(4))
+    # with censored pixels, the neighbours' weights wn differ from w, and the censored step reads x
+    wn, x = (np.empty(shape, f32), np.empty(shape, f32)) if flagged else (w, np.empty((2 * (len(ky) // 2) + 1,
+                                                                                        shape[1]), f32))
+    lower, candidates = np.empty(shape, bool), np.empty(shape, bool)
+    variance = np.empty(shape if want_variance else (0, 0), f32)
     kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
-    var_m, m = smooth(wn, ky, kx), smooth(wx, ky, kx)
-    excess_q, q = wx, np.empty(shape, f32)
-    _residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
+    count, lowered = _fused(inp.signal, e, censored, flagged, exposure_sum, first, last, ky, kx, f32(noise[0]),
+                            f32(noise[1]), f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
+                            f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(),
+                            -f32(inp.sensor.black_level), f32(CONTRAST_SIGMA**2),
+                            w, wn, x, image, estimate, total, lower, candidates, variance)
+    if flagged:
+        bound_only = _censored_pixels(inp, image, w, x, ky, kx)
+        lowered = lowered or bool(bound_only.any())
+        lower |= bound_only
+    if lowered:
+        fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance if want_variance else None)
+    return (image, lower, variance if want_variance else None, w if want_share else None,
+            _Dark(wn, estimate, total, candidates, count))
 
-    # Minimum-mean-square blend of the own reading and the neighbour estimate.
-    image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    _blend(*flat(image, total, var_m, m, w, x), f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial())
-    _zero_at_the_bottom(s, -f32(inp.sensor.black_level), (len(ky), len(kx)), image)
 
-    if any_censored:
-        lower |= _censored_pixels(inp, image, w, x, ky, kx)
-    variance = np.divide(f32(1.0), total) if want_variance else None
-    fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance)
-    candidates = np.empty(shape, bool)
-    count = _candidates(*flat(var_m, total, image, censored, lower, candidates), f32(CONTRAST_SIGMA**2))
-    return image, lower, variance, w if want_share else None, _Dark(wn, var_m, total, candidates, count)
+@kernel
+def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv, floor, centre, kernel_square,
+           threshold, coefficients, bottom, z2, w, wn, x, image, estimate, total, lower, candidates, variance):
+    """Steps 1-4 but the censored pixels' own values, on the rows [first, last) of (H, W) arrays, in one pass
+    down the rows: the chain of :func:`_weights` (:func:`_weights_censored` where ``flagged``: the strip holds
+    censored pixels), :func:`_residuals`, :func:`_blend`, :func:`_zero_at_the_bottom` and
+    :func:`_candidates` with their window sums between them, each stage a window's half height behind the one
+    it reads, and only on the rows the next one reads.
+
+    Each window sum is a row filter into a ring of the window's height of filtered rows, then a column filter
+    of the ring's rows (:func:`_row_filter`, :func:`_column_filter`: ``smooth``'s arithmetic and borders,
+    reflect-101 at the array's ends), so a stage reads rows the one before has just written, in cache,
+    instead of whole arrays. ``exposure_sum``: the window sums of ``e`` (the pattern's, cached), or empty to
+    compute them (of the uncensored exposures) in the pass.
+    Out: ``w``; ``wn`` (``w`` itself unless ``flagged``); x = s / e into ``x``: (H, W) where ``flagged`` (the
+    censored step reads it; then x, w and wn are set on every row), else a ring of the window's height; in rows
+    [first, last) the result (``image``), L^ (``estimate``), its information (``total``), the wide fallback's
+    ``candidates`` and 1 / total in ``variance`` unless it is empty; exposure sum <= 0 (``lower``) where w
+    is set, False elsewhere. Returns (the candidates' count, whether any pixel is ``lower``): the caller
+    fills the lower bounds."""
+    h, width = s.shape
+    ry = ky.size // 2
+    given = exposure_sum.size > 0
+    depth = min(h, 2 * ry + 1)  # a window's rows, reflected at the ends, lie among the last `depth` computed
+    signal_rows, exposure_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
+    lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
+    weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
+    excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
+    neighbours = np.empty((ry + 1, width), np.float32)  # m from step 2 until step 3 reads it, ry rows later
+    sums, exposure_row, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
+                                        np.empty(width, np.float32), np.empty(width, np.float32),
+                                        np.empty(width, np.float32))
+    low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
+    index, packed = np.empty(width, np.int64), np.empty((3, width), np.float32)  # _blend's scratch
+    at_bottom = np.zeros(h, np.int64)
+    rows = np.empty(ky.size, np.int64)
+    # rows each stage computes: those the next one's windows read (with the censored step, step 1 everywhere)
+    first1, last1 = (0, h) if flagged else (max(first - 2 * ry, 0), min(last + 2 * ry, h))
+    first0, last0 = max(first1 - ry, 0), min(last1 + ry, h)
+    first2, last2 = max(first - ry, 0), min(last + ry, h)
+    lower[:first1] = False
+    lower[last1:] = False
+    count, lowered = 0, False
+    for i in range(h + 3 * ry):
+        r = i
+        if first0 <= r < last0:  # row filters of the readings and exposures (uncensored ones)
+            if flagged:
+                _uncensored(s[r], censored[r], a)
+                _row_filter(a, kx, signal_rows[r % depth])
+                _uncensored(e[r], censored[r], a)
+                _row_filter(a, kx, exposure_rows[r % depth])
+                _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
+            else:
+                _row_filter(s[r], kx, signal_rows[r % depth])
+                if not given:
+                    _row_filter(e[r], kx, exposure_rows[r % depth])
+            at_bottom[r] = _count_at_most(s[r], bottom)
+        r = i - ry
+        if first1 <= r < last1:  # step 1: w (wn), and the row filters of wn and wn x
+            _window_rows(r, h, depth, rows)
+            _column_filter(signal_rows, rows, ky, sums)
+            if given:
+                exposure_row[:] = exposure_sum[r]
+            else:
+                _column_filter(exposure_rows, rows, ky, exposure_row)
+            if flagged:
+                _column_least(lowest_rows, rows, lowest)
+                _weights_censored(sums, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
+                                  gain_inv, floor, centre)
+            else:
+                _weights(sums, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor, centre)
+            lowered |= _at_most_zero(exposure_row, lower[r])
+            _row_filter(wn[r], kx, weight_rows[r % depth])
+            _row_filter(a, kx, weighted_rows[r % depth])
+        r = i - 2 * ry
+        if first2 <= r < last2:  # step 2: m and v_m (into `estimate` until step 3), the row filters of b^2's terms
+            _window_rows(r, h, depth, rows)
+            m = neighbours[r % (ry + 1)]
+            _column_filter(weight_rows, rows, ky, estimate[r])
+            _column_filter(weighted_rows, rows, ky, m)
+            _residuals(estimate[r], m, wn[r], w[r], x[r % x.shape[0]], a, b, centre, kernel_square)
+            _row_filter(a, kx, excess_rows[r % depth])
+            _row_filter(b, kx, q_rows[r % depth])
+        r = i - 3 * ry
+        if first <= r < last:  # steps 3 and 4, 0 at the bottom of the raw range, the wide fallback's candidates
+            _window_rows(r, h, depth, rows)
+            _column_filter(excess_rows, rows, ky, image[r])
+            _column_filter(q_rows, rows, ky, total[r])
+            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], w[r], x[r % x.shape[0]], threshold,
+                   coefficients, index, packed)
+            _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
+            if variance.size > 0:
+                _reciprocal(total[r], variance[r])
+            count += _candidates(estimate[r], total[r], image[r], censored[r], lower[r], candidates[r], z2)
+    return count, lowered
+
+
+@kernel
+def _uncensored(values, censored, out):
+    """out = values, 0 where censored."""
+    for c in range(out.size):
+        out[c] = np.float32(0.0) if censored[c] else values[c]
+
+
+@kernel
+def _row_least(e, censored, rx, scratch, out):
+    """out = the least exposure of the censored readings within ``rx`` of each pixel of a row (BIG where none),
+    borders reflect-101; the middle as vectorised loops (``scratch``: a row)."""
+    n, big = e.size, np.float32(BIG)
+    for c in range(n):
+        scratch[c] = e[c] if censored[c] else big
+    ends = min(rx, n)  # the row's ends, whose windows reflect: [0, ends) and [max(n - rx, ends), n)
+    for i in range(ends + n - max(n - rx, ends)):
+        c = i if i < ends else max(n - rx, ends) + i - ends
+        least = big
+        for dx in range(-rx, rx + 1):
+            least = min(least, scratch[reflect_101(c + dx, n)])
+        out[c] = least
+    inner = n - 2 * rx
+    if inner <= 0:
+        return
+    middle = out[rx:rx + inner]
+    middle[:] = scratch[:inner]
+    for dx in range(1, 2 * rx + 1):
+        shifted = scratch[dx:dx + inner]
+        for i in range(inner):
+            middle[i] = min(middle[i], shifted[i])
+
+
+@kernel
+def _column_least(values, rows, out):
+    """out = the least of ``values``' rows ``rows``, column by column."""
+    out[:] = values[rows[0]]
+    for i in range(1, rows.size):
+        row = values[rows[i]]
+        for c in range(out.size):
+            out[c] = min(out[c], row[c])
+
+
+@kernel
+def _window_rows(r, h, depth, rows):
+    """rows = the ring slots (row modulo ``depth``) of the window's rows around row ``r`` of ``h``, reflect-101."""
+    ry = rows.size // 2
+    for dy in range(rows.size):
+        rows[dy] = reflect_101(r + dy - ry, h) % depth
+
+
+@kernel
+def _row_filter(source, k, out):
+    """out = the symmetric filter ``k`` (odd taps) along one row, borders reflect-101, with ``smooth``'s
+    arithmetic: the centre tap, then the pairs of mirrored taps outwards; the middle as vectorised loops."""
+    n, rk = source.size, k.size // 2
+    ends = min(rk, n)  # the row's ends, whose windows reflect: [0, ends) and [max(n - rk, ends), n)
+    for i in range(ends + n - max(n - rk, ends)):
+        c = i if i < ends else max(n - rk, ends) + i - ends
+        acc = k[rk] * source[c]
+        for d in range(1, rk + 1):
+            acc += k[rk - d] * (source[reflect_101(c - d, n)] + source[reflect_101(c + d, n)])
+        out[c] = acc
+    inner = n - 2 * rk
+    if inner <= 0:
+        return
+    middle = out[rk:rk + inner]
+    if rk == 1:
+        k0, k1 = k[0], k[1]
+        left, centre, right = source[:inner], source[1:1 + inner], source[2:2 + inner]
+        for i in range(inner):
+            middle[i] = k1 * centre[i] + k0 * (left[i] + right[i])
+        return
+    centre, kc = source[rk:rk + inner], k[rk]
+    for i in range(inner):
+        middle[i] = kc * centre[i]
+    for d in range(1, rk + 1):
+        left, right, kd = source[rk - d:rk - d + inner], source[rk + d:rk + d + inner], k[rk - d]
+        for i in range(inner):
+            middle[i] += kd * (left[i] + right[i])
+
+
+@kernel
+def _column_filter(values, rows, k, out):
+    """out = the symmetric filter ``k`` down ``values``' rows ``rows`` (the window's, top to bottom) with
+    ``smooth``'s arithmetic: the centre tap, then the pairs outwards (:func:`_column_sums` for 3 or 5 taps)."""
+    if k.size == 3 or k.size == 5:
+        _column_sums(values, rows, k, out)
+        return
+    rk = k.size // 2
+    centre, kc = values[rows[rk]], k[rk]
+    for i in range(out.size):
+        out[i] = kc * centre[i]
+    for d in range(1, rk + 1):
+        above, below, kd = values[rows[rk - d]], values[rows[rk + d]], k[rk - d]
+        for i in range(out.size):
+            out[i] += kd * (above[i] + below[i])
+
+
+@kernel
+def _count_at_most(values, level):
+    """How many of ``values`` are <= ``level``."""
+    n = 0
+    for c in range(values.size):
+        n += values[c] <= level
+    return n
+
+
+@kernel
+def _at_most_zero(values, out):
+    """out = values <= 0; whether any is."""
+    n = 0
+    for c in range(values.size):
+        out[c] = values[c] <= np.float32(0.0)
+    for c in range(values.size):  # counted apart, so that the loop above vectorises
+        n += out[c]
+    return n > 0
+
+
+@kernel
+def _reciprocal(a, out):
+    """out = 1 / a."""
+    for c in range(out.size):
+        out[c] = np.float32(1.0) / a[c]
 
 
 @kernel
@@ -739,51 +944,51 @@ def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, in
 @kernel
 def _zero_bottom(s, bottom, ry, rx, image):
     """:func:`_zero_at_the_bottom` on (H, W) arrays: rows whose window's rows all hold a reading at the bottom are
-    tested whole (the window's rows, then its columns, as vectorised loops); the others cannot hold such a pixel."""
+    tested whole (:func:`_zero_bottom_row`); the others cannot hold such a pixel."""
     h, width = s.shape
     at_bottom = np.zeros(h, np.int64)
     for r in range(h):
-        n = 0
-        row = s[r]
-        for c in range(width):
-            n += row[c] <= bottom
-        at_bottom[r] = n
-    rows = np.empty(2 * ry + 1, np.int64)
+        at_bottom[r] = _count_at_most(s[r], bottom)
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
-    inner = width - 2 * rx
     for r in range(h):
-        candidate = True
-        for dy in range(2 * ry + 1):
-            rows[dy] = reflect_101(r + dy - ry, h)
-            candidate &= at_bottom[rows[dy]] > 0
-        if not candidate:
-            continue
-        low[:] = True
-        for dy in range(2 * ry + 1):
-            row = s[rows[dy]]
-            for c in range(width):
-                low[c] &= row[c] <= bottom
-        ends = min(rx, width)  # the row's ends, whose windows reflect: [0, ends) and [max(width - rx, ends), width)
-        for i in range(ends + width - max(width - rx, ends)):
-            c = i if i < ends else max(width - rx, ends) + i - ends
-            everywhere[c] = True
-            for dx in range(2 * rx + 1):
-                everywhere[c] &= low[reflect_101(c + dx - rx, width)]
-        if inner > 0:
-            middle = everywhere[rx:rx + inner]
-            middle[:] = True
-            for dx in range(2 * rx + 1):
-                shifted = low[dx:dx + inner]
-                for i in range(inner):
-                    middle[i] &= shifted[i]
-        out = image[r]
+        _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, image[r])
+
+
+@kernel
+def _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, out):
+    """:func:`_zero_at_the_bottom` of row ``r`` of (H, W) ``s`` into its row ``out`` of the image, if every row of
+    its window holds a reading at the bottom (``at_bottom``: their counts per row): the window's rows, then its
+    columns, as vectorised loops (``low`` and ``everywhere``: scratch rows)."""
+    h, width = s.shape
+    for dy in range(2 * ry + 1):
+        if at_bottom[reflect_101(r + dy - ry, h)] == 0:
+            return
+    low[:] = True
+    for dy in range(2 * ry + 1):
+        row = s[reflect_101(r + dy - ry, h)]
         for c in range(width):
-            out[c] = np.float32(0.0) if everywhere[c] else out[c]
+            low[c] &= row[c] <= bottom
+    ends = min(rx, width)  # the row's ends, whose windows reflect: [0, ends) and [max(width - rx, ends), width)
+    for i in range(ends + width - max(width - rx, ends)):
+        c = i if i < ends else max(width - rx, ends) + i - ends
+        everywhere[c] = True
+        for dx in range(2 * rx + 1):
+            everywhere[c] &= low[reflect_101(c + dx - rx, width)]
+    inner = width - 2 * rx
+    if inner > 0:
+        middle = everywhere[rx:rx + inner]
+        middle[:] = True
+        for dx in range(2 * rx + 1):
+            shifted = low[dx:dx + inner]
+            for i in range(inner):
+                middle[i] &= shifted[i]
+    for c in range(width):
+        out[c] = np.float32(0.0) if everywhere[c] else out[c]
 
 
 @lru_cache(maxsize=16)
-def _exposure_sum(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Window sum of the exposure map, where it is <= 0, and the map's first tile; float32, bool, float32; read-only.
+def _exposure_sum(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Window sum of the exposure map and the map's first tile; float32; read-only.
 
     Strips start on whole tiles, so every strip of one height shares them
     (the first tile tells a caller whether its exposures have that phase).
@@ -791,22 +996,10 @@ def _exposure_sum(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray,
     ky, kx = kernels(pattern.shape)
     exposure = pattern.exposure_map(shape)
     exposure_sum = smooth(exposure, ky, kx)
-    no_exposure = exposure_sum <= 0
     first_tile = exposure[:pattern.shape[0], :pattern.shape[1]].copy()
-    for array in (exposure_sum, no_exposure, first_tile):
+    for array in (exposure_sum, first_tile):
         array.setflags(write=False)
-    return exposure_sum, no_exposure, first_tile
-
-
-@kernel
-def _split_censored(s, e, censored, s_valid, e_valid, censored_exposure):
-    """Readings and exposures with censored pixels zeroed; exposure of censored pixels, BIG elsewhere."""
-    zero, big = np.float32(0.0), np.float32(BIG)
-    for k in range(s.size):
-        c = censored[k]
-        s_valid[k] = zero if c else s[k]
-        e_valid[k] = zero if c else e[k]
-        censored_exposure[k] = e[k] if c else big
+    return exposure_sum, first_tile
 
 
 @kernel
@@ -845,76 +1038,6 @@ def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn
         wx[k] = wnk * xk
 
 
-def _exact_windows(ky: np.ndarray, kx: np.ndarray) -> bool:
-    """Whether compiled window sums (:func:`_valid_row_sums`, :func:`_column_sums`) give ``smooth``'s values bit
-    for bit: OpenCV filters rows first, then columns, each as the centre tap and then the pairs of mirrored taps
-    outwards, for rows of 3 taps and columns of 3 or 5 (measured; others differ in rounding)."""
-    return kx.size == 3 and ky.size in (3, 5)
-
-
-@kernel
-def _pilot_censored(s, e, censored, ky, kx, gain_inv, floor, centre, exposure_sum, w, x, wn, wx):
-    """The pilot's step of a strip holding censored pixels, (H, W) arrays, windows of :func:`_exact_windows`:
-    the window sums of the uncensored readings and exposures (``exposure_sum`` out), the lowest censored exposure
-    in the window, and :func:`_weights_censored`, in two passes over the rows (row filters, then the columns
-    and the weights) instead of masked copies, two window sums and an erosion over the whole strip."""
-    h, width = s.shape
-    ry = ky.size // 2
-    signal_rows, exposure_rows = np.empty((h, width), np.float32), np.empty((h, width), np.float32)
-    lowest_rows = np.empty((h, width), np.float32)
-    for r in range(h):
-        _valid_row_sums(s[r], e[r], censored[r], kx[0], kx[1], signal_rows[r], exposure_rows[r], lowest_rows[r])
-    rows = np.empty(ky.size, np.int64)
-    signal_sum, lowest = np.empty(width, np.float32), np.empty(width, np.float32)
-    for r in range(h):
-        for dy in range(ky.size):
-            rows[dy] = reflect_101(r + dy - ry, h)
-        _column_sums(signal_rows, rows, ky, signal_sum)
-        _column_sums(exposure_rows, rows, ky, exposure_sum[r])
-        _column_min(lowest_rows, rows, lowest)
-        _weights_censored(signal_sum, exposure_sum[r], s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], wx[r],
-                          gain_inv, floor, centre)
-
-
-@kernel
-def _valid_row_sums(s, e, censored, k0, k1, signal, exposure, lowest):
-    """One row: the row filter (k0, k1, k0) of s and of e with censored readings as 0 (OpenCV's arithmetic,
-    borders reflect-101), and the least exposure of the censored readings among each pixel and its two
-    neighbours (BIG where none)."""
-    n = s.size
-    zero, big = np.float32(0.0), np.float32(BIG)
-    for c in (0, n - 1):  # the ends (the same pixel when n is 1)
-        left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
-        signal[c] = k1 * (zero if censored[c] else s[c]) + k0 * ((zero if censored[left] else s[left])
-                                                                  + (zero if censored[right] else s[right]))
-        exposure[c] = k1 * (zero if censored[c] else e[c]) + k0 * ((zero if censored[left] else e[left])
-                                                                    + (zero if censored[right] else e[right]))
-        lowest[c] = min(min(e[left] if censored[left] else big, e[c] if censored[c] else big),
-                        e[right] if censored[right] else big)
-    if n < 3:
-        return
-    s0, s1, s2, e0, e1, e2 = s[:n - 2], s[1:n - 1], s[2:], e[:n - 2], e[1:n - 1], e[2:]
-    c0, c1, c2 = censored[:n - 2], censored[1:n - 1], censored[2:]
-    out_s, out_e, out_l = signal[1:n - 1], exposure[1:n - 1], lowest[1:n - 1]
-    for i in range(n - 2):
-        out_s[i] = k1 * (zero if c1[i] else s1[i]) + k0 * ((zero if c0[i] else s0[i]) + (zero if c2[i] else s2[i]))
-        out_e[i] = k1 * (zero if c1[i] else e1[i]) + k0 * ((zero if c0[i] else e0[i]) + (zero if c2[i] else e2[i]))
-        out_l[i] = min(min(e0[i] if c0[i] else big, e1[i] if c1[i] else big), e2[i] if c2[i] else big)
-
-
-@kernel
-def _column_min(values, rows, out):
-    """out = the least of ``values``' rows ``rows`` (3 or 5), column by column, in one loop."""
-    if rows.size == 3:
-        a, b, c = values[rows[0]], values[rows[1]], values[rows[2]]
-        for i in range(out.size):
-            out[i] = min(min(a[i], b[i]), c[i])
-    else:
-        a, b, c, d, e = values[rows[0]], values[rows[1]], values[rows[2]], values[rows[3]], values[rows[4]]
-        for i in range(out.size):
-            out[i] = min(min(min(a[i], b[i]), min(c[i], d[i])), e[i])
-
-
 @kernel
 def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
     """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r).
@@ -937,7 +1060,7 @@ def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
 
 
 @kernel
-def _blend(image, total, var_m, m, w, x, threshold, coefficients):
+def _blend(image, total, var_m, m, w, x, threshold, coefficients, index, packed):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`_nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0).
 
@@ -946,6 +1069,7 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients):
     residual's squared excess has variance 2 v_r^2 = 2 / q). ``threshold``:
     CONTRAST_SIGMA^2 * 2 kernel_square, so b^2 = max(B - sqrt(threshold / sum q), 0).
     ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
+    ``index`` (int64) and ``packed`` (float32 (3, N)): scratch of at least the arrays' size N.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
     high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
@@ -965,10 +1089,8 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients):
         _nonnegative(image, var_m, total, coefficients)
         return
     # Few pixels near 0 (a bright scene): packed into short arrays, the same pass on them alone.
-    index = np.empty(w.size, np.int64)
     n = _near_zero(var_m, total, index)
-    near_image, near_estimate, near_information = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(
-        n, np.float32)
+    near_image, near_estimate, near_information = packed[0, :n], packed[1, :n], packed[2, :n]
     for j in range(n):
         k = index[j]
         near_image[j], near_estimate[j], near_information[j] = image[k], var_m[k], total[k]
