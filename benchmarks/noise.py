@@ -19,7 +19,9 @@ and a third frame of the same static scene (other noise seeds) are given to a
 :class:`svelive.noise.NoiseTracker` after the first (all pixels static), which is what the live
 service does; its errors after two and three frames are reported too ("pair", "three"); ``--no-cancellation`` runs the single-frame estimate without texture
 cancellation across exposures (the estimator before issue 12.1's third pass), ``--quarter-cells`` with
-the cancellation's selection before its fifth pass (the flattest quarter of every bin only). A run is
+the cancellation's selection before its fifth pass (the flattest quarter of every bin only);
+``--config name=value,...`` sets any :class:`svelive.noise.EstimatorConfig` field (an A/B of one knob, e.g.
+``cancel_symmetric=false,cancel_when_biased=false``: the selection and choice before the sixth pass). A run is
 "confidently wrong" when a value misses by more than 15 % and by more than two of its own stated
 standard uncertainties (in log space). ``--table CSV`` prints the
 summary of an earlier run again.
@@ -35,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import os
 import sys
 import time
@@ -294,6 +297,20 @@ def time_estimate(patterns: list[str], seed: int, repeats: int = 5) -> int:
     return 0
 
 
+def config_fields(text: str | None) -> dict:
+    """``EstimatorConfig`` keyword arguments from 'name=value,...' (bools as true/false)."""
+    types = {f.name: f.type for f in dataclasses.fields(EstimatorConfig)}
+    out = {}
+    for item in filter(None, (text or "").split(",")):
+        name, value = (part.strip() for part in item.split("=", 1))
+        if name not in types:
+            raise SystemExit(f"--config: no EstimatorConfig field {name!r}")
+        kind = types[name] if isinstance(types[name], str) else types[name].__name__
+        out[name] = (value.lower() in ("1", "true", "yes") if kind == "bool" else
+                     int(value) if kind == "int" else float(value))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="directory of HDR EXR images (default ../shared/data/hdr, "
@@ -315,6 +332,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quarter-cells", action="store_true",
                         help="the texture cancellation's selection as before issue 12.1's fifth pass: the flattest "
                              "quarter of every bin only, not also every cell whose block is as flat as noise")
+    parser.add_argument("--config", help="EstimatorConfig fields as 'name=value' separated by ',', e.g. "
+                                          "'cancel_symmetric=false,cancel_when_biased=false' (the single-frame "
+                                          "estimate before issue 12.1's sixth pass)")
     parser.add_argument("--psnr", action="store_true", help="also reconstruct with the default method under the "
                                                             "fixed defaults, the estimate and the truth (PU21-PSNR)")
     parser.add_argument("--time", action="store_true",
@@ -347,7 +367,8 @@ def main(argv: list[str] | None = None) -> int:
     lights = {k: LIGHTS[k] for k in args.lights.split(",")} if args.lights else LIGHTS
     print(f"data {data}: {len(images)} images, {len(patterns)} patterns, {len(lights)} lights, "
           f"{len(models)} noise models", file=sys.stderr)
-    config = EstimatorConfig(cancellation=not args.no_cancellation, cancel_flat=not args.quarter_cells)
+    config = EstimatorConfig(cancellation=not args.no_cancellation, cancel_flat=not args.quarter_cells,
+                             **config_fields(args.config))
     return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights, config)
 
 

@@ -122,6 +122,11 @@ class EstimatorConfig:
         cancel_iterations: passes of select-fit there after the first (under the sensor defaults);
         cancel_jackknife: horizontal bands of the frame left out one at a time to measure the joint
             fit's spread (:func:`_with_jackknife`; 0: its own covariance alone).
+        cancel_symmetric: only the symmetric geometries where the nearest ring has any (issue 12.1,
+            sixth pass; False: the one-sided ones too, as before);
+        cancel_when_biased: take a joint fit less precise than ``cancel_max_sigma`` where the residual
+            fit's slope lies beyond two of the joint fit's standard deviations above it, or where there
+            is no residual fit (:func:`_preferred`).
     """
 
     max_samples: int = 40_000
@@ -150,6 +155,8 @@ class EstimatorConfig:
     cancel_max_samples: int = 400_000
     cancel_iterations: int = 1
     cancel_jackknife: int = 16
+    cancel_symmetric: bool = True
+    cancel_when_biased: bool = True
 
 
 @dataclass(frozen=True)
@@ -793,15 +800,18 @@ class _Residual:
 
 
 def _cancellation_geometries(tile_e: np.ndarray, tile_c: np.ndarray | None,
-                             reach: int) -> list[list[_Residual]]:
+                             reach: int, symmetric: bool = True) -> list[list[_Residual]]:
     """Residuals of the same geometry at two or more base exposures, grouped by geometry.
 
     A geometry is a colour, an offset ``k`` (symmetric ``(k, -k)`` where both sides have the same
     exposure, which cancels a linear gradient; else one side) and an exposure ratio ``e_q / e_p >= 1``.
     Its residuals see the scene's texture at that offset scaled by ``e_p``, so with two base exposures
     texture (``e_p^2``) and shot noise (``e_p``) can be told apart. Only the nearest ring that gives
-    any geometry is used (nearer neighbours, less texture). [] when the pattern has none (one exposure
-    per colour, or no two base exposures sharing a geometry).
+    any geometry is used (nearer neighbours, less texture), and with ``symmetric`` only its symmetric
+    geometries where it has any (``1/1/8/8``: the pairs along the row, not the one-sided ones across
+    rows): a one-sided residual keeps the scene's gradient, which two base exposures a row or more
+    apart see differently. [] when the pattern has none (one exposure per colour, or no two base
+    exposures sharing a geometry).
     """
     ph, pw = tile_e.shape
 
@@ -831,6 +841,8 @@ def _cancellation_geometries(tile_e: np.ndarray, tile_c: np.ndarray | None,
                         if ok and not (sign < 0 and exposure(*q) == e_p):
                             key = (c_p, k, 1, exposure(*q) / e_p)
                             found.setdefault(key, []).append((_Residual(a, b, ((sign * k[0], sign * k[1]),)), e_p))
+        if symmetric and any(key[2] == 2 for key in found):
+            found = {key: items for key, items in found.items() if key[2] == 2}
         groups = [[res for res, _ in items] for items in found.values() if len({e for _, e in items}) >= 2]
         if groups:
             return groups
@@ -1048,32 +1060,34 @@ def joint_texture_fit(gid: np.ndarray, t: np.ndarray, c: np.ndarray, u: np.ndarr
     see is equal only to within ``mismatch`` (they sample neighbouring rows or columns), so bins where
     texture dominates weigh little. The covariance is scaled up by the reduced chi-square. A given
     ``slope`` or ``intercept`` is held fixed. None when the system is underdetermined or the slope
-    not positive.
+    not positive. The texture unknowns are profiled out group by group (no matrix with a column per
+    group), which gives the same line and covariance as the full least squares.
     """
     groups = int(gid.max()) + 1 if gid.size else 0
     free = [slope is None, intercept is None]
-    cols = [a for a, f in zip((t, np.ones_like(t)), free) if f]
-    if u.size < groups + len(cols) + 2 or not cols:
+    cols = np.array([a for a, f in zip((t, np.ones_like(t)), free) if f])
+    if u.size < groups + len(cols) + 2 or not len(cols):
         return None
     target = u - (slope or 0.0) * t - (intercept or 0.0)
-    texture = np.zeros((u.size, groups))
-    texture[np.arange(u.size), gid] = c
-    design = np.column_stack([*cols, texture])
     fitted = np.maximum(u, QUANTISATION_VARIANCE)
     tex = np.zeros_like(u)
     for _ in range(6):
-        w = 1.0 / np.sqrt(2.0 * fitted * fitted / n + (mismatch * tex) ** 2)
-        a = design * w[:, None]
-        sol, *_ = np.linalg.lstsq(a, target * w, rcond=None)
-        tex = np.abs(texture @ sol[len(cols):])
-        fitted = np.maximum(design @ sol + u - target, QUANTISATION_VARIANCE)
-    resid = (target - design @ sol) * w
-    dof = max(u.size - design.shape[1], 1)
-    chi2 = float(resid @ resid) / dof
-    try:
-        sub = np.linalg.pinv(a.T @ a)[: len(cols), : len(cols)] * max(chi2, 1.0)
-    except np.linalg.LinAlgError:
-        return None
+        w2 = 1.0 / (2.0 * fitted * fitted / n + (mismatch * tex) ** 2)
+        # the texture unknowns profiled out (Frisch-Waugh-Lovell): within each group the part of the
+        # line's columns and of the target that c explains is removed, and the line's own weighted least
+        # squares on what is left gives the joint solution's slope, intercept and covariance exactly
+        # (a 2x2 system instead of one with a column per group)
+        cc = np.bincount(gid, w2 * c * c, groups)[gid]
+        x_res = cols - c * np.stack([np.bincount(gid, w2 * c * col, groups)[gid] for col in cols]) / cc
+        y_res = target - c * np.bincount(gid, w2 * c * target, groups)[gid] / cc
+        normal = (x_res * w2) @ x_res.T
+        sol = np.linalg.pinv(normal) @ ((x_res * w2) @ y_res)
+        resid = y_res - sol @ x_res
+        tex = np.abs(target - sol @ cols - resid)  # |c D_g|
+        fitted = np.maximum(u - resid, QUANTISATION_VARIANCE)
+    dof = max(u.size - groups - len(cols), 1)
+    chi2 = float((resid * resid * w2).sum()) / dof
+    sub = np.linalg.pinv(normal) * max(chi2, 1.0)
     coef = [slope or 0.0, intercept or 0.0]
     cov = np.zeros((2, 2))
     idx = [k for k, f in enumerate(free) if f]
@@ -1097,7 +1111,7 @@ def cancellation_fit(source: np.ndarray, offset: float, floor: float, camera: Ca
     saves the pass under the sensor defaults.
     """
     tile_e, tile_c, pixel_map = _layout(camera)
-    groups = _cancellation_geometries(tile_e, tile_c, config.reach)
+    groups = _cancellation_geometries(tile_e, tile_c, config.reach, config.cancel_symmetric)
     if not groups or pixel_map is not None:
         return None
     sensor = camera.sensor
@@ -1344,10 +1358,18 @@ def _preferred(fit: LineFit | None, joint: LineFit | None, config: EstimatorConf
     (relative), unless the two slopes agree within two of its standard deviations (the residual
     fit's own, with what it states for texture, would hide the bias tested for) and the residual fit
     states the smaller uncertainty: then the frame shows no texture bias and the more precise fit
-    is kept (a smooth scene)."""
+    is kept (a smooth scene). A joint fit less precise than that is still taken
+    (``config.cancel_when_biased``) where the residual fit's slope lies more than two of its standard
+    deviations above it: the residual fit then shows the bias texture gives it, and the joint fit,
+    with its large stated uncertainty, is the honest one (a high gain, whose slope is small, is
+    often known only that well: 40 000 e- / 6 DN); and where there is no residual fit at all: the
+    prior then weighs what the joint fit tells (:func:`estimate_from_fit`), which beats the defaults."""
     if joint is None or joint.fixed_slope:
         return fit
     if math.sqrt(max(joint.cov[0, 0], 0.0)) > config.cancel_max_sigma * joint.slope:
+        if config.cancel_when_biased and (fit is None or (
+                not fit.fixed_slope and fit.slope - joint.slope > 2.0 * math.sqrt(max(joint.cov[0, 0], 0.0)))):
+            return joint
         return fit
     if fit is not None and not fit.fixed_slope:
         if (joint.slope - fit.slope) ** 2 <= 4.0 * joint.cov[0, 0] and fit.cov[0, 0] <= joint.cov[0, 0]:

@@ -457,3 +457,70 @@ def test_temporal_samples_leave_the_callers_static_mask_alone():
                                      period=(4, 1))):
         assert 0 < samples.size < static.size  # the half-range clip level dropped some pixels
     assert static.all()
+
+
+def test_joint_fit_profiles_texture_out_exactly():
+    """joint_texture_fit profiles the texture unknowns out group by group: its line and covariance are
+    those of the weighted least squares with one texture column per group, written out here (weights
+    as the fit's first pass: the bins' own values, no texture term; mismatch 0 keeps them there)."""
+    rng = np.random.default_rng(3)
+    groups, per = 12, 2
+    gid = np.repeat(np.arange(groups), per)
+    c = np.tile([1.0 / 3.0, 256.0 / 3.0], groups)  # texture as the base exposure squared (1 and 16)
+    t = np.tile([1.0, 16.0], groups) * np.repeat(rng.uniform(5, 200, groups), per)  # shot noise as it
+    d = np.repeat(rng.uniform(-0.05, 0.3, groups), per)
+    n = rng.integers(200, 2000, gid.size)
+    truth = t / 2.5 + 4.1 + c * d
+    u = truth * (1 + rng.normal(0, 1, gid.size) * np.sqrt(2.0 / n))
+    fit = joint_texture_fit(gid, t, c, u, n, mismatch=0.0)
+    assert fit is not None
+    # the same pass written out: weights 1 / (2 m^2 / n) with m the fitted value, iterated as the fit does
+    design = np.column_stack([t, np.ones_like(t), np.zeros((u.size, groups))])
+    design[np.arange(u.size), 2 + gid] = c
+    fitted = np.maximum(u, 1 / 12)
+    for _ in range(6):
+        w = 1.0 / np.sqrt(2.0 * fitted * fitted / n)
+        sol, *_ = np.linalg.lstsq(design * w[:, None], u * w, rcond=None)
+        fitted = np.maximum(design @ sol, 1 / 12)
+    resid = (u - design @ sol) * w
+    chi2 = max(float(resid @ resid) / (u.size - design.shape[1]), 1.0)
+    cov = np.linalg.pinv((design * w[:, None]).T @ (design * w[:, None]))[:2, :2] * chi2
+    assert fit.slope == pytest.approx(sol[0], rel=1e-9) and fit.intercept == pytest.approx(sol[1], rel=1e-9)
+    np.testing.assert_allclose(fit.cov, cov, rtol=1e-8)
+
+
+def test_one_sided_geometries_left_out_where_the_ring_has_symmetric_ones():
+    """1/1/8/8's nearest ring has one symmetric geometry (the pairs along a row, base exposures 1 and 8)
+    and three one-sided ones across rows, whose residuals keep the scene's gradient (seen differently
+    two rows apart): only the symmetric one is used, unless asked (cancel_symmetric=False). Patterns
+    whose geometries are all symmetric (1,4/16,64) or all one-sided (dual-iso colour) keep them all."""
+    from svelive.noise import _cancellation_geometries, _layout
+    for pattern, cfa, symmetric_only, every in (("1/1/8/8", None, 1, 4), ("1,4/16,64", None, 2, 2),
+                                                 ("1/1/8/8", "RGGB", 2, 2)):
+        tile_e, tile_c, _ = _layout(unknown(pattern, cfa))
+        kept = _cancellation_geometries(tile_e, tile_c, 2)
+        assert len(kept) == symmetric_only, pattern
+        assert len(_cancellation_geometries(tile_e, tile_c, 2, symmetric=False)) == every, pattern
+        if pattern == "1/1/8/8" and cfa is None:
+            assert all(len(r.offsets) == 2 for g in kept for r in g)
+
+
+def test_an_imprecise_joint_fit_is_taken_where_the_residual_fit_is_biased():
+    """The joint fit is taken beyond cancel_max_sigma where the residual fit's slope lies more than two
+    of the joint fit's standard deviations above it (texture biases the residual fit that way only), or
+    where there is no residual fit; not where the residual fit is within reach of it."""
+    from svelive.noise import LineFit, _preferred
+
+    def line(slope: float, sd: float, fixed: bool = False) -> LineFit:
+        return LineFit(slope, 4.0, np.diag([sd * sd, 0.01]), np.zeros(0), np.zeros(0), np.zeros(0),
+                       np.zeros(0, bool), fixed)
+
+    config = EstimatorConfig()
+    joint = line(0.10, 0.07)  # 70 % relative: beyond cancel_max_sigma
+    steep = line(0.40, 0.10)
+    near = line(0.20, 0.05)
+    assert _preferred(steep, joint, config) is joint
+    assert _preferred(near, joint, config) is near
+    assert _preferred(None, joint, config) is joint
+    assert _preferred(line(0.40, 0.0, fixed=True), joint, config).fixed_slope
+    assert _preferred(steep, joint, EstimatorConfig(cancel_when_biased=False)) is steep
