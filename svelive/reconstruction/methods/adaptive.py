@@ -102,7 +102,7 @@ import numpy as np
 
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, map_on,
-                                  reflect_101, smooth, support_size)
+                                  reflect_101, rows_min, smooth, support_size)
 from svelive.pattern import Pattern
 
 #: Significance, in standard deviations of a reading, of "consistent with a censored bound".
@@ -427,7 +427,7 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
             else:
                 _column_filter(exposure_rows, rows, ky, exposure_row)
             if flagged:
-                _column_least(lowest_rows, rows, lowest)
+                rows_min(lowest_rows, rows, lowest)
                 _weights_censored(sums, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
                                   gain_inv, floor, centre)
             else:
@@ -488,16 +488,6 @@ def _row_least(e, censored, rx, scratch, out):
         shifted = scratch[dx:dx + inner]
         for i in range(inner):
             middle[i] = min(middle[i], shifted[i])
-
-
-@kernel
-def _column_least(values, rows, out):
-    """out = the least of ``values``' rows ``rows``, column by column."""
-    out[:] = values[rows[0]]
-    for i in range(1, rows.size):
-        row = values[rows[i]]
-        for c in range(out.size):
-            out[c] = min(out[c], row[c])
 
 
 @kernel

@@ -239,6 +239,16 @@ def _rows_max(values, rows, out):
 
 
 @kernel
+def rows_min(values, rows, out):
+    """out = the least of ``values``' rows ``rows``, column by column."""
+    out[:] = values[rows[0]]
+    for i in range(1, rows.size):
+        row = values[rows[i]]
+        for c in range(out.size):
+            out[c] = min(out[c], row[c])
+
+
+@kernel
 def reflect_101(i, n):
     """Index ``i`` reflected into [0, n) without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
     if n == 1:
