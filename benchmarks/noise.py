@@ -21,7 +21,7 @@ service does; its errors after two and three frames are reported too ("pair", "t
 cancellation across exposures (the estimator before issue 12.1's third pass), ``--quarter-cells`` with
 the cancellation's selection before its fifth pass (the flattest quarter of every bin only);
 ``--config name=value,...`` sets any :class:`svelive.noise.EstimatorConfig` field (an A/B of one knob, e.g.
-``cancel_symmetric=false,cancel_when_biased=false``: the selection and choice before the sixth pass). A run is
+``cancel_symmetric=false,cancel_when_biased=false``: the joint fit and choice before the sixth pass). A run is
 "confidently wrong" when a value misses by more than 15 % and by more than two of its own stated
 standard uncertainties (in log space). ``--table CSV`` prints the
 summary of an earlier run again.

@@ -122,8 +122,9 @@ class EstimatorConfig:
         cancel_iterations: passes of select-fit there after the first (under the sensor defaults);
         cancel_jackknife: horizontal bands of the frame left out one at a time to measure the joint
             fit's spread (:func:`_with_jackknife`; 0: its own covariance alone).
-        cancel_symmetric: only the symmetric geometries where the nearest ring has any (issue 12.1,
-            sixth pass; False: the one-sided ones too, as before);
+        cancel_symmetric: where the nearest ring has symmetric and one-sided geometries, the joint fit
+            of the symmetric ones alone is taken where the one-sided ones bias it
+            (:func:`_without_gradient_bias`; issue 12.1, sixth pass; False: all of them, as before);
         cancel_when_biased: take a joint fit less precise than ``cancel_max_sigma`` where the residual
             fit's slope lies beyond two of the joint fit's standard deviations above it, or where there
             is no residual fit (:func:`_preferred`).
@@ -800,18 +801,15 @@ class _Residual:
 
 
 def _cancellation_geometries(tile_e: np.ndarray, tile_c: np.ndarray | None,
-                             reach: int, symmetric: bool = True) -> list[list[_Residual]]:
+                             reach: int) -> list[list[_Residual]]:
     """Residuals of the same geometry at two or more base exposures, grouped by geometry.
 
     A geometry is a colour, an offset ``k`` (symmetric ``(k, -k)`` where both sides have the same
     exposure, which cancels a linear gradient; else one side) and an exposure ratio ``e_q / e_p >= 1``.
     Its residuals see the scene's texture at that offset scaled by ``e_p``, so with two base exposures
     texture (``e_p^2``) and shot noise (``e_p``) can be told apart. Only the nearest ring that gives
-    any geometry is used (nearer neighbours, less texture), and with ``symmetric`` only its symmetric
-    geometries where it has any (``1/1/8/8``: the pairs along the row, not the one-sided ones across
-    rows): a one-sided residual keeps the scene's gradient, which two base exposures a row or more
-    apart see differently. [] when the pattern has none (one exposure per colour, or no two base
-    exposures sharing a geometry).
+    any geometry is used (nearer neighbours, less texture). [] when the pattern has none (one exposure
+    per colour, or no two base exposures sharing a geometry).
     """
     ph, pw = tile_e.shape
 
@@ -841,8 +839,6 @@ def _cancellation_geometries(tile_e: np.ndarray, tile_c: np.ndarray | None,
                         if ok and not (sign < 0 and exposure(*q) == e_p):
                             key = (c_p, k, 1, exposure(*q) / e_p)
                             found.setdefault(key, []).append((_Residual(a, b, ((sign * k[0], sign * k[1]),)), e_p))
-        if symmetric and any(key[2] == 2 for key in found):
-            found = {key: items for key, items in found.items() if key[2] == 2}
         groups = [[res for res, _ in items] for items in found.values() if len({e for _, e in items}) >= 2]
         if groups:
             return groups
@@ -878,6 +874,7 @@ class _CellData:
         c: float64 (J,), the texture coefficient ``e_p^2 / sum coef^2``.
         block: int64 (N,), the block of every cell; blocks: number of blocks; others: float64 (N,),
             the other cells of the block.
+        symmetric: every residual of the geometry has neighbours on both sides (cancels a gradient).
     """
 
     x: np.ndarray
@@ -888,6 +885,7 @@ class _CellData:
     block: np.ndarray
     blocks: int
     others: np.ndarray
+    symmetric: bool
 
 
 def _cancellation_gather(source: np.ndarray, offset: float, tile_e: np.ndarray, groups: list[list[_Residual]],
@@ -933,7 +931,7 @@ def _cancellation_gather(source: np.ndarray, offset: float, tile_e: np.ndarray, 
         e_p = (coef > 0) @ e[:, 0]
         others = np.bincount(block, None, by * bx)[block] - 1.0
         out.append(_CellData(x, e, r * r / size[:, None], ((coef * coef) @ x) / size[:, None], e_p * e_p / size,
-                             block, by * bx, others))
+                             block, by * bx, others, all(len(r.offsets) == 2 for r in group)))
     return out
 
 
@@ -949,6 +947,7 @@ class _CancellationSamples:
         c: float64 (J,), the texture coefficient ``e_p^2 / sum coef^2``.
         region: int64 (N,), the horizontal band of the frame the cell's block lies in, in
             ``[0, config.cancel_jackknife)`` (the units :func:`_with_jackknife` leaves out).
+        symmetric: the geometry's residuals have neighbours on both sides (:func:`_without_gradient_bias`).
     """
 
     coord: np.ndarray
@@ -956,6 +955,7 @@ class _CancellationSamples:
     t: np.ndarray
     c: np.ndarray
     region: np.ndarray
+    symmetric: bool
 
 
 def _cancellation_select(data: _CellData, model: tuple[float, float], floor: float, high: float,
@@ -1016,7 +1016,7 @@ def _cancellation_select(data: _CellData, model: tuple[float, float], floor: flo
     if np.count_nonzero(keep) < config.min_bin:
         return None
     region = data.block[keep] * max(config.cancel_jackknife, 1) // data.blocks
-    return _CancellationSamples(coord[keep], u[:, keep], t[:, keep], data.c, region)
+    return _CancellationSamples(coord[keep], u[:, keep], t[:, keep], data.c, region, data.symmetric)
 
 
 def _bins_of(coord: np.ndarray, where: np.ndarray, bins: int) -> np.ndarray:
@@ -1111,7 +1111,7 @@ def cancellation_fit(source: np.ndarray, offset: float, floor: float, camera: Ca
     saves the pass under the sensor defaults.
     """
     tile_e, tile_c, pixel_map = _layout(camera)
-    groups = _cancellation_geometries(tile_e, tile_c, config.reach, config.cancel_symmetric)
+    groups = _cancellation_geometries(tile_e, tile_c, config.reach)
     if not groups or pixel_map is not None:
         return None
     sensor = camera.sensor
@@ -1134,7 +1134,33 @@ def cancellation_fit(source: np.ndarray, offset: float, floor: float, camera: Ca
         model = (fit.slope, max(fit.intercept, QUANTISATION_VARIANCE))
     if fit is not None and config.cancel_jackknife > 1:
         fit = _with_jackknife(fit, parts, fixed, config)
+    if fit is not None and config.cancel_symmetric:
+        fit = _without_gradient_bias(fit, parts, fixed, config)
     return fit
+
+
+def _without_gradient_bias(fit: LineFit, parts: list[_CancellationSamples], fixed: dict,
+                           config: EstimatorConfig) -> LineFit:
+    """``fit``, or the joint fit of its symmetric geometries alone where the one-sided ones bias it.
+
+    A one-sided residual keeps the scene's gradient, which base exposures a row or more apart see
+    differently (``1/1/8/8``: three one-sided geometries across rows beside the pairs along the row):
+    a bias that more data does not shrink, while their residuals make the fit more precise (small
+    frames need them). The same selected cells are fitted without them; where the two slopes agree
+    within two of the symmetric fit's standard deviations and ``fit`` states the smaller uncertainty,
+    ``fit`` is kept, else the symmetric fit (as :func:`_preferred` weighs the residual fit against the
+    joint one)."""
+    symmetric = [p for p in parts if p.symmetric]
+    if not symmetric or len(symmetric) == len(parts):
+        return fit
+    sym = joint_texture_fit(*_cancellation_table(symmetric, config), **fixed, mismatch=config.cancel_mismatch)
+    if sym is None:
+        return fit
+    if config.cancel_jackknife > 1:
+        sym = _with_jackknife(sym, symmetric, fixed, config)
+    if (fit.slope - sym.slope) ** 2 <= 4.0 * sym.cov[0, 0] and fit.cov[0, 0] <= sym.cov[0, 0]:
+        return fit
+    return sym
 
 
 def _with_jackknife(fit: LineFit, parts: list[_CancellationSamples], fixed: dict,

@@ -489,20 +489,45 @@ def test_joint_fit_profiles_texture_out_exactly():
     np.testing.assert_allclose(fit.cov, cov, rtol=1e-8)
 
 
-def test_one_sided_geometries_left_out_where_the_ring_has_symmetric_ones():
-    """1/1/8/8's nearest ring has one symmetric geometry (the pairs along a row, base exposures 1 and 8)
-    and three one-sided ones across rows, whose residuals keep the scene's gradient (seen differently
-    two rows apart): only the symmetric one is used, unless asked (cancel_symmetric=False). Patterns
-    whose geometries are all symmetric (1,4/16,64) or all one-sided (dual-iso colour) keep them all."""
-    from svelive.noise import _cancellation_geometries, _layout
-    for pattern, cfa, symmetric_only, every in (("1/1/8/8", None, 1, 4), ("1,4/16,64", None, 2, 2),
-                                                 ("1/1/8/8", "RGGB", 2, 2)):
-        tile_e, tile_c, _ = _layout(unknown(pattern, cfa))
-        kept = _cancellation_geometries(tile_e, tile_c, 2)
-        assert len(kept) == symmetric_only, pattern
-        assert len(_cancellation_geometries(tile_e, tile_c, 2, symmetric=False)) == every, pattern
-        if pattern == "1/1/8/8" and cfa is None:
-            assert all(len(r.offsets) == 2 for g in kept for r in g)
+def _cells(rng: np.random.Generator, symmetric: bool, excess: float = 0.0):
+    """Synthetic selected cells of one geometry at base exposures 1 and 8 (gain 2.5, R 4.1, texture of
+    2 % contrast): squared residuals with the expected value the joint fit models; ``excess`` adds
+    variance growing with the signal to the lower base exposure's residuals only (a gradient that the
+    two base exposures' rows see differently)."""
+    from svelive.noise import _CancellationSamples
+    n = 6000
+    level = rng.uniform(5, 300, n)
+    e = np.array([1.0, 8.0])
+    t = e[:, None] * level[None, :]
+    c = e * e / 2
+    mean = t / 2.5 + 4.1 + c[:, None] * (0.02 * level[None, :]) ** 2
+    mean[0] += excess * t[0]
+    u = mean * rng.chisquare(1, mean.shape)
+    return _CancellationSamples(np.log(8 * level + 2), u, t, c, rng.integers(0, 16, n), symmetric)
+
+
+def test_one_sided_geometries_kept_unless_they_bias_the_joint_fit():
+    """Where the nearest ring has symmetric and one-sided geometries (1/1/8/8), the joint fit of the
+    symmetric ones alone replaces the fit of all of them only where the two disagree beyond two of its
+    standard deviations: one-sided residuals keep the scene's gradient (a bias more data does not
+    shrink), but small frames need their residuals."""
+    from svelive.noise import _cancellation_table, _without_gradient_bias
+    config = EstimatorConfig()
+    fixed = {"slope": None, "intercept": None}
+    for excess, biased in ((0.0, False), (0.3, True)):
+        rng = np.random.default_rng(5)
+        parts = [_cells(rng, True), _cells(rng, False, excess), _cells(rng, False, excess)]
+        every = joint_texture_fit(*_cancellation_table(parts, config), **fixed)
+        sym = joint_texture_fit(*_cancellation_table(parts[:1], config), **fixed)
+        taken = _without_gradient_bias(every, parts, fixed, config)
+        if biased:
+            assert 1 / every.slope < 0.85 * 2.5 and taken.slope == sym.slope
+            assert 1 / taken.slope == pytest.approx(2.5, rel=0.15)
+        else:
+            assert taken is every and 1 / every.slope == pytest.approx(2.5, rel=0.1)
+    lone = [_cells(np.random.default_rng(6), True)]
+    fit = joint_texture_fit(*_cancellation_table(lone, config), **fixed)
+    assert _without_gradient_bias(fit, lone, fixed, config) is fit
 
 
 def test_an_imprecise_joint_fit_is_taken_where_the_residual_fit_is_biased():
