@@ -149,13 +149,6 @@ def smooth(image: np.ndarray, kernel_y: np.ndarray, kernel_x: np.ndarray) -> np.
     return cv2.sepFilter2D(image, cv2.CV_32F, kernel_x, kernel_y, borderType=cv2.BORDER_REFLECT_101)
 
 
-def at_least(a: np.ndarray, floor: float) -> np.ndarray:
-    """max(a, floor) in place, returns ``a`` (cv2: numpy's maximum with a scalar is several times slower)."""
-    if a.size < 16:  # cv2 would read a scalar beside a tiny array as a 4-vector
-        return np.maximum(a, np.float32(floor), out=a)
-    return cv2.max(a, float(floor), dst=a)
-
-
 def censored_lower_bound(inp: SveInput, window: tuple[int, int]) -> np.ndarray:
     """Largest lower bound that censored samples within ``window`` (rows, cols) imply, float32 (H, W)."""
     bound = inp.signal / inp.exposure
