@@ -313,6 +313,14 @@ def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
         np.testing.assert_allclose(image, expected, rtol=1e-6)
 
 
+def zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
+    """adaptive._zero_bottom_row on every row of (H, W) arrays, as the fused pass applies it."""
+    at_bottom = np.array([adaptive._count_at_most(row, bottom) for row in s], np.int64)
+    low, everywhere = np.empty(s.shape[1], np.bool_), np.empty(s.shape[1], np.bool_)
+    for r in range(s.shape[0]):
+        adaptive._zero_bottom_row(s, at_bottom, r, bottom, window[0] // 2, window[1] // 2, low, everywhere, image[r])
+
+
 @pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5)])
 @pytest.mark.parametrize("shape", [(40, 57), (7, 1), (6, 2), (9, 3), (1, 9)])
 def test_zero_where_the_whole_window_sits_at_the_bottom(window, shape):
@@ -324,7 +332,7 @@ def test_zero_where_the_whole_window_sits_at_the_bottom(window, shape):
     everywhere = cv2.erode((s <= bottom).astype(np.uint8), np.ones(window, np.uint8),
                            borderType=cv2.BORDER_REFLECT_101).astype(bool)
     expected = np.where(everywhere, np.float32(0), image)
-    adaptive._zero_at_the_bottom(s, bottom, window, image)
+    zero_at_the_bottom(s, bottom, window, image)
     np.testing.assert_array_equal(image, expected)
     if shape[0] > 10:
         assert everywhere.any() and not everywhere.all()
@@ -412,7 +420,7 @@ def _passes(inp, noise):
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
     adaptive._blend(*flat(image, total, var_m, m, w, x), f32(adaptive.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
                     adaptive.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
-    adaptive._zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
+    zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
     lower = exposure_sum <= 0
     if censored.any():
         lower |= adaptive._censored_pixels(inp, image, w, x, ky, kx)

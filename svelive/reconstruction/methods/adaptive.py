@@ -366,7 +366,7 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
            threshold, coefficients, bottom, z2, w, wn, x, image, estimate, total, lower, candidates, variance):
     """Steps 1-4 but the censored pixels' own values, on the rows [first, last) of (H, W) arrays, in one pass
     down the rows: the chain of :func:`_weights` (:func:`_weights_censored` where ``flagged``: the strip holds
-    censored pixels), :func:`_residuals`, :func:`_blend`, :func:`_zero_at_the_bottom` and
+    censored pixels), :func:`_residuals`, :func:`_blend`, :func:`_zero_bottom_row` and
     :func:`_candidates` with their window sums between them, each stage a window's half height behind the one
     it reads, and only on the rows the next one reads.
 
@@ -924,31 +924,15 @@ def _posterior_at(changed, estimate, information, image, coefficients, variance)
                 variance[r, c] = one / information[r, c] if row[c] else variance[r, c]
 
 
-def _zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
-    """image = 0, in place, where every reading of the window lies at the bottom of the raw range (raw 0, a signal
-    of -black): clipped there, such readings say only "at most", as saturated ones say "at least", and their
-    tightest answer is 0 (a black frame stays black; :func:`_nonnegative` would lift it). Borders reflect-101."""
-    _zero_bottom(s, bottom, window[0] // 2, window[1] // 2, image)
-
-
-@kernel
-def _zero_bottom(s, bottom, ry, rx, image):
-    """:func:`_zero_at_the_bottom` on (H, W) arrays: rows whose window's rows all hold a reading at the bottom are
-    tested whole (:func:`_zero_bottom_row`); the others cannot hold such a pixel."""
-    h, width = s.shape
-    at_bottom = np.zeros(h, np.int64)
-    for r in range(h):
-        at_bottom[r] = _count_at_most(s[r], bottom)
-    low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
-    for r in range(h):
-        _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, image[r])
-
-
 @kernel
 def _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, out):
-    """:func:`_zero_at_the_bottom` of row ``r`` of (H, W) ``s`` into its row ``out`` of the image, if every row of
-    its window holds a reading at the bottom (``at_bottom``: their counts per row): the window's rows, then its
-    columns, as vectorised loops (``low`` and ``everywhere``: scratch rows)."""
+    """out = 0, in place, where every reading of the pixel's window (2 ry + 1 rows, 2 rx + 1 columns, borders
+    reflect-101) lies at the bottom of the raw range (raw 0, a signal of ``bottom`` = -black): clipped there,
+    such readings say only "at most", as saturated ones say "at least", and their tightest answer is 0 (a black
+    frame stays black; :func:`_nonnegative` would lift it). Row ``r`` of (H, W) ``s``, ``out`` its row of the
+    image; tested only if every row of its window holds a reading at the bottom (``at_bottom``: their counts
+    per row): the window's rows, then its columns, as vectorised loops (``low`` and ``everywhere``: scratch
+    rows)."""
     h, width = s.shape
     for dy in range(2 * ry + 1):
         if at_bottom[reflect_101(r + dy - ry, h)] == 0:
