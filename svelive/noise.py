@@ -1158,9 +1158,14 @@ def _without_gradient_bias(fit: LineFit, parts: list[_CancellationSamples], fixe
         return fit
     if config.cancel_jackknife > 1:
         sym = _with_jackknife(sym, symmetric, fixed, config)
-    if (fit.slope - sym.slope) ** 2 <= 4.0 * sym.cov[0, 0] and fit.cov[0, 0] <= sym.cov[0, 0]:
-        return fit
-    return sym
+    return fit if _no_bias_shown(fit, sym) else sym
+
+
+def _no_bias_shown(precise: LineFit, unbiased: LineFit) -> bool:
+    """True where the slope of ``precise`` (a fit open to a bias) lies within two of the ``unbiased`` fit's
+    standard deviations of its slope and ``precise`` states the smaller uncertainty: then the data show no
+    bias and the more precise fit is the better one."""
+    return (precise.slope - unbiased.slope) ** 2 <= 4.0 * unbiased.cov[0, 0] and precise.cov[0, 0] <= unbiased.cov[0, 0]
 
 
 def _with_jackknife(fit: LineFit, parts: list[_CancellationSamples], fixed: dict,
@@ -1398,7 +1403,7 @@ def _preferred(fit: LineFit | None, joint: LineFit | None, config: EstimatorConf
             return joint
         return fit
     if fit is not None and not fit.fixed_slope:
-        if (joint.slope - fit.slope) ** 2 <= 4.0 * joint.cov[0, 0] and fit.cov[0, 0] <= joint.cov[0, 0]:
+        if _no_bias_shown(fit, joint):
             return fit
     return joint
 
