@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -599,7 +600,6 @@ def test_a_rebuilt_replay_source_resumes_after_the_last_frame_delivered(tmp_path
 
 
 def replace_id(frame: Frame, frame_id: int) -> Frame:
-    import dataclasses
     return dataclasses.replace(frame, frame_id=frame_id)
 
 
