@@ -12,7 +12,9 @@ named by the frame's index in the recording and a second run skips the complete 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator
+import sys
+from collections import deque
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +29,8 @@ from svelive.frame import Frame
 from svelive.memory import keep_freed_memory
 from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
-from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor, default_method
+from svelive.noise import NoiseEstimate
+from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, Reconstructor, default_method, stream_noise
 from svelive.whitebalance import WhiteBalancer, exr_output
 
 #: Frame time of frames without a timestamp (plain .npy directories): 30 fps, for the white balance's smoothing.
@@ -116,6 +119,36 @@ def camera_of(frame: np.ndarray | Frame, args: argparse.Namespace) -> Camera:
     return camera
 
 
+def with_cameras(frames: Iterable[np.ndarray | Frame],
+                 args: argparse.Namespace) -> Iterator[tuple[np.ndarray | Frame, Camera, NoiseEstimate]]:
+    """(frame, the camera to reconstruct it with, its noise model) for every frame, in order.
+
+    Where a camera (:func:`camera_of`) gives no gain or read noise, the model is estimated from its
+    first NOISE_FRAMES frames (:func:`svelive.reconstruction.stream.stream_noise`: the frames are read
+    ahead) and kept for as long as the camera stays the same; a new camera gets its own estimate.
+    """
+    frames = iter(frames)
+    ahead: deque[np.ndarray | Frame] = deque()
+    base: Camera | None = None
+    camera, noise = None, None
+    while True:
+        frame = ahead.popleft() if ahead else next(frames, None)
+        if frame is None:
+            return
+        own = camera_of(frame, args)
+        if own != base:
+            while len(ahead) < NOISE_FRAMES - 1 and (more := next(frames, None)) is not None:
+                ahead.append(more)
+            run = [frame]
+            for later in ahead:
+                if camera_of(later, args) != own:
+                    break
+                run.append(later)
+            base, noise = own, stream_noise(run, own, method=args.method, exposure_timing=args.timing)
+            camera = own.replace(sensor=noise.apply(own.sensor))
+        yield frame, camera, noise
+
+
 def frame_time_ns(frame: np.ndarray | Frame, index: int) -> int:
     """A frame's time for the white balance's smoothing: the device's clock, else the arrival, else 30 fps."""
     if isinstance(frame, Frame):
@@ -144,9 +177,10 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
     n = 0
     progress = Progress("reconstructing", total=args.frames, quiet=args.quiet)
     try:
-        for frame in frames:
-            camera = camera_of(frame, args)
+        for frame, camera, noise in with_cameras(frames, args):
             if reconstructor is None or camera != reconstructor.camera:  # a new camera: a new stream
+                if noise.source != "given" and not args.quiet:
+                    print(f"{noise.describe()}, from the first {NOISE_FRAMES} frames at most", file=sys.stderr)
                 if reconstructor is not None:
                     reconstructor.close()
                 reconstructor = Reconstructor(camera, method=args.method, temporal=not args.no_temporal,
@@ -158,7 +192,8 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
             channels, colour = exr_output(result.image, balance, settings)
             attributes = standard_attributes(camera, result.method, frame_id=getattr(frame, "frame_id", n),
                                              timestamp=frame_time_ns(frame, n) / 1e9,
-                                             extra={"movingFraction": f"{result.moving_fraction:.6f}", **colour})
+                                             extra={"movingFraction": f"{result.moving_fraction:.6f}",
+                                                    **noise.attributes(), **colour})
             args.output.mkdir(parents=True, exist_ok=True)
             write_exr(args.output / f"frame_{n:06d}.exr",
                       {**channels, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
@@ -201,6 +236,9 @@ def _reprocess(args: argparse.Namespace, settings: object) -> int:
     if args.output.exists() and not args.output.is_dir():
         raise SveliveError(f"{args.output}: exists and is not a folder")
     reprocess.frame_count(job)  # a bad recording or option fails here, in one line, before any cluster starts
+    job = reprocess.with_stream_noise(job)
+    if job.noise is not None and not args.quiet:
+        print(f"{job.noise.describe()}, from the first {NOISE_FRAMES} frames at most", file=sys.stderr)
     with Progress("reconstructing", quiet=args.quiet) as progress:
         if args.workers is None and args.scheduler is None:
             summary = reprocess.run_local(job, progress, args.warmup, args.tolerance)

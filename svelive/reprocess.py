@@ -54,6 +54,7 @@ import numpy as np
 
 from svelive.camera import Camera
 from svelive.errors import SveliveError
+from svelive.noise import NoiseEstimate
 from svelive.reconstruction.config import MotionConfig
 from svelive.whitebalance import ColourSettings, WhiteBalancer
 
@@ -78,6 +79,9 @@ class Job:
         source_options: options of the ``replay:`` source (pattern, cfa, bits,
             black_level, white_level) that override the recorded camera.
         gain, read_noise: override the sensor's (electrons per DN; DN).
+        noise: the noise model estimated from the recording's first frames (:func:`with_stream_noise`),
+            whose values the camera takes where neither it nor ``gain``/``read_noise`` gives them; it is
+            named in every EXR. None: the camera's own values, else the fixed defaults.
         colour: the colour output settings (white balance, matrix, output space).
         half: write half floats.
         motion: the motion tests' thresholds (max_history sets the warm-up).
@@ -92,6 +96,7 @@ class Job:
     source_options: dict[str, Any] = field(default_factory=dict)
     gain: float | None = None
     read_noise: float | None = None
+    noise: NoiseEstimate | None = None
     colour: ColourSettings = field(default_factory=ColourSettings)
     half: bool = False
     motion: MotionConfig = field(default_factory=MotionConfig)
@@ -252,7 +257,36 @@ def job_camera(job: Job) -> tuple[Camera, Any]:
     camera.require_pattern()
     if job.gain is not None or job.read_noise is not None:
         camera = camera.replace(sensor=camera.sensor.with_noise(job.gain, job.read_noise))
+    if job.noise is not None:
+        camera = camera.replace(sensor=job.noise.apply(camera.sensor))
     return camera, RecordingReader(job.recording, warn=False)
+
+
+def with_stream_noise(job: Job) -> Job:
+    """``job`` with ``noise`` estimated from the recording's first intact frames (up to NOISE_FRAMES of the
+    frames it covers; :func:`svelive.reconstruction.stream.stream_noise`) when its camera gives no gain or
+    read noise; ``job`` itself otherwise. Done once, before the chunks are planned, so that every worker and
+    every resumed run reconstructs with the same model."""
+    from replay import CorruptFrameError
+    from svelive.reconstruction.stream import NOISE_FRAMES, stream_noise
+
+    camera, reader = job_camera(job)
+    if camera.sensor.gain is not None and camera.sensor.read_noise is not None:
+        reader.close()
+        return job
+    frames = []
+    with reader:
+        for i in range(len(reader) if job.frames is None else min(job.frames, len(reader))):
+            try:
+                frames.append(reader.read(i).raw)
+            except CorruptFrameError:
+                continue
+            if len(frames) == NOISE_FRAMES:
+                break
+    if not frames:
+        return job  # no intact frame: nothing to reconstruct either, which the run reports
+    noise = stream_noise(frames, camera, method=job.method, exposure_timing=job.timing)
+    return replace(job, noise=noise)
 
 
 def stateful(job: Job, camera: Camera) -> bool:
@@ -407,6 +441,7 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
     final = Path(job.output)
     done = {i for i in range(chunk.start, chunk.stop) if is_complete(frame_path(final, i), shape, channels)}
     start_state = None
+    noise_attributes = {} if job.noise is None else job.noise.attributes()
     with reader, Reconstructor(camera, method=job.method, temporal=job.temporal, exposure_timing=job.timing,
                                motion_config=job.motion) as reconstructor:
         # a chunk whose frames are all complete needs no warm-up: nothing to write
@@ -439,7 +474,7 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
             attributes = standard_attributes(camera, result.method, frame_id=frame.frame_id,
                                              timestamp=frame.host_time_ns / 1e9,
                                              extra={"movingFraction": f"{result.moving_fraction:.6f}",
-                                                    "frameIndex": i, **colour})
+                                                    "frameIndex": i, **noise_attributes, **colour})
             write_exr(frame_path(output, i),
                       {**data, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
                       attributes, half=job.half)
@@ -699,8 +734,10 @@ def _as_end(ref: Any, backend: Any) -> Any:
 def run_local(job: Job, progress: Any = None, warmup: int | None = None, tolerance: float = 0.0) -> Summary:
     """Reprocess in this process, in frame order: from frame 0 when nothing is written yet (the
     sequential result); a resumed run starts its missing runs ``warmup`` frames early, checked
-    as a worker's chunk is (:func:`execute`)."""
+    as a worker's chunk is (:func:`execute`). A camera without gain or read noise gets the model of
+    the recording's first frames (:func:`with_stream_noise`)."""
     t0 = time.perf_counter()
+    job = with_stream_noise(job)
     n = frame_count(job)
     complete = complete_frames(job, existing_outputs(job, n))
     work = make_plan(job, 1, complete, warmup, per_frame=False)
@@ -741,8 +778,10 @@ def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: 
              verify: bool = True, tolerance: float = 0.0) -> Summary:
     """Reprocess on the Dask cluster of ``client``: a check of the existing outputs, then the chunks of
     :func:`make_plan` as tasks (the workers read the recording and write the EXRs themselves),
-    checked by :func:`execute` (``verify=False``: accepted as they are)."""
+    checked by :func:`execute` (``verify=False``: accepted as they are). A camera without gain or read
+    noise gets the model of the recording's first frames (:func:`with_stream_noise`), estimated here."""
     t0 = time.perf_counter()
+    job = with_stream_noise(job)
     n = frame_count(job)
     existing = existing_outputs(job, n)
     batches = [existing[k:k + 64] for k in range(0, len(existing), 64)]

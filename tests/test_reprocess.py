@@ -18,7 +18,7 @@ from svelive.cli import main
 from svelive.exr import read_exr
 from svelive.progress import Progress, format_progress
 from svelive.reconstruction.config import MotionConfig
-from svelive.reconstruction.stream import Reconstructor
+from svelive.reconstruction.stream import NOISE_FRAMES, Reconstructor, stream_noise
 
 #: a short history so that a 60-frame recording splits into chunks with their full warm-up
 MOTION = MotionConfig(max_history=2)
@@ -42,10 +42,20 @@ def client():
         yield c
 
 
+def estimated(camera, raws: list[np.ndarray]):
+    """``camera`` with the noise model of the stream's first frames, as a job without gain or read noise
+    reconstructs with (the demo camera gives neither)."""
+    return camera.replace(sensor=stream_noise(raws[:NOISE_FRAMES], camera).apply(camera.sensor))
+
+
 def sequential(path: Path, frames: int, **kwargs) -> list:
-    """The reference: one Reconstructor over the recording's frames in order."""
-    with RecordingReader(path) as reader, Reconstructor(reader.camera, **kwargs) as reconstructor:
-        return [reconstructor.process(reader.read(i)) for i in range(frames)]
+    """The reference: one Reconstructor over the recording's frames in order, with the noise model of its
+    first frames."""
+    with RecordingReader(path) as reader:
+        raws = [reader.read(i).raw for i in range(frames)]
+        camera = estimated(reader.camera, raws)
+    with Reconstructor(camera, **kwargs) as reconstructor:
+        return [reconstructor.process(raw) for raw in raws]
 
 
 def exr(directory: Path, i: int) -> dict[str, np.ndarray]:
@@ -67,6 +77,15 @@ def test_single_frame_method_on_dask_equals_the_sequential_run(recording: Path, 
         got = exr(tmp_path, i)
         np.testing.assert_array_equal(got["Y"], want.image)
         np.testing.assert_array_equal(got["confidence"], want.confidence)
+    # the demo camera gives no gain or read noise: the model of the first three frames, named in every EXR
+    with RecordingReader(recording) as reader:
+        camera, raws = reader.camera, [reader.read(i).raw for i in range(NOISE_FRAMES)]
+    model = stream_noise(raws, camera)
+    for i in (0, 9):
+        attributes = read_exr(reprocess.frame_path(tmp_path, i))[1]
+        assert attributes["noiseSource"] == "estimated"
+        assert attributes["noiseGain"] == pytest.approx(model.gain, rel=1e-6)
+    assert not np.array_equal(exr(tmp_path, 0)["Y"], Reconstructor(camera, temporal=False).process(raws[0]).image)
 
 
 def test_temporal_chunks_on_dask_equal_the_sequential_run(recording: Path, client, tmp_path: Path) -> None:
@@ -173,14 +192,17 @@ def test_recorded_and_given_black_level_for_a_recording(recording: Path, tmp_pat
     assert camera.sensor.black_level == 64
     assert main(["reconstruct-sequence", "--source", f"replay:{recording}", "--frames", "1", "--no-temporal", "-q",
                  "-o", str(tmp_path / "recorded")]) == 0
-    np.testing.assert_array_equal(exr(tmp_path / "recorded", 0)["Y"],
-                                  Reconstructor(camera, temporal=False).process(raw).image)
+    np.testing.assert_array_equal(exr(tmp_path / "recorded", 0)["Y"],  # --frames 1: the model of one frame
+                                  Reconstructor(estimated(camera, [raw.raw]), temporal=False).process(raw.raw).image)
     assert main(["reconstruct-sequence", "--source", f"replay:{recording}", "--frames", "1", "--no-temporal", "-q",
                  "--black-level", "16", "-o", str(tmp_path / "given")]) == 0
     other = camera.replace(sensor=dataclasses.replace(camera.sensor, black_level=16))
     got = exr(tmp_path / "given", 0)["Y"]
-    np.testing.assert_array_equal(got, Reconstructor(other, temporal=False).process(raw).image)
+    np.testing.assert_array_equal(got, Reconstructor(estimated(other, [raw.raw]), temporal=False).process(raw.raw).image)
     assert np.median(got) > np.median(exr(tmp_path / "recorded", 0)["Y"])
+    # the model is named in the EXR: one 64x48 frame has too few samples, so the defaults, said so
+    attributes = read_exr(reprocess.frame_path(tmp_path / "recorded", 0))[1]
+    assert (attributes["noiseSource"], attributes["noiseGain"]) == ("default", pytest.approx(camera.sensor.effective_gain))
 
 
 def test_progress_counts_and_rate_and_quiet() -> None:
