@@ -23,6 +23,20 @@ from svelive.memory import release_memory
 #: most exposure times one sweep takes
 MAX_SWEEP = 16
 
+#: relative difference between a frame's exposure time and the one the sweep set beyond which they differ
+EXPOSURE_RTOL = 1e-3
+
+
+def exposed_as_set(frame: Frame, applied: float, step: int) -> None:
+    """A one-line SveliveError when ``frame`` says it was exposed at another time than the sweep's step
+    ``step`` (0-based) set: the source was reopened meanwhile (a camera or replay reopened after a failure
+    starts at its own exposure time, and the sweep set the time on the source it started with). A frame
+    that does not say its exposure time passes."""
+    taken = frame.exposure_time
+    if taken is not None and not math.isclose(taken, applied, rel_tol=EXPOSURE_RTOL):
+        raise SveliveError(f"the frame of step {step + 1} was exposed at {taken:g}, not at the {applied:g} the "
+                           "sweep set: the source was reopened during the sweep; start it again")
+
 
 class CalibrationBusy(SveliveError):
     """A calibration was asked while another one runs."""
@@ -190,6 +204,7 @@ class Calibration:
                 self._update(stage=f"exposure {i + 1}/{len(times)}: {t:g}", step=i)
                 applied.append(source.set_exposure_time(t))
                 frames.append(self._frame_after(time.monotonic_ns(), settle_frames, frame_timeout_s))
+                exposed_as_set(frames[-1], applied[-1], i)
                 self._update(exposure_times=list(applied), frame_ids=[f.frame_id for f in frames], step=i + 1)
             self._restore(source, original)
             shapes = {f.raw.shape for f in frames}
