@@ -157,7 +157,10 @@ class Reconstructor:
         consistency: run the within-frame exposure-consistency test; None means
             on for ``integration`` timing, off for ``mask``.
         black_level, white_level, gain, read_noise: the sensor, as for svelive.reconstruct,
-            when ``pattern`` is not a Camera.
+            when ``pattern`` is not a Camera. A gain or read noise the camera does not give is
+            taken from the fixed defaults (svelive.sensor), not estimated: give the stream's own
+            model, e.g. ``stream_noise(first_frames, camera).apply(camera.sensor)`` (as
+            ``reconstruct-sequence`` and svelive.reprocess do), or the service's live estimate.
         motion_config: thresholds (svelive.reconstruction.config.MotionConfig).
         detail: with temporal fusion, sharpen static pixels that have history
             towards their own fused readings (svelive.reconstruction.fusion.sharpen).
