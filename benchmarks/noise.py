@@ -24,7 +24,10 @@ the cancellation's selection before its fifth pass (the flattest quarter of ever
 ``cancel_symmetric=false,cancel_when_biased=false``: the joint fit and choice before the sixth pass). A run is
 "confidently wrong" when a value misses by more than 15 % and by more than two of its own stated
 standard uncertainties (in log space). ``--table CSV`` prints the
-summary of an earlier run again.
+summary of an earlier run again. ``--runs N`` feeds a fresh :class:`svelive.noise.NoiseTracker` N runs of
+three frames of the same static scene (independent noise per frame), exactly as the live service's noise
+stage does every 5 s (the first frame of a run without a static mask, the next two with every pixel
+static), and reports the tracker's estimate after 1, 2, 4, ... N runs (:func:`convergence_table`).
 
 "bound" is what no estimator can beat: the Cramer-Rao bounds on gain and read noise from
 that frame for an estimator that knew every pixel's expected signal (:func:`oracle_sigma_pct`).
@@ -113,6 +116,65 @@ def confidently_wrong(error_pct: float, sigma_pct: float) -> bool:
     return abs(error_pct) > 15 and not log_miss <= 2 * (sigma_pct / 100.0 if np.isfinite(sigma_pct) else 0.0)
 
 
+def checkpoints(runs: int) -> list[int]:
+    """1, 2, 4, ... up to ``runs``, and ``runs`` itself."""
+    out = [1 << i for i in range(runs.bit_length()) if 1 << i <= runs]
+    return out + ([runs] if out[-1] != runs else [])
+
+
+def tracked_errors(name: str, est, truth: Sensor) -> dict:
+    """An estimate's errors and stated uncertainties (%) as the row fields ``{name}_gain_error_pct`` etc."""
+    return {f"{name}_gain_error_pct": 100 * (est.gain / truth.gain - 1),
+            f"{name}_read_noise_error_pct": 100 * (est.read_noise / truth.read_noise - 1),
+            f"{name}_gain_sigma_pct": 100 * (est.gain_sigma or float("nan")) / est.gain,
+            f"{name}_read_noise_sigma_pct": 100 * (est.read_noise_sigma or float("nan")) / max(est.read_noise, 1e-9)}
+
+
+def tracker_runs(radiance: np.ndarray, pattern: Pattern, truth: Sensor, cfa: str | None, seed: int, camera: Camera,
+                 runs: int) -> list:
+    """The estimates of a fresh NoiseTracker after each of ``runs`` runs of three frames of ``radiance``.
+
+    As the live service's noise stage (service/pipeline/noise.py) feeds it: every run, the first frame
+    without a static mask, the next two with one (here every pixel: the scene is static). Frame ``j``
+    (0, 1, 2, ... over all runs) has the noise seed ``seed + 1000 j``: the first run's three frames are
+    those of ``--pair``.
+    """
+    tracker, static, out = NoiseTracker(), None, []
+    for r in range(runs):
+        for j in range(3):
+            raw = simulate(radiance, pattern, truth, cfa=cfa, seed=seed + 1000 * (3 * r + j)).raw
+            if static is None:
+                static = np.ones(raw.shape, bool)
+            estimate = tracker.update(raw, camera, static if j else None)
+        out.append(estimate)
+    return out
+
+
+def convergence_table(rows: list[dict], runs: int) -> str:
+    """Markdown table: after 1, 2, 4, ... ``runs`` runs of the tracker, the share of runs with gain, read noise
+    and both within 15 %, and with either confidently wrong; over all runs and by what one frame can tell."""
+    groups: list[tuple[str, list[dict]]] = [("all", rows)]
+    if "bound_gain_pct" in rows[0]:
+        told = [max(r["bound_gain_pct"], r["bound_read_noise_pct"]) <= BOUND_TOLD_PCT for r in rows]
+        groups.append(("frame tells both", [r for r, t in zip(rows, told) if t]))
+        groups.append(("frame does not tell both", [r for r, t in zip(rows, told) if not t]))
+    head = ("| grid runs | n | tracker runs (x 5 s) | gain within 15 % | read noise within 15 % | both within 15 % | "
+            "gain confidently wrong | read noise confidently wrong |")
+    lines = [head, "|" + " --- |" * (head.count("|") - 1)]
+    for label, mine in groups:
+        if not mine:
+            continue
+        for k in checkpoints(runs):
+            g = np.array([abs(r[f"runs{k}_gain_error_pct"]) <= 15 for r in mine])
+            e = np.array([abs(r[f"runs{k}_read_noise_error_pct"]) <= 15 for r in mine])
+            wg = np.mean([confidently_wrong(r[f"runs{k}_gain_error_pct"], r[f"runs{k}_gain_sigma_pct"]) for r in mine])
+            wr = np.mean([confidently_wrong(r[f"runs{k}_read_noise_error_pct"], r[f"runs{k}_read_noise_sigma_pct"])
+                          for r in mine])
+            lines.append(f"| {label} | {len(mine)} | {k} | {g.mean():.0%} | {e.mean():.0%} | {(g & e).mean():.0%} | "
+                         f"{wg:.0%} | {wr:.0%} |")
+    return "\n".join(lines)
+
+
 def summary_table(rows: list[dict]) -> str:
     """Markdown table: per light, pattern, noise model and image, the share within 15 % and the share
     confidently wrong (single frame; and the two-frame tracker when it ran)."""
@@ -180,7 +242,7 @@ def pu21_by_noise_model(raw: np.ndarray, camera: Camera, truth: Sensor, estimate
 
 def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed: int, out_csv: Path | None,
         psnr: bool = False, pair: bool = False, lights: dict[str, float] = LIGHTS,
-        config: EstimatorConfig = EstimatorConfig()) -> int:
+        config: EstimatorConfig = EstimatorConfig(), runs: int = 0) -> int:
     rows = []
     header = (f"{'image':10s} {'pattern':26s} {'light':6s} {'true g':>7s} {'est g':>7s} {'err':>6s} {'sig':>5s}  "
               f"{'true r':>6s} {'est r':>6s} {'err':>6s} {'sig':>5s} {'sd err':>6s} {'samples':>8s} {'ms':>6s}")
@@ -220,14 +282,16 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                         third = simulate(radiance, p, truth, cfa=cfa, seed=seed + 2000).raw
                         three = tracker.update(third, camera, np.ones(raw.shape, bool))
                         for name_, est_ in (("pair", two), ("three", three)):
-                            scores.update({
-                                f"{name_}_gain_error_pct": 100 * (est_.gain / truth.gain - 1),
-                                f"{name_}_read_noise_error_pct": 100 * (est_.read_noise / truth.read_noise - 1),
-                                f"{name_}_gain_sigma_pct": 100 * (est_.gain_sigma or float("nan")) / est_.gain,
-                                f"{name_}_read_noise_sigma_pct":
-                                    100 * (est_.read_noise_sigma or float("nan")) / max(est_.read_noise, 1e-9)})
+                            scores.update(tracked_errors(name_, est_, truth))
                             flag += (f"  {name_} {scores[f'{name_}_gain_error_pct']:+.0f}%/"
                                      f"{scores[f'{name_}_read_noise_error_pct']:+.0f}%")
+                    if runs:
+                        after = tracker_runs(radiance, p, truth, cfa, seed, camera, runs)
+                        for k in checkpoints(runs):
+                            scores.update(tracked_errors(f"runs{k}", after[k - 1], truth))
+                        flag += "  runs " + " ".join(f"{k}:{scores[f'runs{k}_gain_error_pct']:+.0f}%/"
+                                                     f"{scores[f'runs{k}_read_noise_error_pct']:+.0f}%"
+                                                     for k in checkpoints(runs))
                     if psnr:
                         flag += "  PU21 default/estimated/true " + "/".join(f"{scores[k]:.2f}" for k in
                                                                    ("pu21_default", "pu21_estimated", "pu21_true"))
@@ -251,6 +315,8 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
           f"1..white DN) error median {np.median(sde):.1f}%, within 15% in {np.mean(sde <= 15):.0%}; "
           f"median time {np.median([r['ms'] for r in rows]):.0f} ms")
     print(summary_table(rows))
+    if runs:
+        print(convergence_table(rows, runs))
     for key, label in (("gain_error_pct", "gain"), ("read_noise_error_pct", "read noise")):
         worst = sorted(rows, key=lambda r: -abs(r[key]))[:5]
         print(f"worst {label}: " + "; ".join(f"{r['image']} {r['pattern']} {r['light']} g{r['true_gain']:.2f} "
@@ -323,6 +389,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--table", type=Path, help="only print the summary table of a CSV this script wrote")
     parser.add_argument("--pair", action="store_true", help="also the tracker's estimates after a second and a "
                                                             "third frame (NoiseTracker, static)")
+    parser.add_argument("--runs", type=int, default=0,
+                        help="also feed a NoiseTracker N runs of three static frames as the live service does "
+                             "(first frame without, the next two with a static mask) and report it after 1, 2, "
+                             "4, ... N runs")
     parser.add_argument("--patterns", help="patterns separated by ';' (default: " + "; ".join(PATTERNS) + ")")
     parser.add_argument("--lights", help="comma-separated light names of " + ",".join(LIGHTS))
     parser.add_argument("--models", help="noise models 'full_well:read_dn' separated by ','")
@@ -349,6 +419,10 @@ def main(argv: list[str] | None = None) -> int:
             rows = [{k: (v if k in ("image", "pattern", "light", "source") else float(v or "nan"))
                      for k, v in r.items()} for r in csv.DictReader(f)]
         print(summary_table(rows))
+        runs = max((int(k[4:].split("_")[0]) for k in rows[0] if k.startswith("runs") and k.endswith("_gain_error_pct")),
+                   default=0)
+        if runs:
+            print(convergence_table(rows, runs))
         return 0
     data = args.data or (default_data_dir() if default_data_dir().is_dir() else shipped_data_dir())
     images = find_images(data)
@@ -369,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{len(models)} noise models", file=sys.stderr)
     config = EstimatorConfig(cancellation=not args.no_cancellation, cancel_flat=not args.quarter_cells,
                              **config_fields(args.config))
-    return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights, config)
+    return run(images, patterns, models, args.seed, args.csv, args.psnr, args.pair, lights, config, args.runs)
 
 
 if __name__ == "__main__":
