@@ -1577,6 +1577,13 @@ class NoiseTracker:
     weighed against the recent frames' texture-cancelled fits (:func:`cancellation_fit`, combined by
     inverse variance) as :func:`estimate_noise` does. A given gain or read noise in the camera is
     kept. Not thread-safe: one per stream.
+
+    :meth:`update` adds a frame and fits; :meth:`add` only adds it, and :meth:`fit` fits what was
+    added. The pool is fitted only when what it holds changed, and a fit that adding a frame needs
+    (the clip margins of temporal samples, the start of the texture-cancelled fit) is the one
+    :meth:`update` would have made after the frame before: ``add, add, update`` gives the estimate
+    of ``update, update, update`` to the bit, with a third of the fits where the pool is unchanged
+    between runs (the service's runs of three frames once temporal samples suffice).
     """
 
     def __init__(self, history: int = 16, config: EstimatorConfig = EstimatorConfig(),
@@ -1593,10 +1600,13 @@ class NoiseTracker:
         self._previous_static: np.ndarray | None = None  # the mask that related the two
         self._estimate: NoiseEstimate | None = None
         self._camera_key: tuple | None = None
+        self._sensor: Sensor | None = None  # of the frames added since the last reset
+        self._line_of: tuple[tuple, LineFit | None, int] | None = None  # (pool, its line, samples)
+        self._estimate_of: tuple | None = None  # what self._estimate was fitted to
 
     @property
     def estimate(self) -> NoiseEstimate | None:
-        """The current estimate, None before the first frame."""
+        """The estimate of the last fit (:meth:`update` or :meth:`fit`), None before the first."""
         return self._estimate
 
     def reset(self) -> None:
@@ -1608,10 +1618,18 @@ class NoiseTracker:
         self._previous = self._before_previous = self._previous_static = None
         self._estimate = None
         self._camera_key = None
+        self._sensor = None
+        self._line_of = self._estimate_of = None
 
     def update(self, raw: np.ndarray, camera: Camera, static_mask: np.ndarray | None = None, *,
                signal: np.ndarray | None = None) -> NoiseEstimate:
-        """Add one frame and return the refined estimate.
+        """Add one frame (:meth:`add`) and return the refined estimate (:meth:`fit`)."""
+        self.add(raw, camera, static_mask, signal=signal)
+        return self.fit()
+
+    def add(self, raw: np.ndarray, camera: Camera, static_mask: np.ndarray | None = None, *,
+            signal: np.ndarray | None = None) -> None:
+        """Add one frame's samples without fitting the pool (but where the samples need the current fit).
 
         Args:
             raw: uint (H, W) raw frame as delivered.
@@ -1628,15 +1646,15 @@ class NoiseTracker:
             self.reset()
             self._camera_key = key
         if sensor.gain is not None and sensor.read_noise is not None:
-            self._estimate = NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
-            return self._estimate
+            self._sensor = sensor
+            return
         source, offset, floor = _signal_of(raw, camera, signal)
         sig = np.asarray(source, np.float32) - np.float32(offset)
         static = None if static_mask is None else np.asarray(static_mask, bool)
         if static is not None and static.shape != sig.shape:
             raise SveliveError(f"static mask has shape {static.shape} but the frame {sig.shape}")
         if static is not None and self._previous is not None:
-            current = self._estimate if self._estimate is not None else estimate_from_fit(None, sensor, 0)
+            current = self.fit() if self._sensor is not None else estimate_from_fit(None, sensor, 0)
             model = (1.0 / current.gain, current.read_noise**2 + QUANTISATION_VARIANCE)
             if self._before_previous is not None:
                 self._triple_parts.append(triple_samples(self._before_previous, self._previous, sig,
@@ -1646,37 +1664,78 @@ class NoiseTracker:
                 self._temporal_parts.append(temporal_samples(self._previous, sig, static, floor,
                                                              _high_level(sensor), model, self.temporal_per_frame,
                                                              camera.period))
-        # three frames' samples need no correction for binning by a noisy signal: alone once enough
-        temporal = NoiseSamples.join(list(self._triple_parts))
-        if temporal.size < self.temporal_enough:
-            temporal = NoiseSamples.join([*self._triple_parts, *self._temporal_parts])
+        self._sensor = sensor
         config = self.config
-        only_temporal = temporal.size >= self.temporal_enough
-        if only_temporal:
-            pooled = temporal
-        else:
+        temporal = self._temporal()
+        if temporal.size < self.temporal_enough:
             samples, _ = frame_samples(raw, camera, signal=sig, config=config)
             self._frame_parts.append(samples)
-            pooled = NoiseSamples.join([*self._frame_parts, temporal])
-        fit = fit_line(*bin_samples(pooled, config, temporal=only_temporal), **_fixed(sensor),
-                       outlier_tolerance=config.outlier_tolerance)
-        count = pooled.size
-        joint = None
         # temporal samples are texture-free: with any, the pooled line is the better evidence
         if config.cancellation and sensor.gain is None and temporal.size == 0:
-            frame_joint = cancellation_fit(sig, 0.0, floor, camera, config, start=fit)
+            frame_joint = cancellation_fit(sig, 0.0, floor, camera, config, start=self._line()[0])
             if frame_joint is not None:
                 self._joint_fits.append(frame_joint)
-            joint = _combined(list(self._joint_fits))
         if static is not None and self._previous is not None:
             self._before_previous, self._previous_static = self._previous, static
         else:
             self._before_previous = self._previous_static = None
         self._previous = np.array(sig, copy=True)
+
+    def fit(self) -> NoiseEstimate:
+        """The estimate from every frame added (refitted only when the pool changed since the last fit)."""
+        sensor = self._sensor
+        if sensor is None:
+            raise SveliveError("no frame added to the noise tracker")
+        if sensor.gain is not None and sensor.read_noise is not None:
+            self._estimate = NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+            return self._estimate
+        config = self.config
+        with_joint = config.cancellation and sensor.gain is None and self._temporal().size == 0
+        pool, joints = self._pool()[0], tuple(self._joint_fits) if with_joint else ()
+        if self._estimate_of is not None and _same(self._estimate_of, (pool, joints)):
+            return self._estimate
+        fit, count = self._line()
+        joint = _combined(list(joints)) if with_joint else None
         if joint is not None and _preferred(fit, joint, config) is joint:
             fit, count = joint, int(joint.bins_n.sum())
         self._estimate = estimate_from_fit(fit, sensor, count)
+        self._estimate_of = (pool, joints)
         return self._estimate
+
+    def _temporal(self) -> NoiseSamples:
+        """The temporal samples the pool holds: three frames' alone once enough, else with the pairs'."""
+        return NoiseSamples.join(self._temporal_list())
+
+    def _temporal_list(self) -> list[NoiseSamples]:
+        triples = list(self._triple_parts)
+        if sum(p.size for p in triples) >= self.temporal_enough:
+            return triples
+        return [*triples, *self._temporal_parts]
+
+    def _pool(self) -> tuple[tuple[NoiseSamples, ...], bool]:
+        """The parts the line is fitted to, and whether they are temporal alone (binned as such)."""
+        temporal = self._temporal_list()
+        if sum(p.size for p in temporal) >= self.temporal_enough:
+            return tuple(temporal), True
+        return (*self._frame_parts, *temporal), False
+
+    def _line(self) -> tuple[LineFit | None, int]:
+        """The line fitted to the pool and its sample count, fitted again only when the pool changed."""
+        parts, only_temporal = self._pool()
+        if self._line_of is not None and _same(self._line_of[0], (parts, only_temporal)):
+            return self._line_of[1], self._line_of[2]
+        pooled = NoiseSamples.join(list(parts))
+        fit = fit_line(*bin_samples(pooled, self.config, temporal=only_temporal), **_fixed(self._sensor),
+                       outlier_tolerance=self.config.outlier_tolerance)
+        self._line_of = ((parts, only_temporal), fit, pooled.size)
+        return fit, pooled.size
+
+
+def _same(a: object, b: object) -> bool:
+    """Whether two nests of tuples hold the very same objects (identity, not equality: arrays)."""
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a is b
 
 
 def _combined(fits: list[LineFit]) -> LineFit | None:

@@ -549,3 +549,64 @@ def test_an_imprecise_joint_fit_is_taken_where_the_residual_fit_is_biased():
     assert _preferred(None, joint, config) is joint
     assert _preferred(line(0.40, 0.0, fixed=True), joint, config).fixed_slope
     assert _preferred(steep, joint, EstimatorConfig(cancel_when_biased=False)) is steep
+
+
+def _live_runs(tracker: NoiseTracker, raws: list[np.ndarray], camera: Camera, fit_each_frame: bool,
+               static_from: int = 0) -> list[NoiseEstimate]:
+    """Runs of three frames fed as the live service's noise stage does (the first without a static mask,
+    the next two with every pixel static; runs before ``static_from`` without any mask: a moving camera),
+    the estimate after each run; ``fit_each_frame``: :meth:`NoiseTracker.update` on every frame, else
+    :meth:`NoiseTracker.add` three times and one :meth:`NoiseTracker.fit`."""
+    static = np.ones(raws[0].shape, bool)
+    out = []
+    for r in range(len(raws) // 3):
+        for j, raw in enumerate(raws[3 * r:3 * r + 3]):
+            mask = static if j and r >= static_from else None
+            if fit_each_frame:
+                tracker.update(raw, camera, mask)
+            else:
+                tracker.add(raw, camera, mask)
+        out.append(tracker.estimate if fit_each_frame else tracker.fit())
+    return out
+
+
+@pytest.mark.parametrize("static_from", [0, 1])
+def test_a_run_fitted_once_gives_the_estimate_of_a_fit_per_frame_to_the_bit(static_from):
+    """Adding a run's frames and fitting once gives, after every run, the very estimate (every field
+    equal, no tolerance) that fitting after every frame gives: also in the first runs, where the pool
+    changes with every frame and the samples of the next frame are clipped by the fit of the ones
+    before, and after a run without static pixels (texture-cancelled fits)."""
+    truth = true_sensor(3_000, 2.0)
+    camera = unknown("1,4/16,64")
+    scene = load_sample_scene("mttamwest")[:192, :256]
+    raws = [frame(scene, "1,4/16,64", truth, 2, seed=seed).raw for seed in range(12)]
+    each = _live_runs(NoiseTracker(temporal_enough=60_000), raws, camera, True, static_from)
+    once = _live_runs(NoiseTracker(temporal_enough=60_000), raws, camera, False, static_from)
+    assert [e.source for e in each] == ["estimated"] * 4
+    assert once == each
+    assert len({(e.gain, e.samples) for e in once}) == 4  # every run moved it: the comparison compares
+
+
+def test_the_pool_is_fitted_once_per_run(monkeypatch):
+    """Once three frames' samples suffice (here one run's: a small frame), the pool does not change
+    between a run's first two frames and the run before, so a run costs one fit of the pool, however
+    the frames are given."""
+    import svelive.noise as noise
+
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return fit_line(*args, **kwargs)
+
+    truth = true_sensor(10_000, 2.0)
+    camera = unknown("1,2/4,8")
+    raws = [frame(smooth_scene(256), "1,2/4,8", truth, 0, seed=seed).raw for seed in range(9)]
+    for fit_each_frame in (True, False):
+        tracker = NoiseTracker(temporal_enough=4_000)
+        _live_runs(tracker, raws[:6], camera, fit_each_frame)
+        monkeypatch.setattr(noise, "fit_line", counted)
+        calls.clear()
+        _live_runs(tracker, raws[6:], camera, fit_each_frame)
+        monkeypatch.setattr(noise, "fit_line", fit_line)
+        assert len(calls) == 1, fit_each_frame

@@ -3,7 +3,7 @@
 The reconstruction thread offers each frame it reconstructed (a reference, no copy);
 every ``interval_s`` three consecutively reconstructed frames (frames dropped at the
 hand-off between them do not matter) are handed to this stage's own
-thread, which adds them to a :class:`svelive.noise.NoiseTracker`: the first frame's
+thread, which adds them to a :class:`svelive.noise.NoiseTracker` and fits its pool once: the first frame's
 single-frame samples, and the differences of the pixels the motion tests found
 static over the three (texture-free; the third frame groups them by signal without
 the bias of grouping by their own noisy values, :func:`svelive.noise.triple_samples`).
@@ -112,9 +112,11 @@ class NoiseStage:
             if run is None:
                 continue
             try:
-                estimate = self._tracker.update(run.frames[0].raw, run.camera)
+                # only the run's last estimate is used: the pool is fitted once per run, not per frame
+                self._tracker.add(run.frames[0].raw, run.camera)
                 for frame, static in zip(run.frames[1:], run.static):
-                    estimate = self._tracker.update(frame.raw, run.camera, static)
+                    self._tracker.add(frame.raw, run.camera, static)
+                estimate = self._tracker.fit()
             except Exception as exc:  # a frame the estimator cannot use: say so, keep the estimate in use
                 self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 continue
