@@ -573,11 +573,10 @@ def stream_noise(frames: Sequence[np.ndarray | Frame], camera: Camera, *, method
     if len(frames) == 0:
         raise SveliveError("no frame to estimate the noise model from")
     tracker = NoiseTracker()
-    estimate = None
     with Reconstructor(camera, method=method, temporal=True, exposure_timing=exposure_timing) as stream:
         for k, frame in enumerate(frames):
             raw = camera.check(np.asarray(getattr(frame, "raw", frame)))
             motion = stream.process(raw).motion
             signal = prepare(raw, camera).signal if camera.response is not None else None
-            estimate = tracker.update(raw, camera, None if k == 0 else ~motion, signal=signal)
-    return estimate
+            tracker.add(raw, camera, None if k == 0 else ~motion, signal=signal)
+    return tracker.fit()
