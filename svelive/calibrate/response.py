@@ -35,7 +35,10 @@ Steps (:func:`fit_response`):
    of the data, up to white), fitted by least squares on ``log f(M_hi) - log f(M_lo) =
    log R`` (:func:`_solve_spline`), and a power law (2 knots); the same held-out rule
    chooses among them and the degrees, on the equations whose darker value rounding cannot
-   move by more than 1 % (:func:`_undithered` has why). Off by default (see the docs).
+   move by more than 1 % (:func:`_undithered` has why). The splines also maximise the likelihood
+   of which pixels reach white in a brighter frame given their reading in a darker one (a probit,
+   :func:`_censored_with_pilot`): that pins the curve at white, hence its scale, with no window
+   selected on its pixels' texture. Off by default (see the docs).
 7. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
    fitted curve and the fit repeated; the ratio of the extreme exposures is kept
    at its nominal value because ``f^g`` with ratios ``R^g`` fits the same data
@@ -212,8 +215,8 @@ class ResponseFitConfig:
         max_knots: knots of the log-spline model (below 2, the default: none), offered with that
             many knots and as a power law (2 knots), which then compete with the polynomials by
             held-out error on sweeps without a common exposure ratio (never on one frame). Off by
-            default: it recovers S-shaped curves within 1 % at 12 bits but only to 0.1-1.8 % at 8, and
-            moves polynomial cameras' fits by up to 0.05 % (docs/calibration.md).
+            default: it moves polynomial cameras' fits by up to 0.05 % (docs/calibration.md); it recovers
+            S-shaped curves within 1 % at 8 and 12 bits on the benchmark's photographs.
         dark_snr: when the log-spline is offered, equations whose darker window value is under
             this many single-reading noise standard deviations are left out (for every model).
         rounding_tolerance: when the log-spline is offered, the held-out errors that choose among the
@@ -255,6 +258,26 @@ class _Pairs:
     fold: np.ndarray      # int (P,), spatial fold of the location
     noise_lo: np.ndarray  # float64 (P,), analog noise sd of one reading at m_lo (DN, quantisation excluded)
     noise_hi: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Censored:
+    """Same-pixel evidence at white from a sweep: per raw code of a reading in a darker frame, how many
+    of those pixels read at white in a brighter frame (one row per code and pair of frames).
+
+    A reading at white says only that the pixel's light reached the white threshold, and the same
+    pixel's reading in the darker frame says how much light that pixel had: no texture and no window
+    selection come in, so these rows pin the curve's value at white against its value at the darker
+    readings (the scale of the whole curve) without the windows that white removes.
+    """
+
+    m: np.ndarray          # float64 (C,), brightness of the darker reading
+    log_ratio: np.ndarray  # float64 (C,), log of the brighter frame's exposure over the darker's
+    total: np.ndarray      # float64 (C,), pixels with that reading
+    clipped: np.ndarray    # float64 (C,), of them, those at white in the brighter frame
+    pair: np.ndarray       # int (C,), index of the pair of frames (0..pairs - 1)
+    threshold: float       # brightness from which a reading rounds to white
+    width: np.ndarray | None = None  # float64 (C,), sd of the probit in log light (both readings' noise)
 
 
 def _window_sums(sub: np.ndarray, window: int) -> np.ndarray:
@@ -462,6 +485,133 @@ def _collect_pairs(raws: np.ndarray | list[np.ndarray], pattern: Pattern, sensor
     return _Pairs(*cols)
 
 
+def _censored_at_white(raws: list[np.ndarray], times: np.ndarray, sensor: Sensor) -> _Censored:
+    """:class:`_Censored` rows of every two frames of a sweep (the darker reading strictly between black
+    and white; every pixel, whatever its neighbours, since both readings are of the same pixel).
+
+    Args:
+        raws: J (H, W) frames of one still scene.
+        times: (J,) their exposure times.
+    """
+    white = float(sensor.white_level)
+    black = float(sensor.black_level)
+    # the ADC rounds: a reading is at white from half a step under it
+    threshold = 1.0 - 0.5 / sensor.range_dn
+    parts = []
+    for j, k in _frame_pairs(times):
+        dark, bright = raws[j].ravel(), raws[k].ravel()
+        inside = (dark > black) & (dark < white)
+        codes = dark[inside].astype(np.int64)
+        total = np.bincount(codes, minlength=int(white) + 1).astype(np.float64)
+        clipped = np.bincount(codes, weights=(bright[inside] >= white).astype(np.float64), minlength=total.size)
+        code = np.nonzero(total)[0]
+        parts.append(((code - black) / sensor.range_dn, np.full(code.size, math.log(times[k] / times[j])),
+                      total[code], clipped[code], np.full(code.size, len(parts))))
+    cols = [np.concatenate([p[i] for p in parts]) for i in range(5)]
+    return _Censored(*cols[:4], cols[4].astype(np.int64), threshold=threshold)
+
+
+def _probit_sides(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(log Phi(z), log Phi(-z), phi(z) / Phi(z), phi(z) / Phi(-z)) of the standard normal, float64 like
+    ``z``; accurate in both tails (the smaller side from erfc), clipped at |z| = 35."""
+    z = np.clip(np.asarray(z, np.float64), -35.0, 35.0)
+    tail = 0.5 * np.vectorize(math.erfc, otypes=[np.float64])(np.abs(z) / math.sqrt(2.0))
+    low, high = np.where(z < 0, tail, 1.0 - tail), np.where(z < 0, 1.0 - tail, tail)
+    density = np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    return np.log(low), np.log(high), density / low, density / high
+
+
+def _probit_newton(predictor: Callable[[np.ndarray], np.ndarray], rows: np.ndarray, start: np.ndarray,
+                   total: np.ndarray, hits: np.ndarray, quadratic: tuple[np.ndarray, np.ndarray, float] | None = None,
+                   steps: int = 50) -> np.ndarray:
+    """Minimise ``-2 log L(p) (+ p'Np - 2 p'r + c)`` by Newton's method, L the probit likelihood of ``hits``
+    out of ``total`` with ``z = predictor(p)`` linear in p with rows ``rows`` (C, n) (so z = rows @ p +
+    const); ``quadratic`` = (N, r, c) of a least-squares term. Convex.
+
+    Returns p.
+    """
+    normal, rhs, constant = quadratic if quadratic is not None else (np.zeros((start.size,) * 2),
+                                                                      np.zeros(start.size), 0.0)
+
+    def objective(p: np.ndarray) -> float:
+        up, down, _, _ = _probit_sides(predictor(p))
+        return float(p @ normal @ p - 2.0 * p @ rhs + constant - 2.0 * np.sum(hits * up + (total - hits) * down))
+
+    p = start.copy()
+    value = objective(p)
+    for _ in range(steps):
+        z = predictor(p)
+        _, _, up, down = _probit_sides(z)
+        slope = -hits * up + (total - hits) * down
+        curvature = hits * up * (z + up) + (total - hits) * down * (down - z)
+        gradient = 2.0 * (normal @ p - rhs) + 2.0 * rows.T @ slope
+        hessian = 2.0 * normal + 2.0 * (rows.T * curvature) @ rows
+        # no ridge: the weakest direction (the scale, eigenvalue ~1e-12 of the largest) is the one that matters
+        step = np.linalg.lstsq(hessian, gradient, rcond=None)[0]
+        if gradient @ step < 1e-9:  # Newton decrement: the objective (a chi-square) cannot fall further
+            break
+        t = 1.0
+        while t > 1e-6:
+            trial = objective(p - t * step)
+            if trial <= value:
+                break
+            t *= 0.5
+        else:
+            break
+        p, value = p - t * step, trial
+    return p
+
+
+def _censored_with_pilot(raws: list[np.ndarray], times: np.ndarray, sensor: Sensor, pairs: _Pairs,
+                         exposures: np.ndarray, knots_u: np.ndarray, reach: float = 0.5,
+                         margin: float = 0.1) -> _Censored | None:
+    """:func:`_censored_at_white` near white, with the probit's width: None when no pair of frames has
+    pixels both at and under white there.
+
+    A pilot log-spline on ``knots_u`` fitted to ``pairs`` alone predicts from each darker reading the log
+    light in the brighter frame; the rows kept predict it within ``reach`` of white's. The width of a
+    pair of frames is the sd of ``log f(brighter) - log f(darker) - log R`` over the pixels predicted
+    between ``margin`` and twice that under white (near white, whose noise it is, but where white cannot
+    cut the readings off), from the median absolute deviation. It is measured on the pixels themselves:
+    a photographed frame's own noise curve counts its texture as noise (Desk, 12 bits: 3 % of full scale
+    at M = 0.75, where the photon noise is 0.7 %).
+    """
+    censored = _censored_at_white(raws, times, sensor)
+    pilot = _solve_spline(pairs, exposures, knots_u)[0]
+    top, black = int(sensor.white_level), float(sensor.black_level)
+    codes = (np.arange(top + 1) - black) / sensor.range_dn
+    code_log = np.log(np.maximum(_log_spline_value(pilot, knots_u, codes)[0], 1e-300))
+    white = float(np.log(_log_spline_value(pilot, knots_u, np.array([censored.threshold]))[0][0]))
+    eta = np.log(np.maximum(_log_spline_value(pilot, knots_u, censored.m)[0], 1e-300)) - white + censored.log_ratio
+    keep = np.zeros(censored.m.size, bool)
+    width = np.zeros(censored.m.size)
+    for q, (j, k) in enumerate(_frame_pairs(times)):
+        rows = (censored.pair == q) & (np.abs(eta) < reach)
+        if not (censored.clipped[rows].sum() > 0 and (censored.total[rows] - censored.clipped[rows]).sum() > 0):
+            continue
+        log_ratio = math.log(times[k] / times[j])
+        dark, bright = raws[j].ravel(), raws[k].ravel()
+        under = (dark > black) & (dark < top) & (bright > black) & (bright < top)
+        predicted = code_log[np.clip(dark, 0, top)] - white + log_ratio
+        clear = under & (predicted < -margin) & (predicted > -2.0 * margin)
+        if np.count_nonzero(clear) < 2:
+            continue
+        residual = code_log[bright[clear]] - code_log[dark[clear]] - log_ratio
+        sd = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+        if sd > 0:
+            keep |= rows
+            width[rows] = sd
+    if not keep.any():
+        return None
+    fields = ("m", "log_ratio", "total", "clipped", "pair")
+    return _Censored(*(getattr(censored, f)[keep] for f in fields), threshold=censored.threshold, width=width[keep])
+
+
+def _frame_pairs(times: np.ndarray) -> list[tuple[int, int]]:
+    """(darker, brighter) frame indices of every two frames of a sweep with different exposure times."""
+    return [(a, b) for a in range(len(times)) for b in range(len(times)) if times[a] < times[b]]
+
+
 def _design(pairs: _Pairs, exposures: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows of f(m_hi) / R - f(m_lo) = 0 with c_0 eliminated by f(1) = 1: A c_{1..N} = y."""
     inv_r = exposures[pairs.k_lo] / exposures[pairs.k_hi]
@@ -616,7 +766,8 @@ def _log_sigma(pairs: _Pairs, e_lo: np.ndarray | float, e_hi: np.ndarray | float
 
 
 def _solve_spline(pairs: _Pairs, exposures: np.ndarray, knots_u: np.ndarray, sel: np.ndarray | None = None,
-                  iterations: int = 3, min_elasticity: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  iterations: int = 3, min_elasticity: float = 0.05, censored: _Censored | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Log-spline coefficients (constant first, log f(1) = 0) minimising the normalised log ratio residuals.
 
     In ``log f`` a ratio equation is linear with a known right side,
@@ -624,6 +775,8 @@ def _solve_spline(pairs: _Pairs, exposures: np.ndarray, knots_u: np.ndarray, sel
     fix and no drift where there are no data. Each equation is weighted by its noise
     propagated through ``d log f / dM`` of the previous iteration (a linear camera first);
     the elasticity floor keeps a nearly flat stretch of a bad iterate from taking all the weight.
+    With ``censored`` (a sweep's pixels at white, :class:`_Censored`) the likelihood of which pixels
+    reach white is maximised together with the least squares (:func:`_probit_newton`).
 
     Returns (coefficients (K,), weighted design (P, K-1), weighted target (P,)) of the last pass.
     """
@@ -635,6 +788,12 @@ def _solve_spline(pairs: _Pairs, exposures: np.ndarray, knots_u: np.ndarray, sel
         w = 1.0 / _log_sigma(sub, e_lo, e_hi)
         a, b = design * w[:, None], target * w
         rest, *_ = np.linalg.lstsq(a, b, rcond=None)
+        if censored is not None:
+            rows = (log_spline_basis(np.log(censored.m), knots_u) - log_spline_basis(
+                np.array([math.log(censored.threshold)]), knots_u)) / censored.width[:, None]
+            offset = censored.log_ratio / censored.width
+            rest = _probit_newton(lambda p: rows @ p + offset, rows, rest, censored.total, censored.clipped,
+                                  (a.T @ a, a.T @ b, float(b @ b)))
         e_lo = np.maximum(d_lo @ rest, min_elasticity)
         e_hi = np.maximum(d_hi @ rest, min_elasticity)
     constant = -float(log_spline_basis(np.zeros(1), knots_u)[0] @ rest)
@@ -872,6 +1031,7 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
     # see: it is offered only to sweeps, whose exposure ratios are not all powers of one number
     candidates = [("polynomial", d) for d in range(1, config.max_degree + 1)]
     scored = None
+    censored = None
     if len(raws) > 1 and ratio is None and config.max_knots >= 2:
         # windows are kept only when no reading is clipped, so a dark one survives when its noise
         # happened to lift it off 0: its value reads high (and its log is biased besides). A flexible
@@ -889,6 +1049,10 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
             # the count (docs/calibration.md). A power law (2 knots) for linear and gamma cameras.
             candidates += [("log-spline", k) for k in sorted({2, config.max_knots})]
             pairs = _undithered(pairs, sensor.range_dn)
+            # which pixels reach white in the brighter frame pins the curve at white against the darker
+            # readings (the scale), free of the texture selection of the windows kept near white
+            censored = _censored_with_pilot(raws, times, sensor, pairs, nominal,
+                                            np.log(spline_knots(*ends, config.max_knots)))
             # the rounding error of a window is the same at every location of that brightness, so
             # held-out locations share it: models are compared where it is small against the value
             far = pairs.m_lo * sensor.range_dn >= 0.5 / config.rounding_tolerance
@@ -918,11 +1082,12 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
                 # curvature free, would set the scale of the whole curve from noise
                 knots = tuple(spline_knots(*ends, size))
                 knots_u = np.log(knots)
-                coef = _solve_spline(pairs, exposures, knots_u)[0]
+                coef = _solve_spline(pairs, exposures, knots_u, censored=censored)[0]
                 if not _monotone_curve(Response(tuple(coef), knots=knots), measured):
                     continue
                 mean, se, held = _held_out_curve(
-                    pairs, exposures, lambda sel, ku=knots_u: _solve_spline(pairs, exposures, ku, sel)[0],
+                    pairs, exposures,
+                    lambda sel, ku=knots_u: _solve_spline(pairs, exposures, ku, sel, censored=censored)[0],
                     lambda c, kn=knots: Response(tuple(c), knots=kn), config.folds, scored)
                 held = [Response(tuple(c), knots=knots) for c in held]
                 coef = (coef, knots)
@@ -958,7 +1123,7 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
         profile = _curve_uncertainty(A / sigma[:, None], max(chi2, 1.0), grid)
         del A, y, sigma
     else:
-        _, a, b = _solve_spline(pairs, exposures, np.log(knots))
+        _, a, b = _solve_spline(pairs, exposures, np.log(knots), censored=censored)
         chi2 = float(np.mean((a @ coef[1:] - b) ** 2))
         profile = _spline_uncertainty(a, max(chi2, 1.0), np.log(knots), coef, grid)
         del a, b
@@ -993,6 +1158,10 @@ def fit_response(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sen
         # a sweep's near-coincidences (1.5 against 4 agree to 1e-3 at the 12th root) give ripples no
         # polynomial can follow: only common ratios within the fourth root of the smallest step count
         "common_ratio": ratio,
+        # the sweep's pixels near white that pin the log-spline's scale (None: not used)
+        "pixels_near_white": None if censored is None else {
+            "pixels": int(censored.total.sum()), "at_white": int(censored.clipped.sum()),
+            "width": [float(censored.width[censored.pair == q][0]) for q in np.unique(censored.pair)]},
     }
     return Response(curve.coefficients, (0.0, 1.0), float(sensor.black_level), float(sensor.white_level), stats,
                     knots)
