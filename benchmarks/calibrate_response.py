@@ -4,7 +4,7 @@ with ``--sweep``, SVE frames at several global exposure times fitted together (i
 Usage: python benchmarks/calibrate_response.py [--data ../shared/data/hdr] [--scenes Cannon,MtTamWest,Desk,Bonita,Garden,BrightRings]
        [--curves linear,gamma2.2,poly3,s-curve] [--diagnose]
        python benchmarks/calibrate_response.py --sweep "1,1.5;1,1.5,2.25" [--bits 8,12] [--scenes ...] [--curves ...]
-           [--max-knots 12] [--seed 1]
+           [--max-knots 0] [--seed 1]
 
 ``--sweep``: for every scene, curve, bit depth and sweep (global exposure times, ``;`` between
 sweeps), the frames at those times (independent noise) are fitted together; the row gives the
@@ -128,9 +128,9 @@ def main() -> None:
     ap.add_argument("--sweep", help="global exposure times of the frames fitted together, ';' between sweeps, "
                                     "e.g. '1,1.5;1,1.5,2.25' (no Debevec)")
     ap.add_argument("--bits", default="8", help="bit depths, comma-separated (default 8)")
-    ap.add_argument("--max-knots", type=int, default=0,
-                    help="with --sweep: also offer the log-spline model, with N knots and as a power law (2 knots) "
-                         "(default 0: polynomials only)")
+    ap.add_argument("--max-knots", type=int, default=None,
+                    help="with --sweep: the log-spline model offered, with N knots and as a power law (2 knots) "
+                         "(default: the library's, svelive.calibrate.response.SWEEP_KNOTS; 0: polynomials only)")
     ap.add_argument("--seed", type=int, default=1, help="with --sweep: noise seed of the first frame (default 1)")
     args = ap.parse_args()
     if args.sweep:
@@ -145,7 +145,8 @@ def main() -> None:
                 radiance = scene * exposure_scale(scene, pattern, sensor)
                 for name in args.curves.split(","):
                     for row in sweep_rows(radiance, pattern, sensor, CURVES[name], sweeps, seed=args.seed,
-                                          config=ResponseFitConfig(max_knots=args.max_knots)):
+                                          config=ResponseFitConfig() if args.max_knots is None
+                                          else ResponseFitConfig(max_knots=args.max_knots)):
                         print(f"{scene_name} | {name} | {bits} | {row}", flush=True)
         return
     sensor = Sensor.from_full_well(8, 10000, 3)

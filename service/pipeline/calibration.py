@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from svelive.calibrate import Response, load_mask, load_response
-from svelive.calibrate.response import calibrate_frame
+from svelive.calibrate.response import SWEEP_KNOTS, calibrate_frame
 from svelive.camera import Camera, one_colour_plane
 from svelive.capture import AfterChange, Source
 from svelive.errors import SveliveError
@@ -144,7 +144,7 @@ class Calibration:
 
     # ----- the exposure sweep (a background job) ----------------------------
     def start_sweep(self, times: list[float], source: Source | None, max_degree: int = 6, apply: bool = False,
-                    settle_frames: int = 1, frame_timeout_s: float = 5.0, max_knots: int = 0) -> dict[str, Any]:
+                    settle_frames: int = 1, frame_timeout_s: float = 5.0, max_knots: int = SWEEP_KNOTS) -> dict[str, Any]:
         """Start stepping ``source``'s exposure time through ``times`` in a background thread.
 
         At each step the exposure is set, the frame that arrives ``settle_frames`` frames after

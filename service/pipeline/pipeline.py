@@ -12,6 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from svelive.calibrate.response import SWEEP_KNOTS
 from svelive.capture import Source, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
@@ -157,7 +158,7 @@ class Pipeline:
         return self.calibration.calibrate_response(max_degree, apply)
 
     def start_sweep(self, times: list[float], max_degree: int = 6, apply: bool = False,
-                    max_knots: int = 0) -> dict[str, Any]:
+                    max_knots: int = SWEEP_KNOTS) -> dict[str, Any]:
         """Calibrate the response from frames at the exposure times ``times`` (a background job);
         see :meth:`service.pipeline.calibration.Calibration.start_sweep`. Returns the job."""
         # the capture stage's open source (it has no public accessor yet)

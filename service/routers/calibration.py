@@ -10,23 +10,25 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from starlette.concurrency import run_in_threadpool
 
 from service.pipeline.calibration import MAX_SWEEP, ExposureUnsupported
+from svelive.calibrate.response import SWEEP_KNOTS
 from service.routers import NO_STORE, ServedCamera
 
 
 class CalibrateRequest(BaseModel):
     """Body of POST /api/calibrate/response (optional). ``sweep``: exposure times (the camera's
     unit, GigE: microseconds) to step through, one frame each, fitted together in the background.
-    ``max_knots``: offer the sweep's fit a log-spline of that many knots too (docs/calibration.md)."""
+    ``max_knots``: the knots of the log-spline the sweep's fit is also offered (default SWEEP_KNOTS, 0 for
+    polynomials only; docs/calibration.md)."""
 
     model_config = ConfigDict(extra="forbid")
     max_degree: int = Field(6, ge=1, le=10)
     apply: bool = False
     sweep: list[float] | None = Field(None, min_length=1, max_length=MAX_SWEEP)
-    max_knots: int = Field(0, ge=0, le=16)
+    max_knots: int | None = Field(None, ge=0, le=16)
 
     @model_validator(mode="after")
     def _knots_need_a_sweep(self) -> CalibrateRequest:
-        if self.max_knots and self.sweep is None:
+        if self.max_knots is not None and self.sweep is None:
             raise ValueError("max_knots needs a sweep: one frame cannot fit a log-spline (give \"sweep\")")
         return self
 
@@ -42,7 +44,8 @@ def router(cam: ServedCamera) -> APIRouter:
         if request.sweep is not None:  # a background job: 202 with it, progress in the state and GET
             try:
                 job = pipeline.start_sweep(request.sweep, request.max_degree, request.apply,
-                                           max_knots=request.max_knots)
+                                           max_knots=SWEEP_KNOTS if request.max_knots is None
+                                           else request.max_knots)
             except ExposureUnsupported as exc:
                 return JSONResponse({"detail": str(exc)}, status_code=409)
             return JSONResponse(job, status_code=202, headers=NO_STORE)

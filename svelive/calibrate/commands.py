@@ -14,7 +14,7 @@ import numpy as np
 
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
 from svelive.calibrate.noise import estimate_noise
-from svelive.calibrate.response import ResponseFitConfig, fit_response, save_response, write_json
+from svelive.calibrate.response import SWEEP_KNOTS, ResponseFitConfig, fit_response, save_response, write_json
 from svelive.camera import Camera, one_colour_plane
 from svelive.commands import read_raw
 from svelive.errors import SveliveError
@@ -219,10 +219,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-degree", type=int, default=6, help="highest polynomial degree tried (default 6)")
     p.add_argument("--window", type=int, default=3, help="local window side in tiles (odd, default 3)")
     p.add_argument("--refine-ratios", action="store_true", help="re-estimate intermediate exposure ratios")
-    p.add_argument("--max-knots", type=int, default=0,
-                   help="also offer a log-spline of this many knots (and a power law) for a sweep of two or more "
-                        "frames: film-like S-shaped responses at 12 bits or more; not at 8 bits "
-                        "(docs/calibration.md; default 0, polynomials only)")
+    p.add_argument("--max-knots", type=int, default=SWEEP_KNOTS,
+                   help="a sweep of two or more frames is also offered a log-spline of this many knots (and a "
+                        f"power law), for film-like S-shaped responses (default {SWEEP_KNOTS}; 0: polynomials only; "
+                        "docs/calibration.md)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("-o", "--output", type=Path, required=True, help="response JSON to write")
     p.set_defaults(func=_response)

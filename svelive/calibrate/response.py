@@ -29,7 +29,7 @@ Steps (:func:`fit_response`):
 5. The measured range is the longest brightness interval with data in every
    1/16 of full scale and a standard error of ``f`` (from the fit's covariance)
    under 1 %: gaps in the data end it.
-6. Optionally (``max_knots``, sweeps without a common exposure ratio only) a log-spline
+6. For sweeps without a common exposure ratio (``max_knots``, on by default) a log-spline
    competes with the polynomials: ``log f`` a natural cubic spline in ``log M`` with
    ``max_knots`` knots evenly spaced in logit(M) over the data (a power law above the top
    of the data, up to white), fitted by least squares on ``log f(M_hi) - log f(M_lo) =
@@ -38,7 +38,7 @@ Steps (:func:`fit_response`):
    move by more than 1 % (:func:`_undithered` has why). The splines also maximise the likelihood
    of which pixels reach white in a brighter frame given their reading in a darker one (a probit,
    :func:`_censored_with_pilot`): that pins the curve at white, hence its scale, with no window
-   selected on its pixels' texture. Off by default (see the docs).
+   selected on its pixels' texture. On by default for sweeps (:data:`SWEEP_KNOTS`; see the docs).
 7. Optionally (``refine_ratios``) the exposure ratios are re-estimated from the
    fitted curve and the fit repeated; the ratio of the extreme exposures is kept
    at its nominal value because ``f^g`` with ratios ``R^g`` fits the same data
@@ -190,6 +190,11 @@ def _log_spline_value(coef: np.ndarray, knots_u: np.ndarray, m: np.ndarray) -> t
     return np.where(positive, f, 0.0), np.where(positive, f * elasticity / safe, 0.0)
 
 
+#: knots of the log-spline a sweep's fit is offered by default (ResponseFitConfig.max_knots): held-out error
+#: flattens from about 6 knots on, and 12 follow a film's toe and shoulder (docs/calibration.md)
+SWEEP_KNOTS = 12
+
+
 @dataclass(frozen=True)
 class ResponseFitConfig:
     """Options of :func:`fit_response`.
@@ -212,11 +217,13 @@ class ResponseFitConfig:
         seed: seed of the fold assignment.
         max_equations: with several frames, locations are left out at random beyond this
             many ratio equations (time and memory grow with them; one frame is never cut).
-        max_knots: knots of the log-spline model (below 2, the default: none), offered with that
-            many knots and as a power law (2 knots), which then compete with the polynomials by
-            held-out error on sweeps without a common exposure ratio (never on one frame). Off by
-            default: it moves polynomial cameras' fits by up to 0.05 % (docs/calibration.md); it recovers
-            S-shaped curves within 1 % at 8 and 12 bits on the benchmark's photographs.
+        max_knots: knots of the log-spline model (:data:`SWEEP_KNOTS` by default; below 2: none, the
+            polynomials alone), offered with that many knots and as a power law (2 knots), which then
+            compete with the polynomials by held-out error on sweeps without a common exposure ratio
+            (never on one frame). With it, sweeps recover S-shaped curves within 1 % at 8 and 12 bits on
+            the benchmark's photographs (0.6-6.5 % with polynomials alone), and a gamma camera on a
+            narrow range (BrightRings) within 0.06 % (3.5-10.4 %); it moves polynomial cameras' fits by
+            up to 0.05 % (docs/calibration.md).
         dark_snr: when the log-spline is offered, equations whose darker window value is under
             this many single-reading noise standard deviations are left out (for every model).
         rounding_tolerance: when the log-spline is offered, the held-out errors that choose among the
@@ -239,7 +246,7 @@ class ResponseFitConfig:
     coverage_count: int = 1
     seed: int = 0
     max_equations: int = 250_000
-    max_knots: int = 0
+    max_knots: int = SWEEP_KNOTS
     dark_snr: float = 3.0
     rounding_tolerance: float = 0.01
 
@@ -1205,7 +1212,7 @@ def linearise(raw: np.ndarray, response: Response, sensor: Sensor | None = None)
 
 
 def calibrate_frame(raw: np.ndarray | list[np.ndarray], pattern: Pattern | str, sensor: Sensor, *,
-                    max_degree: int = 6, max_knots: int = 0, points: int = 65, exposure_times=None,
+                    max_degree: int = 6, max_knots: int = SWEEP_KNOTS, points: int = 65, exposure_times=None,
                     progress: Callable[[str], None] | None = None) -> dict:
     """Response calibration of live raw frames, for the service: the response file's content
     plus ``curve``, ``points`` samples {"brightness": [...], "linear": [...]} of I = f(M) over
