@@ -149,6 +149,11 @@ def with_cameras(frames: Iterable[np.ndarray | Frame],
         yield frame, camera, noise
 
 
+def _say(noise: NoiseEstimate) -> None:
+    """The noise model estimated from a stream's first frames, one line on stderr."""
+    print(f"{noise.describe()}, from the first {NOISE_FRAMES} frames at most", file=sys.stderr)
+
+
 def frame_time_ns(frame: np.ndarray | Frame, index: int) -> int:
     """A frame's time for the white balance's smoothing: the device's clock, else the arrival, else 30 fps."""
     if isinstance(frame, Frame):
@@ -180,7 +185,7 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
         for frame, camera, noise in with_cameras(frames, args):
             if reconstructor is None or camera != reconstructor.camera:  # a new camera: a new stream
                 if noise.source != "given" and not args.quiet:
-                    print(f"{noise.describe()}, from the first {NOISE_FRAMES} frames at most", file=sys.stderr)
+                    _say(noise)
                 if reconstructor is not None:
                     reconstructor.close()
                 reconstructor = Reconstructor(camera, method=args.method, temporal=not args.no_temporal,
@@ -238,7 +243,7 @@ def _reprocess(args: argparse.Namespace, settings: object) -> int:
     reprocess.frame_count(job)  # a bad recording or option fails here, in one line, before any cluster starts
     job = reprocess.with_stream_noise(job)
     if job.noise is not None and not args.quiet:
-        print(f"{job.noise.describe()}, from the first {NOISE_FRAMES} frames at most", file=sys.stderr)
+        _say(job.noise)
     with Progress("reconstructing", quiet=args.quiet) as progress:
         if args.workers is None and args.scheduler is None:
             summary = reprocess.run_local(job, progress, args.warmup, args.tolerance)

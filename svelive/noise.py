@@ -183,6 +183,11 @@ class NoiseEstimate:
     samples: int
     source: str
 
+    @staticmethod
+    def given(sensor: Sensor) -> NoiseEstimate:
+        """The model of a sensor that gives both its gain and its read noise (source "given", no uncertainty)."""
+        return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+
     def to_dict(self) -> dict:
         """JSON-safe description (for /api/state): floats or None."""
         def num(v: float | None) -> float | None:
@@ -1361,7 +1366,7 @@ def estimate_noise(raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None
     """
     sensor = camera.sensor
     if sensor.gain is not None and sensor.read_noise is not None:
-        return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+        return NoiseEstimate.given(sensor)
     fit, count = frame_fit(raw, camera, signal=signal, config=config)
     return estimate_from_fit(fit, sensor, count)
 
@@ -1751,7 +1756,7 @@ class NoiseTracker:
         if sensor is None:
             raise SveliveError("no frame added to the noise tracker")
         if sensor.gain is not None and sensor.read_noise is not None:
-            self._estimate = NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+            self._estimate = NoiseEstimate.given(sensor)
             return self._estimate
         config = self.config
         with_joint = config.cancellation and sensor.gain is None and self._temporal().size == 0

@@ -143,7 +143,7 @@ class NoiseStage:
         if applied is not None and (sensor.gain, sensor.read_noise) == (applied.gain, applied.read_noise):
             return applied
         if sensor.gain is not None and sensor.read_noise is not None:
-            return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+            return NoiseEstimate.given(sensor)
         # the defaults are a guess: stated with the prior's uncertainty, as the library states them
         return NoiseEstimate(sensor.effective_gain, sensor.effective_read_noise,
                              PRIOR_LOG_SIGMA * sensor.effective_gain, PRIOR_LOG_SIGMA * sensor.effective_read_noise,

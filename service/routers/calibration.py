@@ -10,8 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from starlette.concurrency import run_in_threadpool
 
 from service.pipeline.calibration import MAX_SWEEP, ExposureUnsupported
-from svelive.calibrate.response import SWEEP_KNOTS
 from service.routers import NO_STORE, ServedCamera
+from svelive.calibrate.response import SWEEP_KNOTS
 
 
 class CalibrateRequest(BaseModel):

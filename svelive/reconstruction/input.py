@@ -85,7 +85,7 @@ def with_noise_model(raw: np.ndarray, camera: Camera, inp: SveInput,
     """
     sensor = camera.sensor
     if sensor.gain is not None and sensor.read_noise is not None:
-        return camera, inp, NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+        return camera, inp, NoiseEstimate.given(sensor)
     if noise is None:
         noise = estimate_noise(raw, camera, signal=inp.signal if camera.response is not None else None)
     sensor = noise.apply(sensor)

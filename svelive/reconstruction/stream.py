@@ -569,7 +569,7 @@ def stream_noise(frames: Sequence[np.ndarray | Frame], camera: Camera, *, method
     """
     sensor = camera.sensor
     if sensor.gain is not None and sensor.read_noise is not None:
-        return NoiseEstimate(sensor.gain, sensor.read_noise, 0.0, 0.0, 0, "given")
+        return NoiseEstimate.given(sensor)
     if len(frames) == 0:
         raise SveliveError("no frame to estimate the noise model from")
     tracker = NoiseTracker()
