@@ -275,7 +275,8 @@ def test_bad_settings_are_refused(mono_pipeline):
 def test_launch_description_is_low_latency():
     text = rtsp.launch_description(1920, 1200, H264Settings())
     for part in ("tune=zerolatency", "bframes=0", "key-int-max=30", "speed-preset=ultrafast", "leaky-type=downstream",
-                 "max-buffers=1", "format=I420", "width=1920", "height=1200", "config-interval=-1"):
+                 "max-buffers=1", "format=I420", "width=1920", "height=1200", "stream-format=byte-stream",
+                 "config-interval=0"):
         assert part in text
     assert f"bitrate={rtsp.bitrate_kbps(1920, 1200, 30.0)}" in text
     assert rtsp.bitrate_kbps(1920, 1200, 30.0) > rtsp.bitrate_kbps(1280, 720, 30.0) > rtsp.bitrate_kbps(64, 64, 1)

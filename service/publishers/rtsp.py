@@ -18,8 +18,12 @@ shared media:
 - Grey and colour previews alike become I420 (BT.601, limited range) in the
   publisher: grey through a look-up table and neutral chroma, BGR through
   OpenCV (2-7 ms per 1920x1200 frame, against 10-14 ms in GStreamer's videoconvert).
-- A client that starts playing gets a keyframe at once (a forced key unit), so a
+- A client that starts playing gets a keyframe at once (a forced key unit, without
+  x264's separate header buffer, which went out as a picture of its own), so a
   late joiner of the shared media does not wait for the next periodic one.
+- Time stamps: the running time rounded down to the nominal frame interval, a frame
+  skipped when it falls in the slot of the one before (:func:`next_pts`), so they
+  strictly increase and clients that count in frames never see two at one time.
 - Never a queue: the appsrc holds one frame and drops the older one when the
   encoder is still busy; x264's zerolatency tune has no look-ahead and no
   frame threads; the payloader sends each frame as soon as it is encoded.
@@ -136,7 +140,11 @@ def launch_description(width: int, height: int, settings: H264Settings) -> str:
     appsrc: live, timestamped at push, one frame held, the older dropped (never a
     queue); x264: zerolatency (no look-ahead, no frame threads), no B-frames, a
     keyframe every ``keyframe_s``, constrained baseline (every decoder, browsers
-    included); the payloader repeats SPS/PPS with every keyframe (a client can join at any one).
+    included), as an Annex B byte stream, in which x264 puts SPS and PPS at the head of every
+    keyframe (a client can join at any one). The payloader adds none of its own
+    (``config-interval=0``): with ``-1`` it put them before every slice of a keyframe (x264 cuts a
+    frame into one slice per thread), so a client saw one picture per slice, each with the others
+    missing (the lower part a smear) and two pictures with one time stamp.
     """
     fps = max(1, int(round(settings.fps)))
     caps = f"video/x-raw,format=I420,width={width},height={height},framerate={fps}/1,colorimetry=bt601"
@@ -145,8 +153,8 @@ def launch_description(width: int, height: int, settings: H264Settings) -> str:
             f"leaky-type=downstream caps=\"{caps}\" "
             f"! x264enc name=enc tune=zerolatency speed-preset={settings.speed_preset} "
             f"bitrate={settings.bitrate_for(width, height)} key-int-max={gop} bframes=0 threads={settings.threads} "
-            f"! video/x-h264,profile=constrained-baseline "
-            f"! rtph264pay name=pay0 pt=96 config-interval=-1 aggregate-mode=zero-latency )")
+            f"! video/x-h264,profile=constrained-baseline,stream-format=byte-stream,alignment=au "
+            f"! rtph264pay name=pay0 pt=96 config-interval=0 aggregate-mode=zero-latency )")
 
 
 def running_time_ns(now_ns: int, base_time_ns: int) -> int:
@@ -162,16 +170,38 @@ def running_time_ns(now_ns: int, base_time_ns: int) -> int:
     return now_ns - base_time_ns if 0 < base_time_ns <= now_ns else 0
 
 
-def push_frame(src: Any, data: bytes) -> None:
-    """Push one raw frame into the appsrc ``src``, stamped with the running time (:func:`running_time_ns`)
-    when the element has a clock; without one (before the pipeline plays) it goes unstamped and the
-    source stamps it when its streaming thread takes it, which it does only once playing."""
+def next_pts(running_ns: int, last_pts_ns: int | None, interval_ns: int) -> int | None:
+    """The time stamp (ns) of a frame whose running time is ``running_ns``, after a frame stamped ``last_pts_ns``
+    (None: the media's first), or None to skip the frame: the running time rounded down to a whole number of
+    ``interval_ns`` (one frame at the nominal rate), skipped when that is not after the last stamp.
+
+    Why: a frame pushed before the pipeline plays and the first one pushed as it starts both have a running
+    time of about 0 (:func:`running_time_ns`), and two pictures with one RTP time stamp are one picture to a
+    client; and clients that count time in frames (ffmpeg counts in frames of the rate it guesses from the
+    time stamps' spacing) gave two frames closer than that one number ("non monotonically increasing dts").
+    On the grid of the nominal interval every frame has a slot of its own and the guessed rate is the
+    nominal one. A stamp is never ahead of the running time (a synchronised sink would hold the frame), and a
+    frame skipped costs nothing a viewer sees: it came less than an interval after the one before."""
+    slot = running_ns // interval_ns * interval_ns
+    if last_pts_ns is not None and slot <= last_pts_ns:
+        return None
+    return slot
+
+
+def media_running_time(src: Any) -> int:
+    """The running time (ns) of the appsrc ``src`` now: :func:`running_time_ns` of its clock and base time,
+    0 before the pipeline has a clock."""
+    clock = src.get_clock()
+    return 0 if clock is None else running_time_ns(clock.get_time(), src.get_base_time())
+
+
+def push_frame(src: Any, data: bytes, pts_ns: int | None = None) -> None:
+    """Push one raw frame into the appsrc ``src`` stamped with ``pts_ns`` (default: its running time now,
+    :func:`media_running_time`)."""
     from gi.repository import Gst
 
     buffer = Gst.Buffer.new_wrapped(data)
-    clock = src.get_clock()
-    if clock is not None:
-        buffer.pts = buffer.dts = running_time_ns(clock.get_time(), src.get_base_time())
+    buffer.pts = buffer.dts = media_running_time(src) if pts_ns is None else pts_ns
     src.emit("push-buffer", buffer)
 
 
@@ -242,6 +272,8 @@ class _Media:
         self.encoder = encoder
         self.width = width
         self.height = height
+        #: the time stamp of the last frame pushed (ns), None before the first (:func:`next_pts`)
+        self.last_pts: int | None = None
 
 
 def check_path(path: str) -> str:
@@ -557,20 +589,26 @@ class RtspPublisher:
             media = self._media
         if media is None:
             return
+        with self._lock:
+            pts = next_pts(media_running_time(media.src), media.last_pts, round(1e9 / self.settings.fps))
+            if pts is None:
+                return
+            media.last_pts = pts
+            keyframe, self._keyframe_wanted = self._keyframe_wanted, False
         i420 = to_i420(self._fit(preview.image, media))
         if self.timecode and preview.signal:
             stamp_timecode(i420, int(round(preview.wall_time * 1000)))  # into the luma plane
-        with self._lock:
-            keyframe, self._keyframe_wanted = self._keyframe_wanted, False
         if keyframe:
             from gi.repository import GstVideo
 
-            event = GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
+            # all_headers False: x264 puts SPS/PPS in the keyframe itself; with True it also pushed them as a
+            # buffer of their own, which the payloader sent as a picture with the keyframe's time stamp
+            event = GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, False, 0)
             media.encoder.get_static_pad("src").send_event(event)
         # counted before the hand-over: appsrc may encode it (and tick ``encoded``) before emit returns
         now = time.monotonic_ns()
         self.pushed.tick(now)
-        push_frame(media.src, i420.tobytes())
+        push_frame(media.src, i420.tobytes(), pts)
         if preview.signal:
             self.arrival_to_push.add((now - preview.host_time_ns) / 1e6)
 
