@@ -105,6 +105,17 @@ def parse_white_balance(value: object) -> str | tuple[float, float, float]:
 MAX_MATRIX_ENTRY = 1000.0
 
 
+def _shape(value: object, what: str) -> tuple[int, ...] | None:
+    """The shape of a (nested) sequence, None for text; a one-line SveliveError for rows of different lengths
+    (numpy's own error for them is a paragraph, and it reached the API as a 500)."""
+    if isinstance(value, str):
+        return None
+    try:
+        return np.shape(value)
+    except ValueError:
+        raise SveliveError(f"{what}: rows of different lengths, got {value!r}"[:300]) from None
+
+
 def parse_colour_matrix(value: object) -> tuple[float, ...] | None:
     """The camera -> linear Rec.709 matrix as 9 numbers, row-major, or None for none.
 
@@ -114,7 +125,7 @@ def parse_colour_matrix(value: object) -> tuple[float, ...] | None:
     if value is None or (isinstance(value, str) and value.strip().lower() in ("", "none")):
         return None
     what = "colour matrix (9 numbers, row-major, camera RGB -> linear Rec.709, or none)"
-    shape = np.shape(value) if not isinstance(value, str) else None
+    shape = _shape(value, what)
     if shape not in (None, (9,), (3, 3)):
         raise SveliveError(f"{what}: expected 9 numbers or 3 rows of 3, got shape {shape}")
     numbers = _numbers(value, what)
