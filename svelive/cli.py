@@ -67,7 +67,7 @@ def existing_file(text: str) -> Path:
 
 
 def parse_times(text: str) -> list[float]:
-    """argparse type of --exposure-times: comma-separated positive numbers."""
+    """argparse type of --exposure-times: comma-separated positive numbers, all different."""
     try:
         times = [float(t) for t in text.split(",") if t.strip()]
     except ValueError:
@@ -75,6 +75,8 @@ def parse_times(text: str) -> list[float]:
                                          "e.g. 10000,15000") from None
     if not times or not all(math.isfinite(t) and t > 0 for t in times):
         raise argparse.ArgumentTypeError(f"{text!r}: exposure times must be positive numbers")
+    if len(set(times)) < len(times):  # as the live sweep refuses them: equal times give the fit nothing
+        raise argparse.ArgumentTypeError(f"{text!r}: exposure times must differ")
     return times
 
 

@@ -42,3 +42,13 @@ def test_a_ragged_colour_matrix_in_a_config_file_is_one_line(tmp_path):
     assert out.returncode == 2
     line = one_line(out.stderr)
     assert "rows of different lengths" in line and "inhomogeneous" not in line, line
+
+
+@pytest.mark.parametrize("verb", [["calibrate", "response", "a.png", "b.png"],
+                                  ["record", "--source", "demo", "--frames", "1", "-o", "x.sverec"]])
+def test_equal_exposure_times_are_refused_by_the_cli_as_by_the_api(verb, tmp_path):
+    for name in ("a.png", "b.png"):
+        (tmp_path / name).write_bytes(b"")  # existing files: the times are what is wrong
+    out = run(*verb, "--exposure-times", "1,1", cwd=tmp_path, timeout=60)
+    assert out.returncode == 2 and "exposure times must differ" in out.stderr, out.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]
