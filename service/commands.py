@@ -30,6 +30,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", help="reconstruction method (see `svelive methods`)")
     p.add_argument("--no-temporal", dest="temporal", action="store_const", const=False,
                    help="reconstruct every frame on its own (no temporal fusion)")
+    p.add_argument("--live-quality", choices=("adaptive", "fixed"),
+                   help="adaptive (default): while the machine cannot keep the camera's rate, step down to cheaper "
+                        "live settings (weighted, no fusion) and back up with headroom; fixed: never")
     p.add_argument("--response", metavar="JSON",
                    help="response file (svelive calibrate response): linearise every frame before reconstruction")
     p.add_argument("--mask", metavar="NPZ",

@@ -12,7 +12,7 @@ import pytest
 from svelive import Pattern, Sensor, SveliveError
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.fusion import fuse
-from svelive.reconstruction.stream import Reconstructor
+from svelive.reconstruction.stream import Reconstructor, default_method
 from svelive.scenes import moving_disc, panning, render_sequence
 from svelive.simulate import exposure_scale, load_sample_scene
 
@@ -156,7 +156,8 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
     from svelive.camera import Camera
     from svelive.frame import Frame
     from service.pipeline.calibration import Calibration
-    from service.pipeline.meters import DropCounter, NewestSlot
+    from service.pipeline.meters import DropCounter, NewestSlot, RateMeter
+    from service.pipeline.quality import LiveQuality
     from service.pipeline.reconstruction import ReconstructionStage
 
     image = scene(0)
@@ -174,8 +175,9 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
             super()._publish(*args)
             published.append(self.latest())
 
-    stage = Recorded(slot, Calibration(None, None, lambda: None, stop), None, True, workers, cond, DropCounter(), stop,
-                     frames=frames)
+    quality = LiveQuality(default_method(True), True, "fixed")
+    stage = Recorded(slot, Calibration(None, None, lambda: None, stop), quality, RateMeter(), workers, cond,
+                     DropCounter(), stop, frames=frames)
     thread = threading.Thread(target=stage.run)
     thread.start()
     deadline = time.monotonic() + 60

@@ -54,6 +54,9 @@ def test_viewer_loads_shows_live_video_and_state(tmp_path, token):
             assert time.monotonic() < deadline, "the live image never changed"
             time.sleep(0.2)
         assert "weighted" in page.eval_on_selector("#method", "s => [...s.options].map(o => o.value).join()")
+        # the live-quality step that runs, as the state says it
+        live = srv.pipeline.state()["live_quality"]
+        assert page.text_content("#quality").startswith(live["name"]) and live["mode"] in page.text_content("#quality")
         # a control round trip: the exposure slider PUTs the setting
         page.eval_on_selector("#ev", "e => { e.value = '2'; e.dispatchEvent(new Event('change')); }")
         deadline = time.monotonic() + 5

@@ -15,6 +15,8 @@ from svelive.reconstruction.single import methods as method_names
 from svelive.tonemap import ToneSettings
 from svelive.whitebalance import ColourSettings
 
+from service.pipeline.quality import check_live_quality
+
 #: Pattern used when neither the settings nor the source name one.
 FALLBACK_PATTERN = "1,4/16,64"
 
@@ -32,6 +34,9 @@ class PipelineConfig:
         black_level, white_level: DN overrides of the source's sensor; None keeps it.
         method: reconstruction method name; None for the default.
         temporal: use temporal fusion where the reconstructor offers it.
+        live_quality: ``adaptive``: while the reconstruction cannot keep the camera's rate, step down the
+            declared ladder of cheaper live settings and back up with headroom (service.pipeline.quality);
+            ``fixed``: always the configured method and fusion.
         response: path of a response JSON (``svelive calibrate response``): every frame
             is linearised through it before reconstruction; None: the camera is linear.
         mask: path of a mask file (``svelive calibrate mask``): its per-pixel exposure
@@ -60,6 +65,7 @@ class PipelineConfig:
     white_level: float | None = None
     method: str | None = None
     temporal: bool = True
+    live_quality: str = "adaptive"
     response: str | None = None
     mask: str | None = None
     workers: int = 0
@@ -79,6 +85,7 @@ class PipelineConfig:
         elif self.cfa is not None and self.cfa not in MONO_WORDS:
             ColourFilter.parse(self.cfa)
         check_method(self.method)
+        check_live_quality(self.live_quality)
         check_jpeg_quality(self.jpeg_quality)
         if not 0 <= self.workers <= 64:
             raise SveliveError(f"workers must be 0..64 (0: one per core), got {self.workers}")

@@ -25,6 +25,7 @@ from service.pipeline.config import PipelineConfig, check_jpeg_quality, check_me
 from service.pipeline.encoder import EncoderStage
 from service.pipeline.frames import EncodedFrame, Published
 from service.pipeline.meters import DropCounter, NewestSlot
+from service.pipeline.quality import LiveQuality
 from service.pipeline.reconstruction import ReconstructionStage
 
 
@@ -69,7 +70,9 @@ class Pipeline:
                                     self._stop)
         # the configured response and mask are read now, so a bad file fails before serving
         self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw, self._stop)
-        self.reconstruction = ReconstructionStage(self._slot, self.calibration, config.method, config.temporal,
+        self._method = config.method or default_method(config.temporal)
+        self.quality = LiveQuality(self._method, config.temporal, config.live_quality)
+        self.reconstruction = ReconstructionStage(self._slot, self.calibration, self.quality, self.capture.captured,
                                                   self.workers, self._cond, self.drops, self._stop,
                                                   frames=min(config.parallel_frames, self.workers))
         self.encoder = EncoderStage(config, self.reconstruction.latest, self.capture.online, self._cond, self.drops,
@@ -179,7 +182,7 @@ class Pipeline:
     # ----- settings ----------------------------------------------------
     def settings(self) -> dict[str, Any]:
         """The settings that can be changed at run time."""
-        return {"method": self.reconstruction.method or default_method(self.config.temporal), "jpeg_quality": self.encoder.jpeg_quality,
+        return {"method": self._method, "jpeg_quality": self.encoder.jpeg_quality,
                 "tone": dict(vars(self.encoder.tone)), **self.encoder.colour.public()}
 
     def update_settings(self, method: str | None = None, jpeg_quality: int | None = None,
@@ -197,7 +200,8 @@ class Pipeline:
         new_colour = _updated(self.encoder.colour, colour, "colour")
         with self._cond:
             if method is not None:
-                self.reconstruction.method = method
+                self._method = method
+                self.quality.configure(method, self.config.temporal)
             if jpeg_quality is not None:
                 self.encoder.jpeg_quality = int(jpeg_quality)
             self.encoder.tone = new_tone
@@ -234,9 +238,11 @@ class Pipeline:
             "drops": drops,
             "dropped": sum(drops.values()),
             "latency_ms": {name: window.summary() for name, window in self.latency.items()},
-            "method": self.reconstruction.method or default_method(self.config.temporal),
+            "method": self._method,
             "methods": method_names(),
             "temporal": self.config.temporal,
+            # what runs now: the configured method and fusion, or a cheaper step while the camera's rate is not kept
+            "live_quality": self.quality.state(),
             "motion_fraction": self.reconstruction.motion_fraction,
             "response": self.response_state(),
             "calibration": self.calibration.job_state(),

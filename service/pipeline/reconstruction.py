@@ -14,6 +14,7 @@ from service.pipeline.calibration import Calibration
 from service.pipeline.frames import Published
 from service.pipeline.meters import DropCounter, LatencyWindow, NewestSlot, RateMeter
 from service.pipeline.noise import NoiseStage
+from service.pipeline.quality import LiveQuality, LiveStep
 
 
 class ReconstructionStage:
@@ -24,7 +25,10 @@ class ReconstructionStage:
     ``svelive.Reconstructor`` for that camera (temporal fusion, motion mask; a new
     one when the camera, method or fusion setting changes) and publishes each
     result as the newest :class:`Published`, under ``cond``, which it notifies (the
-    encoder waits on it). ``method`` may be changed at run time (under ``cond``).
+    encoder waits on it). The method and fusion setting are the live-quality ladder's
+    current step (``quality``, :class:`LiveQuality`), which every published frame feeds
+    with the camera's arrivals (``captured``) and the frames dropped while it was busy;
+    :meth:`configure` changes the configured method at run time.
 
     ``frames`` threads each take the next frame and make its history-free part
     (``Reconstructor.estimate``, spread over ``workers // frames`` strip threads), then
@@ -41,12 +45,13 @@ class ReconstructionStage:
     the stage feeds with the frames and motion masks it made.
     """
 
-    def __init__(self, slot: NewestSlot, calibration: Calibration, method: str | None, temporal: bool, workers: int,
-                 cond: threading.Condition, drops: DropCounter, stop: threading.Event, frames: int = 1) -> None:
+    def __init__(self, slot: NewestSlot, calibration: Calibration, quality: LiveQuality, captured: RateMeter,
+                 workers: int, cond: threading.Condition, drops: DropCounter, stop: threading.Event,
+                 frames: int = 1) -> None:
         self._slot = slot
         self._calibration = calibration
-        self.method = method
-        self.temporal = temporal
+        self.quality = quality
+        self._captured = captured
         self.workers = workers
         self.frames = frames
         self._cond = cond
@@ -69,15 +74,15 @@ class ReconstructionStage:
         """The newest reconstructed frame (an immutable record), or None before the first."""
         return self._latest
 
-    def _reconstructor(self, camera: Camera, method: str | None) -> Reconstructor:
-        """The reconstructor for this camera and method: the current one, or a new one (the old one closed).
+    def _reconstructor(self, camera: Camera, step: LiveStep) -> Reconstructor:
+        """The reconstructor for this camera and live step: the current one, or a new one (the old one closed).
         Called under ``_take``."""
-        key = (camera, method, self.temporal)
+        key = (camera, step)
         if self._current is not None:
             if self._current[0] == key:
                 return self._current[1]
             self._current[1].close()
-        self._current = key, Reconstructor(camera, method=method, temporal=self.temporal,
+        self._current = key, Reconstructor(camera, method=step.method, temporal=step.temporal,
                                            workers=max(1, self.workers // self.frames))
         return self._current[1]
 
@@ -116,10 +121,11 @@ class ReconstructionStage:
                 ticket, self._tickets = self._tickets, self._tickets + 1
                 start_ns = time.monotonic_ns()
                 failure: BaseException | None = None
+                step = self.quality.step
                 try:
                     calibrated = self._calibration.apply(frame.camera)
                     camera = self.noise.camera_for(calibrated)
-                    stream = self._reconstructor(camera, self.method)
+                    stream = self._reconstructor(camera, step)
                 except Exception as exc:
                     failure = exc
             estimated = None
@@ -139,13 +145,14 @@ class ReconstructionStage:
                     if failure is not None:
                         self._failed(failure, stream)
                     else:
-                        self._publish(frame, calibrated, camera, result, start_ns)
+                        self._publish(frame, calibrated, camera, result, start_ns, step)
                 finally:
                     self._next += 1
                     self._turn.notify_all()
 
-    def _publish(self, frame: Frame, calibrated: Camera, camera: Camera, result, start_ns: int) -> None:
-        """Publish a reconstructed frame as the newest (called in arrival order)."""
+    def _publish(self, frame: Frame, calibrated: Camera, camera: Camera, result, start_ns: int,
+                 step: LiveStep) -> None:
+        """Publish a reconstructed frame as the newest (called in arrival order), and tell the live quality."""
         done_ns = time.monotonic_ns()
         self.error = None
         timings = {"queue": (start_ns - frame.host_time_ns) / 1e6, "reconstruct": (done_ns - start_ns) / 1e6}
@@ -163,3 +170,5 @@ class ReconstructionStage:
         with self._cond:
             self._latest = published
             self._cond.notify_all()
+        self.quality.observe(done_ns, self._captured.count, self._drops.snapshot().get("reconstruct_busy", 0),
+                             timings["reconstruct"], step)

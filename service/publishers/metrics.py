@@ -52,6 +52,9 @@ def families(snapshots: Mapping[str, dict[str, Any]],
                               "and their standard errors", labels=["camera", "quantity"])
     balance = GaugeMetricFamily("svelive_white_balance", "White-balance multipliers in use (colour cameras)",
                                 labels=["camera", "channel"])
+    quality = GaugeMetricFamily("svelive_live_quality_step", "Step of the live-quality ladder that runs (0: the "
+                                "configured setting; higher: cheaper, while the camera's rate is not kept)",
+                                labels=["camera", "step_name", "mode"])
     latency = HistogramMetricFamily("svelive_stage_latency_seconds", "Time each stage took per frame",
                                     labels=["camera", "stage"])
     for name, state in snapshots.items():
@@ -75,6 +78,9 @@ def families(snapshots: Mapping[str, dict[str, Any]],
             motion.add_metric([name], float(state["motion_fraction"]))
         info.add_metric([name, str(source.get("spec", "")), str(state.get("pattern") or ""),
                          str(state.get("cfa") or "none"), str(state.get("method") or "")], 1.0)
+        live = state.get("live_quality")
+        if live:
+            quality.add_metric([name, str(live["name"]), str(live["mode"])], float(live["step"]))
         for quantity, value in _noise_values(state.get("noise")):
             noise.add_metric([name, quantity], value)
         wb = state.get("white_balance") or {}
@@ -85,7 +91,7 @@ def families(snapshots: Mapping[str, dict[str, Any]],
             if not seconds or seconds[-1][0] != "+Inf":
                 seconds.append(("+Inf", float(count)))
             latency.add_metric([name, stage], seconds, total_ms / 1e3)
-    return [frames, fps, drops, online, reconnects, clients, motion, info, noise, balance, latency]
+    return [frames, fps, drops, online, reconnects, clients, motion, info, noise, balance, quality, latency]
 
 
 def _bound(ms: float) -> str:

@@ -1,0 +1,180 @@
+"""The live-quality ladder (service.pipeline.quality): its decisions on made-up streams, and a real pipeline
+whose top step is slowed on purpose holding the camera's rate by stepping down."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import pytest
+
+from svelive.errors import SveliveError
+from svelive.reconstruction.methods import METHODS
+from svelive.reconstruction.methods import weighted
+
+from service.pipeline import Pipeline, PipelineConfig
+from service.pipeline.quality import LADDER, LiveQuality, QualityConfig, ladder_for
+
+FRAME_NS = 33_000_000  # a 30 fps camera
+
+
+def names(steps) -> list[str]:
+    return [step.name for step in steps]
+
+
+def test_ladder_starts_at_the_configured_setting_and_only_gets_cheaper():
+    assert names(ladder_for("adaptive", True)) == ["adaptive+fusion", "weighted+fusion", "adaptive", "weighted"]
+    assert names(ladder_for("weighted", True)) == ["weighted+fusion", "adaptive", "weighted"]
+    assert names(ladder_for("adaptive", False)) == ["adaptive", "weighted"]  # no fusion added
+    assert names(ladder_for("cubic", True)) == ["cubic+fusion", *names(LADDER)]
+    assert names(ladder_for("adaptive", True, "fixed")) == ["adaptive+fusion"]
+    costs = [step.cost for step in LADDER]
+    assert costs == sorted(costs, reverse=True) and len(set(costs)) == len(costs)
+    with pytest.raises(SveliveError, match="live quality must be one of adaptive, fixed"):
+        ladder_for("adaptive", True, "sometimes")
+
+
+def feed(quality: LiveQuality, seconds: float, ms_of, lost_every: dict[str, int], start_ns: int = 0,
+         counts: list[int] | None = None) -> int:
+    """A 30 fps camera for ``seconds``: each arrival publishes a frame of the current step taking
+    ``ms_of(step name)`` ms, except one in ``lost_every[step name]`` (dropped: the reconstruction was busy).
+    Returns the time reached; ``counts`` ([arrived, lost]) carries on between calls."""
+    counts = counts if counts is not None else [0, 0]
+    now = start_ns
+    for _ in range(int(seconds * 1e9 / FRAME_NS)):
+        now += FRAME_NS
+        counts[0] += 1
+        step = quality.step
+        every = lost_every.get(step.name, 0)
+        if every and counts[0] % every:
+            counts[1] += 1
+            continue
+        quality.observe(now, counts[0], counts[1], ms_of(step.name), step)
+    return now
+
+
+def test_steps_down_while_behind_and_says_why():
+    quality = LiveQuality("adaptive", True)
+    slow = {"adaptive+fusion": 3, "weighted+fusion": 3}  # two frames in three lost at the fused steps
+    feed(quality, 6.0, lambda name: 60.0 if name.endswith("fusion") else 20.0, slow)
+    state = quality.state()
+    assert state["step"] == 2 and state["name"] == "adaptive" and state["changes"] == 2
+    assert "frames dropped" in state["reason"] and "weighted+fusion takes 60 ms" in state["reason"]
+
+
+def test_a_burst_of_losses_with_a_fast_reconstruction_is_not_falling_behind():
+    quality = LiveQuality("adaptive", True)
+    counts = [0, 0]
+    now = feed(quality, 3.0, lambda name: 12.0, {}, counts=counts)
+    counts[1] += 10  # a noise estimate held the thread: ten frames lost at once
+    feed(quality, 3.0, lambda name: 12.0, {}, start_ns=now, counts=counts)
+    assert quality.state()["step"] == 0 and quality.state()["changes"] == 0
+
+
+def test_steps_back_up_with_headroom_after_the_hold_and_holds_longer_when_that_fails():
+    config = QualityConfig(hold_s=5.0)
+    quality = LiveQuality("adaptive", True, config=config)
+    counts = [0, 0]
+    busy = {"adaptive+fusion": 3}
+    now = feed(quality, 3.0, lambda name: 60.0, busy, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+    now = feed(quality, 4.0, lambda name: 15.0, busy, start_ns=now, counts=counts)
+    assert quality.step.name == "weighted+fusion", "stepped up before the hold"
+    now = feed(quality, 2.0, lambda name: 15.0, busy, start_ns=now, counts=counts)
+    assert quality.step.name == "adaptive+fusion" and "headroom" in quality.state()["reason"]
+    # the step up does not hold: back down, and the next try waits twice as long
+    now = feed(quality, 2.5, lambda name: 60.0, busy, start_ns=now, counts=counts)
+    assert quality.step.name == "weighted+fusion" and quality.state()["hold_s"] == 10.0
+    now = feed(quality, 7.0, lambda name: 15.0, busy, start_ns=now, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+    feed(quality, 4.0, lambda name: 15.0, busy, start_ns=now, counts=counts)
+    assert quality.step.name == "adaptive+fusion"
+
+
+def test_no_step_up_without_headroom():
+    quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0))
+    counts = [0, 0]
+    now = feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3}, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+    # 28 ms of 33: the step above (cost 1 / 0.85 of it) would not fit in 80 % of the interval
+    feed(quality, 10.0, lambda name: 28.0, {}, start_ns=now, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+
+
+def test_fixed_mode_keeps_the_setting_and_reports_that_it_is_behind():
+    quality = LiveQuality("adaptive", True, mode="fixed")
+    feed(quality, 5.0, lambda name: 80.0, {"adaptive+fusion": 3})
+    state = quality.state()
+    assert state["step"] == 0 and state["behind"] and "(fixed: no step down)" in state["reason"]
+
+
+def test_frames_of_an_earlier_step_are_not_evidence():
+    quality = LiveQuality("adaptive", True)
+    old = quality.steps[0]
+    feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3})
+    assert quality.step.name == "weighted+fusion"
+    for i in range(200):  # late frames of the step above, all slow and lossy: ignored
+        quality.observe(10**10 + i * FRAME_NS, 10_000 + i, 5_000 + i, 90.0, old)
+    assert quality.step.name == "weighted+fusion"
+
+
+def test_a_new_method_starts_its_own_ladder_at_the_top():
+    quality = LiveQuality("adaptive", True)
+    feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3})
+    quality.configure("weighted", True)
+    assert quality.state()["step"] == 0 and names(quality.steps) == ["weighted+fusion", "adaptive", "weighted"]
+
+
+# ----- a real pipeline, slowed on purpose -----------------------------------------------------------------------
+
+SLOW_S = 0.3  # the slowed step's time per frame: 3 fps at most, against a 10 fps camera
+
+
+@pytest.fixture
+def slow_method(monkeypatch):
+    """A method "slow": the weighted method after a 0.3 s sleep (an artificially slowed reconstruction)."""
+    def run(inp, **options):
+        time.sleep(SLOW_S)
+        return weighted.run(inp, **options)
+
+    spec = dataclasses.replace(METHODS["weighted"], name="slow", run=run)
+    monkeypatch.setitem(METHODS, "slow", spec)
+    return "slow"
+
+
+def delivered_share(pipeline: Pipeline, seconds: float) -> tuple[float, dict]:
+    """Frames reconstructed over frames captured during ``seconds``, and the state at the end."""
+    before = pipeline.state()
+    time.sleep(seconds)
+    after = pipeline.state()
+    captured = after["frames"]["captured"] - before["frames"]["captured"]
+    reconstructed = after["frames"]["reconstructed"] - before["frames"]["reconstructed"]
+    assert captured > 0.5 * 10 * seconds, f"the camera delivered only {captured} frames"
+    return reconstructed / captured, after
+
+
+def wait_for_frames(pipeline: Pipeline, n: int, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while pipeline.state()["frames"]["reconstructed"] < n:
+        assert time.monotonic() < deadline, "no reconstructed frames"
+        time.sleep(0.1)
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "fixed"])
+def test_a_slowed_reconstruction_steps_down_and_holds_the_cameras_rate(slow_method, mode):
+    config = PipelineConfig(source="demo", source_options={"width": 320, "height": 200, "fps": 10},
+                            method=slow_method, live_quality=mode, workers=1)
+    with Pipeline(config) as pipeline:
+        wait_for_frames(pipeline, 2)
+        time.sleep(3.0)  # the evidence window, then a step down
+        share, state = delivered_share(pipeline, 4.0)
+    quality = state["live_quality"]
+    if mode == "fixed":
+        assert quality["step"] == 0 and quality["behind"] and "fixed" in quality["reason"]
+        assert share < 0.5, f"the slowed step kept {share:.0%} of the frames"
+        assert state["drops"]["reconstruct_busy"] > 0
+    else:
+        assert quality["step"] >= 1 and quality["method"] != "slow", quality
+        assert "frames dropped" in quality["reason"] and "slow+fusion takes" in quality["reason"]
+        assert share >= 0.9, f"after stepping down only {share:.0%} of the camera's frames were reconstructed"
+        assert state["method"] == "slow"  # the configured method is still what the user chose
