@@ -164,7 +164,7 @@ class TokenGuard:
 
     The token comes from ``Authorization: Bearer TOKEN`` or ``?token=TOKEN`` (for
     ``<img>`` tags, which cannot send headers). A wrong or missing token gets a
-    bare 401. A body is read (up to ``max_body`` bytes) before the route runs, whatever
+    bare 401 (and the connection closed when a body follows, which stays unread). A body is read (up to ``max_body`` bytes) before the route runs, whatever
     its framing: a ``Content-Length`` above the bound, or a chunked body that grows past
     it, gets 413 and the connection is closed, so the rest is never read.
     """
@@ -184,7 +184,10 @@ class TokenGuard:
         if length is not None and (not length.isdigit() or int(length) > self.max_body):
             return await plain(send, 413, b"request body too large\n", close=True)
         if self.token is not None and scope.get("path") not in self.public and not self._authorised(scope, headers):
-            return await plain(send, 401, b"unauthorized\n", [(b"www-authenticate", b'Bearer realm="svelive"')])
+            # with a body, the connection is closed after the 401: else the server read the body to its end
+            # (gigabytes of a chunked one) to keep the connection for the next request
+            return await plain(send, 401, b"unauthorized\n", [(b"www-authenticate", b'Bearer realm="svelive"')],
+                               close=has_body(headers))
         if has_body(headers):
             try:
                 receive = await self._bounded_body(receive)
