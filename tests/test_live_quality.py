@@ -9,11 +9,11 @@ import time
 import pytest
 
 from svelive.errors import SveliveError
-from svelive.reconstruction.methods import METHODS
-from svelive.reconstruction.methods import weighted
+from svelive.reconstruction.live import LADDER, ladder_for
+from svelive.reconstruction.methods import METHODS, weighted
 
 from service.pipeline import Pipeline, PipelineConfig
-from service.pipeline.quality import LADDER, LiveQuality, QualityConfig, ladder_for
+from service.pipeline.quality import LiveQuality, QualityConfig
 
 FRAME_NS = 33_000_000  # a 30 fps camera
 

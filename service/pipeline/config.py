@@ -11,11 +11,10 @@ from svelive.errors import SveliveError
 from svelive.camera import Camera
 from svelive.capture.source import MONO_WORDS
 from svelive.cfa import ColourFilter
+from svelive.reconstruction.live import check_live_quality
 from svelive.reconstruction.single import methods as method_names
 from svelive.tonemap import ToneSettings
 from svelive.whitebalance import ColourSettings
-
-from service.pipeline.quality import check_live_quality
 
 #: Pattern used when neither the settings nor the source name one.
 FALLBACK_PATTERN = "1,4/16,64"

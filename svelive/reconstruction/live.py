@@ -1,0 +1,64 @@
+"""The live settings ladder: the reconstruction settings a live stream may run, costliest and most accurate first.
+
+A live service that cannot keep its camera's rate with the configured method and
+temporal fusion steps down this ladder (service.pipeline.quality decides when);
+``svelive bench --live`` charts each step's speed against its accuracy. Every step
+is an ordinary ``Reconstructor(camera, method=..., temporal=...)``: nothing here
+changes what a method computes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from svelive.errors import SveliveError
+
+#: ``--live-quality`` values: ``adaptive`` steps down and up the ladder, ``fixed`` keeps the configured setting.
+QUALITY_MODES = ("adaptive", "fixed")
+
+
+def check_live_quality(mode: str) -> None:
+    """Raise a one-line SveliveError unless ``mode`` is one of QUALITY_MODES."""
+    if mode not in QUALITY_MODES:
+        raise SveliveError(f"live quality must be one of {', '.join(QUALITY_MODES)}, got {mode!r}")
+
+
+@dataclass(frozen=True)
+class LiveStep:
+    """One live setting: a reconstruction method with or without temporal fusion.
+
+    ``cost``: its CPU per frame relative to the top of :data:`LADDER` (measured with
+    ``benchmarks/live_ladder.py`` on 1920x1200 demo frames, the mean of monochrome and colour),
+    used only to predict whether the step above would fit before trying it.
+    """
+
+    method: str
+    temporal: bool
+    cost: float = 1.0
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}+fusion" if self.temporal else self.method
+
+
+#: The declared ladder, costliest first. One thread, 1920x1200 demo frames (benchmarks/live_ladder.py,
+#: 2026-11-28): CPU ms monochrome / colour 92 / 147, 72 / 134, 57 / 102, 34 / 93.
+LADDER: tuple[LiveStep, ...] = (
+    LiveStep("adaptive", True, 1.0),
+    LiveStep("weighted", True, 0.85),
+    LiveStep("adaptive", False, 0.65),
+    LiveStep("weighted", False, 0.5),
+)
+
+
+def ladder_for(method: str, temporal: bool, mode: str = "adaptive") -> tuple[LiveStep, ...]:
+    """The steps for a configured ``method`` and ``temporal``: that setting first, then every step of
+    :data:`LADDER` below it (cheaper), without fusion where the configuration has none; ``fixed``: the
+    configured setting alone."""
+    check_live_quality(mode)
+    names = [(step.method, step.temporal) for step in LADDER]
+    top = LADDER[names.index((method, temporal))] if (method, temporal) in names else LiveStep(method, temporal)
+    if mode == "fixed":
+        return (top,)
+    below = LADDER[names.index((method, temporal)) + 1:] if (method, temporal) in names else LADDER
+    return (top, *(step for step in below if temporal or not step.temporal))
