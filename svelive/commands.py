@@ -118,6 +118,17 @@ def parse_cfa(text: str | None) -> str | None:
     return text
 
 
+def camera_from_args(pattern: str | None, cfa: str | None, sensor: Sensor | None = None) -> Camera:
+    """The camera of --pattern and --cfa (Camera.build). ``--cfa none`` with a colour layout (``dual-iso``)
+    is refused with the line ``svelive serve`` gives: without this check the layout's filter won silently and
+    the command wrote colour."""
+    camera = Camera.build(pattern, parse_cfa(cfa), *([sensor] if sensor is not None else []))
+    if cfa is not None and parse_cfa(cfa) is None and camera.cfa is not None:
+        raise SveliveError(f"the layout {pattern} has the colour filter {camera.cfa.name}, but --cfa {cfa} was "
+                           "given: drop --cfa, or give the exposure pattern itself")
+    return camera
+
+
 def colour_exr(image: np.ndarray, settings: ColourSettings, valid: np.ndarray | None = None
                ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """EXR channels and colour attributes of one frame (``Y``, or ``R``, ``G``, ``B`` with its white balance
@@ -266,7 +277,7 @@ def _sensor_from_args(args: argparse.Namespace, raw: np.ndarray | None = None) -
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    camera = Camera.build(args.pattern, parse_cfa(args.cfa))
+    camera = camera_from_args(args.pattern, args.cfa)
     pattern = camera.require_pattern()
     if not args.hdr or not Path(args.hdr).is_file():
         raise SveliveError(f"{args.hdr}: no such EXR file")
@@ -291,7 +302,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     compress_on()  # the output's compression on every core
-    camera = Camera.build(args.pattern, parse_cfa(args.cfa))
+    camera = camera_from_args(args.pattern, args.cfa)
     settings = colour_settings(args)
     raw = read_raw(args.raw)
     sensor = _sensor_from_args(args, raw)
@@ -329,8 +340,8 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace) -> int:
     cfa = parse_cfa(args.cfa if args.cfa is not None else DEMO_CFA)
-    camera = Camera.build(args.pattern or (DEMO_MONO_PATTERN if cfa is None else DEMO_COLOUR_PATTERN), cfa,
-                          Sensor.from_full_well(12, 10_000, 3))
+    camera = camera_from_args(args.pattern or (DEMO_MONO_PATTERN if cfa is None else DEMO_COLOUR_PATTERN),
+                              args.cfa if args.cfa is not None else DEMO_CFA, Sensor.from_full_well(12, 10_000, 3))
     pattern, sensor = camera.require_pattern(), camera.sensor
     check_depth(pattern, sensor.bits)
     settings = colour_settings(args)

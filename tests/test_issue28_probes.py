@@ -85,3 +85,21 @@ def test_an_unauthenticated_chunked_body_is_not_read_to_its_end(method, path):
     # kernel buffers on both sides hold a few MB at most; before, all 64 MB were read
     assert sent < 16 << 20, f"{sent >> 20} MB sent to an unauthenticated request"
     assert answer == b"" or answer.startswith(b"HTTP/1.1 401"), answer
+
+
+@pytest.mark.parametrize("verb", [["simulate", "DESK", "-o", "out.png"], ["reconstruct", "RAW", "-o", "out.exr"],
+                                  ["demo", "-o", "out.exr"]])
+def test_cfa_none_with_a_colour_layout_is_refused_everywhere_with_serves_line(verb, tmp_path):
+    from importlib import resources
+
+    import cv2
+    import numpy as np
+
+    desk = resources.files("svelive") / "data" / "desk.exr"
+    cv2.imwrite(str(tmp_path / "raw.png"), np.full((32, 32), 900, np.uint16))
+    args = [str(desk) if a == "DESK" else "raw.png" if a == "RAW" else a for a in verb]
+    out = run(*args, "--pattern", "dual-iso", "--cfa", "none", cwd=tmp_path, timeout=120)
+    assert out.returncode == 2, out.stdout + out.stderr
+    line = one_line(out.stderr)
+    assert "the layout dual-iso has the colour filter RGGB, but --cfa none was given: drop --cfa" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.png"]
