@@ -60,6 +60,8 @@ class RecordingReader:
         self.damaged: tuple[int, ...] = ()
         if self.path.is_dir():
             raise RecordingError(f"{self.path}: is a directory, not a recording")
+        if self.path.exists() and not self.path.is_file():  # a FIFO's open() waits for a writer: forever
+            raise RecordingError(f"{self.path}: is not a regular file (a FIFO, socket or device), not a recording")
         try:
             self._f = open(self.path, "rb", buffering=0)  # noqa: SIM115 - closed in close()
         except FileNotFoundError:

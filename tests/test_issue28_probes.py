@@ -103,3 +103,18 @@ def test_cfa_none_with_a_colour_layout_is_refused_everywhere_with_serves_line(ve
     line = one_line(out.stderr)
     assert "the layout dual-iso has the colour filter RGGB, but --cfa none was given: drop --cfa" in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.png"]
+
+
+@pytest.mark.parametrize("verb", [["replay-info", "FIFO"], ["export", "FIFO", "--png", "frames"],
+                                  ["serve", "--source", "replay:FIFO", "--port", "1"]])
+def test_a_fifo_given_as_a_recording_fails_at_once(verb, tmp_path):
+    import os
+    import time
+
+    fifo = tmp_path / "run.sverec"
+    os.mkfifo(fifo)
+    start = time.monotonic()
+    out = run(*[str(fifo) if a == "FIFO" else f"replay:{fifo}" if a == "replay:FIFO" else a for a in verb],
+              cwd=tmp_path, timeout=20)  # before: blocked in open() until the timeout
+    assert out.returncode == 2 and time.monotonic() - start < 20
+    assert "is not a regular file" in one_line(out.stderr), out.stderr
