@@ -490,3 +490,21 @@ def test_fused_pass_equals_the_separate_passes(pattern, shape):
             assert not (got["candidates"] != expected["candidates"])[~near].any()
     if shape[0] > 64 and shape[1] > 1:  # strips of a frame, holding each kind of pixel
         assert checked["strips"] >= 8 and checked["censored"] and checked["bottom"] and checked["candidates"]
+
+
+def test_path_shares_follow_the_frame():
+    """benchmarks/paths.py's shares: a flat bright frame with a saturated block takes the censored step there and
+    hardly anything near 0 (only beside the block, whose dark side loses its neighbours); the same scene 9 stops
+    darker (without the block) takes step 4 and the wide fallback, with nothing censored; the plain share is the
+    rest."""
+    pattern = "1,4/16,64"
+    truth = np.full((96, 128), 30.0, np.float32)
+    truth[40:60, 40:80] = 1e5  # clipped in every exposure
+    bright = adaptive.path_shares(prepare(simulate(truth, pattern, SENSOR, seed=3).raw, pattern, SENSOR))
+    dark = np.full(truth.shape, 30.0 / 512, np.float32)
+    dim = adaptive.path_shares(prepare(simulate(dark, pattern, SENSOR, seed=3).raw, pattern, SENSOR))
+    assert bright["censored"] >= 20 * 40 / truth.size and bright["censored_rows"] >= 20 / 96
+    assert bright["near_zero"] < 0.01 and bright["wide"] == 0 and bright["wide_strips"] == 0
+    assert dim["censored"] == 0 and dim["near_zero"] > 0.5 and dim["wide"] > 0 and dim["wide_strips"] > 0
+    for shares in (bright, dim):
+        assert 0 <= shares["plain"] <= 1 - max(shares["censored"], shares["near_zero"], shares["wide"])

@@ -123,7 +123,7 @@ def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 
 def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1) -> Estimate:
     """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
-    image, lower, variance, _ = _estimate(inp, noise_model(inp), workers, want_variance=return_variance)
+    image, lower, variance, _, _ = _estimate(inp, noise_model(inp), workers, want_variance=return_variance)
     return Estimate(image, lower, variance)
 
 
@@ -251,6 +251,31 @@ def own_share(inp: SveInput) -> np.ndarray:
     return _estimate(inp, noise_model(inp), 1, want_share=True)[3]
 
 
+def path_shares(inp: SveInput) -> dict[str, float]:
+    """Which share of the frame's pixels (rows, strips) takes which of the method's paths, float in [0, 1].
+
+    ``censored``: pixels whose reading is censored (the censored-pixel step computes them);
+    ``censored_rows``: rows holding one (the rows that step visits); ``near_zero``: uncensored
+    pixels whose L^ lies within POSTERIOR_HIGH deviations of 0 (step 4's polynomial);
+    ``wide``: pixels that cannot tell their level from 0 (the wide fallback's candidates) and
+    ``wide_strips``: the strips holding one (the fallback's work follows them); ``lower``:
+    pixels left at a lower bound; ``plain``: uncensored pixels that take none of these
+    (steps 1-3 alone, the closed form). A diagnostic for benchmarks/paths.py: it runs the method.
+    """
+    _, lower, _, _, darks = _estimate(inp, noise_model(inp), 1)
+    estimate = np.concatenate([d.estimate for d in darks])
+    information = np.concatenate([d.information for d in darks])
+    candidates = np.concatenate([d.candidates for d in darks])
+    censored = inp.censored
+    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
+    near = ((estimate <= 0) | (estimate * estimate * information < high)) & ~censored
+    n = censored.size
+    return {"censored": np.count_nonzero(censored) / n, "censored_rows": float(censored.any(axis=1).mean()),
+            "near_zero": np.count_nonzero(near) / n, "wide": np.count_nonzero(candidates) / n,
+            "wide_strips": sum(1 for d in darks if d.count) / len(darks), "lower": np.count_nonzero(lower) / n,
+            "plain": np.count_nonzero(~(censored | near | candidates | lower)) / n}
+
+
 class _Dark(NamedTuple):
     """What the wide fallback (:func:`_wide_fallback`) needs of a strip's rows, float32 (rows, W) unless said.
 
@@ -272,7 +297,7 @@ class _Dark(NamedTuple):
 
 def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor, want_variance: bool = False,
               want_share: bool = False):
-    """The method on a frame: (image, lower_bound, variance or None, share or None).
+    """The method on a frame: (image, lower_bound, variance or None, share or None, the strips' _Dark).
 
     Steps 1-4 run in strips of about 64 rows (a window three deep above and
     below each, as base.in_strips does; the result does not depend on them),
@@ -282,24 +307,29 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
     ky, kx = kernels(inp.pattern.shape)
     halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
     spans = _spans(inp, halo, 64)
+    h, w = inp.shape
+    image, lower = np.empty((h, w), np.float32), np.empty((h, w), bool)
+    variance = np.empty((h, w), np.float32) if want_variance else None
+    own = np.empty((h, w), np.float32) if want_share else None
 
-    def strip(span: tuple[int, int, int, int]):
+    def strip(span: tuple[int, int, int, int]) -> _Dark:
+        # each strip's kept rows copied into the frame's arrays by its own thread (no serial join)
         start, top, bottom, stop = span
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
         keep = slice(top - start, bottom - start)
-        image, lower, variance, own, dark = _solve(crop, noise, want_variance, want_share, keep)
-        return (image[keep], lower[keep], None if variance is None else variance[keep],
-                None if own is None else own[keep], dark.rows(keep))
+        pieces = _solve(crop, noise, want_variance, want_share, keep)
+        for whole, piece in zip((image, lower, variance, own), pieces[:4]):
+            if whole is not None:
+                whole[top:bottom] = piece[keep]
+        return pieces[4].rows(keep)
 
-    parts = map_on(workers, strip, spans)
-    image, lower, variance, own = (_joined([part[i] for part in parts]) for i in range(4))
-    darks = [part[4] for part in parts]
+    darks = map_on(workers, strip, spans)
     if WIDE_SCALES > 0 and any(d.count for d in darks):
         _wide_fallback(inp, spans, darks, image, variance, ky, kx, workers)
     share = None
     if want_share:
         share = np.divide(own, _joined([d.information for d in darks]))
-    return image, lower, variance, share
+    return image, lower, variance, share, darks
 
 
 def _joined(pieces: list[np.ndarray | None]) -> np.ndarray | None:
