@@ -3,7 +3,7 @@
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
                                  [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
                                  [--size 1920x1200]
-                                 [--cfa none|RGGB] [--rtsp]
+                                 [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
@@ -100,7 +100,8 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
-          size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1) -> None:
+          size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1,
+          live_quality: str = "fixed") -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
     ``/bench/rtsp``)."""
     import uvicorn
@@ -116,7 +117,7 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
         pass
     factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa)
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers,
-                                       parallel_frames=parallel_frames), factory)
+                                       parallel_frames=parallel_frames, live_quality=live_quality), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
     app = create_app(pipeline, settings)
@@ -290,6 +291,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
         "latency_client_ms": percentiles(latencies),
         "latency_server_ms": end_state["latency_ms"],
         "drops": end_state["drops"],
+        "live_quality": end_state.get("live_quality"),
         "cpu_percent": round(100 * (end_cpu - start_cpu) / span, 1),
         "clients_cpu_percent": round(100 * (end_own - start_own) / span, 1),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
@@ -376,6 +378,10 @@ def report(name: str, load: dict) -> None:
               f"{'; client error: ' + r['error'] if r['error'] else ''}")
     print(f"  server stages: {json.dumps(load['latency_server_ms'])}")
     print(f"  drops: {json.dumps(load['drops'])}")
+    live = load.get("live_quality")
+    if live:
+        print(f"  live quality ({live['mode']}) at the end: step {live['step']} {live['name']}, {live['changes']} "
+              f"changes; {live['reason']}")
 
 
 def main() -> None:
@@ -388,6 +394,9 @@ def main() -> None:
     parser.add_argument("--no-temporal", action="store_true", help="single-frame reconstruction (no fusion)")
     parser.add_argument("--workers", type=int, default=0, help="reconstruction threads (0: one per core)")
     parser.add_argument("--parallel-frames", type=int, default=1, help="frames reconstructed at once (default 1)")
+    parser.add_argument("--live-quality", choices=("fixed", "adaptive"), default="fixed",
+                        help="fixed (default): the configured method and fusion throughout, as the targets are "
+                             "stated; adaptive: the service's ladder steps down while it falls behind")
     parser.add_argument("--scene", choices=("pan", "static"), default="pan",
                         help="pan: the whole view moves every frame; static: a still view (default pan)")
     parser.add_argument("--size", default="1920x1200", help="frame size WxH (default 1920x1200)")
@@ -409,11 +418,12 @@ def main() -> None:
         return
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
-              args.cfa, args.rtsp_port, args.parallel_frames)
+              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
-           "--parallel-frames", str(args.parallel_frames), "--scene", args.scene, "--size", args.size, "--cfa", args.cfa]
+           "--parallel-frames", str(args.parallel_frames), "--scene", args.scene, "--size", args.size, "--cfa", args.cfa,
+           "--live-quality", args.live_quality]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -456,7 +466,7 @@ def main() -> None:
           f"{load_before}; {args.size} 12-bit "
           f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, parallel frames {args.parallel_frames}, {args.scene} scene, "
-          f"{args.clients} clients, {args.minutes:g} min per phase")
+          f"live quality {args.live_quality}, {args.clients} clients, {args.minutes:g} min per phase")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
           f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "
           f"fps {idle['fps']}")
