@@ -1826,3 +1826,155 @@ def _combined(fits: list[LineFit]) -> LineFit | None:
                    bins_n=np.concatenate([f.bins_n for f in fits]), bins_t=np.concatenate([f.bins_t for f in fits]),
                    bins_v=np.concatenate([f.bins_v for f in fits]),
                    inlier=np.concatenate([f.inlier for f in fits]))
+
+
+# ----- one stream's model: what svelive.Reconstructor, stream_noise and reprocessing share ---------------
+
+
+def variance_uncertainty(estimate: NoiseEstimate) -> float:
+    """The largest relative standard uncertainty of the modelled variance ``v(t) = t / g + r^2 + 1/12`` over
+    every signal ``t >= 0`` (DN), a float >= 0; ``inf`` when an uncertainty is unknown.
+
+    With independent errors ``sd(v) = sqrt((t sd(g) / g^2)^2 + (2 r sd(r))^2)``, and since
+    ``sqrt(a^2 + b^2) <= a + b``, ``sd(v) / v <= max(sd(g) / g, 2 r sd(r) / (r^2 + 1/12))``: the
+    shot end's and the dark end's relative uncertainties, whichever is larger.
+    """
+    if estimate.gain_sigma is None or estimate.read_noise_sigma is None:
+        return math.inf
+    shot = estimate.gain_sigma / max(estimate.gain, 1e-12)
+    dark = 2.0 * estimate.read_noise * estimate.read_noise_sigma / (estimate.read_noise**2 + QUANTISATION_VARIANCE)
+    value = max(shot, dark)
+    return value if math.isfinite(value) else math.inf
+
+
+def agree(a: NoiseEstimate, b: NoiseEstimate, sigmas: float = 3.0) -> bool:
+    """Whether two estimates of one sensor agree: gain and read noise each within ``sigmas`` combined
+    standard uncertainties (an unknown uncertainty agrees with anything)."""
+    for x, y, sx, sy in ((a.gain, b.gain, a.gain_sigma, b.gain_sigma),
+                         (a.read_noise, b.read_noise, a.read_noise_sigma, b.read_noise_sigma)):
+        if sx is None or sy is None:
+            continue
+        if abs(x - y) > sigmas * math.hypot(sx, sy):
+            return False
+    return True
+
+
+@dataclass(frozen=True)
+class NoiseSchedule:
+    """When a stream refines its noise model, and when the model is trusted (:class:`StreamNoise`).
+
+    Attributes:
+        run_frames: consecutive frames per run of the tracker (3: the first frame's single-frame
+            samples, then the static pixels' differences over the next two, as the service's runs).
+        refit_every: frames from the start of one run to the start of the next; 0 stops after the
+            first complete run. The tracker is fitted after the second and the last frame of the
+            first run, then once per run (about 250 ms CPU per fit at 1920x1200).
+        trusted_below: the model is trusted (fusion may change the output) once a fit with temporal
+            samples states the modelled variance to within this relative standard uncertainty at
+            every signal (:func:`variance_uncertainty`). At 0.15 a variance one standard uncertainty
+            low leaves the fusion's 3-sigma detail test at 3 sqrt(0.85) = 2.77 sigma and its 4-sigma
+            motion test at 3.7 sigma: the share of noise taken for detail or motion at most doubles
+            (0.27 % -> 0.56 %, 6e-5 -> 2e-4), where the fixed defaults can be several times off.
+    """
+
+    run_frames: int = 3
+    refit_every: int = 64
+    trusted_below: float = 0.15
+
+    def __post_init__(self) -> None:
+        if int(self.run_frames) < 2:
+            raise SveliveError(f"noise schedule: run_frames must be >= 2, got {self.run_frames}")
+        if int(self.refit_every) != 0 and int(self.refit_every) < int(self.run_frames):
+            raise SveliveError(f"noise schedule: refit_every must be 0 or >= run_frames, got {self.refit_every}")
+        if not self.trusted_below > 0:
+            raise SveliveError(f"noise schedule: trusted_below must be > 0, got {self.trusted_below}")
+
+
+class StreamNoise:
+    """The noise model of one stream whose camera does not give its gain or read noise, refined as frames come.
+
+    The first frame gives the single-frame estimate (:func:`estimate_noise`, what
+    ``svelive.reconstruct`` uses); then runs of ``schedule.run_frames`` consecutive frames, with the
+    pixels the motion tests found static, feed a :class:`NoiseTracker` (as the live service's noise
+    stage does), fitted after the first run's second and last frames, then once per run, a run
+    starting every ``schedule.refit_every`` frames. A run broken by a frame of unknown motion (a
+    reset, a cut) is dropped; before the first complete run the next frame starts another. A given
+    gain or read noise is kept. Not thread-safe: one caller at a time, frames in order.
+    """
+
+    def __init__(self, schedule: NoiseSchedule = NoiseSchedule(), tracker: NoiseTracker | None = None) -> None:
+        self.schedule = schedule
+        self.tracker = tracker if tracker is not None else NoiseTracker()
+        self.fits = 0  # tracker fits so far
+        self._estimate: NoiseEstimate | None = None
+        self._fitted = False  # whether _estimate is a fit with temporal samples (not the first frame's)
+        self._position: int | None = None  # the last frame fed's place in its run, None between runs
+        self._runs = 0  # complete runs
+        self._wait = 0  # frames before the next run starts
+        self._conflict = False  # whether the tracker's last fit contradicted the model in use
+
+    @property
+    def estimate(self) -> NoiseEstimate | None:
+        """The model in use, None before the first frame."""
+        return self._estimate
+
+    @property
+    def trusted(self) -> bool:
+        """Whether the model is known well enough for fusion (``schedule.trusted_below``): given, or a
+        tracker's fit with temporal samples that states it that well. The first frame's estimate never is."""
+        estimate = self._estimate
+        if estimate is None:
+            return False
+        if estimate.source == "given":
+            return True
+        return self._fitted and not self._conflict and variance_uncertainty(estimate) <= self.schedule.trusted_below
+
+    def first(self, raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None = None) -> NoiseEstimate:
+        """The model for a frame when there is none yet: the frame's own (:func:`estimate_noise`, as a
+        single frame is reconstructed), kept until the tracker's first fit."""
+        if self._estimate is None:
+            self._estimate = estimate_noise(raw, camera, signal=signal)
+        return self._estimate
+
+    def observe(self, raw: np.ndarray, camera: Camera, static: np.ndarray | None, *,
+                signal: np.ndarray | None = None) -> NoiseEstimate | None:
+        """Feed the stream's next frame, on the schedule (the tracker reads only the frames of its runs).
+
+        Args:
+            raw: uint (H, W), the frame as delivered; camera: its camera (without an estimated model).
+            static: bool (H, W), the pixels found static against the previous frame given here, or
+                None where that is unknown (the first frame, after a reset or a lost frame).
+            signal: the linear signal above black for a camera with a response curve.
+        Returns:
+            The new model when the tracker was fitted after this frame, else None.
+        """
+        schedule = self.schedule
+        if self._position is not None and static is None:  # the run is broken: drop it
+            self._position = None
+        if self._position is None:
+            if self._runs > 0 and (self._wait > 0 or schedule.refit_every <= 0):
+                self._wait -= 1
+                return None
+            self._position = 0
+            static = None
+        else:
+            self._position += 1
+        self.tracker.add(raw, camera, static, signal=signal)
+        last = self._position == schedule.run_frames - 1
+        if last:
+            self._position = None
+            self._runs += 1
+            self._wait = schedule.refit_every - schedule.run_frames
+        elif not (self._runs == 0 and self._position >= 1):
+            return None
+        fit = self.tracker.fit()
+        self.fits += 1
+        if fit.source == "default":  # the frames told nothing (no unclipped flat or static pixels): keep the model
+            return None
+        if self._fitted and not agree(fit, self._estimate):
+            # two fits of one sensor that their stated uncertainties cannot reconcile: something the motion
+            # masks missed (or texture) is in the samples; keep the model in use, and distrust it until a fit agrees
+            self._conflict = True
+            return None
+        self._estimate, self._fitted, self._conflict = fit, True, False
+        return self._estimate

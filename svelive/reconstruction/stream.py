@@ -40,7 +40,7 @@ from svelive.camera import Camera, camera_for_raw
 from svelive.cfa import ColourFilter
 from svelive.errors import SveliveError
 from svelive.frame import Frame
-from svelive.noise import NoiseEstimate, NoiseTracker
+from svelive.noise import NoiseEstimate, NoiseSchedule, NoiseTracker, StreamNoise
 from svelive.pattern import Pattern
 from svelive.jit import flat, kernel
 from svelive.reconstruction import colour
@@ -158,9 +158,16 @@ class Reconstructor:
             on for ``integration`` timing, off for ``mask``.
         black_level, white_level, gain, read_noise: the sensor, as for svelive.reconstruct,
             when ``pattern`` is not a Camera. A gain or read noise the camera does not give is
-            taken from the fixed defaults (svelive.sensor), not estimated: give the stream's own
-            model, e.g. ``stream_noise(first_frames, camera).apply(camera.sensor)`` (as
-            ``reconstruct-sequence`` and svelive.reprocess do), or the service's live estimate.
+            estimated from the stream's own frames (:class:`svelive.noise.StreamNoise`): the first
+            frame's single-frame estimate (as svelive.reconstruct's), then a
+            :class:`svelive.noise.NoiseTracker` fed runs of consecutive frames with the pixels the
+            motion tests found static, refitted on ``noise_schedule``; :attr:`noise` is the model in
+            use. Until that model is trusted (a tracker's fit stating the variance to within
+            ``noise_schedule.trusted_below``) each output is its frame's own estimate: fusion with a
+            wrong model can be worse than none. The history is fused all along and kept when the
+            model changes (its frames are weighed equally whatever the model). A given value is
+            never overridden.
+        noise_schedule: when the model is refined and trusted (svelive.noise.NoiseSchedule).
         motion_config: thresholds (svelive.reconstruction.config.MotionConfig).
         detail: with temporal fusion, sharpen static pixels that have history
             towards their own fused readings (svelive.reconstruction.fusion.sharpen).
@@ -181,7 +188,7 @@ class Reconstructor:
                  exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
                  motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
-                 **method_options) -> None:
+                 noise_schedule: NoiseSchedule | None = None, **method_options) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
             raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
         if exposure_timing not in EXPOSURE_TIMINGS:
@@ -215,6 +222,11 @@ class Reconstructor:
         self._frames = 0
         self._last_moving = 0.0
         self._cameras: dict[np.dtype, Camera] = {}
+        self.noise_schedule = noise_schedule or NoiseSchedule()
+        self._noise_lock = threading.Lock()  # the stream's noise model: first frame (any thread), fuse (in order)
+        self._noise: StreamNoise | None = None
+        self._noise_base: Camera | None = None  # the camera (without the estimate) the model is of
+        self._noise_camera: tuple[NoiseEstimate, Camera, Camera] | None = None  # (model, base, base with it)
 
     def _checked(self, method: str | None) -> str:
         if method is None:
@@ -262,6 +274,55 @@ class Reconstructor:
             self._generation += 1
             self._frames = 0
 
+    @property
+    def noise(self) -> NoiseEstimate | None:
+        """The noise model in use: the camera's own (source "given") when it gives gain and read noise, else
+        the estimate from this stream's frames (source "estimated", or "default" where the frames could not
+        tell it; with its standard uncertainties), None before the first frame."""
+        sensor = self.camera.sensor if self.camera is not None else None
+        if sensor is None and self.sensor_levels["gain"] is not None and self.sensor_levels["read_noise"] is not None:
+            return NoiseEstimate(float(self.sensor_levels["gain"]), float(self.sensor_levels["read_noise"]),
+                                 0.0, 0.0, 0, "given")
+        if sensor is not None and not _needs_noise(self.camera):
+            return NoiseEstimate.given(sensor)
+        with self._noise_lock:
+            return None if self._noise is None else self._noise.estimate
+
+    @property
+    def noise_trusted(self) -> bool:
+        """Whether the noise model in use is trusted, so that fusion shapes the output (given, or a fit of
+        the stream's frames within ``noise_schedule.trusted_below``)."""
+        if self.camera is not None and not _needs_noise(self.camera):
+            return True
+        with self._noise_lock:
+            return self._noise is not None and self._noise.trusted
+
+    def _with_noise(self, raw: np.ndarray, camera: Camera, signal: np.ndarray | None) -> tuple[Camera, bool]:
+        """``camera`` with the stream's noise model where its sensor lacks gain or read noise (the first
+        frame's own estimate before any fit), and whether that model is trusted. ``raw``: uint (H, W)."""
+        if not _needs_noise(camera):
+            return camera, True
+        with self._noise_lock:
+            if self._noise is None or self._noise_base != camera:
+                self._noise, self._noise_base, self._noise_camera = StreamNoise(self.noise_schedule), camera, None
+            noise = self._noise
+            model = noise.estimate if noise.estimate is not None else noise.first(raw, camera, signal=signal)
+            cached = self._noise_camera
+            if cached is None or cached[0] is not model or cached[1] != camera:
+                cached = self._noise_camera = model, camera, camera.replace(sensor=model.apply(camera.sensor))
+            return cached[2], noise.trusted
+
+    def _observe_noise(self, estimated: Estimated, motion: np.ndarray, related: bool) -> None:
+        """Feed a fused frame to the stream's noise model (on its schedule); ``related``: ``motion``
+        compares the frame with the previous one fed (a history of this stream's generation)."""
+        if estimated.raw is None or estimated.base is None or not _needs_noise(estimated.base):
+            return
+        with self._noise_lock:
+            if self._noise is None or self._noise_base != estimated.base:
+                return
+            static = ~motion if related else None
+            self._noise.observe(estimated.raw, estimated.base, static, signal=estimated.signal)
+
     def state(self) -> dict[str, object]:
         """JSON-ready state: method, temporal, exposure_timing, consistency, frames, moving_fraction."""
         with self._lock:
@@ -286,13 +347,14 @@ class Reconstructor:
                                f"{kind(camera)} frames: give the matching colour filter (--cfa)")
         return camera
 
-    def _estimate(self, raw: np.ndarray | Frame,
-                  method: str) -> tuple[SveInput, Estimate, colour.Joint | None]:
-        """(input, estimate with its variance, the joint parts of a colour frame or None).
+    def _estimate(self, raw: np.ndarray | Frame, method: str,
+                  camera: Camera) -> tuple[SveInput, Estimate, colour.Joint | None]:
+        """(input, estimate with its variance, the joint parts of a colour frame or None), ``camera``
+        the stream's with its noise model.
 
         A colour frame's estimate is of its luminance (the stream colours the fused luminance),
         its variance that of the luminance's monochrome SVE frame (``parts.luminance_input``)."""
-        inp = prepare(getattr(raw, "raw", raw), self._camera_for(raw))
+        inp = prepare(getattr(raw, "raw", raw), camera)
         spec = method_spec(method)
         options = dict(self.method_options)
         if spec.variance:
@@ -321,7 +383,13 @@ class Reconstructor:
         with self._lock:
             method, generation = self._method, self._generation
         t0 = time.perf_counter()
-        inp, est, parts = self._estimate(raw, method)
+        base = self._camera_for(raw)
+        array = np.asarray(getattr(raw, "raw", raw))
+        signal = None
+        if _needs_noise(base) and base.response is not None:
+            signal = prepare(array, base).signal  # the tracker reads the linearised signal
+        camera, trusted = self._with_noise(array, base, signal)
+        inp, est, parts = self._estimate(raw, method, camera)
         t1 = time.perf_counter()
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
         inconsistency = window = None
@@ -340,7 +408,7 @@ class Reconstructor:
                     else own_reading_scales(lum.exposure, inp.sensor, parts.inverse_exposure))
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
-                         (time.perf_counter() - t1) * 1e3)
+                         (time.perf_counter() - t1) * 1e3, array, base, trusted, signal)
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
@@ -354,11 +422,15 @@ class Reconstructor:
             history, index = (self._history, self._frames) if current else (None, 0)
             chroma_history = self._chroma if current else None
         image, variance = est.image, est.variance
+        related = history is not None
+        held = self.temporal and not estimated.trusted
         if self.temporal:
             fused = fuse(history, estimated.frame, self.motion_config, self.pattern.shape, inconsistency,
                          detail=self.detail, workers=self.workers, executor=self._pool)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             ratio, history = fused.illumination_ratio, fused.state
+            if held:  # the model is not trusted yet: the history grows, the output is the frame's own
+                image, variance_of, weight = _held(est, inconsistency)
         else:
             motion = np.zeros(image.shape, bool)
             if inconsistency is not None:
@@ -368,13 +440,16 @@ class Reconstructor:
         luminance = None
         if parts is not None:
             if self.temporal:
-                chroma_history = fuse_chroma(chroma_history, parts.chroma, weight, ratio)
+                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
+                chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
-                                                         parts.chroma.fused(chroma_history), self._threads)
+                                                         parts.chroma.fused(chroma), self._threads)
             else:
                 luminance, inter = image, parts.interpolation
             image = colour.colourise(luminance, inter, self._threads)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
+        if current:
+            self._observe_noise(estimated, motion, related and self.temporal)
         motion_ms = estimated.motion_ms + (time.perf_counter() - t1) * 1e3
         with self._lock:
             if self._generation == estimated.generation:
@@ -398,6 +473,12 @@ class Estimated:
         method: the method that made ``estimate``.
         generation: the stream's generation then (reset and method changes bump it).
         method_ms, motion_ms: wall time of the method and of the motion tests' inputs so far.
+        raw: the raw frame (uint (H, W), a reference), for the stream's noise model.
+        base: the stream's camera without an estimated noise model.
+        trusted: whether the noise model the frame was estimated with was trusted (else its
+            output is its own estimate, not the fused one).
+        signal: the linearised signal above black (float32 (H, W)) of a camera with a response
+            curve whose noise is estimated, else None.
     """
 
     estimate: Estimate
@@ -408,6 +489,23 @@ class Estimated:
     generation: int
     method_ms: float
     motion_ms: float
+    raw: np.ndarray | None = None
+    base: Camera | None = None
+    trusted: bool = True
+    signal: np.ndarray | None = None
+
+
+def _needs_noise(camera: Camera) -> bool:
+    """Whether the camera's sensor lacks its gain or its read noise."""
+    return camera.sensor.gain is None or camera.sensor.read_noise is None
+
+
+def _held(est: Estimate, inconsistency: Inconsistency | None) -> tuple[np.ndarray, OutputVariance, np.ndarray]:
+    """A frame's output while the noise model is not trusted: (its own estimate, float32 (H, W), with the
+    within-frame test's finding applied; that estimate's variance; weights, ones float32 (H, W)), what a
+    stream's first frame gives."""
+    image = est.image if inconsistency is None else inconsistency.apply(est.image)
+    return image, OutputVariance(est.variance, None, inconsistency), np.ones(est.image.shape, np.float32)
 
 
 def own_reading_scales(exposure: np.ndarray, sensor: Sensor,
@@ -551,11 +649,11 @@ def stream_noise(frames: Sequence[np.ndarray | Frame], camera: Camera, *, method
                  exposure_timing: str = "mask") -> NoiseEstimate:
     """The noise model of a stream from its first frames, for a camera that does not give its gain or read noise.
 
-    A :class:`svelive.noise.NoiseTracker` takes the first frame's single-frame samples, then, for each next
-    frame, the differences of the pixels the motion tests found static (a :class:`Reconstructor` with
-    temporal fusion runs on the frames with the camera's model as it is, the defaults where it has none),
-    as the live service does. With :data:`NOISE_FRAMES` frames of a still scene both values come within
-    15 % in about 94 % of the shared images' runs, against 66 % from one frame (docs/noise.md).
+    The model a :class:`Reconstructor` of the camera estimates from these frames (:attr:`Reconstructor.noise`,
+    svelive.noise.StreamNoise, one run of all of them): the first frame's single-frame estimate, then a
+    :class:`svelive.noise.NoiseTracker` fed the differences of the pixels the motion tests found static in
+    each next frame, as the live service does. With :data:`NOISE_FRAMES` frames of a still scene both values
+    come within 15 % in about 94 % of the shared images' runs, against 66 % from one frame (docs/noise.md).
 
     Args:
         frames: the stream's first frames (uint (H, W) raw arrays, or Frames), in order; any number >= 1
@@ -572,11 +670,9 @@ def stream_noise(frames: Sequence[np.ndarray | Frame], camera: Camera, *, method
         return NoiseEstimate.given(sensor)
     if len(frames) == 0:
         raise SveliveError("no frame to estimate the noise model from")
-    tracker = NoiseTracker()
-    with Reconstructor(camera, method=method, temporal=True, exposure_timing=exposure_timing) as stream:
-        for k, frame in enumerate(frames):
-            raw = camera.check(np.asarray(getattr(frame, "raw", frame)))
-            motion = stream.process(raw).motion
-            signal = prepare(raw, camera).signal if camera.response is not None else None
-            tracker.add(raw, camera, None if k == 0 else ~motion, signal=signal)
-    return tracker.fit()
+    schedule = NoiseSchedule(run_frames=max(len(frames), 2), refit_every=0)
+    with Reconstructor(camera, method=method, temporal=True, exposure_timing=exposure_timing,
+                       noise_schedule=schedule) as stream:
+        for frame in frames:
+            stream.process(camera.check(np.asarray(getattr(frame, "raw", frame))))
+        return stream.noise

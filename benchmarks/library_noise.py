@@ -1,0 +1,163 @@
+"""The README's library stream without a noise model, against the single-frame default, in dim light (issue 26).
+
+    .venv/bin/python benchmarks/library_noise.py [--quick] [--crop 320] [--shared-only | --shipped-only]
+
+Dim 12-bit scenes (black level 64, 4 and 5 stops under full scale) from the shipped crops
+(svelive/data) and the shared HDR images (../shared/data/hdr, when present), rendered with a
+true sensor that is NOT given to svelive (several full wells and read noises, far from the
+defaults). Per scene, still and with a bright disc crossing it (20 px per frame), at frames 1, 2,
+3 and 8, PU21-PSNR (dB) on still pixels (no motion in this frame or the three before) and on
+moving pixels (the ground-truth mask), of:
+
+- ``single``: ``svelive.reconstruct(raw, PATTERN, black_level=64, white_level=4095)`` per frame, the
+  single-frame default (its noise model estimated from the frame);
+- ``defaults``: ``Reconstructor(PATTERN, black_level=64, white_level=4095, gain=G0, read_noise=R0)`` with
+  the fixed defaults (svelive.sensor) given: the README usage before issue 26.1;
+- ``readme``: ``Reconstructor(PATTERN, black_level=64, white_level=4095)``, the README usage as it is;
+- ``true``: the stream given the true gain and read noise (what the frames can give at best).
+
+The columns print each stream minus ``single`` (dB); the last column is the ``readme`` stream's
+noise estimate after frame 8 against the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout
+
+import svelive  # noqa: E402
+from svelive import Pattern, Sensor  # noqa: E402
+from svelive.exr import read_luminance  # noqa: E402
+from svelive.scenes import moving_disc, render_sequence, static  # noqa: E402
+from svelive.simulate import exposure_scale  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from motion import region_pu21  # noqa: E402  (PU21-PSNR over a region, display scaling from the whole truth)
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data" / "hdr"
+PATTERN = "1,4/16,64"
+BLACK, WHITE = 64, 4095
+#: true sensors (full well e-, read noise e-): none of them is given to svelive
+SENSORS = ((40_000, 6.0), (3_000, 2.0), (10_000, 12.0))
+STOPS = (4.0, 5.0)
+FRAMES = (1, 2, 3, 8)
+SHIPPED = ("desk", "mttamwest", "cannon")
+SHARED_IMAGES = ("Desk", "Garden", "Bonita", "MtTamWest", "BrightRings")
+
+
+def crop(image: np.ndarray, size: int) -> np.ndarray:
+    """The centre ``size`` x ``size`` of ``image`` (or all of a smaller side)."""
+    h, w = image.shape
+    return image[(h - min(h, size)) // 2:][:size, (w - min(w, size)) // 2:][:, :size]
+
+
+def scene_images(size: int, shipped: bool, shared: bool) -> list[tuple[str, np.ndarray]]:
+    """(name, radiance float32 (H, W)) of the scenes measured."""
+    out = []
+    if shipped:
+        out += [(name, crop(np.maximum(read_luminance(ROOT / "svelive" / "data" / f"{name}.exr"), 0), size))
+                for name in SHIPPED]
+    if shared and SHARED.is_dir():
+        out += [(name, crop(np.maximum(read_luminance(SHARED / f"{name}.exr"), 0), size)) for name in SHARED_IMAGES]
+    return out
+
+
+def streams(sensor: Sensor) -> dict[str, svelive.Reconstructor]:
+    """The streams compared, each fresh."""
+    levels = dict(black_level=BLACK, white_level=WHITE)
+    nominal = Sensor(12, BLACK, WHITE)
+    return {"defaults": svelive.Reconstructor(PATTERN, **levels, gain=nominal.effective_gain,
+                                              read_noise=nominal.effective_read_noise),
+            "readme": svelive.Reconstructor(PATTERN, **levels),
+            "true": svelive.Reconstructor(PATTERN, **levels, gain=sensor.gain, read_noise=sensor.read_noise)}
+
+
+def measure(image: np.ndarray, sensor: Sensor, stops: float, moving: bool, seed: int) -> dict:
+    """PU21 per stream, region and frame of one dim sequence; and the readme stream's final estimate."""
+    radiance = image * exposure_scale(image, Pattern.parse(PATTERN), sensor, stops_below_fill=stops)
+    n = max(FRAMES)
+    if moving:
+        h, w = radiance.shape
+        peak = float(np.percentile(radiance, 99.9))
+        scene = moving_disc(radiance, 2.0 * peak, radius=min(h, w) / 10, start=(h / 2, 0.1 * w), velocity=(0.0, 20.0))
+    else:
+        scene = static(radiance)
+    frames = list(render_sequence(scene, n, PATTERN, sensor, seed=seed))
+    runs = streams(sensor)
+    out: dict = {}
+    history = []
+    for i, f in enumerate(frames, start=1):
+        history.append(f.motion)
+        still = ~np.any(history[-4:], axis=0)
+        images = {"single": svelive.reconstruct(f.raw, PATTERN, black_level=BLACK, white_level=WHITE)}
+        images.update({name: stream.process(f.raw).image for name, stream in runs.items()})
+        if i in FRAMES:
+            for name, x in images.items():
+                out[("still", name, i)] = region_pu21(x, f.truth, still)
+                if moving:
+                    out[("moving", name, i)] = region_pu21(x, f.truth, f.motion)
+    noise = getattr(runs["readme"], "noise", None)
+    out["noise"] = None if noise is None else (noise.gain / sensor.gain - 1, noise.read_noise / sensor.read_noise - 1,
+                                               noise.source)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one stop count, one sensor less, 256 px crops")
+    parser.add_argument("--crop", type=int, default=320, help="crop side of the scenes (px)")
+    parser.add_argument("--shared-only", action="store_true")
+    parser.add_argument("--shipped-only", action="store_true")
+    args = parser.parse_args()
+    size = 256 if args.quick else args.crop
+    sensors = SENSORS[:2] if args.quick else SENSORS
+    stops = STOPS[:1] if args.quick else STOPS
+    scenes = scene_images(size, not args.shared_only, not args.shipped_only)
+    names = ("defaults", "readme", "true")
+    print(f"# pattern {PATTERN}, 12-bit, black {BLACK}, crops {size} px; stream minus single-frame default, dB, "
+          f"PU21 at frames {FRAMES}")
+    print(f"# columns: {' | '.join(names)}; each 'f1 f2 f3 f8'; noise: readme's estimate after frame 8 vs truth")
+    totals: dict = {}
+    t0 = time.perf_counter()
+    for label, image in scenes:
+        for full_well, read_e in sensors:
+            sensor = Sensor.from_full_well(12, full_well, read_e, black_level=BLACK, white_level=WHITE)
+            for st in stops:
+                for moving in (False, True):
+                    res = measure(image, sensor, st, moving, seed=int(full_well + 10 * st))
+                    for region in ("still", "moving") if moving else ("still",):
+                        cells = []
+                        for name in names:
+                            d = [res[(region, name, i)] - res[(region, "single", i)] for i in FRAMES]
+                            for i, v in zip(FRAMES, d):
+                                totals.setdefault((region, name, i), []).append(v)
+                            cells.append(" ".join(f"{v:+5.2f}" for v in d))
+                        noise = res["noise"]
+                        nz = "" if noise is None else f"g {100 * noise[0]:+4.0f}% r {100 * noise[1]:+4.0f}% {noise[2]}"
+                        scene = "moving" if moving else "still"
+                        print(f"{label:11s} {full_well:5d}e/{read_e:4.1f}e -{st:.0f}st {scene:6s} {region:6s} "
+                              f"single f8 {res[(region, 'single', 8)]:5.2f} | {' | '.join(cells)} | {nz}", flush=True)
+    print("# summary over every run: stream minus single (dB): mean, min at each frame")
+    for region in ("still", "moving"):
+        for name in names:
+            keys = [(region, name, i) for i in FRAMES]
+            if keys[0] not in totals:
+                continue
+            cells = [f"f{i} {np.mean(totals[k]):+5.2f} (min {np.min(totals[k]):+5.2f})" for i, k in zip(FRAMES, keys)]
+            print(f"{region:6s} {name:8s} " + "  ".join(cells))
+    print(f"# {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
