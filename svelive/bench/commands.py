@@ -18,7 +18,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                    "benchmark (joint against split, every colour layout, the RGB images) and the "
                                    "stability sweeps; write results.json, results.csv, speed_accuracy.png, "
                                    "colour.json, colour.csv, colour.png, colour.md, stability.json, stability.png, colour_edges.png, "
-                                   "adaptive_choice.png, summary.md and the default's guard grid (grid.json, grid.csv, "
+                                   "adaptive_choice.png, summary.md, the live chart (live.json, live.csv, live.md, "
+                                   "live.png: each live ladder step's fps against PU21) and the default's guard "
+                                   "grid (grid.json, grid.csv, "
                                    "grid.md, grid.png: every image x 4 patterns x 4 light levels x 2 true sensors x 6 "
                                    "noise models given, the default against aggregate and weighted) to DIR.")
     p.add_argument("--quick", action="store_true",
@@ -30,6 +32,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
     p.add_argument("--no-mono", action="store_true", help="skip the monochrome speed/accuracy run")
     p.add_argument("--no-colour", action="store_true", help="skip the colour benchmark")
+    p.add_argument("--no-live", action="store_true",
+                   help="skip the live chart (every live ladder step: fps on this machine against PU21; live.png)")
     p.add_argument("--no-grid", action="store_true",
                    help="skip the default's guard grid (with --quick: the issue's sensor only)")
     p.set_defaults(func=cmd_bench)
@@ -68,6 +72,25 @@ def run_colour(out: Path, data: Path, quick: bool, images: tuple[str, ...], char
     write_bytes_atomic(out / "colour.md", table.encode())
     if chart:
         report.plot_colour(results, out / "colour.png")
+    return "\n" + table
+
+
+def run_live(out: Path, data: Path, quick: bool, images: tuple[str, ...], chart: bool) -> str:
+    """The live chart (svelive.bench.live; the shipped crops and smaller frames when ``quick``); its Markdown."""
+    from svelive.bench import live, report
+
+    start = time.perf_counter()
+    mono, colour, source = live.live_scenes(None if quick else data, images)
+    results = live.run_live_benchmark(mono, colour, live.quick_live_config() if quick else live.LiveBenchConfig(),
+                                      log=lambda line: print(line, file=sys.stderr, flush=True))
+    results["seconds"] = round(time.perf_counter() - start, 1)
+    results["source"] = source
+    report.write_json(out / "live.json", results)
+    report.write_csv(out / "live.csv", live.csv_rows(results))
+    table = live.markdown_live(results)
+    write_bytes_atomic(out / "live.md", table.encode())
+    if chart:
+        report.plot_live(results, out / "live.png")
     return "\n" + table
 
 
@@ -130,6 +153,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             report.plot_speed_accuracy(results["summary"], out / "speed_accuracy.png", results["default_method"])
             truth, share, title = choice_map_example()
             report.plot_choice_map(truth, share, out / "adaptive_choice.png", title)
+    if not args.no_live:
+        table += run_live(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_colour:
         table += run_colour(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_grid:

@@ -70,18 +70,52 @@ def plot_speed_accuracy(summary: list[dict[str, object]], path: Path, default: s
     ax.axhline(ref, color="tab:green", ls="--", lw=1, label=f"bracketing reference ({ref:.1f} dB)")
     ax.axvline(REALTIME_MS, color="grey", ls=":", lw=1, label="real time, 33 ms")
     ax.axvline(BUDGET_MS, color="black", ls=":", lw=1, label="budget, 25 ms")
-    ax.set_xscale("log")
-    from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
-
-    lo, hi = ax.get_xlim()
-    ax.xaxis.set_major_locator(FixedLocator([t for t in (5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000)
-                                             if lo <= t <= hi]))
-    ax.xaxis.set_major_formatter(ScalarFormatter())
-    ax.xaxis.set_minor_formatter(NullFormatter())
+    log_x(ax, (5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000))
     ax.set_xlabel("time per 1920x1200 frame, one thread (ms, median)")
     ax.set_ylabel("PU21-PSNR (dB), mean over images, patterns, noise levels")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def log_x(ax, ticks: tuple[float, ...]) -> None:
+    """A log x axis labelled with the plain numbers of ``ticks`` that fall inside it."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
+
+    ax.set_xscale("log")
+    lo, hi = ax.get_xlim()
+    ax.xaxis.set_major_locator(FixedLocator([t for t in ticks if lo <= t <= hi]))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+
+
+def plot_live(results: dict[str, object], path: Path) -> None:
+    """The live chart (svelive.bench.live): mean PU21-PSNR against frames per second on this machine (log x), one
+    marker per ladder step, a line per kind (mono, colour) in ladder order, the 30 fps mark."""
+    plt = _pyplot()
+    rows, config = results["rows"], results["config"]
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    steps = list(dict.fromkeys(r["step"] for r in rows))
+    markers = "o^sDvP*X"
+    for i, kind in enumerate(dict.fromkeys(r["kind"] for r in rows)):
+        mine = [r for r in rows if r["kind"] == kind]
+        colour = f"C{i}"
+        ax.plot([r["fps"] for r in mine], [r["pu21"] for r in mine], color=colour, lw=1, ls="--", alpha=0.6,
+                label=f"{kind} ({mine[0]['camera']})")
+        for r in mine:
+            ax.scatter([r["fps"]], [r["pu21"]], marker=markers[steps.index(r["step"]) % len(markers)], s=48,
+                       color=colour, zorder=3)
+            ax.annotate(r["step"], (r["fps"], r["pu21"]), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.axvline(30.0, color="grey", ls=":", lw=1, label="real time, 30 fps")
+    log_x(ax, (1, 2, 5, 10, 20, 30, 50, 100, 200, 500, 1000, 2000))
+    rows_px, cols_px = config["timing_size"]
+    load = results["machine"].get("load_average_at_start")
+    ax.set_xlabel(f"frames per second, {cols_px}x{rows_px}, {config['workers']} workers, this machine"
+                  + ("" if load is None else f" (load {load[0]:.1f})"))
+    ax.set_ylabel(f"PU21-PSNR (dB) after {config['frames']} frames of a still scene, mean bright/dim")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
     save_figure(fig, path)
     plt.close(fig)
 
