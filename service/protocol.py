@@ -4,6 +4,11 @@ Without them a client that opens connections and sends headers slowly (or never)
 holds a file descriptor each for as long as it likes. uvicorn's keep-alive timeout
 only starts after a response; ``limit_concurrency`` answers 503 but keeps the
 connection.
+
+At the bound, the connection that has waited longest for its request (slow headers, or idle
+between keep-alive requests) is closed to make room, so connections that hold a slot without
+asking for anything cannot lock out a health check or a viewer; only when every connection has a
+request in progress (streams) is the new one refused.
 """
 
 from __future__ import annotations
@@ -18,8 +23,9 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 class BoundedH11Protocol(H11Protocol):
     """An H11Protocol that closes a connection whose request (headers and body) is not complete within
-    ``header_timeout`` seconds of connecting (or of the previous response), and refuses connections
-    beyond ``max_connections``. Both are class attributes, set by :func:`bounded_protocol`."""
+    ``header_timeout`` seconds of connecting (or of the previous response), and keeps at most
+    ``max_connections``: beyond it the one waiting longest for its request is closed, or, when every
+    connection has a request in progress, the new one. Both are class attributes, set by :func:`bounded_protocol`."""
 
     header_timeout: float = 10.0
     max_connections: int = 512
@@ -27,17 +33,30 @@ class BoundedH11Protocol(H11Protocol):
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self._header_deadline: asyncio.TimerHandle | None = None
-        if len(self.connections) > self.max_connections:
+        self._waiting_since: float | None = None
+        if len(self.connections) > self.max_connections and not self._make_room():
             transport.abort()
             return
         self._arm_header_deadline()
 
+    def _make_room(self) -> bool:
+        """Close the connection that has waited longest for its request; False when none is waiting."""
+        waiting = [c for c in self.connections if c is not self and getattr(c, "_waiting_since", None) is not None]
+        if not waiting:
+            return False
+        oldest = min(waiting, key=lambda c: c._waiting_since)
+        oldest._disarm_header_deadline()
+        oldest.transport.abort()
+        return True
+
     def _arm_header_deadline(self) -> None:
         self._disarm_header_deadline()
         self._waiting_scope = self.scope
+        self._waiting_since = self.loop.time()
         self._header_deadline = self.loop.call_later(self.header_timeout, self._header_timeout_expired)
 
     def _disarm_header_deadline(self) -> None:
+        self._waiting_since = None
         if getattr(self, "_header_deadline", None) is not None:
             self._header_deadline.cancel()
             self._header_deadline = None

@@ -31,6 +31,9 @@ shared media:
   authentication (any user name: ``rtsp://svelive:TOKEN@host:8554/live``) or as
   ``?token=TOKEN`` in the URL; a missing or wrong one gets ``401 Unauthorized``
   with a basic challenge, so clients that hold credentials in the URL retry with them.
+- At most ``max_clients`` connections (64): beyond it the oldest connection that is not
+  playing is closed (one that only holds a socket cannot lock out a recorder), or the new
+  one when all the others play.
 - The GLib main loop of the server runs in a thread of its own (its own main context).
 - ``clients`` in the state counts the clients playing the stream (counted at PLAY, by path).
 
@@ -67,6 +70,10 @@ ELEMENTS = ("appsrc", "x264enc", "rtph264pay")
 BITS_PER_PIXEL = 0.07
 #: The media factory role a valid token gives (its permissions are set in ``RtspServer.start``).
 ROLE = "viewer"
+#: Connections the RTSP port keeps at once (players and connections still negotiating).
+MAX_CLIENTS = 64
+#: Connections waiting to be accepted (GStreamer's default, 5, made a burst of clients wait 1-3 s in SYN retries).
+BACKLOG = 128
 #: Timecode: bits of the capture time in ms, and the side of one bit's square in pixels.
 TIMECODE_BITS = 48
 TIMECODE_BLOCK = 8
@@ -292,13 +299,19 @@ class RtspServer:
     closes every client and ends the loop (within a second).
     """
 
-    def __init__(self, *, host: str = "127.0.0.1", port: int = 8554, token: str | None = None) -> None:
+    def __init__(self, *, host: str = "127.0.0.1", port: int = 8554, token: str | None = None,
+                 max_clients: int = MAX_CLIENTS) -> None:
         if not 0 <= port <= 65535:
             raise SveliveError(f"RTSP port must be 0..65535, got {port}")
+        if max_clients < 1:
+            raise SveliveError(f"RTSP client limit must be at least 1, got {max_clients}")
         self.host = host
         self.port = port
         self.token = token
+        self.max_clients = max_clients
         self.publishers: list[RtspPublisher] = []
+        #: connected clients, oldest first (GLib thread only)
+        self._clients: dict[Any, None] = {}
         self._thread: threading.Thread | None = None
         self._loop: Any = None
         self._context: Any = None
@@ -329,6 +342,7 @@ class RtspServer:
         server = GstRtspServer.RTSPServer()
         server.set_address(self.host)
         server.set_service(str(self.port))
+        server.set_backlog(BACKLOG)
         role = None
         if self.token is not None:
             role = GstRtspServer.RTSPToken()
@@ -397,6 +411,18 @@ class RtspServer:
         return None
 
     def _on_client_connected(self, server: Any, client: Any) -> None:
+        """GLib thread, a connection accepted: beyond ``max_clients`` the oldest one that is not playing is
+        closed to make room (a connection that holds a slot without playing cannot lock out a recorder), or,
+        when every other one plays, the new one."""
+        self._clients[client] = None
+        client.connect("closed", self._clients.pop, None)
+        if len(self._clients) > self.max_clients:
+            idle = [c for c in self._clients if c is not client and getattr(c, "svelive_publisher", None) is None]
+            victim = idle[0] if idle else client
+            self._clients.pop(victim, None)
+            victim.close()
+            if victim is client:
+                return
         client.connect("play-request", self._on_play)
 
     def _on_play(self, client: Any, ctx: Any) -> None:

@@ -1,0 +1,116 @@
+"""Issue 28.14: connections that hold a slot without asking for anything. A real ``svelive serve --rtsp``
+(subprocess, loopback ports): 600 connections that send their headers slowly must not lock out ``/healthz``
+(before: all 512 slots held for the 10 s header timeout, the health check refused), and the RTSP port keeps at
+most 64 connections yet still lets a real client (ffmpeg) play (before: 300 held connections accepted)."""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import httpx
+import pytest
+
+MAX_CLIENTS = 64  # service.publishers.rtsp.MAX_CLIENTS
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def service() -> Iterator[tuple[int, int]]:
+    """``svelive serve`` (small still demo, RTSP on) on two free loopback ports; yields (http_port, rtsp_port)."""
+    http_port, rtsp_port = free_port(), free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "svelive.cli", "serve", "--source", "demo", "--cfa", "none",
+         "--source-option", "width=160", "--source-option", "height=96", "--source-option", "period_s=0",
+         "--source-option", "fps=10", "--port", str(http_port), "--rtsp", str(rtsp_port)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 300  # a first run on a machine compiles the kernels
+        while not healthy(http_port):
+            assert proc.poll() is None, "serve exited"
+            assert time.monotonic() < deadline, "serve did not answer /healthz in 300 s"
+            time.sleep(0.3)
+        yield http_port, rtsp_port
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+def healthy(port: int, timeout: float = 2.0) -> bool:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=timeout).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+@contextlib.contextmanager
+def held_connections(port: int, count: int, first_bytes: bytes) -> Iterator[list[socket.socket]]:
+    """``count`` connections to ``port`` that send ``first_bytes`` and then nothing."""
+    socks: list[socket.socket] = []
+    try:
+        for _ in range(count):
+            s = socket.create_connection(("127.0.0.1", port), timeout=5)
+            with contextlib.suppress(OSError):
+                s.sendall(first_bytes)
+            socks.append(s)
+        yield socks
+    finally:
+        for s in socks:
+            s.close()
+
+
+def still_open(socks: list[socket.socket], settle_s: float = 1.5) -> int:
+    """How many of ``socks`` the server has not closed after ``settle_s`` s."""
+    time.sleep(settle_s)
+    alive = 0
+    for s in socks:
+        s.setblocking(False)
+        alive += not closed_by_peer(s)
+    return alive
+
+
+def closed_by_peer(s: socket.socket) -> bool:
+    """True when the peer closed ``s`` (what it sent before is read and dropped); ``s`` non-blocking."""
+    while True:
+        try:
+            if s.recv(65536) == b"":
+                return True
+        except BlockingIOError:
+            return False
+        except OSError:
+            return True
+
+
+def test_slow_header_connections_do_not_lock_out_the_health_check(service):
+    http_port, _ = service
+    with held_connections(http_port, 600, b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n") as socks:
+        started = time.monotonic()
+        assert healthy(http_port, timeout=3), "/healthz unanswered with 600 slow-header connections open"
+        assert time.monotonic() - started < 3
+        assert still_open(socks) <= 512
+
+
+@pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg (the RTSP client) not installed")
+def test_the_rtsp_port_caps_its_connections_and_still_serves_a_player(service):
+    _, rtsp_port = service
+    options = f"OPTIONS rtsp://127.0.0.1:{rtsp_port}/live RTSP/1.0\r\nCSeq: 1\r\n\r\n".encode()
+    with held_connections(rtsp_port, 300, options) as socks:
+        assert still_open(socks) <= MAX_CLIENTS
+        out = subprocess.run(["ffmpeg", "-hide_banner", "-loglevel", "error", "-rtsp_transport", "tcp",
+                              "-i", f"rtsp://127.0.0.1:{rtsp_port}/live", "-frames:v", "3", "-f", "null", "-"],
+                             capture_output=True, text=True, timeout=30)
+        assert out.returncode == 0, out.stderr
