@@ -508,3 +508,55 @@ def test_path_shares_follow_the_frame():
     assert dim["censored"] == 0 and dim["near_zero"] > 0.5 and dim["wide"] > 0 and dim["wide_strips"] > 0
     for shares in (bright, dim):
         assert 0 <= shares["plain"] <= 1 - max(shares["censored"], shares["near_zero"], shares["wide"])
+
+
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,2/4,8", "1,8/8,1"])
+@pytest.mark.parametrize("clipped", [False, True])  # with a block clipped in every exposure (windows with no reading)
+def test_the_window_mean_made_in_the_pass_is_the_motion_tests_own(pattern, clipped):
+    """adaptive.run(window=True) gives numerics.window_estimate's window mean and variance bit for bit (completed
+    where the window holds no uncensored reading), from one strip or many, on one thread or three."""
+    from svelive.reconstruction.numerics import completed_window, window_estimate
+
+    raw = _frame(pattern, (200, 150), seed=4, scale=0.01)
+    if clipped:
+        raw[120:150, 30:70] = SENSOR.white_level
+    inp = prepare(raw, pattern, SENSOR)
+    for workers in (1, 3):
+        est = adaptive.run(inp, return_variance=True, workers=workers, window=True)
+        assert est.window is not None
+        if clipped:
+            assert np.isinf(est.window[1]).any()  # the case the completion is for
+        level, variance = completed_window(est.window, est.image, est.variance)
+        reference = window_estimate(inp, est.image, est.variance)
+        np.testing.assert_array_equal(level, reference[0])
+        np.testing.assert_array_equal(variance, reference[1])
+
+
+def test_no_window_where_the_methods_window_is_not_the_motion_tests():
+    """Line-interleaved exposures: the method's window is 5x3, the motion tests' 5x1: none is made."""
+    inp = prepare(_frame("1/1/8/8", (80, 60), seed=1, scale=1.0), "1/1/8/8", SENSOR)
+    assert adaptive.run(inp, window=True).window is None
+    assert adaptive.run(inp).window is None
+
+
+def test_a_stream_is_the_same_with_the_window_from_the_pass(monkeypatch):
+    """svelive.Reconstructor takes the window mean from the method's pass where it can: every fused frame and
+    motion mask is what the separate window pass gives."""
+    from svelive.reconstruction import Reconstructor
+    from svelive.reconstruction.methods import METHODS
+    from svelive.scenes import moving_disc, render_sequence
+
+    pattern = "1,4/16,64"
+    rng = np.random.default_rng(2)
+    scene = cv2.GaussianBlur(rng.uniform(2, 60, (120, 160)).astype(np.float32), (0, 0), 1.5)  # a textured background
+    raws = [f.raw for f in render_sequence(moving_disc(scene, 3000.0, 10.0, (30.0, 30.0), (4.0, 3.0)), 5, pattern,
+                                           SENSOR, seed=5)]
+    runs = []
+    for window in (True, False):
+        monkeypatch.setitem(METHODS, "adaptive", dataclasses.replace(METHODS["adaptive"], window=window))
+        with Reconstructor(pattern, white_level=4095, gain=SENSOR.gain, read_noise=SENSOR.read_noise) as stream:
+            runs.append([stream.process(raw) for raw in raws])
+    assert any(r.motion.any() for r in runs[0])
+    for with_pass, without in zip(*runs):
+        np.testing.assert_array_equal(with_pass.image, without.image)
+        np.testing.assert_array_equal(with_pass.motion, without.motion)

@@ -903,7 +903,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
                            new_variance=True, workers=workers)
         variance = refined_variance
     image = colourise(luminance, inter, workers) if rgb else luminance
-    return Joint(Estimate(image, est.lower_bound, variance, luminance), lum, ch, inter, inverse)
+    return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)
 
 
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,

@@ -12,7 +12,8 @@ import numpy as np
 
 from svelive.jit import flat, kernel
 from svelive.pattern import Pattern
-from svelive.reconstruction.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size, tile_rows
+from svelive.reconstruction.methods.base import (SveInput, map_on, smooth, tile_rows, window_kernels,
+                                                 window_level_row)
 
 
 def _grow(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:
@@ -101,16 +102,10 @@ class _WindowLayout:
     squares: np.ndarray
 
 
-def _window_kernels(period: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Binomial (rows, cols) kernels of a window holding every phase of a ``period`` tile, then their squares."""
-    ky, kx = (binomial_kernel(support_size(n)) for n in period)
-    return ky, kx, ky * ky, kx * kx
-
-
 @lru_cache(maxsize=8)
 def _window_layout(pattern: Pattern, period: tuple[int, int], shape: tuple[int, int]) -> _WindowLayout:
     """The :class:`_WindowLayout` of a nominal tile (``period``: the window's tile) over frames of ``shape``."""
-    kernels = _window_kernels(period)
+    kernels = window_kernels(period)
     small, row_of = tile_rows(shape[0], int(np.lcm(period[0], pattern.shape[0])), kernels[0].size // 2)
     exposure = pattern.exposure_map((small, shape[1]))
     tables = [smooth(exposure, kernels[0], kernels[1]), smooth(exposure, kernels[2], kernels[3]),
@@ -119,6 +114,18 @@ def _window_layout(pattern: Pattern, period: tuple[int, int], shape: tuple[int, 
     for array in (row_of, *kernels, *tables):
         array.setflags(write=False)
     return _WindowLayout(kernels, row_of, *tables)
+
+
+def completed_window(window: tuple[np.ndarray, np.ndarray], image: np.ndarray,
+                     variance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A window mean and variance a method made in its own pass (``Estimate.window``), completed as
+    :func:`window_estimate` completes its own: the method's ``image`` and ``variance`` where the window
+    holds no uncensored reading (an infinite variance). In place; returns the pair."""
+    level, noise = window
+    lost = np.isinf(noise)
+    if lost.any():
+        level[lost], noise[lost] = image[lost], variance[lost]
+    return level, noise
 
 
 def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, workers: int | Executor = 1,
@@ -155,7 +162,7 @@ def window_estimate(inp: SveInput, image: np.ndarray, variance: np.ndarray, work
     h, w = inp.shape
     per_pixel = inp.folded or inp.pattern.pixel_map is not None
     layout = None if per_pixel else _window_layout(inp.pattern, inp.period, inp.shape)
-    kernels = layout.kernels if layout is not None else _window_kernels(inp.period)
+    kernels = layout.kernels if layout is not None else window_kernels(inp.period)
     radius = kernels[0].size // 2
     sensor = inp.sensor
     inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
@@ -220,19 +227,11 @@ def _window_rows(summed, row_of, first, exposure, exposure_squares, squares, out
     """out = max(sum G s / sum G e, 0) and its variance, (R, W) rows whose window sums of e, G^2 e
     and G^2 are the tables' rows ``row_of[first + r]``; 0 and an infinite variance where the
     window's sum G e is 0 (no uncensored reading), whose count it returns."""
-    zero, one, tiny, inf = np.float32(0), np.float32(1), np.float32(1e-12), np.float32(np.inf)
     lost = 0
     for r in range(out.shape[0]):
         t = row_of[first + r]
-        for c in range(out.shape[1]):
-            b, a, e2, g2 = exposure[t, c], summed[r, c], exposure_squares[t, c], squares[t, c]
-            ok = b > tiny
-            inverse = one / b
-            level = _maximum(a * inverse, zero)
-            noise = (level * inv_gain * e2 + floor * g2) * inverse * inverse
-            out[r, c] = level if ok else zero
-            out_var[r, c] = noise if ok else inf
-            lost += not ok
+        lost += window_level_row(summed[r], exposure[t], exposure_squares[t], squares[t], inv_gain, floor, out[r],
+                                 out_var[r])
     return lost
 
 
@@ -324,7 +323,7 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
     period = exposure.shape[0]
     size = ky.size
     a = size // 2
-    zero, one, tiny, inf = np.float32(0), np.float32(1), np.float32(1e-12), np.float32(np.inf)
+    zero, one = np.float32(0), np.float32(1)
     ring = np.empty((4, size, cols), np.float32)  # per window row: sum G s, sum G e, sum G^2 e, sum G^2
     kept, kept_signal, kept_exposure = (np.empty(cols, np.float32), np.empty(cols, np.float32),
                                         np.empty(cols, np.float32))
@@ -357,17 +356,7 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
         _symmetric_column(ring, 2, slots, ky2, sums[2])
         _symmetric_column(ring, 3, slots, ky2, sums[3])
         level_row, noise_row = out[r], out_var[r]
-        summed, exposures, exposure_squares, squares = sums[0], sums[1], sums[2], sums[3]
-        lost = 0
-        for c in range(cols):
-            b, s_, e2, g2 = exposures[c], summed[c], exposure_squares[c], squares[c]
-            ok = b > tiny
-            inverse = one / b
-            level = _maximum(s_ * inverse, zero)
-            noise = (level * inv_gain * e2 + floor * g2) * inverse * inverse
-            level_row[c] = level if ok else zero
-            noise_row[c] = noise if ok else inf
-            lost += not ok
+        lost = window_level_row(sums[0], sums[1], sums[2], sums[3], inv_gain, floor, level_row, noise_row)
         for c in range(cols if lost else 0):
             if np.isinf(noise_row[c]):
                 level_row[c], noise_row[c] = image[r, c], variance[r, c]

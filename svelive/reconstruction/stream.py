@@ -48,7 +48,7 @@ from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
 from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
-from svelive.reconstruction.numerics import window_estimate
+from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
@@ -361,6 +361,8 @@ class Reconstructor:
             options["return_variance"] = True
         if spec.workers and "workers" not in options:
             options["workers"] = self._pool if self._pool is not None else self.workers
+        if spec.window and (self.temporal or self.consistency):
+            options["window"] = True  # the motion tests' window mean from the method's own pass
         if inp.cfa is None:
             estimate = run_method(inp, method, **options)
             return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
@@ -395,7 +397,9 @@ class Reconstructor:
         inconsistency = window = None
         if self.temporal or self.consistency:
             # what the motion tests compare: a window mean beside the method's estimate, whatever the method
-            window = window_estimate(lum, est.image, est.variance, self._threads)
+            # (made in the method's own pass where it can: bit-identical)
+            window = (completed_window(est.window, est.image, est.variance) if est.window is not None
+                      else window_estimate(lum, est.image, est.variance, self._threads))
         if self.consistency:
             # the test reads each level's readings with its nominal exposure: a colour frame's
             # readings divided by their channel's share instead of the share folded into e

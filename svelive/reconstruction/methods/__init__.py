@@ -26,6 +26,8 @@ class MethodSpec:
         workers: it splits a frame over threads when called with ``workers=`` (a count or an Executor).
         exposures: it reads every pixel's exposure from ``SveInput.exposure`` (so takes per-pixel
             exposures, SveInput.folded); False: only the pattern's tile.
+        window: it can make the motion tests' window mean in its own pass when called with
+            ``window=True`` (``Estimate.window``; None where it cannot for this frame).
         summary: one line for ``svelive methods``.
     """
 
@@ -35,13 +37,14 @@ class MethodSpec:
     variance: bool = False
     workers: bool = False
     exposures: bool = True
+    window: bool = False
     summary: str = ""
 
     @property
     def accepted(self) -> frozenset[str]:
         """Every keyword ``run`` takes: the user options plus the capability keywords."""
         return self.options | {name for name, has in (("return_variance", self.variance),
-                                                      ("workers", self.workers)) if has}
+                                                      ("workers", self.workers), ("window", self.window)) if has}
 
     def check_options(self, options: Mapping[str, object]) -> None:
         """Raise a one-line SveliveError naming any keyword ``run`` does not take."""
@@ -52,7 +55,7 @@ class MethodSpec:
 
 
 METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
-    MethodSpec("adaptive", adaptive.run, variance=True, workers=True,
+    MethodSpec("adaptive", adaptive.run, variance=True, workers=True, window=True,
                summary="own reading where neighbours disagree beyond noise, noise-optimal mean where they agree"),
     MethodSpec("weighted", weighted.run, variance=True, workers=True,
                summary="per-exposure interpolation merged with Poisson-Gaussian inverse-variance weights"),

@@ -102,7 +102,7 @@ import numpy as np
 
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, map_on,
-                                  reflect_101, rows_min, smooth, support_size)
+                                  reflect_101, rows_min, smooth, support_size, window_kernels, window_level_row)
 from svelive.pattern import Pattern
 
 #: Significance, in standard deviations of a reading, of "consistent with a censored bound".
@@ -121,10 +121,32 @@ def kernels(pattern_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return binomial_kernel(max(support_size(th), 3)), binomial_kernel(max(support_size(tw), 3))
 
 
-def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1) -> Estimate:
-    """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it."""
-    image, lower, variance, _, _ = _estimate(inp, noise_model(inp), workers, want_variance=return_variance)
-    return Estimate(image, lower, variance)
+def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor = 1,
+        window: bool = False) -> Estimate:
+    """``workers``: a thread count or an Executor for the frame's strips (base.map_on); the result does not depend on it.
+
+    ``window``: also the motion tests' window mean and its variance (``Estimate.window``), made in the
+    same pass from the pilot's window sums, where the method's window is the motion tests' (the same
+    kernels, of at most INLINE_WINDOW taps, whose sums are bit-identical); else ``Estimate.window`` is None.
+    """
+    shares = window and _shares_window(inp)
+    image, lower, variance, _, _, sums = _estimate(inp, noise_model(inp), workers, want_variance=return_variance,
+                                                   want_window=shares)
+    return Estimate(image, lower, variance, window=(sums[0], sums[1]) if shares else None)
+
+
+#: The longest windows (rows, columns) whose sums the pass makes in the order the motion tests' own kernel does
+#: (svelive.reconstruction.numerics.INLINE_TAPS): beyond, the window mean is left to the motion tests.
+INLINE_WINDOW = (5, 3)
+
+
+def _shares_window(inp: SveInput) -> bool:
+    """Whether this method's window is the motion tests' (numerics.window_estimate): the same kernels, short enough
+    for the same order of sums."""
+    ky, kx = kernels(inp.pattern.shape)
+    wy, wx = window_kernels(inp.period)[:2]
+    return (ky.size <= INLINE_WINDOW[0] and kx.size <= INLINE_WINDOW[1] and np.array_equal(ky, wy)
+            and np.array_equal(kx, wx))
 
 
 #: Rows of a frame the noise evidence looks at (spread over the frame and the tile's phases).
@@ -262,7 +284,7 @@ def path_shares(inp: SveInput) -> dict[str, float]:
     pixels left at a lower bound; ``plain``: uncensored pixels that take none of these
     (steps 1-3 alone, the closed form). A diagnostic for benchmarks/paths.py: it runs the method.
     """
-    _, lower, _, _, darks = _estimate(inp, noise_model(inp), 1)
+    _, lower, _, _, darks, _ = _estimate(inp, noise_model(inp), 1)
     estimate = np.concatenate([d.estimate for d in darks])
     information = np.concatenate([d.information for d in darks])
     candidates = np.concatenate([d.candidates for d in darks])
@@ -296,8 +318,9 @@ class _Dark(NamedTuple):
 
 
 def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor, want_variance: bool = False,
-              want_share: bool = False):
-    """The method on a frame: (image, lower_bound, variance or None, share or None, the strips' _Dark).
+              want_share: bool = False, want_window: bool = False):
+    """The method on a frame: (image, lower_bound, variance or None, share or None, the strips' _Dark, the window
+    mean and its variance as a (2, H, W) array, or of no rows without ``want_window``).
 
     Steps 1-4 run in strips of about 64 rows (a window three deep above and
     below each, as base.in_strips does; the result does not depend on them),
@@ -311,13 +334,15 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
     image, lower = np.empty((h, w), np.float32), np.empty((h, w), bool)
     variance = np.empty((h, w), np.float32) if want_variance else None
     own = np.empty((h, w), np.float32) if want_share else None
+    window = np.empty((2, h, w) if want_window else (2, 0, 0), np.float32)
 
     def strip(span: tuple[int, int, int, int]) -> _Dark:
         # each strip's kept rows copied into the frame's arrays by its own thread (no serial join)
         start, top, bottom, stop = span
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
         keep = slice(top - start, bottom - start)
-        pieces = _solve(crop, noise, want_variance, want_share, keep)
+        # the window's rows are written only in the kept rows: a view of the frame's array
+        pieces = _solve(crop, noise, want_variance, want_share, keep, window[:, start:stop] if want_window else window)
         for whole, piece in zip((image, lower, variance, own), pieces[:4]):
             if whole is not None:
                 whole[top:bottom] = piece[keep]
@@ -329,7 +354,7 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
     share = None
     if want_share:
         share = np.divide(own, _joined([d.information for d in darks]))
-    return image, lower, variance, share, darks
+    return image, lower, variance, share, darks, window
 
 
 def _joined(pieces: list[np.ndarray | None]) -> np.ndarray | None:
@@ -352,9 +377,10 @@ def _spans(inp: SveInput, halo: int, rows: int) -> list[tuple[int, int, int, int
 
 
 def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = False, want_share: bool = False,
-           keep: slice | None = None):
+           keep: slice | None = None, window: np.ndarray | None = None):
     """Steps 1-4 on a whole frame or strip: (image, lower_bound, variance or None, w or None, _Dark), (H, W)
-    arrays whose rows ``keep`` (default all) hold the results; other rows are not set.
+    arrays whose rows ``keep`` (default all) hold the results; other rows are not set. ``window``: (2, H, W)
+    float32 into whose rows ``keep`` the motion tests' window mean and variance go (:func:`_fused`), or None.
 
     ``noise``: (1 / gain, floor variance) of the noise model (:func:`noise_model`). The window sums and the
     per-pixel arithmetic between them run as one compiled pass (:func:`_fused`), then the censored pixels."""
@@ -380,7 +406,9 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
                             f32(noise[1]), f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
                             f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(),
                             -f32(inp.sensor.black_level), f32(CONTRAST_SIGMA**2),
-                            w, wn, x, image, estimate, total, lower, candidates, variance)
+                            w, wn, x, image, estimate, total, lower, candidates, variance,
+                            np.empty((2, 0, 0), f32) if window is None else window,
+                            np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32))
     if flagged:
         bound_only = _censored_pixels(inp, image, w, x, ky, kx)
         lowered = lowered or bool(bound_only.any())
@@ -393,7 +421,8 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
 
 @kernel
 def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv, floor, centre, kernel_square,
-           threshold, coefficients, bottom, z2, w, wn, x, image, estimate, total, lower, candidates, variance):
+           threshold, coefficients, bottom, z2, w, wn, x, image, estimate, total, lower, candidates, variance,
+           window, window_noise):
     """Steps 1-4 but the censored pixels' own values, on the rows [first, last) of (H, W) arrays, in one pass
     down the rows: the chain of :func:`_weights` (:func:`_weights_censored` where ``flagged``: the strip holds
     censored pixels), :func:`_residuals`, :func:`_blend`, :func:`_zero_bottom_row` and
@@ -410,11 +439,20 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
     [first, last) the result (``image``), L^ (``estimate``), its information (``total``), the wide fallback's
     ``candidates`` and 1 / total in ``variance`` unless it is empty; exposure sum <= 0 (``lower``) where w
     is set, False elsewhere. Returns (the candidates' count, whether any pixel is ``lower``): the caller
-    fills the lower bounds."""
+    fills the lower bounds.
+
+    ``window``: (2, H, W) float32, or of no rows: also the motion tests' window mean and its variance in rows
+    [first, last) (base.window_level_row; the window sums of the uncensored readings are the pilot's, and
+    those of G^2 e and G^2 two more row and column filters), with ``window_noise`` (1 / g, sigma^2) of the
+    sensor; 0 and an infinite variance where the window holds no uncensored reading."""
     h, width = s.shape
     ry = ky.size // 2
+    windowed = window.shape[1] > 0
+    ky2, kx2 = ky * ky, kx * kx
     given = exposure_sum.size > 0
     depth = min(h, 2 * ry + 1)  # a window's rows, reflected at the ends, lie among the last `depth` computed
+    square_rows = np.empty((2, depth if windowed else 0, width), np.float32)  # row sums of G^2 e and of G^2
+    square_sums = np.empty((2, width if windowed else 0), np.float32)
     signal_rows, exposure_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
     weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
@@ -442,11 +480,19 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
                 _row_filter(a, kx, signal_rows[r % depth])
                 _uncensored(e[r], censored[r], a)
                 _row_filter(a, kx, exposure_rows[r % depth])
+                if windowed:
+                    _row_filter(a, kx2, square_rows[0, r % depth])
+                    _kept(censored[r], b)
+                    _row_filter(b, kx2, square_rows[1, r % depth])
                 _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
             else:
                 _row_filter(s[r], kx, signal_rows[r % depth])
                 if not given:
                     _row_filter(e[r], kx, exposure_rows[r % depth])
+                if windowed:
+                    _row_filter(e[r], kx2, square_rows[0, r % depth])
+                    b[:] = np.float32(1.0)
+                    _row_filter(b, kx2, square_rows[1, r % depth])
             at_bottom[r] = _count_at_most(s[r], bottom)
         r = i - ry
         if first1 <= r < last1:  # step 1: w (wn), and the row filters of wn and wn x
@@ -463,6 +509,11 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
             else:
                 _weights(sums, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor, centre)
             lowered |= _at_most_zero(exposure_row, lower[r])
+            if windowed and first <= r < last:  # the motion tests' window mean, from the same sums
+                _column_filter(square_rows[0], rows, ky2, square_sums[0])
+                _column_filter(square_rows[1], rows, ky2, square_sums[1])
+                window_level_row(sums, exposure_row, square_sums[0], square_sums[1], window_noise[0],
+                                 window_noise[1], window[0, r], window[1, r])
             _row_filter(wn[r], kx, weight_rows[r % depth])
             _row_filter(a, kx, weighted_rows[r % depth])
         r = i - 2 * ry
@@ -493,6 +544,13 @@ def _uncensored(values, censored, out):
     """out = values, 0 where censored."""
     for c in range(out.size):
         out[c] = np.float32(0.0) if censored[c] else values[c]
+
+
+@kernel
+def _kept(censored, out):
+    """out = 1 where uncensored, 0 where censored."""
+    for c in range(out.size):
+        out[c] = np.float32(0.0) if censored[c] else np.float32(1.0)
 
 
 @kernel

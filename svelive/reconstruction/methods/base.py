@@ -81,6 +81,12 @@ class Estimate:
         variance: float32 (H, W) or None, the method's own predicted variance of
             ``image`` (DN^2 at exposure 1) where it has one.
 
+        window: (level, variance), float32 (H, W) each, or None: the motion tests' window mean
+            and its noise variance (svelive.reconstruction.numerics.window_estimate), where the
+            method made them in its own pass (asked with ``window=True``); the variance is
+            infinite where the window holds no uncensored reading (the caller takes the
+            method's own estimate there).
+
     A colour estimate (svelive.reconstruction.colour) has ``image`` (H, W, 3) camera
     RGB, and ``luminance`` (H, W), the quantity ``lower_bound`` and ``variance``
     describe and the motion tests compare.
@@ -90,6 +96,7 @@ class Estimate:
     lower_bound: np.ndarray
     variance: np.ndarray | None = None
     luminance: np.ndarray | None = None
+    window: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def plane(self) -> np.ndarray:
@@ -116,6 +123,13 @@ def binomial_kernel(size: int) -> np.ndarray:
     k = (k / k.sum()).astype(np.float32)
     k.setflags(write=False)
     return k
+
+
+def window_kernels(period: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Binomial (rows, cols) kernels of the motion tests' window holding every phase of a ``period`` tile
+    (svelive.reconstruction.numerics.window_estimate), then their squares; float32."""
+    ky, kx = (binomial_kernel(support_size(n)) for n in period)
+    return ky, kx, ky * ky, kx * kx
 
 
 def support_size(tile_length: int) -> int:
@@ -239,6 +253,28 @@ def rows_min(values, rows, out):
         row = values[rows[i]]
         for c in range(out.size):
             out[c] = min(out[c], row[c])
+
+
+@kernel
+def window_level_row(summed, exposures, exposure_squares, squares, inv_gain, floor, level, noise):
+    """One row of the window mean L = max(sum G s / sum G e, 0) and its noise variance
+    (L / g sum G^2 e + sigma^2 sum G^2) / (sum G e)^2 from its window sums over the uncensored readings
+    (float32 (W,) each; ``inv_gain`` 1 / g, ``floor`` sigma^2); 0 and an infinite variance where
+    sum G e <= 1e-12 (no uncensored reading), whose count it returns. The motion tests' estimate
+    (svelive.reconstruction.numerics.window_estimate), also made inside a method's own pass."""
+    zero, one, tiny, inf = np.float32(0), np.float32(1), np.float32(1e-12), np.float32(np.inf)
+    lost = 0
+    for c in range(level.size):
+        b, a, e2, g2 = exposures[c], summed[c], exposure_squares[c], squares[c]
+        ok = b > tiny
+        inverse = one / b
+        ratio = a * inverse
+        value = zero if ratio < zero else ratio  # numpy's maximum, NaN kept
+        variance = (value * inv_gain * e2 + floor * g2) * inverse * inverse
+        level[c] = value if ok else zero
+        noise[c] = variance if ok else inf
+        lost += not ok
+    return lost
 
 
 @kernel
