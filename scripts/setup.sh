@@ -23,8 +23,9 @@ if [ ${#missing[@]} -gt 0 ]; then
     sudo_cmd=""
     [ "$(id -u)" -eq 0 ] || sudo_cmd="sudo"
     echo "installing Debian packages: ${missing[*]}"
-    $sudo_cmd apt-get update -q
-    DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -q "${missing[@]}"
+    # waits (at most 5 minutes, saying so) while another apt job holds the package lock
+    $sudo_cmd scripts/apt-get.sh update -q
+    $sudo_cmd scripts/apt-get.sh install -y -q "${missing[@]}"
 fi
 
 python=${PYTHON:-python3}
@@ -33,3 +34,5 @@ python=${PYTHON:-python3}
 extras="gige"
 [ "${1:-}" = test ] && extras="gige,test,bench,cluster"
 .venv/bin/pip install -q -e ".[${extras}]"
+# compile the numba kernels now (cached on disk), so that the first `svelive serve` starts in seconds
+.venv/bin/python -c 'from service.commands import warm_up_kernels; warm_up_kernels("setup")'

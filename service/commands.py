@@ -7,6 +7,8 @@ import ipaddress
 import logging
 import re
 import sys
+import threading
+import time
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
@@ -86,8 +88,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from svelive.capture import open_source
     from svelive.exr import compress_on
     from svelive.memory import keep_freed_memory
-    from svelive.reconstruction.warmup import warm_up
-    from svelive.tonemap import warm_up as warm_up_preview
 
     from service.app import create_app, listen_socket
     from service.protocol import bounded_protocol
@@ -107,13 +107,20 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)
-    # compile (first run on a machine, a few seconds) or load the kernels before the first live frame
-    warm_up()
+    # the ports first: a busy one is said at once, not after minutes of compiling
+    sock = listen_socket(server)
+    try:
+        if server.rtsp_port:
+            from service.publishers.rtsp import check_port
+
+            check_port(server.host, server.rtsp_port)
+        warm_up_kernels("svelive serve")  # before the first live frame
+    except BaseException:
+        sock.close()
+        raise
     keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
     compress_on()  # EXR snapshots compressed on every core
-    warm_up_preview()  # the colour preview's kernel too
     app = create_app({name: Pipeline(config) for name, config in configs.items()}, server)
-    sock = listen_socket(server)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
     for index, (name, config) in enumerate(configs.items()):
         paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])
@@ -142,6 +149,48 @@ def cmd_serve(args: argparse.Namespace) -> int:
             rtsp.stop()
         sock.close()
     return 0
+
+
+class Ticker:
+    """Says on stderr what a long step does: a line at the start, one every ``every_s`` seconds while it
+    runs, and how long it took (a context manager; the lines come from a thread of its own)."""
+
+    def __init__(self, prefix: str, doing: str, every_s: float = 15.0) -> None:
+        self.prefix, self.doing, self.every_s = prefix, doing, every_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._tick, name="svelive-ticker", daemon=True)
+        self._started = 0.0
+
+    def say(self, text: str) -> None:
+        print(f"{self.prefix}: {text}", file=sys.stderr, flush=True)
+
+    def _tick(self) -> None:
+        while not self._stop.wait(self.every_s):
+            self.say(f"still {self.doing.split(' (')[0]}: {time.monotonic() - self._started:.0f} s")
+
+    def __enter__(self) -> Ticker:
+        self._started = time.monotonic()
+        self.say(f"{self.doing}...")
+        self._thread.start()
+        return self
+
+    def __exit__(self, kind: object, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        if kind is None:
+            self.say(f"ready in {time.monotonic() - self._started:.0f} s")
+
+
+def warm_up_kernels(prefix: str) -> None:
+    """Compile, or load from numba's disk cache, every kernel the service runs (reconstruction and preview),
+    saying so on stderr (a first start on a machine compiles for minutes)."""
+    from svelive.reconstruction.warmup import warm_up
+    from svelive.tonemap import warm_up as warm_up_preview
+
+    with Ticker(prefix, "preparing the reconstruction kernels (loaded from numba's cache; a first start on this "
+                        "machine compiles them, 1-5 minutes)"):
+        warm_up()
+        warm_up_preview()
 
 
 class TokenRedactor(logging.Filter):

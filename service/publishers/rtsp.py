@@ -48,6 +48,7 @@ import base64
 import binascii
 import collections
 import hmac
+import socket
 import threading
 import time
 import urllib.parse
@@ -290,6 +291,23 @@ def check_path(path: str) -> str:
     return path
 
 
+def port_error(host: str, port: int) -> SveliveError:
+    return SveliveError(f"cannot listen for RTSP on {host}:{port} (in use or not allowed); choose another --rtsp port")
+
+
+def check_port(host: str, port: int) -> None:
+    """A one-line SveliveError when ``host:port`` cannot be bound now (checked before a long start-up; the
+    server binds it later)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+            probe.listen(1)
+        except OSError:
+            raise port_error(host, port) from None
+
+
 class RtspServer:
     """One RTSP server: one port, one GLib main loop (a thread of its own), one token, and a mount
     point per stream (:class:`RtspPublisher`), so that every camera of a service is on one port
@@ -360,8 +378,7 @@ class RtspServer:
         context = GLib.MainContext.new()
         source_id = server.attach(context)
         if not source_id:
-            raise SveliveError(f"cannot listen for RTSP on {self.host}:{self.port} (in use or not allowed); "
-                               "choose another --rtsp port")
+            raise port_error(self.host, self.port)
         self.port = server.get_bound_port()
         self._server, self._context, self._source_id = server, context, source_id
         self._loop = GLib.MainLoop.new(context, False)
