@@ -26,7 +26,7 @@ from svelive.errors import SveliveError
 from service.guard import HostPolicy, SiteGuard, TokenGuard
 from service.pipeline import CalibrationBusy, Pipeline
 from service.publishers.mjpeg import StreamHub
-from service.routers import ServedCamera, calibration, metrics, settings as settings_router, snapshots, state, stream
+from service.routers import ServedCamera, calibration, metrics, monitor, settings as settings_router, snapshots, state, stream
 from service.settings import DEFAULT_CAMERA, ServerSettings
 
 
@@ -180,7 +180,7 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
     app.include_router(metrics.router(cameras, settings))
     for index, cam in enumerate(cameras):
         routers = [stream.router(cam), snapshots.router(cam), state.router(cam, settings),
-                   settings_router.router(cam), calibration.router(cam)]
+                   settings_router.router(cam), calibration.router(cam), monitor.router(cam)]
         for api in routers:
             app.include_router(api, prefix=f"/cam/{cam.name}")
             if index == 0:
