@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up svelive on Debian 12: system packages (as root, or through sudo), then a
 # virtual environment in .venv with the project and its extras installed.
-#   scripts/setup.sh            the service and the library
+#   scripts/setup.sh            the service, the library and what the README's commands use (bench, Dask)
 #   scripts/setup.sh test       also what the tests need (pytest, browser, GigE fake camera)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,7 +31,9 @@ fi
 python=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/pip install -q --upgrade pip
-extras="gige"
+# bench and cluster: the README's commands run as written (svelive bench needs matplotlib and scikit-image,
+# reconstruct-sequence --workers needs Dask)
+extras="gige,bench,cluster"
 [ "${1:-}" = test ] && extras="gige,test,bench,cluster"
 .venv/bin/pip install -q -e ".[${extras}]"
 # compile the numba kernels now (cached on disk), so that the first `svelive serve` starts in seconds

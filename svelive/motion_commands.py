@@ -168,6 +168,10 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
         raise SveliveError(f"--workers must be 1..256, got {args.workers}")
     if not 0 <= args.tolerance < 1:
         raise SveliveError(f"--tolerance is a fraction of the pixels, 0 <= F < 1, got {args.tolerance}")
+    if args.workers is not None or args.scheduler is not None:
+        from svelive.reprocess import require_dask
+
+        require_dask()  # before any work (it was said after the stream's noise estimate)
     settings = colour_settings(args)
     compress_on()  # this process's EXRs compressed on every core (Dask's workers keep one thread each)
     if args.source.strip().lower().startswith("replay:"):

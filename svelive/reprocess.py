@@ -757,13 +757,21 @@ def _summary(outcome: Outcome, complete: int, seconds: float, workers: int) -> S
                    outcome.tasks, outcome.reruns, workers, outcome.reasons, outcome.tolerated)
 
 
+def require_dask() -> None:
+    """A one-line SveliveError naming the pip extra when Dask's ``distributed`` cannot be imported (checked
+    before any work)."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise SveliveError(f"--workers/--scheduler need Dask: {INSTALL}") from None
+
+
 def connect(workers: int, scheduler: str | None) -> Any:
     """A dask.distributed Client: to ``scheduler`` (``tcp://HOST:8786``), or to a new local cluster of
     ``workers`` processes with one thread each. A one-line error when Dask is not installed."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise SveliveError(f"--workers/--scheduler need Dask: {INSTALL}") from None
+    require_dask()
+    from distributed import Client, LocalCluster
+
     if scheduler:
         try:
             return Client(scheduler, timeout="10s")

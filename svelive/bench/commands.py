@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from svelive.atomic import write_bytes_atomic
@@ -24,7 +26,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                    "grid.md, grid.png: every image x 4 patterns x 4 light levels x 2 true sensors x 6 "
                                    "noise models given, the default against aggregate and weighted) to DIR.")
     p.add_argument("--quick", action="store_true",
-                   help="three images, the shipped crops for colour, fewer timing runs (a couple of minutes)")
+                   help="three images, the shipped crops for colour, fewer timing runs (a few minutes on two cores; each "
+                        "part is announced as it starts)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR", help="directory for the results")
     p.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="directory of HDR .exr images (default: ../shared/data/hdr beside the checkout)")
@@ -118,6 +121,18 @@ def run_grid(out: Path, data: Path, quick: bool, images: tuple[str, ...], chart:
     return "\n" + table
 
 
+def part_announcer(args: argparse.Namespace, start: float) -> Callable[[str], None]:
+    """A function that says on stderr which part of the benchmark starts (``[2/5] NAME``, the time so far)."""
+    total = sum(not getattr(args, flag) for flag in ("no_mono", "no_live", "no_colour", "no_grid", "no_stability"))
+    numbers = itertools.count(1)
+
+    def say(name: str) -> None:
+        print(f"svelive bench: [{next(numbers)}/{total}] {name} ({time.perf_counter() - start:.0f} s so far)",
+              file=sys.stderr, flush=True)
+
+    return say
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from svelive.bench import report
     from svelive.bench.runner import BenchConfig, quick_config, run_benchmark
@@ -142,7 +157,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
               "(pass --data DIR for the full images)", file=sys.stderr)
     start = time.perf_counter()
     table = ""
+    say = part_announcer(args, start)
     if not args.no_mono:
+        say("speed and accuracy of every method (monochrome)")
         results = run_benchmark(data, config)
         results["seconds"] = round(time.perf_counter() - start, 1)
         report.write_json(out / "results.json", results)
@@ -154,12 +171,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
             truth, share, title = choice_map_example()
             report.plot_choice_map(truth, share, out / "adaptive_choice.png", title)
     if not args.no_live:
+        say("the live chart (every live ladder step's fps against PU21)")
         table += run_live(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_colour:
+        say("colour: joint against split on every layout")
         table += run_colour(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_grid:
+        say("the default's guard grid")
         table += run_grid(out, data, args.quick, config.images, not args.no_chart)
     if not args.no_stability:
+        say("stability sweeps")
         sweeps = run_stability(colour=not args.no_colour)
         report.write_json(out / "stability.json", sweeps)
         if not args.no_chart:
