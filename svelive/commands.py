@@ -16,6 +16,7 @@ from svelive.capture.images import decode_image
 from svelive.capture.source import MONO_WORDS
 from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
+from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate
 from svelive.exr import (LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, standard_attributes,
                          write_exr)
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
@@ -334,8 +335,29 @@ def _reconstruct(args: argparse.Namespace) -> int:
     kind = "" if camera.cfa is None else f", RGB ({settings.output_space})"
     print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}{kind}, method {method})")
     if args.verbose:
-        print(noise.describe())
+        print(explain_noise(noise, sensor))
     return 0
+
+
+def explain_noise(noise: NoiseEstimate, sensor: Sensor) -> str:
+    """One line for ``reconstruct -v``: each of gain and read noise given, estimated from the frame (with its
+    uncertainty), or a default the frame could not tell (and the option that gives it)."""
+    if noise.source == "given":
+        return noise.describe()
+    parts = [_noise_part("gain", noise.gain, noise.gain_sigma, "e-/DN", sensor.gain, "--gain", noise.source),
+             _noise_part("read noise", noise.read_noise, noise.read_noise_sigma, "DN", sensor.read_noise,
+                         "--read-noise", noise.source)]
+    return f"noise ({noise.source}): {'; '.join(parts)} ({noise.samples} noise samples in the frame)"
+
+
+def _noise_part(name: str, value: float, sigma: float | None, unit: str, given: float | None, option: str,
+                source: str) -> str:
+    if given is not None:
+        return f"{name} {value:.4g} {unit} as given"
+    prior_only = sigma is None or math.isclose(sigma, PRIOR_LOG_SIGMA * value, rel_tol=1e-9)
+    if source == "estimated" and not prior_only:
+        return f"{name} {value:.4g} +- {sigma:.3g} {unit} estimated from the frame"
+    return f"{name} {value:.4g} {unit} is the default: the frame's noise samples could not tell it; give {option}"
 
 
 def _demo(args: argparse.Namespace) -> int:
