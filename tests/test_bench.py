@@ -261,8 +261,8 @@ def test_cli_bench_grid_alone_writes_its_files(tmp_path):
     data.mkdir()
     write_exr(data / "Desk.exr", {"Y": load_sample_scene("desk")[:48, :48]})
     out = tmp_path / "out"
-    assert main(["bench", "--quick", "--no-mono", "--no-colour", "--no-stability", "--no-chart", "-o", str(out),
-                 "--data", str(data)]) == 0
+    assert main(["bench", "--quick", "--no-mono", "--no-colour", "--no-stability", "--no-live", "--no-chart",
+                 "-o", str(out), "--data", str(data)]) == 0
     grid = json.loads((out / "grid.json").read_text())
     assert len(grid["rows"]) == 4 * 4 * 6 and {r["sensor"] for r in grid["rows"]} == {"10000e-/2DN"}
     assert (out / "grid.csv").exists() and "mean PU21-PSNR" in (out / "grid.md").read_text()

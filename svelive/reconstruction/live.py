@@ -28,8 +28,7 @@ class LiveStep:
     """One live setting: a reconstruction method with or without temporal fusion.
 
     ``cost``: its CPU per frame relative to the top of :data:`LADDER` (measured with
-    ``benchmarks/live_ladder.py`` on 1920x1200 demo frames, the mean of monochrome and colour),
-    used only to predict whether the step above would fit before trying it.
+    ``benchmarks/live_ladder.py``), used only to predict whether the step above would fit before trying it.
     """
 
     method: str
@@ -41,13 +40,15 @@ class LiveStep:
         return f"{self.method}+fusion" if self.temporal else self.method
 
 
-#: The declared ladder, costliest first. One thread, 1920x1200 demo frames (benchmarks/live_ladder.py,
-#: 2026-11-28): CPU ms monochrome / colour 92 / 147, 72 / 134, 57 / 102, 34 / 93.
+#: The declared ladder, costliest first. ``cost``: CPU per frame relative to the top, the mean of monochrome and
+#: colour over two runs of ``benchmarks/live_ladder.py --data ../shared/data/hdr`` (1920x1200, 2 workers,
+#: 2026-11-28, the 2-core VM at load 2-5): CPU ms monochrome 102 / 76 / 64 / 33 and 92 / 71 / 62 / 34, colour
+#: 188 / 173 / 121 / 98 and 151 / 131 / 118 / 98.
 LADDER: tuple[LiveStep, ...] = (
     LiveStep("adaptive", True, 1.0),
-    LiveStep("weighted", True, 0.85),
-    LiveStep("adaptive", False, 0.65),
-    LiveStep("weighted", False, 0.5),
+    LiveStep("weighted", True, 0.83),
+    LiveStep("adaptive", False, 0.68),
+    LiveStep("weighted", False, 0.47),
 )
 
 
