@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from svelive import __version__ as svelive_version
-from svelive.atomic import write_bytes_atomic
+from svelive.atomic import check_output_target, write_bytes_atomic
 from svelive.camera import COLOUR_LAYOUTS, Camera
 from svelive.capture.images import decode_image
 from svelive.capture.source import MONO_WORDS
@@ -278,6 +278,7 @@ def _sensor_from_args(args: argparse.Namespace, raw: np.ndarray | None = None) -
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    check_outputs(args.output, args.truth)
     camera = camera_from_args(args.pattern, args.cfa)
     pattern = camera.require_pattern()
     if not args.hdr or not Path(args.hdr).is_file():
@@ -302,6 +303,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
+    check_outputs(args.output)
     compress_on()  # the output's compression on every core
     camera = camera_from_args(args.pattern, args.cfa)
     settings = colour_settings(args)
@@ -339,6 +341,13 @@ def _reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_outputs(*paths: Path | None) -> None:
+    """Refuse an output that cannot be written (a FIFO, link, directory, missing folder) before any work."""
+    for path in paths:
+        if path is not None:
+            check_output_target(path)
+
+
 def explain_noise(noise: NoiseEstimate, sensor: Sensor) -> str:
     """One line for ``reconstruct -v``: each of gain and read noise given, estimated from the frame (with its
     uncertainty), or a default the frame could not tell (and the option that gives it)."""
@@ -361,6 +370,7 @@ def _noise_part(name: str, value: float, sigma: float | None, unit: str, given: 
 
 
 def _demo(args: argparse.Namespace) -> int:
+    check_outputs(args.output)
     cfa = parse_cfa(args.cfa if args.cfa is not None else DEMO_CFA)
     camera = camera_from_args(args.pattern or (DEMO_MONO_PATTERN if cfa is None else DEMO_COLOUR_PATTERN),
                               args.cfa if args.cfa is not None else DEMO_CFA, Sensor.from_full_well(12, 10_000, 3))

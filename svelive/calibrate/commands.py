@@ -17,6 +17,7 @@ from svelive.calibrate.noise import estimate_noise
 from svelive.calibrate.response import SWEEP_KNOTS, ResponseFitConfig, fit_response, save_response, write_json
 from svelive.camera import Camera, one_colour_plane
 from svelive.commands import read_raw
+from svelive.atomic import check_output_target
 from svelive.errors import SveliveError
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor, container_bits
@@ -141,6 +142,7 @@ def _recorded_sweep(args: argparse.Namespace) -> tuple[list[np.ndarray], list[fl
 
 
 def _response(args: argparse.Namespace) -> int:
+    check_output_target(args.output)  # before the fits, not after them
     if any(p.suffix.lower() == ".sverec" for p in args.raw):
         raws, times, camera = _recorded_sweep(args)
     else:
@@ -169,6 +171,7 @@ def _response(args: argparse.Namespace) -> int:
 
 
 def _mask(args: argparse.Namespace) -> int:
+    check_output_target(args.output)
     flats = [read_raw(p) for p in args.flats]
     sensor = [sensor_from_args(f, args, p) for f, p in zip(flats, args.flats)][0]
     mask = estimate_mask(flats, parse_tile(args.tile), sensor, MaskConfig(vignetting_degree=args.vignetting_degree))
@@ -180,6 +183,8 @@ def _mask(args: argparse.Namespace) -> int:
 
 
 def _noise(args: argparse.Namespace) -> int:
+    if args.output:
+        check_output_target(args.output)
     frames = [read_raw(p) for p in args.frames]
     sensor = sensor_from_args(frames[0], args, args.frames[0], required=False)
     pattern = Pattern.parse(args.pattern) if args.pattern else None
