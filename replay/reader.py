@@ -7,14 +7,16 @@ damaged record header in the middle is skipped (the records after it are at
 their fixed offsets, so every intact frame is recovered; the damaged one keeps
 its place and is listed in :attr:`RecordingReader.damaged`), and a torn last
 record (short, or its payload checksum fails) is dropped. Every problem found
-is kept in :attr:`RecordingReader.warnings` and reported with ``warnings.warn``;
-frames that are readable stay readable.
+is kept in :attr:`RecordingReader.warnings` and reported with ``warnings.warn`` as a
+:class:`RecordingWarning`, which prints as one plain line (``svelive: warning: ...``, no source
+code) in the CLI and the service's log; frames that are readable stay readable.
 """
 
 from __future__ import annotations
 
 import bisect
 import os
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -34,6 +36,36 @@ from svelive.cfa import ColourFilter
 
 class CorruptFrameError(RecordingError):
     """One frame's checksum does not match: it was damaged after writing."""
+
+
+class RecordingWarning(UserWarning):
+    """A problem of a recording that leaves its readable frames readable (shown as one plain line)."""
+
+
+def report(text: str) -> None:
+    """Report ``text`` as a :class:`RecordingWarning` (one plain line on stderr, see :func:`_show`)."""
+    warnings.warn(RecordingWarning(text), stacklevel=2)
+
+
+_default_show = warnings.showwarning
+
+
+def _show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+          file: Any = None, line: str | None = None) -> None:
+    """``warnings.showwarning`` that prints a RecordingWarning as ``svelive: warning: TEXT`` (Python's
+    default shows the file, line and source code of the call); any other warning as before."""
+    if not issubclass(category, RecordingWarning):
+        _default_show(message, category, filename, lineno, file, line)
+        return
+    stream = sys.stderr if file is None else file
+    try:
+        stream.write(f"svelive: warning: {message}\n")
+    except (OSError, AttributeError, ValueError):  # no stderr (a daemon): as Python's default, say nothing
+        pass
+
+
+if getattr(warnings.showwarning, "__module__", None) == "warnings":
+    warnings.showwarning = _show  # over Python's own hook only: one that a host installed is left alone
 
 
 class RecordingReader:
@@ -115,7 +147,7 @@ class RecordingReader:
         self._exposures: np.ndarray | None = None
         if warn:
             for w in self.warnings:
-                warnings.warn(w, stacklevel=3)
+                report(w)
 
     def _warn(self, text: str) -> None:
         self.warnings.append(f"{self.path}: {text}")
@@ -332,7 +364,7 @@ def _exposure_counts(exposures: np.ndarray) -> list[list[float | int]] | None:
     return [[float(v), int(n)] for v, n in zip(values, counts)]
 
 
-def _ranges(indices: tuple[int, ...]) -> str:
+def _ranges(indices: tuple[int, ...] | list[int]) -> str:
     """``"3, 7-9"`` for (3, 7, 8, 9)."""
     parts: list[str] = []
     start = prev = indices[0]

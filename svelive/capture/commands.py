@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from replay import CorruptFrameError, RecordingReader, RecordingWriter, WriterConfig
+from replay.reader import _ranges, report
 from svelive.capture import AfterChange, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
@@ -47,11 +48,16 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_record)
 
     p = sub.add_parser("replay-info", help="print a recording's summary as JSON",
-                       description="Prints the header, frame count, timing and the problems found while opening. "
-                                   "--verify reads every frame and checks its checksums (exit status 1 when a "
-                                   "frame is damaged).")
+                       description="Prints the header, frame count, timing and the problems found, reading "
+                                   "every frame to check its checksums: damaged_records lists every frame that "
+                                   "export and reconstruct would skip (a damaged record header or damaged data). "
+                                   "--no-verify: the header and index only; --verify: exit status 1 when a frame "
+                                   "is damaged.")
     p.add_argument("path", type=Path)
-    p.add_argument("--verify", action="store_true", help="check every frame's payload checksum")
+    check = p.add_mutually_exclusive_group()
+    check.add_argument("--verify", action="store_true", help="exit status 1 when a frame is damaged")
+    check.add_argument("--no-verify", action="store_true",
+                       help="do not read the frames (fast; a frame with damaged data is not found)")
     add_quiet_argument(p)
     p.set_defaults(func=_replay_info)
 
@@ -243,11 +249,25 @@ def _replay_info(args: argparse.Namespace) -> int:
 
     with RecordingReader(args.path) as reader:
         info = reader.info()
-        if args.verify:
+        if not args.no_verify:
             damaged = _verify(reader, args.quiet)
-            info["verified"] = {"frames": len(reader), "intact": len(reader) - len(damaged), "damaged": damaged}
+            _add_verified(info, reader, damaged)
         print_json(info)
     return 1 if args.verify and info["verified"]["damaged"] else 0
+
+
+def _add_verified(info: dict[str, Any], reader: RecordingReader, damaged: list[int]) -> None:
+    """``info`` with what reading every frame found: ``verified`` (frames, intact, damaged), every damaged
+    frame in ``damaged_records`` (the index rebuild finds only damaged record headers) and one warning
+    line naming the frames with damaged data (also printed, as the reader's warnings are)."""
+    info["verified"] = {"frames": len(reader), "intact": len(reader) - len(damaged), "damaged": damaged}
+    info["damaged_records"] = sorted(set(info["damaged_records"]) | set(damaged))
+    data = [i for i in damaged if i not in set(reader.damaged)]
+    if data:
+        line = (f"{reader.path}: {len(data)} of {len(reader)} frames damaged (data checksum mismatch: "
+                f"{_ranges(data)}); export and reconstruct skip them")
+        info["warnings"] = [*info["warnings"], line]
+        report(line)
 
 
 def _verify(reader: RecordingReader, quiet: bool) -> list[int]:

@@ -38,13 +38,13 @@ import math
 import threading
 import time
 from dataclasses import replace
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from replay import CorruptFrameError, RecordingReader
+from replay.reader import report
 from svelive.capture import make_config
 from svelive.capture.source import EndOfStream, Source
 from svelive.errors import SveliveError
@@ -293,7 +293,7 @@ class ReplaySource(Source):
         try:
             rec = reader.read(i)
         except CorruptFrameError as exc:
-            warnings.warn(str(exc), stacklevel=3)
+            report(str(exc))  # one plain line, not Python's warning with its source line
             self._drop("checksum")
             return None
         self._last_index = i
