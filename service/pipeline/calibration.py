@@ -23,6 +23,11 @@ from svelive.memory import release_memory
 #: most exposure times one sweep takes
 MAX_SWEEP = 16
 
+#: the sweep's refusal once the source has ended (an ``images:`` folder played out, a replay's end)
+ENDED = ("the source has ended, so no exposure time can be stepped and it cannot sweep; calibrate from its "
+         "last frame (POST without \"sweep\") or sweep offline (svelive calibrate response FRAMES "
+         "--exposure-times)")
+
 #: relative difference between a frame's exposure time and the one the sweep set beyond which they differ
 EXPOSURE_RTOL = 1e-3
 
@@ -153,14 +158,17 @@ class Calibration:
         exposure times the camera reported back (``svelive.calibrate.fit_response``), the camera
         going back to its exposure time meanwhile. :meth:`job_state` reports the progress and
         the result; returns it. Raises ExposureUnsupported when the source cannot set its
-        exposure time, CalibrationBusy while another calibration runs, SveliveError for bad
-        times or when no source is connected.
+        exposure time (also once it has ended, or for times it cannot take: checked here, before
+        the job starts), CalibrationBusy while another calibration runs, SveliveError for bad
+        times or when no frame came yet.
         """
         if not 1 <= max_degree <= 10:
             raise SveliveError(f"max_degree must be 1..10, got {max_degree}")
         if not 0 <= max_knots <= 16:
             raise SveliveError(f"max_knots must be 0..16 (0: polynomials only), got {max_knots}")
         times = check_sweep(times)
+        if source is None and self._newest_raw() is not None:
+            raise ExposureUnsupported(ENDED)
         if source is None or self._newest_raw() is None:
             raise SveliveError("no frame yet: the sweep needs a connected camera")
         original = source.exposure_time()

@@ -169,7 +169,14 @@ class Source:
     def check_exposure_times(self, values: list[float]) -> None:
         """Raise a one-line SveliveError when :meth:`set_exposure_time` could not take one of
         ``values``, before anything is changed. A camera takes any time (it clamps or rounds, and
-        reports what it applied), so the default accepts them all."""
+        reports what it applied), so the default accepts them all, unless the source checks a
+        value with a ``_check_exposure(value)`` of its own (the demo: its range), which is asked
+        for each of them."""
+        check = getattr(self, "_check_exposure", None)
+        if check is None:
+            return
+        for value in values:
+            check(float(value))
 
     # ----- lifecycle ---------------------------------------------------
     def resume_after(self, frame: Frame) -> None:
