@@ -107,7 +107,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)
-    # the ports first: a busy one is said at once, not after minutes of compiling
+    # the configured response and mask files are read as each pipeline is built: a bad one fails now, in one line
+    pipelines = {name: Pipeline(config) for name, config in configs.items()}
+    # the ports next: a busy one is said at once, not after minutes of compiling
     sock = listen_socket(server)
     try:
         if server.rtsp_port:
@@ -120,7 +122,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise
     keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
     compress_on()  # EXR snapshots compressed on every core
-    app = create_app({name: Pipeline(config) for name, config in configs.items()}, server)
+    app = create_app(pipelines, server)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
     for index, (name, config) in enumerate(configs.items()):
         paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])
