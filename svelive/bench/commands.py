@@ -136,7 +136,7 @@ def part_announcer(args: argparse.Namespace, start: float) -> Callable[[str], No
 def cmd_bench(args: argparse.Namespace) -> int:
     from svelive.bench import report
     from svelive.bench.runner import BenchConfig, quick_config, run_benchmark
-    from svelive.bench.scenes import default_data_dir, shipped_data_dir
+    from svelive.bench.scenes import default_data_dir, find_images, shipped_data_dir
     from svelive.bench.stability import colour_edge_crops, run_stability
 
     out: Path = args.output
@@ -148,13 +148,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from svelive.metrics import skimage_color
 
         skimage_color()  # the colour error's library, checked before the long run too
-    out.mkdir(parents=True, exist_ok=True)
     config = quick_config() if args.quick else BenchConfig()
     data = args.data or default_data_dir()
     if args.data is None and not data.is_dir():
         data = shipped_data_dir()
         print(f"svelive bench: {default_data_dir()} not found: benchmarking the shipped crops in {data} "
               "(pass --data DIR for the full images)", file=sys.stderr)
+    find_images(data)  # a missing or empty directory is said before any part starts
+    out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     table = ""
     say = part_announcer(args, start)
