@@ -178,3 +178,29 @@ def test_a_slowed_reconstruction_steps_down_and_holds_the_cameras_rate(slow_meth
         assert "frames dropped" in quality["reason"] and "slow+fusion takes" in quality["reason"]
         assert share >= 0.9, f"after stepping down only {share:.0%} of the camera's frames were reconstructed"
         assert state["method"] == "slow"  # the configured method is still what the user chose
+
+
+def test_a_gap_in_the_frames_is_not_evidence_of_headroom():
+    """A source that went offline: the first frames after the gap do not make a window, so no step up on them."""
+    quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0))
+    counts = [0, 0]
+    now = feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3}, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+    now = feed(quality, 2.5, lambda name: 30.0, {}, start_ns=now, counts=counts)  # no headroom: 30 of 33 ms
+    assert quality.step.name == "weighted+fusion"
+    now += 60 * 10**9  # a minute offline
+    for i in range(3):  # two fast frames after it
+        counts[0] += 1
+        quality.observe(now + i * FRAME_NS, counts[0], counts[1], 5.0, quality.step)
+    assert quality.step.name == "weighted+fusion"
+
+
+def test_frames_reconstructed_in_parallel_are_judged_per_frame_interval():
+    """With two frames at once each may take two frame intervals: 50 ms of 33 with no drops is headroom enough
+    to try the step above (25 ms a frame), not a reason to stay."""
+    quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0), parallel=2)
+    counts = [0, 0]
+    now = feed(quality, 3.0, lambda name: 150.0, {"adaptive+fusion": 3}, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+    feed(quality, 4.0, lambda name: 40.0, {}, start_ns=now, counts=counts)
+    assert quality.step.name == "adaptive+fusion"

@@ -71,10 +71,10 @@ class Pipeline:
         # the configured response and mask are read now, so a bad file fails before serving
         self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw, self._stop)
         self._method = config.method or default_method(config.temporal)
-        self.quality = LiveQuality(self._method, config.temporal, config.live_quality)
+        frames = min(config.parallel_frames, self.workers)
+        self.quality = LiveQuality(self._method, config.temporal, config.live_quality, parallel=frames)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, self.quality, self.capture.captured,
-                                                  self.workers, self._cond, self.drops, self._stop,
-                                                  frames=min(config.parallel_frames, self.workers))
+                                                  self.workers, self._cond, self.drops, self._stop, frames=frames)
         self.encoder = EncoderStage(config, self.reconstruction.latest, self.capture.online, self._cond, self.drops,
                                     self._stop)
         self.captured = self.capture.captured

@@ -64,8 +64,9 @@ class LiveQuality:
     """
 
     def __init__(self, method: str, temporal: bool, mode: str = "adaptive",
-                 config: QualityConfig | None = None) -> None:
+                 config: QualityConfig | None = None, parallel: int = 1) -> None:
         self.config = config or QualityConfig()
+        self.parallel = max(1, parallel)  # frames reconstructed at once (PipelineConfig.parallel_frames)
         self._lock = threading.Lock()
         self.mode = mode
         self.steps = ladder_for(method, temporal, mode)
@@ -112,15 +113,17 @@ class LiveQuality:
                 self._since_ns = now_ns
             self._samples.append((now_ns, arrived, lost, reconstruct_ms))
             window_ns = int(c.window_s * 1e9)
-            while len(self._samples) > 2 and self._samples[1][0] <= now_ns - window_ns:
+            while self._samples[0][0] < now_ns - window_ns:  # the window's own frames only (not across a gap)
                 self._samples.popleft()
             t0, arrived0, lost0, _ = self._samples[0]
             span_s = (now_ns - t0) / 1e9
-            if span_s <= 0 or now_ns - self._since_ns < window_ns:
-                return  # a window of this step's frames first
+            if span_s < 0.75 * c.window_s or now_ns - self._since_ns < window_ns:
+                return  # a window of this step's frames first (after a gap in the frames, too)
             new, dropped = arrived - arrived0, lost - lost0
             interval_ms = 1e3 * span_s / max(new, 1)
-            self._reconstruct_ms = median = statistics.median(sample[3] for sample in self._samples)
+            # with several frames reconstructed at once, each takes up to that many frame intervals
+            median = statistics.median(sample[3] for sample in self._samples) / self.parallel
+            self._reconstruct_ms = median
             # losses alone could be a burst (a noise estimate, a collection); a reconstruction that takes most
             # of the frame interval is what cannot keep the rate
             self._behind = dropped >= c.min_lost and dropped > c.behind * new and median > c.busy * interval_ms
