@@ -56,12 +56,19 @@ def test_viewer_loads_shows_live_video_and_state(tmp_path, token):
         assert "weighted" in page.eval_on_selector("#method", "s => [...s.options].map(o => o.value).join()")
         # the live-quality step that runs, as the state says it
         live = srv.pipeline.state()["live_quality"]
-        assert page.text_content("#quality").startswith(live["name"]) and live["mode"] in page.text_content("#quality")
+        shown = page.text_content("#live-quality")
+        assert shown.startswith(live["name"]) and live["mode"] in shown
         # a control round trip: the exposure slider PUTs the setting
         page.eval_on_selector("#ev", "e => { e.value = '2'; e.dispatchEvent(new Event('change')); }")
         deadline = time.monotonic() + 5
         while srv.pipeline.settings()["tone"]["exposure_ev"] != 2.0:
             assert time.monotonic() < deadline, "the exposure control did not reach the server"
+            time.sleep(0.1)
+        # and the JPEG quality slider (its id once clashed with the live-quality row's)
+        page.eval_on_selector("#quality", "e => { e.value = '55'; e.dispatchEvent(new Event('change')); }")
+        deadline = time.monotonic() + 5
+        while srv.pipeline.settings()["jpeg_quality"] != 55:
+            assert time.monotonic() < deadline, "the JPEG quality control did not reach the server"
             time.sleep(0.1)
         shot = tmp_path / "viewer.png"
         page.screenshot(path=str(shot))
