@@ -33,8 +33,8 @@ python=${PYTHON:-python3}
 .venv/bin/pip install -q --upgrade pip
 # bench and cluster: the README's commands run as written (svelive bench needs matplotlib and scikit-image,
 # reconstruct-sequence --workers needs Dask)
-extras="gige,bench,cluster"
-[ "${1:-}" = test ] && extras="gige,test,bench,cluster"
+extras="gige,bench,cluster,hdr"
+[ "${1:-}" = test ] && extras="gige,test,bench,cluster,hdr"
 .venv/bin/pip install -q -e ".[${extras}]"
 # compile the numba kernels now (cached on disk), so that the first `svelive serve` starts in seconds
 .venv/bin/python -c 'from service.commands import warm_up_kernels; warm_up_kernels("setup")'

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from svelive import monitor
+from svelive import hdr_encode, monitor
 from svelive.whitebalance import WhiteBalance
 
 from service.pipeline import Pipeline
@@ -165,6 +165,43 @@ def router(cam: ServedCamera) -> APIRouter:
                     "channels": "camera" if published.hdr.image.ndim == 3 else "Y"}
 
         return JSONResponse(await run_in_threadpool(make), headers=NO_STORE)
+
+    async def hdr_snapshot(published: Published, encode: Callable[[Basis], bytes], media: str, suffix: str) -> Any:
+        """One encode of ``published`` per request, off the event loop; 503 naming the extra without it."""
+        if not hdr_encode.available():
+            return JSONResponse({"detail": f"HDR snapshots need imagecodecs: {hdr_encode.INSTALL}"},
+                                status_code=503)
+
+        def make() -> bytes | None:
+            basis = products.basis(published)
+            return None if basis.grey is None else encode(basis)
+
+        data = await run_in_threadpool(make)
+        if data is None:
+            return JSONResponse({"detail": "the frame has no positive pixel: no mid-grey to expose by"},
+                                status_code=409)
+        frame_id = published.hdr.frame_id
+        return Response(data, media_type=media, headers={
+            **NO_STORE, "X-Timestamp": f"{published.wall_time:.6f}", "X-Frame-Id": str(frame_id),
+            "Content-Disposition": f'inline; filename="svelive-{frame_id}{suffix}"'})
+
+    @api.get("/snapshot.avif")
+    async def snapshot_avif(transfer: str = Query("pq"), bits: int = Query(10),
+                            frame: int | None = Query(None)) -> Any:
+        transfer, bits = hdr_encode.check_transfer(transfer), hdr_encode.check_bits(bits)
+        published = find(frame)
+        if isinstance(published, JSONResponse):
+            return published
+        return await hdr_snapshot(published, lambda basis: hdr_encode.encode_avif(
+            published.hdr.image, basis.matrix, basis.grey, transfer=transfer, bits=bits), "image/avif", ".avif")
+
+    @api.get("/snapshot.uhdr.jpg")
+    async def snapshot_uhdr(frame: int | None = Query(None)) -> Any:
+        published = find(frame)
+        if isinstance(published, JSONResponse):
+            return published
+        return await hdr_snapshot(published, lambda basis: hdr_encode.encode_ultrahdr(
+            published.hdr.image, basis.matrix, basis.grey), "image/jpeg", ".uhdr.jpg")
 
     @api.get("/api/overlay")
     async def overlay_legend() -> dict[str, Any]:
