@@ -82,15 +82,25 @@ class LiveQuality:
         self._reconstruct_ms: float | None = None
 
     def configure(self, method: str, temporal: bool) -> None:
-        """A new configured setting (the user changed the method): back to its top step."""
+        """A new configured setting (the user changed the method): back to its top step. The same setting
+        again (a client that PUTs every setting) changes nothing."""
         with self._lock:
-            self.steps = ladder_for(method, temporal, self.mode)
+            steps = ladder_for(method, temporal, self.mode)
+            if steps == self.steps:
+                return
+            self._changes += self._index != 0
+            self.steps, self._index = steps, 0  # under the lock; readers take the pair through ``step``
             self._moved(0, "the configured setting", None)
-            self._hold_s = self.config.hold_s
+            self._hold_s, self._stepped_up_ns = self.config.hold_s, None
 
     @property
     def step(self) -> LiveStep:
-        """The step that runs now."""
+        """The step that runs now (any thread)."""
+        with self._lock:
+            return self.steps[self._index]
+
+    def _step(self) -> LiveStep:
+        """:attr:`step` for a caller holding the lock."""
         return self.steps[self._index]
 
     def _moved(self, index: int, reason: str, now_ns: int | None) -> None:
@@ -107,18 +117,19 @@ class LiveQuality:
         setting it was made with (frames of an earlier step are not evidence about this one)."""
         c = self.config
         with self._lock:
-            if step != self.step:
+            if step != self._step():
                 return
             if self._since_ns is None:
                 self._since_ns = now_ns
             self._samples.append((now_ns, arrived, lost, reconstruct_ms))
             window_ns = int(c.window_s * 1e9)
-            while self._samples[0][0] < now_ns - window_ns:  # the window's own frames only (not across a gap)
+            # the frames of the last window, and the one before it (frames slower than the window still judge)
+            while len(self._samples) > 2 and self._samples[1][0] <= now_ns - window_ns:
                 self._samples.popleft()
             t0, arrived0, lost0, _ = self._samples[0]
             span_s = (now_ns - t0) / 1e9
-            if span_s < 0.75 * c.window_s or now_ns - self._since_ns < window_ns:
-                return  # a window of this step's frames first (after a gap in the frames, too)
+            if span_s <= 0 or now_ns - self._since_ns < window_ns:
+                return  # a window of this step's frames first
             new, dropped = arrived - arrived0, lost - lost0
             interval_ms = 1e3 * span_s / max(new, 1)
             # with several frames reconstructed at once, each takes up to that many frame intervals
@@ -128,13 +139,15 @@ class LiveQuality:
             # of the frame interval is what cannot keep the rate
             self._behind = dropped >= c.min_lost and dropped > c.behind * new and median > c.busy * interval_ms
             if self._behind:
-                self._step_down(now_ns, f"{dropped} of {new} frames dropped in {span_s:.1f} s: {self.step.name} "
+                self._step_down(now_ns, f"{dropped} of {new} frames dropped in {span_s:.1f} s: {self._step().name} "
                                         f"takes {median:.0f} ms of a {interval_ms:.0f} ms frame interval")
-            elif self._index > 0 and not dropped and now_ns - self._since_ns >= self._hold_s * 1e9:
+            # a step up needs a window of frames that arrived steadily: not across a gap (a source offline)
+            elif (self._index > 0 and not dropped and now_ns - self._since_ns >= self._hold_s * 1e9
+                  and span_s <= 2 * c.window_s):
                 above = self.steps[self._index - 1]
-                if median * above.cost / self.step.cost <= c.headroom * interval_ms:
+                if median * above.cost / self._step().cost <= c.headroom * interval_ms:
                     self._stepped_up_ns = now_ns
-                    self._moved(self._index - 1, f"headroom: {self.step.name} took {median:.0f} ms of a "
+                    self._moved(self._index - 1, f"headroom: {self._step().name} took {median:.0f} ms of a "
                                                  f"{interval_ms:.0f} ms frame interval for {self._hold_s:.0f} s",
                                 now_ns)
 
@@ -150,7 +163,7 @@ class LiveQuality:
     def state(self) -> dict[str, Any]:
         """JSON-ready: mode, the step that runs (index, name, method, temporal), the ladder, why, changes."""
         with self._lock:
-            step = self.step
+            step = self._step()
             return {"mode": self.mode, "step": self._index, "name": step.name, "method": step.method,
                     "temporal": step.temporal, "steps": [s.name for s in self.steps], "reason": self._reason,
                     "behind": self._behind, "changes": self._changes, "hold_s": self._hold_s,

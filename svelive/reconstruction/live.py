@@ -54,12 +54,13 @@ LADDER: tuple[LiveStep, ...] = (
 
 def ladder_for(method: str, temporal: bool, mode: str = "adaptive") -> tuple[LiveStep, ...]:
     """The steps for a configured ``method`` and ``temporal``: that setting first, then every step of
-    :data:`LADDER` below it (cheaper), without fusion where the configuration has none; ``fixed``: the
+    :data:`LADDER` below it (cheaper), without fusion where the configuration has none; ``fixed``, or a
+    setting outside the ladder (``aggregate``, ``cubic``: no step is known to be cheaper than it), the
     configured setting alone."""
     check_live_quality(mode)
     names = [(step.method, step.temporal) for step in LADDER]
-    top = LADDER[names.index((method, temporal))] if (method, temporal) in names else LiveStep(method, temporal)
-    if mode == "fixed":
-        return (top,)
-    below = LADDER[names.index((method, temporal)) + 1:] if (method, temporal) in names else LADDER
-    return (top, *(step for step in below if temporal or not step.temporal))
+    if mode == "fixed" or (method, temporal) not in names:
+        return (LADDER[names.index((method, temporal))] if (method, temporal) in names
+                else LiveStep(method, temporal),)
+    below = LADDER[names.index((method, temporal)) + 1:]
+    return (LADDER[names.index((method, temporal))], *(step for step in below if temporal or not step.temporal))
