@@ -111,3 +111,22 @@ def test_variance_uncertainty_and_agreement():
     assert variance_uncertainty(NoiseEstimate(4.0, 1.0, None, 0.1, 0, "estimated")) == np.inf
     assert agree(e, NoiseEstimate(4.5, 1.0, 0.4, 0.1, 0, "estimated"))
     assert not agree(e, NoiseEstimate(8.0, 1.0, 0.4, 0.1, 0, "estimated"))
+
+
+def test_without_fusion_the_first_frames_model_is_final(monkeypatch):
+    """A stream without temporal fusion has no motion mask telling still pixels: its tracker is fed nothing
+    after the first frame's single-frame estimate (fed every frame, each started a run of its own that was never
+    fitted, at a tracker's cost per frame); with fusion it is fed on its schedule."""
+    from svelive.noise import NoiseTracker
+
+    added = []
+    original = NoiseTracker.add
+    monkeypatch.setattr(NoiseTracker, "add", lambda self, *a, **k: (added.append(1), original(self, *a, **k))[1])
+    frames = dim_frames("desk", 5)
+    for temporal in (False, True):
+        added.clear()
+        with svelive.Reconstructor(PATTERN, black_level=64, white_level=4095, temporal=temporal) as stream:
+            for raw in frames:
+                stream.process(raw)
+            assert stream.noise is not None and stream.noise.source != "given"
+        assert (len(added) > 0) == temporal, (temporal, len(added))

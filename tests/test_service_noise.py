@@ -90,3 +90,21 @@ def test_frames_dropped_between_reconstructed_ones_still_make_runs():
     for frame_id in (12, 3, 5):
         stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
     assert stage._pending is None
+
+
+def test_unfused_frames_are_not_offered_as_still():
+    """Without fusion a frame's motion mask is all False and says nothing of which pixels are still: the noise
+    stage gets no run of such frames (it took them as still and fitted moving pixels' differences)."""
+    import time
+
+    from service.pipeline import Pipeline, PipelineConfig
+
+    config = PipelineConfig(source="demo", source_options={"width": 160, "height": 96, "fps": 15}, temporal=False,
+                            live_quality="fixed")
+    with Pipeline(config) as pipeline:
+        deadline = time.monotonic() + 30
+        while pipeline.state()["frames"]["reconstructed"] < 20:
+            assert time.monotonic() < deadline, "no frames"
+            time.sleep(0.1)
+        time.sleep(1.0)  # a run offered at the 3rd frame would have been fitted by now
+        assert pipeline.reconstruction.noise.updates == 0

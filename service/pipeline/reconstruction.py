@@ -28,7 +28,7 @@ class ReconstructionStage:
     encoder waits on it). The method and fusion setting are the live-quality ladder's
     current step (``quality``, :class:`LiveQuality`), which every published frame feeds
     with the camera's arrivals (``captured``) and the frames dropped while it was busy;
-    :meth:`configure` changes the configured method at run time.
+    ``LiveQuality.configure`` changes the configured method at run time.
 
     ``frames`` threads each take the next frame and make its history-free part
     (``Reconstructor.estimate``, spread over ``workers // frames`` strip threads), then
@@ -160,7 +160,10 @@ class ReconstructionStage:
                        host_time_ns=frame.host_time_ns, device_time_ns=frame.device_time_ns,
                        method=result.method, motion=result.motion, timings_ms=timings, camera=camera)
         self.motion_fraction = result.moving_fraction
-        self.noise.offer(frame, calibrated, result.motion)
+        # a frame not fused with a history (a step without fusion, a stream's first frame) has an all-False motion
+        # mask that says nothing of which pixels are still: the noise stage must not take it for one
+        fused = step.temporal and result.frame_index > 0
+        self.noise.offer(frame, calibrated, result.motion if fused else None)
         self._seq += 1
         published = Published(hdr, self._seq, done_ns)
         self.reconstructed.tick(done_ns)

@@ -452,8 +452,10 @@ class Reconstructor:
                 luminance, inter = image, parts.interpolation
             image = colour.colourise(luminance, inter, self._threads)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
-        if current:
-            self._observe_noise(estimated, motion, related and self.temporal)
+        # without fusion no frame's motion says which pixels are still: the first frame's model is final (fed
+        # every frame, each would start a run of the tracker's own that is never fitted, at a tracker's cost)
+        if current and self.temporal:
+            self._observe_noise(estimated, motion, related)
         motion_ms = estimated.motion_ms + (time.perf_counter() - t1) * 1e3
         with self._lock:
             if self._generation == estimated.generation:
