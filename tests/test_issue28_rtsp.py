@@ -136,5 +136,13 @@ def test_time_stamps_are_on_the_frame_grid_and_strictly_increase():
     assert next_pts(0, None, interval) == 0
     assert next_pts(5_000_000, 0, interval) is None  # the frame pushed as the media starts: same slot as the first
     assert next_pts(40_000_000, 0, interval) == interval  # rounded down, never ahead of the running time
-    assert next_pts(60_000_000, interval, interval) is None  # closer than one interval to the last
     assert next_pts(70_000_000, interval, interval) == 2 * interval
+    # jitter: a frame in a taken slot takes the next one when that is at most half an interval ahead of it
+    assert next_pts(60_000_000, interval, interval) == 2 * interval
+    assert next_pts(40_000_000, interval, interval) is None  # 27 ms ahead: too close to the frame before
+    stamps, last = [], None  # 30 fps with 2 ms of jitter across a slot's edge: every frame gets a stamp
+    for k in range(1, 60):
+        running = k * interval + (1_000_000 if k % 2 else -1_000_000)
+        last = next_pts(running, last, interval) or last
+        stamps.append(last)
+    assert len(set(stamps)) == len(stamps) and all(b > a for a, b in zip(stamps, stamps[1:]))

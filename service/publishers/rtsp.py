@@ -181,19 +181,22 @@ def running_time_ns(now_ns: int, base_time_ns: int) -> int:
 def next_pts(running_ns: int, last_pts_ns: int | None, interval_ns: int) -> int | None:
     """The time stamp (ns) of a frame whose running time is ``running_ns``, after a frame stamped ``last_pts_ns``
     (None: the media's first), or None to skip the frame: the running time rounded down to a whole number of
-    ``interval_ns`` (one frame at the nominal rate), skipped when that is not after the last stamp.
+    ``interval_ns`` (one frame at the nominal rate); where that slot is taken, the next one, if it is at most half
+    an interval ahead of the running time; else the frame is skipped.
 
     Why: a frame pushed before the pipeline plays and the first one pushed as it starts both have a running
     time of about 0 (:func:`running_time_ns`), and two pictures with one RTP time stamp are one picture to a
     client; and clients that count time in frames (ffmpeg counts in frames of the rate it guesses from the
     time stamps' spacing) gave two frames closer than that one number ("non monotonically increasing dts").
     On the grid of the nominal interval every frame has a slot of its own and the guessed rate is the
-    nominal one. A stamp is never ahead of the running time (a synchronised sink would hold the frame), and a
-    frame skipped costs nothing a viewer sees: it came less than an interval after the one before."""
+    nominal one. Frames at the nominal rate with jitter often fall twice into one slot: the later one takes the
+    next slot (a stamp at most half an interval ahead of the running time), so no picture is lost to jitter;
+    only a frame less than half an interval after the one before is skipped (counted by the caller)."""
     slot = running_ns // interval_ns * interval_ns
-    if last_pts_ns is not None and slot <= last_pts_ns:
-        return None
-    return slot
+    if last_pts_ns is None or slot > last_pts_ns:
+        return slot
+    following = last_pts_ns + interval_ns
+    return following if following - running_ns <= interval_ns // 2 else None
 
 
 def media_running_time(src: Any) -> int:
@@ -488,6 +491,7 @@ class RtspPublisher:
         self._keyframe_wanted = False  # a client started playing: the encoder thread forces a keyframe
         self._clients = 0
         self.pushed = RateMeter()
+        self.skipped = 0  # previews not pushed: less than half a nominal interval after the one before
         self.encoded = RateMeter()
         self._bytes: collections.deque[tuple[int, int]] = collections.deque(maxlen=512)
         self.arrival_to_push = LatencyWindow()
@@ -635,6 +639,7 @@ class RtspPublisher:
         with self._lock:
             pts = next_pts(media_running_time(media.src), media.last_pts, round(1e9 / self.settings.fps))
             if pts is None:
+                self.skipped += 1  # closer than half a frame interval to the frame before it
                 return
             media.last_pts = pts
             keyframe, self._keyframe_wanted = self._keyframe_wanted, False
@@ -693,7 +698,7 @@ class RtspPublisher:
                 "clients": clients,
                 "encoding": media is not None,
                 "width": None if media is None else media.width, "height": None if media is None else media.height,
-                "frames_pushed": pushed, "frames_encoded": encoded,
+                "frames_pushed": pushed, "frames_encoded": encoded, "frames_skipped": self.skipped,
                 "fps": round(self.encoded.rate(), 2), "bitrate_kbps": self.bitrate_kbps(),
                 "arrival_to_push": self.arrival_to_push.summary(),
                 "h264": {"fps": self.settings.fps, "keyframe_s": self.settings.keyframe_s,
