@@ -96,7 +96,12 @@ class FrameProducts:
             with self._lock:
                 if key in self._products:
                     return self._products[key]
-            value = compute()
+            try:
+                value = compute()
+            except BaseException:
+                with self._lock:  # no gate left behind by a computation that failed
+                    self._computing.pop(key, None)
+                raise
             with self._lock:
                 if published.seq in self._held:
                     self._products[key] = value
