@@ -43,7 +43,8 @@ class RecordingWarning(UserWarning):
 
 
 def report(text: str) -> None:
-    """Report ``text`` as a :class:`RecordingWarning` (one plain line on stderr, see :func:`_show`)."""
+    """Report ``text`` as a :class:`RecordingWarning` (one plain line on stderr in the ``svelive`` command,
+    :func:`show_warnings_plainly`)."""
     warnings.warn(RecordingWarning(text), stacklevel=2)
 
 
@@ -64,8 +65,12 @@ def _show(message: Warning | str, category: type[Warning], filename: str, lineno
         pass
 
 
-if getattr(warnings.showwarning, "__module__", None) == "warnings":
-    warnings.showwarning = _show  # over Python's own hook only: one that a host installed is left alone
+def show_warnings_plainly() -> None:
+    """Print RecordingWarnings as one plain line from now on (``svelive: warning: TEXT``). The ``svelive``
+    command calls it; a library import changes no global state, so a program that uses svelive keeps its own
+    warning display. Installed over Python's own hook only: one a host installed is left alone."""
+    if getattr(warnings.showwarning, "__module__", None) == "warnings":
+        warnings.showwarning = _show
 
 
 class RecordingReader:

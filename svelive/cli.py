@@ -42,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from replay.reader import show_warnings_plainly
+
+    show_warnings_plainly()  # a damaged recording's warnings as one plain line each
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

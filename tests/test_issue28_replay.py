@@ -76,9 +76,13 @@ def test_unclean_recording_warns_in_one_plain_line(recording: Path, tmp_path: Pa
 
 def test_replay_source_warns_in_one_plain_line(recording: Path, tmp_path: Path) -> None:
     """The replay source (what ``svelive serve --source replay:`` and ``reconstruct-sequence`` read) reports
-    a damaged frame it skips in one plain line."""
+    a damaged frame it skips in one plain line, with the display the ``svelive`` command installs; importing
+    the library alone leaves Python's warning display as it was."""
     path = flipped(recording, tmp_path, (2,))
-    code = ("import sys; from svelive.capture import open_source\n"
+    code = ("import sys, warnings; before = warnings.showwarning\n"
+            "from svelive.capture import open_source; import replay.reader\n"
+            "assert warnings.showwarning is before, 'the import changed the warning display'\n"
+            "replay.reader.show_warnings_plainly()  # as svelive.cli.main does\n"
             f"with open_source('replay:{path}', speed=0) as s: n = sum(1 for _ in s)\n"
             "print(n)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
