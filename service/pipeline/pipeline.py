@@ -70,9 +70,9 @@ class Pipeline:
                                     self._stop)
         # the configured response and mask are read now, so a bad file fails before serving
         self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw, self._stop)
-        self._method = config.method or default_method(config.temporal)
         frames = min(config.parallel_frames, self.workers)
-        self.quality = LiveQuality(self._method, config.temporal, config.live_quality, parallel=frames)
+        self.quality = LiveQuality(config.method or default_method(config.temporal), config.temporal,
+                                   config.live_quality, parallel=frames)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, self.quality, self.capture.captured,
                                                   self.workers, self._cond, self.drops, self._stop, frames=frames)
         self.encoder = EncoderStage(config, self.reconstruction.latest, self.capture.online, self._cond, self.drops,
@@ -182,7 +182,7 @@ class Pipeline:
     # ----- settings ----------------------------------------------------
     def settings(self) -> dict[str, Any]:
         """The settings that can be changed at run time."""
-        return {"method": self._method, "jpeg_quality": self.encoder.jpeg_quality,
+        return {"method": self.quality.configured.method, "jpeg_quality": self.encoder.jpeg_quality,
                 "tone": dict(vars(self.encoder.tone)), **self.encoder.colour.public()}
 
     def update_settings(self, method: str | None = None, jpeg_quality: int | None = None,
@@ -200,7 +200,6 @@ class Pipeline:
         new_colour = _updated(self.encoder.colour, colour, "colour")
         with self._cond:
             if method is not None:
-                self._method = method
                 self.quality.configure(method, self.config.temporal)
             if jpeg_quality is not None:
                 self.encoder.jpeg_quality = int(jpeg_quality)
@@ -238,7 +237,7 @@ class Pipeline:
             "drops": drops,
             "dropped": sum(drops.values()),
             "latency_ms": {name: window.summary() for name, window in self.latency.items()},
-            "method": self._method,
+            "method": self.quality.configured.method,
             "methods": method_names(),
             "temporal": self.config.temporal,
             # what runs now: the configured method and fusion, or a cheaper step while the camera's rate is not kept

@@ -88,10 +88,15 @@ class LiveQuality:
             steps = ladder_for(method, temporal, self.mode)
             if steps == self.steps:
                 return
-            self._changes += self._index != 0
-            self.steps, self._index = steps, 0  # under the lock; readers take the pair through ``step``
+            self.steps = steps  # readers take the ladder and the index under the lock
             self._moved(0, "the configured setting", None)
             self._hold_s, self._stepped_up_ns = self.config.hold_s, None
+
+    @property
+    def configured(self) -> LiveStep:
+        """The configured setting: the ladder's top step."""
+        with self._lock:
+            return self.steps[0]
 
     @property
     def step(self) -> LiveStep:

@@ -129,10 +129,10 @@ def run(inp: SveInput, *, return_variance: bool = False, workers: int | Executor
     same pass from the pilot's window sums, where the method's window is the motion tests' (the same
     kernels, of at most INLINE_WINDOW taps, whose sums are bit-identical); else ``Estimate.window`` is None.
     """
-    shares = window and _shares_window(inp)
-    image, lower, variance, _, _, sums = _estimate(inp, noise_model(inp), workers, want_variance=return_variance,
-                                                   want_window=shares)
-    return Estimate(image, lower, variance, window=(sums[0], sums[1]) if shares else None)
+    in_pass = window and _shares_window(inp)
+    image, lower, variance, _, _, means = _estimate(inp, noise_model(inp), workers, want_variance=return_variance,
+                                                    want_window=in_pass)
+    return Estimate(image, lower, variance, window=(means[0], means[1]) if in_pass else None)
 
 
 #: The longest windows (rows, columns) whose sums the pass makes in the order the motion tests' own kernel does
@@ -464,6 +464,10 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
     index, packed = np.empty(width, np.int64), np.empty((3, width), np.float32)  # _blend's scratch
     at_bottom = np.zeros(h, np.int64)
+    if windowed and not flagged:  # every reading kept: each row's sums of G^2 are the same, made once
+        b[:] = np.float32(1.0)
+        for slot in range(depth):
+            _row_filter(b, kx2, square_rows[1, slot])
     rows = np.empty(ky.size, np.int64)
     # rows each stage computes: those the next one's windows read (with the censored step, step 1 everywhere)
     first1, last1 = (0, h) if flagged else (max(first - 2 * ry, 0), min(last + 2 * ry, h))
@@ -489,10 +493,8 @@ def _fused(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv,
                 _row_filter(s[r], kx, signal_rows[r % depth])
                 if not given:
                     _row_filter(e[r], kx, exposure_rows[r % depth])
-                if windowed:
+                if windowed:  # (the row sums of G^2 over the kept readings are the constant ones below)
                     _row_filter(e[r], kx2, square_rows[0, r % depth])
-                    b[:] = np.float32(1.0)
-                    _row_filter(b, kx2, square_rows[1, r % depth])
             at_bottom[r] = _count_at_most(s[r], bottom)
         r = i - ry
         if first1 <= r < last1:  # step 1: w (wn), and the row filters of wn and wn x
