@@ -9,7 +9,6 @@ tests/test_capture_gige.py).
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -23,18 +22,12 @@ import pytest
 
 from svelive.exr import read_exr
 from tests.test_capture_gige import _MISSING, ADDRESS, FakeCamera
-from tests.test_service_helpers import mjpeg_parts
+from tests.test_service_helpers import free_port, mjpeg_parts, stop_process
 
 if _MISSING and os.environ.get("CI") != "true":
     pytestmark = pytest.mark.skip(reason=_MISSING)
 
 WIDTH, HEIGHT = 320, 240
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Service:
@@ -67,13 +60,7 @@ class Service:
         raise AssertionError(f"no state satisfied the condition within {timeout} s; last: {state}")
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
+        stop_process(self.proc)
 
 
 def reconstruction_fails(state: dict[str, Any]) -> str | None:

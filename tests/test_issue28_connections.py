@@ -16,13 +16,9 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
+from tests.test_service_helpers import free_port, stop_process
+
 MAX_CLIENTS = 64  # service.publishers.rtsp.MAX_CLIENTS
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -42,12 +38,7 @@ def service() -> Iterator[tuple[int, int]]:
             time.sleep(0.3)
         yield http_port, rtsp_port
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
+        stop_process(proc)
 
 
 def healthy(port: int, timeout: float = 2.0) -> bool:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -22,17 +21,13 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.test_service_helpers import free_port, stop_process
+
 pytestmark = pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg (the RTSP client) not installed")
 
 WIDTH, HEIGHT, FRAMES, CLIENTS = 320, 192, 60, 20
 #: what ffmpeg says of a picture it could not decode whole, or of time stamps out of order
 COMPLAINTS = re.compile(r"corrupt|conceal|error|missing|non.monoton|invalid|no frame|decode_slice", re.IGNORECASE)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -59,12 +54,7 @@ def service():
             time.sleep(0.5)
         yield url, f"rtsp://127.0.0.1:{rtsp_port}/live"
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
+        stop_process(proc)
 
 
 def nal_types(annex_b: bytes) -> list[int]:

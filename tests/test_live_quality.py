@@ -54,6 +54,14 @@ def feed(quality: LiveQuality, seconds: float, ms_of, lost_every: dict[str, int]
     return now
 
 
+def stepped_down(quality: LiveQuality, counts: list[int] | None = None, ms: float = 60.0) -> int:
+    """3 s of the top step taking ``ms`` a frame with two frames in three lost: the ladder steps down to
+    weighted+fusion (asserted); returns the time reached (``counts`` as :func:`feed`'s)."""
+    now = feed(quality, 3.0, lambda name: ms, {"adaptive+fusion": 3}, counts=counts)
+    assert quality.step.name == "weighted+fusion"
+    return now
+
+
 def test_steps_down_while_behind_and_says_why():
     quality = LiveQuality("adaptive", True)
     slow = {"adaptive+fusion": 3, "weighted+fusion": 3}  # two frames in three lost at the fused steps
@@ -95,9 +103,8 @@ def test_steps_back_up_with_headroom_after_the_hold_and_holds_longer_when_that_f
 def test_no_step_up_without_headroom():
     quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0))
     counts = [0, 0]
-    now = feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3}, counts=counts)
-    assert quality.step.name == "weighted+fusion"
-    # 28 ms of 33: the step above (cost 1 / 0.85 of it) would not fit in 80 % of the interval
+    now = stepped_down(quality, counts)
+    # 28 ms of 33: the step above (cost 1 / 0.83 of it) would not fit in 80 % of the interval
     feed(quality, 10.0, lambda name: 28.0, {}, start_ns=now, counts=counts)
     assert quality.step.name == "weighted+fusion"
 
@@ -112,8 +119,7 @@ def test_fixed_mode_keeps_the_setting_and_reports_that_it_is_behind():
 def test_frames_of_an_earlier_step_are_not_evidence():
     quality = LiveQuality("adaptive", True)
     old = quality.steps[0]
-    feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3})
-    assert quality.step.name == "weighted+fusion"
+    stepped_down(quality)
     for i in range(200):  # late frames of the step above, all slow and lossy: ignored
         quality.observe(10**10 + i * FRAME_NS, 10_000 + i, 5_000 + i, 90.0, old)
     assert quality.step.name == "weighted+fusion"
@@ -121,7 +127,7 @@ def test_frames_of_an_earlier_step_are_not_evidence():
 
 def test_a_new_method_starts_its_own_ladder_at_the_top():
     quality = LiveQuality("adaptive", True)
-    feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3})
+    stepped_down(quality)
     quality.configure("weighted", True)
     assert quality.state()["step"] == 0 and names(quality.steps) == ["weighted+fusion", "adaptive", "weighted"]
 
@@ -187,8 +193,7 @@ def test_a_gap_in_the_frames_is_not_evidence_of_headroom():
     """A source that went offline: the first frames after the gap do not make a window, so no step up on them."""
     quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0))
     counts = [0, 0]
-    now = feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3}, counts=counts)
-    assert quality.step.name == "weighted+fusion"
+    now = stepped_down(quality, counts)
     now = feed(quality, 2.5, lambda name: 30.0, {}, start_ns=now, counts=counts)  # no headroom: 30 of 33 ms
     assert quality.step.name == "weighted+fusion"
     now += 60 * 10**9  # a minute offline
@@ -203,8 +208,7 @@ def test_frames_reconstructed_in_parallel_are_judged_per_frame_interval():
     to try the step above (25 ms a frame), not a reason to stay."""
     quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0), parallel=2)
     counts = [0, 0]
-    now = feed(quality, 3.0, lambda name: 150.0, {"adaptive+fusion": 3}, counts=counts)
-    assert quality.step.name == "weighted+fusion"
+    now = stepped_down(quality, counts, ms=150.0)
     feed(quality, 4.0, lambda name: 40.0, {}, start_ns=now, counts=counts)
     assert quality.step.name == "adaptive+fusion"
 
@@ -225,7 +229,6 @@ def test_frames_slower_than_the_window_are_still_judged():
 def test_the_same_setting_again_keeps_the_step():
     """A client that PUTs every setting, the method unchanged, does not reset the ladder."""
     quality = LiveQuality("adaptive", True)
-    feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3})
-    assert quality.step.name == "weighted+fusion"
+    stepped_down(quality)
     quality.configure("adaptive", True)
     assert quality.step.name == "weighted+fusion" and quality.state()["changes"] == 1

@@ -6,6 +6,8 @@
 from __future__ import annotations
 
 import dataclasses
+import socket
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -189,3 +191,22 @@ def mjpeg_parts(response: httpx.Response) -> Iterator[tuple[dict[str, str], byte
         body, tail, buffer = buffer[:length], buffer[length:length + 2], buffer[length + 2:]
         assert tail == b"\r\n"
         yield headers, body
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (for a server started in another process)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def stop_process(proc: subprocess.Popen, grace_s: float = 10.0) -> None:
+    """Stop a child process: SIGTERM, then SIGKILL after ``grace_s`` seconds; reaped either way."""
+    if proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
