@@ -13,7 +13,8 @@ Accuracy (svelive.metrics): PU21-PSNR on luminance (camera RGB taken as linear
 sRGB, Rec. 709 luma) and per channel, CIEDE2000 mean and 99th percentile of a
 fixed sRGB rendering. Time per frame: the scene resized to 1920x1200, median of
 several runs of prepare + reconstruction on one thread, as the mono benchmark.
-Images without R, G, B (a luminance-only EXR) are skipped and named in the results.
+Images without R, G, B (a luminance-only EXR) are skipped and named in the results; a luminance/chroma
+EXR (Y, RY, BY: StarField) is converted to RGB.
 """
 
 from __future__ import annotations
@@ -93,12 +94,41 @@ def crop_rgb(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0), 0, None).astype(np.float32)
 
 
+#: Rec. 709 luminance weights of R, G, B (the luminance of a luminance/chroma EXR).
+REC709 = (0.2126, 0.7152, 0.0722)
+
+
+def rgb_from_luminance_chroma(y: np.ndarray, ry: np.ndarray, by: np.ndarray) -> np.ndarray:
+    """Linear RGB, float32 (H, W, 3), of a luminance/chroma EXR (OpenEXR's RGBA/YCA form).
+
+    Args:
+        y: float32 (H, W), the luminance Y.
+        ry, by: float32 (h, w), (R - Y) / Y and (B - Y) / Y, usually subsampled (half size each way);
+            upsampled bilinearly to Y's size (pixel centres aligned).
+
+    R = (RY + 1) Y, B = (BY + 1) Y, G = (Y - 0.2126 R - 0.0722 B) / 0.7152.
+    """
+    h, w = y.shape
+
+    def full(plane: np.ndarray) -> np.ndarray:
+        plane = np.asarray(plane, np.float32)
+        return plane if plane.shape == (h, w) else cv2.resize(plane, (w, h), interpolation=cv2.INTER_LINEAR)
+
+    y = np.asarray(y, np.float32)
+    r, b = (full(ry) + 1) * y, (full(by) + 1) * y
+    g = (y - np.float32(REC709[0]) * r - np.float32(REC709[2]) * b) / np.float32(REC709[1])
+    return np.stack([r, g, b], axis=-1).astype(np.float32)
+
+
 def load_rgb(path: Path | str) -> np.ndarray | None:
-    """Linear RGB of an EXR, float32 (H, W, 3) cropped as :func:`crop_rgb`; None when it has no R, G, B."""
+    """Linear RGB of an EXR, float32 (H, W, 3) cropped as :func:`crop_rgb`: its R, G, B, or converted from
+    Y, RY, BY (a luminance/chroma file, :func:`rgb_from_luminance_chroma`); None when it has neither."""
     channels, _ = read_exr(path)
-    if not all(c in channels for c in "RGB"):
-        return None
-    return crop_rgb(np.stack([channels[c] for c in "RGB"], axis=-1))
+    if all(c in channels for c in "RGB"):
+        return crop_rgb(np.stack([channels[c] for c in "RGB"], axis=-1))
+    if all(c in channels for c in ("Y", "RY", "BY")):
+        return crop_rgb(rgb_from_luminance_chroma(channels["Y"], channels["RY"], channels["BY"]))
+    return None
 
 
 def shipped_scenes() -> dict[str, np.ndarray]:
@@ -118,7 +148,7 @@ def data_scenes(data_dir: Path, names: tuple[str, ...] = ()) -> tuple[dict[str, 
     for path in paths:
         rgb = load_rgb(path)
         if rgb is None:
-            skipped[path.stem] = "luminance only (no R, G, B channels)"
+            skipped[path.stem] = "luminance only (no R, G, B channels, nor RY and BY)"
         else:
             scenes[path.stem] = rgb
     return scenes, skipped

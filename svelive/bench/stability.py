@@ -36,6 +36,7 @@ from svelive.bench.colour import ColourSetting
 from svelive.bench.runner import Setting
 from svelive.bench.scenes import BENCH_SENSOR
 from svelive.camera import COLOUR_LAYOUTS, Camera
+from svelive.cfa import joint_period
 from svelive.reconstruction.methods import METHODS
 from svelive.pattern import Pattern
 from svelive.reconstruction.input import prepare
@@ -401,12 +402,245 @@ def colour_sweeps(settings: list[ColourSetting] | None = None,
     return [*colour_edge(settings, layouts), clipped_highlight(settings, layouts)]
 
 
+# ----- colour artefacts (issue 27): small coloured lights, line-pair staircase, dark specks -------------
+
+#: A saturated orange light (white-balanced RGB; times :data:`CAMERA_WHITE` in camera RGB), as the
+#: street lights of a city at dusk.
+LIGHT_COLOUR = np.array([1.0, 0.45, 0.08], np.float32)
+#: Side of the square light (pixels) and the spacing of the lights in the frame.
+LIGHT_SIZE, LIGHT_SPACING = 3, 20
+#: Light levels: its brightest channel's radiance, stops relative to the shortest exposure's full scale.
+LIGHT_LEVELS = (-6.0, -4.0, -2.0, -1.0, -0.5)
+#: Angle (degrees) of the staircase case's edge against the lines of the exposure pattern.
+STAIR_ANGLE = 3.0
+#: The staircase frame: (across, along) the edge, pixels; 256 along at 3 degrees crosses 13 rows.
+STAIR_SHAPE = (48, 256)
+STAIR_CONTRASTS = (2.0, 3.0, 4.0, 5.0)
+#: Levels of the dark region, in read-noise deviations of a reading at the longest exposure.
+SPECK_LEVELS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: A speck: a site whose channel reads below this fraction of its neighbourhood's (2 stops below).
+SPECK_FRACTION = 0.25
+#: The neighbourhood of a site in the speck count: a square of this side (pixels).
+SPECK_WINDOW = 11
+
+
+def chromaticity(rgb: np.ndarray) -> np.ndarray:
+    """(r, b) chromaticity of white-balanced camera RGB (divided by :data:`CAMERA_WHITE`): R / (R + G + B)
+    and B / (R + G + B), float64 (..., 2); (1/3, 1/3) where the sum is 0."""
+    balanced = np.maximum(np.asarray(rgb, np.float64), 0) / CAMERA_WHITE
+    total = balanced.sum(axis=-1, keepdims=True)
+    safe = np.where(total > 0, total, 1.0)
+    return np.where(total > 0, balanced[..., [0, 2]] / safe, 1.0 / 3.0)
+
+
+def chromaticity_error(out: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Euclidean (r, b) chromaticity distance per site (:func:`chromaticity`), float64 (...): 0 for any
+    brightness error; a white light where an orange one was is about 0.4."""
+    return np.hypot(*np.moveaxis(chromaticity(out) - chromaticity(truth), -1, 0))
+
+
+def light_phases(layout: str) -> list[tuple[int, int]]:
+    """Every (row, col) phase of a layout's joint period (exposure pattern and CFA)."""
+    camera = Camera.build(layout)
+    py, px = joint_period(camera.require_pattern().shape, camera.cfa.shape)
+    return [(dy, dx) for dy in range(py) for dx in range(px)]
+
+
+def coloured_lights(layout: str, level: float, size: int = SIZE) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Camera RGB (size, size, 3) float32 of :data:`LIGHT_COLOUR` lights, LIGHT_SIZE square, on black, one
+    at every phase of the layout's joint period, and their top-left corners. ``level``: stops of the
+    light's brightest channel relative to the shortest exposure's full scale."""
+    camera = Camera.build(layout, sensor=BENCH_SENSOR)
+    full = BENCH_SENSOR.censor_level / float(camera.require_pattern().levels[0])
+    colour = LIGHT_COLOUR * CAMERA_WHITE
+    colour = colour / colour.max() * np.float32(full * 2.0**level)
+    truth = np.zeros((size, size, 3), np.float32)
+    corners = []
+    per_row = (size - LIGHT_SPACING // 2) // LIGHT_SPACING
+    for n, (dy, dx) in enumerate(light_phases(layout)):
+        y0 = LIGHT_SPACING // 2 + LIGHT_SPACING * (n // per_row) + dy
+        x0 = LIGHT_SPACING // 2 + LIGHT_SPACING * (n % per_row) + dx
+        truth[y0:y0 + LIGHT_SIZE, x0:x0 + LIGHT_SIZE] = colour
+        corners.append((y0, x0))
+    return truth, corners
+
+
+def light_errors(out: np.ndarray, truth: np.ndarray, corners: list[tuple[int, int]]) -> np.ndarray:
+    """Per light (float64 (n,)): the median over its LIGHT_SIZE^2 sites of the (r, b) chromaticity error."""
+    errors = []
+    for y0, x0 in corners:
+        window = (slice(y0, y0 + LIGHT_SIZE), slice(x0, x0 + LIGHT_SIZE))
+        errors.append(float(np.median(chromaticity_error(out[window], truth[window]))))
+    return np.array(errors)
+
+
+def coloured_light(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> Sweep:
+    """Small saturated coloured lights (3x3, orange) on black at every phase of the layout, their level rising
+    to just below the shortest exposure's full scale: the chromaticity error at the lights (mean over phases)."""
+    sweep = Sweep("colour_light", "colour: 3x3 orange lights on black, every phase", "light level (stops "
+                  "relative to the shortest exposure's full scale)", "(r, b) chromaticity error at the light",
+                  list(LIGHT_LEVELS), log_y=False,
+                  notes="white instead of orange is about 0.4; the median of each light's 9 sites, mean over phases")
+    frames: dict[tuple[float, str], tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]] = {}
+
+    def scene(level: float, layout: str):
+        truth, corners = coloured_lights(layout, level)
+        frames[level, layout] = (truth, truth, corners)
+        return _simulated_rgb(truth, layout), truth
+
+    def measure(out: np.ndarray, truth: np.ndarray, camera: Camera) -> float:
+        corners = next(c for t, _, c in frames.values() if t is truth)
+        return float(light_errors(out, truth, corners).mean())
+
+    return _run_colour_sweep(sweep, scene, measure, settings, layouts)
+
+
+def stair_axis(layout: str) -> tuple[int, int]:
+    """(axis across the edge, period): the axis (0 rows, 1 columns) along which the layout's exposure
+    pattern repeats with the larger period (rows on a tie), and that period (4 for dual-ISO's line pairs)."""
+    shape = Camera.build(layout).require_pattern().shape
+    axis = 0 if shape[0] >= shape[1] else 1
+    return axis, shape[axis]
+
+
+def stair_coverage(shape: tuple[int, int] = STAIR_SHAPE, angle_deg: float = STAIR_ANGLE,
+                   supersample: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """An edge at ``angle_deg`` to the rows, (across, along) = ``shape``: the bright side's area in each pixel,
+    float32 (shape), and the edge's true position across at each position along, float64 (shape[1],)."""
+    n, m = shape
+    step = 1.0 / supersample
+    y, x = np.mgrid[0:n * supersample, 0:m * supersample] * step + step / 2 - 0.5
+    slope = np.tan(np.deg2rad(angle_deg))
+    edge = lambda u: n / 2 + (u - m / 2) * slope  # noqa: E731
+    fine = (y > edge(x)).astype(np.float32)
+    coverage = fine.reshape(n, supersample, m, supersample).mean(axis=(1, 3))
+    return coverage.astype(np.float32), edge(np.arange(m, dtype=np.float64))
+
+
+def edge_positions(lum: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Position of a step edge from ``low`` (first rows) to ``high`` in each column of ``lum`` (H, W), rows,
+    float64 (W,): the rows' fraction of the way from low to high in log2, summed from the far side."""
+    t = (np.log2(np.maximum(lum, 1e-6)) - np.log2(low)) / (np.log2(high) - np.log2(low))
+    return (1.0 - np.clip(t, 0, 1)).sum(axis=0) - 0.5
+
+
+def periodic_amplitude(residual: np.ndarray, position: np.ndarray, period: float) -> float:
+    """Amplitude of the component of ``residual`` periodic in ``position`` with ``period``: 2 |mean(r e^(-i phi))|,
+    phi = 2 pi position / period (both float (N,), positions spread over whole periods)."""
+    phase = 2 * np.pi * np.asarray(position, np.float64) / period
+    return float(2 * abs(np.mean(np.asarray(residual, np.float64) * np.exp(-1j * phase))))
+
+
+def staircase_scene(layout: str, contrast: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The staircase case's truth, camera RGB float32 (H, W, 3), laid across the layout's axis (rows for
+    dual-ISO), the edge's true positions across, and the dark and bright levels of its luminance; the dark
+    side at a quarter of the longest exposure's full scale, as :func:`colour_edge`."""
+    axis, _ = stair_axis(layout)
+    coverage, true_position = stair_coverage()
+    longest = float(Camera.build(layout).require_pattern().levels[-1])
+    dark = 0.25 * BENCH_SENSOR.range_dn / longest
+    level = dark * (1 + (2.0**contrast - 1) * coverage)
+    truth = (level[..., None] * CAMERA_WHITE).astype(np.float32)
+    if axis == 1:
+        truth = np.ascontiguousarray(truth.transpose(1, 0, 2))
+    return truth, true_position, dark, dark * 2.0**contrast
+
+
+def staircase_amplitude(out: np.ndarray, layout: str, truth: np.ndarray, true_position: np.ndarray,
+                        low: float, high: float, margin: int = 8) -> float:
+    """The staircase (pixels): the component of the edge position's error (out against the truth, both
+    estimated by :func:`edge_positions` on luminance) periodic with the layout's period in the true position,
+    over the edge less ``margin`` pixels at each end."""
+    axis, period = stair_axis(layout)
+    weights = CAMERA_WHITE / float(np.sum(CAMERA_WHITE * CAMERA_WHITE))  # the luminance of a white surface
+    lum_out, lum_truth = out @ weights, truth @ weights
+    if axis == 1:
+        lum_out, lum_truth = lum_out.T, lum_truth.T
+    residual = edge_positions(lum_out, low, high) - edge_positions(lum_truth, low, high)
+    inside = slice(margin, residual.size - margin)
+    return periodic_amplitude(residual[inside], true_position[inside], period)
+
+
+def staircase(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> Sweep:
+    """A grey edge at 3 degrees to the exposure pattern's lines (line pairs of dual-ISO), contrast rising until
+    the bright side clips every exposure but the shortest: the staircase amplitude of the edge (pixels)."""
+    sweep = Sweep("colour_staircase", "colour: edge across line pairs, staircase", "edge contrast (stops)",
+                  "staircase amplitude at the pattern's period (px)", list(STAIR_CONTRASTS), log_y=False)
+    cases: dict[tuple[float, str], tuple[np.ndarray, np.ndarray, float, float]] = {}
+
+    def scene(contrast: float, layout: str):
+        case = staircase_scene(layout, contrast)
+        cases[contrast, layout] = case
+        return _simulated_rgb(case[0], layout), case[0]
+
+    def measure(out: np.ndarray, truth: np.ndarray, camera: Camera) -> float:
+        (_, layout), (_, position, low, high) = next((k, v) for k, v in cases.items() if v[0] is truth)
+        return staircase_amplitude(out, layout, truth, position, low, high)
+
+    return _run_colour_sweep(sweep, scene, measure, settings, layouts)
+
+
+def dark_region(layout: str, level: float, size: int = SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """A flat grey (:data:`CAMERA_WHITE`) region ``level`` read-noise deviations of the longest exposure,
+    with four bright lights (discs of radius 3 px at the shortest exposure's full scale) so that the frame
+    is exposed for them: camera RGB (size, size, 3) float32, and the mask (size, size) of sites at least
+    10 px from every light's centre."""
+    camera = Camera.build(layout, sensor=BENCH_SENSOR)
+    levels = camera.require_pattern().levels
+    flat = level * np.sqrt(BENCH_SENSOR.floor_variance) / float(levels[-1])
+    full = BENCH_SENSOR.censor_level / float(levels[0])
+    y, x = np.mgrid[0:size, 0:size].astype(np.float32)
+    level_map = np.full((size, size), flat, np.float32)
+    far = np.ones((size, size), bool)
+    for cy, cx in ((0.2, 0.3), (0.25, 0.8), (0.75, 0.2), (0.8, 0.7)):
+        r2 = (y - cy * size) ** 2 + (x - cx * size) ** 2
+        level_map[r2 <= 3.0**2] = full
+        far &= r2 >= 10.0**2
+    return (level_map[..., None] * CAMERA_WHITE).astype(np.float32), far
+
+
+def speck_fraction(out: np.ndarray, mask: np.ndarray) -> float:
+    """Percentage of the sites in ``mask`` where some channel of ``out`` (H, W, 3) reads below
+    SPECK_FRACTION of the mean of that channel over its SPECK_WINDOW-square neighbourhood."""
+    import cv2
+
+    low = np.zeros(mask.shape, bool)
+    for c in range(3):
+        channel = np.ascontiguousarray(out[..., c], np.float32)
+        around = cv2.blur(channel, (SPECK_WINDOW, SPECK_WINDOW), borderType=cv2.BORDER_REFLECT)
+        low |= channel < SPECK_FRACTION * around
+    return float(100.0 * low[mask].mean())
+
+
+def dark_specks(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> Sweep:
+    """A dim flat region beside bright lights (a frame exposed for the lights): the percentage of its sites
+    reading 2 stops or more below their neighbourhood in some channel (dark specks)."""
+    sweep = Sweep("colour_specks", "colour: dim flat region, dark specks", "region level (read-noise "
+                  "deviations at the longest exposure)", "sites 2 stops below their neighbourhood (%)",
+                  list(SPECK_LEVELS), log_y=False)
+    masks: dict[int, np.ndarray] = {}
+
+    def scene(level: float, layout: str):
+        truth, far = dark_region(layout, level)
+        masks[id(truth)] = far
+        return _simulated_rgb(truth, layout), truth
+
+    return _run_colour_sweep(sweep, scene, lambda out, t, cam: speck_fraction(out, masks[id(t)]), settings, layouts)
+
+
+def artefact_sweeps(settings: list[ColourSetting] | None = None,
+                    layouts: tuple[str, ...] = tuple(COLOUR_LAYOUTS)) -> list[Sweep]:
+    """Issue 27's colour artefact cases: small coloured lights, the line-pair staircase, dark specks."""
+    settings = colour_stability_settings() if settings is None else settings
+    return [coloured_light(settings, layouts), staircase(settings, layouts), dark_specks(settings, layouts)]
+
+
 def run_stability(settings: list[Setting] | None = None, colour: bool = True) -> list[dict[str, object]]:
     """Every sweep for every setting (and the colour cases for joint and split), JSON-ready."""
     settings = stability_settings() if settings is None else settings
     sweeps = [asdict(make(settings)) for make in SWEEPS.values()]
     if colour:
-        sweeps += [asdict(sweep) for sweep in colour_sweeps()]
+        sweeps += [asdict(sweep) for sweep in (*colour_sweeps(), *artefact_sweeps())]
     return sweeps
 
 
