@@ -8,6 +8,15 @@ freed, so every frame pays their page faults again: measured on the demo's
 (``benchmarks/live_cost.py``). :func:`keep_freed_memory` makes freed buffers
 stay in the heap for reuse; :func:`release_memory` returns them after a burst
 that will not repeat (a calibration). Elsewhere than glibc both do nothing.
+
+Kept buffers are kept per malloc arena, and glibc gives threads arenas of their own (up to
+8 per core): the reconstruction's strip workers, the encoder and the server's threads each
+kept their own frame's worth of freed buffers, so the resident memory grew with the number
+of threads that ever touched a frame-sized array. :func:`keep_freed_memory` therefore also
+makes every thread share one arena (measured with ``benchmarks/service.py``: 1920x1200 mono,
+10 clients, resident memory 829 -> 697 MB, frame rate within the run's noise): the
+allocations it serves are frame-sized and few (dozens a frame), so threads seldom wait on its
+lock, and small Python objects do not use it (pymalloc).
 """
 
 from __future__ import annotations
@@ -17,7 +26,7 @@ import ctypes.util
 import gc
 
 #: mallopt parameters (glibc's malloc.h)
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
 #: Largest block glibc accepts as an mmap threshold on 64-bit systems (32 MiB): arrays up to that size (a
 #: 1920x1200x3 float32 image is 27.6 MB) come from the heap and are reused.
 MMAP_THRESHOLD = 32 * 1024 * 1024
@@ -33,17 +42,20 @@ def _libc() -> ctypes.CDLL | None:
         return None
 
 
-def keep_freed_memory() -> bool:
-    """Make malloc keep freed frame-sized buffers for reuse (glibc); True when the policy was set.
+def keep_freed_memory(arenas: int = 1) -> bool:
+    """Make malloc keep freed frame-sized buffers for reuse (glibc), in at most ``arenas`` arenas shared by all
+    threads (0: glibc's own limit); True when the policy was set.
 
-    Call once at the start of a long-running stream (``svelive serve``, ``reconstruct-sequence``).
-    The resident memory then stays at the stream's peak instead of rising and falling every frame.
+    Call once at the start of a long-running stream (``svelive serve``, ``reconstruct-sequence``), before it
+    starts its threads: a thread keeps the arena it first allocated from. The resident memory then stays at
+    the stream's peak instead of rising and falling every frame.
     """
     libc = _libc()
     if libc is None or not hasattr(libc, "mallopt"):
         return False
-    return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(libc.mallopt(_M_TRIM_THRESHOLD,
-                                                                                          TRIM_THRESHOLD))
+    return (bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
+            and bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+            and (arenas <= 0 or bool(libc.mallopt(_M_ARENA_MAX, arenas))))
 
 
 def release_memory() -> None:

@@ -39,3 +39,36 @@ def test_policy_calls_are_safe_to_repeat():
             "print(keep_freed_memory(), keep_freed_memory()); release_memory(); release_memory()")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and done.stdout.split() == ["True", "True"], done.stderr
+
+
+THREADS = """
+import sys, threading
+import numpy as np
+from svelive.memory import keep_freed_memory
+assert keep_freed_memory(arenas=int(sys.argv[1]))
+turn = threading.Lock()  # one frame alive at a time, as the pipeline's stages hand frames on
+def frames():
+    for _ in range(3):
+        with turn:
+            arrays = [np.ones((1200, 1920), np.float32) for _ in range(6)]  # a frame's temporaries, 9 MB each
+            del arrays
+workers = [threading.Thread(target=frames) for _ in range(4)]  # long-lived, like the strip workers and encoder
+for t in workers:
+    t.start()
+for t in workers:
+    t.join()
+print(next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("RssAnon:")))
+"""
+
+
+def _resident_kb(arenas: int) -> int:
+    done = subprocess.run([sys.executable, "-c", THREADS, str(arenas)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return int(done.stdout)
+
+
+def test_threads_share_one_arena_of_kept_buffers():
+    # 4 threads in turn free a frame's 55 MB: in arenas of their own each keeps one, in one arena the next reuses it
+    shared, own = _resident_kb(1), _resident_kb(0)
+    frame_kb = 6 * 1200 * 1920 * 4 // 1024
+    assert shared < own - 2 * frame_kb, (shared, own)
