@@ -1936,6 +1936,11 @@ class StreamNoise:
             self._estimate = estimate_noise(raw, camera, signal=signal)
         return self._estimate
 
+    def needs_static(self) -> bool:
+        """Whether :meth:`observe` reads the next frame's static mask (the frame continues a run; a frame
+        that starts one or waits between runs gives no temporal samples), so a caller makes it only then."""
+        return self._position is not None
+
     def observe(self, raw: np.ndarray, camera: Camera, static: np.ndarray | None, *,
                 signal: np.ndarray | None = None) -> NoiseEstimate | None:
         """Feed the stream's next frame, on the schedule (the tracker reads only the frames of its runs).

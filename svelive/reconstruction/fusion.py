@@ -176,6 +176,10 @@ class Fused:
         illumination_ratio: the global brightness ratio divided out (frame / history).
         state: the history to pass with the next frame.
         variance_of: the output's variance, on demand; ``variance`` calls it on first access.
+        reset: bool (H, W), pixels that took this frame's values without their history: ``motion``,
+            and also where the test flagged a pixel alone, a reading crossed the censor level or
+            either side is a lower bound; everywhere on a restart. Its complement holds the pixels
+            the tests found still, the only ones whose frame differences are noise alone.
     """
 
     image: np.ndarray
@@ -184,6 +188,7 @@ class Fused:
     illumination_ratio: float
     state: TemporalState
     variance_of: OutputVariance
+    reset: np.ndarray
 
     @cached_property
     def variance(self) -> np.ndarray:
@@ -473,7 +478,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None)
     # the update applied the within-frame test's finding to the output where it reset the history
-    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset))
+    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset), reset)
 
 
 def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: float, motion: np.ndarray) -> Fused:
@@ -483,7 +488,8 @@ def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: f
     if inconsistency is not None:
         image = inconsistency.apply(image)
         motion = motion | inconsistency.flagged
-    return Fused(image, motion, fresh.weight, ratio, fresh, OutputVariance(frame.variance, None, inconsistency))
+    return Fused(image, motion, fresh.weight, ratio, fresh, OutputVariance(frame.variance, None, inconsistency),
+                 np.ones(image.shape, bool))
 
 
 @kernel
