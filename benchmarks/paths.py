@@ -37,8 +37,8 @@ from svelive.memory import keep_freed_memory  # noqa: E402
 from svelive.reconstruction.input import prepare  # noqa: E402
 from svelive.reconstruction.methods import adaptive  # noqa: E402
 
-#: cProfile entries (function names in adaptive.py and base.py, cumulative time) that make up each path
-PATHS = {"fused": ("_fused",), "censored": ("_censored_pixels",), "wide": ("_wide_fallback",),
+#: cProfile entries (function names in the adaptive package and base.py, cumulative time) that make up each path
+PATHS = {"fused": ("fused_pass",), "censored": ("censored_pixels",), "wide": ("wide_fallback",),
          "lower": ("fill_lower_bounds",), "noise": ("noise_model",)}
 SHARES = ("plain", "censored", "censored_rows", "near_zero", "wide", "wide_strips", "lower")
 

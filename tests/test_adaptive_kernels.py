@@ -9,6 +9,7 @@ import pytest
 from svelive import Pattern, Sensor, simulate
 from svelive.jit import flat
 from svelive.reconstruction.methods import adaptive
+from svelive.reconstruction.methods.adaptive import censoring, evidence, fallback, parameters, posterior, strip_pass
 from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
@@ -19,11 +20,11 @@ SENSOR = Sensor.from_full_well(12, 10_000, 3)
 def _reference(inp):
     """(image, lower_bound, variance) of the adaptive method, whole frame, one numpy expression per formula."""
     f32 = np.float32
-    ky, kx = adaptive.kernels(inp.pattern.shape)
+    ky, kx = parameters.kernels(inp.pattern.shape)
     window = (len(ky), len(kx))
     centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
     kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
-    tiny = f32(adaptive.TINY)
+    tiny = f32(parameters.TINY)
     s, e, censored = inp.signal, inp.exposure, inp.censored
     x = s / e
     e_valid = np.where(censored, f32(0), e)
@@ -34,11 +35,11 @@ def _reference(inp):
     exposure_sum = smooth(e_valid, ky, kx)
     pilot = np.maximum((smooth(s_valid, ky, kx) - centre * s_valid)
                        / np.maximum(exposure_sum - centre * e_valid, tiny), f32(0))
-    gain_inv, floor = (f32(v) for v in adaptive.noise_model(inp))
+    gain_inv, floor = (f32(v) for v in evidence.noise_model(inp))
     w = e * e_valid / (pilot * e * gain_inv + floor)
 
     # m: neighbours without the pixel itself, leaving out the dark side of an edge
-    lowest_censored = cv2.erode(np.where(censored, e, f32(adaptive.BIG)), np.ones(window, np.uint8),
+    lowest_censored = cv2.erode(np.where(censored, e, f32(parameters.BIG)), np.ones(window, np.uint8),
                                 borderType=cv2.BORDER_REFLECT_101)
     wn = np.where(lowest_censored <= e, f32(0), w)
     sum_w = np.maximum(smooth(wn, ky, kx) - centre * wn, tiny)
@@ -52,7 +53,7 @@ def _reference(inp):
     sum_q = np.maximum(smooth(q, ky, kx), tiny)
     standard_error = np.sqrt(f32(2) * kernel_square / sum_q)
     bias2 = np.maximum(smooth(q * ((x - m) ** 2 - var_r), ky, kx) / sum_q
-                       - f32(adaptive.CONTRAST_SIGMA) * standard_error, f32(0))
+                       - f32(parameters.CONTRAST_SIGMA) * standard_error, f32(0))
 
     # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L >= 0
     weight_m = f32(1) / (var_m + bias2)
@@ -67,7 +68,7 @@ def _reference(inp):
 
     # censored pixels: plain mean of the consistent uncensored neighbours, at least the own bound
     lower = exposure_sum <= 0
-    reach = x + f32(adaptive.CONSISTENT_SIGMA) * np.sqrt(f32(1) / np.maximum(w, tiny))
+    reach = x + f32(parameters.CONSISTENT_SIGMA) * np.sqrt(f32(1) / np.maximum(w, tiny))
     for level in inp.pattern.levels:
         at = censored & (e == f32(level))
         consistent = ((w > 0) & (reach >= f32(inp.sensor.censor_level / level))).astype(f32)
@@ -79,7 +80,7 @@ def _reference(inp):
     image, variance = np.where(lower, bound, image), np.where(lower, bound * bound, variance)
 
     # the wide fallback where the result cannot tell the level from 0
-    candidates = (((estimate <= 0) | (estimate * estimate * total < f32(adaptive.CONTRAST_SIGMA ** 2)))
+    candidates = (((estimate <= 0) | (estimate * estimate * total < f32(parameters.CONTRAST_SIGMA ** 2)))
                   & (image > 0) & ~censored & ~lower)
     estimate, total, changed = _wide_reference(estimate, total, wn, x, censored, candidates, window)
     image = np.where(changed, _nonnegative(estimate, total), image)
@@ -87,14 +88,14 @@ def _reference(inp):
 
 
 def _wide_reference(estimate, information, wn, x, flags, active, window):
-    """The wide fallback (adaptive._wide_fallback) in numpy: (estimate, information, changed), float32 (H, W)."""
-    f32, tiny = np.float32, np.float32(adaptive.TINY)
+    """The wide fallback (fallback.wide_fallback) in numpy: (estimate, information, changed), float32 (H, W)."""
+    f32, tiny = np.float32, np.float32(parameters.TINY)
     h, width = wn.shape
     by, bx = window
     changed = np.zeros_like(active)
     box = lambda a: cv2.boxFilter(a, cv2.CV_32F, (bx, by), normalize=False,  # noqa: E731
                                   borderType=cv2.BORDER_REFLECT_101)
-    for _ in range(adaptive.WIDE_SCALES):
+    for _ in range(fallback.WIDE_SCALES):
         if 3 * by > h or 3 * bx > width:
             break
         block_w = box(wn)
@@ -115,7 +116,7 @@ def _wide_reference(estimate, information, wn, x, flags, active, window):
         for bw, bm in blocks:
             chi2 = chi2 + np.where(bw > tiny, bw * (bm - mean) ** 2, f32(0))
         dof = count - f32(1)
-        sigmas = f32(adaptive.CONTRAST_SIGMA)
+        sigmas = f32(parameters.CONTRAST_SIGMA)
         bias2 = np.maximum(chi2 - dof - sigmas * np.sqrt(f32(2) * dof), f32(0)) / sum_w
         weight = f32(1) / (f32(1) / sum_w + bias2)
         go = active & ~bad & (count >= 2)
@@ -135,32 +136,32 @@ def _reflect(index, n):
 
 
 def _nonnegative(estimate, information):
-    """sigma g(z), g = b(z) P(u) (adaptive.posterior_polynomial) below POSTERIOR_HIGH, the estimate above."""
+    """sigma g(z), g = b(z) P(u) (posterior.posterior_polynomial) below POSTERIOR_HIGH, the estimate above."""
     sigma = 1 / np.sqrt(information.astype(np.float64))
     z = estimate / sigma
-    base, u = adaptive.posterior_base(z)
-    inside = sigma * base * np.polynomial.polynomial.polyval(u, adaptive.posterior_polynomial().astype(np.float64))
-    return np.where(z >= adaptive.POSTERIOR_HIGH, estimate, inside).astype(np.float32)
+    base, u = posterior.posterior_base(z)
+    inside = sigma * base * np.polynomial.polynomial.polyval(u, posterior.posterior_polynomial().astype(np.float64))
+    return np.where(z >= posterior.POSTERIOR_HIGH, estimate, inside).astype(np.float32)
 
 
 def test_posterior_against_numerical_integration():
     """g(z) = exp(E[log L]) of the unit normal around z restricted to L > 0, by the trapezoid rule on a fine log
     grid: the table, and the polynomial the kernel evaluates (within 1e-3), deep below 0 up to POSTERIOR_HIGH,
     where it meets the estimate itself (within 1e-3)."""
-    table = adaptive.posterior_table()
+    table = posterior.posterior_table()
     level = np.geomspace(1e-14, 80, 400_001)
     for z in (-20.0, -6.0, -2.0, 0.0, 1.5, 4.0, 12.0):  # on the table's grid
         density = np.exp(-0.5 * (level - z) ** 2 + 0.5 * min(z, 0) ** 2)
         expected = np.exp(np.trapezoid(np.log(level) * density, level) / np.trapezoid(density, level))
-        base, u = adaptive.posterior_base(np.array(z))
-        fitted = base * np.polynomial.polynomial.polyval(u, adaptive.posterior_polynomial().astype(np.float64))
+        base, u = posterior.posterior_base(np.array(z))
+        fitted = base * np.polynomial.polynomial.polyval(u, posterior.posterior_polynomial().astype(np.float64))
         assert fitted == pytest.approx(expected, rel=1e-3), z
-        got = table[int(round((z - adaptive.POSTERIOR_LOW) / adaptive.POSTERIOR_STEP))]
+        got = table[int(round((z - posterior.POSTERIOR_LOW) / posterior.POSTERIOR_STEP))]
         assert got == pytest.approx(expected, rel=1e-4), z
-    assert table[-1] == pytest.approx(adaptive.POSTERIOR_HIGH, rel=1e-3)
-    base, u = adaptive.posterior_base(np.array(-300.0))  # the exponential tail
-    tail = base * np.polynomial.polynomial.polyval(u, adaptive.posterior_polynomial().astype(np.float64))
-    assert tail == pytest.approx(adaptive.TAIL / 300, rel=1e-3)
+    assert table[-1] == pytest.approx(posterior.POSTERIOR_HIGH, rel=1e-3)
+    base, u = posterior.posterior_base(np.array(-300.0))  # the exponential tail
+    tail = base * np.polynomial.polynomial.polyval(u, posterior.posterior_polynomial().astype(np.float64))
+    assert tail == pytest.approx(posterior.TAIL / 300, rel=1e-3)
 
 
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
@@ -174,26 +175,26 @@ def test_noise_floor_from_the_frame(pattern):
     for factor in (0.5, 1.0, 2.0):
         told = Sensor(12, 64.0, 4095.0, 2.5, 2.0 * factor)
         inp = prepare(raw, pattern, told)
-        gain_inv, floor = adaptive.noise_model(inp)
+        gain_inv, floor = evidence.noise_model(inp)
         assert gain_inv == pytest.approx(1 / 2.5)
         assert floor == pytest.approx(true.floor_variance, rel=0.2), factor
     # the pairs and the fixed point, in numpy
     inp = prepare(raw, pattern, true)
     tw = inp.period[1]
-    rows = np.unique(np.linspace(0, inp.shape[0] - 1, adaptive.EVIDENCE_ROWS).round().astype(int))
+    rows = np.unique(np.linspace(0, inp.shape[0] - 1, evidence.EVIDENCE_ROWS).round().astype(int))
     s, e = inp.signal[rows].astype(np.float64), inp.exposure[rows].astype(np.float64)
     g, f = 1 / true.gain, true.floor_variance
     radiance = np.maximum((s[:, :-tw] + s[:, tw:]) / (e[:, :-tw] + e[:, tw:]), 0)
     shot = radiance * g * (1 / e[:, :-tw] + 1 / e[:, tw:])
     k = 1 / e[:, :-tw] ** 2 + 1 / e[:, tw:] ** 2
     square = (s[:, :-tw] / e[:, :-tw] - s[:, tw:] / e[:, tw:]) ** 2
-    lowest = -true.black_level + adaptive.EVIDENCE_CLIP_SIGMA * np.sqrt(f)
+    lowest = -true.black_level + evidence.EVIDENCE_CLIP_SIGMA * np.sqrt(f)
     keep = (f * k > shot) & (s[:, :-tw] > lowest) & (s[:, tw:] > lowest)
     level = f
-    for _ in range(adaptive.EVIDENCE_ITERATIONS):
+    for _ in range(evidence.EVIDENCE_ITERATIONS):
         ratio = np.sort(square[keep] / (shot[keep] + level * k[keep]))
-        level *= ratio[int(adaptive.EVIDENCE_QUANTILE * (ratio.size - 1))] / adaptive.CHI2_1_AT_QUANTILE
-    assert adaptive.floor_evidence(inp, g, f) == pytest.approx(level / f, rel=1e-4)
+        level *= ratio[int(evidence.EVIDENCE_QUANTILE * (ratio.size - 1))] / evidence.CHI2_1_AT_QUANTILE
+    assert evidence.floor_evidence(inp, g, f) == pytest.approx(level / f, rel=1e-4)
 
 
 def _frame(pattern, shape, seed, scale=1.0):
@@ -288,14 +289,14 @@ def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
     truth += blob * np.exp(-((yy - 20) ** 2 / 150.0 + (xx - 50) ** 2 / 300.0))
     truth[:2, :3] = truth[-3:, -2:] = 8000.0  # corners: every exposure censored
     inp = prepare(simulate(truth, pattern, SENSOR, seed=9).raw, pattern, SENSOR)
-    f32, tiny = np.float32, np.float32(adaptive.TINY)
+    f32, tiny = np.float32, np.float32(parameters.TINY)
     w = np.where(inp.censored, f32(0), rng.uniform(1e-4, 0.05, shape).astype(f32))
     x = inp.signal / inp.exposure
-    ky, kx = adaptive.kernels(inp.pattern.shape)
+    ky, kx = parameters.kernels(inp.pattern.shape)
     image = np.full(shape, -1, f32)
-    lower = adaptive._censored_pixels(inp, image, w, x, ky, kx)
+    lower = censoring.censored_pixels(inp, image, w, x, ky, kx)
     expected, expected_lower = np.full(shape, -1, f32), np.zeros(shape, bool)
-    reach = np.where(w > 0, np.sqrt(f32(1) / np.maximum(w, tiny)) * f32(adaptive.CONSISTENT_SIGMA) + x, -np.inf)
+    reach = np.where(w > 0, np.sqrt(f32(1) / np.maximum(w, tiny)) * f32(parameters.CONSISTENT_SIGMA) + x, -np.inf)
     for level in inp.pattern.levels:
         at = inp.censored & (inp.exposure == f32(level))
         consistent = (reach >= f32(inp.sensor.censor_level / level)).astype(f32)
@@ -304,21 +305,21 @@ def test_censored_pixels_equal_the_per_level_window_sums(pattern, blob):
         expected_lower |= at & (count <= 0)
     assert expected_lower.any() and (inp.censored & ~expected_lower).any()
     per_row = inp.censored.sum(axis=1)
-    assert (per_row * adaptive.DENSE_ROW > shape[1]).any()  # rows summed whole
-    assert blob > 1000 or ((per_row > 0) & (per_row * adaptive.DENSE_ROW <= shape[1])).any()  # and visited
+    assert (per_row * parameters.DENSE_ROW > shape[1]).any()  # rows summed whole
+    assert blob > 1000 or ((per_row > 0) & (per_row * parameters.DENSE_ROW <= shape[1])).any()  # and visited
     np.testing.assert_array_equal(lower, expected_lower)
-    if len(ky) * len(kx) > adaptive.DIRECT_TAPS:
+    if len(ky) * len(kx) > censoring.DIRECT_TAPS:
         np.testing.assert_array_equal(image, expected)
     else:
         np.testing.assert_allclose(image, expected, rtol=1e-6)
 
 
 def zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int], image: np.ndarray) -> None:
-    """adaptive._zero_bottom_row on every row of (H, W) arrays, as the fused pass applies it."""
-    at_bottom = np.array([adaptive._count_at_most(row, bottom) for row in s], np.int64)
+    """strip_pass._zero_bottom_row on every row of (H, W) arrays, as the fused pass applies it."""
+    at_bottom = np.array([strip_pass._count_at_most(row, bottom) for row in s], np.int64)
     low, everywhere = np.empty(s.shape[1], np.bool_), np.empty(s.shape[1], np.bool_)
     for r in range(s.shape[0]):
-        adaptive._zero_bottom_row(s, at_bottom, r, bottom, window[0] // 2, window[1] // 2, low, everywhere, image[r])
+        strip_pass._zero_bottom_row(s, at_bottom, r, bottom, window[0] // 2, window[1] // 2, low, everywhere, image[r])
 
 
 @pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5)])
@@ -376,7 +377,7 @@ def test_wide_fallback_does_not_depend_on_strips_or_threads(monkeypatch):
         whole = adaptive.run(inp, return_variance=True)
     for direct in (0, 10**9):
         with monkeypatch.context() as patch:
-            patch.setattr(adaptive, "WIDE_DIRECT", direct)
+            patch.setattr(fallback, "WIDE_DIRECT", direct)
             other = adaptive.run(inp, return_variance=True)
         np.testing.assert_array_equal(est.image, other.image)
         np.testing.assert_array_equal(est.variance, other.variance)
@@ -395,14 +396,14 @@ def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
         censored[0, -1] = True  # a corner: blocks reflected across both edges hold it
         flags = cv2.boxFilter(censored.astype(np.float32), cv2.CV_32F, (bx, by), normalize=False,
                               borderType=cv2.BORDER_REFLECT_101)
-        np.testing.assert_array_equal(adaptive._held(censored, by, bx), flags > 0.5)
+        np.testing.assert_array_equal(fallback._held(censored, by, bx), flags > 0.5)
 
 
 def _passes(inp, noise):
     """Steps 1-4 of adaptive._solve as separate passes over whole arrays, OpenCV's window sums between the
     kernels (the method before they were fused into one pass): dict of (H, W) arrays."""
     f32 = np.float32
-    ky, kx = adaptive.kernels(inp.pattern.shape)
+    ky, kx = parameters.kernels(inp.pattern.shape)
     window = (len(ky), len(kx))
     gain_inv, floor = f32(noise[0]), f32(noise[1])
     centre = f32(ky[len(ky) // 2] * kx[len(kx) // 2])
@@ -410,24 +411,24 @@ def _passes(inp, noise):
     s, e, censored = inp.signal, inp.exposure, inp.censored
     w, x, wn, wx = (np.empty(inp.shape, f32) for _ in range(4))
     exposure_sum = smooth(np.where(censored, f32(0), e), ky, kx)
-    lowest = cv2.erode(np.where(censored, e, f32(adaptive.BIG)), np.ones(window, np.uint8),
+    lowest = cv2.erode(np.where(censored, e, f32(parameters.BIG)), np.ones(window, np.uint8),
                        borderType=cv2.BORDER_REFLECT_101)
-    adaptive._weights_censored(*flat(smooth(np.where(censored, f32(0), s), ky, kx), exposure_sum, s, e, censored,
+    strip_pass._weights_censored(*flat(smooth(np.where(censored, f32(0), s), ky, kx), exposure_sum, s, e, censored,
                                      lowest, w, x, wn, wx), gain_inv, floor, centre)
     var_m, m = smooth(wn, ky, kx), smooth(wx, ky, kx)
     excess_q, q = wx, np.empty(inp.shape, f32)
-    adaptive._residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
+    strip_pass._residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    adaptive._blend(*flat(image, total, var_m, m, w, x), f32(adaptive.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
-                    adaptive.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
+    strip_pass._blend(*flat(image, total, var_m, m, w, x), f32(parameters.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
+                    posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
     zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
     lower = exposure_sum <= 0
     if censored.any():
-        lower |= adaptive._censored_pixels(inp, image, w, x, ky, kx)
+        lower |= censoring.censored_pixels(inp, image, w, x, ky, kx)
     variance = f32(1) / total
     fill_lower_bounds(inp, lower, window, image, variance)
     candidates = np.empty(inp.shape, bool)
-    adaptive._candidates(*flat(var_m, total, image, censored, lower, candidates), f32(adaptive.CONTRAST_SIGMA**2))
+    strip_pass._candidates(*flat(var_m, total, image, censored, lower, candidates), f32(parameters.CONTRAST_SIGMA**2))
     return dict(image=image, lower=lower, variance=variance, w=w, wn=wn, estimate=var_m, information=total,
                 candidates=candidates)
 
@@ -450,16 +451,16 @@ def _inputs(pattern, shape, seed):
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8", "1,2,4,8/16,32,64,1", "1/2/4/8/16/32"])
 @pytest.mark.parametrize("shape", [(300, 67), (130, 1), (7, 33), (3, 5), (2, 2), (13, 4)])
 def test_fused_pass_equals_the_separate_passes(pattern, shape):
-    """adaptive._solve's one compiled pass (_fused: row and column filters into rings of rows) against the
+    """adaptive._solve's one compiled pass (strip_pass.fused_pass: row and column filters into rings of rows) against the
     chain of OpenCV window sums and kernels it replaced, strip by strip as the method cuts the frame (the rows
     kept, the halo's reflected borders at the strip's ends), odd and tiny widths and heights: bit for bit where
     OpenCV's sums are computed in the same order (3-tap rows, 3- or 5-tap columns), else within float32 rounding."""
-    ky, kx = adaptive.kernels(Pattern.parse(pattern).shape)
+    ky, kx = parameters.kernels(Pattern.parse(pattern).shape)
     exact = len(kx) == 3 and len(ky) in (3, 5)
-    z2 = np.float32(adaptive.CONTRAST_SIGMA**2)
+    z2 = np.float32(parameters.CONTRAST_SIGMA**2)
     checked = {"strips": 0, "censored": 0, "bottom": 0, "candidates": 0}
     for inp in _inputs(pattern, shape, seed=shape[0] + 7 * shape[1]):
-        noise = adaptive.noise_model(inp)
+        noise = evidence.noise_model(inp)
         for start, top, bottom, stop in adaptive._spans(inp, 3 * (max(len(ky), len(kx)) // 2), 64):
             crop = inp.crop(slice(start, stop))
             keep = slice(top - start, bottom - start)

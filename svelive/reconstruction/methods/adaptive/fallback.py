@@ -1,0 +1,349 @@
+"""Step 5 of ``adaptive``: where the window's result cannot tell the level from 0, the levels of wider blocks that
+are flat within their noise (:func:`wide_fallback`), only over the strips holding such pixels."""
+
+from __future__ import annotations
+
+from concurrent.futures import Executor
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from svelive.jit import flat, kernel
+from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, DENSE_ROW, TINY
+from svelive.reconstruction.methods.adaptive.posterior import posterior_at, posterior_polynomial
+from svelive.reconstruction.methods.base import SveInput, map_on, reflect_101
+
+
+#: Scales of the wide fallback (:func:`wide_fallback`): blocks of the window's size, then 3 times it, ...
+WIDE_SCALES = 2
+#: The wide fallback takes box filters over a band of rows once its active pixels times a block's pixels times
+#: this exceed the band's pixels; below, each active pixel sums its eight blocks itself (:func:`_wide_direct`).
+#: Eight: a pixel read per block pixel taken to cost about a box-filtered pixel of the band (not tuned).
+WIDE_DIRECT = 8
+#: Strips the wide fallback takes together (one band of rows, its box filters reaching beyond it only once).
+WIDE_GROUP = 4
+
+
+class Dark(NamedTuple):
+    """What the wide fallback (:func:`wide_fallback`) needs of a strip's rows, float32 (rows, W) unless said.
+
+    ``weights``: the readings' inverse variances as the neighbour estimate uses them (wn: 0 where censored or on
+    the dark side of an edge); ``estimate`` and ``information``: L^ and 1 / variance of the window's result
+    before step 4; ``candidates``: bool, where the result cannot tell the level from 0 (:func:`_candidates`),
+    ``count`` of them."""
+
+    weights: np.ndarray
+    estimate: np.ndarray
+    information: np.ndarray
+    candidates: np.ndarray
+    count: int
+
+    def rows(self, keep: slice) -> Dark:
+        return Dark(self.weights[keep], self.estimate[keep], self.information[keep], self.candidates[keep],
+                     int(np.count_nonzero(self.candidates[keep])) if self.count else 0)
+
+
+def joined(pieces: list[np.ndarray | None]) -> np.ndarray | None:
+    """The strips' pieces one below the other (the piece itself when there is one; None when they are None)."""
+    if pieces[0] is None:
+        return None
+    return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+
+
+def _wide_reach(ky: np.ndarray, kx: np.ndarray) -> tuple[int, int]:
+    """(rows, columns) the wide fallback reads beyond a pixel: the widest scale's blocks, one block away, and half
+    a block beyond their centres."""
+    by, bx = len(ky) * 3 ** max(WIDE_SCALES - 1, 0), len(kx) * 3 ** max(WIDE_SCALES - 1, 0)
+    return by + by // 2, bx + bx // 2
+
+
+def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: list[Dark], image: np.ndarray,
+                   variance: np.ndarray | None, ky: np.ndarray, kx: np.ndarray, workers: int | Executor) -> None:
+    """Where a pixel's result cannot tell its level from 0, the levels of wider windows that are flat within their
+    noise, scale by scale; ``image`` (and ``variance``) in place, float32 (H, W).
+
+    A 3x3 window cannot tell a level far below its noise from 0, and step 4's
+    answer there (about half the estimate's deviation) lies far above a level
+    many stops lower. At scale j the eight blocks of (window x 3^j) around the
+    pixel, one block away (so they hold none of the readings of its current
+    estimate), give a neighbour level m = sum X_b / sum W_b (W_b, X_b: the
+    block's sums of w and w x, the weights of step 1) with variance
+    1 / sum W_b, if the region is flat. Whether it is, is the blocks' own
+    evidence: under a constant level chi2 = sum W_b (X_b / W_b - m)^2 is
+    chi-square with (blocks - 1) degrees of freedom; its excess over that,
+    shrunk by CONTRAST_SIGMA of its standard errors (sqrt(2 dof)), over
+    sum W_b is the squared bias b^2 of m, as step 2's is of the window's
+    (bright structure a block away makes it large, and m counts for little).
+    The pixel's estimate and m are then blended as in step 3 (information
+    adds: t + 1 / (1 / sum W_b + b^2)), and the next scale (blocks three times
+    larger around the blocks used) follows only where the blend still cannot
+    tell the level from 0 and the blocks showed no structure (b^2 = 0). A block
+    holding a censored reading (a level at least its bound, far above) stops
+    the pixel at the scale before, as does a frame too small for the scale's
+    blocks. Readings at the raw range's bottom count as what they read, as in
+    steps 1-3. Step 4 is then applied to the new estimate.
+
+    Cost: only strips holding such pixels, over their rows and as far as the
+    widest blocks reach. Where they are many, each scale's block sums are two
+    box filters over those rows; where few (fewer than one in WIDE_DIRECT times
+    a block's pixels), each pixel sums its blocks' readings itself.
+    """
+    h, width = inp.shape
+    reach = _wide_reach(ky, kx)
+    none = np.empty((0, 0), np.float32)
+
+    def band(group: range) -> None:
+        members = [i for i in group if darks[i].count]
+        if not members:
+            return
+        top, end = spans[members[0]][1], spans[members[-1]][2]
+        r0, r1 = max(top - reach[0], 0), min(end + reach[0], h)
+        weights = joined([d.weights[max(r0 - t, 0):max(min(r1, e) - t, 0)]
+                           for (_, t, e, _), d in zip(spans, darks) if t < r1 and e > r0])
+        signal, exposure, censored = inp.signal[r0:r1], inp.exposure[r0:r1], inp.censored[r0:r1]
+        active = {i: darks[i].candidates.copy() for i in members}
+        changed = {i: np.zeros_like(active[i]) for i in members}
+        count, by, bx = sum(darks[i].count for i in members), len(ky), len(kx)
+        weighted = None
+        for _ in range(WIDE_SCALES):
+            if 3 * by > h or 3 * bx > width:
+                break
+            boxes = count * by * bx * WIDE_DIRECT > weights.size  # many: box filters over the rows
+            if boxes:
+                if weighted is None:
+                    weighted = np.empty_like(weights)
+                    flagged = _wide_prepare(*flat(weights, signal, exposure, censored, weighted))
+                box_w, means = _box(weights, by, bx), _box(weighted, by, bx)
+                held = _held(censored, by, bx) if flagged else censored  # unused when none is censored
+                _block_means(*flat(box_w, means, held), flagged)
+            count = 0
+            for i in members:
+                d, offset = darks[i], spans[i][1] - r0
+                count += (_wide_boxes(box_w, means, offset, by, bx, active[i], changed[i], d.estimate,
+                                      d.information) if boxes else
+                          _wide_direct(weights, signal, exposure, censored, offset, by, bx, active[i], changed[i],
+                                       d.estimate, d.information))
+            if count == 0:
+                break
+            by, bx = 3 * by, 3 * bx
+        for i in members:
+            rows = slice(*spans[i][1:3])
+            posterior_at(changed[i], darks[i].estimate, darks[i].information, image[rows], posterior_polynomial(),
+                          none if variance is None else variance[rows])
+
+    groups = [range(i, min(i + WIDE_GROUP, len(spans))) for i in range(0, len(spans), WIDE_GROUP)]
+    map_on(workers, band, groups)
+
+
+def _box(a: np.ndarray, by: int, bx: int) -> np.ndarray:
+    """Sums of ``a`` (float32 (H, W)) over the by x bx box around each pixel, borders reflect-101."""
+    return cv2.boxFilter(a, cv2.CV_32F, (bx, by), normalize=False, borderType=cv2.BORDER_REFLECT_101)
+
+
+def _held(censored: np.ndarray, by: int, bx: int) -> np.ndarray:
+    """Where the by x bx box around a pixel holds a censored reading: bool (H, W) of ``censored`` (bool (H, W)),
+    borders reflect-101 (the boxes of :func:`_box`)."""
+    return cv2.dilate(censored.view(np.uint8), np.ones((by, bx), np.uint8),
+                      borderType=cv2.BORDER_REFLECT_101).view(bool)
+
+
+@kernel
+def _wide_prepare(weights, signal, exposure, censored, weighted):
+    """weighted = w x (x = s / e); flat arrays; whether any reading is censored."""
+    for k in range(weights.size):
+        weighted[k] = weights[k] * (signal[k] / exposure[k])
+    flagged = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
+    for k in range(censored.size):
+        flagged += censored[k]
+    return flagged > 0
+
+
+@kernel
+def _block_means(box_w, box_wx, held, flagged):
+    """box_wx = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
+    censored reading (``held``, if ``flagged``); flat arrays, in place."""
+    tiny, nan = np.float32(TINY), np.float32(np.nan)
+    for k in range(box_w.size):
+        w = box_w[k]
+        level = box_wx[k] / max(w, tiny) if w > tiny else np.float32(0.0)
+        box_wx[k] = nan if flagged and held[k] else level
+
+
+@kernel
+def _block(w, level):
+    """A block's (W, W m, 1) where it holds readings (W > TINY), else zeros; float32."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    valid = w > np.float32(TINY)
+    return (w if valid else zero), (w * level if valid else zero), (one if valid else zero)
+
+
+@kernel
+def _deviation(w, level, mean):
+    """W (m - mean)^2 of a block holding readings, else 0; float32."""
+    d = level - mean
+    return w * d * d if w > np.float32(TINY) else np.float32(0.0)
+
+
+@kernel
+def _wide_blend(block_w, block_m, r, c, active, changed, estimate, information):
+    """The blend of one scale of :func:`wide_fallback` at pixel (r, c) from its eight blocks (float32 (8,): W and
+    the level m = X / W, NaN where flagged); whether the next scale follows. The same arithmetic, in the same order,
+    as :func:`_wide_row` (bit for bit)."""
+    zero = np.float32(0.0)
+    sum_w, sum_wx, blocks, bad = zero, zero, zero, False
+    for b in range(8):
+        a, x, k = _block(block_w[b], block_m[b])
+        sum_w += a
+        sum_wx += x
+        blocks += k
+        bad |= block_m[b] != block_m[b]
+    mean = sum_wx / max(sum_w, np.float32(TINY))
+    chi2 = zero
+    for b in range(8):
+        chi2 += _deviation(block_w[b], block_m[b], mean)
+    if bad or blocks < np.float32(2.0):
+        active[r, c] = False
+        return False
+    value, t, keep = _wide_step(estimate[r, c], information[r, c], sum_w, mean, chi2, blocks)
+    estimate[r, c] = value
+    information[r, c] = t
+    changed[r, c] = True
+    active[r, c] = keep
+    return keep
+
+
+@kernel
+def _wide_step(estimate, information, sum_w, level, chi2, blocks):
+    """(estimate, information, whether the next scale follows) after blending in a scale's neighbour level
+    (:func:`wide_fallback`), float32."""
+    zero, one, two = np.float32(0.0), np.float32(1.0), np.float32(2.0)
+    sigmas = np.float32(CONTRAST_SIGMA)
+    dof = blocks - one
+    bias2 = max(chi2 - dof - sigmas * np.sqrt(two * dof), zero) / sum_w
+    weight = one / (one / sum_w + bias2)
+    t = information + weight
+    value = (estimate * information + level * weight) / t
+    keep = (bias2 <= zero) & ((value <= zero) | (value * value * t < sigmas * sigmas))
+    return value, t, keep
+
+
+@kernel
+def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, information):
+    """One scale of :func:`wide_fallback` at the ``active`` pixels of a strip's rows (bool (R, W); row r of the
+    strip is row r + offset of the band's block sums ``box_w`` and levels ``means`` (:func:`_block_means`), blocks
+    by x bx); the number of pixels the next scale follows at. A row with many active pixels (more than one in
+    DENSE_ROW) is computed whole away from its ends (:func:`_wide_row`, vectorised), others pixel by pixel;
+    both alike bit for bit."""
+    h, width = box_w.shape
+    rows, cols = np.empty(3, np.int64), np.empty(3, np.int64)
+    block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    inner = width - 2 * bx
+    kept = 0
+    for r in range(active.shape[0]):
+        br = r + offset
+        n = 0
+        for c in range(width):
+            n += active[r, c]
+        if n == 0:
+            continue
+        for i in range(3):
+            rows[i] = reflect_101(br + (i - 1) * by, h)
+        whole = n * DENSE_ROW > width and inner > 0
+        if whole:
+            kept += _wide_row(box_w, means, rows, bx, active[r, bx:bx + inner], changed[r, bx:bx + inner],
+                              estimate[r, bx:bx + inner], information[r, bx:bx + inner])
+        for k in range(2 * bx if whole else width):  # a whole row: its ends alone are left
+            c = k if k < bx or not whole else k + inner
+            if not active[r, c]:
+                continue
+            for i in range(3):
+                cols[i] = reflect_101(c + (i - 1) * bx, width)
+            b = 0
+            for i in range(3):
+                for j in range(3):
+                    if i == 1 and j == 1:
+                        continue
+                    block_w[b], block_m[b] = box_w[rows[i], cols[j]], means[rows[i], cols[j]]
+                    b += 1
+            kept += _wide_blend(block_w, block_m, r, c, active, changed, estimate, information)
+    return kept
+
+
+@kernel
+def _wide_row(box_w, means, rows, bx, active, changed, estimate, information):
+    """:func:`_wide_blend` at every pixel of a row away from its ends (columns bx .. W - bx: ``active``,
+    ``changed``, ``estimate`` and ``information`` are that part of the row), in one loop over the row that LLVM
+    vectorises; the number of pixels kept active."""
+    n = active.size
+    two = 2 * bx
+    r0, r1, r2 = rows[0], rows[1], rows[2]
+    w0, w1, w2, w3 = box_w[r0, :n], box_w[r0, bx:bx + n], box_w[r0, two:two + n], box_w[r1, :n]
+    w4, w5, w6, w7 = box_w[r1, two:two + n], box_w[r2, :n], box_w[r2, bx:bx + n], box_w[r2, two:two + n]
+    m0, m1, m2, m3 = means[r0, :n], means[r0, bx:bx + n], means[r0, two:two + n], means[r1, :n]
+    m4, m5, m6, m7 = means[r1, two:two + n], means[r2, :n], means[r2, bx:bx + n], means[r2, two:two + n]
+    zero, tiny, two_blocks = np.float32(0.0), np.float32(TINY), np.float32(2.0)
+    for c in range(n):
+        a0, b0, n0 = _block(w0[c], m0[c])
+        a1, b1, n1 = _block(w1[c], m1[c])
+        a2, b2, n2 = _block(w2[c], m2[c])
+        a3, b3, n3 = _block(w3[c], m3[c])
+        a4, b4, n4 = _block(w4[c], m4[c])
+        a5, b5, n5 = _block(w5[c], m5[c])
+        a6, b6, n6 = _block(w6[c], m6[c])
+        a7, b7, n7 = _block(w7[c], m7[c])
+        bad = ((m0[c] != m0[c]) | (m1[c] != m1[c]) | (m2[c] != m2[c]) | (m3[c] != m3[c]) | (m4[c] != m4[c])
+               | (m5[c] != m5[c]) | (m6[c] != m6[c]) | (m7[c] != m7[c]))
+        sum_w = zero + a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7
+        sum_wx = zero + b0 + b1 + b2 + b3 + b4 + b5 + b6 + b7
+        blocks = zero + n0 + n1 + n2 + n3 + n4 + n5 + n6 + n7
+        mean = sum_wx / max(sum_w, tiny)
+        chi2 = (zero + _deviation(w0[c], m0[c], mean) + _deviation(w1[c], m1[c], mean)
+                + _deviation(w2[c], m2[c], mean) + _deviation(w3[c], m3[c], mean)
+                + _deviation(w4[c], m4[c], mean) + _deviation(w5[c], m5[c], mean)
+                + _deviation(w6[c], m6[c], mean) + _deviation(w7[c], m7[c], mean))
+        go = active[c] & ~bad & (blocks >= two_blocks)
+        value, t, keep = _wide_step(estimate[c], information[c], sum_w, mean, chi2, blocks)
+        estimate[c] = value if go else estimate[c]
+        information[c] = t if go else information[c]
+        changed[c] |= go
+        active[c] = go & keep
+    kept = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
+    for c in range(n):
+        kept += active[c]
+    return kept
+
+
+@kernel
+def _wide_direct(weights, signal, exposure, censored, offset, by, bx, active, changed, estimate, information):
+    """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
+    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them)."""
+    h, width = weights.shape
+    tiny = np.float32(TINY)
+    block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    kept = 0
+    for r in range(active.shape[0]):
+        br = r + offset
+        for c in range(width):
+            if not active[r, c]:
+                continue
+            for i in range(9):
+                if i == 4:
+                    continue
+                top, left = br + (i // 3 - 1) * by - by // 2, c + (i % 3 - 1) * bx - bx // 2
+                wb, xb, bad = 0.0, 0.0, False
+                for dy in range(by):
+                    rr = reflect_101(top + dy, h)
+                    for dx in range(bx):
+                        cc = reflect_101(left + dx, width)
+                        bad |= censored[rr, cc]
+                        w = weights[rr, cc]
+                        wb += w
+                        xb += w * (signal[rr, cc] / exposure[rr, cc])
+                b = i if i < 4 else i - 1
+                w32 = np.float32(wb)
+                block_w[b] = w32
+                block_m[b] = np.float32(np.nan) if bad else (np.float32(xb) / max(w32, tiny) if w32 > tiny
+                                                             else np.float32(0.0))
+            kept += _wide_blend(block_w, block_m, r, c, active, changed, estimate, information)
+    return kept

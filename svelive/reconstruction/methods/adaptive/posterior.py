@@ -1,0 +1,155 @@
+"""Step 4 of ``adaptive``: radiance is not negative. exp(E[log L]) of the estimate's normal restricted to L >= 0
+(:func:`nonnegative`, a polynomial fitted to :func:`posterior_table`), where the estimate lies near 0."""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+
+from svelive.jit import kernel
+from svelive.reconstruction.methods.adaptive.parameters import TINY
+
+
+@kernel
+def posterior_at(changed, estimate, information, image, coefficients, variance):
+    """image = step 4's result of (estimate, information) at the ``changed`` pixels of (R, W) arrays, variance =
+    1 / information there unless ``variance`` is empty. Row by row: a row with many (one in FEW_NEAR_ZERO or more)
+    through :func:`nonnegative` whole, then chosen; a row with few packed into short arrays first."""
+    width = changed.shape[1]
+    out, packed_image = np.empty(width, np.float32), np.empty(width, np.float32)
+    packed_estimate, packed_information = np.empty(width, np.float32), np.empty(width, np.float32)
+    index = np.empty(width, np.int64)
+    one = np.float32(1.0)
+    for r in range(changed.shape[0]):
+        row = changed[r]
+        n = 0
+        for c in range(width):
+            n += row[c]
+        if n == 0:
+            continue
+        if n * FEW_NEAR_ZERO >= width:
+            out[:] = estimate[r]
+            nonnegative(out, estimate[r], information[r], coefficients)
+            target = image[r]
+            for c in range(width):
+                target[c] = out[c] if row[c] else target[c]
+        else:
+            n = 0
+            for c in range(width):
+                if row[c]:
+                    index[n] = c
+                    packed_estimate[n], packed_information[n] = estimate[r, c], information[r, c]
+                    n += 1
+            packed_image[:n] = packed_estimate[:n]
+            nonnegative(packed_image[:n], packed_estimate[:n], packed_information[:n], coefficients)
+            for j in range(n):
+                image[r, index[j]] = packed_image[j]
+        if variance.size > 0:
+            for c in range(width):
+                variance[r, c] = one / information[r, c] if row[c] else variance[r, c]
+
+
+#: :func:`_blend` runs :func:`nonnegative` on the pixels near 0 alone when fewer than one in this many are.
+FEW_NEAR_ZERO = 4
+#: Margin of :func:`near_zero`'s test over :func:`nonnegative`'s own: z = L^ sqrt(information) < POSTERIOR_HIGH,
+#: rounded to float32, implies L^^2 information < POSTERIOR_HIGH^2 (1 + 1e-6) rounded, so this margin misses none.
+NEAR_MARGIN = 1.0 + 1e-5
+
+
+@kernel
+def near_zero(estimate, information, index):
+    """The indices of the flat arrays' pixels that :func:`nonnegative` may change (L^ <= 0 or within a little
+    more than POSTERIOR_HIGH deviations of 0), packed into the front of ``index``; their count. Without branches."""
+    zero, loose = np.float32(0.0), np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH * NEAR_MARGIN)
+    n = 0
+    for k in range(estimate.size):
+        e = estimate[k]
+        index[n] = k
+        n += (e <= zero) | (e * e * information[k] < loose)
+    return n
+
+
+#: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step. From
+#: POSTERIOR_HIGH up the result is the estimate itself: exp(E[log L]) is below it by 1/(2 z^2), under 0.08 %.
+POSTERIOR_LOW, POSTERIOR_HIGH, POSTERIOR_STEP = -30.0, 25.0, 1.0 / 16
+#: Degree of the polynomial :func:`posterior_polynomial` fits (5e-4 relative error at most, float32); the kernel
+#: (:func:`nonnegative`) writes out its Horner scheme for this degree.
+POSTERIOR_DEGREE = 16
+EULER_GAMMA = 0.5772156649015329
+#: exp(-Euler's gamma): exp(E[log L]) of an exponential distribution of mean 1.
+TAIL = math.exp(-EULER_GAMMA)
+
+
+@lru_cache(maxsize=1)
+def posterior_table() -> np.ndarray:
+    """g(z) = exp(E[log L]) for L ~ N(z, 1) restricted to L > 0, at z = POSTERIOR_LOW + i POSTERIOR_STEP up to
+    POSTERIOR_HIGH; float64, read-only. Integrated over u = log L (the integrand is smooth there)."""
+    z = np.arange(POSTERIOR_LOW, POSTERIOR_HIGH + POSTERIOR_STEP / 2, POSTERIOR_STEP)[:, None]
+    u = np.linspace(-50.0, np.log(POSTERIOR_HIGH + 14.0), 12000)[None, :]
+    level = np.exp(u)
+    # phi(L - z) dL, times phi(0) / phi(z) below 0 (no underflow there; the scale cancels)
+    density = np.exp(-0.5 * (level - z) ** 2 + 0.5 * np.minimum(z, 0) ** 2 + u)
+    table = np.exp((u * density).sum(axis=1) / density.sum(axis=1))
+    table.setflags(write=False)
+    return table
+
+
+def posterior_base(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(b, u) of :func:`posterior_polynomial`: b(z) = (z + r) / 2 = c / ((r - z) / 2), r = sqrt(z^2 + 4c),
+    c = TAIL, and u = z / r in (-1, 1); float64."""
+    root = np.sqrt(z * z + 4 * TAIL)
+    return np.where(z > 0, (z + root) / 2, 2 * TAIL / (root - np.minimum(z, 0))), z / root
+
+
+@lru_cache(maxsize=1)
+def posterior_polynomial() -> np.ndarray:
+    """Coefficients (lowest first, float32 (POSTERIOR_DEGREE + 1,), read-only) of P(u) with g(z) = b(z) P(u)
+    (:func:`posterior_base`) for z < POSTERIOR_HIGH: least squares on :func:`posterior_table` and, below it, the
+    expansion g(z) = e^-gamma / |z| (1 - 1.5 / z^2) (the normal restricted to L > 0 is nearly exponential there).
+
+    b has g's asymptotes (z, and e^-gamma / |z|), so P is smooth and near 1 over the whole line, and the kernel
+    evaluates it without a table look-up (which does not vectorise).
+    """
+    z_table = np.arange(POSTERIOR_LOW, POSTERIOR_HIGH + POSTERIOR_STEP / 2, POSTERIOR_STEP)
+    z_tail = -np.geomspace(3000.0, -POSTERIOR_LOW, 200)[:-1]
+    tail = TAIL / -z_tail * (1 - 1.5 / z_tail**2)
+    z = np.concatenate([z_tail, z_table])
+    base, u = posterior_base(z)
+    coefficients = np.polynomial.polynomial.polyfit(u, np.concatenate([tail, posterior_table()]) / base,
+                                                    POSTERIOR_DEGREE).astype(np.float32)
+    coefficients.setflags(write=False)
+    return coefficients
+
+
+@kernel
+def nonnegative(image, estimate, information, coefficients):
+    """image = exp(E[log L]) for L ~ N(estimate, 1 / information) restricted to L > 0 (a flat prior on L >= 0):
+    sigma g(z), z = estimate / sigma, where z < POSTERIOR_HIGH (``image`` holds the estimate beyond); flat arrays.
+
+    Radiance cannot be negative, and the project judges errors in log radiance (log-PSNR, PU21, stops): the
+    estimate that minimises the expected squared error of log L is exp(E[log L]). Where a reading lies within a few
+    noise deviations of 0 it is a small positive value (about half a deviation at 0) instead of 0: clipping at 0
+    gives exact zeros, errors of many stops; the mean and the median of the restricted normal lie higher, and
+    overshoot regions far darker than the noise more. Above 0 it is below the estimate by about 1 / (2 z^2) (3 % at
+    z = 4, 0.5 % at z = 10); from POSTERIOR_HIGH up, the estimate itself. g = b(z) P(u)
+    (:func:`posterior_polynomial`, ``coefficients``); without branches, so that LLVM vectorises it.
+    """
+    zero, half, tiny = np.float32(0.0), np.float32(0.5), np.float32(TINY)
+    high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * TAIL)
+    # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 16
+    p0, p1, p2, p3, p4, p5, p6, p7, p8 = (coefficients[0], coefficients[1], coefficients[2], coefficients[3],
+                                          coefficients[4], coefficients[5], coefficients[6], coefficients[7],
+                                          coefficients[8])
+    p9, p10, p11, p12, p13, p14, p15, p16 = (coefficients[9], coefficients[10], coefficients[11], coefficients[12],
+                                             coefficients[13], coefficients[14], coefficients[15], coefficients[16])
+    for k in range(image.size):
+        root_t = np.sqrt(max(information[k], tiny))
+        z = estimate[k] * root_t
+        r = np.sqrt(z * z + c4)
+        base = (z + r) * half if z > zero else c4 * half / (r - z)
+        u = z / r
+        p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
+                      + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
+        image[k] = base * p / root_t if z < high else image[k]

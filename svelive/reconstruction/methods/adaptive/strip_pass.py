@@ -1,0 +1,438 @@
+"""Steps 1-4 of ``adaptive`` but the censored pixels' own values, as one compiled pass down a strip's rows
+(:func:`fused_pass`): the window sums as row filters into rings of rows and column filters of the rings, and the
+per-pixel stages between them (weights, residuals, blend)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from svelive.jit import kernel
+from svelive.pattern import Pattern
+from svelive.reconstruction.methods.adaptive.parameters import BIG, TINY, kernels
+from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, POSTERIOR_HIGH, near_zero, nonnegative
+from svelive.reconstruction.methods.base import reflect_101, rows_min, smooth, window_level_row
+
+
+@kernel
+def fused_pass(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv, floor, centre, kernel_square,
+           threshold, coefficients, bottom, z2, w, wn, x, image, estimate, total, lower, candidates, variance,
+           window, window_noise):
+    """Steps 1-4 but the censored pixels' own values, on the rows [first, last) of (H, W) arrays, in one pass
+    down the rows: the chain of :func:`_weights` (:func:`_weights_censored` where ``flagged``: the strip holds
+    censored pixels), :func:`_residuals`, :func:`_blend`, :func:`_zero_bottom_row` and
+    :func:`_candidates` with their window sums between them, each stage a window's half height behind the one
+    it reads, and only on the rows the next one reads.
+
+    Each window sum is a row filter into a ring of the window's height of filtered rows, then a column filter
+    of the ring's rows (:func:`_row_filter`, :func:`_column_filter`: ``smooth``'s arithmetic and borders,
+    reflect-101 at the array's ends), so a stage reads rows the one before has just written, in cache,
+    instead of whole arrays. ``exposure_sum``: the window sums of ``e`` (the pattern's, cached), or empty to
+    compute them (of the uncensored exposures) in the pass.
+    Out: ``w``; ``wn`` (``w`` itself unless ``flagged``); x = s / e into ``x``: (H, W) where ``flagged`` (the
+    censored step reads it; then x, w and wn are set on every row), else a ring of the window's height; in rows
+    [first, last) the result (``image``), L^ (``estimate``), its information (``total``), the wide fallback's
+    ``candidates`` and 1 / total in ``variance`` unless it is empty; exposure sum <= 0 (``lower``) where w
+    is set, False elsewhere. Returns (the candidates' count, whether any pixel is ``lower``): the caller
+    fills the lower bounds.
+
+    ``window``: (2, H, W) float32, or of no rows: also the motion tests' window mean and its variance in rows
+    [first, last) (base.window_level_row; the window sums of the uncensored readings are the pilot's, and
+    those of G^2 e and G^2 two more row and column filters), with ``window_noise`` (1 / g, sigma^2) of the
+    sensor; 0 and an infinite variance where the window holds no uncensored reading."""
+    h, width = s.shape
+    ry = ky.size // 2
+    windowed = window.shape[1] > 0
+    ky2, kx2 = ky * ky, kx * kx
+    given = exposure_sum.size > 0
+    depth = min(h, 2 * ry + 1)  # a window's rows, reflected at the ends, lie among the last `depth` computed
+    square_rows = np.empty((2, depth if windowed else 0, width), np.float32)  # row sums of G^2 e and of G^2
+    square_sums = np.empty((2, width if windowed else 0), np.float32)
+    signal_rows, exposure_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
+    lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
+    weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
+    excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
+    neighbours = np.empty((ry + 1, width), np.float32)  # m from step 2 until step 3 reads it, ry rows later
+    sums, exposure_row, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
+                                        np.empty(width, np.float32), np.empty(width, np.float32),
+                                        np.empty(width, np.float32))
+    low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
+    index, packed = np.empty(width, np.int64), np.empty((3, width), np.float32)  # _blend's scratch
+    at_bottom = np.zeros(h, np.int64)
+    if windowed and not flagged:  # every reading kept: each row's sums of G^2 are the same, made once
+        b[:] = np.float32(1.0)
+        for slot in range(depth):
+            _row_filter(b, kx2, square_rows[1, slot])
+    rows = np.empty(ky.size, np.int64)
+    # rows each stage computes: those the next one's windows read (with the censored step, step 1 everywhere)
+    first1, last1 = (0, h) if flagged else (max(first - 2 * ry, 0), min(last + 2 * ry, h))
+    first0, last0 = max(first1 - ry, 0), min(last1 + ry, h)
+    first2, last2 = max(first - ry, 0), min(last + ry, h)
+    lower[:first1] = False
+    lower[last1:] = False
+    count, lowered = 0, False
+    for i in range(h + 3 * ry):
+        r = i
+        if first0 <= r < last0:  # row filters of the readings and exposures (uncensored ones)
+            if flagged:
+                _uncensored(s[r], censored[r], a)
+                _row_filter(a, kx, signal_rows[r % depth])
+                _uncensored(e[r], censored[r], a)
+                _row_filter(a, kx, exposure_rows[r % depth])
+                if windowed:
+                    _row_filter(a, kx2, square_rows[0, r % depth])
+                    _kept(censored[r], b)
+                    _row_filter(b, kx2, square_rows[1, r % depth])
+                _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
+            else:
+                _row_filter(s[r], kx, signal_rows[r % depth])
+                if not given:
+                    _row_filter(e[r], kx, exposure_rows[r % depth])
+                if windowed:  # (the row sums of G^2 over the kept readings are the constant ones below)
+                    _row_filter(e[r], kx2, square_rows[0, r % depth])
+            at_bottom[r] = _count_at_most(s[r], bottom)
+        r = i - ry
+        if first1 <= r < last1:  # step 1: w (wn), and the row filters of wn and wn x
+            _window_rows(r, h, depth, rows)
+            _column_filter(signal_rows, rows, ky, sums)
+            if given:
+                exposure_row[:] = exposure_sum[r]
+            else:
+                _column_filter(exposure_rows, rows, ky, exposure_row)
+            if flagged:
+                rows_min(lowest_rows, rows, lowest)
+                _weights_censored(sums, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
+                                  gain_inv, floor, centre)
+            else:
+                _weights(sums, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor, centre)
+            lowered |= _at_most_zero(exposure_row, lower[r])
+            if windowed and first <= r < last:  # the motion tests' window mean, from the same sums
+                _column_filter(square_rows[0], rows, ky2, square_sums[0])
+                _column_filter(square_rows[1], rows, ky2, square_sums[1])
+                window_level_row(sums, exposure_row, square_sums[0], square_sums[1], window_noise[0],
+                                 window_noise[1], window[0, r], window[1, r])
+            _row_filter(wn[r], kx, weight_rows[r % depth])
+            _row_filter(a, kx, weighted_rows[r % depth])
+        r = i - 2 * ry
+        if first2 <= r < last2:  # step 2: m and v_m (into `estimate` until step 3), the row filters of b^2's terms
+            _window_rows(r, h, depth, rows)
+            m = neighbours[r % (ry + 1)]
+            _column_filter(weight_rows, rows, ky, estimate[r])
+            _column_filter(weighted_rows, rows, ky, m)
+            _residuals(estimate[r], m, wn[r], w[r], x[r % x.shape[0]], a, b, centre, kernel_square)
+            _row_filter(a, kx, excess_rows[r % depth])
+            _row_filter(b, kx, q_rows[r % depth])
+        r = i - 3 * ry
+        if first <= r < last:  # steps 3 and 4, 0 at the bottom of the raw range, the wide fallback's candidates
+            _window_rows(r, h, depth, rows)
+            _column_filter(excess_rows, rows, ky, image[r])
+            _column_filter(q_rows, rows, ky, total[r])
+            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], w[r], x[r % x.shape[0]], threshold,
+                   coefficients, index, packed)
+            _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
+            if variance.size > 0:
+                _reciprocal(total[r], variance[r])
+            count += _candidates(estimate[r], total[r], image[r], censored[r], lower[r], candidates[r], z2)
+    return count, lowered
+
+
+@kernel
+def _uncensored(values, censored, out):
+    """out = values, 0 where censored."""
+    for c in range(out.size):
+        out[c] = np.float32(0.0) if censored[c] else values[c]
+
+
+@kernel
+def _kept(censored, out):
+    """out = 1 where uncensored, 0 where censored."""
+    for c in range(out.size):
+        out[c] = np.float32(0.0) if censored[c] else np.float32(1.0)
+
+
+@kernel
+def _row_least(e, censored, rx, scratch, out):
+    """out = the least exposure of the censored readings within ``rx`` of each pixel of a row (BIG where none),
+    borders reflect-101; the middle as vectorised loops (``scratch``: a row)."""
+    n, big = e.size, np.float32(BIG)
+    for c in range(n):
+        scratch[c] = e[c] if censored[c] else big
+    ends = min(rx, n)  # the row's ends, whose windows reflect: [0, ends) and [max(n - rx, ends), n)
+    for i in range(ends + n - max(n - rx, ends)):
+        c = i if i < ends else max(n - rx, ends) + i - ends
+        least = big
+        for dx in range(-rx, rx + 1):
+            least = min(least, scratch[reflect_101(c + dx, n)])
+        out[c] = least
+    inner = n - 2 * rx
+    if inner <= 0:
+        return
+    middle = out[rx:rx + inner]
+    middle[:] = scratch[:inner]
+    for dx in range(1, 2 * rx + 1):
+        shifted = scratch[dx:dx + inner]
+        for i in range(inner):
+            middle[i] = min(middle[i], shifted[i])
+
+
+@kernel
+def _window_rows(r, h, depth, rows):
+    """rows = the ring slots (row modulo ``depth``) of the window's rows around row ``r`` of ``h``, reflect-101."""
+    ry = rows.size // 2
+    for dy in range(rows.size):
+        rows[dy] = reflect_101(r + dy - ry, h) % depth
+
+
+@kernel
+def _row_filter(source, k, out):
+    """out = the symmetric filter ``k`` (odd taps) along one row, borders reflect-101, with ``smooth``'s
+    arithmetic: the centre tap, then the pairs of mirrored taps outwards; the middle as vectorised loops."""
+    n, rk = source.size, k.size // 2
+    ends = min(rk, n)  # the row's ends, whose windows reflect: [0, ends) and [max(n - rk, ends), n)
+    for i in range(ends + n - max(n - rk, ends)):
+        c = i if i < ends else max(n - rk, ends) + i - ends
+        acc = k[rk] * source[c]
+        for d in range(1, rk + 1):
+            acc += k[rk - d] * (source[reflect_101(c - d, n)] + source[reflect_101(c + d, n)])
+        out[c] = acc
+    inner = n - 2 * rk
+    if inner <= 0:
+        return
+    middle = out[rk:rk + inner]
+    if rk == 1:
+        k0, k1 = k[0], k[1]
+        left, centre, right = source[:inner], source[1:1 + inner], source[2:2 + inner]
+        for i in range(inner):
+            middle[i] = k1 * centre[i] + k0 * (left[i] + right[i])
+        return
+    centre, kc = source[rk:rk + inner], k[rk]
+    for i in range(inner):
+        middle[i] = kc * centre[i]
+    for d in range(1, rk + 1):
+        left, right, kd = source[rk - d:rk - d + inner], source[rk + d:rk + d + inner], k[rk - d]
+        for i in range(inner):
+            middle[i] += kd * (left[i] + right[i])
+
+
+@kernel
+def _column_filter(values, rows, k, out):
+    """out = the symmetric filter ``k`` down ``values``' rows ``rows`` (the window's, top to bottom) with
+    ``smooth``'s arithmetic: the centre tap, then the pairs outwards (:func:`column_sums` for 3 or 5 taps)."""
+    if k.size == 3 or k.size == 5:
+        column_sums(values, rows, k, out)
+        return
+    rk = k.size // 2
+    centre, kc = values[rows[rk]], k[rk]
+    for i in range(out.size):
+        out[i] = kc * centre[i]
+    for d in range(1, rk + 1):
+        above, below, kd = values[rows[rk - d]], values[rows[rk + d]], k[rk - d]
+        for i in range(out.size):
+            out[i] += kd * (above[i] + below[i])
+
+
+@kernel
+def _count_at_most(values, level):
+    """How many of ``values`` are <= ``level``."""
+    n = 0
+    for c in range(values.size):
+        n += values[c] <= level
+    return n
+
+
+@kernel
+def _at_most_zero(values, out):
+    """out = values <= 0; whether any is."""
+    n = 0
+    for c in range(values.size):
+        out[c] = values[c] <= np.float32(0.0)
+    for c in range(values.size):  # counted apart, so that the loop above vectorises
+        n += out[c]
+    return n > 0
+
+
+@kernel
+def _reciprocal(a, out):
+    """out = 1 / a."""
+    for c in range(out.size):
+        out[c] = np.float32(1.0) / a[c]
+
+
+@kernel
+def _candidates(estimate, information, image, censored, lower, out, z2):
+    """out = the pixels whose result cannot tell the level from 0 (L^ <= 0 or L^^2 information < z2), neither
+    censored nor a lower bound nor set to 0 at the bottom of the raw range; flat arrays; their count."""
+    zero = np.float32(0.0)
+    for k in range(out.size):
+        e = estimate[k]
+        out[k] = ((e <= zero) | (e * e * information[k] < z2)) & (image[k] > zero) & ~censored[k] & ~lower[k]
+    n = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
+    for k in range(out.size):
+        n += out[k]
+    return n
+
+
+@kernel
+def _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, out):
+    """out = 0, in place, where every reading of the pixel's window (2 ry + 1 rows, 2 rx + 1 columns, borders
+    reflect-101) lies at the bottom of the raw range (raw 0, a signal of ``bottom`` = -black): clipped there,
+    such readings say only "at most", as saturated ones say "at least", and their tightest answer is 0 (a black
+    frame stays black; :func:`nonnegative` would lift it). Row ``r`` of (H, W) ``s``, ``out`` its row of the
+    image; tested only if every row of its window holds a reading at the bottom (``at_bottom``: their counts
+    per row): the window's rows, then its columns, as vectorised loops (``low`` and ``everywhere``: scratch
+    rows)."""
+    h, width = s.shape
+    for dy in range(2 * ry + 1):
+        if at_bottom[reflect_101(r + dy - ry, h)] == 0:
+            return
+    low[:] = True
+    for dy in range(2 * ry + 1):
+        row = s[reflect_101(r + dy - ry, h)]
+        for c in range(width):
+            low[c] &= row[c] <= bottom
+    ends = min(rx, width)  # the row's ends, whose windows reflect: [0, ends) and [max(width - rx, ends), width)
+    for i in range(ends + width - max(width - rx, ends)):
+        c = i if i < ends else max(width - rx, ends) + i - ends
+        everywhere[c] = True
+        for dx in range(2 * rx + 1):
+            everywhere[c] &= low[reflect_101(c + dx - rx, width)]
+    inner = width - 2 * rx
+    if inner > 0:
+        middle = everywhere[rx:rx + inner]
+        middle[:] = True
+        for dx in range(2 * rx + 1):
+            shifted = low[dx:dx + inner]
+            for i in range(inner):
+                middle[i] &= shifted[i]
+    for c in range(width):
+        out[c] = np.float32(0.0) if everywhere[c] else out[c]
+
+
+@lru_cache(maxsize=16)
+def pattern_exposure_sum(pattern: Pattern, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Window sum of the exposure map and the map's first tile; float32; read-only.
+
+    Strips start on whole tiles, so every strip of one height shares them
+    (the first tile tells a caller whether its exposures have that phase).
+    """
+    ky, kx = kernels(pattern.shape)
+    exposure = pattern.exposure_map(shape)
+    exposure_sum = smooth(exposure, ky, kx)
+    first_tile = exposure[:pattern.shape[0], :pattern.shape[1]].copy()
+    for array in (exposure_sum, first_tile):
+        array.setflags(write=False)
+    return exposure_sum, first_tile
+
+
+@kernel
+def _inverse_variance(signal_sum, exposure_sum, s_valid, e, e_valid, gain_inv, floor, centre):
+    """w = e e_valid / (e L0 / g + sigma^2) at the pilot L0 = max(sum s / sum e, 0) of the window *without the pixel*
+    (its own reading would make its weight fall as it reads high: a bias low); 0 where e_valid = 0."""
+    rest = max(exposure_sum - centre * e_valid, np.float32(TINY))
+    pilot = max((signal_sum - centre * s_valid) / rest, np.float32(0.0))
+    return e * e_valid / (pilot * e * gain_inv + floor)
+
+
+@kernel
+def _weights(signal_sum, exposure_sum, s, e, w, x, wx, gain_inv, floor, centre):
+    """Frame without censored pixels: w of every reading, x = s / e, and w x."""
+    for k in range(w.size):
+        wk = _inverse_variance(signal_sum[k], exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
+        xk = s[k] / e[k]
+        w[k] = wk
+        x[k] = xk
+        wx[k] = wk * xk
+
+
+@kernel
+def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre):
+    """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x."""
+    zero = np.float32(0.0)
+    for k in range(w.size):
+        c = censored[k]
+        wk = _inverse_variance(signal_sum[k], exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k],
+                               gain_inv, floor, centre)
+        xk = s[k] / e[k]
+        w[k] = wk
+        x[k] = xk
+        wnk = zero if lowest[k] <= e[k] else wk
+        wn[k] = wnk
+        wx[k] = wnk * xk
+
+
+@kernel
+def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
+    """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r).
+
+    ``var_m`` and ``m`` come in holding the window sums of wn and wn x, and
+    leave holding v_m and m (the sums without the centre pixel).
+    """
+    one, tiny = np.float32(1.0), np.float32(TINY)
+    for k in range(w.size):
+        sum_w = max(var_m[k] - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
+        mk = (m[k] - centre * (wn[k] * x[k])) / sum_w
+        var_mk = kernel_square / sum_w
+        var_r = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
+        d = x[k] - mk
+        qk = one / (var_r * var_r)
+        m[k] = mk
+        var_m[k] = var_mk
+        excess_q[k] = (d * d - var_r) * qk
+        q[k] = qk
+
+
+@kernel
+def _blend(image, total, var_m, m, w, x, threshold, coefficients, index, packed):
+    """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
+    L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0).
+
+    B = sum excess_q / sum q is the window's estimate of the squared bias, SE its
+    standard error under a flat scene, sqrt(2 kernel_square / sum q) (each
+    residual's squared excess has variance 2 v_r^2 = 2 / q). ``threshold``:
+    CONTRAST_SIGMA^2 * 2 kernel_square, so b^2 = max(B - sqrt(threshold / sum q), 0).
+    ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
+    ``index`` (int64) and ``packed`` (float32 (3, N)): scratch of at least the arrays' size N.
+    """
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
+    dark = 0
+    for k in range(w.size):  # a loop without branches, which LLVM vectorises
+        weight = max(total[k], tiny)
+        excess = max(image[k] / weight - np.sqrt(threshold / weight), zero) + var_m[k]
+        t = one / excess + w[k]
+        estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
+        image[k] = estimate
+        var_m[k] = estimate  # kept for the pixels near 0, below
+        total[k] = t
+        dark += (estimate <= zero) | (estimate * estimate * t < high)
+    if dark == 0:
+        return
+    if dark * FEW_NEAR_ZERO >= w.size:
+        nonnegative(image, var_m, total, coefficients)
+        return
+    # Few pixels near 0 (a bright scene): packed into short arrays, the same pass on them alone.
+    n = near_zero(var_m, total, index)
+    near_image, near_estimate, near_information = packed[0, :n], packed[1, :n], packed[2, :n]
+    for j in range(n):
+        k = index[j]
+        near_image[j], near_estimate[j], near_information[j] = image[k], var_m[k], total[k]
+    nonnegative(near_image, near_estimate, near_information, coefficients)
+    for j in range(n):
+        image[index[j]] = near_image[j]
+
+
+@kernel
+def column_sums(values, rows, ky, out):
+    """The column filter ``ky`` (3 or 5 taps) over ``values``' rows ``rows`` (the window's, top to bottom):
+    OpenCV's arithmetic, centre tap first, then the pairs outwards."""
+    if ky.size == 3:
+        a, b, c = values[rows[0]], values[rows[1]], values[rows[2]]
+        k0, k1 = ky[0], ky[1]
+        for i in range(out.size):
+            out[i] = k1 * b[i] + k0 * (a[i] + c[i])
+    else:
+        a, b, c, d, e = values[rows[0]], values[rows[1]], values[rows[2]], values[rows[3]], values[rows[4]]
+        k0, k1, k2 = ky[0], ky[1], ky[2]
+        for i in range(out.size):
+            out[i] = k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + e[i])
