@@ -17,15 +17,15 @@ from svelive.capture.source import MONO_WORDS
 from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
 from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate
-from svelive.exr import (LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, standard_attributes,
-                         write_exr)
+from svelive.exr import LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, write_exr
+from svelive.frame_exr import FrameInfo, single_frame_balance, write_frame_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
     dynamic_range_stops, unique_levels
 from svelive.reconstruction.input import prepare, with_noise_model
 from svelive.reconstruction.single import methods, reconstruct
 from svelive.sensor import Sensor, container_bits
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
-from svelive.whitebalance import OUTPUT_SPACES, ColourSettings, WhiteBalancer, exr_output
+from svelive.whitebalance import OUTPUT_SPACES, ColourSettings
 
 # the demo verb's layouts are the demo camera's: dual-ISO exposures on RGGB, or mono 1,4/16,64
 from svelive.capture.demo import COLOUR_PATTERN as DEMO_COLOUR_PATTERN, DEFAULT_CFA as DEMO_CFA, \
@@ -128,14 +128,6 @@ def camera_from_args(pattern: str | None, cfa: str | None, sensor: Sensor | None
         raise SveliveError(f"the layout {pattern} has the colour filter {camera.cfa.name}, but --cfa {cfa} was "
                            "given: drop --cfa, or give the exposure pattern itself")
     return camera
-
-
-def colour_exr(image: np.ndarray, settings: ColourSettings, valid: np.ndarray | None = None
-               ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
-    """EXR channels and colour attributes of one frame (``Y``, or ``R``, ``G``, ``B`` with its white balance
-    estimated from its ``valid`` pixels when automatic)."""
-    balance = WhiteBalancer(settings).update(image, 0, valid) if image.ndim == 3 else None
-    return exr_output(image, balance, settings)
 
 
 def luminance(image: np.ndarray) -> np.ndarray:
@@ -329,11 +321,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
     # the noise model: given, or estimated from this frame once (and named in the EXR and with -v)
     noise = with_noise_model(raw, camera, prepare(raw, camera))[2]
     image, confidence = reconstruct(raw, camera, method=args.method, noise=noise, return_confidence=True)
-    channels, colour = colour_exr(image, settings, confidence > 0)
-    if args.confidence:
-        channels["confidence"] = confidence
-    write_exr(args.output, channels, standard_attributes(camera, method, extra={**noise.attributes(), **colour}),
-              half=args.half)
+    write_frame_exr(args.output, image, FrameInfo(camera, method, attributes=noise.attributes()), settings,
+                    single_frame_balance(image, settings, confidence > 0),
+                    {"confidence": confidence} if args.confidence else None, half=args.half)
     kind = "" if camera.cfa is None else f", RGB ({settings.output_space})"
     print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]}{kind}, method {method})")
     if args.verbose:
@@ -381,9 +371,8 @@ def _demo(args: argparse.Namespace) -> int:
     frame = simulate(scene * exposure_scale(scene, pattern, sensor), pattern, sensor, cfa=camera.cfa, seed=0)
     method = args.method or methods()[0]
     image, confidence = reconstruct(frame.raw, camera, method=method, return_confidence=True)
-    channels, colour = colour_exr(image, settings, confidence > 0)
-    channels["confidence"] = confidence
-    write_exr(args.output, channels, standard_attributes(camera, method, extra=colour))
+    balance = single_frame_balance(image, settings, confidence > 0)
+    write_frame_exr(args.output, image, FrameInfo(camera, method), settings, balance, {"confidence": confidence})
     measured = luminance(image)[confidence > 0.5]
     low, high = np.percentile(measured, [0.1, 99.9]) if measured.size else (0.0, 0.0)
     kind = "" if camera.cfa is None else f" {camera.cfa.name} colour"
@@ -394,9 +383,9 @@ def _demo(args: argparse.Namespace) -> int:
     if low > 0:
         print(f"reconstructed dynamic range (0.1-99.9 percentile of luminance, confidence > 0.5): "
               f"{20 * math.log10(high / low):.1f} dB = {math.log2(high / low):.1f} stops")
-    if camera.cfa is not None:
-        balance = colour["whiteBalance"]
-        print(f"white balance ({colour['whiteBalanceMode']}): R {balance[0]:.3f}, G 1, B {balance[2]:.3f}; "
+    if balance is not None:
+        red, _, blue = np.float32(balance.multipliers)  # as the EXR stores them
+        print(f"white balance ({balance.mode}): R {red:.3f}, G 1, B {blue:.3f}; "
               f"EXR in {settings.output_space} RGB")
     print(f"wrote {args.output}")
     return 0

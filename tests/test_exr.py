@@ -124,3 +124,28 @@ def test_compressing_on_threads_writes_the_same_bytes():
     finally:
         OpenEXR.set_global_thread_count(before)
     assert threaded == alone
+
+
+def test_one_frame_writer_white_balance_output_space_attributes(tmp_path):
+    """svelive.frame_exr: the file and the bytes are one; a colour frame's channels in the output space with the
+    white balance given, then the planes; standard attributes, the frame's own, then the colour ones."""
+    from svelive import Camera
+    from svelive.frame_exr import FrameInfo, frame_exr_bytes, single_frame_balance, write_frame_exr
+    from svelive.whitebalance import ColourSettings
+
+    rgb = np.random.default_rng(4).random((6, 8, 3)).astype(np.float32) * 100
+    info = FrameInfo(Camera.build("dual-iso"), "weighted", frame_id=3, timestamp=12.5, attributes={"note": "x"})
+    colour = ColourSettings((2.0, 1.0, 1.5), "1,0,0,0,1,0,0,0,1", "rec709")
+    balance = single_frame_balance(rgb, colour)
+    planes = {"confidence": np.ones((6, 8), np.float32)}
+    path = write_frame_exr(tmp_path / "f.exr", rgb, info, colour, balance, planes)
+    assert path.read_bytes() == frame_exr_bytes(rgb, info, colour, balance, planes)
+    channels, header = read_exr(path)
+    assert set(channels) == {"R", "G", "B", "confidence"}
+    np.testing.assert_allclose(channels["R"], 2 * rgb[:, :, 0], rtol=1e-6)
+    assert header["frameId"] == 3 and header["cfa"] == "RGGB" and header["note"] == "x"
+    assert header["colourSpace"] == "rec709" and header["whiteBalanceMode"] == "fixed"
+    mono = np.ones((6, 8), np.float32)
+    assert single_frame_balance(mono, colour) is None
+    channels, header = read_exr(frame_exr_bytes(mono, FrameInfo(Camera.build("1,4/16,64"), "weighted"), colour, None))
+    assert set(channels) == {"Y"} and "colourSpace" not in header and "frameId" not in header

@@ -5,7 +5,8 @@ for both.
 
 Colour frames (linear camera RGB) are white-balanced (fixed, or the automatic estimate smoothed over
 frame time) and taken through the optional camera -> Rec.709 matrix on their way into the tone map,
-which writes BGR for OpenCV's JPEG encoder; the EXR snapshot's colour is :meth:`EncoderStage.exr_image`.
+which writes BGR for OpenCV's JPEG encoder; the EXR snapshot is written with the preview's white balance
+(:meth:`EncoderStage.white_balance`) by svelive.frame_exr, as every EXR is.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from svelive.exr import exr_bytes, standard_attributes
+from svelive.frame_exr import FrameInfo, frame_exr_bytes
 
 from service.routers import NO_STORE, ServedCamera
 
@@ -30,12 +30,13 @@ def router(cam: ServedCamera) -> APIRouter:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)
         hdr = published.hdr
         noise = pipeline.reconstruction.noise.model_of(published.camera)
-        attributes = standard_attributes(published.camera, hdr.method, frame_id=hdr.frame_id,
-                                         timestamp=published.wall_time, extra=noise.attributes())
+        info = FrameInfo(published.camera, hdr.method, frame_id=hdr.frame_id, timestamp=published.wall_time,
+                         attributes=noise.attributes())
+        encoder = pipeline.encoder
 
-        def encode() -> bytes:  # colour conversion and compression off the event loop
-            channels, colour = pipeline.exr_image(published)
-            return exr_bytes(channels, {**attributes, **colour}, half=half)
+        def encode() -> bytes:  # white balance, colour conversion and compression off the event loop
+            # the white balance of the preview (EncoderStage.white_balance), so the snapshot matches it
+            return frame_exr_bytes(hdr.image, info, encoder.colour, encoder.white_balance(published), half=half)
 
         data = await run_in_threadpool(encode)
         return Response(data, media_type="image/x-exr",
