@@ -4,9 +4,11 @@ Every frame is reconstructed with its own camera (svelive.Camera: pattern, colou
 sensor, response), as the source attached it: a replayed Bayer recording comes out in colour,
 linearised through the response it was recorded with.
 
-A recording (``--source replay:FILE``) is reprocessed by svelive.reprocess: in this process,
-or with ``--workers N`` / ``--scheduler tcp://HOST:8786`` on a Dask cluster; its EXRs are
-named by the frame's index in the recording and a second run skips the complete ones.
+The frames are reconstructed and written by svelive.reprocess, which writes every EXR the same
+way (svelive.frame_exr): a recording (``--source replay:FILE``) by frame index, in this process
+or with ``--workers N`` / ``--scheduler tcp://HOST:8786`` on a Dask cluster, its EXRs named by
+the frame's index in the recording, a second run skipping the complete ones; any other source in
+order (svelive.reprocess.run_stream). This module turns the options into those calls.
 """
 
 from __future__ import annotations
@@ -24,17 +26,14 @@ from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
 from svelive.commands import add_colour_arguments, colour_settings, parse_cfa
 from svelive.errors import SveliveError
-from svelive.exr import compress_on, standard_attributes, write_exr
+from svelive.exr import compress_on
 from svelive.frame import Frame
 from svelive.memory import keep_freed_memory
 from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
+from svelive.reprocess import run_stream
 from svelive.noise import NoiseEstimate
-from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, Reconstructor, default_method, stream_noise
-from svelive.whitebalance import WhiteBalancer, exr_output
-
-#: Frame time of frames without a timestamp (plain .npy directories): 30 fps, for the white balance's smoothing.
-FRAME_NS = 33_333_333
+from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, default_method, stream_noise
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
@@ -154,13 +153,6 @@ def _say(noise: NoiseEstimate) -> None:
     print(f"{noise.describe()}, from the first {NOISE_FRAMES} frames at most", file=sys.stderr)
 
 
-def frame_time_ns(frame: np.ndarray | Frame, index: int) -> int:
-    """A frame's time for the white balance's smoothing: the device's clock, else the arrival, else 30 fps."""
-    if isinstance(frame, Frame):
-        return frame.device_time_ns if frame.device_time_ns is not None else frame.host_time_ns
-    return index * FRAME_NS
-
-
 def _reconstruct_sequence(args: argparse.Namespace) -> int:
     if args.frames is not None and args.frames < 1:
         raise SveliveError(f"--frames must be >= 1, got {args.frames}")
@@ -181,44 +173,17 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
                            "replay:FILE (record other sources first with svelive record)")
     frames, source = _raw_frames(args)
     keep_freed_memory()  # frame buffers reused from frame to frame
-    reconstructor: Reconstructor | None = None
-    balancer = WhiteBalancer(settings)
-    n = 0
-    progress = Progress("reconstructing", total=args.frames, quiet=args.quiet)
+
+    def new_stream(noise: NoiseEstimate) -> None:
+        if noise.source != "given" and not args.quiet:
+            _say(noise)
+
     try:
-        for frame, camera, noise in with_cameras(frames, args):
-            if reconstructor is None or camera != reconstructor.camera:  # a new camera: a new stream
-                if noise.source != "given" and not args.quiet:
-                    _say(noise)
-                if reconstructor is not None:
-                    reconstructor.close()
-                reconstructor = Reconstructor(camera, method=args.method, temporal=not args.no_temporal,
-                                              exposure_timing=args.timing)
-            result = reconstructor.process(getattr(frame, "raw", frame))
-            balance = None
-            if result.image.ndim == 3:
-                balance = balancer.update(result.image, frame_time_ns(frame, n), ~result.lower_bound)
-            channels, colour = exr_output(result.image, balance, settings)
-            attributes = standard_attributes(camera, result.method, frame_id=getattr(frame, "frame_id", n),
-                                             timestamp=frame_time_ns(frame, n) / 1e9,
-                                             extra={"movingFraction": f"{result.moving_fraction:.6f}",
-                                                    **noise.attributes(), **colour})
-            args.output.mkdir(parents=True, exist_ok=True)
-            write_exr(args.output / f"frame_{n:06d}.exr",
-                      {**channels, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
-                      attributes, half=args.half)
-            n += 1
-            progress.update()
-            if args.frames is not None and n >= args.frames:
-                break
-    except BaseException:
-        progress.close(failed=True)
-        raise
-    else:
-        progress.close()
+        with Progress("reconstructing", total=args.frames, quiet=args.quiet) as progress:
+            n = run_stream(with_cameras(frames, args), args.output, method=args.method, temporal=not args.no_temporal,
+                           timing=args.timing, colour=settings, half=args.half, limit=args.frames,
+                           on_frame=lambda _: progress.update(), on_camera=new_stream)
     finally:
-        if reconstructor is not None:
-            reconstructor.close()
         if source is not None:
             source.close()
     if n == 0:

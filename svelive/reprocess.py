@@ -1,4 +1,5 @@
-"""Reprocessing a recording: frames to EXR files, in this process or on a Dask cluster.
+"""Reprocessing a recording: frames to EXR files, in this process or on a Dask cluster; and any other
+stream of frames, in order (:func:`run_stream`). Every frame is written by :func:`write_result`.
 
 A recording is read by frame index (replay.RecordingReader, constant-time seek), so
 any process that sees the file can reconstruct any range of it: the client plans
@@ -54,9 +55,11 @@ import numpy as np
 
 from svelive.camera import Camera
 from svelive.errors import SveliveError
+from svelive.frame import Frame
+from svelive.frame_exr import FrameInfo, write_frame_exr
 from svelive.noise import NoiseEstimate
 from svelive.reconstruction.config import MotionConfig
-from svelive.whitebalance import ColourSettings, WhiteBalancer
+from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer
 
 #: The pip extra that installs Dask (pyproject.toml's optional dependencies).
 EXTRA = "cluster"
@@ -412,6 +415,25 @@ def compare_results(before: ChunkResult, after: ChunkResult, rtol: float = STATE
     return compare_states(before.end_state, after.start_state, rtol, pixels)
 
 
+def stream_balance(result: Any, balancer: WhiteBalancer, time_ns: int) -> WhiteBalance | None:
+    """The white balance of a stream's frame (a SequenceResult taken at ``time_ns``): ``balancer`` updated
+    with its pixels that are not lower bounds; None for monochrome. Every frame goes through it, written or
+    not (a warm-up's frames too), as the filter smooths over them all."""
+    if result.image.ndim != 3:
+        return None
+    return balancer.update(result.image, time_ns, ~result.lower_bound)
+
+
+def write_result(path: str | Path, result: Any, camera: Camera, colour: ColourSettings, balance: WhiteBalance | None,
+                 *, frame_id: int, timestamp: float, attributes: dict[str, Any], half: bool) -> Path:
+    """Write a stream's frame (a SequenceResult) with svelive.frame_exr: the image, ``confidence`` and
+    ``motion``; ``movingFraction``, then ``attributes``, then the colour attributes."""
+    info = FrameInfo(camera, result.method, frame_id=frame_id, timestamp=timestamp,
+                     attributes={"movingFraction": f"{result.moving_fraction:.6f}", **attributes})
+    planes = {"confidence": result.confidence, "motion": result.motion.astype(np.float32)}
+    return write_frame_exr(path, result.image, info, colour, balance, planes, half=half)
+
+
 def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = None,
               stage: bool = False) -> ChunkResult:
     """Reconstruct frames ``chunk.first`` .. ``chunk.stop - 1`` in order and write the EXRs of
@@ -421,10 +443,8 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
     import dataclasses
 
     from replay import CorruptFrameError
-    from svelive.exr import standard_attributes, write_exr
     from svelive.memory import keep_freed_memory
     from svelive.reconstruction.stream import Reconstructor
-    from svelive.whitebalance import exr_output
 
     keep_freed_memory()  # in this worker process: frame buffers reused from frame to frame
     t0 = time.perf_counter()
@@ -465,19 +485,12 @@ def run_chunk(job: Job, chunk: Chunk, on_frame: Callable[[int], None] | None = N
                 continue
             result = reconstructor.process(frame)
             reconstructed += 1
-            balance = None
-            if result.image.ndim == 3:
-                balance = balancer.update(result.image, int(times[i]), ~result.lower_bound)
+            balance = stream_balance(result, balancer, int(times[i]))
             if i < chunk.start or i in done:
                 continue
-            data, colour = exr_output(result.image, balance, job.colour)
-            attributes = standard_attributes(camera, result.method, frame_id=frame.frame_id,
-                                             timestamp=frame.host_time_ns / 1e9,
-                                             extra={"movingFraction": f"{result.moving_fraction:.6f}",
-                                                    "frameIndex": i, **noise_attributes, **colour})
-            write_exr(frame_path(output, i),
-                      {**data, "confidence": result.confidence, "motion": result.motion.astype(np.float32)},
-                      attributes, half=job.half)
+            write_result(frame_path(output, i), result, camera, job.colour, balance, frame_id=frame.frame_id,
+                         timestamp=frame.host_time_ns / 1e9, attributes={"frameIndex": i, **noise_attributes},
+                         half=job.half)
             written.append(i)
             if on_frame is not None:
                 on_frame(i)
@@ -803,3 +816,64 @@ def run_dask(job: Job, client: Any, workers: int, progress: Any = None, warmup: 
 
     return _summary(execute(job, work.chunks, DaskBackend(client), progress, verify, tolerance), len(complete),
                     time.perf_counter() - t0, workers)
+
+
+# ----- any other stream (a camera, a folder of frames): in order, in this process ----------------
+#: Frame time of frames without a timestamp (plain .npy directories): 30 fps, for the white balance's smoothing.
+FRAME_NS = 33_333_333
+
+
+def frame_time_ns(frame: Frame | np.ndarray, index: int) -> int:
+    """A frame's time for the white balance's smoothing: the device's clock, else the arrival, else 30 fps
+    (``index``: a bare raw array's position in its stream)."""
+    if isinstance(frame, Frame):
+        return frame.device_time_ns if frame.device_time_ns is not None else frame.host_time_ns
+    return index * FRAME_NS
+
+
+def run_stream(frames: Iterable[tuple[Frame | np.ndarray, Camera, NoiseEstimate]], output: str | Path, *, method: str | None = None,
+               temporal: bool = True, timing: str = "mask", colour: ColourSettings | None = None,
+               half: bool = False, limit: int | None = None, on_frame: Callable[[int], None] | None = None,
+               on_camera: Callable[[NoiseEstimate], None] | None = None) -> int:
+    """Reconstruct a stream in order and write ``frame_NNNNNN.exr`` for each frame (NNNNNN: its position in
+    the stream) as a recording's chunk writes them (:func:`write_result`); returns the frames written.
+
+    Args:
+        frames: (a Frame or a bare raw array, the camera to reconstruct it with, its noise model), in order
+            (svelive.motion_commands.with_cameras); a frame whose camera differs from the one before it
+            starts a new stream, and ``on_camera`` is given its noise model.
+        output: the output directory, made at the first frame.
+        method, temporal, timing, colour, half: as in :class:`Job`.
+        limit: stop after this many frames (None: at the stream's end).
+        on_frame: called with the count written after each frame.
+    """
+    from svelive.reconstruction.stream import Reconstructor
+
+    colour = colour or ColourSettings()
+    balancer = WhiteBalancer(colour)
+    reconstructor: Reconstructor | None = None
+    n = 0
+    try:
+        for frame, camera, noise in frames:
+            if reconstructor is None or camera != reconstructor.camera:
+                if on_camera is not None:
+                    on_camera(noise)
+                if reconstructor is not None:
+                    reconstructor.close()
+                reconstructor = Reconstructor(camera, method=method, temporal=temporal, exposure_timing=timing)
+            result = reconstructor.process(getattr(frame, "raw", frame))
+            time_ns = frame_time_ns(frame, n)
+            balance = stream_balance(result, balancer, time_ns)
+            Path(output).mkdir(parents=True, exist_ok=True)
+            write_result(frame_path(output, n), result, camera, colour, balance,
+                         frame_id=getattr(frame, "frame_id", n), timestamp=time_ns / 1e9,
+                         attributes=noise.attributes(), half=half)
+            n += 1
+            if on_frame is not None:
+                on_frame(n)
+            if limit is not None and n >= limit:
+                break
+    finally:
+        if reconstructor is not None:
+            reconstructor.close()
+    return n
