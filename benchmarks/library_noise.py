@@ -1,6 +1,7 @@
 """The README's library stream without a noise model, against the single-frame default, in dim light (issue 26).
 
     .venv/bin/python benchmarks/library_noise.py [--quick] [--crop 320] [--shared-only | --shipped-only]
+    .venv/bin/python benchmarks/library_noise.py --colour [--quick]
 
 Dim 12-bit scenes (black level 64, 4 and 5 stops under full scale) from the shipped crops
 (svelive/data) and the shared HDR images (../shared/data/hdr, when present), rendered with a
@@ -18,6 +19,10 @@ moving pixels (the ground-truth mask), of:
 
 The columns print each stream minus ``single`` (dB); the last column is the ``readme`` stream's
 noise estimate after frame 8 against the truth.
+
+``--colour``: the same on colour streams (the colour layouts, the shipped RGB crops and the shared images'
+RGB when present, still scenes), PU21 of Rec. 709 luminance: ``Reconstructor(layout pattern, cfa=...,
+black_level=64, white_level=4095)`` and the true model given, against ``svelive.reconstruct`` of the frame.
 """
 
 from __future__ import annotations
@@ -113,14 +118,84 @@ def measure(image: np.ndarray, sensor: Sensor, stops: float, moving: bool, seed:
     return out
 
 
+COLOUR_LAYOUTS = ("assorted-4x4", "dual-iso", "quad-bayer")
+
+
+def colour_images(size: int, shared: bool) -> list[tuple[str, np.ndarray]]:
+    """(name, linear RGB float32 (H, W, 3)) of the colour scenes: shipped crops, and shared images if asked."""
+    from svelive.exr import read_exr
+    from svelive.simulate import load_sample_scene
+
+    out = [(name, np.maximum(load_sample_scene(name, rgb=True), 0)[:size, :size]) for name in SHIPPED]
+    if shared and SHARED.is_dir():
+        for name in SHARED_IMAGES:
+            channels, _ = read_exr(SHARED / f"{name}.exr")
+            rgb = np.maximum(np.stack([channels[c] for c in "RGB"], axis=-1), 0).astype(np.float32)
+            h, w, _ = rgb.shape
+            out.append((name, rgb[(h - min(h, size)) // 2:][:size, (w - min(w, size)) // 2:][:, :size]))
+    return out
+
+
+def measure_colour(rgb: np.ndarray, layout: str, sensor: Sensor, stops: float, seed: int) -> dict:
+    """PU21 of Rec. 709 luminance per stream ('readme', 'true', 'single') at FRAMES of a still colour scene."""
+    from svelive.camera import COLOUR_LAYOUTS as LAYOUTS
+    from svelive.metrics import luminance, pu21_psnr
+    from svelive.simulate import simulate
+
+    pattern, cfa = LAYOUTS[layout]
+    scene = rgb * np.float32(exposure_scale(rgb, Pattern.parse(pattern), sensor, stops_below_fill=stops))
+    truth = luminance(scene)
+    levels = dict(black_level=BLACK, white_level=WHITE)
+    runs = {"readme": svelive.Reconstructor(pattern, cfa=cfa, **levels),
+            "true": svelive.Reconstructor(pattern, cfa=cfa, **levels, gain=sensor.gain, read_noise=sensor.read_noise)}
+    out = {}
+    for i in range(1, max(FRAMES) + 1):
+        raw = simulate(scene, pattern, sensor, cfa=cfa, seed=seed + i).raw
+        images = {"single": svelive.reconstruct(raw, pattern, cfa=cfa, **levels)}
+        images.update({name: stream.process(raw).image for name, stream in runs.items()})
+        if i in FRAMES:
+            for name, x in images.items():
+                out[(name, i)] = pu21_psnr(luminance(x), truth)
+    return out
+
+
+def colour_main(quick: bool, size: int, shared: bool) -> None:
+    """The colour table (see the module docstring)."""
+    sensors = SENSORS[:2] if quick else SENSORS
+    stops = STOPS[:1] if quick else STOPS
+    print(f"# colour, still, {size} px crops; stream minus single-frame default (dB), PU21 of luminance at frames {FRAMES}")
+    totals: dict = {}
+    for name, rgb in colour_images(size, shared):
+        for layout in COLOUR_LAYOUTS:
+            for full_well, read_e in sensors:
+                sensor = Sensor.from_full_well(12, full_well, read_e, black_level=BLACK, white_level=WHITE)
+                for st in stops:
+                    res = measure_colour(rgb, layout, sensor, st, seed=int(full_well + 10 * st))
+                    cells = []
+                    for stream in ("readme", "true"):
+                        d = [res[(stream, i)] - res[("single", i)] for i in FRAMES]
+                        for i, v in zip(FRAMES, d):
+                            totals.setdefault((stream, i), []).append(v)
+                        cells.append(f"{stream} " + " ".join(f"{v:+5.2f}" for v in d))
+                    print(f"{name:11s} {layout:12s} {full_well:5d}e/{read_e:4.1f}e -{st:.0f}st single f8 "
+                          f"{res[('single', 8)]:5.2f} | {' | '.join(cells)}", flush=True)
+    for stream in ("readme", "true"):
+        print(f"colour {stream:6s} " + "  ".join(f"f{i} {np.mean(totals[(stream, i)]):+5.2f} "
+                                                  f"(min {np.min(totals[(stream, i)]):+5.2f})" for i in FRAMES))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one stop count, one sensor less, 256 px crops")
     parser.add_argument("--crop", type=int, default=320, help="crop side of the scenes (px)")
     parser.add_argument("--shared-only", action="store_true")
     parser.add_argument("--shipped-only", action="store_true")
+    parser.add_argument("--colour", action="store_true", help="the colour streams' table instead")
     args = parser.parse_args()
     size = 256 if args.quick else args.crop
+    if args.colour:
+        colour_main(args.quick, 128 if args.quick else 192, not args.shipped_only)
+        return
     sensors = SENSORS[:2] if args.quick else SENSORS
     stops = STOPS[:1] if args.quick else STOPS
     scenes = scene_images(size, not args.shared_only, not args.shipped_only)

@@ -1,6 +1,7 @@
 """Motion robustness targets (issue 5): temporal fusion gain, moving regions, ghosting, integration timing, cost.
 
     python benchmarks/motion.py [--quick] [--cost-only] [--method NAME] [--figure docs/motion-trail.png]
+    python benchmarks/motion.py --library-only [--quick]     # issue 26's cases (below)
 
 Real HDR content from ../shared/data (not shipped). 12-bit sensor, 10 000 e- full
 well, 3 e- read noise, pattern 1,4/16,64, the stream's default method (or
@@ -9,6 +10,15 @@ the ground-truth motion mask) with the display scaling of the whole frame's
 truth. "single" is one frame of the single-frame default (svelive.reconstruct's),
 what a user gets without a stream; where the stream's method is another, its own
 single frame is printed beside it.
+
+``--library`` / ``--library-only``: issue 26's cases (svelive.bench.motion_cases), the library's stream as the
+README uses it (no noise model: it estimates its own) and as the service runs it (the model of
+``stream_noise`` on the first three frames given), against the single-frame default, in dim light with true
+sensors the streams are not told: a bright textured object (a disc cut from another image) crossing a dark
+scene at 22 px a frame, stopping at frame 4, starting at frame 4, a cut to another scene at frame 4, the
+Beachball frames dimmed, and the same on procedural scenes that are in no image set. Per case, stream minus
+single (dB): moving pixels (mean over frames 2-10 and the worst frame), still pixels at frame 8, the trail's
+PU21 and ghost residue (the share of a change the output still shows; svelive.bench.motion_cases).
 """
 
 from __future__ import annotations
@@ -152,6 +162,100 @@ def cost(repeats: int) -> None:
               f"{np.median(motion[1:]):6.1f} ms (median of {repeats})")
 
 
+LIBRARY_LEVELS = dict(black_level=64, white_level=4095)
+#: true sensors of the library cases (full well e-, read noise e-), none given to the README stream
+LIBRARY_SENSORS = ((3_000, 2.0), (10_000, 12.0), (40_000, 6.0))
+LIBRARY_FRAMES = 10
+
+
+def library_scenes(crop: int, stops: float, sensor: Sensor, procedural: bool) -> list[tuple[str, object]]:
+    """(label, scene) of issue 26's cases at ``stops`` under full scale: shared images, or procedural ones."""
+    from svelive.bench import motion_cases as mc
+
+    def load(name: str) -> np.ndarray:
+        image = np.maximum(read_luminance(DATA / "hdr" / f"{name}.exr"), 0)
+        h, w = image.shape
+        return image[(h - min(h, crop)) // 2:][:crop, (w - min(w, crop)) // 2:][:, :crop]
+
+    if procedural:
+        pairs = [("proc-1", mc.procedural_scene((crop, crop), 1), mc.procedural_scene((crop, crop), 2, slope=1.5)),
+                 ("proc-3", mc.procedural_scene((crop, crop), 3, stops=14), mc.procedural_scene((crop, crop), 4))]
+    else:
+        pairs = [("Desk/Bonita", load("Desk"), load("Bonita")), ("MtTamWest/Cannon", load("MtTamWest"), load("Cannon")),
+                 ("Garden/BrightRings", load("Garden"), load("BrightRings"))]
+    out = []
+    for label, back, other in pairs:
+        background = mc.dim(back, PATTERN, sensor, stops)
+        # the object: 3 stops brighter than the scene's 99.9th percentile at its own, textured
+        texture = other * (8 * float(np.percentile(background, 99.9)) / max(float(np.percentile(other, 99.9)), 1e-12))
+        radius = crop / 8
+        crossing = mc.moving_texture(background, texture, radius, (crop / 2, radius + 4), (0.0, 22.0))
+        out += [(f"{label} crossing", crossing), (f"{label} stops at 4", mc.stopping(crossing, 4.0)),
+                (f"{label} starts at 4", mc.starting(crossing, 4.0)),
+                (f"{label} cut at 4", mc.cut(crossing, mc.moving_texture(mc.dim(other, PATTERN, sensor, stops),
+                                                                          back * (texture.max() / max(back.max(), 1e-12)),
+                                                                          radius, (crop / 3, crop - radius - 4),
+                                                                          (8.0, -18.0)), 4))]
+    if not procedural:
+        frames, shape = load_beachball(DATA / "beachball", scale=0.25)
+        peak = max(float(np.percentile(f[0], 99.9)) for f in frames)
+        scale = mc.dim(np.ones(1, np.float32), PATTERN, sensor, stops)[0] / peak  # 99.9th percentile to `stops` under
+        out.append(("Beachball", placed_frames([(f * scale, o) for f, o in frames], shape, background=0.02 * peak * scale)))
+    return out
+
+
+def library_cases(crop: int, quick: bool) -> None:
+    """Issue 26's table (see the module docstring)."""
+    import svelive
+    from svelive.bench import motion_cases as mc
+    from svelive.reconstruction.stream import stream_noise
+
+    sensors = LIBRARY_SENSORS[:2] if quick else LIBRARY_SENSORS
+    stops_list = (5.0,) if quick else (4.0, 5.0)
+    camera = svelive.Camera.build(PATTERN, None, Sensor(12, **LIBRARY_LEVELS))
+
+    def service(raws):
+        noise = stream_noise(raws[:3], camera)
+        return Reconstructor(PATTERN, **LIBRARY_LEVELS, gain=noise.gain, read_noise=noise.read_noise)
+
+    streams = {"readme": lambda raws: Reconstructor(PATTERN, **LIBRARY_LEVELS), "service": service}
+    single = lambda raw: svelive.reconstruct(raw, PATTERN, **LIBRARY_LEVELS)  # noqa: E731
+    print(f"## issue 26 cases: {LIBRARY_FRAMES} frames, {crop} px, 12-bit, black 64; stream minus single-frame default "
+          "(dB): moving mean (worst frame) over frames 2-10, still at frame 8, trail PU21 mean; ghost residue "
+          "(% of the change shown, stream / single)")
+    totals: dict[tuple[str, str], list[float]] = {}
+    for procedural in (False, True):
+        for full_well, read_e in sensors:
+            sensor = Sensor.from_full_well(12, full_well, read_e, **LIBRARY_LEVELS)
+            for stops in stops_list:
+                for label, scene in library_scenes(crop, stops, sensor, procedural):
+                    scores = mc.run_case(scene, LIBRARY_FRAMES, PATTERN, sensor, streams, single, region_pu21,
+                                         seed=int(full_well + 10 * stops))
+                    cells = []
+                    for name in streams:
+                        d = {region: np.array(scores.pu21[(name, region)]) - np.array(scores.pu21[("single", region)])
+                             for region in ("moving", "still", "trail")}
+                        moving = d["moving"][1:]
+                        ghost, ghost_single = np.nanmean(scores.ghost[name][1:]), np.nanmean(scores.ghost["single"][1:])
+                        row = dict(moving=np.nanmean(moving), worst=np.nanmin(moving), still8=d["still"][7],
+                                   trail=np.nanmean(d["trail"][1:]), ghost=ghost - ghost_single)
+                        for key, value in row.items():
+                            totals.setdefault((name, key), []).append(float(value))
+                        cells.append(f"{name} mov {row['moving']:+5.2f} ({row['worst']:+5.2f}) still8 {row['still8']:+5.2f} "
+                                     f"trail {row['trail']:+5.2f} ghost {100 * ghost:+4.1f}/{100 * ghost_single:+4.1f}%")
+                    print(f"{label:30s} {full_well:5d}e/{read_e:4.1f}e -{stops:.0f}st | " + " | ".join(cells), flush=True)
+    print("# summary (dB; ghost: stream minus single, % of the change): mean, worst")
+    for name in streams:
+        parts = []
+        for key in ("moving", "worst", "still8", "trail", "ghost"):
+            v = np.array(totals[(name, key)])
+            v = v[np.isfinite(v)]
+            scale, unit = (100, "%") if key == "ghost" else (1, "")
+            worst = v.max() if key == "ghost" else v.min()
+            parts.append(f"{key} {scale * v.mean():+5.2f}{unit} ({scale * worst:+5.2f}{unit})")
+        print(f"{name:8s} " + "  ".join(parts))
+
+
 def trail_figure(path: Path, scene, n: int) -> None:
     import matplotlib
 
@@ -187,6 +291,8 @@ def main() -> None:
     parser.add_argument("--method", help="the stream's single-frame method (default: the stream's default)")
     parser.add_argument("--no-cost", action="store_true", help="leave out the 1920x1200 cost per frame")
     parser.add_argument("--repeats", type=int, default=None, help="frames timed in the cost table")
+    parser.add_argument("--library", action="store_true", help="also issue 26's cases of the library's stream")
+    parser.add_argument("--library-only", action="store_true", help="only issue 26's cases")
     args = parser.parse_args()
     STREAM_METHOD[0] = args.method
     cv2.setNumThreads(1)
@@ -195,6 +301,9 @@ def main() -> None:
         repeats = args.repeats
     if args.cost_only:
         cost(args.repeats or 15)
+        return
+    if args.library_only:
+        library_cases(crop // 2, args.quick)
         return
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; pattern {PATTERN}, "
           f"12-bit, 10000 e- full well, 3 e- read noise; 8 frames")
@@ -227,6 +336,8 @@ def main() -> None:
         cost(repeats)
     if args.figure:
         trail_figure(args.figure, disc, 8)
+    if args.library:
+        library_cases(crop // 2, args.quick)
 
 
 if __name__ == "__main__":

@@ -1898,8 +1898,11 @@ class StreamNoise:
     pixels the motion tests found static, feed a :class:`NoiseTracker` (as the live service's noise
     stage does), fitted after the first run's second and last frames, then once per run, a run
     starting every ``schedule.refit_every`` frames. A run broken by a frame of unknown motion (a
-    reset, a cut) is dropped; before the first complete run the next frame starts another. A given
-    gain or read noise is kept. Not thread-safe: one caller at a time, frames in order.
+    reset, a cut) is dropped; before the first complete run the next frame starts another. The first
+    run's last fit replaces the fit after its second frame whatever it says (it holds that fit's samples
+    and the three frames'); a later run's fit that disagrees with the model (:func:`agree`) keeps the
+    model but distrusts it until a fit agrees. A given gain or read noise is kept. Not thread-safe: one
+    caller at a time, frames in order.
     """
 
     def __init__(self, schedule: NoiseSchedule = NoiseSchedule(), tracker: NoiseTracker | None = None) -> None:
@@ -1976,9 +1979,12 @@ class StreamNoise:
         self.fits += 1
         if fit.source == "default":  # the frames told nothing (no unclipped flat or static pixels): keep the model
             return None
-        if self._fitted and not agree(fit, self._estimate):
+        if self._fitted and self._runs > 1 and not agree(fit, self._estimate):
             # two fits of one sensor that their stated uncertainties cannot reconcile: something the motion
-            # masks missed (or texture) is in the samples; keep the model in use, and distrust it until a fit agrees
+            # masks missed (or texture) is in the samples; keep the model in use, and distrust it until a fit agrees.
+            # Not within the first run: its last fit holds every sample of the one before and the three frames'
+            # (unbiased) samples, where the fit after two frames has only a pair's, which can be confidently
+            # wrong (BrightRings 3 000 e- / 2 e-, 4 stops under: gain 2.2x stated 14 %, then 1.0x from three)
             self._conflict = True
             return None
         self._estimate, self._fitted, self._conflict = fit, True, False

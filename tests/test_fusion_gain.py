@@ -45,3 +45,86 @@ def test_a_bright_object_crossing_does_not_spoil_the_streams_noise_model(full_we
     assert abs(noise.gain / sensor.gain - 1) < 3 * noise.gain_sigma / noise.gain + 0.05, noise.describe()
     changed = np.abs(frames[-1].truth - frames[-2].truth) > 0.05 * np.maximum(frames[-1].truth, 1.0)
     assert np.mean(result.still[changed]) < 0.01  # what changed is not offered to the tracker as still
+
+
+class _FittedTracker:
+    """A NoiseTracker stand-in whose fits are given in order (StreamNoise reads add and fit)."""
+
+    def __init__(self, fits):
+        self.fits = list(fits)
+
+    def add(self, raw, camera, static, *, signal=None):
+        pass
+
+    def fit(self):
+        return self.fits.pop(0)
+
+
+def test_the_first_runs_last_fit_supersedes_its_pair_fit_and_later_runs_still_conflict():
+    """The fit after frame 2 reads a pair, the fit after frame 3 the same samples and the three frames' (unbiased)
+    ones: a disagreement between them is the pair's error, not contamination (a confidently wrong pair left the
+    stream unfused until its next run, 64 frames on). A later run that disagrees still marks the model untrusted."""
+    from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
+
+    pair = NoiseEstimate(2.0, 1.0, 0.1, 0.02, 0, "estimated")
+    triple = NoiseEstimate(1.0, 1.0, 0.03, 0.02, 0, "estimated")
+    stray = NoiseEstimate(3.0, 1.0, 0.05, 0.02, 0, "estimated")
+    noise = StreamNoise(NoiseSchedule(run_frames=3, refit_every=4), tracker=_FittedTracker([pair, triple, stray]))
+    frame, camera = np.zeros((4, 4), np.uint16), None
+    still = np.ones((4, 4), bool)
+    noise.observe(frame, camera, None)
+    assert noise.observe(frame, camera, still) is pair and noise.trusted
+    assert noise.observe(frame, camera, still) is triple and noise.trusted
+    for static in (None, None, still, still):  # frame 4 waits, 5-7 are the second run
+        noise.observe(frame, camera, static)
+    assert noise.estimate is triple and not noise.trusted
+
+
+def _object_case(sensor: Sensor, stops: float, frames: int = 8):
+    """A dim shipped crop (desk, 128 px) crossed at 22 px a frame by a disc of textured mttamwest 3 stops brighter
+    than the scene's 99.9th percentile; PU21 and ghost residue of the README stream, the stream given the true
+    model and the single-frame default (svelive.bench.motion_cases.run_case)."""
+    from svelive.bench import motion_cases as mc
+    from svelive.metrics import PU21_PEAK, display_scale, pu21_encode
+
+    def pu21(image, truth, region):
+        s = display_scale(truth)
+        err = pu21_encode(image[region] * s) - pu21_encode(truth[region] * s)
+        return float(10 * np.log10(PU21_PEAK ** 2 / max(float(np.mean(err * err)), 1e-12)))
+
+    background = mc.dim(np.maximum(load_sample_scene("desk"), 0)[64:192, 64:192], PATTERN, sensor, stops)
+    texture = np.maximum(load_sample_scene("mttamwest"), 0)[:96, :96]
+    texture = texture * (8 * float(np.percentile(background, 99.9)) / float(np.percentile(texture, 99.9)))
+    scene = mc.moving_texture(background, texture, 16, (64, 20), (0.0, 22.0))
+    streams = {"readme": lambda raws: svelive.Reconstructor(PATTERN, **LEVELS),
+               "true": lambda raws: svelive.Reconstructor(PATTERN, **LEVELS, gain=sensor.gain,
+                                                          read_noise=sensor.read_noise)}
+    single = {"readme": lambda raw: svelive.reconstruct(raw, PATTERN, **LEVELS),
+              "true": lambda raw: svelive.reconstruct(raw, PATTERN, **LEVELS, gain=sensor.gain,
+                                                      read_noise=sensor.read_noise)}
+    return {name: mc.run_case(scene, frames, PATTERN, sensor, {name: streams[name]}, single[name], pu21, seed=5)
+            for name in streams}
+
+
+@pytest.fixture(scope="module")
+def object_case():
+    return _object_case(Sensor.from_full_well(12, 3_000, 2.0, **LEVELS), 5.0)
+
+
+def test_a_textured_object_crossing_a_dark_scene_leaves_no_trail_and_moving_pixels_keep_their_frame(object_case):
+    """Moving pixels within 0.3 dB of the single frame with the same model (issue 26.3's target; the method's own
+    response to a different model is not the fusion's), and no more of a change shown by the stream's trail
+    pixels than by the single frame's: a history leaking into a pixel fused over n <= max_history = 8 frames
+    shows at least 1/8 of the change there, so a mean excess of 1/32 is a quarter of the trail leaking."""
+    scores = object_case["true"]
+    moving = np.array(scores.pu21[("true", "moving")][1:]) - np.array(scores.pu21[("single", "moving")][1:])
+    assert np.nanmin(moving) > -0.3, np.round(moving, 2)
+    for name, case in object_case.items():
+        excess = np.nanmean(case.ghost[name][1:]) - np.nanmean(case.ghost["single"][1:])
+        assert excess < 1 / 32, (name, excess)
+
+
+def test_still_regions_of_the_readme_stream_gain_3_db_at_frame_8_beside_a_moving_object(object_case):
+    scores = object_case["readme"]
+    gain = scores.pu21[("readme", "still")][7] - scores.pu21[("single", "still")][7]
+    assert gain >= 3.0, gain  # issue 26.2's target, over the single-frame default

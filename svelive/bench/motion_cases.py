@@ -1,0 +1,156 @@
+"""Moving-scene cases of the library's stream against the single-frame default (issue 26.2-4), with a trail metric.
+
+Each case is a dim scene (its 99.9th percentile ``stops`` under the shortest exposure's full scale) with a
+bright textured object that crosses it, stops, or starts, or a cut to another scene. Frames are rendered with
+a true sensor the streams are not told (:func:`run_case`), and each stream is compared frame by frame with
+``svelive.reconstruct`` of the same raw frame (the single-frame default, its noise model estimated from the
+frame) on:
+
+- ``still``: pixels whose truth has not moved in this frame or the three before;
+- ``moving``: the ground-truth motion mask of the frame;
+- ``trail``: pixels that moved in one of the last three frames and are still now, PU21 and the
+  **ghost residue**: the share of the change a pixel went through that its output still shows,
+  ``(out - truth) / (before - truth)`` (``before``: its truth in the frame before the change), averaged
+  over the trail pixels whose change exceeds a fifth of the larger value; clipped to [-1, 1] per pixel.
+  A history that leaks shows it as a positive mean (a pixel fused over n frames of which one was the old
+  value keeps 1 / n of the change); noise averages to about 0. Reported as the stream's minus the single
+  frame's.
+
+Scenes are functions of time (svelive.scenes). ``moving_texture`` is a disc cut from another image, its
+texture moving with it; ``stopping``/``starting`` re-time a scene; ``cut`` switches scenes between frames.
+``procedural_scene`` makes an HDR scene that is in no image set (log-normal 1/f texture), for judging
+on scenes the method was not developed on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from svelive.pattern import Pattern
+from svelive.scenes import Scene, panning, render_sequence
+from svelive.sensor import Sensor
+from svelive.simulate import exposure_scale
+
+#: frames a pixel stays in the trail region after it moved (as benchmarks/motion.py)
+TRAIL_FRAMES = 3
+#: a trail pixel's change counts for the ghost residue when it exceeds this share of the larger value
+GHOST_CHANGE = 0.2
+
+
+def moving_texture(background: np.ndarray, texture: np.ndarray, radius: float, start: tuple[float, float],
+                   velocity: tuple[float, float]) -> Scene:
+    """A disc of ``texture`` (float32 (h, w), radiance DN at exposure 1, at least 2 ``radius`` + 2 on a side)
+    centred at ``start`` (rows, cols) at t = 0 and moving by ``velocity`` per frame over ``background``
+    (float32 (H, W)); the texture moves with the disc, its centre at the disc's, edges anti-aliased."""
+    background = np.asarray(background, np.float32)
+    shape = background.shape
+    th, tw = texture.shape
+    # texture(t) = the texture's centre at the disc's: a crop window over it moving the other way
+    inner = panning(texture, shape, (-velocity[0], -velocity[1]), (th / 2 - start[0], tw / 2 - start[1]))
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
+
+    def scene(t: float) -> np.ndarray:
+        cy, cx = start[0] + velocity[0] * t, start[1] + velocity[1] * t
+        cover = np.clip(radius + 0.5 - np.hypot(yy - cy, xx - cx), 0, 1)
+        return background + cover * (inner(t) - background)
+
+    return scene
+
+
+def stopping(scene: Scene, at: float) -> Scene:
+    """``scene`` frozen from time ``at`` (frames) on: a moving object that stops."""
+    return lambda t: scene(min(t, at))
+
+
+def starting(scene: Scene, at: float) -> Scene:
+    """``scene`` held at its t = 0 until ``at``, then running: an object that starts moving."""
+    return lambda t: scene(max(t - at, 0.0))
+
+
+def cut(first: Scene, second: Scene, at: int) -> Scene:
+    """``first`` before frame ``at``, ``second`` from it on (a whole frame on either side)."""
+    return lambda t: first(t) if t < at else second(t)
+
+
+def procedural_scene(shape: tuple[int, int], seed: int, stops: float = 10.0, slope: float = 2.0) -> np.ndarray:
+    """A scene in no image set: float32 (H, W) > 0, ``2 ** (stops * u)`` with u a 1/f^(slope/2)-amplitude
+    Gaussian field scaled to [-0.5, 0.5] (edges and texture at every scale, ``stops`` of dynamic range)."""
+    rng = np.random.default_rng(seed)
+    fy = np.fft.fftfreq(shape[0])[:, None]
+    fx = np.fft.rfftfreq(shape[1])[None, :]
+    amplitude = 1.0 / np.maximum(np.hypot(fy, fx), 1.0 / max(shape)) ** (slope / 2 + 0.5)
+    spectrum = amplitude * (rng.standard_normal(amplitude.shape) + 1j * rng.standard_normal(amplitude.shape))
+    field = np.fft.irfft2(spectrum, s=shape)
+    u = (field - field.min()) / max(float(np.ptp(field)), 1e-12) - 0.5
+    return np.exp2(stops * u).astype(np.float32)
+
+
+def dim(image: np.ndarray, pattern: str, sensor: Sensor, stops: float) -> np.ndarray:
+    """``image`` scaled so that its 99.9th percentile lies ``stops`` under the shortest exposure's full scale."""
+    return image * exposure_scale(image, Pattern.parse(pattern), sensor, stops_below_fill=stops)
+
+
+def ghost_residue(out: np.ndarray, truth: np.ndarray, before: np.ndarray, region: np.ndarray) -> float:
+    """Mean share of the change ``before -> truth`` that ``out`` still shows over ``region`` (float32 (H, W)
+    arrays, bool region), pixels whose change exceeds :data:`GHOST_CHANGE` of the larger value; nan if none."""
+    change = before - truth
+    use = region & (np.abs(change) > GHOST_CHANGE * np.maximum(np.abs(before), np.abs(truth)))
+    if not use.any():
+        return float("nan")
+    return float(np.mean(np.clip((out[use] - truth[use]) / change[use], -1.0, 1.0)))
+
+
+@dataclass
+class CaseScores:
+    """Per frame (index 0 = frame 1) and region, PU21-PSNR (dB) of each output, and the ghost residue."""
+
+    pu21: dict[tuple[str, str], list[float]]  # (output, region) -> per frame
+    ghost: dict[str, list[float]]  # output -> per frame
+
+
+def region_masks(motions: list[np.ndarray], i: int) -> dict[str, np.ndarray]:
+    """The regions of frame ``i`` (0-based) of a rendered sequence: still, moving, trail (see the module)."""
+    recent = np.any(motions[max(0, i - TRAIL_FRAMES):i + 1], axis=0)
+    moved_before = np.any(motions[max(0, i - TRAIL_FRAMES):i], axis=0) if i > 0 else np.zeros_like(motions[i])
+    return {"still": ~recent, "moving": motions[i], "trail": moved_before & ~motions[i]}
+
+
+def trail_before(motions: list[np.ndarray], truths: list[np.ndarray], i: int) -> np.ndarray:
+    """Each pixel's truth in the frame before its last motion within :data:`TRAIL_FRAMES` frames before
+    ``i`` (its truth in frame ``i`` where it did not move), float32 (H, W)."""
+    before = truths[i].copy()
+    for j in range(max(1, i - TRAIL_FRAMES), i):  # later changes overwrite earlier ones
+        before = np.where(motions[j], truths[j - 1], before)
+    return before
+
+
+def run_case(scene: Scene, frames: int, pattern: str, sensor: Sensor,
+             streams: dict[str, Callable[[list[np.ndarray]], object]], single: Callable[[np.ndarray], np.ndarray],
+             pu21: Callable[[np.ndarray, np.ndarray, np.ndarray], float], seed: int = 1) -> CaseScores:
+    """Render ``frames`` frames of ``scene`` with ``sensor`` and score each stream and the single frame.
+
+    Args:
+        streams: name -> a factory of a fresh stream (``process(raw).image``), called with the rendered raw
+            frames (uint16 (H, W) each; a stream given a model estimated from the first frames reads them).
+        single: raw uint16 (H, W) -> the single-frame default's image.
+        pu21: (image, truth, region) -> PU21-PSNR (dB) over the region, display scaling from the whole truth.
+    """
+    rendered = list(render_sequence(scene, frames, pattern, sensor, seed=seed))
+    truths = [f.truth for f in rendered]
+    motions = [f.motion for f in rendered]
+    made = {name: factory([f.raw for f in rendered]) for name, factory in streams.items()}
+    scores = CaseScores({}, {})
+    for i, f in enumerate(rendered):
+        images = {"single": single(f.raw)}
+        images.update({name: stream.process(f.raw).image for name, stream in made.items()})
+        regions = region_masks(motions, i)
+        before = trail_before(motions, truths, i)
+        for name, image in images.items():
+            for region, mask in regions.items():
+                scores.pu21.setdefault((name, region), []).append(pu21(image, f.truth, mask) if mask.any()
+                                                                   else float("nan"))
+            scores.ghost.setdefault(name, []).append(ghost_residue(image, f.truth, before, regions["trail"]))
+    return scores
