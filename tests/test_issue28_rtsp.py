@@ -5,7 +5,8 @@ strictly increasing time stamps, and show whole pictures, each compared with ``/
 
 Before the fix every client's key frames came as one picture per slice (the payloader put SPS/PPS before
 every slice: "concealing ... errors in I frame", the lower part a smear) and frames shared time stamps
-("non monotonically increasing dts")."""
+("non monotonically increasing dts"). Clients that join a stream another client plays (one shared encoding)
+must also begin with a key frame with SPS and PPS, and a burst of them must not make every frame a key frame."""
 
 from __future__ import annotations
 
@@ -75,12 +76,13 @@ def packets(framecrc: str) -> list[tuple[int, bool]]:
 
 def one_client(rtsp_url: str, tmp: Path) -> tuple[list[np.ndarray], list[tuple[int, bool]], bytes, str]:
     """One fresh ffmpeg connection: FRAMES decoded BGR pictures, the packets' (dts, key), the first packet's
-    bytes as received, and what ffmpeg printed."""
+    bytes as received (``-copyinkf``: ffmpeg's stream copy would drop packets before the first key frame), and
+    what ffmpeg printed."""
     crc, first = tmp / "packets.crc", tmp / "first.h264"
     done = subprocess.run(
         ["ffmpeg", "-nostdin", "-hide_banner", "-loglevel", "warning", "-rtsp_transport", "tcp", "-i", rtsp_url,
-         "-map", "0:v", "-frames:v", str(FRAMES), "-c", "copy", "-f", "framecrc", "-y", str(crc),
-         "-map", "0:v", "-frames:v", "1", "-c", "copy", "-f", "h264", "-y", str(first),
+         "-map", "0:v", "-frames:v", str(FRAMES), "-c", "copy", "-copyinkf", "-f", "framecrc", "-y", str(crc),
+         "-map", "0:v", "-frames:v", "1", "-c", "copy", "-copyinkf", "-f", "h264", "-y", str(first),
          "-map", "0:v", "-frames:v", str(FRAMES), "-fps_mode", "passthrough", "-pix_fmt", "bgr24",
          "-f", "rawvideo", "pipe:1"],
         capture_output=True, timeout=90)
@@ -136,3 +138,61 @@ def test_time_stamps_are_on_the_frame_grid_and_strictly_increase():
         last = next_pts(running, last, interval) or last
         stamps.append(last)
     assert len(set(stamps)) == len(stamps) and all(b > a for a, b in zip(stamps, stamps[1:]))
+
+
+def joiner(rtsp_url: str, folder: Path) -> subprocess.Popen:
+    """An ffmpeg client joining the stream: 10 packets as received (framecrc), the first one's bytes, 10 decoded
+    pictures; the probing is short (the SDP carries the stream's parameters)."""
+    folder.mkdir()
+    return subprocess.Popen(
+        ["ffmpeg", "-nostdin", "-hide_banner", "-loglevel", "warning", "-probesize", "32", "-analyzeduration", "0",
+         "-rtsp_transport", "tcp", "-i", rtsp_url,
+         "-map", "0:v", "-frames:v", "10", "-c", "copy", "-copyinkf", "-f", "framecrc", "-y", str(folder / "crc"),
+         "-map", "0:v", "-frames:v", "1", "-c", "copy", "-copyinkf", "-f", "h264", "-y", str(folder / "first"),
+         "-map", "0:v", "-frames:v", "10", "-f", "null", "-"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def test_late_joiners_of_a_playing_stream_start_at_a_key_frame_and_a_storm_forces_few(service, tmp_path):
+    """20 clients join a stream another client plays (mid-GOP), in two bursts of 10 at once: each one's first
+    packet is a key frame with SPS and PPS (before: 1 join in 10 got the GOP's next delta frame first), no
+    decoder complaint for them or the client already playing, and the forced key frames are at least
+    ``keyframe_gap_s`` (0.5 s) apart: a burst does not make every frame a key frame."""
+    http_url, rtsp_url = service
+
+    def rtsp_state() -> dict:
+        return httpx.get(http_url + "/api/state", timeout=5).json()["rtsp"]
+
+    holder = subprocess.Popen(["ffmpeg", "-nostdin", "-hide_banner", "-loglevel", "warning", "-rtsp_transport", "tcp",
+                               "-i", rtsp_url, "-t", "60", "-f", "null", "-"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while rtsp_state()["clients"] < 1:
+            assert holder.poll() is None and time.monotonic() < deadline, "the first client did not start playing"
+            time.sleep(0.1)
+        time.sleep(0.6)  # mid-GOP: the media's first key frame is behind
+        before, started = rtsp_state(), time.monotonic()
+        for burst in range(2):
+            clients = [joiner(rtsp_url, tmp_path / f"{burst}-{k}") for k in range(10)]
+            for k, client in enumerate(clients):
+                where = f"joiner {burst * 10 + k + 1} of 20"
+                _, said = client.communicate(timeout=60)
+                assert client.returncode == 0, f"{where}: {said}"
+                complaints = [line for line in said.splitlines() if COMPLAINTS.search(line)]
+                assert not complaints, f"{where}: ffmpeg: {complaints[:5]}"
+                sent = packets((tmp_path / f"{burst}-{k}" / "crc").read_text())
+                assert len(sent) == 10 and sent[0][1], f"{where}: the first packet is not a key frame: {sent[:3]}"
+                types = nal_types((tmp_path / f"{burst}-{k}" / "first").read_bytes())
+                assert 5 in types and {7, 8} <= set(types[:types.index(5)]), \
+                    f"{where}: the first picture's NAL units {types}: no SPS and PPS before its IDR slice"
+        elapsed, after = time.monotonic() - started, rtsp_state()
+        forced = after["keyframes_forced"] - before["keyframes_forced"]
+        assert after["joins_at_keyframe"] - before["joins_at_keyframe"] == 20
+        assert forced <= elapsed / 0.5 + 1, f"{forced} key frames forced in {elapsed:.1f} s for 20 joins"
+        assert after["waiting_for_keyframe"] == 0 and holder.poll() is None
+    finally:
+        holder.terminate()
+        _, said = holder.communicate(timeout=10)
+    complaints = [line for line in said.splitlines() if COMPLAINTS.search(line)]
+    assert not complaints, f"the client playing throughout: ffmpeg: {complaints[:5]}"

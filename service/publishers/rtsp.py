@@ -18,9 +18,13 @@ shared media:
 - Grey and colour previews alike become I420 (BT.601, limited range) in the
   publisher: grey through a look-up table and neutral chroma, BGR through
   OpenCV (2-7 ms per 1920x1200 frame, against 10-14 ms in GStreamer's videoconvert).
-- A client that starts playing gets a keyframe at once (a forced key unit, without
-  x264's separate header buffer, which went out as a picture of its own), so a
-  late joiner of the shared media does not wait for the next periodic one.
+- Every client's first picture is a keyframe with its SPS/PPS: a client that starts playing is
+  held (its transports inactive) until a keyframe reaches the payloader, and a key unit is
+  forced for it (without x264's separate header buffer, which went out as a picture of its
+  own), so a late joiner of the shared media neither gets the GOP's remaining delta frames
+  first nor waits for the next periodic keyframe. Forced keyframes are at least
+  ``keyframe_gap_s`` (0.5 s) after the one before, so a reconnect storm cannot make every
+  frame a keyframe: the clients that come meanwhile take the next one together.
 - Time stamps: the running time rounded down to the nominal frame interval, a frame
   skipped when it falls in the slot of the one before (:func:`next_pts`), so they
   strictly increase and clients that count in frames never see two at one time.
@@ -75,6 +79,9 @@ ROLE = "viewer"
 MAX_CLIENTS = 64
 #: Connections waiting to be accepted (GStreamer's default, 5, made a burst of clients wait 1-3 s in SYN retries).
 BACKLOG = 128
+#: The longest a PLAY waits for the frame going through the payloader, and then for the server to send it (s).
+PAUSE_WAIT_S = 0.2
+SEND_DRAIN_S = 0.005
 #: Timecode: bits of the capture time in ms, and the side of one bit's square in pixels.
 TIMECODE_BITS = 48
 TIMECODE_BLOCK = 8
@@ -216,6 +223,25 @@ def push_frame(src: Any, data: bytes, pts_ns: int | None = None) -> None:
     src.emit("push-buffer", buffer)
 
 
+def send_at_once(pipeline: Any) -> None:
+    """Make the RTP server's sinks in ``pipeline`` (a media's) send each packet at once, not at its time stamp.
+
+    Why: a frame stamped up to half an interval ahead (:func:`next_pts`) waited in the synchronised sink while the
+    keyframe after it let a waiting client in (``RtspPublisher._on_payload``), which then got that delta frame
+    first. The frames are live, stamped at about the running time of their push: there is nothing to pace. The
+    server makes its sinks with the first transport of their kind, so this runs at every PLAY."""
+    from gi.repository import Gst
+
+    elements = pipeline.iterate_recurse()
+    while True:
+        result, element = elements.next()
+        if result != Gst.IteratorResult.OK:
+            return
+        factory = element.get_factory()
+        if factory is not None and factory.get_name() in ("appsink", "multiudpsink") and element.get_property("sync"):
+            element.set_property("sync", False)
+
+
 def even_size(image: np.ndarray) -> np.ndarray:
     """``image`` cropped to an even width and height (4:2:0 H.264 needs both), a view."""
     return image[:image.shape[0] // 2 * 2, :image.shape[1] // 2 * 2]
@@ -285,6 +311,17 @@ class _Media:
         self.height = height
         #: the time stamp of the last frame pushed (ns), None before the first (:func:`next_pts`)
         self.last_pts: int | None = None
+        #: clients that started playing and their transports, made inactive until the next keyframe
+        self.joining: dict[Any, list[Any]] = {}
+        #: when the last keyframe reached the payloader (monotonic ns; 0: none yet)
+        self.last_keyframe_ns = 0
+        #: a client has started playing it (the first one gets the media's first frame, a keyframe, at PLAY)
+        self.played = False
+        #: the payloader's sink pad; the probe that holds frames back there while a PLAY is answered (0: none),
+        #: and since when (monotonic s)
+        self.pay_sink: Any = None
+        self.pause_id = 0
+        self.paused_at = 0.0
 
 
 def check_path(path: str) -> str:
@@ -443,7 +480,18 @@ class RtspServer:
             victim.close()
             if victim is client:
                 return
+        client.connect("pre-play-request", self._on_pre_play)
         client.connect("play-request", self._on_play)
+
+    def _on_pre_play(self, client: Any, ctx: Any) -> Any:
+        """GLib thread, a PLAY is about to be answered: hold frames back until it is (see
+        :meth:`RtspPublisher.pause_payloads`)."""
+        from gi.repository import GstRtsp
+
+        publisher = self.publisher_at(ctx.uri.abspath if ctx.uri is not None else "")
+        if publisher is not None:
+            publisher.pause_payloads()
+        return GstRtsp.RTSPStatusCode.OK
 
     def _on_play(self, client: Any, ctx: Any) -> None:
         """GLib thread, a client starts playing: it counts as a client of the stream it plays (once)."""
@@ -454,13 +502,25 @@ class RtspServer:
             client.svelive_publisher = publisher
             publisher.client_started()
             client.connect("closed", self._on_client_closed)
-        publisher.force_keyframe()
+            client.connect("teardown-request", self._on_teardown)
+        if ctx.sessmedia is not None:
+            # get_transport(i), not get_transports(): PyGObject takes the array's elements as owned (transfer
+            # full), which they are not, and the transports were freed under the client (an abort)
+            transports = [ctx.sessmedia.get_transport(i) for i in range(ctx.sessmedia.get_media().n_streams())]
+            publisher.hold_until_keyframe(client, [t for t in transports if t is not None])
+
+    @staticmethod
+    def _on_teardown(client: Any, ctx: Any) -> None:
+        publisher = getattr(client, "svelive_publisher", None)
+        if publisher is not None:
+            publisher.forget_joiner(client)
 
     @staticmethod
     def _on_client_closed(client: Any) -> None:
         publisher = getattr(client, "svelive_publisher", None)
         if publisher is not None:
             client.svelive_publisher = None
+            publisher.forget_joiner(client)
             publisher.client_ended()
 
 
@@ -488,7 +548,11 @@ class RtspPublisher:
         self._lock = threading.Lock()
         self._media: _Media | None = None
         self._watching = False
-        self._keyframe_wanted = False  # a client started playing: the encoder thread forces a keyframe
+        self._keyframe_wanted = False  # a client waits for a keyframe: the encoder thread forces one
+        #: the least time (s) from a keyframe to a forced one (clients joining meanwhile wait for the next)
+        self.keyframe_gap_s = 0.5
+        self.keyframes_forced = 0
+        self.joins = 0  # clients let in at a keyframe
         self._clients = 0
         self.pushed = RateMeter()
         self.skipped = 0  # previews not pushed: less than half a nominal interval after the one before
@@ -598,8 +662,11 @@ class RtspPublisher:
         self.medias += 1
         encoder.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, self._on_encoded)
         media.connect("unprepared", self._on_media_unprepared)
+        record = _Media(media, src, encoder, caps.get_value("width"), caps.get_value("height"))
+        record.pay_sink = element.get_by_name("pay0").get_static_pad("sink")
+        record.pay_sink.add_probe(Gst.PadProbeType.BUFFER, self._on_payload, record)
         with self._lock:
-            self._media = _Media(media, src, encoder, caps.get_value("width"), caps.get_value("height"))
+            self._media = record
             start_watching = not self._watching
             self._watching = True
         if start_watching:
@@ -628,6 +695,92 @@ class RtspPublisher:
         self._bytes.append((now, buffer.get_size()))
         return Gst.PadProbeReturn.OK
 
+    def _on_payload(self, pad: Any, info: Any, record: _Media) -> Any:
+        """Streaming thread, an encoded frame on its way to the payloader: at a keyframe, let the clients waiting
+        for one in (their transports active again), so that it is the first picture they get."""
+        from gi.repository import Gst
+
+        if info.get_buffer().has_flags(Gst.BufferFlags.DELTA_UNIT):
+            return Gst.PadProbeReturn.OK
+        with self._lock:
+            media = self._media
+            if media is not record:  # a media on its way out
+                return Gst.PadProbeReturn.OK
+            media.last_keyframe_ns = time.monotonic_ns()
+            joining, media.joining = media.joining, {}
+            self._keyframe_wanted = False
+            # under the lock: a client that closes (forget_joiner) is never let in after it went
+            for transports in joining.values():
+                for transport in transports:
+                    transport.set_active(True)
+            self.joins += len(joining)
+        return Gst.PadProbeReturn.OK
+
+    def pause_payloads(self) -> None:
+        """GLib thread, before a PLAY of a media that plays already: stop frames at the payloader and wait
+        (at most PAUSE_WAIT_S) until the one going through has left for the clients. Why: the server makes the
+        new client's transports active before :meth:`hold_until_keyframe` can make them inactive again, and a
+        frame sent meanwhile (the GOP's next delta frame, or the start of one) was that client's first."""
+        from gi.repository import Gst
+
+        with self._lock:
+            media = self._media
+            if media is None or not media.played or media.pause_id:
+                return
+            media.paused_at = time.monotonic()
+        idle = threading.Event()
+
+        def on_idle(pad: Any, info: Any) -> Any:
+            idle.set()
+            return Gst.PadProbeReturn.REMOVE
+
+        pause_id = media.pay_sink.add_probe(Gst.PadProbeType.BLOCK_DOWNSTREAM, lambda pad, info: Gst.PadProbeReturn.OK)
+        with self._lock:
+            media.pause_id = pause_id
+        media.pay_sink.add_probe(Gst.PadProbeType.IDLE, on_idle)
+        if idle.wait(PAUSE_WAIT_S):
+            time.sleep(SEND_DRAIN_S)  # the server's sending thread takes the frame from its sink
+
+    def resume_payloads(self, media: _Media, older_than_s: float = 0.0) -> None:
+        """Let frames through again (any thread): the PLAY was answered, or ``older_than_s`` passed since the
+        pause (a PLAY that failed after :meth:`pause_payloads` is never answered)."""
+        with self._lock:
+            if not media.pause_id or time.monotonic() - media.paused_at < older_than_s:
+                return
+            pause_id, media.pause_id = media.pause_id, 0
+        media.pay_sink.remove_probe(pause_id)
+
+    def hold_until_keyframe(self, client: Any, transports: list[Any]) -> None:
+        """GLib thread, ``client`` started playing (its ``transports`` are active): hold them until the next
+        keyframe reaches the payloader (:meth:`_on_payload`) and ask for one (:meth:`_on_preview`), so that the
+        client's first picture is a keyframe with its SPS/PPS, not the rest of a GOP it cannot decode."""
+        with self._lock:
+            media = self._media
+            first = media is not None and not media.played
+        if media is None:
+            return
+        pipeline = media.media.get_element().get_parent()
+        if pipeline is not None:
+            send_at_once(pipeline)
+        if first:
+            # the media's first client: its first frame, x264's first and a keyframe, waits prerolled in the sink
+            # for this PLAY (held, the client got the start of it, then the next keyframe: a frame cut short)
+            media.played = True
+            return
+        for transport in transports:
+            transport.set_active(False)
+        with self._lock:
+            if self._media is media:  # else the media went meanwhile: nothing to wait for
+                media.joining[client] = list(transports)
+                self._keyframe_wanted = True
+        self.resume_payloads(media)
+
+    def forget_joiner(self, client: Any) -> None:
+        """GLib thread, ``client`` closed or tore its session down: never let it in."""
+        with self._lock:
+            if self._media is not None:
+                self._media.joining.pop(client, None)
+
     def _on_preview(self, preview: PreviewFrame) -> None:
         """Encoder thread: hand the preview to the media's appsrc (converted to its size and kind)."""
         from gi.repository import Gst
@@ -636,13 +789,19 @@ class RtspPublisher:
             media = self._media
         if media is None:
             return
+        self.resume_payloads(media, older_than_s=1.0)
         with self._lock:
             pts = next_pts(media_running_time(media.src), media.last_pts, round(1e9 / self.settings.fps))
             if pts is None:
                 self.skipped += 1  # closer than half a frame interval to the frame before it
                 return
             media.last_pts = pts
-            keyframe, self._keyframe_wanted = self._keyframe_wanted, False
+            now = time.monotonic_ns()
+            keyframe = self._keyframe_wanted and now - media.last_keyframe_ns >= self.keyframe_gap_s * 1e9
+            if keyframe:  # else a later frame's, once the gap has passed (or a periodic keyframe lets them in)
+                self._keyframe_wanted = False
+                media.last_keyframe_ns = now
+                self.keyframes_forced += 1
         i420 = to_i420(self._fit(preview.image, media))
         if self.timecode and preview.signal:
             stamp_timecode(i420, int(round(preview.wall_time * 1000)))  # into the luma plane
@@ -669,14 +828,6 @@ class RtspPublisher:
                 cv2.resize(image, (media.width, media.height), interpolation=cv2.INTER_AREA)
         return image
 
-    def force_keyframe(self) -> None:
-        """GLib thread, a client starts playing: the next frame is a keyframe with SPS/PPS, so that it shows a
-        picture at once instead of after up to a keyframe interval (or more frames than that when the
-        pipeline runs slower than its nominal rate). Only noted here: the encoder thread asks x264 for it
-        before its next frame (:meth:`_on_preview`), so that this loop never waits on x264."""
-        with self._lock:
-            self._keyframe_wanted = True
-
     # ----- state -------------------------------------------------------
     def bitrate_kbps(self) -> float:
         """Encoded kbit/s over the last two seconds (0 when nothing was encoded in them)."""
@@ -691,6 +842,7 @@ class RtspPublisher:
         """The RTSP publisher's part of /api/state."""
         with self._lock:
             media, clients = self._media, self._clients
+            waiting = 0 if media is None else len(media.joining)
         encoded = self.encoded.count  # read before pushed, so that a frame pushed meanwhile cannot show encoded > pushed
         pushed = self.pushed.count
         rate = None if media is None else self.settings.bitrate_for(media.width, media.height)
@@ -699,6 +851,8 @@ class RtspPublisher:
                 "encoding": media is not None,
                 "width": None if media is None else media.width, "height": None if media is None else media.height,
                 "frames_pushed": pushed, "frames_encoded": encoded, "frames_skipped": self.skipped,
+                "keyframes_forced": self.keyframes_forced, "joins_at_keyframe": self.joins,
+                "waiting_for_keyframe": waiting,
                 "fps": round(self.encoded.rate(), 2), "bitrate_kbps": self.bitrate_kbps(),
                 "arrival_to_push": self.arrival_to_push.summary(),
                 "h264": {"fps": self.settings.fps, "keyframe_s": self.settings.keyframe_s,
