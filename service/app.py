@@ -9,6 +9,7 @@ them and starts and stops the pipelines with the server.
 from __future__ import annotations
 
 import asyncio
+import logging
 import signal
 import socket
 import threading
@@ -109,15 +110,62 @@ def validation_message(exc: RequestValidationError) -> str:
     return one_line(f"{where}: {first.get('msg', 'invalid')}{more}")
 
 
+class Startup:
+    """Starts the cameras' pipelines with the server, after ``warm_up()`` when one is given: that in a thread of
+    its own, so that the server answers at once (each pipeline's state ``warming_up``, /healthz not ready) while the
+    kernels compile, minutes on a fresh machine. A warm-up that fails is logged and the pipelines start anyway (the
+    kernels then compile at the first frame)."""
+
+    def __init__(self, cameras: list[ServedCamera], warm_up: Callable[[], None] | None) -> None:
+        self.cameras = cameras
+        self.warm_up = warm_up
+        self._lock = threading.Lock()
+        self._closing = False
+        self._started: list[ServedCamera] = []
+
+    async def begin(self) -> None:
+        """Start the pipelines now, or mark them warming up and start them after the warm-up."""
+        if self.warm_up is None:
+            for cam in self.cameras:
+                await run_in_threadpool(self._start, cam)
+            return
+        for cam in self.cameras:
+            cam.pipeline.warming_up = True
+        # a daemon: a stop during the warm-up does not wait for the compiler
+        threading.Thread(target=self._warm_up_then_start, name="svelive-warm-up", daemon=True).start()
+
+    def _warm_up_then_start(self) -> None:
+        try:
+            self.warm_up()
+        except Exception as exc:  # noqa: BLE001 - said, and the service goes on without a warm-up
+            logging.getLogger("uvicorn.error").warning("kernel warm-up failed (%s); they compile at the first frame",
+                                                       one_line(exc))
+        for cam in self.cameras:
+            self._start(cam)
+
+    def _start(self, cam: ServedCamera) -> None:
+        with self._lock:
+            if not self._closing:
+                cam.pipeline.start()
+                self._started.append(cam)
+
+    def end(self) -> list[ServedCamera]:
+        """No pipeline starts after this; returns the ones started."""
+        with self._lock:
+            self._closing = True
+            return list(self._started)
+
+
 def error(status: int, detail: object) -> JSONResponse:
     """A JSON error answer ``{"detail": "one line"}``."""
     return JSONResponse({"detail": one_line(str(detail))}, status_code=status)
 
 
 def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSettings, *,
-               manage_pipeline: bool = True) -> FastAPI:
+               manage_pipeline: bool = True, warm_up: Callable[[], None] | None = None) -> FastAPI:
     """The HTTP app over one pipeline or named pipelines (in order: the first is also served at the root
-    paths, every one at ``/cam/NAME/...``); with ``manage_pipeline`` it starts and stops them with the server."""
+    paths, every one at ``/cam/NAME/...``); with ``manage_pipeline`` it starts and stops them with the server,
+    after ``warm_up()`` (the kernels), which runs while the server already answers (:class:`Startup`)."""
     named = {DEFAULT_CAMERA: pipelines} if isinstance(pipelines, Pipeline) else dict(pipelines)
     if not named:
         raise SveliveError("no camera to serve")
@@ -140,15 +188,13 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
             cam.hub = StreamHub(loop)
             cam.pipeline.add_listener(cam.hub.on_frame)
         app.state.hub = cameras[0].hub
-        started: list[ServedCamera] = []
+        startup = Startup(cameras if manage_pipeline else [], warm_up)
         try:
-            if manage_pipeline:
-                for cam in cameras:
-                    await run_in_threadpool(cam.pipeline.start)
-                    started.append(cam)
+            await startup.begin()
             yield
         finally:
             closing.set()
+            started = startup.end()
             restore_signals()
             for cam in cameras:
                 cam.pipeline.remove_listener(cam.hub.on_frame)
@@ -172,7 +218,10 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
         return error(409, exc)
 
     @app.get("/healthz")
-    async def healthz() -> dict[str, Any]:
+    async def healthz() -> Any:
+        if any(cam.pipeline.warming_up for cam in cameras):  # a readiness probe: not ready yet
+            return JSONResponse({"status": "warming up", "source": "warming_up",
+                                 "cameras": {cam.name: "warming_up" for cam in cameras}}, status_code=503)
         online = {cam.name: cam.pipeline.online() for cam in cameras}
         return {"status": "ok", "source": "online" if online[cameras[0].name] else "offline",
                 "cameras": {name: "online" if up else "offline" for name, up in online.items()}}

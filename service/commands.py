@@ -116,13 +116,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
             from service.publishers.rtsp import check_port
 
             check_port(server.host, server.rtsp_port)
-        warm_up_kernels("svelive serve")  # before the first live frame
     except BaseException:
         sock.close()
         raise
     keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
     compress_on()  # EXR snapshots compressed on every core
-    app = create_app(pipelines, server)
+    # the kernels are prepared before the first live frame, while the server already answers ("warming up")
+    app = create_app(pipelines, server, warm_up=lambda: warm_up_kernels("svelive serve"))
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
     for index, (name, config) in enumerate(configs.items()):
         paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])

@@ -84,12 +84,15 @@ class Pipeline:
         self._calibrating = self.calibration.busy
         self._threads: list[threading.Thread] = []
         self._started_ns = time.monotonic_ns()
+        #: the service prepares its kernels before it starts the threads (set by the app, cleared by :meth:`start`)
+        self.warming_up = False
 
     # ----- lifecycle ---------------------------------------------------
     def start(self) -> Pipeline:
         """Start the three threads; returns self."""
         if self._threads:
             return self
+        self.warming_up = False
         cv2.setNumThreads(opencv_threads())
         for name, target in (("capture", self.capture.run), ("reconstruct", self.reconstruction.run),
                              ("encode", self.encoder.run)):
@@ -218,10 +221,14 @@ class Pipeline:
             drops[f"source_{cause}"] = n
         capture, latest = self.capture, self.latest()
         balance = self.encoder.white_balance(latest)  # colour frames only
+        warming = self.warming_up
         return {
+            "warming_up": warming,
             "source": {
                 "spec": self.config.source,
                 **capture.status(),
+                # not started yet: no source opened, nothing offline about it
+                **({"state": "warming_up", "error": None} if warming else {}),
                 "width": None if latest is None else int(latest.hdr.image.shape[1]),
                 "height": None if latest is None else int(latest.hdr.image.shape[0]),
                 "pixel_format": capture.stats.get("pixel_format"),
