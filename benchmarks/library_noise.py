@@ -130,6 +130,8 @@ def colour_images(size: int, shared: bool) -> list[tuple[str, np.ndarray]]:
     if shared and SHARED.is_dir():
         for name in SHARED_IMAGES:
             channels, _ = read_exr(SHARED / f"{name}.exr")
+            if not all(c in channels for c in "RGB"):  # a luminance-only image (Garden)
+                continue
             rgb = np.maximum(np.stack([channels[c] for c in "RGB"], axis=-1), 0).astype(np.float32)
             h, w, _ = rgb.shape
             out.append((name, rgb[(h - min(h, size)) // 2:][:size, (w - min(w, size)) // 2:][:, :size]))

@@ -1868,7 +1868,8 @@ class NoiseSchedule:
             samples, then the static pixels' differences over the next two, as the service's runs).
         refit_every: frames from the start of one run to the start of the next; 0 stops after the
             first complete run. The tracker is fitted after the second and the last frame of the
-            first run, then once per run (about 250 ms CPU per fit at 1920x1200).
+            first run, then once per run (about 250 ms CPU per fit at 1920x1200). While the model is
+            not trusted the runs come sooner: 0, 3, 9, 21, ... frames apart (StreamNoise).
         trusted_below: the model is trusted (fusion may change the output) once a fit with temporal
             samples states the modelled variance to within this relative standard uncertainty at
             every signal (:func:`variance_uncertainty`). At 0.15 a variance one standard uncertainty
@@ -1914,6 +1915,7 @@ class StreamNoise:
         self._position: int | None = None  # the last frame fed's place in its run, None between runs
         self._runs = 0  # complete runs
         self._wait = 0  # frames before the next run starts
+        self._untrusted_runs = 0  # complete runs in a row after which the model was not trusted
         self._conflict = False  # whether the tracker's last fit contradicted the model in use
 
     @property
@@ -1972,11 +1974,30 @@ class StreamNoise:
         if last:
             self._position = None
             self._runs += 1
-            self._wait = schedule.refit_every - schedule.run_frames
         elif not (self._runs == 0 and self._position >= 1):
             return None
         fit = self.tracker.fit()
         self.fits += 1
+        taken = self._take(fit)
+        if last:
+            self._wait = self._next_wait()
+        return taken
+
+    def _next_wait(self) -> int:
+        """Frames between the run just complete and the next: the schedule's once the model is trusted; while it
+        is not (the stream's output is then its single frames), 0, 3, 9, 21, 45, ... frames (the gaps doubling
+        up to the schedule's), so that a model the first run could not state well enough (a small or busy frame)
+        is refined within a few runs at a bounded cost: about log2(refit_every / run_frames) runs more."""
+        schedule = self.schedule
+        full = max(schedule.refit_every - schedule.run_frames, 0)
+        if self.trusted:
+            self._untrusted_runs = 0
+            return full
+        self._untrusted_runs += 1
+        return min(full, schedule.run_frames * (2 ** (self._untrusted_runs - 1) - 1))
+
+    def _take(self, fit: NoiseEstimate) -> NoiseEstimate | None:
+        """The model after a tracker's fit (see the class): the fit, or None where the model in use is kept."""
         if fit.source == "default":  # the frames told nothing (no unclipped flat or static pixels): keep the model
             return None
         if self._fitted and self._runs > 1 and not agree(fit, self._estimate):

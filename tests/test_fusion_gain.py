@@ -128,3 +128,23 @@ def test_still_regions_of_the_readme_stream_gain_3_db_at_frame_8_beside_a_moving
     scores = object_case["readme"]
     gain = scores.pu21[("readme", "still")][7] - scores.pu21[("single", "still")][7]
     assert gain >= 3.0, gain  # issue 26.2's target, over the single-frame default
+
+
+def test_an_untrusted_model_is_refitted_sooner_with_gaps_doubling_then_on_the_schedule_once_trusted():
+    """While the model is not trusted the stream shows single frames; the next runs then start 0, 3, 9 frames after
+    the last (not refit_every - run_frames = 61), and once a fit is trusted the schedule's gap returns."""
+    from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
+
+    vague = NoiseEstimate(1.0, 1.0, 0.5, 0.5, 0, "estimated")  # 50 %: not trusted
+    sharp = NoiseEstimate(1.0, 1.0, 0.01, 0.01, 0, "estimated")
+    noise = StreamNoise(NoiseSchedule(run_frames=3, refit_every=64), tracker=_FittedTracker([vague] * 4 + [sharp]))
+    frame, still = np.zeros((4, 4), np.uint16), np.ones((4, 4), bool)
+    fitted_at = []
+    for k in range(1, 80):
+        fits = noise.fits
+        noise.observe(frame, None, still if noise.needs_static() else None)
+        if noise.fits > fits:
+            fitted_at.append(k)
+    # runs 1-3 (fits after 2, 3), 4-6, 10-12, 22-24 (trusted), then none before frame 22 + 64
+    assert fitted_at == [2, 3, 6, 12, 24], fitted_at
+    assert noise.trusted

@@ -128,14 +128,17 @@ def trail_before(motions: list[np.ndarray], truths: list[np.ndarray], i: int) ->
 
 
 def run_case(scene: Scene, frames: int, pattern: str, sensor: Sensor,
-             streams: dict[str, Callable[[list[np.ndarray]], object]], single: Callable[[np.ndarray], np.ndarray],
+             streams: dict[str, Callable[[list[np.ndarray]], object]],
+             single: Callable[[np.ndarray], np.ndarray] | dict[str, Callable[[np.ndarray], np.ndarray]],
              pu21: Callable[[np.ndarray, np.ndarray, np.ndarray], float], seed: int = 1) -> CaseScores:
     """Render ``frames`` frames of ``scene`` with ``sensor`` and score each stream and the single frame.
 
     Args:
         streams: name -> a factory of a fresh stream (``process(raw).image``), called with the rendered raw
             frames (uint16 (H, W) each; a stream given a model estimated from the first frames reads them).
-        single: raw uint16 (H, W) -> the single-frame default's image.
+        single: raw uint16 (H, W) -> the single-frame default's image, scored as ``"single"``; or several,
+            name -> that function (e.g. the default with the stream's model given, to tell the fusion's
+            effect from the method's response to its noise model).
         pu21: (image, truth, region) -> PU21-PSNR (dB) over the region, display scaling from the whole truth.
     """
     rendered = list(render_sequence(scene, frames, pattern, sensor, seed=seed))
@@ -144,7 +147,8 @@ def run_case(scene: Scene, frames: int, pattern: str, sensor: Sensor,
     made = {name: factory([f.raw for f in rendered]) for name, factory in streams.items()}
     scores = CaseScores({}, {})
     for i, f in enumerate(rendered):
-        images = {"single": single(f.raw)}
+        images = {name: one(f.raw) for name, one in (single.items() if isinstance(single, dict)
+                                                      else [("single", single)])}
         images.update({name: stream.process(f.raw).image for name, stream in made.items()})
         regions = region_masks(motions, i)
         before = trail_before(motions, truths, i)
@@ -154,3 +158,82 @@ def run_case(scene: Scene, frames: int, pattern: str, sensor: Sensor,
                                                                    else float("nan"))
             scores.ghost.setdefault(name, []).append(ghost_residue(image, f.truth, before, regions["trail"]))
     return scores
+
+
+# ----- the stability suite's stream cases (svelive.bench.stability.Sweep; wired in by the suite) ---------
+
+#: object speeds (px per frame) and light (stops under full scale) of :func:`stream_sweeps`
+SWEEP_SPEEDS: tuple[float, ...] = (2.0, 6.0, 12.0, 24.0)
+SWEEP_STOPS: tuple[float, ...] = (2.0, 4.0, 6.0)
+SWEEP_FRAMES = 6
+
+
+def _pu21(image: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
+    """PU21-PSNR (dB) over ``region``, display scaling from the whole truth (nan for an empty region)."""
+    from svelive.metrics import PU21_PEAK, display_scale, pu21_encode
+
+    if not region.any():
+        return float("nan")
+    s = display_scale(truth)
+    err = pu21_encode(image[region] * s) - pu21_encode(truth[region] * s)
+    return float(10 * np.log10(PU21_PEAK ** 2 / max(float(np.mean(err * err)), 1e-12)))
+
+
+def stream_sweeps(size: int = 96, pattern: str = "1,4/16,64", seed: int = 11) -> list:
+    """The library stream against the single-frame default, as stability sweeps (lower is better):
+
+    - ``stream_moving``: PU21 dB the stream loses on moving pixels (frames 2 on) against the single frame, a
+      textured object (a disc of the mttamwest crop, 3 stops over the scene) crossing the dim desk crop (5 stops
+      under) at each speed; ``README`` (no model given) against ``svelive.reconstruct``, ``same model``: both
+      given the true one (the fusion's own effect);
+    - ``stream_trail``: the ghost residue of the same runs, the stream's minus the single frame's (% of the change);
+    - ``stream_still``: PU21 dB the stream is below the single frame on still pixels at its last frame, the still
+      desk crop at each light (negative: the fusion's gain).
+
+    The true sensor (3 000 e-, 2 e-, black 64) is not given to the README stream. About 10 s at 96 px.
+    """
+    import svelive
+    from svelive.bench.stability import Sweep
+    from svelive.scenes import static
+    from svelive.simulate import load_sample_scene
+
+    levels = dict(black_level=64, white_level=4095)
+    sensor = Sensor.from_full_well(12, 3_000, 2.0, **levels)
+    true = dict(gain=sensor.gain, read_noise=sensor.read_noise)
+    streams = {"README": lambda raws: svelive.Reconstructor(pattern, **levels),
+               "same model": lambda raws: svelive.Reconstructor(pattern, **levels, **true)}
+    singles = {"README": lambda raw: svelive.reconstruct(raw, pattern, **levels),
+               "same model": lambda raw: svelive.reconstruct(raw, pattern, **levels, **true)}
+    desk = np.maximum(load_sample_scene("desk"), 0)
+    h, w = desk.shape
+    scene = desk[(h - size) // 2:][:size, (w - size) // 2:][:, :size]
+    texture = np.maximum(load_sample_scene("mttamwest"), 0)[:size, :size]
+    moving = Sweep("stream_moving", "Library stream: moving pixels against the single frame", "object speed (px/frame)",
+                   "PU21 dB lost on moving pixels", list(SWEEP_SPEEDS), log_y=False,
+                   notes="a textured disc over the dim desk crop; 'same model': stream and single frame given the "
+                         "true noise model, the fusion's own effect")
+    trail = Sweep("stream_trail", "Library stream: trail behind a moving object", "object speed (px/frame)",
+                  "ghost residue, stream minus single (% of the change)", list(SWEEP_SPEEDS), log_y=False,
+                  notes="share of a pixel's change its output still shows, over pixels moved in the last 3 frames")
+    still = Sweep("stream_still", "Library stream: still scene against the single frame", "stops under full scale",
+                  f"PU21 dB below the single frame at frame {SWEEP_FRAMES}", list(SWEEP_STOPS), log_y=False,
+                  notes="negative: the fusion's gain")
+    background = dim(scene, pattern, sensor, 5.0)
+    texture = texture * (8 * float(np.percentile(background, 99.9)) / max(float(np.percentile(texture, 99.9)), 1e-12))
+    radius = size / 7
+    for speed in SWEEP_SPEEDS:
+        crossing = moving_texture(background, texture, radius, (size / 2, radius + 2), (0.0, speed))
+        for name in streams:
+            scores = run_case(crossing, SWEEP_FRAMES, pattern, sensor, {name: streams[name]}, singles[name], _pu21,
+                              seed=seed)
+            lost = np.array(scores.pu21[("single", "moving")][1:]) - np.array(scores.pu21[(name, "moving")][1:])
+            moving.errors.setdefault(name, []).append(float(np.nanmean(lost)))
+            ghost = np.nanmean(scores.ghost[name][1:]) - np.nanmean(scores.ghost["single"][1:])
+            trail.errors.setdefault(name, []).append(100 * float(ghost))
+    for stops in SWEEP_STOPS:
+        for name in streams:
+            scores = run_case(static(dim(scene, pattern, sensor, stops)), SWEEP_FRAMES, pattern, sensor,
+                              {name: streams[name]}, singles[name], _pu21, seed=seed)
+            still.errors.setdefault(name, []).append(scores.pu21[("single", "still")][-1]
+                                                     - scores.pu21[(name, "still")][-1])
+    return [moving, trail, still]
