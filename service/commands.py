@@ -10,6 +10,8 @@ import sys
 import threading
 import time
 
+from svelive.options import SOURCE_CFA_HELP, add_camera_option
+
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -23,12 +25,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--source", help="source spec: demo (default), gige[:ID], v4l2:/dev/videoN, images:GLOB, replay:PATH")
     p.add_argument("--source-option", dest="source_options", action="append", metavar="KEY=VALUE",
                    help="source option, repeatable (e.g. fps=30, width=1920)")
-    p.add_argument("--pattern", help="exposure pattern, e.g. 1,4/16,64, or a colour layout such as dual-iso "
-                                     "(default: the source's own)")
-    p.add_argument("--cfa", help="colour filter layout, e.g. RGGB or quad-RGGB; 'none' for monochrome "
-                                 "(default: a Bayer pixel format sets it by itself)")
-    p.add_argument("--black-level", type=float)
-    p.add_argument("--white-level", type=float)
+    add_camera_option(p, "pattern", "exposure pattern, e.g. 1,4/16,64, or a colour layout such as dual-iso "
+                                    "(default: the source's own)")
+    add_camera_option(p, "cfa", SOURCE_CFA_HELP)
+    add_camera_option(p, "black_level")
+    add_camera_option(p, "white_level")
     p.add_argument("--method", help="reconstruction method (see `svelive methods`)")
     p.add_argument("--no-temporal", dest="temporal", action="store_const", const=False,
                    help="reconstruct every frame on its own (no temporal fusion)")
@@ -88,6 +89,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from svelive.capture import open_source
     from svelive.exr import compress_on
     from svelive.memory import keep_freed_memory
+    from svelive.options import CameraSettings
 
     from service.app import create_app, listen_socket
     from service.protocol import bounded_protocol
@@ -102,8 +104,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     configs = settings.named_pipelines()
     for config in configs.values():
         # build (not open) each source once, so a bad spec or option fails now with one line
-        open_source(config.source, pattern=config.pattern, cfa=config.cfa, black_level=config.black_level,
-                    white_level=config.white_level, **config.source_options)
+        open_source(config.source, **{**CameraSettings.from_mapping(config).source_options(),
+                                      **config.source_options})
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)

@@ -11,12 +11,12 @@ import numpy as np
 
 from svelive import __version__ as svelive_version
 from svelive.atomic import check_output_target, write_bytes_atomic
-from svelive.camera import COLOUR_LAYOUTS, Camera
+from svelive.camera import COLOUR_LAYOUTS
 from svelive.capture.images import decode_image
-from svelive.capture.source import MONO_WORDS
 from svelive.cfa import PRESETS as CFA_PRESETS
 from svelive.errors import SveliveError
 from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate
+from svelive.options import CameraSettings, add_camera_option, build_camera, parse_cfa
 from svelive.exr import LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, write_exr
 from svelive.frame_exr import FrameInfo, single_frame_balance, write_frame_exr
 from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
@@ -38,9 +38,10 @@ TRUTH_UNITS = "radiance, DN at relative exposure 1 (simulation ground truth)"
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="dynamic range and quantisation levels of a pattern (paper sections 4-5)")
-    p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', or a preset: " + ", ".join(PRESETS))
-    p.add_argument("--bits", type=int, default=12, help="bit depth of the raw values (default 12, the simulated "
-                                                         "sensor's; 8 compares with the paper's figures)")
+    add_camera_option(p, "pattern", "exposure tile, e.g. '1,4/16,64', or a preset: " + ", ".join(PRESETS),
+                      required=True)
+    add_camera_option(p, "bits", "bit depth of the raw values (default 12, the simulated sensor's; 8 compares "
+                                 "with the paper's figures)", default=12)
     p.set_defaults(func=_info)
 
     p = sub.add_parser("methods", help="list the reconstruction methods, the default first")
@@ -82,8 +83,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="simulate and reconstruct a shipped sample scene, print its dynamic range")
     p.add_argument("--scene", choices=SAMPLE_SCENES, default="desk")
     add_cfa_argument(p, f"colour filter (default {DEMO_CFA}; 'none': a monochrome sensor)")
-    p.add_argument("--pattern", help=f"exposure pattern (default {DEMO_COLOUR_PATTERN} in colour, the dual-ISO "
-                                     f"layout; {DEMO_MONO_PATTERN} in mono)")
+    add_camera_option(p, "pattern", f"exposure pattern (default {DEMO_COLOUR_PATTERN} in colour, the dual-ISO "
+                                    f"layout; {DEMO_MONO_PATTERN} in mono)")
     p.add_argument("--method", choices=methods())
     add_colour_arguments(p)
     p.add_argument("-o", "--output", type=Path, default=Path("svelive-demo.exr"))
@@ -92,7 +93,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
 def add_cfa_argument(p: argparse.ArgumentParser, text: str) -> None:
     """The --cfa option of the verbs that read or make raw frames."""
-    p.add_argument("--cfa", help=f"{text}; presets: {', '.join(CFA_PRESETS)}, or rows such as R,G/G,B")
+    add_camera_option(p, "cfa", f"{text}; presets: {', '.join(CFA_PRESETS)}, or rows such as R,G/G,B")
 
 
 def add_colour_arguments(p: argparse.ArgumentParser) -> None:
@@ -112,36 +113,18 @@ def colour_settings(args: argparse.Namespace) -> ColourSettings:
     return ColourSettings(args.white_balance, args.colour_matrix, args.output_space)
 
 
-def parse_cfa(text: str | None) -> str | None:
-    """The --cfa value as a colour filter text for Camera.build: None for not given, 'none' or 'mono'."""
-    if text is None or text.strip().lower() in MONO_WORDS:
-        return None
-    return text
-
-
-def camera_from_args(pattern: str | None, cfa: str | None, sensor: Sensor | None = None) -> Camera:
-    """The camera of --pattern and --cfa (Camera.build). ``--cfa none`` with a colour layout (``dual-iso``)
-    is refused with the line ``svelive serve`` gives: without this check the layout's filter won silently and
-    the command wrote colour."""
-    camera = Camera.build(pattern, parse_cfa(cfa), *([sensor] if sensor is not None else []))
-    if cfa is not None and parse_cfa(cfa) is None and camera.cfa is not None:
-        raise SveliveError(f"the layout {pattern} has the colour filter {camera.cfa.name}, but --cfa {cfa} was "
-                           "given: drop --cfa, or give the exposure pattern itself")
-    return camera
-
-
 def luminance(image: np.ndarray) -> np.ndarray:
     """float32 (H, W): the image itself, or the Rec. 709 luminance of an (H, W, 3) one."""
     return image if image.ndim == 2 else (image @ np.float32(LUMA_WEIGHTS)).astype(np.float32)
 
 
 def _add_pattern_sensor(p: argparse.ArgumentParser, bits_default: int | None) -> None:
-    p.add_argument("--pattern", required=True, help="exposure tile, e.g. '1,4/16,64', a preset, or a colour "
-                                                    f"layout ({', '.join(COLOUR_LAYOUTS)}: sets --cfa too)")
-    p.add_argument("--bits", type=int, default=bits_default,
-                   help="bit depth" + (f" (default {bits_default})" if bits_default else " (default: from the file's dtype)"))
-    p.add_argument("--black-level", type=float, default=0.0, help="DN (default 0)")
-    p.add_argument("--white-level", type=float, help="DN at or above which a pixel is saturated (default 2^bits - 1)")
+    add_camera_option(p, "pattern", "exposure tile, e.g. '1,4/16,64', a preset, or a colour layout "
+                                    f"({', '.join(COLOUR_LAYOUTS)}: sets --cfa too)", required=True)
+    add_camera_option(p, "bits", "bit depth" + (f" (default {bits_default})" if bits_default
+                                                else " (default: from the file's dtype)"), default=bits_default)
+    add_camera_option(p, "black_level", "DN (default 0)", default=0.0)
+    add_camera_option(p, "white_level", "DN at or above which a pixel is saturated (default 2^bits - 1)")
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -271,7 +254,7 @@ def _sensor_from_args(args: argparse.Namespace, raw: np.ndarray | None = None) -
 
 def _simulate(args: argparse.Namespace) -> int:
     check_outputs(args.output, args.truth)
-    camera = camera_from_args(args.pattern, args.cfa)
+    camera = build_camera(CameraSettings.from_args(args))
     pattern = camera.require_pattern()
     if not args.hdr or not Path(args.hdr).is_file():
         raise SveliveError(f"{args.hdr}: no such EXR file")
@@ -297,7 +280,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     check_outputs(args.output)
     compress_on()  # the output's compression on every core
-    camera = camera_from_args(args.pattern, args.cfa)
+    camera = build_camera(CameraSettings.from_args(args))
     settings = colour_settings(args)
     raw = read_raw(args.raw)
     sensor = _sensor_from_args(args, raw)
@@ -361,9 +344,9 @@ def _noise_part(name: str, value: float, sigma: float | None, unit: str, given: 
 
 def _demo(args: argparse.Namespace) -> int:
     check_outputs(args.output)
-    cfa = parse_cfa(args.cfa if args.cfa is not None else DEMO_CFA)
-    camera = camera_from_args(args.pattern or (DEMO_MONO_PATTERN if cfa is None else DEMO_COLOUR_PATTERN),
-                              args.cfa if args.cfa is not None else DEMO_CFA, Sensor.from_full_well(12, 10_000, 3))
+    cfa = args.cfa if args.cfa is not None else DEMO_CFA
+    pattern = args.pattern or (DEMO_MONO_PATTERN if parse_cfa(cfa) is None else DEMO_COLOUR_PATTERN)
+    camera = build_camera(CameraSettings(pattern, cfa), Sensor.from_full_well(12, 10_000, 3))
     pattern, sensor = camera.require_pattern(), camera.sensor
     check_depth(pattern, sensor.bits)
     settings = colour_settings(args)

@@ -24,7 +24,7 @@ import numpy as np
 from svelive.camera import Camera, camera_for_raw
 from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
-from svelive.commands import add_colour_arguments, colour_settings, parse_cfa
+from svelive.commands import add_colour_arguments, colour_settings
 from svelive.errors import SveliveError
 from svelive.exr import compress_on
 from svelive.frame import Frame
@@ -33,6 +33,7 @@ from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
 from svelive.reprocess import run_stream
 from svelive.noise import NoiseEstimate
+from svelive.options import CameraSettings, parse_cfa
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, default_method, stream_noise
 
 
@@ -200,8 +201,7 @@ def _reprocess(args: argparse.Namespace, settings: object) -> int:
     from svelive.cli import print_json
 
     _, path = parse_spec(args.source)
-    options = {"pattern": args.pattern, "cfa": args.cfa, "bits": args.bits, "black_level": args.black_level,
-               "white_level": args.white_level, **parse_opts(args.opt)}
+    options = {**CameraSettings.from_args(args).source_options(), **parse_opts(args.opt)}
     job = reprocess.Job(recording=str(Path(path).resolve()), output=str(args.output.resolve()), method=args.method,
                         temporal=not args.no_temporal, timing=args.timing,
                         source_options={k: v for k, v in options.items() if v is not None},

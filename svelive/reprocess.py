@@ -831,9 +831,10 @@ def frame_time_ns(frame: Frame | np.ndarray, index: int) -> int:
     return index * FRAME_NS
 
 
-def run_stream(frames: Iterable[tuple[Frame | np.ndarray, Camera, NoiseEstimate]], output: str | Path, *, method: str | None = None,
-               temporal: bool = True, timing: str = "mask", colour: ColourSettings | None = None,
-               half: bool = False, limit: int | None = None, on_frame: Callable[[int], None] | None = None,
+def run_stream(frames: Iterable[tuple[Frame | np.ndarray, Camera, NoiseEstimate]], output: str | Path, *,
+               method: str | None = None, temporal: bool = True, timing: str = "mask",
+               colour: ColourSettings | None = None, half: bool = False, limit: int | None = None,
+               on_frame: Callable[[int], None] | None = None,
                on_camera: Callable[[NoiseEstimate], None] | None = None) -> int:
     """Reconstruct a stream in order and write ``frame_NNNNNN.exr`` for each frame (NNNNNN: its position in
     the stream) as a recording's chunk writes them (:func:`write_result`); returns the frames written.

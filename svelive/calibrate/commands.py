@@ -19,6 +19,7 @@ from svelive.camera import Camera, one_colour_plane
 from svelive.commands import read_raw
 from svelive.atomic import check_output_target
 from svelive.errors import SveliveError
+from svelive.options import add_camera_option
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor, container_bits
 
@@ -67,8 +68,8 @@ def sensor_from_args(raw: np.ndarray, args: argparse.Namespace, path: Path | Non
     """
     bits = args.bits
     where = f"{path}: " if path is not None else ""
-    if bits is None and args.white is not None:
-        bits = max(int(math.ceil(args.white)).bit_length(), 1)
+    if bits is None and args.white_level is not None:
+        bits = max(int(math.ceil(args.white_level)).bit_length(), 1)
     if bits is None and path is not None:
         bits = png_significant_bits(path)
     if bits is None:
@@ -79,7 +80,7 @@ def sensor_from_args(raw: np.ndarray, args: argparse.Namespace, path: Path | Non
         raise SveliveError(f"{where}a {8 * raw.dtype.itemsize}-bit file that does not say the sensor's bit depth "
                            f"(values up to {int(raw.max())}, none saturated at a full-scale value): pass --bits "
                            "(e.g. --bits 12) or --white-level")
-    sensor = Sensor(bits=bits, black_level=args.black, white_level=args.white)
+    sensor = Sensor(bits=bits, black_level=args.black_level, white_level=args.white_level)
     if raw.max() > sensor.white_level:
         raise SveliveError(f"{where}the frame has values up to {int(raw.max())}, above the white level "
                            f"{sensor.white_level:g} of {bits} bits: pass the right --bits or --white-level")
@@ -132,10 +133,10 @@ def _recorded_sweep(args: argparse.Namespace) -> tuple[list[np.ndarray], list[fl
         raws = [reader.read(i).raw for i in picks]
         camera = reader.camera
     sensor = camera.sensor
-    if args.bits is not None or args.black is not None or args.white is not None:
+    if args.bits is not None or args.black_level is not None or args.white_level is not None:
         bits = args.bits if args.bits is not None else sensor.bits
-        sensor = Sensor(bits=bits, black_level=sensor.black_level if args.black is None else args.black,
-                        white_level=args.white if args.white is not None else
+        sensor = Sensor(bits=bits, black_level=sensor.black_level if args.black_level is None else args.black_level,
+                        white_level=args.white_level if args.white_level is not None else
                         (sensor.white_level if args.bits is None else None))
     camera = Camera.build(args.pattern or camera.require_pattern(), args.cfa or camera.cfa, sensor)
     return raws, [float(t) for t in known] if known.size > 1 else None, camera
@@ -197,10 +198,10 @@ def _noise(args: argparse.Namespace) -> int:
 
 
 def _levels(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--bits", type=int, help="bit depth of the raw values (default: what --white-level implies, a "
-                                            "PNG's sBIT, 8 for 8-bit files, or the value saturated pixels hold)")
-    p.add_argument("--black-level", dest="black", type=float, default=0.0, help="black level, DN (default 0)")
-    p.add_argument("--white-level", dest="white", type=float, help="white level, DN (default 2^bits - 1)")
+    add_camera_option(p, "bits", "bit depth of the raw values (default: what --white-level implies, a PNG's sBIT, "
+                                 "8 for 8-bit files, or the value saturated pixels hold)")
+    add_camera_option(p, "black_level", "black level, DN (default 0)", default=0.0, metavar="BLACK")
+    add_camera_option(p, "white_level", "white level, DN (default 2^bits - 1)", metavar="WHITE")
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
@@ -216,10 +217,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                         "a sweep ('svelive record --exposure-times'): a frame per recorded time")
     p.add_argument("--exposure-times", type=parse_times, metavar="T1,T2,...",
                    help="global exposure time of every frame, in any one unit (needed for two or more frames)")
-    p.add_argument("--pattern", help="exposure tile, e.g. 1,4/16,64, or a preset (needed for image frames; a "
-                                     "recording has its own)")
-    p.add_argument("--cfa", help="colour filter layout of the frames, e.g. RGGB or quad-RGGB (default: none, "
-                                 "monochrome); the fit then reads one filter's pixels (green on a Bayer mosaic)")
+    add_camera_option(p, "pattern", "exposure tile, e.g. 1,4/16,64, or a preset (needed for image frames; a "
+                                    "recording has its own)")
+    add_camera_option(p, "cfa", "colour filter layout of the frames, e.g. RGGB or quad-RGGB (default: none, "
+                                "monochrome); the fit then reads one filter's pixels (green on a Bayer mosaic)")
     _levels(p)
     p.add_argument("--max-degree", type=int, default=6, help="highest polynomial degree tried (default 6)")
     p.add_argument("--window", type=int, default=3, help="local window side in tiles (odd, default 3)")
@@ -242,7 +243,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     p = verbs.add_parser("noise", help="gain and read noise from a pair of frames or one frame of a still scene")
     p.add_argument("frames", type=existing_file, nargs="+", metavar="FRAME", help="one or two raw frames")
-    p.add_argument("--pattern", help="exposure tile (needed for a single frame)")
+    add_camera_option(p, "pattern", "exposure tile (needed for a single frame)")
     _levels(p)
     p.add_argument("-o", "--output", type=Path, help="noise JSON to write (also printed)")
     p.set_defaults(func=_noise)

@@ -20,6 +20,7 @@ from replay.reader import _ranges, report
 from svelive.capture import AfterChange, open_source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
+from svelive.options import SOURCE_CFA_HELP, CameraSettings, add_camera_option
 from svelive.progress import Progress, add_quiet_argument
 
 
@@ -75,13 +76,12 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
     """The --source option and the common source options (shared with other verbs)."""
     p.add_argument("--source", required=True, metavar="SPEC",
                    help="gige[:DEVICE_ID], v4l2:/dev/videoN, images:GLOB_OR_DIR, replay:PATH or demo")
-    p.add_argument("--pattern", help="exposure pattern text or preset stored with the frames (e.g. 1,4/16,64), "
-                                     "or a colour layout such as dual-iso")
-    p.add_argument("--cfa", help="colour filter layout, e.g. RGGB or quad-RGGB; 'none' for monochrome "
-                                 "(default: a Bayer pixel format sets it by itself)")
-    p.add_argument("--bits", type=int, help="sensor bit depth (default: the pixel format's)")
-    p.add_argument("--black-level", type=float, help="sensor black level, DN")
-    p.add_argument("--white-level", type=float, help="sensor white level, DN")
+    add_camera_option(p, "pattern", "exposure pattern text or preset stored with the frames (e.g. 1,4/16,64), "
+                                    "or a colour layout such as dual-iso")
+    add_camera_option(p, "cfa", SOURCE_CFA_HELP)
+    add_camera_option(p, "bits", "sensor bit depth (default: the pixel format's)")
+    add_camera_option(p, "black_level", "sensor black level, DN")
+    add_camera_option(p, "white_level", "sensor white level, DN")
     p.add_argument("--pixel-format", help="camera pixel format (e.g. Mono12Packed, Y16)")
     p.add_argument("--width", type=int, help="frame width / ROI width, pixels")
     p.add_argument("--height", type=int, help="frame height / ROI height, pixels")
@@ -115,9 +115,8 @@ def parse_opts(items: list[str]) -> dict[str, Any]:
 
 def source_from_args(args: argparse.Namespace) -> Any:
     """Build the Source the common arguments describe."""
-    opts = {"pattern": args.pattern, "cfa": args.cfa, "bits": args.bits, "black_level": args.black_level,
-            "white_level": args.white_level, "pixel_format": args.pixel_format, "width": args.width,
-            "height": args.height, "fps": args.fps, "speed": args.speed, "loop": args.loop}
+    opts = {**CameraSettings.from_args(args).source_options(), "pixel_format": args.pixel_format,
+            "width": args.width, "height": args.height, "fps": args.fps, "speed": args.speed, "loop": args.loop}
     opts.update(parse_opts(args.opt))
     return open_source(args.source, **opts)
 
