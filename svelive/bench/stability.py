@@ -447,14 +447,18 @@ def light_phases(layout: str) -> list[tuple[int, int]]:
 
 
 def coloured_lights(layout: str, level: float, size: int = SIZE) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Camera RGB (size, size, 3) float32 of :data:`LIGHT_COLOUR` lights, LIGHT_SIZE square, on black, one
-    at every phase of the layout's joint period, and their top-left corners. ``level``: stops of the
-    light's brightest channel relative to the shortest exposure's full scale."""
+    """Camera RGB float32 (size + size // 4, size, 3) of :data:`LIGHT_COLOUR` lights, LIGHT_SIZE square, on
+    black, one at every phase of the layout's joint period, and their top-left corners; below them a grey
+    (:data:`CAMERA_WHITE`) band size // 4 rows high at a quarter of the lights' level, so that the frame's
+    white balance has a neutral surface to find, as in a real scene. ``level``: stops of the light's
+    brightest channel relative to the shortest exposure's full scale."""
     camera = Camera.build(layout, sensor=BENCH_SENSOR)
     full = BENCH_SENSOR.censor_level / float(camera.require_pattern().levels[0])
     colour = LIGHT_COLOUR * CAMERA_WHITE
-    colour = colour / colour.max() * np.float32(full * 2.0**level)
-    truth = np.zeros((size, size, 3), np.float32)
+    peak = np.float32(full * 2.0**level)
+    colour = colour / colour.max() * peak
+    truth = np.zeros((size + size // 4, size, 3), np.float32)
+    truth[size:] = CAMERA_WHITE / CAMERA_WHITE.max() * (peak / 4)
     corners = []
     per_row = (size - LIGHT_SPACING // 2) // LIGHT_SPACING
     for n, (dy, dx) in enumerate(light_phases(layout)):
