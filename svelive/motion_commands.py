@@ -31,9 +31,9 @@ from svelive.frame import Frame
 from svelive.memory import keep_freed_memory
 from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
-from svelive.reprocess import run_stream
+from svelive.reprocess import require_dask, run_stream
 from svelive.noise import NoiseEstimate
-from svelive.options import CameraSettings, parse_cfa
+from svelive.options import CameraSettings
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, default_method, stream_noise
 
 
@@ -111,8 +111,9 @@ def camera_of(frame: np.ndarray | Frame, args: argparse.Namespace) -> Camera:
     if isinstance(frame, Frame):
         camera = frame.camera
     else:
-        camera = camera_for_raw(frame, args.pattern, cfa=parse_cfa(args.cfa), black_level=args.black_level or 0,
-                                white_level=args.white_level)
+        given = CameraSettings.from_args(args)
+        camera = camera_for_raw(frame, given.pattern, cfa=given.colour_filter, black_level=given.black_level or 0,
+                                white_level=given.white_level)
     camera.require_pattern()
     if args.gain is not None or args.read_noise is not None:
         camera = camera.replace(sensor=camera.sensor.with_noise(args.gain, args.read_noise))
@@ -162,8 +163,6 @@ def _reconstruct_sequence(args: argparse.Namespace) -> int:
     if not 0 <= args.tolerance < 1:
         raise SveliveError(f"--tolerance is a fraction of the pixels, 0 <= F < 1, got {args.tolerance}")
     if args.workers is not None or args.scheduler is not None:
-        from svelive.reprocess import require_dask
-
         require_dask()  # before any work (it was said after the stream's noise estimate)
     settings = colour_settings(args)
     compress_on()  # this process's EXRs compressed on every core (Dask's workers keep one thread each)
