@@ -179,10 +179,10 @@ def test_late_joiners_of_a_playing_stream_start_at_a_key_frame_and_a_storm_force
                 where = f"joiner {burst * 10 + k + 1} of 20"
                 _, said = client.communicate(timeout=60)
                 assert client.returncode == 0, f"{where}: {said}"
-                complaints = [line for line in said.splitlines() if COMPLAINTS.search(line)]
-                assert not complaints, f"{where}: ffmpeg: {complaints[:5]}"
                 sent = packets((tmp_path / f"{burst}-{k}" / "crc").read_text())
                 assert len(sent) == 10 and sent[0][1], f"{where}: the first packet is not a key frame: {sent[:3]}"
+                complaints = [line for line in said.splitlines() if COMPLAINTS.search(line)]
+                assert not complaints, f"{where}: ffmpeg: {complaints[:5]}; packets {sent}"
                 types = nal_types((tmp_path / f"{burst}-{k}" / "first").read_bytes())
                 assert 5 in types and {7, 8} <= set(types[:types.index(5)]), \
                     f"{where}: the first picture's NAL units {types}: no SPS and PPS before its IDR slice"

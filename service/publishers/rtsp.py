@@ -22,9 +22,11 @@ shared media:
   held (its transports inactive) until a keyframe reaches the payloader, and a key unit is
   forced for it (without x264's separate header buffer, which went out as a picture of its
   own), so a late joiner of the shared media neither gets the GOP's remaining delta frames
-  first nor waits for the next periodic keyframe. Forced keyframes are at least
-  ``keyframe_gap_s`` (0.5 s) after the one before, so a reconnect storm cannot make every
-  frame a keyframe: the clients that come meanwhile take the next one together.
+  first nor waits for the next periodic keyframe (frames are held back while its PLAY is
+  answered, and the server's TCP sink is drained before it is let in: :func:`drain`).
+  Forced keyframes are at least ``keyframe_gap_s`` (0.5 s) after the one before, so a
+  reconnect storm cannot make every frame a keyframe: the clients that come meanwhile take
+  the next one together.
 - Time stamps: the running time rounded down to the nominal frame interval, a frame
   skipped when it falls in the slot of the one before (:func:`next_pts`), so they
   strictly increase and clients that count in frames never see two at one time.
@@ -79,9 +81,8 @@ ROLE = "viewer"
 MAX_CLIENTS = 64
 #: Connections waiting to be accepted (GStreamer's default, 5, made a burst of clients wait 1-3 s in SYN retries).
 BACKLOG = 128
-#: The longest a PLAY waits for the frame going through the payloader, and then for the server to send it (s).
+#: The longest a PLAY waits for the frame going through the payloader to be taken from the server's sinks (s).
 PAUSE_WAIT_S = 0.2
-SEND_DRAIN_S = 0.005
 #: Timecode: bits of the capture time in ms, and the side of one bit's square in pixels.
 TIMECODE_BITS = 48
 TIMECODE_BLOCK = 8
@@ -223,23 +224,39 @@ def push_frame(src: Any, data: bytes, pts_ns: int | None = None) -> None:
     src.emit("push-buffer", buffer)
 
 
-def send_at_once(pipeline: Any) -> None:
-    """Make the RTP server's sinks in ``pipeline`` (a media's) send each packet at once, not at its time stamp.
+def server_sinks(pipeline: Any) -> list[Any]:
+    """The RTSP server's sinks in a media's ``pipeline`` (appsink for RTP over TCP, multiudpsink over UDP), made to
+    send each packet at once, not at its time stamp.
 
-    Why: a frame stamped up to half an interval ahead (:func:`next_pts`) waited in the synchronised sink while the
+    Why unsynchronised: a frame stamped up to half an interval ahead (:func:`next_pts`) waited in the sink while the
     keyframe after it let a waiting client in (``RtspPublisher._on_payload``), which then got that delta frame
     first. The frames are live, stamped at about the running time of their push: there is nothing to pace. The
-    server makes its sinks with the first transport of their kind, so this runs at every PLAY."""
+    server makes its sinks with the first transport of their kind, so this is asked again at every PLAY."""
     from gi.repository import Gst
 
+    sinks = []
     elements = pipeline.iterate_recurse()
     while True:
         result, element = elements.next()
         if result != Gst.IteratorResult.OK:
-            return
+            return sinks
         factory = element.get_factory()
-        if factory is not None and factory.get_name() in ("appsink", "multiudpsink") and element.get_property("sync"):
-            element.set_property("sync", False)
+        if factory is not None and factory.get_name() in ("appsink", "multiudpsink"):
+            if element.get_property("sync"):
+                element.set_property("sync", False)
+            sinks.append(element)
+
+
+def drain(sinks: list[Any]) -> None:
+    """Wait until the server has taken every packet out of its appsinks (a drain query: an appsink answers it
+    when its queue is empty). Over TCP the server's sending thread takes a packet from the appsink and hands it to
+    the transports active at that moment, and it takes it only when one of them can take more, so a packet made
+    before a client is let in could otherwise go to it after. UDP sinks send as they receive."""
+    from gi.repository import Gst
+
+    for sink in sinks:
+        if sink.get_factory().get_name() == "appsink":
+            sink.get_static_pad("sink").query(Gst.Query.new_drain())
 
 
 def even_size(image: np.ndarray) -> np.ndarray:
@@ -317,6 +334,8 @@ class _Media:
         self.last_keyframe_ns = 0
         #: a client has started playing it (the first one gets the media's first frame, a keyframe, at PLAY)
         self.played = False
+        #: the server's sinks (:func:`server_sinks`, found at each PLAY)
+        self.sinks: list[Any] = []
         #: the payloader's sink pad; the probe that holds frames back there while a PLAY is answered (0: none),
         #: and since when (monotonic s)
         self.pay_sink: Any = None
@@ -706,6 +725,11 @@ class RtspPublisher:
             media = self._media
             if media is not record:  # a media on its way out
                 return Gst.PadProbeReturn.OK
+            sinks = list(media.sinks) if media.joining else []
+        drain(sinks)  # the frame before it may still wait in the server's sink (taken for the clients let in now)
+        with self._lock:
+            if self._media is not record:
+                return Gst.PadProbeReturn.OK
             media.last_keyframe_ns = time.monotonic_ns()
             joining, media.joining = media.joining, {}
             self._keyframe_wanted = False
@@ -718,9 +742,10 @@ class RtspPublisher:
 
     def pause_payloads(self) -> None:
         """GLib thread, before a PLAY of a media that plays already: stop frames at the payloader and wait
-        (at most PAUSE_WAIT_S) until the one going through has left for the clients. Why: the server makes the
-        new client's transports active before :meth:`hold_until_keyframe` can make them inactive again, and a
-        frame sent meanwhile (the GOP's next delta frame, or the start of one) was that client's first."""
+        (at most PAUSE_WAIT_S) until the one going through has been taken for the clients (:func:`drain`). Why: the
+        server makes the new client's transports active before :meth:`hold_until_keyframe` can make them inactive
+        again, and a frame sent meanwhile (the GOP's next delta frame, or the start of one) was that client's
+        first."""
         from gi.repository import Gst
 
         with self._lock:
@@ -738,8 +763,14 @@ class RtspPublisher:
         with self._lock:
             media.pause_id = pause_id
         media.pay_sink.add_probe(Gst.PadProbeType.IDLE, on_idle)
-        if idle.wait(PAUSE_WAIT_S):
-            time.sleep(SEND_DRAIN_S)  # the server's sending thread takes the frame from its sink
+        started = time.monotonic()
+        pipeline = media.media.get_element().get_parent()
+        if idle.wait(PAUSE_WAIT_S) and pipeline is not None:
+            # not on this thread: the server's sending thread may wait for this one (the clients' sockets)
+            draining = threading.Thread(target=drain, args=(server_sinks(pipeline),), name="svelive-rtsp-drain",
+                                        daemon=True)
+            draining.start()
+            draining.join(max(0.0, PAUSE_WAIT_S - (time.monotonic() - started)))
 
     def resume_payloads(self, media: _Media, older_than_s: float = 0.0) -> None:
         """Let frames through again (any thread): the PLAY was answered, or ``older_than_s`` passed since the
@@ -761,7 +792,9 @@ class RtspPublisher:
             return
         pipeline = media.media.get_element().get_parent()
         if pipeline is not None:
-            send_at_once(pipeline)
+            sinks = server_sinks(pipeline)
+            with self._lock:
+                media.sinks = sinks
         if first:
             # the media's first client: its first frame, x264's first and a keyframe, waits prerolled in the sink
             # for this PLAY (held, the client got the start of it, then the next keyframe: a frame cut short)
