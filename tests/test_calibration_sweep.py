@@ -409,6 +409,25 @@ def test_calibrate_response_from_a_recorded_sweep(tmp_path, capsys):
     assert "has no exposure times" in capsys.readouterr().err
 
 
+def test_a_recorded_sweep_keeps_its_own_black_level_unless_one_is_given(tmp_path):
+    """calibrate response reads a recording's levels from it: --black-level left out is not 0."""
+    from replay import RecordingWriter
+    from svelive.calibrate.commands import _recorded_sweep
+    from svelive.camera import Camera as CameraDescription
+    from svelive.cli import build_parser
+    from svelive.sensor import Sensor
+
+    camera = CameraDescription.build(PATTERN, None, Sensor(bits=12, black_level=64))
+    sweep = tmp_path / "sweep.sverec"
+    with RecordingWriter(sweep, source="test") as writer:
+        for i, time_us in enumerate((10000.0, 20000.0)):
+            writer.append(Frame(raw=np.full((32, 32), 100 * (i + 1), np.uint16), frame_id=i, host_time_ns=i,
+                                pixel_format="Mono12", camera=camera), exposure_time=time_us)
+    command = ["calibrate", "response", str(sweep), "-o", str(tmp_path / "r.json")]
+    assert _recorded_sweep(build_parser().parse_args(command))[2].sensor.black_level == 64
+    assert _recorded_sweep(build_parser().parse_args(command + ["--black-level", "32"]))[2].sensor.black_level == 32
+
+
 def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsys):
     import json
 

@@ -19,7 +19,7 @@ from svelive.camera import Camera, one_colour_plane
 from svelive.commands import read_raw
 from svelive.atomic import check_output_target
 from svelive.errors import SveliveError
-from svelive.options import add_camera_option
+from svelive.options import CameraSettings, add_camera_option, build_camera, parse_cfa
 from svelive.pattern import Pattern
 from svelive.sensor import Sensor, container_bits
 
@@ -80,7 +80,8 @@ def sensor_from_args(raw: np.ndarray, args: argparse.Namespace, path: Path | Non
         raise SveliveError(f"{where}a {8 * raw.dtype.itemsize}-bit file that does not say the sensor's bit depth "
                            f"(values up to {int(raw.max())}, none saturated at a full-scale value): pass --bits "
                            "(e.g. --bits 12) or --white-level")
-    sensor = Sensor(bits=bits, black_level=args.black_level, white_level=args.white_level)
+    sensor = Sensor(bits=bits, black_level=0.0 if args.black_level is None else args.black_level,
+                    white_level=args.white_level)
     if raw.max() > sensor.white_level:
         raise SveliveError(f"{where}the frame has values up to {int(raw.max())}, above the white level "
                            f"{sensor.white_level:g} of {bits} bits: pass the right --bits or --white-level")
@@ -110,7 +111,7 @@ def _frame_files(args: argparse.Namespace) -> tuple[list[np.ndarray], list[float
                            f"--exposure-times {','.join(str(10000 + 5000 * i) for i in range(len(raws)))}")
     if times is not None and len(times) != len(raws):
         raise SveliveError(f"--exposure-times gives {len(times)} times for {len(raws)} frames: give one per frame")
-    return raws, times, Camera.build(args.pattern, args.cfa, sensors[0])
+    return raws, times, build_camera(CameraSettings.from_args(args), sensors[0])
 
 
 def _recorded_sweep(args: argparse.Namespace) -> tuple[list[np.ndarray], list[float] | None, Camera]:
@@ -138,7 +139,11 @@ def _recorded_sweep(args: argparse.Namespace) -> tuple[list[np.ndarray], list[fl
         sensor = Sensor(bits=bits, black_level=sensor.black_level if args.black_level is None else args.black_level,
                         white_level=args.white_level if args.white_level is not None else
                         (sensor.white_level if args.bits is None else None))
-    camera = Camera.build(args.pattern or camera.require_pattern(), args.cfa or camera.cfa, sensor)
+    cfa = args.cfa if args.cfa is not None else (camera.cfa.name if camera.cfa is not None else None)
+    if parse_cfa(cfa) is None and camera.cfa is not None:  # --cfa none would read a Bayer mosaic as monochrome
+        raise SveliveError(f"{args.raw[0]}: the recording's camera has the colour filter {camera.cfa.name}, but "
+                           f"--cfa {args.cfa} was given: drop --cfa")
+    camera = build_camera(CameraSettings(pattern=args.pattern or camera.require_pattern(), cfa=cfa), sensor)
     return raws, [float(t) for t in known] if known.size > 1 else None, camera
 
 
@@ -200,7 +205,8 @@ def _noise(args: argparse.Namespace) -> int:
 def _levels(p: argparse.ArgumentParser) -> None:
     add_camera_option(p, "bits", "bit depth of the raw values (default: what --white-level implies, a PNG's sBIT, "
                                  "8 for 8-bit files, or the value saturated pixels hold)")
-    add_camera_option(p, "black_level", "black level, DN (default 0)", default=0.0, metavar="BLACK")
+    # no default here: a recording's own black level stands unless one is given (image files: 0)
+    add_camera_option(p, "black_level", "black level, DN (default: a recording's own, else 0)", metavar="BLACK")
     add_camera_option(p, "white_level", "white level, DN (default 2^bits - 1)", metavar="WHITE")
 
 
