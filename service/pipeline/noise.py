@@ -72,7 +72,9 @@ class NoiseStage:
         return camera.replace(sensor=applied.apply(camera.sensor))
 
     def offer(self, frame: Frame, camera: Camera, motion: np.ndarray | None) -> None:
-        """The reconstruction thread, after each frame: ``camera`` as calibrated (before :meth:`camera_for`)."""
+        """The reconstruction thread, after each frame: ``camera`` as calibrated (before :meth:`camera_for`);
+        ``motion``: bool (H, W), the pixels that did not keep their history (the stream's ``reset``), or None
+        for a frame not fused with one."""
         if not self.needed(camera):
             self._recent = []
             return

@@ -161,9 +161,11 @@ class ReconstructionStage:
                        method=result.method, motion=result.motion, timings_ms=timings, camera=camera)
         self.motion_fraction = result.moving_fraction
         # a frame not fused with a history (a step without fusion, a stream's first frame) has an all-False motion
-        # mask that says nothing of which pixels are still: the noise stage must not take it for one
+        # mask that says nothing of which pixels are still: the noise stage must not take it for one. The pixels
+        # that kept their history (not ``reset``) are what the library's tracker reads too: ``motion`` leaves out
+        # the pixels reset where readings crossed the censor level, most of a moving bright object's edges
         fused = step.temporal and result.frame_index > 0
-        self.noise.offer(frame, calibrated, result.motion if fused else None)
+        self.noise.offer(frame, calibrated, result.reset if fused else None)
         self._seq += 1
         published = Published(hdr, self._seq, done_ns)
         self.reconstructed.tick(done_ns)

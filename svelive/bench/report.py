@@ -135,7 +135,7 @@ def plot_curves(sweeps: list[dict[str, object]], path: Path) -> None:
                 mode, layout = method.split(" ", 1)
                 style = {"color": f"C{layouts.index(layout)}", "ls": "--" if mode == "split" else "-"}
             ax.plot(sweep["difficulty"], errors, marker=".", label=method, **style)
-        if sweep["name"].startswith("colour"):
+        if sweep["name"].startswith(("colour", "stream")):  # series other than the first panel's methods
             ax.legend(fontsize=6)
         ax.set_title(sweep["title"], fontsize=9)
         ax.set_xlabel(sweep["axis"], fontsize=8)

@@ -640,9 +640,14 @@ def artefact_sweeps(settings: list[ColourSetting] | None = None,
 
 
 def run_stability(settings: list[Setting] | None = None, colour: bool = True) -> list[dict[str, object]]:
-    """Every sweep for every setting (and the colour cases for joint and split), JSON-ready."""
+    """Every sweep for every setting, the library stream's cases (svelive.bench.motion_cases: moving-pixel
+    loss, trail and still-region gain against the single frame) and the colour cases for joint and split,
+    JSON-ready."""
+    from svelive.bench.motion_cases import stream_sweeps  # it builds Sweeps of this module
+
     settings = stability_settings() if settings is None else settings
     sweeps = [asdict(make(settings)) for make in SWEEPS.values()]
+    sweeps += [asdict(sweep) for sweep in stream_sweeps()]
     if colour:
         sweeps += [asdict(sweep) for sweep in (*colour_sweeps(), *artefact_sweeps())]
     return sweeps
