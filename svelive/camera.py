@@ -209,10 +209,13 @@ def one_colour_plane(raw: np.ndarray, camera: Camera) -> tuple[np.ndarray, Patte
 
 def camera_for_raw(raw: np.ndarray, pattern: Pattern | str | None, *, cfa: ColourFilter | str | None = None,
                    black_level: float = 0, white_level: float | None = None, gain: float | None = None,
-                   read_noise: float | None = None, response: Response | None = None) -> Camera:
-    """The Camera a bare raw array implies: bit depth from its dtype, the rest as given (the library API's path)."""
+                   read_noise: float | None = None, response: Response | None = None,
+                   bits: int | None = None) -> Camera:
+    """The Camera a bare raw array implies: bit depth ``bits``, else its dtype's, the rest as given (the library
+    API's path)."""
     raw = np.asarray(raw)
-    bits = container_bits(raw.dtype) if raw.dtype.kind in "ui" else 16
+    if bits is None:
+        bits = container_bits(raw.dtype) if raw.dtype.kind in "ui" else 16
     if raw.dtype.kind in "ui" and white_level is not None and white_level > np.iinfo(raw.dtype).max:
         raise SveliveError(f"white level {white_level:g} exceeds the {raw.dtype} range")
     sensor = Sensor(bits=bits, black_level=float(black_level), white_level=white_level, gain=gain,

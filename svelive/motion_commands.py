@@ -33,7 +33,7 @@ from svelive.reconstruction.methods import METHODS
 from svelive.progress import Progress, add_quiet_argument
 from svelive.reprocess import require_dask, run_stream
 from svelive.noise import NoiseEstimate
-from svelive.options import CameraSettings
+from svelive.options import CameraSettings, build_camera
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, default_method, stream_noise
 
 
@@ -112,8 +112,9 @@ def camera_of(frame: np.ndarray | Frame, args: argparse.Namespace) -> Camera:
         camera = frame.camera
     else:
         given = CameraSettings.from_args(args)
-        camera = camera_for_raw(frame, given.pattern, cfa=given.colour_filter, black_level=given.black_level or 0,
-                                white_level=given.white_level)
+        sensor = camera_for_raw(frame, None, black_level=given.black_level or 0, white_level=given.white_level,
+                                bits=given.bits).sensor
+        camera = build_camera(given, sensor)  # --cfa none with a colour layout refused, as every verb does
     camera.require_pattern()
     if args.gain is not None or args.read_noise is not None:
         camera = camera.replace(sensor=camera.sensor.with_noise(args.gain, args.read_noise))

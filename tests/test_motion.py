@@ -400,7 +400,7 @@ def test_reconstruct_sequence_takes_arrays_and_frames():
     assert results[-1].frames_fused.max() == 3
 
 
-def test_cli_writes_one_exr_per_frame(tmp_path):
+def test_cli_writes_one_exr_per_frame(tmp_path, capsys):
     frames = list(render_sequence(static(scene_dn("cannon", 2, 64)), 3, PATTERN, SENSOR))
     src = tmp_path / "raw"
     src.mkdir()
@@ -415,6 +415,16 @@ def test_cli_writes_one_exr_per_frame(tmp_path):
     assert set(channels) == {"Y", "confidence", "motion"}
     assert pu21_psnr(channels["Y"], frames[-1].truth) > 25
     assert main(["reconstruct-sequence", "--source", str(src), "-o", str(out)]) == 2  # no pattern
+    # the camera options read as every verb reads them: --bits sets the white level, --cfa none with a colour
+    # layout is refused (it was reconstructed in colour)
+    bits = tmp_path / "bits"
+    assert main(["reconstruct-sequence", "--source", str(src), "--pattern", PATTERN, "--bits", "12",
+                 "-o", str(bits)]) == 0
+    np.testing.assert_array_equal(read_exr(sorted(bits.glob("*.exr"))[-1])[0]["Y"], channels["Y"])
+    capsys.readouterr()
+    assert main(["reconstruct-sequence", "--source", str(src), "--pattern", "dual-iso", "--cfa", "none",
+                 "-o", str(tmp_path / "none")]) == 2
+    assert "--cfa none was given" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("timing", ["mask", "integration"])
