@@ -138,7 +138,7 @@ class Startup:
         try:
             self.warm_up()
         except Exception as exc:  # noqa: BLE001 - said, and the service goes on without a warm-up
-            logging.getLogger("uvicorn.error").warning("kernel warm-up failed (%s); they compile at the first frame",
+            logging.getLogger("uvicorn.error").warning("warm-up failed (%s); the pipelines start anyway",
                                                        one_line(exc))
         for cam in self.cameras:
             self._start(cam)

@@ -123,14 +123,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise
     keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
     compress_on()  # EXR snapshots compressed on every core
-    # the kernels are prepared before the first live frame, while the server already answers ("warming up")
-    app = create_app(pipelines, server, warm_up=lambda: warm_up_kernels("svelive serve"))
+    rtsp = None
+
+    def prepare() -> None:
+        """The kernels, before the first live frame, while the HTTP server already answers ("warming up"); then
+        the RTSP server, so that its clients get frames at once, and of the frames' size."""
+        warm_up_kernels("svelive serve")
+        if rtsp is not None:
+            rtsp.start()
+            for cam in app.state.cameras:
+                urls = [rtsp.url(path) for path in reversed(cam.rtsp.paths)]
+                print(f"svelive serve: {cam.name} as RTSP on {' and '.join(urls)}", file=sys.stderr, flush=True)
+
+    app = create_app(pipelines, server, warm_up=prepare)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
     for index, (name, config) in enumerate(configs.items()):
         paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])
         print(f"svelive serve: {config.source} on {' and '.join(reversed(paths))}", file=sys.stderr, flush=True)
     redact_tokens(logging.getLogger("uvicorn.access"))
-    rtsp = None
     if server.rtsp_port:
         from service.publishers.rtsp import RtspPublisher, RtspServer
 
@@ -139,10 +149,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         for index, cam in enumerate(app.state.cameras):
             cam.rtsp = RtspPublisher(cam.pipeline, server=rtsp, path=f"/cam/{cam.name}",
                                      aliases=("/live",) if index == 0 else ())
-        rtsp.start()
-        for index, cam in enumerate(app.state.cameras):
-            urls = [rtsp.url(path) for path in reversed(cam.rtsp.paths)]
-            print(f"svelive serve: {cam.name} as RTSP on {' and '.join(urls)}", file=sys.stderr, flush=True)
     try:
         uvicorn.Server(uvicorn.Config(app, log_level=server.log_level, timeout_graceful_shutdown=2,
                                       access_log=server.log_level in ("debug", "trace"),
