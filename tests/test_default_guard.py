@@ -25,9 +25,6 @@ KNOWN = {
     ("cannon", "1,2/4,8", -7.0, "gain x2"): "7 stops below fill, gain assumed twice the true one (half the shot "
                                             "noise): 0.5 dB below weighted on both metrics (0.8 before the wide "
                                             "fallback); not traced",
-    ("desk", "1,4/16,64", 0.0, "gain x0.5"): "bright, gain assumed half the true one (twice the shot noise): "
-                                               "the default smooths more and is 0.4 dB below weighted in PU21 "
-                                               "(0.7 dB above it in log-PSNR); not traced",
 }
 CONFIG = GridConfig(patterns=("1,4/16,64", "1,2/4,8", "1/1/8/8", "1,4,16/16,1,4/4,16,1"), stops=(0.0, 5.0, 7.0),
                     models=("read x0.5", "read x2", "gain x0.5", "gain x2"), sensors=GRID_SENSORS[:1])
