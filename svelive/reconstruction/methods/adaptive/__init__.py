@@ -21,7 +21,10 @@ does not make noise look like structure. Per pixel p:
    1 / (v_i + v_m)^2, the inverse variance of r^2), with standard error
    SE = sqrt(2 sum G^2 q) / sum G q under a flat scene; b^2 = max(B - 2 SE, 0)
    (CONTRAST_SIGMA): where the window cannot tell structure from noise, b^2 = 0
-   and the result is the window's noise-optimal mean.
+   and the result is the window's noise-optimal mean. The weights favour precise
+   readings, so beside a small bright feature the dark side outvotes it; p's own
+   residual is evidence too: b^2 is at least (x_p - m)^2 - 25 (v_p + v_m), which
+   noise alone passes at about one pixel in 1.7 million (strip_pass.OWN_SIGMA).
 3. The minimum-mean-square combination of p's own reading and m:
    L^ = (x_p / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), variance
    1 / (1 / v_p + 1 / (v_m + b^2)). In flat regions the window is averaged with
