@@ -61,6 +61,6 @@ ENV PATH=/opt/svelive/bin:$PATH \
 USER svelive
 WORKDIR /tmp
 EXPOSE 8000 8554
-HEALTHCHECK --interval=30s --timeout=5s --start-period=20s \
+HEALTHCHECK --interval=30s --timeout=5s --start-period=300s \
   CMD python3 -c "import os, urllib.request as u; u.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('SVELIVE_PORT', '8000'), timeout=4)"
 CMD ["svelive", "serve"]

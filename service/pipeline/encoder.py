@@ -20,7 +20,7 @@ import numpy as np
 
 from svelive.errors import SveliveError
 from svelive.tonemap import ToneMapper, ToneSettings
-from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, exr_output, output_matrix
+from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, output_matrix
 
 from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
@@ -202,14 +202,6 @@ class EncoderStage:
         if published is None or published.hdr.image.ndim != 3:
             return None
         return self._balancer.for_frame(published.hdr.image, published.hdr.host_time_ns, self.colour)
-
-    def exr_image(self, published: Published) -> tuple[dict[str, np.ndarray], dict[str, object]]:
-        """The EXR channels and colour attributes of a frame: ``Y`` for mono; for colour ``R``, ``G``, ``B``
-        in the configured output space with the white balance in use (svelive.whitebalance.exr_output)."""
-        channels, attributes = exr_output(published.hdr.image, self.white_balance(published), self.colour)
-        if published.hdr.image.ndim == 3:
-            attributes["cfa"] = published.camera.cfa.name if published.camera.cfa is not None else "none"
-        return channels, attributes
 
     def _resize(self, image: np.ndarray) -> np.ndarray:
         width = self.config.preview_width

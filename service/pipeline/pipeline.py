@@ -155,10 +155,6 @@ class Pipeline:
         """A JPEG of the newest reconstructed frame, encoding it if nobody did; None if there is none."""
         return self.encoder.snapshot_jpeg(timeout)
 
-    def exr_image(self, published: Published) -> tuple[dict[str, np.ndarray], dict[str, object]]:
-        """EXR channels and colour attributes of a frame (see :meth:`EncoderStage.exr_image`)."""
-        return self.encoder.exr_image(published)
-
     def calibrate_response(self, max_degree: int = 6, apply: bool = False) -> dict[str, Any] | None:
         """See :meth:`service.pipeline.calibration.Calibration.calibrate_response`."""
         return self.calibration.calibrate_response(max_degree, apply)
