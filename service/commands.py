@@ -86,10 +86,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from svelive.capture import open_source
     from svelive.exr import compress_on
     from svelive.memory import keep_freed_memory
-    from svelive.options import CameraSettings
 
     from service.app import create_app, listen_socket
     from service.protocol import bounded_protocol
@@ -104,8 +102,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     configs = settings.named_pipelines()
     for config in configs.values():
         # build (not open) each source once, so a bad spec or option fails now with one line
-        open_source(config.source, **{**CameraSettings.from_mapping(config).source_options(),
-                                      **config.source_options})
+        config.build_source()
     if server.token is None and not is_loopback(server.host):
         print(f"svelive serve: warning: listening on {server.host} without a token; anyone who can reach "
               "this address can watch", file=sys.stderr)

@@ -9,8 +9,10 @@ import numpy as np
 
 from svelive.errors import SveliveError
 from svelive.camera import Camera
+from svelive.capture import Source, open_source
 from svelive.capture.source import MONO_WORDS
 from svelive.cfa import ColourFilter
+from svelive.options import CameraSettings
 from svelive.reconstruction.live import check_live_quality
 from svelive.reconstruction.single import methods as method_names
 from svelive.tonemap import ToneSettings
@@ -98,6 +100,13 @@ class PipelineConfig:
         for name in ("offline_after_s", "retry_s", "no_signal_fps"):
             if not 0 < getattr(self, name) <= 3600:
                 raise SveliveError(f"{name} must be in (0, 3600], got {getattr(self, name)}")
+
+
+    def build_source(self) -> Source:
+        """The configured source, built (not opened): its spec with the camera options (svelive.options, as every
+        verb reads them) and the source's own options."""
+        return open_source(self.source, **{**CameraSettings.from_mapping(self).source_options(),
+                                           **self.source_options})
 
 
 def check_method(method: str | None) -> None:

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from svelive.calibrate.response import SWEEP_KNOTS
-from svelive.capture import Source, open_source
+from svelive.capture import Source
 from svelive.errors import SveliveError
 from svelive.frame import Frame
 from svelive.reconstruction.single import methods as method_names
@@ -54,7 +54,7 @@ class Pipeline:
     """Runs the capture, reconstruction and encoder threads of one source.
 
     ``source_factory`` builds a new (unopened) Source each time the pipeline
-    (re)connects; by default ``open_source(config.source, ...)``. The stages
+    (re)connects; by default ``config.build_source``. The stages
     share a stop event, the drop counter and one condition (the newest
     reconstructed frame, the encoder's inputs and the run-time settings).
     """
@@ -66,7 +66,7 @@ class Pipeline:
         self._slot = NewestSlot(config.queue)
         self._cond = threading.Condition()  # guards the newest frame and the settings, and wakes the encoder
         self.drops = DropCounter()
-        self.capture = CaptureStage(config, source_factory or self._default_factory, self._slot, self.drops,
+        self.capture = CaptureStage(config, source_factory or config.build_source, self._slot, self.drops,
                                     self._stop)
         # the configured response and mask are read now, so a bad file fails before serving
         self.calibration = Calibration(config.response, config.mask, self.capture.latest_raw, self._stop)
@@ -118,10 +118,6 @@ class Pipeline:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _default_factory(self) -> Source:
-        c = self.config
-        return open_source(c.source, pattern=c.pattern, cfa=c.cfa, black_level=c.black_level,
-                           white_level=c.white_level, **c.source_options)
 
     # ----- the stages' own answers ---------------------------------------
     def online(self) -> bool:
