@@ -12,7 +12,7 @@ import numpy as np
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, DENSE_ROW, TINY
 from svelive.reconstruction.methods.adaptive.posterior import posterior_at, posterior_polynomial
-from svelive.reconstruction.methods.base import SveInput, map_on, reflect_101
+from svelive.reconstruction.methods.base import SveInput, count_true, map_on, reflect_101
 
 
 #: Scales of the wide fallback (:func:`wide_fallback`): blocks of the window's size, then 3 times it, ...
@@ -153,10 +153,7 @@ def _wide_prepare(weights, signal, exposure, censored, weighted):
     """weighted = w x (x = s / e); flat arrays; whether any reading is censored."""
     for k in range(weights.size):
         weighted[k] = weights[k] * (signal[k] / exposure[k])
-    flagged = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
-    for k in range(censored.size):
-        flagged += censored[k]
-    return flagged > 0
+    return count_true(censored) > 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
 
 
 @kernel
@@ -242,9 +239,7 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
     kept = 0
     for r in range(active.shape[0]):
         br = r + offset
-        n = 0
-        for c in range(width):
-            n += active[r, c]
+        n = count_true(active[r])
         if n == 0:
             continue
         for i in range(3):
@@ -308,10 +303,7 @@ def _wide_row(box_w, means, rows, bx, active, changed, estimate, information):
         information[c] = t if go else information[c]
         changed[c] |= go
         active[c] = go & keep
-    kept = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
-    for c in range(n):
-        kept += active[c]
-    return kept
+    return count_true(active)  # counted apart: a count inside the loop above keeps LLVM from vectorising it
 
 
 @kernel

@@ -10,6 +10,7 @@ import numpy as np
 
 from svelive.jit import kernel
 from svelive.reconstruction.methods.adaptive.parameters import TINY
+from svelive.reconstruction.methods.base import count_true
 
 
 @kernel
@@ -24,9 +25,7 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
     one = np.float32(1.0)
     for r in range(changed.shape[0]):
         row = changed[r]
-        n = 0
-        for c in range(width):
-            n += row[c]
+        n = count_true(row)
         if n == 0:
             continue
         if n * FEW_NEAR_ZERO >= width:

@@ -12,7 +12,7 @@ from svelive.jit import kernel
 from svelive.pattern import Pattern
 from svelive.reconstruction.methods.adaptive.parameters import BIG, TINY, kernels
 from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, POSTERIOR_HIGH, near_zero, nonnegative
-from svelive.reconstruction.methods.base import reflect_101, rows_min, smooth, window_level_row
+from svelive.reconstruction.methods.base import count_true, reflect_101, rows_min, smooth, window_level_row
 
 
 @kernel
@@ -244,12 +244,9 @@ def _count_at_most(values, level):
 @kernel
 def _at_most_zero(values, out):
     """out = values <= 0; whether any is."""
-    n = 0
     for c in range(values.size):
         out[c] = values[c] <= np.float32(0.0)
-    for c in range(values.size):  # counted apart, so that the loop above vectorises
-        n += out[c]
-    return n > 0
+    return count_true(out) > 0  # counted apart, so that the loop above vectorises
 
 
 @kernel
@@ -267,10 +264,7 @@ def _candidates(estimate, information, image, censored, lower, out, z2):
     for k in range(out.size):
         e = estimate[k]
         out[k] = ((e <= zero) | (e * e * information[k] < z2)) & (image[k] > zero) & ~censored[k] & ~lower[k]
-    n = 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
-    for k in range(out.size):
-        n += out[k]
-    return n
+    return count_true(out)  # counted apart: a count inside the loop above keeps LLVM from vectorising it
 
 
 @kernel
