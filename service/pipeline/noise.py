@@ -71,20 +71,20 @@ class NoiseStage:
             return camera
         return camera.replace(sensor=applied.apply(camera.sensor))
 
-    def offer(self, frame: Frame, camera: Camera, motion: np.ndarray | None) -> None:
+    def offer(self, frame: Frame, camera: Camera, reset: np.ndarray | None) -> None:
         """The reconstruction thread, after each frame: ``camera`` as calibrated (before :meth:`camera_for`);
-        ``motion``: bool (H, W), the pixels that did not keep their history (the stream's ``reset``), or None
+        ``reset``: bool (H, W), the pixels that did not keep their history (the stream's ``reset``), or None
         for a frame not fused with one."""
         if not self.needed(camera):
             self._recent = []
             return
         recent = self._recent
         # consecutive reconstructed frames, not ids: frames dropped at the hand-off between them do not
-        # matter, as each frame's motion mask compares it with the fused history, which holds the last one
-        if (not recent or self._recent_camera != camera or motion is None
+        # matter, as each frame's reset mask compares it with the fused history, which holds the last one
+        if (not recent or self._recent_camera != camera or reset is None
                 or frame.frame_id <= recent[-1][0].frame_id):
             recent = []
-        recent = [*recent[-(RUN_FRAMES - 1):], (frame, None if motion is None else ~np.asarray(motion, bool))]
+        recent = [*recent[-(RUN_FRAMES - 1):], (frame, None if reset is None else ~np.asarray(reset, bool))]
         self._recent, self._recent_camera = recent, camera
         now = time.monotonic()
         if len(recent) < RUN_FRAMES or now - self._last_offer < self.interval_s:
