@@ -56,7 +56,7 @@ def mono(scenes: dict[str, np.ndarray], seed: int) -> None:
 
 def colour(scenes: dict[str, np.ndarray], seed: int, methods: list[str]) -> None:
     from svelive.bench.colour import ColourCondition, ColourSetting, colour_accuracy
-    from svelive.camera import COLOUR_LAYOUTS
+    from svelive.core.camera import COLOUR_LAYOUTS
     from svelive.reconstruction.input import prepare
 
     settings = [ColourSetting(f"{mode} {m}", mode, m) for m in methods for mode in ("joint", "split")]

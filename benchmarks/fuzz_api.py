@@ -44,11 +44,12 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 sys.path.insert(0, os.path.dirname(_HERE))
 
-from svelive.errors import SveliveError  # noqa: E402
+from svelive.core.errors import SveliveError  # noqa: E402
 
 try:
     import httpx
-    from hypothesis import HealthCheck, given, settings, strategies as st
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
 except ImportError as exc:  # pragma: no cover - the message names what to install
     raise SystemExit(str(SveliveError(f"the API fuzz needs {exc.name}: pip install hypothesis")))
 

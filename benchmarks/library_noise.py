@@ -13,7 +13,7 @@ moving pixels (the ground-truth mask), of:
 - ``single``: ``svelive.reconstruct(raw, PATTERN, black_level=64, white_level=4095)`` per frame, the
   single-frame default (its noise model estimated from the frame);
 - ``defaults``: ``Reconstructor(PATTERN, black_level=64, white_level=4095, gain=G0, read_noise=R0)`` with
-  the fixed defaults (svelive.sensor) given: the README usage before issue 26.1;
+  the fixed defaults (svelive.core.sensor) given: the README usage before issue 26.1;
 - ``readme``: ``Reconstructor(PATTERN, black_level=64, white_level=4095)``, the README usage as it is;
 - ``true``: the stream given the true gain and read noise (what the frames can give at best).
 
@@ -140,7 +140,7 @@ def colour_images(size: int, shared: bool) -> list[tuple[str, np.ndarray]]:
 
 def measure_colour(rgb: np.ndarray, layout: str, sensor: Sensor, stops: float, seed: int) -> dict:
     """PU21 of Rec. 709 luminance per stream ('readme', 'true', 'single') at FRAMES of a still colour scene."""
-    from svelive.camera import COLOUR_LAYOUTS as LAYOUTS
+    from svelive.core.camera import COLOUR_LAYOUTS as LAYOUTS
     from svelive.metrics import luminance, pu21_psnr
     from svelive.simulate import simulate
 

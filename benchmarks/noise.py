@@ -14,7 +14,7 @@ and the share of runs within 15 %. ``--quick`` runs three noise models on three 
 every frame with the default method under the fixed defaults, the estimate and the
 true noise model, and reports PU21-PSNR (slow).
 With ``--colour`` the scenes are simulated in RGB through the colour layouts of
-svelive.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`` a second
+svelive.core.camera.COLOUR_LAYOUTS instead of the monochrome patterns. With ``--pair`` a second
 and a third frame of the same static scene (other noise seeds) are given to a
 :class:`svelive.noise.NoiseTracker` after the first (all pixels static), which is what the live
 service does; its errors after two and three frames are reported too ("pair", "three"); ``--no-cancellation`` runs the single-frame estimate without texture
@@ -51,11 +51,11 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
 
 from svelive.bench.scenes import default_data_dir, find_images, load_scene, shipped_data_dir  # noqa: E402
-from svelive.camera import COLOUR_LAYOUTS, Camera  # noqa: E402
+from svelive.core.camera import COLOUR_LAYOUTS, Camera  # noqa: E402
+from svelive.core.pattern import Pattern  # noqa: E402
+from svelive.core.sensor import Sensor  # noqa: E402
 from svelive.exr import read_exr  # noqa: E402
 from svelive.noise import EstimatorConfig, NoiseTracker, estimate_noise  # noqa: E402
-from svelive.pattern import Pattern  # noqa: E402
-from svelive.sensor import Sensor  # noqa: E402
 from svelive.simulate import exposure_scale, simulate  # noqa: E402
 
 PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
@@ -95,7 +95,7 @@ def oracle_sigma_pct(truth: np.ndarray, pattern: Pattern, sensor: Sensor, cfa: s
     relative exposure 1 (``SimulatedFrame.truth``).
     """
     if truth.ndim == 3:
-        from svelive.cfa import ColourFilter
+        from svelive.core.cfa import ColourFilter
         index = ColourFilter.parse(cfa).channel_map(truth.shape[:2])
         truth = np.take_along_axis(truth, index[..., None], axis=-1)[..., 0]
     mu = (truth * pattern.exposure_map(truth.shape)).astype(np.float64).ravel()

@@ -48,14 +48,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout, not an editable install's
 
-from svelive.bench.colour import (DEFAULT_LABEL, ColourCondition, ColourSetting, data_scenes,  # noqa: E402
-                                  time_colour)
+from svelive.bench.colour import DEFAULT_LABEL, ColourCondition, ColourSetting, data_scenes, time_colour  # noqa: E402
 from svelive.bench.scenes import BENCH_SENSOR, NOISE_LEVELS, default_data_dir  # noqa: E402
-from svelive.cfa import ColourFilter  # noqa: E402
-from svelive.errors import SveliveError  # noqa: E402
+from svelive.core.cfa import ColourFilter  # noqa: E402
+from svelive.core.errors import SveliveError  # noqa: E402
+from svelive.core.sensor import Sensor  # noqa: E402
 from svelive.metrics import display_scale, luminance, pu21_encode, pu21_psnr  # noqa: E402
 from svelive.reconstruction.input import prepare  # noqa: E402
-from svelive.sensor import Sensor  # noqa: E402
 
 #: Where scripts/build-cr2hdr.sh puts the binary by default.
 DEFAULT_CR2HDR = ROOT / "out" / "cr2hdr" / "cr2hdr"

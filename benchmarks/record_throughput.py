@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout, not an editable install's
 
 from replay import RecordingReader, RecordingWriter, WriterConfig  # noqa: E402
-from svelive.camera import Camera  # noqa: E402
-from svelive.frame import Frame  # noqa: E402
-from svelive.sensor import Sensor  # noqa: E402
+from svelive.core.camera import Camera  # noqa: E402
+from svelive.core.frame import Frame  # noqa: E402
+from svelive.core.sensor import Sensor  # noqa: E402
 
 
 def main() -> None:

@@ -65,7 +65,7 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
     """
     from svelive.capture import Source
     from svelive.capture.demo import DemoSource
-    from svelive.frame import Frame
+    from svelive.core.frame import Frame
 
     demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9 if static else n / fps * 4, cfa=cfa)
     rendered = list(demo.frames(limit=n))
@@ -176,9 +176,9 @@ class RtspReader:
     GRAY8 appsink; each decoded frame's latency is its decode time minus the arrival time in its timecode."""
 
     def __init__(self, url: str) -> None:
-        from service.publishers.rtsp import gstreamer
-
         import gi
+
+        from service.publishers.rtsp import gstreamer
 
         gi.require_version("GstApp", "1.0")
         from gi.repository import GstApp  # noqa: F401 - the appsink's pull methods

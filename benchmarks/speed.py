@@ -9,7 +9,7 @@ reports the median wall time of several runs per method. OpenCV is limited to
 one thread and numpy's BLAS is not used by the methods, so this is one core.
 With --colour the mono methods are timed as without it (so that a mono
 regression shows in the same run), then a 12-bit colour SVE frame of the
-layout (svelive.camera.COLOUR_LAYOUTS; the shipped RGB crop upscaled) is
+layout (svelive.core.camera.COLOUR_LAYOUTS; the shipped RGB crop upscaled) is
 reconstructed joint and split with each colour method. With --bench, each method
 is timed instead on the benchmark's own timing frames (svelive.bench: every HDR
 image of DIR, default ../shared/data/hdr, under every pattern and noise level,
@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 
 import svelive  # noqa: E402
 from svelive import Pattern, Sensor  # noqa: E402
-from svelive.camera import COLOUR_LAYOUTS  # noqa: E402
+from svelive.core.camera import COLOUR_LAYOUTS  # noqa: E402
 from svelive.simulate import exposure_scale, load_sample_scene, simulate  # noqa: E402
 
 SIZE = (1200, 1920)
@@ -108,8 +108,15 @@ def bench_frames(data: str, methods: list[str], repeats: int, clock: str = "wall
     from pathlib import Path
 
     from svelive.bench.runner import timing_frame
-    from svelive.bench.scenes import (BENCH_SENSOR, NOISE_LEVELS, PATTERNS, Condition, default_data_dir, find_images,
-                                      load_scene)
+    from svelive.bench.scenes import (
+        BENCH_SENSOR,
+        NOISE_LEVELS,
+        PATTERNS,
+        Condition,
+        default_data_dir,
+        find_images,
+        load_scene,
+    )
     from svelive.reconstruction.input import prepare
     from svelive.reconstruction.single import run_method
 

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 MAGIC = b"SVEREC\r\n"
 VERSION = 1

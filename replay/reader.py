@@ -24,14 +24,25 @@ from typing import Any
 import numpy as np
 
 from replay.container import (
-    FILE_HEADER, FOOTER, FOOTER_MAGIC, HEADER_ALIGN, INDEX_HEADER, INDEX_MAGIC, NO_EXPOSURE, NO_TIME, RECORD_HEADER,
-    RECORD_MAGIC, RecordingError, crc32, decode_header,
+    FILE_HEADER,
+    FOOTER,
+    FOOTER_MAGIC,
+    HEADER_ALIGN,
+    INDEX_HEADER,
+    INDEX_MAGIC,
+    NO_EXPOSURE,
+    NO_TIME,
+    RECORD_HEADER,
+    RECORD_MAGIC,
+    RecordingError,
+    crc32,
+    decode_header,
 )
-from svelive.capture import formats
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.camera import Camera
-from svelive.cfa import ColourFilter
+from svelive.core import formats
+from svelive.core.camera import Camera
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
 
 
 class CorruptFrameError(RecordingError):

@@ -20,15 +20,26 @@ from typing import Any
 import numpy as np
 
 from replay.container import (
-    FOOTER, FOOTER_MAGIC, INDEX_HEADER, INDEX_MAGIC, NO_EXPOSURE, NO_TIME, RECORD_ALIGN, RECORD_HEADER, RECORD_MAGIC,
-    Layout, RecordingError, crc32, encode_header,
+    FOOTER,
+    FOOTER_MAGIC,
+    INDEX_HEADER,
+    INDEX_MAGIC,
+    NO_EXPOSURE,
+    NO_TIME,
+    RECORD_ALIGN,
+    RECORD_HEADER,
+    RECORD_MAGIC,
+    Layout,
+    RecordingError,
+    crc32,
+    encode_header,
 )
-from svelive.atomic import check_output_target
-from svelive.capture import formats
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.core import formats
+from svelive.core.atomic import check_output_target
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 
 
 @dataclass(frozen=True)

@@ -22,14 +22,13 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from svelive.errors import SveliveError
-
 from service.guard import HostPolicy, SiteGuard, TokenGuard
 from service.pipeline import CalibrationBusy, Pipeline
 from service.publishers.mjpeg import StreamHub
-from service.routers import ServedCamera, calibration, metrics, monitor, settings as settings_router, snapshots, state, stream
+from service.routers import ServedCamera, calibration, metrics, monitor, snapshots, state, stream
+from service.routers import settings as settings_router
 from service.settings import DEFAULT_CAMERA, ServerSettings
-
+from svelive.core.errors import SveliveError
 
 #: Longest wait for each pipeline thread at shutdown; a thread still inside a blocking camera call
 #: (a GigE camera that vanished) is left behind (threads are daemons), so SIGTERM exits within 2.5 s.

@@ -23,11 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from svelive.errors import SveliveError
+from service.pipeline import PipelineConfig
+from svelive.core.errors import SveliveError
 from svelive.tonemap import ToneSettings
 from svelive.whitebalance import ColourSettings, parse_colour_matrix, parse_white_balance
-
-from service.pipeline import PipelineConfig
 
 ENV_PREFIX = "SVELIVE_"
 CONFIG_ENV = "SVELIVE_CONFIG"

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: Modules that add verbs of their own: each defines add_commands(subparsers).
 COMMAND_MODULES: tuple[str, ...] = (

@@ -10,26 +10,35 @@ import cv2
 import numpy as np
 
 from svelive import __version__ as svelive_version
-from svelive.atomic import check_output_target, write_bytes_atomic
-from svelive.camera import COLOUR_LAYOUTS
-from svelive.capture.images import decode_image
-from svelive.cfa import PRESETS as CFA_PRESETS
-from svelive.errors import SveliveError
-from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate
-from svelive.options import CameraSettings, add_camera_option, build_camera, parse_cfa
-from svelive.exr import LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, write_exr
-from svelive.frame_exr import FrameInfo, single_frame_balance, write_frame_exr
-from svelive.pattern import PAPER_DR_DB, PAPER_Q, PRESETS, Pattern, check_depth, dynamic_range_db, \
-    dynamic_range_stops, unique_levels
-from svelive.reconstruction.input import prepare, with_noise_model
-from svelive.reconstruction.single import methods, reconstruct
-from svelive.sensor import Sensor, container_bits
-from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
-from svelive.whitebalance import OUTPUT_SPACES, ColourSettings
 
 # the demo verb's layouts are the demo camera's: dual-ISO exposures on RGGB, or mono 1,4/16,64
-from svelive.capture.demo import COLOUR_PATTERN as DEMO_COLOUR_PATTERN, DEFAULT_CFA as DEMO_CFA, \
-    MONO_PATTERN as DEMO_MONO_PATTERN  # noqa: E402
+from svelive.capture.demo import COLOUR_PATTERN as DEMO_COLOUR_PATTERN
+from svelive.capture.demo import DEFAULT_CFA as DEMO_CFA
+from svelive.capture.demo import MONO_PATTERN as DEMO_MONO_PATTERN  # noqa: E402
+from svelive.capture.images import decode_image
+from svelive.core.atomic import check_output_target, write_bytes_atomic
+from svelive.core.camera import COLOUR_LAYOUTS
+from svelive.core.cfa import PRESETS as CFA_PRESETS
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import (
+    PAPER_DR_DB,
+    PAPER_Q,
+    PRESETS,
+    Pattern,
+    check_depth,
+    dynamic_range_db,
+    dynamic_range_stops,
+    unique_levels,
+)
+from svelive.core.sensor import Sensor, container_bits
+from svelive.exr import LUMA_WEIGHTS, compress_on, image_channels, read_luminance, read_rgb, write_exr
+from svelive.frame_exr import FrameInfo, single_frame_balance, write_frame_exr
+from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate
+from svelive.options import CameraSettings, add_camera_option, build_camera, parse_cfa
+from svelive.reconstruction.input import prepare, with_noise_model
+from svelive.reconstruction.single import methods, reconstruct
+from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
+from svelive.whitebalance import OUTPUT_SPACES, ColourSettings
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")
 #: The ``units`` attribute of a simulation's ground truth (the radiance the reconstruction estimates).

@@ -18,11 +18,12 @@ from typing import TYPE_CHECKING, Mapping
 import numpy as np
 import OpenEXR
 
-from svelive.atomic import atomic_path
-from svelive.errors import SveliveError
+from svelive.core.atomic import atomic_path
+from svelive.core.errors import SveliveError
+from svelive.core.version import __version__
 
 if TYPE_CHECKING:
-    from svelive.camera import Camera
+    from svelive.core.camera import Camera
 
 #: Rec. 709 / sRGB primaries: luminance from linear RGB.
 LUMA_WEIGHTS = (0.2126, 0.7152, 0.0722)
@@ -110,7 +111,6 @@ def standard_attributes(camera: Camera, method: str, *, frame_id: int | None = N
         timestamp: the frame's time in seconds, or None (stored as text: a float attribute is float32).
         extra: more attributes (colour, noise, motion...), added last; they may not rename a standard one.
     """
-    from svelive import __version__
 
     sensor = camera.sensor
     out: dict[str, object] = {"svelive": __version__, "units": UNITS, "method": str(method),

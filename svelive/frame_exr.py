@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.camera import Camera
+from svelive.core.camera import Camera
 from svelive.exr import exr_bytes, standard_attributes, write_exr
 from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, exr_output
 

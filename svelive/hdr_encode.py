@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: The pip extra that installs the encoders (pyproject.toml's optional dependencies).
 EXTRA = "hdr"

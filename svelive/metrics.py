@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.exr import LUMA_WEIGHTS
 from svelive.tonemap import srgb_encode
 

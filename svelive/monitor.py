@@ -1,6 +1,6 @@
 """Monitoring HDR frames as HDR: a pixel's radiance, log2 histograms, clipping and exposure maps.
 
-Small pure functions over one reconstructed frame (svelive.frame.HdrFrame's ``image``: float32
+Small pure functions over one reconstructed frame (svelive.core.frame.HdrFrame's ``image``: float32
 (H, W) radiance, or (H, W, 3) linear camera RGB, in DN at relative exposure 1) and the camera it
 was reconstructed with. The service calls them once per frame for the viewers that ask
 (service/routers/monitor.py); nothing here keeps state.
@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from svelive.camera import Camera
-from svelive.errors import SveliveError
+from svelive.core.camera import Camera
+from svelive.core.errors import SveliveError
 from svelive.jit import kernel
 from svelive.tonemap import ToneSettings, frame_statistics, luminance_weights
 from svelive.whitebalance import ColourSettings, WhiteBalance, exr_output, output_matrix

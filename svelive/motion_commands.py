@@ -21,20 +21,20 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.camera import Camera, camera_for_raw
 from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
 from svelive.commands import add_colour_arguments, colour_settings
-from svelive.errors import SveliveError
+from svelive.core.camera import Camera, camera_for_raw
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
 from svelive.exr import compress_on
-from svelive.frame import Frame
 from svelive.memory import keep_freed_memory
-from svelive.reconstruction.methods import METHODS
-from svelive.progress import Progress, add_quiet_argument
-from svelive.reprocess import require_dask, run_stream
 from svelive.noise import NoiseEstimate
 from svelive.options import CameraSettings, build_camera
+from svelive.progress import Progress, add_quiet_argument
+from svelive.reconstruction.methods import METHODS
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, NOISE_FRAMES, default_method, stream_noise
+from svelive.reprocess import require_dask, run_stream
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:

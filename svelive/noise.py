@@ -1,6 +1,6 @@
 """The noise model from the data: gain (electrons per DN) and read noise (DN) of a sensor, from its frames.
 
-The model is the sensor's (svelive/sensor.py): a reading with expected signal
+The model is the sensor's (svelive/core/sensor.py): a reading with expected signal
 ``s`` DN above black has variance ``s / gain + read_noise^2 + 1/12`` DN^2 (the
 1/12 is uniform quantisation).
 
@@ -69,11 +69,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from svelive.errors import SveliveError
-from svelive.sensor import DEFAULT_FULL_WELL_E, DEFAULT_READ_NOISE_E, Sensor
+from svelive.core.errors import SveliveError
+from svelive.core.sensor import DEFAULT_FULL_WELL_E, DEFAULT_READ_NOISE_E, Sensor
 
 if TYPE_CHECKING:  # the Camera is only read here (its pattern, colour filter and sensor)
-    from svelive.camera import Camera
+    from svelive.core.camera import Camera
 
 #: Variance of uniform quantisation to integers, DN^2.
 QUANTISATION_VARIANCE = 1.0 / 12.0

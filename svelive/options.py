@@ -17,10 +17,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-from svelive.camera import Camera
 from svelive.capture.source import MONO_WORDS
-from svelive.errors import SveliveError
-from svelive.sensor import Sensor
+from svelive.core.camera import Camera
+from svelive.core.errors import SveliveError
+from svelive.core.sensor import Sensor
 
 #: The camera options: setting name -> (command-line flag, value type).
 CAMERA_OPTIONS: dict[str, tuple[str, type]] = {

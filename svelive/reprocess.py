@@ -53,9 +53,9 @@ from typing import Any
 
 import numpy as np
 
-from svelive.camera import Camera
-from svelive.errors import SveliveError
-from svelive.frame import Frame
+from svelive.core.camera import Camera
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
 from svelive.frame_exr import FrameInfo, write_frame_exr
 from svelive.noise import NoiseEstimate
 from svelive.reconstruction.config import MotionConfig

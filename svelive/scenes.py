@@ -29,10 +29,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.exr import read_exr, read_luminance
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
 from svelive.simulate import simulate
 
 Scene = Callable[[float], np.ndarray]

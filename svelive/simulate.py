@@ -6,7 +6,7 @@ DN; Gaussian read noise is added, then the black level, rounding to an integer
 and clipping to [0, white]. The ground truth is L itself, in the project's
 output unit, so it compares directly with any reconstruction.
 
-Colour: with a colour filter layout (svelive.cfa), the radiance is linear camera
+Colour: with a colour filter layout (svelive.core.cfa), the radiance is linear camera
 RGB (H, W, 3) and each pixel sees its own channel of it through its exposure,
 with the same noise model; the ground truth is then the RGB radiance.
 """
@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.exr import read_exr, read_luminance
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
 
 #: Shipped sample scenes (256x256 crops of the OpenEXR sample images, BSD licence).
 SAMPLE_SCENES = ("desk", "mttamwest", "cannon")

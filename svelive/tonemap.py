@@ -43,7 +43,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.exr import LUMA_WEIGHTS
 from svelive.jit import flat, kernel
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.exr import LUMA_WEIGHTS, REC709_CHROMATICITIES, image_channels
 from svelive.tonemap import smoothing_factor
 

@@ -9,16 +9,23 @@ import pytest
 
 from svelive import Pattern, Sensor, simulate
 from svelive.bench import report
-from svelive.bench.colour import (ColourBenchConfig, ColourCondition, ColourSetting, data_scenes, markdown_colour,
-                                  run_colour_benchmark, time_colour)
+from svelive.bench.colour import (
+    ColourBenchConfig,
+    ColourCondition,
+    ColourSetting,
+    data_scenes,
+    markdown_colour,
+    run_colour_benchmark,
+    time_colour,
+)
 from svelive.bench.reference import bracketing_merge, bracketing_reference
 from svelive.bench.runner import BenchConfig, Setting, pareto_front, run_benchmark
 from svelive.cli import main
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.exr import write_exr
-from svelive.reconstruction.methods import baseline
 from svelive.metrics import pu21_psnr
 from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods import baseline
 from svelive.simulate import exposure_scale, load_sample_scene
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

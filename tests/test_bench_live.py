@@ -9,7 +9,7 @@ import pytest
 from svelive.bench import live, report
 from svelive.bench.scenes import BENCH_SENSOR
 from svelive.cli import main
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.exr import write_exr
 from svelive.reconstruction.live import LADDER
 from svelive.simulate import load_sample_scene

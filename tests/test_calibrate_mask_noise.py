@@ -154,7 +154,7 @@ def test_noise_bad_input():
 def test_calibrate_noise_from_one_textured_frame_uses_the_reconstructions_estimator():
     # a real crop's texture: the residual line alone read this frame's gain 2.3x too high; the
     # texture-cancelled fit that svelive.reconstruct uses gets it within 15 %
-    from svelive.camera import Camera
+    from svelive.core.camera import Camera
     from svelive.noise import estimate_noise as library_estimate
     from svelive.simulate import load_sample_scene
 

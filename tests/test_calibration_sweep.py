@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 
 from svelive.calibrate import CURVES, simulate_nonlinear
-from svelive.frame import Frame
-
+from svelive.core.frame import Frame
 from tests import test_service_helpers as helpers
 from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, SimSource, make_camera
 
@@ -166,8 +165,7 @@ def record_sweep(path, times: list[float], per_time: int = 3, scene=None) -> Non
     noise each) at every exposure time in ``times`` (microseconds; 10 000 is the chart at exposure 1),
     each with its time, as a camera stepped through them would give."""
     from replay import RecordingWriter
-
-    from svelive.camera import Camera as SveCamera
+    from svelive.core.camera import Camera as SveCamera
 
     scene = chart() if scene is None else scene
     cam = SveCamera.build(PATTERN, None, SENSOR)
@@ -413,9 +411,9 @@ def test_a_recorded_sweep_keeps_its_own_black_level_unless_one_is_given(tmp_path
     """calibrate response reads a recording's levels from it: --black-level left out is not 0."""
     from replay import RecordingWriter
     from svelive.calibrate.commands import _recorded_sweep
-    from svelive.camera import Camera as CameraDescription
     from svelive.cli import build_parser
-    from svelive.sensor import Sensor
+    from svelive.core.camera import Camera as CameraDescription
+    from svelive.core.sensor import Sensor
 
     camera = CameraDescription.build(PATTERN, None, Sensor(bits=12, black_level=64))
     sweep = tmp_path / "sweep.sverec"
@@ -436,7 +434,7 @@ def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsy
     from svelive.calibrate.commands import png_significant_bits
     from svelive.cli import main
     from svelive.commands import png_with_sbit, write_raw
-    from svelive.errors import SveliveError
+    from svelive.core.errors import SveliveError
     from svelive.simulate import sample_scene_path
 
     raw = np.random.default_rng(1).integers(0, 3000, (40, 48)).astype(np.uint16)  # nothing saturated
@@ -476,7 +474,7 @@ def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsy
 def test_demo_exposure_time_scales_the_light_it_collects():
     from svelive.capture import open_source
     from svelive.capture.demo import REFERENCE_EXPOSURE_US
-    from svelive.errors import SveliveError
+    from svelive.core.errors import SveliveError
 
     with open_source("demo", cfa="none", width=320, height=180, fps=0, period_s=0) as s:
         assert s.exposure_time() == REFERENCE_EXPOSURE_US == 10_000.0

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 import svelive
-from svelive.camera import COLOUR_LAYOUTS, Camera, camera_for_raw
 from svelive.capture.source import resolve_cfa
-from svelive.cfa import PRESETS, ColourFilter, joint_period
-from svelive.errors import SveliveError
+from svelive.core.camera import COLOUR_LAYOUTS, Camera, camera_for_raw
+from svelive.core.cfa import PRESETS, ColourFilter, joint_period
+from svelive.core.errors import SveliveError
+from svelive.core.sensor import Sensor
 from svelive.reconstruction.input import prepare
-from svelive.sensor import Sensor
 
 
 @pytest.mark.parametrize("name", list(PRESETS))
@@ -158,7 +158,7 @@ def test_contradictions_are_refused_with_the_fix(given, fmt_cfa, fmt, word):
     ("assorted-4x4", "1,4/16,64", [1, 3, 5, 7]),
 ])
 def test_one_colour_plane_keeps_one_filters_pixels_with_their_exposures(layout, sub_pattern, first_cols):
-    from svelive.camera import one_colour_plane
+    from svelive.core.camera import one_colour_plane
 
     camera = Camera.build(layout)
     raw = np.arange(16 * 16, dtype=np.uint16).reshape(16, 16)

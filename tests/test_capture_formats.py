@@ -7,9 +7,9 @@ import zlib
 import numpy as np
 import pytest
 
-from svelive.capture import formats
 from svelive.capture.v4l2 import frame_from_buffer
-from svelive.errors import SveliveError
+from svelive.core import formats
+from svelive.core.errors import SveliveError
 
 
 def _bits_lsb(values: list[int], bits: int) -> bytes:

@@ -7,9 +7,9 @@ where they fail: CI must install aravis-tools and gir1.2-aravis-0.8.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
-import fcntl
 import subprocess
 import tempfile
 import threading
@@ -19,7 +19,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 FAKE = "arv-fake-gv-camera-0.8"
 ADDRESS = "127.0.0.1"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from svelive.capture import open_source, parse_spec
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 
 def write_sequence(folder: Path, n: int, dtype: type = np.uint16) -> list[np.ndarray]:

@@ -175,10 +175,9 @@ def test_cfa_with_a_demosaiced_image_and_simulate_refusals(tmp_path):
 def test_reconstruct_sequence_uses_the_recordings_camera_and_response(tmp_path):
     from replay import RecordingWriter
     from svelive.calibrate import fit_response
-    from svelive.camera import Camera
     from svelive.cli import main
-    from svelive.frame import Frame
-
+    from svelive.core.camera import Camera
+    from svelive.core.frame import Frame
     from tests.test_calibrate_response import PATTERN, chart_frame
 
     sensor, scene, first = chart_frame("gamma2.2", seed=7)

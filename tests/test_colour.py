@@ -10,8 +10,8 @@ import pytest
 
 import svelive
 from svelive import Camera, Pattern, Sensor, SveliveError, simulate
-from svelive.camera import COLOUR_LAYOUTS
-from svelive.cfa import PRESETS, ColourFilter
+from svelive.core.camera import COLOUR_LAYOUTS
+from svelive.core.cfa import PRESETS, ColourFilter
 from svelive.metrics import pu21_psnr_colour
 from svelive.reconstruction import colour
 from svelive.reconstruction.colour import run_colour

@@ -12,11 +12,22 @@ import pytest
 
 import svelive
 from svelive.bench.colour import REC709, rgb_from_luminance_chroma
-from svelive.bench.stability import (BENCH_SENSOR, CAMERA_WHITE, _simulated_rgb, chromaticity_error,
-                                     coloured_lights, dark_region, edge_positions, light_errors,
-                                     periodic_amplitude, speck_fraction, stair_axis, staircase_amplitude,
-                                     staircase_scene)
-from svelive.camera import COLOUR_LAYOUTS, Camera
+from svelive.bench.stability import (
+    BENCH_SENSOR,
+    CAMERA_WHITE,
+    _simulated_rgb,
+    chromaticity_error,
+    coloured_lights,
+    dark_region,
+    edge_positions,
+    light_errors,
+    periodic_amplitude,
+    speck_fraction,
+    stair_axis,
+    staircase_amplitude,
+    staircase_scene,
+)
+from svelive.core.camera import COLOUR_LAYOUTS, Camera
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 from svelive.simulate import simulate

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from svelive.capture import formats
 from svelive.capture.source import resolve_cfa
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
+from svelive.core import formats
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
 from tests.test_capture_gige import _MISSING, ADDRESS, FakeCamera
 
 #: the GigE tests skip where Aravis is missing, except under CI=true (as in test_capture_gige)

@@ -15,7 +15,7 @@ import pytest
 
 import svelive
 from svelive import Camera, Pattern, Sensor, SveliveError, simulate
-from svelive.camera import COLOUR_LAYOUTS
+from svelive.core.camera import COLOUR_LAYOUTS
 from svelive.metrics import PU21_PEAK, display_scale, luminance, pu21_encode, pu21_psnr
 from svelive.reconstruction.methods import DEFAULT_METHOD
 from svelive.reconstruction.stream import Reconstructor

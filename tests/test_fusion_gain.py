@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import svelive
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.noise import variance_uncertainty
-from svelive.pattern import Pattern
 from svelive.scenes import moving_disc, render_sequence
-from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale, load_sample_scene
 
 PATTERN = "1,4/16,64"

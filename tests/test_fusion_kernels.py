@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, simulate
-from svelive.camera import camera_for_raw
-from svelive.camera import COLOUR_LAYOUTS
+from svelive.core.camera import COLOUR_LAYOUTS, camera_for_raw
 from svelive.reconstruction import numerics
 from svelive.reconstruction.fusion import _paint_row
 from svelive.reconstruction.input import prepare

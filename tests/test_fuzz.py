@@ -18,11 +18,12 @@ import numpy as np
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis", reason="the fuzz suite needs hypothesis (pip install -e .[test])")
-from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st
 
-from svelive.capture import formats  # noqa: E402
-from svelive.errors import SveliveError  # noqa: E402
-from svelive.pattern import EXPOSURE_RANGE, MAX_RATIO, Pattern  # noqa: E402
+from svelive.core import formats  # noqa: E402
+from svelive.core.errors import SveliveError  # noqa: E402
+from svelive.core.pattern import EXPOSURE_RANGE, MAX_RATIO, Pattern  # noqa: E402
 
 
 def budget(n: int) -> settings:
@@ -74,7 +75,7 @@ def test_pattern_parser_gives_a_pattern_or_a_one_line_error(text: str) -> None:
                 max_size=3).filter(lambda rows: len({len(r) for r in rows}) == 1),
        st.integers(1, 16))
 def test_theory_of_any_accepted_pattern(rows: list[list[float]], bits: int) -> None:
-    from svelive.pattern import dynamic_range_db, unique_levels
+    from svelive.core.pattern import dynamic_range_db, unique_levels
 
     text = "/".join(",".join(repr(v) for v in row) for row in rows)
     try:
@@ -170,9 +171,9 @@ class Recording(tuple):
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
     """A small closed recording (4 frames of 12x8 Mono12, dual-ISO-free mono camera) and its frames."""
     from replay.writer import RecordingWriter
-    from svelive.camera import Camera
-    from svelive.frame import Frame
-    from svelive.sensor import Sensor
+    from svelive.core.camera import Camera
+    from svelive.core.frame import Frame
+    from svelive.core.sensor import Sensor
 
     path = tmp_path_factory.mktemp("fuzz") / "small.sverec"
     camera = Camera.build("1,4/16,64", sensor=Sensor(12, 64))

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 import svelive
-from svelive.atomic import atomic_path, write_bytes_atomic
-from svelive.errors import SveliveError
+from svelive.core.atomic import atomic_path, write_bytes_atomic
+from svelive.core.errors import SveliveError
 from svelive.exr import read_exr, write_exr
 
 
@@ -80,7 +80,7 @@ def test_every_atomic_writer_refuses_a_non_regular_target(tmp_path: Path, make) 
         write_bytes_atomic(target, b"data")
     with pytest.raises(SveliveError, match="an output replaces only a regular file"):
         write_exr(target, {"Y": np.zeros((2, 2), np.float32)})
-    from svelive.atomic import check_output_target
+    from svelive.core.atomic import check_output_target
 
     with pytest.raises(SveliveError, match="an output replaces only a regular file"):
         check_output_target(target)
@@ -202,7 +202,7 @@ def test_reconstruct_refuses_a_pattern_it_would_reconstruct_as_zeros(raw_png: Pa
 
 
 def test_unique_levels_are_exact_at_the_ratio_limit() -> None:
-    from svelive.pattern import MAX_RATIO, Pattern, unique_levels
+    from svelive.core.pattern import MAX_RATIO, Pattern, unique_levels
 
     # exposures 1 and 2^24 at 16 bits: the levels q and q / 2^24 coincide only at q = 0
     assert unique_levels(Pattern.parse(f"1,{MAX_RATIO:.0f}"), 16) == 2 * 2**16 - 1
@@ -214,15 +214,16 @@ def test_unique_levels_are_exact_at_the_ratio_limit() -> None:
 @pytest.mark.parametrize("sensor", [[12, 0], [], 0, "12", {"bits": True}, {"bits": 12.5}, {"bits": 1e300},
                                     {"white_level": float("inf")}, {"gain": "x"}, {"bits": 10**400}])
 def test_camera_from_dict_refuses_a_malformed_sensor(sensor: object) -> None:
-    from svelive.camera import Camera
+    from svelive.core.camera import Camera
 
     with pytest.raises(SveliveError, match="camera sensor"):
         Camera.from_dict({"pattern": "1,4/16,64", "sensor": sensor})
 
 
 def test_a_recording_whose_sensor_is_a_list(tmp_path: Path) -> None:
-    from replay.container import FILE_HEADER, crc32, decode_header
     import json
+
+    from replay.container import FILE_HEADER, crc32, decode_header
 
     path = tmp_path / "r.sverec"
     out = run("record", "--source", "demo", "--cfa", "none", "--width", "64", "-o", path, "--frames", "2")
@@ -273,7 +274,7 @@ def test_reconstruct_refuses_exposures_whose_values_float32_reconstruction_canno
 
 
 def test_check_depth_at_its_limit() -> None:
-    from svelive.pattern import MAX_VALUE, Pattern, check_depth
+    from svelive.core.pattern import MAX_VALUE, Pattern, check_depth
 
     check_depth(Pattern.parse(f"{4095 / MAX_VALUE!r},1"), 12)
     with pytest.raises(SveliveError, match="at least"):

@@ -8,12 +8,11 @@ import time
 
 import pytest
 
-from svelive.errors import SveliveError
-from svelive.reconstruction.live import LADDER, ladder_for
-from svelive.reconstruction.methods import METHODS
-
 from service.pipeline import Pipeline, PipelineConfig
 from service.pipeline.quality import LiveQuality, QualityConfig
+from svelive.core.errors import SveliveError
+from svelive.reconstruction.live import LADDER, ladder_for
+from svelive.reconstruction.methods import METHODS
 
 FRAME_NS = 33_000_000  # a 30 fps camera
 

@@ -5,9 +5,18 @@ import sys
 import numpy as np
 import pytest
 
-from svelive.errors import SveliveError
-from svelive.metrics import (colour_error, delta_e_2000, display_scale, luminance, pu21_psnr, pu21_psnr_colour,
-                             render_exposure, render_srgb, srgb_to_lab)
+from svelive.core.errors import SveliveError
+from svelive.metrics import (
+    colour_error,
+    delta_e_2000,
+    display_scale,
+    luminance,
+    pu21_psnr,
+    pu21_psnr_colour,
+    render_exposure,
+    render_srgb,
+    srgb_to_lab,
+)
 
 # Sharma, Wu and Dalal, "The CIEDE2000 color-difference formula: implementation notes, supplementary
 # test data, and mathematical observations", Color Res. Appl. 30 (2005), Table 1: L1 a1 b1 L2 a2 b2 dE00.

@@ -11,12 +11,11 @@ import numpy as np
 import pytest
 
 from svelive import monitor
-from svelive.camera import Camera as CameraDescription
+from svelive.core.camera import Camera as CameraDescription
+from svelive.core.pattern import Pattern
 from svelive.exr import read_exr
-from svelive.pattern import Pattern
 from svelive.simulate import exposure_scale, load_sample_scene, simulate
 from svelive.tonemap import ToneSettings
-
 from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, make_camera
 
 SHAPE = (192, 224)
@@ -200,8 +199,9 @@ def test_pixel_equals_the_exr_snapshot_colour_rec709():
 
 def test_viewer_readout_follows_the_cursor_and_overlays_change_the_picture(tmp_path):
     pytest.importorskip("playwright.sync_api", reason="pip install playwright (uses /usr/bin/chromium)")
-    from tests.test_viewer import CHROMIUM, browser_page
     from pathlib import Path
+
+    from tests.test_viewer import CHROMIUM, browser_page
 
     if not Path(CHROMIUM).exists():
         pytest.skip(f"no Chromium at {CHROMIUM}")

@@ -15,9 +15,16 @@ import pytest
 import svelive
 from svelive import Camera, Pattern, Sensor, simulate
 from svelive.calibrate.noise import fit_noise_model, noise_curve_frame
-from svelive.camera import COLOUR_LAYOUTS
-from svelive.noise import (EstimatorConfig, NoiseEstimate, NoiseTracker, cancellation_fit, estimate_noise,
-                           fit_line, joint_texture_fit)
+from svelive.core.camera import COLOUR_LAYOUTS
+from svelive.noise import (
+    EstimatorConfig,
+    NoiseEstimate,
+    NoiseTracker,
+    cancellation_fit,
+    estimate_noise,
+    fit_line,
+    joint_texture_fit,
+)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 from svelive.simulate import exposure_scale, load_sample_scene

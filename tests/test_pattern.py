@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, SveliveError
-from svelive.pattern import PAPER_DR_DB, PRESETS, dynamic_range_db, dynamic_range_stops, unique_levels
+from svelive.core.pattern import PAPER_DR_DB, PRESETS, dynamic_range_db, dynamic_range_stops, unique_levels
 
 
 def test_parse_text_form_rows_and_values():

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("tifffile")
 
 from benchmarks import peers  # noqa: E402
-from svelive.cfa import ColourFilter  # noqa: E402
+from svelive.core.cfa import ColourFilter  # noqa: E402
 
 RGGB = ColourFilter.parse("RGGB")
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import svelive
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.metrics import pu21_psnr
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise, agree, estimate_noise, variance_uncertainty
-from svelive.pattern import Pattern
 from svelive.scenes import render_sequence, static
-from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale, load_sample_scene
 
 PATTERN = "1,4/16,64"

@@ -17,12 +17,12 @@ import pytest
 
 from replay import CorruptFrameError, RecordingError, RecordingReader, RecordingWriter
 from replay.container import FOOTER, RECORD_HEADER
-from svelive.camera import Camera
 from svelive.capture import open_source
 from svelive.cli import main
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.core.camera import Camera
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 
 SENSOR = Sensor(bits=12, black_level=64)
 
@@ -246,7 +246,7 @@ def test_writer_refuses_unknown_pixel_format(tmp_path: Path) -> None:
 
 
 def test_header_stores_the_camera_and_the_reader_restores_it(tmp_path: Path) -> None:
-    from svelive.calibrate.response import Response
+    from svelive.core.response import Response
 
     response = Response(coefficients=(0.0, 0.7, 0.3), black_level=64, white_level=4095)
     camera = Camera.build("dual-iso", sensor=Sensor(bits=12, black_level=64, gain=2.5, read_noise=1.5),
@@ -607,6 +607,7 @@ def test_the_service_reopens_a_failed_replay_where_it_stopped(tmp_path: Path) ->
     """A read that fails mid-replay (an I/O error) makes the capture stage rebuild the source; the
     replay goes on after the last frame delivered, not again from its start."""
     import threading
+
     from service.pipeline.capture import CaptureStage
     from service.pipeline.config import PipelineConfig
     from service.pipeline.meters import DropCounter, NewestSlot

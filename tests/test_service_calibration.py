@@ -11,15 +11,13 @@ import httpx
 import numpy as np
 import pytest
 
-from svelive.calibrate import CURVES, Response, linearise, load_mask, load_response, save_response
-from svelive.errors import SveliveError
-from svelive.exr import read_exr
-from svelive.pattern import Pattern
-
 from service.pipeline import Pipeline, PipelineConfig
 from service.settings import resolve
-from tests.test_service_helpers import (PATTERN, SENSOR, Camera, ServerThread, chart_raws, make_camera,
-                                        reference_image)
+from svelive.calibrate import CURVES, Response, linearise, load_mask, load_response, save_response
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
+from svelive.exr import read_exr
+from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, chart_raws, make_camera, reference_image
 
 
 def snapshot_after(srv: ServerThread, frame_id: int) -> tuple[np.ndarray, int]:

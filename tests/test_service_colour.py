@@ -16,17 +16,15 @@ import numpy as np
 import pytest
 import uvicorn
 
-from svelive import Reconstructor
-from svelive.camera import Camera as CameraDescription
-from svelive.exr import REC709_CHROMATICITIES, read_exr
-from svelive.frame import Frame
-from svelive.pattern import Pattern
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
-
 from service.app import create_app, listen_socket
 from service.pipeline import Pipeline, PipelineConfig
 from service.settings import ServerSettings
-
+from svelive import Reconstructor
+from svelive.core.camera import Camera as CameraDescription
+from svelive.core.frame import Frame
+from svelive.core.pattern import Pattern
+from svelive.exr import REC709_CHROMATICITIES, read_exr
+from svelive.simulate import exposure_scale, load_sample_scene, simulate
 from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, SimSource, make_camera, mjpeg_parts
 
 CFA = "RGGB"

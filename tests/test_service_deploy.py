@@ -18,14 +18,13 @@ import numpy as np
 import pytest
 import uvicorn
 
-from svelive.errors import SveliveError
-
 from service.app import create_app, listen_socket
 from service.commands import TokenRedactor
 from service.pipeline import Pipeline, PipelineConfig
 from service.protocol import bounded_protocol
 from service.publishers.metrics import exposition, families
 from service.settings import ServerSettings, read_config, resolve
+from svelive.core.errors import SveliveError
 from tests.test_service_helpers import SimSource, make_camera
 
 SIM = dict(source="sim", offline_after_s=0.6, retry_s=0.2, no_signal_fps=5.0, temporal=False)

@@ -16,17 +16,16 @@ import httpx
 import numpy as np
 import uvicorn
 
-from svelive.camera import Camera as CameraDescription
-from svelive import Reconstructor, Sensor
-from svelive.capture import Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.pattern import Pattern
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
-
 from service.app import create_app, listen_socket
 from service.pipeline import Pipeline, PipelineConfig
 from service.settings import ServerSettings
+from svelive import Reconstructor, Sensor
+from svelive.capture import Source
+from svelive.core.camera import Camera as CameraDescription
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.pattern import Pattern
+from svelive.simulate import exposure_scale, load_sample_scene, simulate
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

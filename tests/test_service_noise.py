@@ -7,11 +7,10 @@ import time
 
 import numpy as np
 
-from svelive import Sensor
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
-from svelive.pattern import Pattern
-
 from service.pipeline import Pipeline, PipelineConfig
+from svelive import Sensor
+from svelive.core.pattern import Pattern
+from svelive.simulate import exposure_scale, load_sample_scene, simulate
 from tests.test_service_helpers import PATTERN, Camera, SimSource
 
 TRUE = Sensor.from_full_well(12, 6_000, 6)  # gain 1.47 e-/DN, read noise 4.1 DN: far from the defaults
@@ -75,7 +74,7 @@ def test_frames_dropped_between_reconstructed_ones_still_make_runs():
     import threading
 
     from service.pipeline.noise import NoiseStage
-    from svelive.frame import Frame
+    from svelive.core.frame import Frame
 
     camera = static_camera(1)
     untold = UntoldSource(camera).camera

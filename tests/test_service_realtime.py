@@ -9,14 +9,13 @@ import time
 import numpy as np
 import pytest
 
+import svelive.reconstruction.stream as reconstructor_module
 from svelive import Pattern, Sensor, SveliveError
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.fusion import fuse
 from svelive.reconstruction.stream import Reconstructor, default_method
 from svelive.scenes import moving_disc, panning, render_sequence
 from svelive.simulate import exposure_scale, load_sample_scene
-
-import svelive.reconstruction.stream as reconstructor_module
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
@@ -90,7 +89,7 @@ class EncoderHarness:
     def publish(self, *seqs: int) -> None:
         """Publish frames ``seqs`` one after the other, all under the lock: the encoder sees only the last."""
         from service.pipeline import Published
-        from svelive.frame import HdrFrame
+        from svelive.core.frame import HdrFrame
 
         with self.cond:
             for seq in seqs:
@@ -153,12 +152,12 @@ def test_frames_nobody_watched_are_not_drops():
 def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, frames):
     """The live stage's threads each estimate a frame and fuse in arrival order: what it publishes is
     exactly the sequential stream's output, frame for frame."""
-    from svelive.camera import Camera
-    from svelive.frame import Frame
     from service.pipeline.calibration import Calibration
     from service.pipeline.meters import DropCounter, NewestSlot, RateMeter
     from service.pipeline.quality import LiveQuality
     from service.pipeline.reconstruction import ReconstructionStage
+    from svelive.core.camera import Camera
+    from svelive.core.frame import Frame
 
     image = scene(0)
     disc = moving_disc(image[:96, :128], float(image.max() * 4), 12.0, (40.0, 30.0), (3.0, 5.0))

@@ -14,12 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
-from svelive.errors import SveliveError
-
 from service.pipeline import Pipeline, PipelineConfig, no_signal_image
 from service.publishers import rtsp
 from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
-
+from svelive.core.errors import SveliveError
 from tests.test_service_colour import ColourSimSource, make_colour_camera
 from tests.test_service_helpers import SimSource, make_camera
 

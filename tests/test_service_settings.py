@@ -8,10 +8,9 @@ import threading
 
 import pytest
 
-from svelive.errors import SveliveError
-
 from service.pipeline import NewestSlot, no_signal_image, opencv_threads
 from service.settings import resolve
+from svelive.core.errors import SveliveError
 
 
 def test_precedence_cli_over_env_over_file_over_defaults(tmp_path):

@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from svelive.camera import Camera
 from svelive.cli import main
+from svelive.core.camera import Camera
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 from svelive.exr import read_exr
-from svelive.frame import Frame
 from svelive.motion_commands import with_cameras
 from svelive.noise import estimate_noise
 from svelive.reconstruction.stream import NOISE_FRAMES, Reconstructor, stream_noise
-from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale, load_sample_scene, simulate
 
 PATTERN = "1,4/16,64"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from svelive import Sensor
-from svelive.errors import SveliveError
-from svelive.pattern import Pattern
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
 from svelive.reconstruction.single import reconstruct
 from svelive.simulate import exposure_scale, load_sample_scene, simulate
 from svelive.tonemap import ToneMapper, ToneSettings, ToneStats, srgb_encode

@@ -5,11 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.simulate import load_sample_scene
-from svelive.whitebalance import (ColourSettings, WhiteBalance, WhiteBalancer, apply_matrix, estimate_white_balance,
-                                  exr_attributes, output_matrix, parse_colour_matrix, parse_white_balance,
-                                  to_output_space)
+from svelive.whitebalance import (
+    ColourSettings,
+    WhiteBalance,
+    WhiteBalancer,
+    apply_matrix,
+    estimate_white_balance,
+    exr_attributes,
+    output_matrix,
+    parse_colour_matrix,
+    parse_white_balance,
+    to_output_space,
+)
 
 FRAME_NS = 33_333_333  # 30 fps
 #: A warm light as the camera sees it: red strong, blue weak (multipliers that undo it: 0.5, 1, 1.6).

@@ -14,10 +14,10 @@ import numpy as np
 
 from svelive.calibrate import Response, load_mask, load_response
 from svelive.calibrate.response import SWEEP_KNOTS, calibrate_frame
-from svelive.camera import Camera, one_colour_plane
 from svelive.capture import AfterChange, Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
+from svelive.core.camera import Camera, one_colour_plane
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
 from svelive.memory import release_memory
 
 #: most exposure times one sweep takes

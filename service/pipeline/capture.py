@@ -9,12 +9,11 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from svelive.camera import Camera
-from svelive.capture import Source
-from svelive.frame import Frame
-
 from service.pipeline.config import FALLBACK_PATTERN, PipelineConfig
 from service.pipeline.meters import DropCounter, NewestSlot, RateMeter
+from svelive.capture import Source
+from svelive.core.camera import Camera
+from svelive.core.frame import Frame
 
 
 class CaptureStage:

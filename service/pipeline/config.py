@@ -7,11 +7,11 @@ from typing import Any
 
 import numpy as np
 
-from svelive.errors import SveliveError
-from svelive.camera import Camera
 from svelive.capture import Source, open_source
 from svelive.capture.source import MONO_WORDS
-from svelive.cfa import ColourFilter
+from svelive.core.camera import Camera
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
 from svelive.options import CameraSettings
 from svelive.reconstruction.live import check_live_quality
 from svelive.reconstruction.single import methods as method_names
@@ -30,7 +30,7 @@ class PipelineConfig:
         source: source spec (see svelive.capture), e.g. ``"demo"`` or ``"gige:GV01"``.
         source_options: extra keyword options for ``open_source`` (e.g. fps, width).
         pattern: exposure pattern text; None: the source's own, else FALLBACK_PATTERN.
-        cfa: colour filter layout (svelive.cfa), ``"none"`` for explicitly monochrome, or
+        cfa: colour filter layout (svelive.core.cfa), ``"none"`` for explicitly monochrome, or
             None: the source's pixel format says (a Bayer format sets it by itself).
         black_level, white_level: DN overrides of the source's sensor; None keeps it.
         method: reconstruction method name; None for the default.

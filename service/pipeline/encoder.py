@@ -18,13 +18,12 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from svelive.errors import SveliveError
-from svelive.tonemap import ToneMapper, ToneSettings
-from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, output_matrix
-
 from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
+from svelive.core.errors import SveliveError
+from svelive.tonemap import ToneMapper, ToneSettings
+from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, output_matrix
 
 
 def no_signal_image(width: int = 640, height: int = 360) -> np.ndarray:

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.frame import HdrFrame
-from svelive.camera import Camera
+from svelive.core.camera import Camera
+from svelive.core.frame import HdrFrame
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.camera import Camera
-from svelive.frame import Frame
+from svelive.core.camera import Camera
+from svelive.core.frame import Frame
 from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate, NoiseTracker
-
 
 #: consecutive frames per update of the tracker: three give texture-free samples without the pairs' binning bias
 RUN_FRAMES = 3

@@ -12,13 +12,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from svelive.calibrate.response import SWEEP_KNOTS
-from svelive.capture import Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.reconstruction.single import methods as method_names
-from svelive.reconstruction.stream import default_method
-
 from service.pipeline.calibration import Calibration
 from service.pipeline.capture import CaptureStage
 from service.pipeline.config import PipelineConfig, check_jpeg_quality, check_method
@@ -27,6 +20,12 @@ from service.pipeline.frames import EncodedFrame, Published
 from service.pipeline.meters import DropCounter, NewestSlot
 from service.pipeline.quality import LiveQuality
 from service.pipeline.reconstruction import ReconstructionStage
+from svelive.calibrate.response import SWEEP_KNOTS
+from svelive.capture import Source
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.reconstruction.single import methods as method_names
+from svelive.reconstruction.stream import default_method
 
 
 def _updated(settings: Any, changes: dict[str, Any] | None, what: str) -> Any:

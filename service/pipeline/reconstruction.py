@@ -6,15 +6,14 @@ from __future__ import annotations
 import threading
 import time
 
-from svelive.camera import Camera
-from svelive.frame import Frame, HdrFrame
-from svelive.reconstruction import Reconstructor
-
 from service.pipeline.calibration import Calibration
 from service.pipeline.frames import Published
 from service.pipeline.meters import DropCounter, LatencyWindow, NewestSlot, RateMeter
 from service.pipeline.noise import NoiseStage
 from service.pipeline.quality import LiveQuality, LiveStep
+from svelive.core.camera import Camera
+from svelive.core.frame import Frame, HdrFrame
+from svelive.reconstruction import Reconstructor
 
 
 class ReconstructionStage:

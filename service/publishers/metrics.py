@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 try:
     from prometheus_client import CollectorRegistry, generate_latest

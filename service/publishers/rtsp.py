@@ -64,9 +64,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from svelive.errors import SveliveError
-
 from service.pipeline import LatencyWindow, Pipeline, PreviewFrame, RateMeter
+from svelive.core.errors import SveliveError
 
 #: What to install when the GStreamer RTSP server or its plugins are missing.
 SETUP_HINT = ("apt-get install gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-good "

@@ -7,9 +7,8 @@ from typing import Any
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
-from svelive.errors import SveliveError
-
 from service.routers import ServedCamera
+from svelive.core.errors import SveliveError
 
 
 class ToneUpdate(BaseModel):

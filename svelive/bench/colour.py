@@ -1,6 +1,6 @@
 """The colour benchmark: the joint colour reconstruction against the split baseline over RGB HDR images.
 
-For every colour layout of real sensors (svelive.camera.COLOUR_LAYOUTS), a
+For every colour layout of real sensors (svelive.core.camera.COLOUR_LAYOUTS), a
 bright and a dim scene (as the mono benchmark: the brightest point just fills
 the shortest exposure, or 5 stops below), every RGB image is simulated through
 the colour filter and the exposure mosaic with the benchmark sensor, and
@@ -28,15 +28,15 @@ import numpy as np
 
 from svelive.bench.runner import TIMING_SIZE, median_ms
 from svelive.bench.scenes import BENCH_SENSOR, NOISE_LEVELS, find_images
-from svelive.camera import COLOUR_LAYOUTS, Camera
-from svelive.errors import SveliveError
+from svelive.core.camera import COLOUR_LAYOUTS, Camera
+from svelive.core.errors import SveliveError
+from svelive.core.sensor import Sensor
 from svelive.exr import read_exr
 from svelive.metrics import colour_error, pu21_psnr_colour
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD
 from svelive.reconstruction.methods.base import SveInput
 from svelive.reconstruction.single import run_method
-from svelive.sensor import Sensor
 from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
 
 #: Whole tiles of every colour layout (the assorted-pixels tile is 4x4).

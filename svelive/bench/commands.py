@@ -9,8 +9,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from svelive.atomic import write_bytes_atomic
-from svelive.errors import SveliveError
+from svelive.core.atomic import write_bytes_atomic
+from svelive.core.errors import SveliveError
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
@@ -45,8 +45,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 def choice_map_example(pattern: str = "1,2/4,8"):
     """(truth, own-reading share, title) of the adaptive method on the shipped ``desk`` crop, bright, seed 0."""
     from svelive.bench.scenes import BENCH_SENSOR, Condition
-    from svelive.reconstruction.methods.adaptive import own_share
     from svelive.reconstruction.input import prepare
+    from svelive.reconstruction.methods.adaptive import own_share
     from svelive.simulate import load_sample_scene, simulate
 
     scene = load_sample_scene("desk")
@@ -101,7 +101,8 @@ def run_grid(out: Path, data: Path, quick: bool, images: tuple[str, ...], chart:
     """The default's guard grid over the images of ``data`` (``images`` only, if given); its Markdown."""
     from svelive.bench import report
     from svelive.bench.scenes import find_images, load_scene
-    from svelive.bench.stability import GridConfig, markdown_grid, quick_grid_config, run_grid as grid
+    from svelive.bench.stability import GridConfig, markdown_grid, quick_grid_config
+    from svelive.bench.stability import run_grid as grid
 
     wanted = {name.lower() for name in images}
     paths = [p for p in find_images(data) if not wanted or p.stem.lower() in wanted]

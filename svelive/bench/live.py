@@ -33,8 +33,8 @@ import numpy as np
 from svelive.bench.colour import ColourCondition, crop_rgb, data_scenes, shipped_scenes
 from svelive.bench.runner import TIMING_SIZE, machine
 from svelive.bench.scenes import BENCH_SENSOR, NOISE_LEVELS, PATTERNS, Condition, find_images, load_scene
-from svelive.camera import COLOUR_LAYOUTS, Camera
-from svelive.errors import SveliveError
+from svelive.core.camera import COLOUR_LAYOUTS, Camera
+from svelive.core.errors import SveliveError
 from svelive.metrics import pu21_psnr, pu21_psnr_colour
 from svelive.reconstruction import Reconstructor
 from svelive.reconstruction.live import LADDER, LiveStep
@@ -85,7 +85,7 @@ def quick_live_config() -> LiveBenchConfig:
 
 
 def kind_of(case: str) -> str:
-    """``"colour"`` for a colour layout name (svelive.camera.COLOUR_LAYOUTS), else ``"mono"`` (a pattern)."""
+    """``"colour"`` for a colour layout name (svelive.core.camera.COLOUR_LAYOUTS), else ``"mono"`` (a pattern)."""
     return "colour" if case in COLOUR_LAYOUTS else "mono"
 
 

@@ -29,9 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.pattern import Pattern
+from svelive.bench.sweep import Sweep
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.scenes import Scene, panning, render_sequence
-from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale
 
 #: frames a pixel stays in the trail region after it moved (as benchmarks/motion.py)
@@ -160,7 +161,7 @@ def run_case(scene: Scene, frames: int, pattern: str, sensor: Sensor,
     return scores
 
 
-# ----- the stability suite's stream cases (svelive.bench.stability.Sweep; wired in by the suite) ---------
+# ----- the stability suite's stream cases (svelive.bench.sweep.Sweep; wired in by the suite) ---------
 
 #: object speeds (px per frame) and light (stops under full scale) of :func:`stream_sweeps`
 SWEEP_SPEEDS: tuple[float, ...] = (2.0, 6.0, 12.0, 24.0)
@@ -193,7 +194,6 @@ def stream_sweeps(size: int = 96, pattern: str = "1,4/16,64", seed: int = 11) ->
     The true sensor (3 000 e-, 2 e-, black 64) is not given to the README stream. About 10 s at 96 px.
     """
     import svelive
-    from svelive.bench.stability import Sweep
     from svelive.scenes import static
     from svelive.simulate import load_sample_scene
 

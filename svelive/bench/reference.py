@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.simulate import simulate
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.atomic import write_bytes_atomic
-from svelive.errors import SveliveError
+from svelive.core.atomic import write_bytes_atomic
+from svelive.core.errors import SveliveError
 
 REALTIME_MS = 33.0  # 30 frames per second
 BUDGET_MS = 25.0  # the reconstruction's share of a frame

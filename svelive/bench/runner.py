@@ -21,11 +21,11 @@ import numpy as np
 
 from svelive.bench.reference import bracketing_reference
 from svelive.bench.scenes import BENCH_SENSOR, NOISE_LEVELS, PATTERNS, Condition, find_images, load_scene
-from svelive.errors import SveliveError
-from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS, baseline
-from svelive.reconstruction.methods.base import Estimate, SveInput
+from svelive.core.errors import SveliveError
 from svelive.metrics import error_stops_p99, log_psnr, mu_law_psnr, pu21_psnr
 from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS, baseline
+from svelive.reconstruction.methods.base import Estimate, SveInput
 from svelive.reconstruction.single import run_method
 from svelive.simulate import simulate
 

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.exr import read_luminance
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
 from svelive.simulate import exposure_scale
 
 #: The benchmark sensor: 12 bits, 10 000 e- full well, 3 e- read noise (machine-vision CMOS).

@@ -27,39 +27,27 @@ Colour cases (every colour layout, joint against split; :func:`colour_sweeps`):
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import numpy as np
 
 from svelive.bench.colour import ColourSetting
+from svelive.bench.motion_cases import stream_sweeps
 from svelive.bench.runner import Setting
 from svelive.bench.scenes import BENCH_SENSOR
-from svelive.camera import COLOUR_LAYOUTS, Camera
-from svelive.cfa import joint_period
-from svelive.reconstruction.methods import METHODS
-from svelive.pattern import Pattern
+from svelive.bench.sweep import Sweep
+from svelive.core.camera import COLOUR_LAYOUTS, Camera
+from svelive.core.cfa import joint_period
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.reconstruction.input import prepare
-from svelive.sensor import Sensor
+from svelive.reconstruction.methods import METHODS
 from svelive.simulate import exposure_scale, simulate
 
 SIZE = 96
 PATTERN = "1,4/16,64"
 SEED = 11
-
-
-@dataclass
-class Sweep:
-    """One sweep's curves."""
-
-    name: str
-    title: str
-    axis: str
-    error: str
-    difficulty: list[float]
-    errors: dict[str, list[float]] = field(default_factory=dict)
-    log_y: bool = True
-    notes: str = ""
 
 
 def stability_settings() -> list[Setting]:
@@ -643,8 +631,6 @@ def run_stability(settings: list[Setting] | None = None, colour: bool = True) ->
     """Every sweep for every setting, the library stream's cases (svelive.bench.motion_cases: moving-pixel
     loss, trail and still-region gain against the single frame) and the colour cases for joint and split,
     JSON-ready."""
-    from svelive.bench.motion_cases import stream_sweeps  # it builds Sweeps of this module
-
     settings = stability_settings() if settings is None else settings
     sweeps = [asdict(make(settings)) for make in SWEEPS.values()]
     sweeps += [asdict(sweep) for sweep in stream_sweeps()]

@@ -2,8 +2,16 @@
 
 from svelive.calibrate.mask import MaskConfig, MaskEstimate, estimate_mask, load_mask, save_mask
 from svelive.calibrate.noise import NoiseModel, estimate_noise
-from svelive.calibrate.response import (CURVES, Response, ResponseFitConfig, calibrate_frame, fit_response,
-                                        linearise, load_response, save_response, simulate_nonlinear)
+from svelive.calibrate.response import (
+                                        CURVES,
+                                        ResponseFitConfig,
+                                        calibrate_frame,
+                                        fit_response,
+                                        load_response,
+                                        save_response,
+                                        simulate_nonlinear,
+)
+from svelive.core.response import Response, linearise
 
 __all__ = ["CURVES", "MaskConfig", "MaskEstimate", "NoiseModel", "Response", "ResponseFitConfig",
            "calibrate_frame", "estimate_mask", "estimate_noise", "fit_response", "linearise", "load_mask",

@@ -15,13 +15,13 @@ import numpy as np
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
 from svelive.calibrate.noise import estimate_noise
 from svelive.calibrate.response import SWEEP_KNOTS, ResponseFitConfig, fit_response, save_response, write_json
-from svelive.camera import Camera, one_colour_plane
 from svelive.commands import read_raw
-from svelive.atomic import check_output_target
-from svelive.errors import SveliveError
+from svelive.core.atomic import check_output_target
+from svelive.core.camera import Camera, one_colour_plane
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor, container_bits
 from svelive.options import CameraSettings, add_camera_option, build_camera, parse_cfa
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor, container_bits
 
 
 def png_significant_bits(path: Path) -> int | None:

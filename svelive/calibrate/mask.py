@@ -12,7 +12,7 @@ m is then split into ``tile_exposure[position] * vignetting(x) * deviation(x)``:
 a smooth 2-D polynomial for the vignetting (maximum 1), the median per tile
 position for the exposures (the lowest 1), and the per-pixel rest. The product,
 in those units, is the per-pixel exposure map for
-:meth:`svelive.pattern.Pattern.with_pixel_map`.
+:meth:`svelive.core.pattern.Pattern.with_pixel_map`.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 from numpy.polynomial import polynomial as P
 
-from svelive.atomic import atomic_path
-from svelive.errors import SveliveError
-from svelive.sensor import Sensor
+from svelive.core.atomic import atomic_path
+from svelive.core.errors import SveliveError
+from svelive.core.sensor import Sensor
 
 
 @dataclass(frozen=True)
@@ -175,7 +175,7 @@ def estimate_mask(flats: list[np.ndarray], tile: tuple[int, int], sensor: Sensor
 
 
 def save_mask(mask: MaskEstimate, path: str | os.PathLike) -> Path:
-    """Write ``mask`` as .npz (temporary file, then rename: svelive.atomic)."""
+    """Write ``mask`` as .npz (temporary file, then rename: svelive.core.atomic)."""
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, pixel_map=mask.pixel_map, tile_exposures=mask.tile_exposures,
                             vignetting=mask.vignetting, deviation=mask.deviation,
@@ -185,7 +185,7 @@ def save_mask(mask: MaskEstimate, path: str | os.PathLike) -> Path:
 
 def load_mask(path: str | os.PathLike) -> np.ndarray:
     """Per-pixel exposure map, float32 (H, W), from a mask file (``svelive calibrate mask``),
-    for :meth:`svelive.pattern.Pattern.with_pixel_map`."""
+    for :meth:`svelive.core.pattern.Pattern.with_pixel_map`."""
     path = Path(path)
     try:
         with np.load(path) as data:

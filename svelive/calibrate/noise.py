@@ -20,15 +20,15 @@ longer uses it.
 from __future__ import annotations
 
 import math
-from statistics import NormalDist
 from dataclasses import dataclass, replace
+from statistics import NormalDist
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.noise import PRIOR_LOG_SIGMA, EstimatorConfig, LineFit, frame_fit, pair_fit
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
 
 #: Variance of uniform quantisation to integers, DN^2.
 QUANTISATION_VARIANCE = 1.0 / 12.0
@@ -293,7 +293,7 @@ def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | 
     if len(frames) == 1:
         if pattern is None:
             raise SveliveError("noise from a single frame needs the exposure pattern (--pattern)")
-        from svelive.camera import Camera
+        from svelive.core.camera import Camera
 
         raw = np.asarray(frames[0])
         camera = Camera(Pattern.parse(pattern), None, replace(sensor, gain=None, read_noise=None))

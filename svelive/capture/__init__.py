@@ -28,8 +28,8 @@ import importlib
 from typing import Any
 
 from svelive.capture.source import AfterChange, EndOfStream, Source
-from svelive.errors import SveliveError
-from svelive.sensor import Sensor
+from svelive.core.errors import SveliveError
+from svelive.core.sensor import Sensor
 
 __all__ = ["AfterChange", "EndOfStream", "KINDS", "Source", "open_source", "parse_spec"]
 

@@ -18,8 +18,8 @@ from typing import Any, Iterator
 from replay import CorruptFrameError, RecordingReader, RecordingWriter, WriterConfig
 from replay.reader import _ranges, report
 from svelive.capture import AfterChange, open_source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
 from svelive.options import SOURCE_CFA_HELP, CameraSettings, add_camera_option
 from svelive.progress import Progress, add_quiet_argument
 

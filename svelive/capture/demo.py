@@ -53,14 +53,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from svelive.camera import COLOUR_LAYOUTS
-from svelive.capture import build_sensor, formats, make_config
+from svelive.capture import build_sensor, make_config
 from svelive.capture.source import MONO_WORDS, EndOfStream, Source
-from svelive.errors import SveliveError
+from svelive.core import formats
+from svelive.core.camera import COLOUR_LAYOUTS
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 from svelive.exr import LUMA_WEIGHTS, read_rgb
-from svelive.frame import Frame
 from svelive.jit import kernel
-from svelive.sensor import Sensor
 
 #: The demo's own scene (RGB, native resolution) by name; the 256x256 sample crops are accepted too.
 DEMO_SCENES = {"mttamwest-wide": "mttamwest-wide.exr"}

@@ -18,7 +18,7 @@ with it and reconnects.
 Receiving: a pool of ``n_buffers`` numpy arrays, each wrapped by
 ``Aravis.Buffer.new(size, address)`` so Aravis's stream thread writes packets
 straight into numpy memory; the arrays live as long as the stream. A completed
-buffer is decoded (:mod:`svelive.capture.formats`) into the Frame's own array,
+buffer is decoded (:mod:`svelive.core.formats`) into the Frame's own array,
 the one copy a frame gets, and the buffer goes straight back to the stream.
 Packet resend is enabled explicitly (``packet-resend = ALWAYS``). A buffer whose
 status is not SUCCESS (missing packets, timeout, size mismatch, ...) never
@@ -61,11 +61,12 @@ from typing import Any
 
 import numpy as np
 
-from svelive.capture import build_sensor, formats, make_config
+from svelive.capture import build_sensor, make_config
 from svelive.capture.source import Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.core import formats
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 
 
 def load_aravis() -> Any:

@@ -23,11 +23,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from svelive.capture import build_sensor, formats, make_config
+from svelive.capture import build_sensor, make_config
 from svelive.capture.source import EndOfStream, Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor, container_bits
+from svelive.core import formats
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor, container_bits
 
 EXTENSIONS = (".png", ".tif", ".tiff", ".pgm")
 #: Largest image decoded: 2^28 pixels (16384 x 16384; a 100-megapixel sensor's frame fits). A header

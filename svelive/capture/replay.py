@@ -37,8 +37,7 @@ import dataclasses
 import math
 import threading
 import time
-from dataclasses import replace
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -47,9 +46,9 @@ from replay import CorruptFrameError, RecordingReader
 from replay.reader import report
 from svelive.capture import make_config
 from svelive.capture.source import EndOfStream, Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 
 #: largest relative difference between an exposure time asked of a replay and the recorded one it picks
 EXPOSURE_TOLERANCE = 0.02

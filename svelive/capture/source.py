@@ -1,7 +1,7 @@
 """The one interface every frame source implements.
 
 A :class:`Source` is opened (or used as a context manager), iterated for
-:class:`svelive.frame.Frame` objects, and closed. ``close()`` may be called
+:class:`svelive.core.frame.Frame` objects, and closed. ``close()`` may be called
 from any thread: an iteration in progress then ends within
 ``Source.poll_s`` plus the time of one blocking camera call (bounded, 0.1 s
 by default), so a capture thread can be stopped cleanly. ``stats()`` is safe to
@@ -23,11 +23,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from svelive.camera import Camera
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.core.camera import Camera
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 
 #: ``cfa`` values that say "this sensor has no colour filter".
 MONO_WORDS = ("none", "mono")

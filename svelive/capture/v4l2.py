@@ -2,7 +2,7 @@
 
 OpenCV is asked for the fourcc (``CAP_PROP_FOURCC``) with RGB conversion off
 (``CAP_PROP_CONVERT_RGB = 0``); it then returns each frame as a flat byte
-buffer, which :func:`svelive.capture.formats.unpack` decodes with the frame
+buffer, which :func:`svelive.core.formats.unpack` decodes with the frame
 width, height and the row stride (bytes per line: the driver's, or the tight
 row size when the buffer has no padding). Formats: GREY, Y10, Y12, Y16, Y10P,
 Y12P, Y10B and the 8/10/12/16-bit Bayer fourccs. V4L2 gives no device
@@ -21,11 +21,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from svelive.capture import build_sensor, formats, make_config
+from svelive.capture import build_sensor, make_config
 from svelive.capture.source import Source
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.sensor import Sensor
+from svelive.core import formats
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.sensor import Sensor
 
 
 @dataclass(frozen=True)

@@ -137,11 +137,11 @@ import numpy as np
 from numba import types
 from numba.extending import intrinsic
 
-from svelive.camera import colour_phase
-from svelive.cfa import ColourFilter, joint_period
-from svelive.errors import SveliveError
+from svelive.core.camera import colour_phase
+from svelive.core.cfa import ColourFilter, joint_period
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
 from svelive.jit import kernel
-from svelive.pattern import Pattern
 from svelive.reconstruction.methods import MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput, binomial_kernel, exposure_maps, map_on, smooth
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 
 @dataclass(frozen=True)

@@ -20,11 +20,11 @@ from functools import cached_property, lru_cache
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
 from svelive.jit import flat, kernel
-from svelive.reconstruction.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size, tile_rows
-from svelive.pattern import Pattern
 from svelive.reconstruction.config import MotionConfig
+from svelive.reconstruction.methods.base import SveInput, binomial_kernel, map_on, smooth, support_size, tile_rows
 from svelive.reconstruction.numerics import STRIP_ROWS, _disagrees, _maximum, _strips, _widen
 
 

@@ -14,14 +14,15 @@ from functools import lru_cache
 
 import numpy as np
 
-from svelive.camera import Camera
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
-from svelive.frame import Frame
+from svelive.core.camera import Camera, camera_for_raw
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.pattern import Pattern
+from svelive.core.response import linearise
+from svelive.core.sensor import Sensor
 from svelive.noise import NoiseEstimate, estimate_noise
-from svelive.pattern import Pattern
 from svelive.reconstruction.methods.base import SveInput, exposure_maps
-from svelive.sensor import Sensor
 
 
 @lru_cache(maxsize=8)
@@ -61,8 +62,6 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
     sensor = camera.sensor
     raw = camera.check(raw)
     if camera.response is not None:
-        from svelive.calibrate.response import linearise  # calibration code only where a response is in use
-
         raw = linearise(raw, camera.response, sensor)
     exposure, _ = exposure_maps(pattern, raw.shape)
     signal = raw.astype(np.float32)
@@ -96,7 +95,5 @@ def with_noise_model(raw: np.ndarray, camera: Camera, inp: SveInput,
 def sensor_for(raw: np.ndarray, black_level: float = 0, white_level: float | None = None,
                gain: float | None = None, read_noise: float | None = None) -> Sensor:
     """The Sensor a raw array implies: bit depth from its dtype unless the white level says more."""
-    from svelive.camera import camera_for_raw
-
     return camera_for_raw(raw, None, black_level=black_level, white_level=white_level, gain=gain,
                           read_noise=read_noise).sensor

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: ``--live-quality`` values: ``adaptive`` steps down and up the ladder, ``fixed`` keeps the configured setting.
 QUALITY_MODES = ("adaptive", "fixed")

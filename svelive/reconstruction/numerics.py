@@ -10,10 +10,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from svelive.core.pattern import Pattern
 from svelive.jit import flat, kernel
-from svelive.pattern import Pattern
-from svelive.reconstruction.methods.base import (SveInput, map_on, smooth, tile_rows, window_kernels,
-                                                 window_level_row)
+from svelive.reconstruction.methods.base import SveInput, map_on, smooth, tile_rows, window_kernels, window_level_row
 
 
 def _grow(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:

@@ -6,10 +6,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from svelive.camera import Camera, camera_for_raw
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
-from svelive.pattern import Pattern
+from svelive.core.camera import Camera, camera_for_raw
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern
 from svelive.noise import NoiseEstimate
 from svelive.reconstruction.input import prepare, with_noise_model
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS, MethodSpec
@@ -74,9 +74,9 @@ def reconstruct(raw: np.ndarray, pattern: Pattern | str | Camera, *, cfa: Colour
     Args:
         raw: (H, W) uint8/uint16 raw DN (or float, already linearised), black level included.
         pattern: the exposure pattern or its text form, e.g. ``"1,4/16,64"``, or a colour
-            layout name (svelive.camera.COLOUR_LAYOUTS); or a whole svelive.Camera, which
+            layout name (svelive.core.camera.COLOUR_LAYOUTS); or a whole svelive.Camera, which
             then stands for ``cfa`` and the sensor levels too.
-        cfa: the colour filter layout (``"RGGB"``, ``"R,G/G,B"``, svelive.cfa.PRESETS), or
+        cfa: the colour filter layout (``"RGGB"``, ``"R,G/G,B"``, svelive.core.cfa.PRESETS), or
             None for a monochrome sensor.
         method: one of :func:`methods`; None for the default.
         black_level, white_level: DN; the white level defaults to the dtype's maximum

@@ -27,32 +27,33 @@ than in one frame), and the output is that luminance times the fused shares.
 from __future__ import annotations
 
 import threading
-from concurrent.futures import Executor, ThreadPoolExecutor
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
 
-from svelive.camera import Camera, camera_for_raw
-from svelive.cfa import ColourFilter
-from svelive.errors import SveliveError
-from svelive.frame import Frame
-from svelive.noise import NoiseEstimate, NoiseSchedule, NoiseTracker, StreamNoise
-from svelive.pattern import Pattern
+from svelive.core.camera import Camera, camera_for_raw
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
+from svelive.core.frame import Frame
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
+from svelive.noise import NoiseEstimate, NoiseSchedule, NoiseTracker, StreamNoise
 from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
 from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
-from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
+from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
-from svelive.sensor import Sensor
+
 
 def default_method(temporal: bool) -> str:
     """The method a Reconstructor uses when none is named: the library's single-frame default, with

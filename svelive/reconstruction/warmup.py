@@ -7,12 +7,12 @@ from itertools import product
 
 import numpy as np
 
-from svelive.camera import COLOUR_LAYOUTS, Camera
-from svelive.pattern import Pattern
-from svelive.reconstruction.methods import METHODS
+from svelive.core.camera import COLOUR_LAYOUTS, Camera
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.reconstruction.fusion import FUSE_ROWS
+from svelive.reconstruction.methods import METHODS
 from svelive.reconstruction.stream import EXPOSURE_TIMINGS, Reconstructor
-from svelive.sensor import Sensor
 
 
 def warm_up(methods: Iterable[str] | None = None) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 from svelive.reconstruction.methods import adaptive, aggregate, cubic, weighted
 from svelive.reconstruction.methods.base import Estimate, SveInput
 

@@ -15,10 +15,10 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.cfa import ColourFilter, joint_period
+from svelive.core.cfa import ColourFilter, joint_period
+from svelive.core.pattern import Pattern
+from svelive.core.sensor import Sensor
 from svelive.jit import kernel
-from svelive.pattern import Pattern
-from svelive.sensor import Sensor
 
 
 @dataclass(frozen=True)

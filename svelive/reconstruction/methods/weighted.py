@@ -61,10 +61,18 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from svelive.core.pattern import Pattern
 from svelive.jit import flat, kernel
-from svelive.reconstruction.methods.base import (Estimate, SveInput, binomial_kernel, fill_lower_bounds, in_strips, smooth,
-                                  support_size, tile_rows)
-from svelive.pattern import Pattern
+from svelive.reconstruction.methods.base import (
+    Estimate,
+    SveInput,
+    binomial_kernel,
+    fill_lower_bounds,
+    in_strips,
+    smooth,
+    support_size,
+    tile_rows,
+)
 
 
 class _Layout(NamedTuple):

@@ -8,12 +8,11 @@ from functools import lru_cache
 
 import numpy as np
 
+from svelive.core.pattern import Pattern
 from svelive.jit import flat, kernel
-from svelive.pattern import Pattern
 from svelive.reconstruction.methods.adaptive.parameters import CONSISTENT_SIGMA, DENSE_ROW, TINY
 from svelive.reconstruction.methods.adaptive.strip_pass import column_sums
 from svelive.reconstruction.methods.base import SveInput, count_true, reflect_101, reflected_rows, smooth
-
 
 #: Largest window (taps) whose censored pixels are visited one by one (:func:`censored_pixels`): measured, a 3x3
 #: window's visits beat the per-level window sums at any share of censored pixels, a 5x3 one's did not.

@@ -8,8 +8,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from svelive.core.pattern import Pattern
 from svelive.jit import kernel
-from svelive.pattern import Pattern
 from svelive.reconstruction.methods.adaptive.parameters import BIG, TINY, kernels
 from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, POSTERIOR_HIGH, near_zero, nonnegative
 from svelive.reconstruction.methods.base import count_true, reflect_101, rows_min, smooth, window_level_row

@@ -16,7 +16,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: Named patterns. The paper's tile puts e3 e0 on the first row and e2 e1 on the
 #: second, with e3 = 4 e2 = 16 e1 = 64 e0 (ratio 4) or ratio 2.

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from svelive.camera import Camera
-from svelive.sensor import Sensor
+from svelive.core.camera import Camera
+from svelive.core.sensor import Sensor
 
 
 @dataclass(frozen=True)
@@ -21,7 +21,7 @@ class Frame:
         device_time_ns: the camera's own timestamp in ns, or None when it has none.
         pixel_format: the wire format it was decoded from, e.g. ``"Mono12Packed"``.
         camera: what the frame is: exposure pattern, colour filter, sensor, response
-            (svelive.camera.Camera). Reconstruction reads it from here.
+            (svelive.core.camera.Camera). Reconstruction reads it from here.
         exposure_time: the camera's global exposure time for this frame in its own unit
             (GigE: microseconds), None when the source cannot tell. Recordings keep it.
     """

@@ -26,7 +26,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: What ``stat.S_IFMT`` of a refused target is called in messages.
 _KINDS = {

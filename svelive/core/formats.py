@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.cfa import ColourFilter
+from svelive.core.errors import SveliveError
 
 
 @dataclass(frozen=True)
@@ -149,10 +150,8 @@ def find(name: str) -> PixelFormat | None:
 
 def unpacked_name(bits: int, cfa: object = None) -> str:
     """The narrowest unpacked format holding ``bits``-bit values: ``Mono<n>``, or ``Bayer<XY><n>`` for a
-    2x2 Bayer colour filter (a :class:`svelive.cfa.ColourFilter` or its name); any other filter, which
+    2x2 Bayer colour filter (a :class:`svelive.core.cfa.ColourFilter` or its name); any other filter, which
     has no PFNC name, gets the Mono name."""
-    from svelive.cfa import ColourFilter
-
     layout = None if cfa is None else ColourFilter.parse(cfa)  # type: ignore[arg-type]
     if layout is not None and layout.is_bayer():
         short, widths = _GEV_BAYER[layout.name], (8, 10, 12, 16)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: Assumed when the datasheet values are unknown: a 10 000 e- full well and 3 e-
 #: read noise, typical of machine-vision CMOS. Inverse-variance weights depend only

@@ -1,7 +1,7 @@
 """The camera description: everything reconstruction needs to know about the frames of one camera.
 
 A :class:`Camera` is immutable. A source builds it once, from its pixel format
-and the user's settings, and attaches it to every :class:`svelive.frame.Frame`;
+and the user's settings, and attaches it to every :class:`svelive.core.frame.Frame`;
 a recording stores it; calibration produces a new one. Reconstruction reads it
 from the frame, so the pattern is parsed once and the response curve and the
 per-pixel exposure map are applied once, in :mod:`svelive.reconstruction.input`.
@@ -11,17 +11,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from svelive.cfa import ColourFilter, joint_period
-from svelive.errors import SveliveError
-from svelive.pattern import Pattern, check_depth, minimal_tile
-from svelive.sensor import Sensor, container_bits
-
-if TYPE_CHECKING:
-    from svelive.calibrate.response import Response
+from svelive.core.cfa import ColourFilter, joint_period
+from svelive.core.errors import SveliveError
+from svelive.core.pattern import Pattern, check_depth, minimal_tile
+from svelive.core.response import Response
+from svelive.core.sensor import Sensor, container_bits
 
 #: Colour SVE layouts of real sensors: (exposure pattern, colour filter). Relative exposures are
 #: examples (8 = 3 stops, the usual dual-ISO/dual-gain step); give another pattern of the same shape
@@ -135,8 +133,6 @@ class Camera:
     @classmethod
     def from_dict(cls, data: dict[str, Any], *, default_bits: int = 16) -> Camera:
         """The inverse of :meth:`to_dict`; a one-line SveliveError for a malformed description."""
-        from svelive.calibrate.response import Response
-
         if not isinstance(data, dict):
             raise SveliveError(f"camera description must be a JSON object, got {type(data).__name__}")
         s = data.get("sensor")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.errors import SveliveError
+from svelive.core.errors import SveliveError
 
 #: Channel index of each colour letter; the output's channel axis is in this order.
 CHANNELS = "RGB"
