@@ -4,7 +4,7 @@
 
 Every image x pattern x light x true noise model is simulated like ``svelive bench``
 (12-bit, black 64, the lowest exposure just filling at the scene's 99.9th percentile;
-then 3, 5 and 7 stops darker), and :func:`svelive.noise.estimate_noise` is given the raw frame
+then 3, 5 and 7 stops darker), and :func:`svelive.noise.estimate_from_frame` is given the raw frame
 and a camera with the pattern, black and white level but no gain and no read noise.
 Printed per run: the truth, the estimate, the error in % and the estimate's own
 standard uncertainty (sigma, in %), the worst error of the noise standard deviation the
@@ -55,7 +55,7 @@ from svelive.core.camera import COLOUR_LAYOUTS, Camera  # noqa: E402
 from svelive.core.pattern import Pattern  # noqa: E402
 from svelive.core.sensor import Sensor  # noqa: E402
 from svelive.exr import read_exr  # noqa: E402
-from svelive.noise import EstimatorConfig, NoiseTracker, estimate_noise  # noqa: E402
+from svelive.noise import EstimatorConfig, NoiseTracker, estimate_from_frame  # noqa: E402
 from svelive.simulate import exposure_scale, simulate  # noqa: E402
 
 PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
@@ -262,7 +262,7 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
                     raw = sim.raw
                     camera = Camera.build(pattern, cfa, Sensor(BITS, BLACK))
                     t0 = time.perf_counter()
-                    est = estimate_noise(raw, camera, config=config)
+                    est = estimate_from_frame(raw, camera, config=config)
                     ms = (time.perf_counter() - t0) * 1e3
                     eg = 100 * (est.gain / truth.gain - 1)
                     er = 100 * (est.read_noise / truth.read_noise - 1)
@@ -337,7 +337,7 @@ def run(images: list[Path], patterns: list[tuple[str, str | None]], models, seed
 
 
 def time_estimate(patterns: list[str], seed: int, repeats: int = 5) -> int:
-    """Print the median wall time of estimate_noise on one 1920x1200 frame per pattern and configuration."""
+    """Print the median wall time of estimate_from_frame on one 1920x1200 frame per pattern and configuration."""
     import cv2
 
     from svelive.simulate import load_sample_scene
@@ -347,16 +347,16 @@ def time_estimate(patterns: list[str], seed: int, repeats: int = 5) -> int:
     configs = (("residual fit alone", EstimatorConfig(cancellation=False)),
                ("texture cancelled", EstimatorConfig(cancel_jackknife=0)),
                ("with its jackknife (default)", EstimatorConfig()))
-    print(f"# estimate_noise, desk crop at 1920x1200, 10000 e- / 2 DN, load {os.getloadavg()[0]:.2f}")
+    print(f"# estimate_from_frame, desk crop at 1920x1200, 10000 e- / 2 DN, load {os.getloadavg()[0]:.2f}")
     for pattern in patterns:
         raw = simulate(scene * exposure_scale(scene, Pattern.parse(pattern), sensor), pattern, sensor, seed=seed).raw
         camera = Camera(Pattern.parse(pattern), None, Sensor(bits=12, black_level=64))
         for name, config in configs:
-            estimate_noise(raw, camera, config=config)  # warm-up (kernels)
+            estimate_from_frame(raw, camera, config=config)  # warm-up (kernels)
             times = []
             for _ in range(repeats):
                 start = time.perf_counter()
-                estimate = estimate_noise(raw, camera, config=config)
+                estimate = estimate_from_frame(raw, camera, config=config)
                 times.append(time.perf_counter() - start)
             print(f"{pattern:10s} {name:30s} {np.median(times) * 1e3:6.0f} ms  gain {estimate.gain:.2f} "
                   f"(true {sensor.gain:.2f})", flush=True)

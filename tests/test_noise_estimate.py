@@ -1,4 +1,4 @@
-"""The noise model from the data (svelive/noise.py): gain and read noise estimated from SVE frames.
+"""The noise model from the data (svelive/noise/): gain and read noise estimated from SVE frames.
 
 Simulated frames with known gain and read noise, on synthetic smooth scenes and on the shipped
 crops (svelive/data), mono and colour; the stream tracker; the wiring into svelive.reconstruct.
@@ -21,7 +21,7 @@ from svelive.noise import (
     NoiseEstimate,
     NoiseTracker,
     cancellation_fit,
-    estimate_noise,
+    estimate_from_frame,
     fit_line,
     joint_texture_fit,
 )
@@ -63,7 +63,7 @@ def frame(scene: np.ndarray, pattern: str, truth: Sensor, stops: float, cfa: str
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
 def test_smooth_scene_gain_and_read_noise_within_15_percent(pattern, stops, full_well, read):
     truth = true_sensor(full_well, read)
-    est = estimate_noise(frame(smooth_scene(), pattern, truth, stops).raw, unknown(pattern))
+    est = estimate_from_frame(frame(smooth_scene(), pattern, truth, stops).raw, unknown(pattern))
     assert est.source == "estimated"
     assert est.gain == pytest.approx(truth.gain, rel=0.15)
     assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
@@ -78,7 +78,7 @@ def test_colour_frames_estimated_from_same_colour_neighbours(layout, full_well, 
     pattern, cfa = COLOUR_LAYOUTS[layout]
     truth = true_sensor(full_well, read)
     raw = frame(smooth_scene(rgb=True), pattern, truth, 0, cfa=cfa).raw
-    est = estimate_noise(raw, unknown(pattern, cfa))
+    est = estimate_from_frame(raw, unknown(pattern, cfa))
     assert est.gain == pytest.approx(truth.gain, rel=0.15)
     assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
 
@@ -97,7 +97,7 @@ def test_texture_does_not_inflate_the_estimate(name, full_well, read):
     (Not every crop and model gets there: docs/noise.md lists the misses.)"""
     truth = true_sensor(full_well, read)
     raw = frame(load_sample_scene(name), "1,4/16,64", truth, 0).raw
-    est = estimate_noise(raw, unknown("1,4/16,64"))
+    est = estimate_from_frame(raw, unknown("1,4/16,64"))
     assert est.source == "estimated"
     assert est.gain == pytest.approx(truth.gain, rel=0.2)
     assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
@@ -112,7 +112,7 @@ def test_desk_crop_truth_within_the_stated_uncertainty(full_well, read):
     (plus 10 % for what texture adds) of the estimate, or the estimate says it fell back to the defaults."""
     truth = true_sensor(full_well, read)
     for stops in (0, 5):
-        est = estimate_noise(frame(load_sample_scene("desk"), "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
+        est = estimate_from_frame(frame(load_sample_scene("desk"), "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
         if est.source == "default":
             continue
         assert abs(est.gain - truth.gain) <= 3 * est.gain_sigma + 0.1 * truth.gain, stops
@@ -124,17 +124,17 @@ def test_read_noise_on_shipped_crops_bright_and_dim(full_well, read):
     truth = true_sensor(full_well, read)
     scene = load_sample_scene("desk")
     for stops in (0, 5):
-        est = estimate_noise(frame(scene, "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
+        est = estimate_from_frame(frame(scene, "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
         assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15), stops
 
 
 def test_given_values_are_kept_and_held_fixed():
     truth = true_sensor(10_000, 2.0)
     raw = frame(smooth_scene(), "1,4/16,64", truth, 0).raw
-    given = estimate_noise(raw, Camera.build("1,4/16,64", None, truth))
+    given = estimate_from_frame(raw, Camera.build("1,4/16,64", None, truth))
     assert (given.gain, given.read_noise, given.source) == (truth.gain, truth.read_noise, "given")
     half = Camera.build("1,4/16,64", None, Sensor(BITS, BLACK, None, truth.gain, None))
-    est = estimate_noise(raw, half)
+    est = estimate_from_frame(raw, half)
     assert est.gain == truth.gain and est.gain_sigma == 0.0
     assert est.read_noise == pytest.approx(truth.read_noise, rel=0.1)
     assert est.apply(half.sensor).gain == truth.gain
@@ -142,7 +142,7 @@ def test_given_values_are_kept_and_held_fixed():
 
 def test_blank_or_saturated_frame_falls_back_to_the_defaults():
     for value in (BLACK, 2**BITS - 1):
-        est = estimate_noise(np.full((64, 64), value, np.uint16), unknown("1,4/16,64"))
+        est = estimate_from_frame(np.full((64, 64), value, np.uint16), unknown("1,4/16,64"))
         sensor = Sensor(BITS, BLACK)
         assert est.source == "default"
         assert est.gain == pytest.approx(sensor.effective_gain)
@@ -166,7 +166,7 @@ def test_report_forms_are_json_safe():
 def test_reconstruct_without_noise_model_uses_the_estimate():
     truth = true_sensor(3_000, 6.0)
     raw = frame(load_sample_scene("desk"), "1,4/16,64", truth, 5).raw
-    est = estimate_noise(raw, unknown("1,4/16,64"))
+    est = estimate_from_frame(raw, unknown("1,4/16,64"))
     auto = svelive.reconstruct(raw, "1,4/16,64", black_level=BLACK, white_level=2**BITS - 1)
     explicit = svelive.reconstruct(raw, "1,4/16,64", black_level=BLACK, white_level=2**BITS - 1,
                                    gain=est.gain, read_noise=est.read_noise)
@@ -217,7 +217,7 @@ def test_gain_one_frame_cannot_tell_is_declared_unknown_not_wrong(stops):
     say so through its uncertainty (at least 50 %, the truth within two of it) rather than be
     confidently wrong; the read noise it can tell."""
     truth = true_sensor(40_000, 6.0)
-    est = estimate_noise(frame(load_sample_scene("desk"), "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
+    est = estimate_from_frame(frame(load_sample_scene("desk"), "1,4/16,64", truth, stops).raw, unknown("1,4/16,64"))
     assert est.read_noise == pytest.approx(truth.read_noise, rel=0.15)
     assert est.gain_sigma >= 0.5 * est.gain
     assert covered(est.gain, est.gain_sigma, truth.gain)
@@ -232,7 +232,7 @@ def test_two_static_frames_give_the_gain_one_textured_frame_misses(full_well, re
     scene = load_sample_scene("mttamwest")
     camera = unknown("1,4/16,64")
     first, second = (frame(scene, "1,4/16,64", truth, 0, seed=seed).raw for seed in (1, 2))
-    one = estimate_noise(first, camera)
+    one = estimate_from_frame(first, camera)
     assert abs(one.gain / truth.gain - 1) > 0.15
     tracker = NoiseTracker()
     tracker.update(first, camera)
@@ -244,7 +244,7 @@ def test_two_static_frames_give_the_gain_one_textured_frame_misses(full_well, re
 def test_calibrate_single_frame_does_not_state_a_default_gain_as_exact():
     """A black frame (no signal range) gives the read noise but not the gain: ``svelive calibrate noise``
     keeps the default gain and must state the prior's uncertainty for it, not 0."""
-    from svelive.calibrate.noise import estimate_noise as calibrate_noise
+    from svelive.calibrate.noise import calibrate_noise
 
     truth = true_sensor(10_000, 2.0)
     raw = simulate(np.zeros((256, 256), np.float32), Pattern.parse("1,4/16,64"), truth, seed=1).raw
@@ -277,8 +277,8 @@ def test_texture_cancelled_across_exposures(pattern, full_well, read):
     removes it: the gain within 15 %, the truth within two stated sigma (log), the read noise within 15 %."""
     truth = true_sensor(full_well, read)
     raw = frame(textured_scene(), pattern, truth, 0).raw
-    residual_only = estimate_noise(raw, unknown(pattern), config=EstimatorConfig(cancellation=False))
-    est = estimate_noise(raw, unknown(pattern))
+    residual_only = estimate_from_frame(raw, unknown(pattern), config=EstimatorConfig(cancellation=False))
+    est = estimate_from_frame(raw, unknown(pattern))
     assert est.source == "estimated"
     assert est.gain == pytest.approx(truth.gain, rel=0.15)
     assert abs(math.log(est.gain / truth.gain)) <= 2 * est.gain_sigma / est.gain
@@ -327,16 +327,16 @@ def test_texture_cancellation_holds_a_given_read_noise():
     textured frame within 15 %, and the samples counted are the joint fit's residuals."""
     truth = true_sensor(40_000, 0.7)
     raw = frame(textured_scene(), "1,2/4,8", truth, 0).raw
-    est = estimate_noise(raw, Camera.build("1,2/4,8", None, Sensor(BITS, BLACK, None, None, truth.read_noise)))
+    est = estimate_from_frame(raw, Camera.build("1,2/4,8", None, Sensor(BITS, BLACK, None, None, truth.read_noise)))
     assert est.read_noise == truth.read_noise and est.read_noise_sigma == 0.0
     assert est.gain == pytest.approx(truth.gain, rel=0.15)
-    residual_only = estimate_noise(raw, unknown("1,2/4,8"), config=EstimatorConfig(cancellation=False))
+    residual_only = estimate_from_frame(raw, unknown("1,2/4,8"), config=EstimatorConfig(cancellation=False))
     assert est.samples > residual_only.samples
 
 
 def test_tracker_without_static_pixels_cancels_texture_too():
     """A moving camera gives the tracker no static pixels, so it has only single-frame evidence: it takes
-    the recent frames' texture-cancelled fits as estimate_noise does, and the gain of a textured scene
+    the recent frames' texture-cancelled fits as estimate_from_frame does, and the gain of a textured scene
     comes out within 15 % where the residual samples alone read it low."""
     truth = true_sensor(40_000, 0.7)
     scene = textured_scene()
@@ -360,7 +360,7 @@ def test_heavy_texture_gain_uncertainty_covers_the_truth(pattern, full_well, rea
     stated sigma (log). Without the jackknife these three frames state 12-20 % and miss by 23-37 %."""
     truth = true_sensor(full_well, read)
     raw = frame(textured_scene(512, 0.3, seed), pattern, truth, 0).raw
-    est = estimate_noise(raw, unknown(pattern))
+    est = estimate_from_frame(raw, unknown(pattern))
     assert est.source == "estimated"
     assert abs(math.log(est.gain / truth.gain)) <= 2 * est.gain_sigma / est.gain
 
@@ -387,7 +387,7 @@ def test_textured_scene_gain_within_15_percent_everywhere(seed):
     for pattern in ("1,4/16,64", "1,2/4,8", "1/1/8/8"):
         for full_well, read in ((10_000, 2.0), (40_000, 0.7), (20_000, 1.2), (3_000, 6.0)):
             truth = true_sensor(full_well, read)
-            est = estimate_noise(frame(scene, pattern, truth, 0, seed=seed + 1).raw, unknown(pattern))
+            est = estimate_from_frame(frame(scene, pattern, truth, 0, seed=seed + 1).raw, unknown(pattern))
             assert est.gain == pytest.approx(truth.gain, rel=0.15), (pattern, full_well, read)
 
 
@@ -501,7 +501,7 @@ def _cells(rng: np.random.Generator, symmetric: bool, excess: float = 0.0):
     2 % contrast): squared residuals with the expected value the joint fit models; ``excess`` adds
     variance growing with the signal to the lower base exposure's residuals only (a gradient that the
     two base exposures' rows see differently)."""
-    from svelive.noise import _CancellationSamples
+    from svelive.noise.cancellation import _CancellationSamples
     n = 6000
     level = rng.uniform(5, 300, n)
     e = np.array([1.0, 8.0])
@@ -518,7 +518,7 @@ def test_one_sided_geometries_kept_unless_they_bias_the_joint_fit():
     symmetric ones alone replaces the fit of all of them only where the two disagree beyond two of its
     standard deviations: one-sided residuals keep the scene's gradient (a bias more data does not
     shrink), but small frames need their residuals."""
-    from svelive.noise import _cancellation_table, _without_gradient_bias
+    from svelive.noise.cancellation import _cancellation_table, _without_gradient_bias
     config = EstimatorConfig()
     fixed = {"slope": None, "intercept": None}
     for excess, biased in ((0.0, False), (0.3, True)):
@@ -541,7 +541,8 @@ def test_an_imprecise_joint_fit_is_taken_where_the_residual_fit_is_biased():
     """The joint fit is taken beyond cancel_max_sigma where the residual fit's slope lies more than two
     of the joint fit's standard deviations above it (texture biases the residual fit that way only), or
     where there is no residual fit; not where the residual fit is within reach of it."""
-    from svelive.noise import LineFit, _preferred
+    from svelive.noise import LineFit
+    from svelive.noise.frame import _preferred
 
     def line(slope: float, sd: float, fixed: bool = False) -> LineFit:
         return LineFit(slope, 4.0, np.diag([sd * sd, 0.01]), np.zeros(0), np.zeros(0), np.zeros(0),
@@ -598,7 +599,7 @@ def test_the_pool_is_fitted_once_per_run(monkeypatch):
     """Once three frames' samples suffice (here one run's: a small frame), the pool does not change
     between a run's first two frames and the run before, so a run costs one fit of the pool, however
     the frames are given."""
-    import svelive.noise as noise
+    import svelive.noise.tracker as noise
 
     calls = []
 
@@ -643,7 +644,8 @@ def test_three_frames_keep_the_few_dark_pixels_of_a_bright_scene():
 def test_whole_dn_readings_are_chosen_as_per_pixel():
     """The table of whole-DN values that chooses three frames' pixels gives what computing the clip
     test and the stratum for every pixel gives (a non-integer signal takes that path)."""
-    from svelive.noise import _bin_index, _clear_of_clipping, _clear_strata
+    from svelive.noise.stats import _bin_index
+    from svelive.noise.temporal import _clear_of_clipping, _clear_strata
 
     x = np.round(np.random.default_rng(1).gamma(1.0, 300.0, 100_000)).astype(np.float32) - 5
     candidates = np.arange(x.size)

@@ -11,7 +11,7 @@ import svelive
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.metrics import pu21_psnr
-from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise, agree, estimate_noise, variance_uncertainty
+from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise, agree, estimate_from_frame, variance_uncertainty
 from svelive.scenes import render_sequence, static
 from svelive.simulate import exposure_scale, load_sample_scene
 
@@ -59,7 +59,7 @@ def test_noise_reports_the_estimate_with_its_uncertainty_not_the_defaults(desk_r
     assert abs(Sensor(12, 64, 4095).effective_gain / TRUE.gain - 1) > 1.0  # the defaults are far off
     assert stream.noise_trusted
     # frame 1's model is the single-frame estimate, as svelive.reconstruct uses it; refined from frame 2 on
-    one = estimate_noise(dim_frames("desk", 1)[0].raw, svelive.Camera.build(PATTERN, None, Sensor(12, **LEVELS)))
+    one = estimate_from_frame(dim_frames("desk", 1)[0].raw, svelive.Camera.build(PATTERN, None, Sensor(12, **LEVELS)))
     assert (models[0].gain, models[0].read_noise) == (one.gain, one.read_noise)
     assert models[2] is not models[0]
 

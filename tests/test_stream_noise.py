@@ -16,7 +16,7 @@ from svelive.core.frame import Frame
 from svelive.core.sensor import Sensor
 from svelive.exr import read_exr
 from svelive.motion_commands import with_cameras
-from svelive.noise import estimate_noise
+from svelive.noise import estimate_from_frame
 from svelive.reconstruction.stream import NOISE_FRAMES, Reconstructor, stream_noise
 from svelive.simulate import exposure_scale, load_sample_scene, simulate
 
@@ -45,8 +45,8 @@ def test_three_still_frames_give_the_gain_within_15_percent_where_the_defaults_a
     assert abs(estimate.gain - TRUE.gain) < 2 * estimate.gain_sigma + 0.15 * TRUE.gain
     # one frame is what stream_noise gives for a single frame
     one = stream_noise(frames[:1], camera)
-    assert (one.gain, one.read_noise) == (estimate_noise(frames[0], camera).gain,
-                                          estimate_noise(frames[0], camera).read_noise)
+    assert (one.gain, one.read_noise) == (estimate_from_frame(frames[0], camera).gain,
+                                          estimate_from_frame(frames[0], camera).read_noise)
 
 
 def test_given_values_are_kept_and_no_frame_is_an_error():

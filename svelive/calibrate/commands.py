@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
-from svelive.calibrate.noise import estimate_noise
+from svelive.calibrate.noise import calibrate_noise
 from svelive.calibrate.response import SWEEP_KNOTS, ResponseFitConfig, fit_response, save_response, write_json
 from svelive.commands import read_raw
 from svelive.core.atomic import check_output_target
@@ -194,7 +194,7 @@ def _noise(args: argparse.Namespace) -> int:
     frames = [read_raw(p) for p in args.frames]
     sensor = sensor_from_args(frames[0], args, args.frames[0], required=False)
     pattern = Pattern.parse(args.pattern) if args.pattern else None
-    model = estimate_noise(frames, sensor, pattern)
+    model = calibrate_noise(frames, sensor, pattern)
     data = model.to_dict()
     if args.output:
         write_json(data, args.output)

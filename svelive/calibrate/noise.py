@@ -21,19 +21,26 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from statistics import NormalDist
 
 import numpy as np
 
+from svelive.core.camera import Camera
 from svelive.core.errors import SveliveError
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
-from svelive.noise import PRIOR_LOG_SIGMA, EstimatorConfig, LineFit, frame_fit, pair_fit
+from svelive.noise import (
+    PRIOR_LOG_SIGMA,
+    QUANTISATION_VARIANCE,
+    EstimatorConfig,
+    LineFit,
+    chi2_quantile,
+    frame_fit,
+    pair_fit,
+)
 
-#: Variance of uniform quantisation to integers, DN^2.
-QUANTISATION_VARIANCE = 1.0 / 12.0
-#: MAD to standard deviation for a normal distribution.
-MAD_TO_SIGMA = 1.4826
+#: The name svelive/calibrate/response imports the chi-square quantile by; its home is svelive.noise.stats
+#: (transitional: to go once response imports ``chi2_quantile`` from there).
+_chi2_quantile = chi2_quantile
 
 
 @dataclass(frozen=True)
@@ -180,13 +187,6 @@ def _model(fit: LineFit, samples: int, method: str) -> NoiseModel:
                       read_noise_sigma=read_sigma)
 
 
-def _chi2_quantile(q: float, dof: int) -> float:
-    """Quantile of chi-square with ``dof`` degrees of freedom (Wilson-Hilferty approximation)."""
-    z = NormalDist().inv_cdf(q)
-    t = 2.0 / (9.0 * dof)
-    return dof * (1.0 - t + z * math.sqrt(t)) ** 3
-
-
 def noise_curve_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *, bins: int = 24,
                       window: int = 3, quantile: float = 0.1, min_count: int = 50) -> NoiseCurve:
     """Noise variance against signal from one frame of a static scene.
@@ -234,7 +234,7 @@ def noise_curve_frame(raw: np.ndarray, pattern: Pattern | str, sensor: Sensor, *
         raise SveliveError(f"only {s.size} unclipped {span}x{span}-tile windows; use a larger frame exposed "
                            "below saturation")
     dof = window * window
-    correction = _chi2_quantile(quantile, dof) / dof
+    correction = chi2_quantile(quantile, dof) / dof
     return _bin_statistics(s, e, lambda v: np.quantile(v, quantile) / correction, bins, min_count)
 
 
@@ -275,7 +275,7 @@ def fit_noise_model(curve: NoiseCurve, method: str, *, robust: bool = False,
                       residual_rms=resid)
 
 
-def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | str | None = None) -> NoiseModel:
+def calibrate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | str | None = None) -> NoiseModel:
     """Gain and read noise from two frames of a static scene, or from one frame (needs ``pattern``).
 
     Args:
@@ -293,8 +293,6 @@ def estimate_noise(frames: list[np.ndarray], sensor: Sensor, pattern: Pattern | 
     if len(frames) == 1:
         if pattern is None:
             raise SveliveError("noise from a single frame needs the exposure pattern (--pattern)")
-        from svelive.core.camera import Camera
-
         raw = np.asarray(frames[0])
         camera = Camera(Pattern.parse(pattern), None, replace(sensor, gain=None, read_noise=None))
         fit, count = frame_fit(raw, camera)  # what svelive.reconstruct estimates, texture cancelled

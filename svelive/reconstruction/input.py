@@ -21,7 +21,7 @@ from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.response import linearise
 from svelive.core.sensor import Sensor
-from svelive.noise import NoiseEstimate, estimate_noise
+from svelive.noise import NoiseEstimate, estimate_from_frame
 from svelive.reconstruction.methods.base import SveInput, exposure_maps
 
 
@@ -78,7 +78,7 @@ def with_noise_model(raw: np.ndarray, camera: Camera, inp: SveInput,
     """The camera and input with the noise model filled in where the sensor has none.
 
     Given values are never overridden. When gain or read noise is unknown, ``noise`` (an
-    estimate already made) or else :func:`svelive.noise.estimate_noise` of this frame supplies it,
+    estimate already made) or else :func:`svelive.noise.estimate_from_frame` of this frame supplies it,
     and the censoring, which depends on the noise at white, is recomputed. ``raw`` is the frame
     ``inp`` was prepared from.
     """
@@ -86,7 +86,7 @@ def with_noise_model(raw: np.ndarray, camera: Camera, inp: SveInput,
     if sensor.gain is not None and sensor.read_noise is not None:
         return camera, inp, NoiseEstimate.given(sensor)
     if noise is None:
-        noise = estimate_noise(raw, camera, signal=inp.signal if camera.response is not None else None)
+        noise = estimate_from_frame(raw, camera, signal=inp.signal if camera.response is not None else None)
     sensor = noise.apply(sensor)
     camera = camera.replace(sensor=sensor)
     return camera, replace(inp, sensor=sensor, censored=inp.signal >= sensor.censor_level), noise

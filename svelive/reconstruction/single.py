@@ -87,7 +87,7 @@ def reconstruct(raw: np.ndarray, pattern: Pattern | str | Camera, *, cfa: Colour
             pixel and colour from the local channel ratios) or ``"split"`` (the method
             on each CFA channel alone, then demosaicing: the baseline).
         noise: where the sensor lacks gain or read noise: ``"estimate"`` (from this frame,
-            :func:`svelive.noise.estimate_noise`), ``"default"`` (the fixed defaults of sensor.py),
+            :func:`svelive.noise.estimate_from_frame`), ``"default"`` (the fixed defaults of sensor.py),
             or a :class:`svelive.noise.NoiseEstimate` already made (e.g. to print it too).
             Given values are never overridden.
         return_confidence: also return the confidence map (see :func:`confidence_map`).
