@@ -184,8 +184,7 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
         # must end as soon as the signal comes, not be cancelled (and logged as errors) later
         restore_signals = on_exit_signal(shutdown_streams)
         for cam in cameras:
-            cam.hub = StreamHub(loop)
-            cam.pipeline.add_listener(cam.hub.on_frame)
+            cam.hub = StreamHub(cam.pipeline.jpeg_port)
         app.state.hub = cameras[0].hub
         startup = Startup(cameras if manage_pipeline else [], warm_up)
         try:
@@ -195,8 +194,6 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
             closing.set()
             started = startup.end()
             restore_signals()
-            for cam in cameras:
-                cam.pipeline.remove_listener(cam.hub.on_frame)
             # stopped together, so that shutdown takes as long as the slowest camera, not their sum
             await asyncio.gather(*(run_in_threadpool(cam.pipeline.stop, STOP_JOIN_S) for cam in started))
 

@@ -610,7 +610,8 @@ def test_the_service_reopens_a_failed_replay_where_it_stopped(tmp_path: Path) ->
 
     from service.pipeline.capture import CaptureStage
     from service.pipeline.config import PipelineConfig
-    from service.pipeline.meters import DropCounter, NewestSlot
+    from service.pipeline.handoff import NewestSlot
+    from service.pipeline.meters import DropCounter
     from svelive.capture.replay import ReplaySource
 
     path = tmp_path / "f.sverec"

@@ -25,7 +25,8 @@ from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.exr import REC709_CHROMATICITIES, read_exr
 from svelive.simulate import exposure_scale, load_sample_scene, simulate
-from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, SimSource, make_camera, mjpeg_parts
+from tests.test_service_helpers import (PATTERN, SENSOR, Camera, PortReader, ServerThread, SimSource, make_camera,
+                                        mjpeg_parts)
 
 CFA = "RGGB"
 #: The light as the camera sees it: strong red, weak blue.
@@ -231,14 +232,14 @@ def test_pipeline_encodes_each_colour_frame_once_and_only_while_watched(camera):
             assert time.monotonic() < deadline and pipeline.reconstruction.error is None, pipeline.reconstruction.error
             time.sleep(0.05)
         assert pipeline.encoded.count == 0  # nobody watches: nothing encoded
-        seen = []
-        pipeline.add_listener(seen.append)
-        pipeline.watch(+1)
-        deadline = time.monotonic() + 20
-        while len(seen) < 4:
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        pipeline.watch(-1)
+        with PortReader(pipeline.jpeg_port) as reader:
+            seen = reader.items
+            pipeline.watch(+1)
+            deadline = time.monotonic() + 20
+            while len(seen) < 4:
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            pipeline.watch(-1)
         live = [item for item in seen if item.signal]
         assert len({item.hdr_seq for item in live}) == len(live)  # one JPEG per reconstructed frame
         assert decode(live[0].jpeg).shape == SHAPE + (3,)

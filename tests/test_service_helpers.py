@@ -31,6 +31,34 @@ PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
 
 
+class PortReader:
+    """Takes every new item of a pipeline port (a ``service.pipeline.Newest``) in a thread of its own, as a
+    publisher does, into ``items`` (a context manager: reads between enter and exit)."""
+
+    def __init__(self, port) -> None:
+        self.port = port
+        self.items: list = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+
+    def _read(self) -> None:
+        seen = self._seen
+        while not self._stop.is_set():
+            got = self.port.get_newest(seen, 0.05)
+            if got is not None:
+                seen, item = got
+                self.items.append(item)
+
+    def __enter__(self) -> PortReader:
+        self._seen = self.port.seq  # what comes after the enter
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
 def reference_image(raw: np.ndarray, pattern: Pattern | str = PATTERN, response=None) -> np.ndarray:
     """What the service's single-frame reconstruction (no temporal fusion, default method) makes of ``raw``."""
     camera = CameraDescription(Pattern.parse(pattern), sensor=SENSOR, response=response)

@@ -83,12 +83,11 @@ def test_frames_dropped_between_reconstructed_ones_still_make_runs():
     raw = np.zeros((8, 8), np.uint16)
     for frame_id in (0, 4, 9):
         stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
-    run = stage._pending
-    assert run is not None and [f.frame_id for f in run.frames] == [0, 4, 9] and len(run.static) == 2
-    stage._pending = None
+    taken, run = stage._runs.get_newest(0, 0)
+    assert [f.frame_id for f in run.frames] == [0, 4, 9] and len(run.static) == 2
     for frame_id in (12, 3, 5):
         stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
-    assert stage._pending is None
+    assert stage._runs.get_newest(taken, 0) is None
 
 
 def test_unfused_frames_are_not_offered_as_still():

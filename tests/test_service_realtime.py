@@ -73,15 +73,15 @@ class EncoderHarness:
     """An EncoderStage on its own thread, fed by hand: ``publish`` sets the newest reconstructed frame."""
 
     def __init__(self) -> None:
-        from service.pipeline import DropCounter, EncoderStage, PipelineConfig
+        from service.pipeline import DropCounter, EncoderStage, Newest, PipelineConfig
+        from tests.test_service_helpers import PortReader
 
         self.cond, self.stop, self.drops = threading.Condition(), threading.Event(), DropCounter()
-        self.current = None
-        self.stage = EncoderStage(PipelineConfig(source="sim"), lambda: self.current, lambda: True, self.cond,
+        self.published = Newest(self.cond)
+        self.stage = EncoderStage(PipelineConfig(source="sim"), self.published, lambda: True, self.cond,
                                   self.drops, self.stop)
-        self.jpegs, self.previews = [], []
-        self.stage.add_listener(self.jpegs.append)
-        self.stage.add_preview_listener(self.previews.append)
+        self.readers = [PortReader(self.stage.jpeg_port).__enter__(), PortReader(self.stage.preview_port).__enter__()]
+        self.jpegs, self.previews = self.readers[0].items, self.readers[1].items
         self.image = np.random.default_rng(0).uniform(1, 4000, (16, 24)).astype(np.float32)
         self.thread = threading.Thread(target=self.stage.run, daemon=True)
         self.thread.start()
@@ -94,8 +94,7 @@ class EncoderHarness:
         with self.cond:
             for seq in seqs:
                 now = time.monotonic_ns()
-                self.current = Published(HdrFrame(self.image, None, seq, now), seq, now)
-            self.cond.notify_all()
+                assert self.published.put(Published(HdrFrame(self.image, None, seq, now), seq, now)) == seq
 
     def wait(self, predicate, what: str) -> None:
         deadline = time.monotonic() + 10
@@ -108,6 +107,8 @@ class EncoderHarness:
         with self.cond:
             self.cond.notify_all()
         self.thread.join(5)
+        for reader in self.readers:
+            reader.__exit__()
 
 
 def test_frames_nobody_watched_are_not_drops():
@@ -153,7 +154,8 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
     """The live stage's threads each estimate a frame and fuse in arrival order: what it publishes is
     exactly the sequential stream's output, frame for frame."""
     from service.pipeline.calibration import Calibration
-    from service.pipeline.meters import DropCounter, NewestSlot, RateMeter
+    from service.pipeline.handoff import Newest, NewestSlot
+    from service.pipeline.meters import DropCounter, RateMeter
     from service.pipeline.quality import LiveQuality
     from service.pipeline.reconstruction import ReconstructionStage
     from svelive.core.camera import Camera
@@ -164,7 +166,7 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
     raws = [f.raw for f in render_sequence(disc, 7, PATTERN, SENSOR, seed=4)]
     camera = Camera.build(PATTERN, sensor=SENSOR)
     expected = [r.image for r in run_plain(raws)]
-    slot, stop, cond = NewestSlot(len(raws)), threading.Event(), threading.Condition()
+    slot, stop, port = NewestSlot(len(raws)), threading.Event(), Newest()
     for i, raw in enumerate(raws):  # all waiting at once: every thread has a frame to take
         slot.put(Frame(raw=raw, frame_id=i, host_time_ns=time.monotonic_ns(), pixel_format="Mono12", camera=camera))
     published = []
@@ -175,7 +177,7 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
             published.append(self.latest())
 
     quality = LiveQuality(default_method(True), True, "fixed")
-    stage = Recorded(slot, Calibration(None, None, lambda: None, stop), quality, RateMeter(), workers, cond,
+    stage = Recorded(slot, Calibration(None, None, lambda: None, stop), quality, RateMeter(), workers, port,
                      DropCounter(), stop, frames=frames)
     thread = threading.Thread(target=stage.run)
     thread.start()

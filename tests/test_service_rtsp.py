@@ -19,7 +19,7 @@ from service.publishers import rtsp
 from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
 from svelive.core.errors import SveliveError
 from tests.test_service_colour import ColourSimSource, make_colour_camera
-from tests.test_service_helpers import SimSource, make_camera
+from tests.test_service_helpers import PortReader, SimSource, make_camera
 
 
 def _missing() -> str | None:
@@ -166,10 +166,9 @@ def test_no_client_no_encoding_then_a_client_decodes_the_preview(mono_pipeline):
 
 def test_one_encoding_shared_by_two_clients_and_with_mjpeg(mono_pipeline):
     pipeline = mono_pipeline
-    previews, jpegs = [], []
-    pipeline.encoder.add_preview_listener(previews.append)
-    pipeline.add_listener(jpegs.append)
-    with RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
+    with PortReader(pipeline.preview_port) as preview_reader, PortReader(pipeline.jpeg_port) as jpeg_reader, \
+            RtspPublisher(pipeline, host="127.0.0.1", port=0) as publisher:
+        previews, jpegs = preview_reader.items, jpeg_reader.items
         pipeline.watch(+1)  # an MJPEG client
         try:
             with RtspClient(publisher.url, publisher=publisher) as first, RtspClient(publisher.url, publisher=publisher) as second:
@@ -187,7 +186,6 @@ def test_one_encoding_shared_by_two_clients_and_with_mjpeg(mono_pipeline):
     wait_until(lambda: pipeline.encoder.previews.count == len({p.hdr_seq for p in previews if p.signal}
                                                                | {j.hdr_seq for j in jpegs if j.signal}),
                timeout=5, what="one tone map per frame")
-    pipeline.encoder.remove_preview_listener(previews.append)
 
 
 def test_a_late_joiner_gets_a_keyframe_at_once(mono_pipeline):

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 
-from service.pipeline import NewestSlot, no_signal_image, opencv_threads
+from service.pipeline import Newest, NewestSlot, no_signal_image, opencv_threads
 from service.settings import resolve
 from svelive.core.errors import SveliveError
 
@@ -96,6 +98,40 @@ def test_newest_slot_keeps_the_newest_and_counts_drops():
     slot.close()
     reader.join(5)
     assert not reader.is_alive() and got == ["x", None]
+
+
+def test_newest_hands_every_reader_the_newest_item_in_threads_and_on_event_loops():
+    port = Newest()
+    assert port.seq == 0 and port.latest() is None and port.get_newest(0, 0.01) is None
+    assert [port.put(c) for c in "abc"] == [1, 2, 3]
+    assert port.get_newest(0, 0) == (3, "c") and port.newest(3) is None  # the newest only: a and b skipped
+    # a waiting thread wakes on put (within far less than its timeout) and on wake (None: look again)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(port.get_newest(3, 5)))
+    reader.start()
+    time.sleep(0.05)
+    port.put("d")
+    reader.join(5)
+    assert got == [(4, "d")]
+    reader = threading.Thread(target=lambda: got.append(port.get_newest(4, 5)))
+    reader.start()
+    time.sleep(0.05)
+    port.wake()
+    reader.join(5)
+    assert not reader.is_alive() and got[-1] is None
+
+    async def readers() -> list:
+        # many readers on one loop, woken by a put from another thread, each with the newest item
+        waits = [asyncio.create_task(port.wait_newest(4, 5)) for _ in range(20)]
+        await asyncio.sleep(0.05)
+        threading.Thread(target=port.put, args=("e",)).start()
+        results = await asyncio.gather(*waits)
+        timed_out = await port.wait_newest(5, 0.05)
+        return [*results, timed_out]
+
+    started = time.monotonic()
+    results = asyncio.run(readers())
+    assert results == [(5, "e")] * 20 + [None] and time.monotonic() - started < 2
 
 
 def test_helpers():

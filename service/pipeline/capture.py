@@ -10,7 +10,8 @@ from dataclasses import replace
 from typing import Any
 
 from service.pipeline.config import FALLBACK_PATTERN, PipelineConfig
-from service.pipeline.meters import DropCounter, NewestSlot, RateMeter
+from service.pipeline.handoff import NewestSlot
+from service.pipeline.meters import DropCounter, RateMeter
 from svelive.capture import Source
 from svelive.core.camera import Camera
 from svelive.core.frame import Frame

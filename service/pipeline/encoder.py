@@ -1,7 +1,7 @@
 """The encoder stage: tone map of the newest HdrFrame while someone watches, then JPEG while MJPEG clients
-watch, "no signal" frames while the source is offline, and the hand-off of every JPEG to the listeners (the
-HTTP fan-out) and of every tone-mapped 8-bit preview to the preview listeners (RTSP): the tone map runs once
-for both.
+watch, "no signal" frames while the source is offline; every JPEG is the newest of :attr:`EncoderStage.jpeg_port`
+(the MJPEG fan-out and snapshots read it) and every tone-mapped 8-bit preview the newest of
+:attr:`EncoderStage.preview_port` (RTSP reads it): the tone map runs once for both.
 
 Colour frames (linear camera RGB) are white-balanced (fixed, or the automatic estimate smoothed over
 frame time) and taken through the optional camera -> Rec.709 matrix on their way into the tone map,
@@ -20,6 +20,7 @@ import numpy as np
 
 from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
+from service.pipeline.handoff import Newest
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
 from svelive.core.errors import SveliveError
 from svelive.tonemap import ToneMapper, ToneSettings
@@ -46,12 +47,12 @@ def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
 
 
 class EncoderStage:
-    """The encoder thread's loop, its listeners, watchers and snapshot requests.
+    """The encoder thread's loop, its output ports, watchers and snapshot requests.
 
-    Waits on ``cond`` (shared with the reconstruction stage, which notifies it on
-    every new frame) and tone-maps ``latest()`` once per new frame while anyone
-    wants it: the 8-bit preview goes to the preview listeners (RTSP) while
-    ``preview_watchers`` > 0, and is JPEG-encoded for the JPEG listeners (MJPEG)
+    Waits on ``cond`` (the condition of ``published``, the reconstruction stage's port,
+    which wakes it on every new frame) and tone-maps the newest frame once while anyone
+    wants it: the 8-bit preview goes to ``preview_port`` (RTSP) while
+    ``preview_watchers`` > 0, and is JPEG-encoded for ``jpeg_port`` (MJPEG)
     only while ``watchers`` > 0 or a snapshot is asked. ``tone``, ``colour`` and
     ``jpeg_quality`` may be changed at run time (under ``cond``).
 
@@ -60,10 +61,10 @@ class EncoderStage:
     streamed, because the encoder was still busy with an earlier frame).
     """
 
-    def __init__(self, config: PipelineConfig, latest: Callable[[], Published | None], online: Callable[[], bool],
+    def __init__(self, config: PipelineConfig, published: Newest[Published], online: Callable[[], bool],
                  cond: threading.Condition, drops: DropCounter, stop: threading.Event) -> None:
         self.config = config
-        self._latest = latest
+        self._latest = published.latest
         self._online = online
         self._cond = cond
         self._drops = drops
@@ -73,14 +74,15 @@ class EncoderStage:
         self.jpeg_quality = config.jpeg_quality
         #: owned by the encoder thread (``update``); its ``current`` is read by the others
         self._balancer = WhiteBalancer(config.colour)
-        self._encoded: EncodedFrame | None = None
+        #: every JPEG made (no-signal ones included), newest first: the MJPEG fan-out's and the snapshots' input
+        self.jpeg_port: Newest[EncodedFrame] = Newest()
+        #: every preview made for the preview watchers (no-signal ones included): RTSP's input
+        self.preview_port: Newest[PreviewFrame] = Newest()
         self._last_signal: EncodedFrame | None = None
         self._preview: PreviewFrame | None = None
         self.watchers = 0
         self.preview_watchers = 0
         self._snapshot_waiters = 0
-        self._listeners: list[Callable[[EncodedFrame], None]] = []
-        self._preview_listeners: list[Callable[[PreviewFrame], None]] = []
         #: reconstructed frames skipped while nobody streamed (neither JPEG nor preview watchers): not drops
         self.not_watched = 0
         #: the newest Published.seq counted as encoded, not_watched or encoder_busy (under ``cond``)
@@ -160,19 +162,15 @@ class EncoderStage:
                                         monotonic_to_wall(now), display.shape[1], display.shape[0])
             if item is not None:
                 self.encoded.tick()
-            with self._cond:
+            with self._cond:  # the ports' items and the snapshots' view of them change together
                 self._preview = mapped
+                if preview is not None:
+                    self.preview_port.put(preview)
                 if item is not None:
-                    self._encoded = item
                     if item.signal:
                         self._last_signal = item
-                listeners = list(self._listeners) if item is not None else []
-                preview_listeners = list(self._preview_listeners) if preview is not None else []
+                    self.jpeg_port.put(item)
                 self._cond.notify_all()
-            for listener in listeners:
-                listener(item)
-            for preview_listener in preview_listeners:
-                preview_listener(preview)
 
     def _count_not_watched(self) -> None:
         """Under ``cond``, while nobody streams: count the frames published since the last one accounted as
@@ -209,16 +207,6 @@ class EncoderStage:
             return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
         return image
 
-    def add_listener(self, callback: Callable[[EncodedFrame], None]) -> None:
-        """Call ``callback(EncodedFrame)`` from the encoder thread for every new JPEG."""
-        with self._cond:
-            self._listeners.append(callback)
-
-    def remove_listener(self, callback: Callable[[EncodedFrame], None]) -> None:
-        with self._cond:
-            if callback in self._listeners:
-                self._listeners.remove(callback)
-
     def watch(self, delta: int) -> None:
         """Add (+1) or remove (-1) a JPEG stream client; JPEGs are encoded only while there is one."""
         with self._cond:
@@ -227,20 +215,9 @@ class EncoderStage:
             self.watchers = max(0, self.watchers + delta)
             self._cond.notify_all()
 
-    def add_preview_listener(self, callback: Callable[[PreviewFrame], None]) -> None:
-        """Call ``callback(PreviewFrame)`` from the encoder thread for every new preview while
-        ``preview_watchers`` > 0. The callback must be quick (hand the image on, never encode in it)."""
-        with self._cond:
-            self._preview_listeners.append(callback)
-
-    def remove_preview_listener(self, callback: Callable[[PreviewFrame], None]) -> None:
-        with self._cond:
-            if callback in self._preview_listeners:
-                self._preview_listeners.remove(callback)
-
     def watch_previews(self, delta: int) -> None:
         """Add (+1) or remove (-1) a preview consumer (an RTSP stream with clients); frames are tone-mapped
-        for the preview listeners only while there is one, and JPEG-encoded only for ``watch``."""
+        for ``preview_port`` only while there is one, and JPEG-encoded only for ``watch``."""
         with self._cond:
             if self.watchers == 0 and self.preview_watchers == 0:
                 self._count_not_watched()
@@ -253,7 +230,7 @@ class EncoderStage:
 
     def latest_jpeg(self) -> EncodedFrame | None:
         """The newest preview JPEG (possibly a no-signal frame), or None."""
-        return self._encoded
+        return self.jpeg_port.latest()
 
     def snapshot_jpeg(self, timeout: float = 2.0) -> EncodedFrame | None:
         """A JPEG of the newest reconstructed frame, encoding it if nobody did; None if there is none."""
@@ -262,17 +239,23 @@ class EncoderStage:
             latest = self._latest()
             if latest is None:
                 return None
+            encoded = self._last_signal
+            if encoded is not None and encoded.hdr_seq >= latest.seq:
+                return encoded
+            seen = self.jpeg_port.seq  # the encoder puts under ``cond``: a JPEG of ``latest`` comes after it
             self._snapshot_waiters += 1
             self._cond.notify_all()
-            try:
-                while not self._stop.is_set():
-                    encoded = self._last_signal
-                    if encoded is not None and encoded.hdr_seq >= latest.seq:
+        try:
+            while not self._stop.is_set():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                got = self.jpeg_port.get_newest(seen, min(remaining, 0.25))
+                if got is not None:
+                    seen, encoded = got
+                    if encoded.signal and encoded.hdr_seq >= latest.seq:
                         return encoded
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        return None
-                    self._cond.wait(remaining)
-                return None
-            finally:
+            return None
+        finally:
+            with self._cond:
                 self._snapshot_waiters -= 1

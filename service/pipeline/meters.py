@@ -1,4 +1,4 @@
-"""Hand-off and measurement between the pipeline's threads: the newest-item slot, rates, latencies, drops.
+"""Measurement of the pipeline's threads: rates, latencies, drops (the hand-offs are in ``handoff``).
 
 Every class here is thread-safe: one thread writes, any thread reads.
 """
@@ -10,52 +10,11 @@ import collections
 import itertools
 import threading
 import time
-from typing import Any
 
 import numpy as np
 
 #: Samples kept per latency / rate window.
 WINDOW = 256
-
-
-class NewestSlot:
-    """Bounded hand-off between two threads that keeps the newest items and drops the oldest.
-
-    ``put`` never blocks; ``get`` blocks up to a timeout. ``dropped`` counts the
-    items pushed out unread.
-    """
-
-    def __init__(self, capacity: int = 1) -> None:
-        self._items: collections.deque = collections.deque()
-        self._capacity = capacity
-        self._cond = threading.Condition()
-        self._closed = False
-        self.dropped = 0
-
-    def put(self, item: Any) -> int:
-        """Add ``item``; returns how many old items were dropped to make room (0 or 1)."""
-        with self._cond:
-            dropped = 0
-            while len(self._items) >= self._capacity:
-                self._items.popleft()
-                dropped += 1
-            self._items.append(item)
-            self.dropped += dropped
-            self._cond.notify()
-            return dropped
-
-    def get(self, timeout: float) -> Any | None:
-        """The oldest item still held, or None after ``timeout`` seconds or once closed."""
-        with self._cond:
-            if not self._items and not self._closed:
-                self._cond.wait(timeout)
-            return self._items.popleft() if self._items else None
-
-    def close(self) -> None:
-        """Wake any waiting ``get``; later gets return what is left, then None."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
 
 
 class RateMeter:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.pipeline.handoff import Newest
 from svelive.core.camera import Camera
 from svelive.core.frame import Frame
 from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate, NoiseTracker
@@ -46,8 +47,8 @@ class NoiseStage:
         self.interval_s = interval_s
         self.change = change
         self._tracker = NoiseTracker()
-        self._cond = threading.Condition()
-        self._pending: _Run | None = None
+        #: the newest run offered (an older one not yet taken is skipped)
+        self._runs: Newest[_Run] = Newest()
         self._recent: list[tuple[Frame, np.ndarray | None]] = []  # the newest consecutive frames, oldest first
         self._recent_camera: Camera | None = None
         self._last_offer = -math.inf
@@ -90,28 +91,24 @@ class NoiseStage:
             return
         self._last_offer = now
         self._recent = []  # the next run starts afresh: no frame is handed over twice
-        with self._cond:
-            self._pending = _Run(tuple(f for f, _ in recent), tuple(m for _, m in recent[1:]), camera)
-            self._cond.notify()
+        self._runs.put(_Run(tuple(f for f, _ in recent), tuple(m for _, m in recent[1:]), camera))
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="svelive-noise", daemon=True)
         self._thread.start()
 
     def join(self, timeout: float) -> None:
-        with self._cond:
-            self._cond.notify_all()
+        self._runs.wake()
         if self._thread is not None:
             self._thread.join(timeout)
 
     def _run(self) -> None:
+        taken = 0
         while not self._stop.is_set():
-            with self._cond:
-                if self._pending is None:
-                    self._cond.wait(0.5)
-                run, self._pending = self._pending, None
-            if run is None:
+            got = self._runs.get_newest(taken, 0.5)
+            if got is None:
                 continue
+            taken, run = got
             try:
                 # only the run's last estimate is used: the pool is fitted once per run, not per frame
                 self._tracker.add(run.frames[0].raw, run.camera)

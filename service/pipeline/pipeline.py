@@ -10,14 +10,14 @@ from dataclasses import replace
 from typing import Any
 
 import cv2
-import numpy as np
 
 from service.pipeline.calibration import Calibration
 from service.pipeline.capture import CaptureStage
 from service.pipeline.config import PipelineConfig, check_jpeg_quality, check_method
 from service.pipeline.encoder import EncoderStage
-from service.pipeline.frames import EncodedFrame, Published
-from service.pipeline.meters import DropCounter, NewestSlot
+from service.pipeline.frames import EncodedFrame, PreviewFrame, Published
+from service.pipeline.handoff import Newest, NewestSlot
+from service.pipeline.meters import DropCounter
 from service.pipeline.quality import LiveQuality
 from service.pipeline.reconstruction import ReconstructionStage
 from svelive.calibrate.response import SWEEP_KNOTS
@@ -56,6 +56,11 @@ class Pipeline:
     (re)connects; by default ``config.build_source``. The stages
     share a stop event, the drop counter and one condition (the newest
     reconstructed frame, the encoder's inputs and the run-time settings).
+
+    Its ports, each a :class:`Newest` hand-off any publisher reads (and none is queued for):
+    ``hdr_port`` the newest reconstructed frame (:class:`Published`; EXR snapshots, state),
+    ``jpeg_port`` the newest preview JPEG (MJPEG, JPEG snapshots), ``preview_port`` the newest
+    tone-mapped 8-bit preview while a preview watcher asks for them (RTSP).
     """
 
     def __init__(self, config: PipelineConfig, source_factory: Callable[[], Source] | None = None) -> None:
@@ -64,6 +69,7 @@ class Pipeline:
         self._stop = threading.Event()
         self._slot = NewestSlot(config.queue)
         self._cond = threading.Condition()  # guards the newest frame and the settings, and wakes the encoder
+        self.hdr_port: Newest[Published] = Newest(self._cond)
         self.drops = DropCounter()
         self.capture = CaptureStage(config, source_factory or config.build_source, self._slot, self.drops,
                                     self._stop)
@@ -73,9 +79,10 @@ class Pipeline:
         self.quality = LiveQuality(config.method or default_method(config.temporal), config.temporal,
                                    config.live_quality, parallel=frames)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, self.quality, self.capture.captured,
-                                                  self.workers, self._cond, self.drops, self._stop, frames=frames)
-        self.encoder = EncoderStage(config, self.reconstruction.latest, self.capture.online, self._cond, self.drops,
-                                    self._stop)
+                                                  self.workers, self.hdr_port, self.drops, self._stop, frames=frames)
+        self.encoder = EncoderStage(config, self.hdr_port, self.capture.online, self._cond, self.drops, self._stop)
+        self.jpeg_port: Newest[EncodedFrame] = self.encoder.jpeg_port
+        self.preview_port: Newest[PreviewFrame] = self.encoder.preview_port
         self.captured = self.capture.captured
         self.reconstructed = self.reconstruction.reconstructed
         self.encoded = self.encoder.encoded
@@ -125,22 +132,24 @@ class Pipeline:
 
     def latest(self) -> Published | None:
         """The newest reconstructed frame (an immutable record), or None before the first."""
-        return self.reconstruction.latest()
+        return self.hdr_port.latest()
 
     def latest_raw(self) -> Frame | None:
         """The newest captured raw frame (with its camera), or None before the first."""
         return self.capture.latest_raw()
 
-    def add_listener(self, callback: Callable[[EncodedFrame], None]) -> None:
-        """Call ``callback(EncodedFrame)`` from the encoder thread for every new JPEG."""
-        self.encoder.add_listener(callback)
-
-    def remove_listener(self, callback: Callable[[EncodedFrame], None]) -> None:
-        self.encoder.remove_listener(callback)
-
     def watch(self, delta: int) -> None:
-        """Add (+1) or remove (-1) a stream client; the encoder runs only while there is one."""
+        """Add (+1) or remove (-1) a JPEG stream client; JPEGs are made for ``jpeg_port`` only while there is one."""
         self.encoder.watch(delta)
+
+    def watch_previews(self, delta: int) -> None:
+        """Add (+1) or remove (-1) a preview consumer (RTSP with clients); previews are made for ``preview_port``
+        only while there is one."""
+        self.encoder.watch_previews(delta)
+
+    def latest_preview(self) -> PreviewFrame | None:
+        """The newest tone-mapped preview of a reconstructed frame (never a no-signal one), or None."""
+        return self.encoder.latest_preview()
 
     def latest_jpeg(self) -> EncodedFrame | None:
         """The newest preview JPEG (possibly a no-signal frame), or None."""

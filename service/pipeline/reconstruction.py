@@ -8,7 +8,8 @@ import time
 
 from service.pipeline.calibration import Calibration
 from service.pipeline.frames import Published
-from service.pipeline.meters import DropCounter, LatencyWindow, NewestSlot, RateMeter
+from service.pipeline.handoff import Newest, NewestSlot
+from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
 from service.pipeline.noise import NoiseStage
 from service.pipeline.quality import LiveQuality, LiveStep
 from svelive.core.camera import Camera
@@ -23,8 +24,7 @@ class ReconstructionStage:
     per-pixel map, :meth:`Calibration.apply`), reconstructs it with a
     ``svelive.Reconstructor`` for that camera (temporal fusion, motion mask; a new
     one when the camera, method or fusion setting changes) and publishes each
-    result as the newest :class:`Published`, under ``cond``, which it notifies (the
-    encoder waits on it). The method and fusion setting are the live-quality ladder's
+    result as the newest :class:`Published` of ``hdr_port`` (the encoder and the snapshots read it). The method and fusion setting are the live-quality ladder's
     current step (``quality``, :class:`LiveQuality`), which every published frame feeds
     with the camera's arrivals (``captured``) and the frames dropped while it was busy;
     ``LiveQuality.configure`` changes the configured method at run time.
@@ -45,7 +45,7 @@ class ReconstructionStage:
     """
 
     def __init__(self, slot: NewestSlot, calibration: Calibration, quality: LiveQuality, captured: RateMeter,
-                 workers: int, cond: threading.Condition, drops: DropCounter, stop: threading.Event,
+                 workers: int, hdr_port: Newest[Published], drops: DropCounter, stop: threading.Event,
                  frames: int = 1) -> None:
         self._slot = slot
         self._calibration = calibration
@@ -53,10 +53,10 @@ class ReconstructionStage:
         self._captured = captured
         self.workers = workers
         self.frames = frames
-        self._cond = cond
+        #: the newest reconstructed frame; its sequence number is the frame's ``Published.seq``
+        self.hdr_port = hdr_port
         self._drops = drops
         self._stop = stop
-        self._latest: Published | None = None
         self.motion_fraction: float | None = None
         self.error: str | None = None
         self.reconstructed = RateMeter()
@@ -67,11 +67,10 @@ class ReconstructionStage:
         self._tickets = 0  # given out
         self._next = 0  # the ticket whose turn it is
         self._current: tuple[tuple, Reconstructor] | None = None
-        self._seq = 0
 
     def latest(self) -> Published | None:
         """The newest reconstructed frame (an immutable record), or None before the first."""
-        return self._latest
+        return self.hdr_port.latest()
 
     def _reconstructor(self, camera: Camera, step: LiveStep) -> Reconstructor:
         """The reconstructor for this camera and live step: the current one, or a new one (the old one closed).
@@ -165,14 +164,11 @@ class ReconstructionStage:
         # the pixels reset where readings crossed the censor level, most of a moving bright object's edges
         fused = step.temporal and result.frame_index > 0
         self.noise.offer(frame, calibrated, result.reset if fused else None)
-        self._seq += 1
-        published = Published(hdr, self._seq, done_ns)
+        published = Published(hdr, self.hdr_port.seq + 1, done_ns)  # the only writer: the port's next number
         self.reconstructed.tick(done_ns)
         self.latency["queue"].add(timings["queue"])
         self.latency["reconstruct"].add(timings["reconstruct"])
         self.latency["arrival_to_hdr"].add((done_ns - frame.host_time_ns) / 1e6)
-        with self._cond:
-            self._latest = published
-            self._cond.notify_all()
+        self.hdr_port.put(published)
         self.quality.observe(done_ns, self._captured.count, self._drops.snapshot().get("reconstruct_busy", 0),
                              timings["reconstruct"], step)

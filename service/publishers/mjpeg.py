@@ -1,21 +1,21 @@
 """MJPEG fan-out on the event loop.
 
-The encoder thread hands every new JPEG to :class:`StreamHub`, which lives on
-the event loop. Each stream client is an async generator that, after every part
-it sends, takes the newest JPEG there is: a slow client skips frames (counted)
-and never builds a queue; the socket's own buffer is the only backlog. A client
-that goes away ends its generator, which frees its record.
+The encoder thread puts every new JPEG into the pipeline's ``jpeg_port`` (a
+:class:`service.pipeline.Newest`), which :class:`StreamHub` reads on the event loop.
+Each stream client is an async generator that, after every part it sends, takes
+the newest JPEG there is: a slow client skips frames (counted) and never builds a
+queue; the socket's own buffer is the only backlog. A client that goes away ends
+its generator, which frees its record.
 """
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.pipeline import EncodedFrame, LatencyWindow, RateMeter
+from service.pipeline import EncodedFrame, LatencyWindow, Newest, RateMeter
 
 BOUNDARY = "svelive-frame"
 
@@ -38,41 +38,20 @@ class StreamClient:
 
 
 class StreamHub:
-    """The newest preview JPEG on the event loop, and the clients waiting for it."""
+    """The MJPEG clients of one camera, each waiting on the event loop for the newest JPEG of ``jpegs``."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
-        self._loop = loop
-        self.latest: EncodedFrame | None = None
-        self._event = asyncio.Event()
+    def __init__(self, jpegs: Newest[EncodedFrame]) -> None:
+        self._jpegs = jpegs
         self.clients: dict[int, StreamClient] = {}
         self._ids = itertools.count(1)
         self.streamed = RateMeter()
         self._max_sent_seq = 0
         self.sent_latency = LatencyWindow()
 
-    def on_frame(self, item: EncodedFrame) -> None:
-        """Called from the encoder thread."""
-        try:
-            self._loop.call_soon_threadsafe(self._publish, item)
-        except RuntimeError:  # the loop is closed: the server is shutting down
-            pass
-
-    def _publish(self, item: EncodedFrame) -> None:
-        self.latest = item
-        event, self._event = self._event, asyncio.Event()
-        event.set()
-
     async def wait_newer(self, seq: int, timeout: float) -> EncodedFrame | None:
         """The newest JPEG if its seq is above ``seq``, waiting up to ``timeout`` s for one; else None."""
-        item = self.latest
-        if item is not None and item.seq > seq:
-            return item
-        try:
-            await asyncio.wait_for(self._event.wait(), timeout)
-        except TimeoutError:
-            return None
-        item = self.latest
-        return item if item is not None and item.seq > seq else None
+        got = await self._jpegs.wait_newest(seq, timeout)
+        return None if got is None else got[1]
 
     def register(self, remote: str) -> StreamClient:
         client = StreamClient(next(self._ids), remote)

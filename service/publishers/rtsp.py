@@ -5,14 +5,15 @@ GStreamer's RTSP server (``gst-rtsp-server`` through PyGObject): one :class:`Rts
 mounted at its paths (``/cam/NAME``, the first camera also ``/live``), each one
 shared media:
 
-    encoder thread ──PreviewFrame──> I420 (OpenCV/numpy) ─> appsrc (holds 1 frame, drops the older)
+    preview_port ──PreviewFrame──> pusher thread: I420 (OpenCV/numpy) ─> appsrc (holds 1 frame, drops the older)
                                      ─> x264enc (zerolatency, no B-frames, 1 s GOP) ─> rtph264pay ─> clients
 
 - Encoded once for every client: the media is shared (``set_shared(True)``), whichever
   of the camera's paths or ``?token=`` query a client uses (one media key per factory).
 - Encoded only while a client is connected: the media is built when the first
   client asks for it and torn down after the last one leaves; only between the
-  two does the publisher ask the encoder stage for previews (``watch_previews``),
+  two does the publisher ask the pipeline for previews (``watch_previews``), which its
+  pusher thread takes, the newest each time, from the pipeline's ``preview_port``,
   so with no client nothing is tone-mapped for RTSP and nothing is H.264-encoded
   (``frames_pushed`` and ``frames_encoded`` in :meth:`RtspPublisher.state` prove it).
 - Grey and colour previews alike become I420 (BT.601, limited range) in the
@@ -566,7 +567,7 @@ class RtspPublisher:
         self._lock = threading.Lock()
         self._media: _Media | None = None
         self._watching = False
-        self._keyframe_wanted = False  # a client waits for a keyframe: the encoder thread forces one
+        self._keyframe_wanted = False  # a client waits for a keyframe: the pusher thread forces one
         #: the least time (s) from a keyframe to a forced one (clients joining meanwhile wait for the next)
         self.keyframe_gap_s = 0.5
         self.keyframes_forced = 0
@@ -581,6 +582,8 @@ class RtspPublisher:
         self.medias = 0
         #: how long a client arriving before the first reconstructed frame waits for it (blocks the RTSP loop)
         self.first_frame_wait_s = 3.0
+        self._pusher: threading.Thread | None = None
+        self._detached = threading.Event()
 
     # ----- lifecycle ---------------------------------------------------
     @property
@@ -621,12 +624,30 @@ class RtspPublisher:
         return factory
 
     def attach(self) -> None:
-        """The server started (once): take previews from the encoder stage (pushed only while a media exists)."""
-        self.pipeline.encoder.add_preview_listener(self._on_preview)
+        """The server started (once): take previews from the pipeline's ``preview_port`` in a thread of our own
+        (pushed only while a media exists)."""
+        self._detached.clear()
+        self._pusher = threading.Thread(target=self._push_previews, name="svelive-rtsp-push", daemon=True)
+        self._pusher.start()
 
-    def detach(self) -> None:
+    def detach(self, timeout: float = 1.0) -> None:
         """The server stops (once, after ``attach``): no more previews."""
-        self.pipeline.encoder.remove_preview_listener(self._on_preview)
+        self._detached.set()
+        self.pipeline.preview_port.wake()
+        if self._pusher is not None:
+            self._pusher.join(timeout)
+            self._pusher = None
+
+    def _push_previews(self) -> None:
+        """The pusher thread: each new preview of the pipeline's ``preview_port`` (the newest one; a preview made
+        while the one before was still being pushed is skipped), until :meth:`detach`."""
+        port = self.pipeline.preview_port
+        seen = port.seq
+        while not self._detached.is_set():
+            got = port.get_newest(seen, 0.25)
+            if got is not None:
+                seen, preview = got
+                self._on_preview(preview)
 
     def release(self) -> None:
         """The server stopped: let the encoder stage stop making previews for us, drop the media."""
@@ -635,7 +656,7 @@ class RtspPublisher:
             watching, self._watching = self._watching, False
             self._clients = 0
         if watching:
-            self.pipeline.encoder.watch_previews(-1)
+            self.pipeline.watch_previews(-1)
         if media is not None:
             media.media.unprepare()
 
@@ -652,12 +673,11 @@ class RtspPublisher:
         """GLib thread, for each new media: the launch line for the newest preview's size (the newest
         reconstructed frame's before the first preview, waiting up to ``first_frame_wait_s`` for one; then
         640x360, the no-signal frame's)."""
-        preview = self.pipeline.encoder.latest_preview()
+        preview = self.pipeline.latest_preview()
         latest = self.pipeline.latest()
-        deadline = time.monotonic() + self.first_frame_wait_s
-        while preview is None and latest is None and time.monotonic() < deadline:  # just started
-            time.sleep(0.02)
-            latest = self.pipeline.latest()
+        if preview is None and latest is None:  # just started
+            got = self.pipeline.hdr_port.get_newest(0, self.first_frame_wait_s)
+            latest = None if got is None else got[1]
         if preview is not None:
             height, width = preview.image.shape[:2]
         elif latest is not None:
@@ -688,10 +708,10 @@ class RtspPublisher:
             start_watching = not self._watching
             self._watching = True
         if start_watching:
-            self.pipeline.encoder.watch_previews(+1)
+            self.pipeline.watch_previews(+1)
         # the media is prepared once its first frame has gone through: give it the newest frame's preview now
         # if it exists (the encoder makes a preview only of a newer frame); an older one waits for the next
-        preview, latest = self.pipeline.encoder.latest_preview(), self.pipeline.latest()
+        preview, latest = self.pipeline.latest_preview(), self.pipeline.latest()
         if preview is not None and latest is not None and preview.hdr_seq == latest.seq and self.pipeline.online():
             self._on_preview(preview)
 
@@ -702,7 +722,7 @@ class RtspPublisher:
             self._media = None
             stop_watching, self._watching = self._watching, False
         if stop_watching:
-            self.pipeline.encoder.watch_previews(-1)
+            self.pipeline.watch_previews(-1)
 
     def _on_encoded(self, pad: Any, info: Any) -> Any:
         from gi.repository import Gst
@@ -814,7 +834,7 @@ class RtspPublisher:
                 self._media.joining.pop(client, None)
 
     def _on_preview(self, preview: PreviewFrame) -> None:
-        """Encoder thread: hand the preview to the media's appsrc (converted to its size and kind)."""
+        """Pusher thread (and the GLib thread for a new media's first frame): hand the preview to the media's appsrc (converted to its size and kind)."""
         from gi.repository import Gst
 
         with self._lock:
