@@ -471,7 +471,7 @@ def test_probit_finds_where_and_how_sharply_pixels_reach_white():
     log light) both come back within a few of their sampling errors (about 0.0004 and 3 %)."""
     import math
 
-    from svelive.calibrate.response import _probit_newton
+    from svelive.calibrate.response.censored import _probit_newton
 
     rng = np.random.default_rng(3)
     x = np.linspace(-0.1, 0.1, 201)  # log light predicted in the brighter frame, less white's
@@ -486,7 +486,7 @@ def test_probit_finds_where_and_how_sharply_pixels_reach_white():
 
 
 def test_pixels_at_white_counted_by_their_darker_reading():
-    from svelive.calibrate.response import _censored_at_white
+    from svelive.calibrate.response.censored import _censored_at_white
 
     sensor = Sensor.from_full_well(12, 10000, 3)
     dark = np.array([[100, 3000, 3000], [4095, 0, 3000]], np.uint16)
