@@ -520,7 +520,8 @@ def _moving_rows(flagged, flagged_rows, first, widen, motion):
 @kernel
 def _paint_row(flagged, flagged_rows, r, rows, first, widen, motion):
     """:func:`_moving_rows` of the strip's row ``r``: its confirmed pixels (8-neighbours among the
-    strip's first ``rows`` rows) widened into ``motion``; returns the count newly set."""
+    strip's first ``rows`` rows) widened into ``motion``; returns the count newly set. Confirmed
+    pixels whose squares overlap along the row are painted as one span (moving regions are runs)."""
     if flagged_rows[r] == 0:
         return 0
     cols = flagged.shape[1]
@@ -528,6 +529,7 @@ def _paint_row(flagged, flagged_rows, r, rows, first, widen, motion):
     if top > bottom:  # its square does not reach the core rows
         return 0
     count = 0
+    start, stop = 0, -1  # the span [start, stop) of columns painted next
     for c in range(cols):
         if not flagged[r, c]:
             continue
@@ -538,11 +540,25 @@ def _paint_row(flagged, flagged_rows, r, rows, first, widen, motion):
             for cc in range(max(c - 1, 0), min(c + 2, cols)):
                 if (rr != r or cc != c) and flagged[rr, cc]:
                     confirmed = True
-        if confirmed:
-            for rr in range(top, bottom + 1):
-                for cc in range(max(c - widen, 0), min(c + widen + 1, cols)):
-                    count += not motion[rr - first, cc]
-                    motion[rr - first, cc] = True
+        if not confirmed:
+            continue
+        left, right = max(c - widen, 0), min(c + widen + 1, cols)
+        if left > stop:  # a gap: paint the span so far
+            count += _paint_span(motion, top - first, bottom - first, start, stop)
+            start = left
+        stop = right
+    return count + _paint_span(motion, top - first, bottom - first, start, stop)
+
+
+@kernel
+def _paint_span(motion, top, bottom, start, stop):
+    """motion[top:bottom + 1, start:stop] = True; the count newly set (0 for an empty span)."""
+    count = 0
+    for rr in range(top, bottom + 1):
+        row = motion[rr]
+        for cc in range(start, stop):
+            count += not row[cc]
+            row[cc] = True
     return count
 
 
