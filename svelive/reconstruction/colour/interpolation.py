@@ -1,0 +1,122 @@
+"""From cells to pixels: a chroma's planes interpolated bilinearly from the cells' centres, along rows to
+every column (bit for bit OpenCV's linear resize) and, per frame row, between the two cell rows around it
+(:class:`Interpolation`); and the pieces of rows the per-pixel passes are spread over threads in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+from numba import types
+from numba.extending import intrinsic
+
+from svelive.jit import kernel
+from svelive.reconstruction.colour.chroma import Chroma
+
+
+@dataclass(frozen=True)
+class Interpolation:
+    """A chroma's shares interpolated bilinearly from the cells' centres: along rows to every
+    column, and for each frame row the two cell rows around it.
+
+    Attributes:
+        rows: float32 (P, Hc, W), on the cell rows at every column: k_R, k_G, k_B, then (with the
+            coarse luminance) L and its variance.
+        top: intp (H,), the cell row at or above each frame row, clamped.
+        frac: float32 (H,), the weight of the cell row below (``top`` + 1), 0 at the edges.
+    """
+
+    rows: np.ndarray
+    top: np.ndarray
+    frac: np.ndarray
+
+
+def interpolation(ch: Chroma, coarse: bool = False) -> Interpolation:
+    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance."""
+    planes = (ch.shares, ch.coarse) if coarse else (ch.shares,)
+    return Interpolation(_full_width(planes, ch.layout.cell[1], ch.shape[1]),
+                         *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
+
+
+def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int) -> np.ndarray:
+    """Cell planes (P, Hc, Wc), given as stacks of them that add up to P, interpolated bilinearly
+    along rows from the cells' centres to every column, float32 (P, Hc, W): as OpenCV's linear
+    resize (which puts cell j at column j cx + (cx - 1) / 2)."""
+    hc, wc = planes[0].shape[1:]
+    p = sum(stack.shape[0] for stack in planes)
+    if cx in (2, 4):  # OpenCV's own arithmetic, in one pass without its row buffers, and no stacking copy
+        rows = np.empty((p, hc, wc * cx), np.float32)
+        first = 0
+        for stack in planes:
+            last = first + stack.shape[0]
+            _widen(np.ascontiguousarray(stack).reshape(-1, wc), cx, rows[first:last].reshape(-1, wc * cx))
+            first = last
+    else:
+        stacked = np.ascontiguousarray(np.concatenate(planes) if len(planes) > 1 else planes[0])
+        rows = cv2.resize(stacked.reshape(p * hc, wc), (wc * cx, p * hc),
+                          interpolation=cv2.INTER_LINEAR).reshape(p, hc, wc * cx)
+    return rows[:, :, :w]
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a b + c rounded once (float32), as OpenCV's linear resize computes its taps."""
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return types.float32(types.float32, types.float32, types.float32), codegen
+
+
+@kernel
+def _widen(planes, cx, out):
+    """out (N, cx Wc) = ``planes`` (N, Wc) float32 interpolated linearly along rows, cell j at column
+    j cx + (cx - 1) / 2, the ends held (cx 2 or 4): bit for bit OpenCV's INTER_LINEAR resize, each
+    value a + (b - a) f with one rounding of the product and sum, f = (k + 1/2) / cx."""
+    wc = planes.shape[1]
+    c0 = cx // 2  # the first column past cell 0's centre
+    for i in range(planes.shape[0]):
+        p, o = planes[i], out[i]
+        for x in range(c0):
+            o[x] = p[0]
+        if cx == 2:
+            q, t = np.float32(0.25), np.float32(0.75)
+            for j in range(wc - 1):
+                a = p[j]
+                d = p[j + 1] - a
+                o[2 * j + 1] = _fma(d, q, a)
+                o[2 * j + 2] = _fma(d, t, a)
+        else:
+            f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
+            for j in range(wc - 1):
+                a = p[j]
+                d = p[j + 1] - a
+                o[4 * j + 2] = _fma(d, f0, a)
+                o[4 * j + 3] = _fma(d, f1, a)
+                o[4 * j + 4] = _fma(d, f2, a)
+                o[4 * j + 5] = _fma(d, f3, a)
+        for x in range(cx * (wc - 1) + c0, o.size):
+            o[x] = p[wc - 1]
+
+
+@lru_cache(maxsize=16)
+def _row_tables(h: int, hc: int, cy: int) -> tuple[np.ndarray, np.ndarray]:
+    """(top, frac) of :class:`Interpolation` for frames of ``h`` rows, cells of ``cy`` rows, read-only."""
+    u = (np.arange(h) - (cy - 1) / 2) / cy
+    top = np.floor(u)
+    frac = (u - top).astype(np.float32)
+    frac[(top < 0) | (top >= hc - 1)] = 0
+    top = np.clip(top, 0, hc - 1).astype(np.intp)
+    for array in (top, frac):
+        array.setflags(write=False)
+    return top, frac
+
+
+#: Rows per piece of the per-pixel passes when they are spread over threads.
+PIECE_ROWS = 128
+
+
+def _pieces(h: int, align: int = 1) -> list[slice]:
+    """Row ranges of about PIECE_ROWS rows (multiples of ``align``) covering ``h`` rows."""
+    step = max(PIECE_ROWS // align, 1) * align
+    return [slice(r, min(r + step, h)) for r in range(0, h, step)]

@@ -1,0 +1,67 @@
+"""The joint reconstruction (svelive.reconstruction.colour, the default mode): chroma, the folded
+luminance through the mono method, its refinement and the colour (:func:`joint`), and its parts, which
+a stream fuses (:class:`Joint`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from svelive.reconstruction.colour.chroma import Chroma, chroma
+from svelive.reconstruction.colour.folding import colourise, luminance_input
+from svelive.reconstruction.colour.interpolation import Interpolation, interpolation
+from svelive.reconstruction.colour.refine import refine
+from svelive.reconstruction.methods import MethodSpec
+from svelive.reconstruction.methods.base import Estimate, SveInput
+
+
+@dataclass(frozen=True)
+class Joint:
+    """The joint reconstruction and its parts (a stream fuses them).
+
+    Attributes:
+        estimate: the colour Estimate (see :func:`run_colour`).
+        luminance_input: the monochrome SVE frame of the luminance (exposures e', SveInput.folded;
+            or, for a method that reads only the tile, readings divided by k_c).
+        chroma: the frame's chroma.
+        interpolation: its interpolation (shares, and the coarse luminance after them when the
+            luminance was refined).
+        inverse_exposure: float32 (H, W), 1 / e' of ``luminance_input`` where it was asked for
+            with folded exposures (a stream's fusion reads it), else None.
+    """
+
+    estimate: Estimate
+    luminance_input: SveInput
+    chroma: Chroma
+    interpolation: Interpolation
+    inverse_exposure: np.ndarray | None = None
+
+
+def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
+          **options) -> Joint:
+    """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
+
+    With a method that reports its variance and ``refined``, the luminance is refined at the
+    chroma's scale (:func:`refine`); the estimate's variance is then the refined one's.
+    ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
+    takes neither: it fuses the frames' luminance and chroma, then refines and colours.
+    ``inverse_exposure``: also 1 / e' (Joint.inverse_exposure), made while e' is (a method that
+    reads per-pixel exposures only).
+    """
+    workers = options.get("workers", 1)  # the method's threads serve the colour passes too
+    ch = chroma(inp)
+    inter = interpolation(ch, coarse=spec.variance and refined)
+    inverse = np.empty(inp.shape, np.float32) if inverse_exposure and spec.exposures else None
+    lum = luminance_input(inp, inter, spec.exposures, workers, inverse)
+    if spec.variance:
+        options = {**options, "return_variance": True}
+    est = spec.run(lum, **options)
+    luminance, variance = est.image, est.variance
+    if variance is not None and refined:
+        refined_variance = np.empty_like(variance)
+        luminance = refine(luminance, variance, inter, ch.layout.cell, out_variance=refined_variance,
+                           new_variance=True, workers=workers)
+        variance = refined_variance
+    image = colourise(luminance, inter, workers) if rgb else luminance
+    return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)

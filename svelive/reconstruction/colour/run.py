@@ -1,0 +1,35 @@
+"""The public entry of colour reconstruction: :func:`run_colour` in either mode, joint or split
+(svelive.reconstruction.colour)."""
+
+from __future__ import annotations
+
+from svelive.core.errors import SveliveError
+from svelive.reconstruction.colour.joint import joint
+from svelive.reconstruction.colour.split import split
+from svelive.reconstruction.methods import MethodSpec
+from svelive.reconstruction.methods.base import Estimate, SveInput
+
+MODES = ("joint", "split")
+
+
+def run_colour(inp: SveInput, spec: MethodSpec, mode: str, **options) -> Estimate:
+    """Reconstruct a colour frame (``inp.cfa`` set) with the mono method ``spec``.
+
+    Args:
+        inp: a prepared colour frame (svelive.reconstruction.input.prepare).
+        spec: the monochrome method, with ``options`` (its own, plus ``return_variance``
+            and ``workers`` where it has them).
+        mode: ``"joint"`` or ``"split"`` (package docstring).
+
+    Returns:
+        Estimate with ``image`` float32 (H, W, 3) linear camera RGB (DN at exposure 1 per
+        channel, before white balance), ``luminance`` float32 (H, W), the luminance
+        Y = sum_c n_c RGB_c, and ``lower_bound`` (H, W) and ``variance`` (H, W) of it.
+    """
+    if inp.cfa is None:
+        raise SveliveError("run_colour needs a colour frame: give the colour filter (cfa='RGGB')")
+    if mode == "joint":
+        return joint(inp, spec, **options).estimate
+    if mode == "split":
+        return split(inp, spec, **options)
+    raise SveliveError(f"unknown colour mode {mode!r}; choose from {', '.join(MODES)}")
