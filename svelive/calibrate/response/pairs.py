@@ -11,11 +11,13 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from svelive.calibrate.noise import QUANTISATION_VARIANCE, _chi2_quantile, noise_curve_frame
+from svelive.calibrate.noise import noise_curve_frame
 from svelive.calibrate.response.config import ResponseFitConfig
 from svelive.core.errors import SveliveError
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
+from svelive.noise.model import QUANTISATION_VARIANCE
+from svelive.noise.stats import chi2_quantile
 
 
 @dataclass(frozen=True)
@@ -174,7 +176,7 @@ def _flat_levels(raw: np.ndarray, pattern: Pattern, sensor: Sensor, cfg: Respons
     analog = np.zeros_like(mean)
     for k in range(mean.shape[0]):
         dof = int(count[k]) - 3
-        limit = _chi2_quantile(cfg.flat_quantile, dof) / dof
+        limit = chi2_quantile(cfg.flat_quantile, dof) / dof
         nv = noise_var(mean[k])
         flat[k] = usable[k] & (var[k] <= nv * limit)
         var_mean[k] = _window_mean_variance(nv, var_factor[k], sensor.range_dn)
