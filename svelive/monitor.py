@@ -12,8 +12,8 @@ Two levels bound what a frame can tell, both in the frame's unit:
   reconstruction gives the lower bound the censored readings imply (exactly this level or more:
   ``svelive.reconstruction.methods.base.censored_lower_bound``). For colour, a pixel is clipped
   when its brightest channel is there: where every channel is censored the joint reconstruction
-  sets the channels to a neutral white at the largest bound (svelive/reconstruction/colour.py,
-  "Highlights"), which puts the brightest at or above the level.
+  sets the channels to a neutral white at the largest bound
+  (svelive/reconstruction/colour/highlights.py), which puts the brightest at or above the level.
 - :func:`noise_floor`: the radiance whose signal in the longest exposure equals the sensor's
   signal-independent noise (read noise and quantisation, ``sqrt(Sensor.floor_variance) / e_max``):
   below it no exposure measures the pixel with an SNR of 1 or more.

@@ -38,10 +38,6 @@ from svelive.noise import (
     pair_fit,
 )
 
-#: The name svelive/calibrate/response imports the chi-square quantile by; its home is svelive.noise.stats
-#: (transitional: to go once response imports ``chi2_quantile`` from there).
-_chi2_quantile = chi2_quantile
-
 
 @dataclass(frozen=True)
 class NoiseCurve:
