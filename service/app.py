@@ -1,9 +1,10 @@
 """The FastAPI app: one set of routers per served camera, the first also at the root paths.
 
 Each camera's routes (viewer, MJPEG stream, snapshots, state, settings, calibration)
-live in ``service/routers/``; the MJPEG fan-out in ``service/publishers/mjpeg.py``;
-the token and the body bound in ``service/guard.py``. This module only assembles
-them and starts and stops the pipelines with the server.
+live in ``service/routers/``; the MJPEG fan-out in ``service/publishers/mjpeg.py``, the
+RTSP server in ``service/publishers/rtsp.py``; the token and the body bound in
+``service/guard.py``. This module only assembles them and starts and stops the
+pipelines and the publishers with the server (its lifespan).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from starlette.concurrency import run_in_threadpool
 from service.guard import HostPolicy, SiteGuard, TokenGuard
 from service.pipeline import CalibrationBusy, Pipeline
 from service.publishers.mjpeg import StreamHub
+from service.publishers.rtsp import RtspPublisher, RtspServer
 from service.routers import ServedCamera, calibration, metrics, monitor, snapshots, state, stream
 from service.routers import settings as settings_router
 from service.settings import DEFAULT_CAMERA, ServerSettings
@@ -113,11 +115,17 @@ class Startup:
     """Starts the cameras' pipelines with the server, after ``warm_up()`` when one is given: that in a thread of
     its own, so that the server answers at once (each pipeline's state ``warming_up``, /healthz not ready) while the
     kernels compile, minutes on a fresh machine. A warm-up that fails is logged and the pipelines start anyway (the
-    kernels then compile at the first frame)."""
+    kernels then compile at the first frame). Without ``manage`` the pipelines are left to the caller. The RTSP
+    server (``rtsp``), if any, starts just before the pipelines, after the warm-up, so that its clients get frames at
+    once, and of the frames' size; ``say`` is told each camera's RTSP URLs."""
 
-    def __init__(self, cameras: list[ServedCamera], warm_up: Callable[[], None] | None) -> None:
+    def __init__(self, cameras: list[ServedCamera], warm_up: Callable[[], None] | None, *, manage: bool = True,
+                 rtsp: RtspServer | None = None, say: Callable[[str], None] | None = None) -> None:
         self.cameras = cameras
+        self.managed = cameras if manage else []
         self.warm_up = warm_up
+        self.rtsp = rtsp
+        self.say = say or logging.getLogger("uvicorn.error").info
         self._lock = threading.Lock()
         self._closing = False
         self._started: list[ServedCamera] = []
@@ -125,10 +133,11 @@ class Startup:
     async def begin(self) -> None:
         """Start the pipelines now, or mark them warming up and start them after the warm-up."""
         if self.warm_up is None:
-            for cam in self.cameras:
+            await run_in_threadpool(self._start_rtsp)
+            for cam in self.managed:
                 await run_in_threadpool(self._start, cam)
             return
-        for cam in self.cameras:
+        for cam in self.managed:
             cam.pipeline.warming_up = True
         # a daemon: a stop during the warm-up does not wait for the compiler
         threading.Thread(target=self._warm_up_then_start, name="svelive-warm-up", daemon=True).start()
@@ -139,8 +148,22 @@ class Startup:
         except Exception as exc:  # noqa: BLE001 - said, and the service goes on without a warm-up
             logging.getLogger("uvicorn.error").warning("warm-up failed (%s); the pipelines start anyway",
                                                        one_line(exc))
-        for cam in self.cameras:
+        try:
+            self._start_rtsp()
+        except Exception as exc:  # noqa: BLE001 - said; HTTP goes on (the port was free when serve began)
+            logging.getLogger("uvicorn.error").error("RTSP did not start (%s)", one_line(exc))
+        for cam in self.managed:
             self._start(cam)
+
+    def _start_rtsp(self) -> None:
+        with self._lock:
+            if self.rtsp is None or self._closing:
+                return
+            self.rtsp.start()
+        for cam in self.cameras:
+            if cam.rtsp is not None:
+                urls = [self.rtsp.url(path) for path in reversed(cam.rtsp.paths)]
+                self.say(f"{cam.name} as RTSP on {' and '.join(urls)}")
 
     def _start(self, cam: ServedCamera) -> None:
         with self._lock:
@@ -149,7 +172,7 @@ class Startup:
                 self._started.append(cam)
 
     def end(self) -> list[ServedCamera]:
-        """No pipeline starts after this; returns the ones started."""
+        """No pipeline or RTSP server starts after this; returns the pipelines started."""
         with self._lock:
             self._closing = True
             return list(self._started)
@@ -161,10 +184,15 @@ def error(status: int, detail: object) -> JSONResponse:
 
 
 def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSettings, *,
-               manage_pipeline: bool = True, warm_up: Callable[[], None] | None = None) -> FastAPI:
+               manage_pipeline: bool = True, warm_up: Callable[[], None] | None = None,
+               say: Callable[[str], None] | None = None) -> FastAPI:
     """The HTTP app over one pipeline or named pipelines (in order: the first is also served at the root
     paths, every one at ``/cam/NAME/...``); with ``manage_pipeline`` it starts and stops them with the server,
-    after ``warm_up()`` (the kernels), which runs while the server already answers (:class:`Startup`)."""
+    after ``warm_up()`` (the kernels), which runs while the server already answers (:class:`Startup`).
+
+    With ``settings.rtsp_port`` every camera is also served over RTSP on that port (one :class:`RtspServer`:
+    ``/cam/NAME``, the first camera also ``/live``), started after the warm-up and stopped with the server;
+    ``say(line)`` is told the URLs (default: uvicorn's log)."""
     named = {DEFAULT_CAMERA: pipelines} if isinstance(pipelines, Pipeline) else dict(pipelines)
     if not named:
         raise SveliveError("no camera to serve")
@@ -183,10 +211,18 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
         # uvicorn waits for open responses before it shuts the app down: the endless MJPEG streams
         # must end as soon as the signal comes, not be cancelled (and logged as errors) later
         restore_signals = on_exit_signal(shutdown_streams)
-        for cam in cameras:
+        rtsp = None
+        if settings.rtsp_port:
+            # one port for every camera: /cam/NAME each, the first camera also at /live (the same encoding)
+            rtsp = RtspServer(host=settings.host, port=settings.rtsp_port, token=settings.token)
+        for index, cam in enumerate(cameras):
             cam.hub = StreamHub(cam.pipeline.jpeg_port)
+            if rtsp is not None:
+                cam.rtsp = RtspPublisher(cam.pipeline, server=rtsp, path=f"/cam/{cam.name}",
+                                         aliases=("/live",) if index == 0 else ())
         app.state.hub = cameras[0].hub
-        startup = Startup(cameras if manage_pipeline else [], warm_up)
+        app.state.rtsp = rtsp
+        startup = Startup(cameras, warm_up, manage=manage_pipeline, rtsp=rtsp, say=say)
         try:
             await startup.begin()
             yield
@@ -195,7 +231,8 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
             started = startup.end()
             restore_signals()
             # stopped together, so that shutdown takes as long as the slowest camera, not their sum
-            await asyncio.gather(*(run_in_threadpool(cam.pipeline.stop, STOP_JOIN_S) for cam in started))
+            await asyncio.gather(*(run_in_threadpool(cam.pipeline.stop, STOP_JOIN_S) for cam in started),
+                                 *([run_in_threadpool(rtsp.stop)] if rtsp is not None else []))
 
     app = FastAPI(title="svelive", lifespan=lifespan, docs_url=None, redoc_url=None, openapi_url=None)
     app.state.pipeline = cameras[0].pipeline

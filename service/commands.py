@@ -120,40 +120,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise
     keep_freed_memory()  # frame buffers reused, not page-faulted in anew every frame
     compress_on()  # EXR snapshots compressed on every core
-    rtsp = None
 
-    def prepare() -> None:
-        """The kernels, before the first live frame, while the HTTP server already answers ("warming up"); then
-        the RTSP server, so that its clients get frames at once, and of the frames' size."""
-        warm_up_kernels("svelive serve")
-        if rtsp is not None:
-            rtsp.start()
-            for cam in app.state.cameras:
-                urls = [rtsp.url(path) for path in reversed(cam.rtsp.paths)]
-                print(f"svelive serve: {cam.name} as RTSP on {' and '.join(urls)}", file=sys.stderr, flush=True)
+    def say(line: str) -> None:
+        print(f"svelive serve: {line}", file=sys.stderr, flush=True)
 
-    app = create_app(pipelines, server, warm_up=prepare)
+    # the kernels before the first live frame, while the HTTP server already answers ("warming up"); the app
+    # starts the RTSP server (--rtsp) after them, then the pipelines
+    app = create_app(pipelines, server, warm_up=lambda: warm_up_kernels("svelive serve"), say=say)
     shown = "127.0.0.1" if server.host in ("0.0.0.0", "::") else server.host
     for index, (name, config) in enumerate(configs.items()):
         paths = [f"http://{shown}:{server.port}/cam/{name}/"] + ([f"http://{shown}:{server.port}/"] if index == 0 else [])
         print(f"svelive serve: {config.source} on {' and '.join(reversed(paths))}", file=sys.stderr, flush=True)
     redact_tokens(logging.getLogger("uvicorn.access"))
-    if server.rtsp_port:
-        from service.publishers.rtsp import RtspPublisher, RtspServer
-
-        # one port for every camera: /cam/NAME each, the first camera also at /live (the same encoding)
-        rtsp = RtspServer(host=server.host, port=server.rtsp_port, token=server.token)
-        for index, cam in enumerate(app.state.cameras):
-            cam.rtsp = RtspPublisher(cam.pipeline, server=rtsp, path=f"/cam/{cam.name}",
-                                     aliases=("/live",) if index == 0 else ())
     try:
         uvicorn.Server(uvicorn.Config(app, log_level=server.log_level, timeout_graceful_shutdown=2,
                                       access_log=server.log_level in ("debug", "trace"),
                                       http=bounded_protocol(server.header_timeout_s, server.max_connections),
                                       timeout_keep_alive=5)).run(sockets=[sock])
     finally:
-        if rtsp is not None:
-            rtsp.stop()
         sock.close()
     return 0
 

@@ -19,7 +19,7 @@ from service.publishers import rtsp
 from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
 from svelive.core.errors import SveliveError
 from tests.test_service_colour import ColourSimSource, make_colour_camera
-from tests.test_service_helpers import PortReader, SimSource, make_camera
+from tests.test_service_helpers import PortReader, ServerThread, SimSource, free_port, make_camera
 
 
 def _missing() -> str | None:
@@ -377,3 +377,19 @@ def test_two_cameras_on_one_port_and_a_path_alias_shares_the_camera_encoding(mon
                 assert first.state()["clients"] == 2 and second.state()["clients"] == 1
             assert first.medias == 1 and second.medias == 1  # both paths of the first camera: one encoding
         assert server._thread is None
+
+
+def test_the_app_serves_rtsp_from_its_lifespan_and_frees_the_port_when_it_stops():
+    """``serve --rtsp``: the app's lifespan makes the RTSP server (every camera at /cam/NAME, the first also at
+    /live), starts it before the pipelines and stops it with the server, as it does the MJPEG fan-out."""
+    rtsp_port = free_port()
+    said = []  # the frames the server encoded
+    with ServerThread(make_camera(fps=20.0, n=1, shape=SHAPE), server={"rtsp_port": rtsp_port}) as server:
+        assert server.app.state.rtsp.port == rtsp_port
+        state = server.state()["rtsp"]
+        assert state["url"] == f"rtsp://127.0.0.1:{rtsp_port}/cam/main" and "/live" in state["paths"]
+        with RtspClient(f"rtsp://127.0.0.1:{rtsp_port}/live") as client:
+            assert all(frame.shape == SHAPE for frame in client.frames(3))
+        said.append(server.state()["rtsp"]["frames_encoded"])
+    assert said[0] >= 3
+    rtsp.check_port("127.0.0.1", rtsp_port)  # stopped with the server: the port is free again

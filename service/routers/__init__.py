@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from service.pipeline import Pipeline
 from service.publishers.mjpeg import StreamHub
+from service.publishers.rtsp import RtspPublisher
 
 NO_STORE = {"Cache-Control": "no-store, no-cache, must-revalidate, max-age=0", "Pragma": "no-cache"}
 
@@ -14,9 +14,9 @@ NO_STORE = {"Cache-Control": "no-store, no-cache, must-revalidate, max-age=0", "
 @dataclass
 class ServedCamera:
     """One camera of the service: its name (the ``/cam/NAME`` prefix), its pipeline, its MJPEG hub
-    (made on the event loop when the server starts) and its RTSP publisher if it has one."""
+    and its RTSP publisher if it has one (both made by the app's lifespan when the server starts)."""
 
     name: str
     pipeline: Pipeline
     hub: StreamHub | None = None
-    rtsp: Any = None
+    rtsp: RtspPublisher | None = None
