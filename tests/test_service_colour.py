@@ -226,6 +226,7 @@ def test_mono_source_reports_no_colour():
 
 def test_pipeline_encodes_each_colour_frame_once_and_only_while_watched(camera):
     pipeline = Pipeline(PipelineConfig(source="sim", temporal=False), lambda: ColourSimSource(camera))
+    assert pipeline.encoder.colour is pipeline.colour  # one colour stage for the preview (JPEG, RTSP) and the EXR
     with pipeline:
         deadline = time.monotonic() + 60
         while pipeline.reconstructed.count < 3:

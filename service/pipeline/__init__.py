@@ -25,6 +25,8 @@ One role per module:
 - ``frames``: the records handed on, Published, PreviewFrame (tone-mapped 8-bit) and EncodedFrame;
 - ``capture``: CaptureStage (source, reconnects, online/offline);
 - ``reconstruction``: ReconstructionStage (a svelive.Reconstructor per camera and method);
+- ``colour``: ColourStage (white balance and output space, shared by the preview, so JPEG and RTSP, and the EXR
+  snapshot);
 - ``encoder``: EncoderStage (tone map once, JPEG for MJPEG watchers, previews for RTSP, no-signal frames,
   its ports, watchers, snapshots);
 - ``calibration``: Calibration (response in use, live response calibration, mask) and CalibrationBusy;
@@ -33,6 +35,7 @@ One role per module:
 
 from service.pipeline.calibration import Calibration, CalibrationBusy
 from service.pipeline.capture import CaptureStage
+from service.pipeline.colour import ColourStage
 from service.pipeline.config import FALLBACK_PATTERN, PipelineConfig, check_jpeg_quality, check_method
 from service.pipeline.encoder import EncoderStage, encode_jpeg, no_signal_image
 from service.pipeline.frames import EncodedFrame, Published, PreviewFrame, monotonic_to_wall
@@ -41,7 +44,7 @@ from service.pipeline.meters import WINDOW, DropCounter, LatencyWindow, RateMete
 from service.pipeline.pipeline import Pipeline, opencv_threads
 from service.pipeline.reconstruction import ReconstructionStage
 
-__all__ = ["FALLBACK_PATTERN", "WINDOW", "Calibration", "CalibrationBusy", "CaptureStage", "DropCounter",
+__all__ = ["FALLBACK_PATTERN", "WINDOW", "Calibration", "CalibrationBusy", "CaptureStage", "ColourStage", "DropCounter",
            "EncodedFrame", "EncoderStage", "LatencyWindow", "Newest", "NewestSlot", "Pipeline",
            "PipelineConfig", "PreviewFrame", "Published", "RateMeter", "ReconstructionStage", "check_jpeg_quality", "check_method",
            "encode_jpeg", "monotonic_to_wall", "no_signal_image", "opencv_threads"]

@@ -3,10 +3,9 @@ watch, "no signal" frames while the source is offline; every JPEG is the newest 
 (the MJPEG fan-out and snapshots read it) and every tone-mapped 8-bit preview the newest of
 :attr:`EncoderStage.preview_port` (RTSP reads it): the tone map runs once for both.
 
-Colour frames (linear camera RGB) are white-balanced (fixed, or the automatic estimate smoothed over
-frame time) and taken through the optional camera -> Rec.709 matrix on their way into the tone map,
-which writes BGR for OpenCV's JPEG encoder; the EXR snapshot is written with the preview's white balance
-(:meth:`EncoderStage.white_balance`) by svelive.frame_exr, as every EXR is.
+Colour frames (linear camera RGB) are white-balanced and taken through the optional camera -> Rec.709
+matrix of the colour stage (:class:`service.pipeline.colour.ColourStage`, shared with the EXR snapshot)
+on their way into the tone map, which writes BGR for OpenCV's JPEG encoder.
 """
 
 from __future__ import annotations
@@ -18,13 +17,14 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
+from service.pipeline.colour import ColourStage
 from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
 from service.pipeline.handoff import Newest
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
 from svelive.core.errors import SveliveError
 from svelive.tonemap import ToneMapper, ToneSettings
-from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, output_matrix
+from svelive.whitebalance import ColourSettings
 
 
 def no_signal_image(width: int = 640, height: int = 360) -> np.ndarray:
@@ -53,8 +53,9 @@ class EncoderStage:
     which wakes it on every new frame) and tone-maps the newest frame once while anyone
     wants it: the 8-bit preview goes to ``preview_port`` (RTSP) while
     ``preview_watchers`` > 0, and is JPEG-encoded for ``jpeg_port`` (MJPEG)
-    only while ``watchers`` > 0 or a snapshot is asked. ``tone``, ``colour`` and
-    ``jpeg_quality`` may be changed at run time (under ``cond``).
+    only while ``watchers`` > 0 or a snapshot is asked, with the white balance and
+    matrix of ``colour``. ``tone``, ``colour.settings`` and ``jpeg_quality`` may be
+    changed at run time (under ``cond``).
 
     Every published frame is counted once: encoded, ``not_watched`` (skipped while
     nobody streamed: not a drop) or the drop ``encoder_busy`` (skipped while someone
@@ -62,7 +63,8 @@ class EncoderStage:
     """
 
     def __init__(self, config: PipelineConfig, published: Newest[Published], online: Callable[[], bool],
-                 cond: threading.Condition, drops: DropCounter, stop: threading.Event) -> None:
+                 cond: threading.Condition, drops: DropCounter, stop: threading.Event,
+                 colour: ColourStage | None = None) -> None:
         self.config = config
         self._latest = published.latest
         self._online = online
@@ -70,10 +72,8 @@ class EncoderStage:
         self._drops = drops
         self._stop = stop
         self.tone: ToneSettings = config.tone
-        self.colour: ColourSettings = config.colour
+        self.colour = colour if colour is not None else ColourStage(config.colour)
         self.jpeg_quality = config.jpeg_quality
-        #: owned by the encoder thread (``update``); its ``current`` is read by the others
-        self._balancer = WhiteBalancer(config.colour)
         #: every JPEG made (no-signal ones included), newest first: the MJPEG fan-out's and the snapshots' input
         self.jpeg_port: Newest[EncodedFrame] = Newest()
         #: every preview made for the preview watchers (no-signal ones included): RTSP's input
@@ -116,7 +116,7 @@ class EncoderStage:
                     if new_jpeg or new_preview or no_signal:
                         break
                     self._cond.wait(timeout=0.1)
-                tone, colour, quality = self.tone, self.colour, self.jpeg_quality
+                tone, colour, quality = self.tone, self.colour.settings, self.jpeg_quality
                 jpeg_wanted = self.watchers > 0 or (new_jpeg and self._snapshot_waiters > 0)
                 preview_wanted = self.preview_watchers > 0
                 if new_jpeg or new_preview:
@@ -183,22 +183,8 @@ class EncoderStage:
     def _tone_map(self, mapper: ToneMapper, latest: Published, colour: ColourSettings) -> np.ndarray:
         """The preview of one frame: uint8 (H, W), or (H, W, 3) BGR for colour (white balance and matrix applied)."""
         image, time_ns = latest.hdr.image, latest.hdr.host_time_ns
-        if image.ndim == 2:
-            return mapper(image, time_ns)
-        self._balancer.configure(colour)
-        balance = self._balancer.update(image, time_ns)
-        return mapper(image, time_ns, output_matrix(balance.multipliers, colour.matrix), bgr=True)
-
-    def white_balance(self, published: Published | None = None) -> WhiteBalance | None:
-        """The white balance for ``published`` (default: the newest frame); None for mono or before a frame.
-
-        Auto: the preview's smoothed balance while it is recent, else the frame's own
-        estimate (nobody watched, so nothing was smoothed). Fixed: the multipliers. Any thread.
-        """
-        published = published or self._latest()
-        if published is None or published.hdr.image.ndim != 3:
-            return None
-        return self._balancer.for_frame(published.hdr.image, published.hdr.host_time_ns, self.colour)
+        matrix = self.colour.preview_matrix(latest, colour)
+        return mapper(image, time_ns) if matrix is None else mapper(image, time_ns, matrix, bgr=True)
 
     def _resize(self, image: np.ndarray) -> np.ndarray:
         width = self.config.preview_width

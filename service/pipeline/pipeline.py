@@ -13,6 +13,7 @@ import cv2
 
 from service.pipeline.calibration import Calibration
 from service.pipeline.capture import CaptureStage
+from service.pipeline.colour import ColourStage
 from service.pipeline.config import PipelineConfig, check_jpeg_quality, check_method
 from service.pipeline.encoder import EncoderStage
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published
@@ -80,7 +81,10 @@ class Pipeline:
                                    config.live_quality, parallel=frames)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, self.quality, self.capture.captured,
                                                   self.workers, self.hdr_port, self.drops, self._stop, frames=frames)
-        self.encoder = EncoderStage(config, self.hdr_port, self.capture.online, self._cond, self.drops, self._stop)
+        #: white balance and output space, shared by the preview (JPEG, RTSP) and the EXR snapshot
+        self.colour = ColourStage(config.colour)
+        self.encoder = EncoderStage(config, self.hdr_port, self.capture.online, self._cond, self.drops, self._stop,
+                                    self.colour)
         self.jpeg_port: Newest[EncodedFrame] = self.encoder.jpeg_port
         self.preview_port: Newest[PreviewFrame] = self.encoder.preview_port
         self.captured = self.capture.captured
@@ -186,7 +190,7 @@ class Pipeline:
     def settings(self) -> dict[str, Any]:
         """The settings that can be changed at run time."""
         return {"method": self.quality.configured.method, "jpeg_quality": self.encoder.jpeg_quality,
-                "tone": dict(vars(self.encoder.tone)), **self.encoder.colour.public()}
+                "tone": dict(vars(self.encoder.tone)), **self.colour.public()}
 
     def update_settings(self, method: str | None = None, jpeg_quality: int | None = None,
                         tone: dict[str, float] | None = None, colour: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -200,14 +204,14 @@ class Pipeline:
         if jpeg_quality is not None:
             check_jpeg_quality(jpeg_quality)
         new_tone = _updated(self.encoder.tone, tone, "tone mapping")
-        new_colour = _updated(self.encoder.colour, colour, "colour")
+        new_colour = _updated(self.colour.settings, colour, "colour")
         with self._cond:
             if method is not None:
                 self.quality.configure(method, self.config.temporal)
             if jpeg_quality is not None:
                 self.encoder.jpeg_quality = int(jpeg_quality)
             self.encoder.tone = new_tone
-            self.encoder.colour = new_colour
+            self.colour.settings = new_colour
             self._cond.notify_all()
         return self.settings()
 
@@ -220,7 +224,7 @@ class Pipeline:
         for cause, n in self.capture.source_drops().items():
             drops[f"source_{cause}"] = n
         capture, latest = self.capture, self.latest()
-        balance = self.encoder.white_balance(latest)  # colour frames only
+        balance = self.colour.white_balance(latest)  # colour frames only
         warming = self.warming_up
         return {
             "warming_up": warming,
@@ -263,7 +267,7 @@ class Pipeline:
                                                    "white_level": latest.camera.sensor.white_level},
             "tone": dict(vars(self.encoder.tone)),
             "white_balance": None if balance is None else balance.public(),
-            **{name: value for name, value in self.encoder.colour.public().items() if name != "white_balance"},
+            **{name: value for name, value in self.colour.public().items() if name != "white_balance"},
             "jpeg_quality": self.encoder.jpeg_quality,
             "preview_width": self.config.preview_width,
             "watchers": watchers,

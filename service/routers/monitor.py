@@ -111,11 +111,11 @@ class FrameProducts:
     def basis(self, published: Published) -> Basis:
         """The frame's :class:`Basis`, once per frame."""
         def compute() -> Basis:
-            encoder = self._pipeline.encoder
-            balance, colour = encoder.white_balance(published), encoder.colour
+            stage = self._pipeline.colour
+            balance, colour = stage.white_balance(published), stage.settings
             image, camera = published.hdr.image, published.camera
             matrix = monitor.display_matrix(balance, colour)
-            return Basis(balance, colour, matrix, monitor.mid_grey(image, encoder.tone, matrix),
+            return Basis(balance, colour, matrix, monitor.mid_grey(image, self._pipeline.encoder.tone, matrix),
                          monitor.clip_level(camera), monitor.noise_floor(camera))
         return self.product(published, "basis", compute)
 

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from svelive.frame_exr import FrameInfo, frame_exr_bytes
+from svelive.frame_exr import FrameInfo
 
 from service.routers import NO_STORE, ServedCamera
 
@@ -32,13 +32,8 @@ def router(cam: ServedCamera) -> APIRouter:
         noise = pipeline.reconstruction.noise.model_of(published.camera)
         info = FrameInfo(published.camera, hdr.method, frame_id=hdr.frame_id, timestamp=published.wall_time,
                          attributes=noise.attributes())
-        encoder = pipeline.encoder
-
-        def encode() -> bytes:  # white balance, colour conversion and compression off the event loop
-            # the white balance of the preview (EncoderStage.white_balance), so the snapshot matches it
-            return frame_exr_bytes(hdr.image, info, encoder.colour, encoder.white_balance(published), half=half)
-
-        data = await run_in_threadpool(encode)
+        # white balance (the preview's), output space and compression off the event loop
+        data = await run_in_threadpool(pipeline.colour.exr_bytes, published, info, half=half)
         return Response(data, media_type="image/x-exr",
                         headers={**NO_STORE, "X-Timestamp": f"{published.wall_time:.6f}",
                                  "X-Frame-Id": str(hdr.frame_id),
