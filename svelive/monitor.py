@@ -61,6 +61,16 @@ CLIPPED_RGB = (255, 0, 255)
 #: Overlay colour (RGB) of the motion mask.
 MOTION_RGB = (0, 230, 255)
 
+#: The confidence overlay's levels: (lowest signal-to-noise ratio L / sigma, RGB), ascending; confidence c = SNR /
+#: (1 + SNR), 0 where the value is only a lower bound (clipped in every exposure). Below SNR 1 the noise is as large
+#: as the value; 9 is a tenth of it, 99 a hundredth.
+CONFIDENCE_LEVELS: tuple[tuple[float, tuple[int, int, int]], ...] = (
+    (0.0, (230, 20, 20)),
+    (1.0, (255, 150, 0)),
+    (9.0, (240, 230, 0)),
+    (99.0, (0, 190, 60)),
+)
+
 
 def exposure_range(camera: Camera) -> tuple[float, float]:
     """(shortest, longest) relative exposure of the camera's pattern (its per-pixel map where it has one)."""
@@ -261,9 +271,10 @@ def histogram(image: np.ndarray, clip: float, floor: float, max_samples: int = M
 #: Low bits of a float32 dropped to index the band table (as svelive.tonemap's curve: steps of 0.4 % in radiance).
 BAND_SHIFT = 15
 
-#: Bits of :func:`overlay_map`: the low four hold the band, these two the masks.
+#: Bits of :func:`overlay_map`: the low four hold the band, these two the masks, the top two the confidence level.
 CLIPPED_BIT = 16
 MOTION_BIT = 32
+CONFIDENCE_SHIFT = 6
 
 
 def band_table(grey: float) -> np.ndarray:
@@ -281,15 +292,17 @@ def band_table(grey: float) -> np.ndarray:
 
 
 def overlay_map(image: np.ndarray, grey: float | None, clip: float, motion: np.ndarray | None = None,
-                matrix: np.ndarray | None = None) -> np.ndarray:
+                matrix: np.ndarray | None = None, confidence: np.ndarray | None = None) -> np.ndarray:
     """Every overlay of a frame in one byte per pixel, uint8 (H, W): the false-colour band of its display
     luminance (low four bits; :func:`band_table` of mid-grey ``grey``, 0 where the luminance is 0, and all 0
     when ``grey`` is None), | :data:`CLIPPED_BIT` where it is clipped in every exposure (brightest channel >=
-    ``clip``), | :data:`MOTION_BIT` where ``motion`` (bool (H, W) or None).
+    ``clip``), | :data:`MOTION_BIT` where ``motion`` (bool (H, W) or None), | the index of its level of
+    :data:`CONFIDENCE_LEVELS` << :data:`CONFIDENCE_SHIFT` (0 without ``confidence``).
 
     Args:
         image: float32 (H, W) radiance, or (H, W, 3) camera RGB (DN at exposure 1).
         matrix: for colour, :func:`display_matrix` (the luminance the tone mapper measures).
+        confidence: float32 (H, W) in [0, 1] (SNR / (1 + SNR)), or None.
 
     One compiled pass (about 1 ms for 1920x1200 mono, 3 ms colour, on one core).
     """
@@ -298,16 +311,22 @@ def overlay_map(image: np.ndarray, grey: float | None, clip: float, motion: np.n
     weights = luminance_weights(matrix) if channels == 3 else np.ones(3, np.float32)
     table = band_table(grey) if grey is not None else np.zeros(1 << (32 - BAND_SHIFT), np.uint8)
     moving = np.zeros(1, np.uint8) if motion is None else np.ascontiguousarray(motion).view(np.uint8).reshape(-1)
+    sure = (np.zeros(1, np.float32) if confidence is None
+            else np.ascontiguousarray(confidence, np.float32).reshape(-1))
+    # the levels' lowest confidences, c = SNR / (1 + SNR), the first (0) left out: every value is at least it
+    bounds = np.array([snr / (1 + snr) for snr, _ in CONFIDENCE_LEVELS[1:]], np.float32)
     out = np.empty(pixels.shape[:2], np.uint8)
     _overlay(pixels.reshape(-1), channels, np.ascontiguousarray(weights, np.float32), table, BAND_SHIFT,
-             np.float32(clip), moving, motion is not None, out.reshape(-1))
+             np.float32(clip), moving, motion is not None, sure, confidence is not None, bounds, out.reshape(-1))
     return out
 
 
 @kernel
 def _overlay(pixels: np.ndarray, channels: int, weights: np.ndarray, table: np.ndarray, shift: int,
-             clip: np.float32, moving: np.ndarray, has_motion: bool, out: np.ndarray) -> None:
-    """out[i] = band | clipped bit | motion bit of pixel i of ``pixels`` (float32 (channels N,), interleaved)."""
+             clip: np.float32, moving: np.ndarray, has_motion: bool, sure: np.ndarray, has_confidence: bool,
+             bounds: np.ndarray, out: np.ndarray) -> None:
+    """out[i] = band | clipped bit | motion bit | confidence level of pixel i of ``pixels`` (float32 (channels N,),
+    interleaved); the level: how many of ``bounds`` the confidence reaches."""
     zero = np.float32(0.0)
     buffer = np.empty(1, np.float32)
     bits = buffer.view(np.uint32)
@@ -326,16 +345,26 @@ def _overlay(pixels: np.ndarray, channels: int, weights: np.ndarray, table: np.n
             value |= 16
         if has_motion and moving[i]:
             value |= 32
+        if has_confidence:
+            level = 0
+            for bound in bounds:
+                level += sure[i] >= bound
+            value |= level << 6
         out[i] = value
 
 
 def overlay_legend() -> dict[str, object]:
     """How to read :func:`overlay_map`, JSON-ready: ``bands`` (byte & 15: 0 no light, i + 1 the band
     ``{"from": stop or None, "to": stop or None, "rgb": [r, g, b]}`` of :data:`FALSE_COLOUR`, stops from
-    mid-grey), ``clipped`` and ``motion`` (``{"bit": mask of the byte, "rgb": [r, g, b]}``)."""
+    mid-grey), ``clipped`` and ``motion`` (``{"bit": mask of the byte, "rgb": [r, g, b]}``), ``confidence``
+    (``{"shift": s, "levels": [{"snr_from": lowest SNR, "snr_to": next or None, "rgb": [r, g, b]}]}``: level
+    byte >> s, present in maps made with confidence)."""
     bands: list[dict[str, object]] = [{"from": None, "to": None, "rgb": [0, 0, 0], "no_light": True}]
     for i, (stop, rgb) in enumerate(FALSE_COLOUR):
         upper = FALSE_COLOUR[i + 1][0] if i + 1 < len(FALSE_COLOUR) else None
         bands.append({"from": None if stop == -math.inf else stop, "to": upper, "rgb": list(rgb)})
     return {"bands": bands, "band_mask": 15, "clipped": {"bit": CLIPPED_BIT, "rgb": list(CLIPPED_RGB)},
-            "motion": {"bit": MOTION_BIT, "rgb": list(MOTION_RGB)}}
+            "motion": {"bit": MOTION_BIT, "rgb": list(MOTION_RGB)},
+            "confidence": {"shift": CONFIDENCE_SHIFT, "levels": [
+                {"snr_from": snr, "snr_to": CONFIDENCE_LEVELS[i + 1][0] if i + 1 < len(CONFIDENCE_LEVELS) else None,
+                 "rgb": list(rgb)} for i, (snr, rgb) in enumerate(CONFIDENCE_LEVELS)]}}

@@ -74,6 +74,17 @@ def test_overlay_map_equals_numpy_reference_mono_and_colour():
         assert np.array_equal((got & 15)[~near_edge], band[~near_edge])
         assert np.array_equal((got & 16) > 0, monitor.brightest(image) >= clip)
         assert np.array_equal((got & 32) > 0, motion)
+        assert not (got >> monitor.CONFIDENCE_SHIFT).any()  # no confidence given: level 0
+        confidence = rng.random(shape[:2]).astype(np.float32)
+        confidence[0, :3] = [0.5, 0.9, 0.99]  # exactly at the levels' bounds: the level above
+        levels = monitor.overlay_map(image, grey, clip, motion, matrix, confidence) >> monitor.CONFIDENCE_SHIFT
+        bounds = np.float32([1 / 2, 9 / 10, 99 / 100])  # c = SNR / (1 + SNR) at SNR 1, 9, 99, in float32
+        expected = (confidence[..., None] >= bounds).sum(axis=-1)
+        snr = confidence.astype(np.float64) / (1 - confidence.astype(np.float64))
+        away = np.min(np.abs(np.log(snr[..., None] / [1.0, 9.0, 99.0])), axis=-1) > 1e-4
+        assert np.array_equal(levels, expected) and set(np.unique(levels)) == {0, 1, 2, 3}
+        assert np.array_equal(levels[away], np.searchsorted([1.0, 9.0, 99.0], snr[away], side="right"))
+        assert levels[0, :3].tolist() == [1, 2, 3]
 
 
 def test_histogram_counts_every_pixel_and_samples_large_frames():
@@ -113,11 +124,13 @@ def test_pixel_equals_the_exr_snapshot_mono_and_histogram_sees_the_clipped_block
     with ServerThread(camera) as srv:
         srv.wait_for(lambda s: s["frames"]["reconstructed"] >= 3, timeout=20)
         assert calls == []  # nobody asked: nothing computed
+        assert "_made_confidence" not in srv.pipeline.latest().hdr.__dict__  # nor the confidence map
         frame_id = pause(srv, camera)
-        snap = httpx.get(srv.url + "/snapshot.exr", timeout=10)
+        snap = httpx.get(srv.url + "/snapshot.exr?confidence=true", timeout=10)
         assert int(snap.headers["x-frame-id"]) == frame_id
         channels, _ = read_exr(snap.content)
-        y_plane = channels["Y"]
+        y_plane, sure = channels["Y"], channels["confidence"]
+        assert sure[BLOCK].max() == 0 and 0 < sure.max() <= 1  # the clipped block is only a lower bound
         for x, y in ((0, 0), (223, 191), (90, 60), (10, 150), (130, 20)):
             r = httpx.get(srv.url + f"/api/pixel?x={x}&y={y}&frame={frame_id}", timeout=5)
             assert r.status_code == 200, r.text
@@ -126,7 +139,7 @@ def test_pixel_equals_the_exr_snapshot_mono_and_histogram_sees_the_clipped_block
             assert p["values"]["Y"] == pytest.approx(float(y_plane[y, x]), rel=1e-6, abs=1e-6)
             assert p["ev"] == pytest.approx(np.log2(p["values"]["Y"] / p["mid_grey"]), abs=1e-3)
             assert p["clipped"] == (BLOCK[0].start <= y < BLOCK[0].stop and BLOCK[1].start <= x < BLOCK[1].stop)
-            assert p["motion"] is False and p["confidence"] is None
+            assert p["motion"] is False and p["confidence"] == pytest.approx(float(sure[y, x]), rel=1e-6, abs=1e-7)
         # the histogram: every pixel counted once, the clipped fraction the block's
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
             answers = list(pool.map(lambda _: httpx.get(srv.url + "/api/histogram", timeout=10), range(4)))
@@ -145,6 +158,12 @@ def test_pixel_equals_the_exr_snapshot_mono_and_histogram_sees_the_clipped_block
         clipped = (values & 16) > 0
         assert clipped[BLOCK].all() and clipped.sum() == 2400
         assert len(set((values & 15).ravel().tolist())) >= 5  # the exposure bands of a real scene
+        assert m.headers["x-confidence"] == "0" and not (values >> monitor.CONFIDENCE_SHIFT).any()
+        m = httpx.get(srv.url + "/overlay.map?confidence=true", timeout=5)
+        assert m.headers["x-confidence"] == "1" and int(m.headers["x-frame-id"]) == frame_id
+        levels = np.frombuffer(m.content, np.uint8).reshape(SHAPE) >> monitor.CONFIDENCE_SHIFT
+        assert np.array_equal(levels, (sure[..., None] >= np.float32([0.5, 0.9, 0.99])).sum(axis=-1))
+        assert len(set(levels.ravel().tolist())) >= 2
         half = httpx.get(srv.url + "/overlay.map?stride=2", timeout=5)
         assert int(half.headers["x-width"]) == 112 and np.array_equal(
             np.frombuffer(half.content, np.uint8).reshape(96, 112), values[::2, ::2])
@@ -219,6 +238,7 @@ def test_viewer_readout_follows_the_cursor_and_overlays_change_the_picture(tmp_p
                                    f"document.getElementById('pixel').dataset.y === '{fy}'")
             text = page.text_content("#pixel")
             assert text.startswith(f"({fx}, {fy}) Y ") and ("clipped" in text) == (fy < 80 and fx >= 60), text
+            assert "confidence" in text, text
         page.wait_for_function("document.getElementById('hist-info').textContent.includes('clipped')")
         before = page.locator("main").screenshot()
         page.select_option("#overlay-kind", "clipped")
@@ -233,6 +253,15 @@ def test_viewer_readout_follows_the_cursor_and_overlays_change_the_picture(tmp_p
         page.select_option("#overlay-kind", "exposure")
         page.wait_for_function("document.getElementById('overlay').dataset.kind === 'exposure'")
         assert "stops from mid-grey" in page.text_content("#legend")
-        assert page.locator("main").screenshot() not in (before, after)
+        exposure = page.locator("main").screenshot()
+        assert exposure not in (before, after)
+        page.select_option("#overlay-kind", "confidence")
+        page.wait_for_function("document.getElementById('overlay').dataset.kind === 'confidence'")
+        assert "signal-to-noise" in page.text_content("#legend")
+        assert page.locator("main").screenshot() not in (before, after, exposure)
+        # the clipped block is only a lower bound: confidence 0, the lowest level's colour
+        rgba = page.evaluate("""() => Array.from(document.getElementById('overlay').getContext('2d')
+            .getImageData(90, 60, 1, 1).data)""")
+        assert rgba[:3] == list(monitor.CONFIDENCE_LEVELS[0][1]) and rgba[3] > 0
         page.check("#zoom11")
         assert page.evaluate("document.getElementById('live').getBoundingClientRect().width") == SHAPE[1]

@@ -47,10 +47,15 @@ class ColourStage:
             return None
         return self._balancer.for_frame(published.hdr.image, published.hdr.host_time_ns, self.settings)
 
-    def exr_bytes(self, published: Published, info: FrameInfo, *, half: bool = False) -> bytes:
-        """The EXR of ``published`` in the output space in use, with the preview's white balance (any thread)."""
+    def exr_bytes(self, published: Published, info: FrameInfo, *, half: bool = False,
+                  confidence: bool = False) -> bytes:
+        """The EXR of ``published`` in the output space in use, with the preview's white balance (any thread);
+        with ``confidence`` also its "confidence" channel where the frame has one (``HdrFrame.confidence_map``)."""
         settings = self.settings
-        return frame_exr_bytes(published.hdr.image, info, settings, self.white_balance(published), half=half)
+        sure = published.hdr.confidence_map() if confidence else None
+        planes = None if sure is None else {"confidence": sure}
+        return frame_exr_bytes(published.hdr.image, info, settings, self.white_balance(published), planes,
+                               half=half)
 
     def public(self) -> dict:
         """The colour settings for /api/settings and /api/state (``ColourSettings.public``)."""

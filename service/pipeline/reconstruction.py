@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
+
+import numpy as np
 
 from service.pipeline.calibration import Calibration
 from service.pipeline.frames import Published
@@ -15,6 +18,8 @@ from service.pipeline.quality import LiveQuality, LiveStep
 from svelive.core.camera import Camera
 from svelive.core.frame import Frame, HdrFrame
 from svelive.reconstruction import Reconstructor
+from svelive.reconstruction.single import confidence_from_variance
+from svelive.reconstruction.stream import SequenceResult
 
 
 class ReconstructionStage:
@@ -38,8 +43,9 @@ class ReconstructionStage:
     thread's time (with 10 MJPEG viewers: 8.2 against 7.8 fps, latency p95 443
     against 252 ms), so the default is one (docs/service.md).
 
-    The confidence map is not computed: nothing in the live path reads it, and at
-    1920x1200 it costs several ms per frame. A camera whose gain or read noise is
+    The confidence map is made only when asked (a pixel read-out, the confidence overlay, an
+    EXR snapshot with its channel: ``HdrFrame.confidence_map``), once per frame: at 1920x1200 it
+    costs several ms, and most frames are never asked. A camera whose gain or read noise is
     unknown gets them from ``noise`` (:class:`NoiseStage`, its own thread), which
     the stage feeds with the frames and motion masks it made.
     """
@@ -156,7 +162,8 @@ class ReconstructionStage:
         timings = {"queue": (start_ns - frame.host_time_ns) / 1e6, "reconstruct": (done_ns - start_ns) / 1e6}
         hdr = HdrFrame(image=result.image, confidence=None, frame_id=frame.frame_id,
                        host_time_ns=frame.host_time_ns, device_time_ns=frame.device_time_ns,
-                       method=result.method, motion=result.motion, timings_ms=timings, camera=camera)
+                       method=result.method, motion=result.motion, timings_ms=timings, camera=camera,
+                       confidence_of=_confidence_of(result))
         self.motion_fraction = result.moving_fraction
         # a frame not fused with a history (a step without fusion, a stream's first frame) has an all-False motion
         # mask that says nothing of which pixels are still: the noise stage must not take it for one. The pixels
@@ -172,3 +179,9 @@ class ReconstructionStage:
         self.hdr_port.put(published)
         self.quality.observe(done_ns, self._captured.count, self._drops.snapshot().get("reconstruct_busy", 0),
                              timings["reconstruct"], step)
+
+
+def _confidence_of(result: SequenceResult) -> Callable[[], np.ndarray]:
+    """What makes ``result``'s confidence map when first asked, holding only what that needs (not the result)."""
+    plane, variance_of, lower_bound = result.plane, result.variance_of, result.lower_bound
+    return lambda: confidence_from_variance(plane, variance_of(), lower_bound)

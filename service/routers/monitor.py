@@ -149,7 +149,7 @@ def router(cam: ServedCamera) -> APIRouter:
             hdr = published.hdr
             out = monitor.pixel_readout(hdr.image, x, y, balance=basis.balance, colour=basis.colour,
                                         grey=basis.grey, clip=basis.clip, floor=basis.floor, motion=hdr.motion,
-                                        confidence=hdr.confidence)
+                                        confidence=hdr.confidence_map())
             return {**about(published), **out, "space": "Y" if hdr.image.ndim == 2 else basis.colour.output_space,
                     "mid_grey": basis.grey, "clip_level": basis.clip, "noise_floor": basis.floor}
 
@@ -213,26 +213,30 @@ def router(cam: ServedCamera) -> APIRouter:
         return {**monitor.overlay_legend(), "held": products.held()}
 
     @api.get("/overlay.map")
-    async def overlay_map(stride: int = Query(1, ge=1, le=64), frame: int | None = Query(None)) -> Response:
+    async def overlay_map(stride: int = Query(1, ge=1, le=64), frame: int | None = Query(None),
+                          confidence: bool = Query(False)) -> Response:
         published = find(frame)
         if isinstance(published, JSONResponse):
             return published
+        hdr = published.hdr
+        sure = confidence and (hdr.confidence is not None or hdr.confidence_of is not None)
+        kind = "overlay+confidence" if sure else "overlay"  # the confidence map only for those who ask
 
         def make() -> bytes:
             basis = products.basis(published)
-            hdr = published.hdr
-            full = products.product(published, "overlay", lambda: monitor.overlay_map(
-                hdr.image, basis.grey, basis.clip, hdr.motion, basis.matrix))
+            full = products.product(published, kind, lambda: monitor.overlay_map(
+                hdr.image, basis.grey, basis.clip, hdr.motion, basis.matrix, hdr.confidence_map() if sure else None))
             if stride == 1:
                 return full.tobytes()
-            return products.product(published, f"overlay/{stride}", lambda: full[::stride, ::stride].tobytes())
+            return products.product(published, f"{kind}/{stride}", lambda: full[::stride, ::stride].tobytes())
 
         data = await run_in_threadpool(make)
         height, width = published.hdr.image.shape[:2]
         return Response(data, media_type="application/octet-stream",
                         headers={**NO_STORE, "X-Frame-Id": str(published.hdr.frame_id),
                                  "X-Width": str(-(-width // stride)), "X-Height": str(-(-height // stride)),
-                                 "X-Stride": str(stride), "X-Motion": "0" if published.hdr.motion is None else "1"})
+                                 "X-Stride": str(stride), "X-Motion": "0" if published.hdr.motion is None else "1",
+                                 "X-Confidence": "1" if sure else "0"})
 
     return api
 

@@ -24,7 +24,7 @@ def router(cam: ServedCamera) -> APIRouter:
                         headers={**NO_STORE, "X-Timestamp": f"{item.wall_time:.6f}", "X-Frame-Id": str(item.frame_id)})
 
     @api.get("/snapshot.exr")
-    async def snapshot_exr(half: bool = Query(False)) -> Response:
+    async def snapshot_exr(half: bool = Query(False), confidence: bool = Query(False)) -> Response:
         published = pipeline.latest()  # one immutable record: never torn between two frames
         if published is None:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)
@@ -33,7 +33,7 @@ def router(cam: ServedCamera) -> APIRouter:
         info = FrameInfo(published.camera, hdr.method, frame_id=hdr.frame_id, timestamp=published.wall_time,
                          attributes=noise.attributes())
         # white balance (the preview's), output space and compression off the event loop
-        data = await run_in_threadpool(pipeline.colour.exr_bytes, published, info, half=half)
+        data = await run_in_threadpool(pipeline.colour.exr_bytes, published, info, half=half, confidence=confidence)
         return Response(data, media_type="image/x-exr",
                         headers={**NO_STORE, "X-Timestamp": f"{published.wall_time:.6f}",
                                  "X-Frame-Id": str(hdr.frame_id),

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -47,11 +49,14 @@ class HdrFrame:
     Attributes:
         image: float32 (H, W), or (H, W, 3) linear camera RGB for a colour camera,
             radiance in DN at relative exposure 1.
-        confidence: float32 (H, W) in [0, 1]; 0 where the value is only a lower bound.
+        confidence: float32 (H, W) in [0, 1]; 0 where the value is only a lower bound; None when not made
+            (a live frame's is made on first use from ``confidence_of``: :meth:`confidence_map`).
         motion: bool (H, W) or None, pixels flagged as moving.
         frame_id, host_time_ns, device_time_ns: copied from the source Frame.
         method: the reconstruction method's name.
         timings_ms: per-stage durations, e.g. {"reconstruct": 12.3}.
+        confidence_of: makes the confidence map when ``confidence`` is None (the live path: most frames are
+            never asked for it, and a 1920x1200 map costs several ms), or None.
     """
 
     image: np.ndarray
@@ -63,3 +68,13 @@ class HdrFrame:
     motion: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     camera: Camera | None = None
+    confidence_of: Callable[[], np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def confidence_map(self) -> np.ndarray | None:
+        """``confidence``, or the map ``confidence_of`` makes (once: later calls return the same array); None
+        when the frame has neither."""
+        return self.confidence if self.confidence is not None else self._made_confidence
+
+    @cached_property
+    def _made_confidence(self) -> np.ndarray | None:
+        return None if self.confidence_of is None else self.confidence_of()
