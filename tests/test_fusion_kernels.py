@@ -106,7 +106,7 @@ def test_moving_rows_is_confirmation_then_widening(widen, density):
 @pytest.mark.parametrize("shape", [(1, 4), (6, 9), (70, 33)])
 def test_detail_rows_is_the_window_mean_then_the_detail_pass(window, shape):
     from svelive.jit import flat
-    from svelive.reconstruction.fusion import _detail_pass, _detail_rows
+    from svelive.reconstruction.fusion import _detail_pass, _detail_rows, _DetailStep
 
     rng = np.random.default_rng(window[0] * 100 + shape[0])
     ky, kx = (binomial_kernel(n) for n in window)
@@ -123,7 +123,8 @@ def test_detail_rows_is_the_window_mean_then_the_detail_pass(window, shape):
         _symmetric_row(evidence[r], kx, along[r])
     out = np.empty(shape, np.float32)
     for first in range(0, shape[0], 4):  # in strips of 4 rows
-        _detail_rows(along, first, min(first + 4, shape[0]), ky, fused, own, reset, out, threshold, True)
+        _detail_rows(along, first, min(first + 4, shape[0]), _DetailStep(True, kx, ky, threshold, True), fused, own,
+                     reset, out)
     assert np.array_equal(out, expected)
 
 

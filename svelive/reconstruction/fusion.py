@@ -31,6 +31,7 @@ import threading
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -380,12 +381,17 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
     if np.ndim(frame.own_slope) == 0:  # the tables' scales: the kernel computes them from ``inverse``
-        own_tables = (_NO_TABLE, _NO_TABLE, np.float32(frame.own_slope), np.float32(frame.own_floor))
+        tables = _Tables(frame.inverse, _NO_TABLE, _NO_TABLE, np.float32(frame.own_slope), np.float32(frame.own_floor))
     else:
-        own_tables = (frame.own_slope, frame.own_floor, np.float32(0), np.float32(0))
+        tables = _Tables(frame.inverse, frame.own_slope, frame.own_floor, np.float32(0), np.float32(0))
 
     threshold = np.float32(detail_threshold(ky, kx, config.detail_sigmas))
     sharpens = config.max_history > 1  # else no pixel has history to sharpen with
+    step = _DetailStep(detail, along, ky, threshold, sharpens)
+    # a history scaled up by the brightness ratio carries up to ratio times the (shot)
+    # noise variance the model gives at its new level
+    settings = _FuseSettings(window[0] // 2, window[1] // 2, int(config.widen), inv_k2, scale, floor_weight, separate,
+                             max(scale, np.float32(1)))
 
     def inner(core: slice) -> slice:
         """The strip's rows whose detail window lies within it (mirrored at the frame's ends): the
@@ -408,16 +414,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
         ext = slice(top, stop)
         done = inner(core)
-        # a history scaled up by the brightness ratio carries up to ratio times the (shot)
-        # noise variance the model gives at its new level
-        count = _fuse_strip(core.start - top, tested[ext], history[ext], state.weight[ext], tested_variance[ext],
-                            bound[ext], state.bound[ext], frame.censored[ext], state.censored[ext], window[0] // 2,
-                            window[1] // 2, int(config.widen), inv_k2,
-                            core.start, state.weight[core], motion[core], state.mean[core], state.own[core],
-                            image[core], frame.signal[core], frame.censored[core], frame.inverse, floor_weight, scale,
-                            reset[core], weight[core], fused[core], own[core], history[core], tested[core],
-                            fused_test[core], separate, *own_tables, max(scale, np.float32(1)), evidence[core],
-                            detail, along, done.start, done.stop, h, ky, threshold, sharpens, out[core])
+        count = _fuse_strip(_StripRows(core.start - top, core.start, done.start, done.stop, h),
+                            _Halo(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
+                                  state.bound[ext], frame.censored[ext], state.censored[ext]),
+                            _History(state.weight[core], state.mean[core], state.own[core], history[core]),
+                            _Frame(image[core], frame.signal[core], frame.censored[core], tested[core]), tables,
+                            _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
+                                     fused_test[core], evidence[core], out[core]), settings, step)
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -446,7 +449,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         """The detail step of rows the update did not sharpen, once the evidence of their rows and a
         window around them is in."""
         if inline:  # the evidence is summed along rows: down the columns in the pass
-            _detail_rows(evidence, core.start, core.stop, ky, fused, own, reset, out, threshold, sharpens)
+            _detail_rows(evidence, core.start, core.stop, step, fused, own, reset, out)
         else:
             ext = slice(max(core.start - radius, 0), min(core.stop + radius, h))
             local = smooth(evidence[ext], ky, kx)[core.start - ext.start:core.stop - ext.start]
@@ -591,31 +594,172 @@ def _grown_row(changed, changed_rows, start, stop, wx, column, grown):
             left[c] = left[c] | right[c]
 
 
+class _StripRows(NamedTuple):
+    """Where a strip of :func:`fuse` lies (ints).
+
+    Attributes:
+        keep: the strip's first row among the rows of :class:`_Halo`.
+        first_row: the frame row of the strip's first row; frame_rows: the frame's rows.
+        sharp_first, sharp_stop: the frame rows ``sharp_first:sharp_stop`` the pass sharpens, whose detail
+            window's rows are the strip's too (mirrored at the ends of the frame); none if stop <= first.
+    """
+
+    keep: int
+    first_row: int
+    sharp_first: int
+    sharp_stop: int
+    frame_rows: int
+
+
+class _Halo(NamedTuple):
+    """The rows the noise test of :func:`_fuse_strip` reads: (E, W) rows of the strip with its halo.
+
+    Attributes:
+        image, mean: float32, the frame's tested estimate (:attr:`FrameEstimate.tested`) and the history's.
+        weight: float32, the history's weight 1 / n; variance: float32, the tested estimate's variance.
+        bound, old_bound: bool, the frame's and the history's lower bounds.
+        censored, old_censored: bool, their censored readings; a reading whose censoring changed makes its
+            window (``wy`` rows, ``wx`` columns either side, within these rows) unstable.
+    """
+
+    image: np.ndarray
+    mean: np.ndarray
+    weight: np.ndarray
+    variance: np.ndarray
+    bound: np.ndarray
+    old_bound: np.ndarray
+    censored: np.ndarray
+    old_censored: np.ndarray
+
+
+class _History(NamedTuple):
+    """The old state of a strip's rows, which :func:`_update_row` reads: float32 (R, W) rows of
+    :class:`TemporalState`'s weight (1 / n), mean, own and tested estimate (``mean`` unless the test
+    has a history of its own)."""
+
+    weight: np.ndarray
+    mean: np.ndarray
+    own: np.ndarray
+    test: np.ndarray
+
+
+class _Frame(NamedTuple):
+    """The new frame's rows of a strip, which :func:`_update_row` reads: (R, W) rows of
+    :class:`FrameEstimate`'s image (float32), signal s (float32), censored (bool) and tested estimate
+    (float32, read where ``separate``)."""
+
+    image: np.ndarray
+    signal: np.ndarray
+    censored: np.ndarray
+    tested: np.ndarray
+
+
+class _Tables(NamedTuple):
+    """The frame's row-phase tables (:class:`FrameEstimate`), which :func:`_update_row` reads.
+
+    Attributes:
+        inverse: float32 (P, W), 1 / e by row phase.
+        own_slope, own_floor: float32 (P, W) by row phase, one own reading's variance ``own_slope * L +
+            own_floor``; or of no rows (:data:`_NO_TABLE`): ``inverse`` times ``slope_scale``, and squared
+            times ``floor_scale`` (float32 scalars, 0 with tables).
+    """
+
+    inverse: np.ndarray
+    own_slope: np.ndarray
+    own_floor: np.ndarray
+    slope_scale: np.float32
+    floor_scale: np.float32
+
+
+class _Outputs(NamedTuple):
+    """What :func:`_fuse_strip` writes: (R, W) rows of the strip.
+
+    Attributes:
+        motion, reset: bool, the moving pixels (flagged, confirmed, widened), and those that take the
+            frame's values without their history.
+        weight: float32, the new weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where reset).
+        fused, own, fused_test: float32, the running means of the image, the own readings and (where
+            ``separate``) the tested estimate.
+        evidence: float32, the detail step's evidence summed along rows, written only for the rows the
+            later detail step reads (all when the strip sharpens none).
+        out: float32, the output, in the rows the pass sharpens.
+    """
+
+    motion: np.ndarray
+    reset: np.ndarray
+    weight: np.ndarray
+    fused: np.ndarray
+    own: np.ndarray
+    fused_test: np.ndarray
+    evidence: np.ndarray
+    out: np.ndarray
+
+
+class _FuseSettings(NamedTuple):
+    """A frame's settings of :func:`_fuse_strip` and :func:`_update_row`, the same for every strip.
+
+    Attributes:
+        wy, wx: int, the half height and width of the window a changed censoring makes unstable.
+        widen: int, ``config.widen``; inv_k2: float32, 1 / k^2 of the noise test.
+        scale: float32, the brightness ratio applied to the history.
+        floor_weight: float32, 1 / max_history; separate: bool, the test has a history of its own.
+        noisier: float32, max(scale, 1): a history scaled up by the brightness ratio carries up to
+            ratio times the (shot) noise variance the model gives at its new level.
+    """
+
+    wy: int
+    wx: int
+    widen: int
+    inv_k2: np.float32
+    scale: np.float32
+    floor_weight: np.float32
+    separate: bool
+    noisier: np.float32
+
+
+class _DetailStep(NamedTuple):
+    """A frame's settings of the detail step (:func:`_update_row`, :func:`_sharpen_row`).
+
+    Attributes:
+        enabled: bool, the detail step runs (the update writes the evidence).
+        along, kernel_y: float32, the symmetric kernels of the evidence's window along its row
+            (numerics._symmetric_row; a single tap of 1: as it is) and down the columns.
+        threshold: float32, on the window mean (:func:`detail_threshold`).
+        sharpens: bool, pixels have history to sharpen with (else the output is the fused image).
+    """
+
+    enabled: bool
+    along: np.ndarray
+    kernel_y: np.ndarray
+    threshold: np.float32
+    sharpens: bool
+
+
 @kernel
-def _fuse_strip(keep, test_image, test_mean, test_weight, test_variance, test_bound, test_old_bound, test_censored,
-                test_old_censored, wy, wx, widen, inv_k2, first_row, old_weight, motion, old_mean, old_own, image,
-                signal, censored, inverse, floor_weight, scale, reset, weight, fused, own, old_test, tested,
-                fused_test, separate, own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail,
-                along, sharp_first, sharp_stop, frame_rows, kernel_y, threshold, sharpens, out):
+def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step):
     """One strip of :func:`fuse` in one pass down its rows: the noise test, confirmation and
     widening (``motion``, ``reset``), the running means (:func:`_update_row`) and the detail step.
     Returns the strip's count of moving pixels.
 
-    ``test_*``: (E, W) rows of the strip with its halo (the strip's rows from ``keep`` on): the
-    tested estimate, the history's, its weight, the estimate's variance, both lower bounds and
-    censorings; a reading whose censoring changed makes its window (``wy`` rows, ``wx`` columns
-    either side, within these rows) unstable. Flagged pixels count as moving where an 8-neighbour
-    is flagged too (within these rows), widened by ``widen``. Each row is updated once every row
-    whose widening reaches it is tested, a few rows after its own test, and sharpened ``kernel_y``'s
-    radius rows later (:func:`_detail_rows` into ``out``; frame rows ``sharp_first:sharp_stop``,
-    whose window's rows are the strip's too, mirrored at the ends of a frame of ``frame_rows``
-    rows), so that each row is read from memory once and its results are still in cache when
-    the next step reads them. The evidence goes to a ring of the window's rows, and to
-    ``evidence`` only for the rows the later detail step reads (all when the strip sharpens none).
-    The other arguments are :func:`_update_row`'s, (R, W) rows of the strip.
+    ``strip``: :class:`_StripRows`; ``halo``: :class:`_Halo`, the rows the test reads; ``history``,
+    ``frame``, ``tables``: what the update reads (:class:`_History`, :class:`_Frame`, :class:`_Tables`);
+    ``outputs``: :class:`_Outputs`; ``settings``: :class:`_FuseSettings`; ``step``: :class:`_DetailStep`.
+    Flagged pixels count as moving where an 8-neighbour is flagged too (within the halo's rows),
+    widened by ``widen``. Each row is updated once every row whose widening reaches it is tested, a
+    few rows after its own test, and sharpened ``kernel_y``'s radius rows later (:func:`_detail_rows`
+    into ``out``), so that each row is read from memory once and its results are still in cache when
+    the next step reads them. The evidence goes to a ring of the window's rows, and to ``evidence``
+    only for the rows the later detail step reads.
     """
+    keep, first_row, sharp_first, sharp_stop, frame_rows = strip
+    (test_image, test_mean, test_weight, test_variance, test_bound, test_old_bound, test_censored,
+     test_old_censored) = halo
+    motion, reset, fused, own = outputs.motion, outputs.reset, outputs.fused, outputs.own
+    evidence, out = outputs.evidence, outputs.out
+    wy, wx, widen, inv_k2, scale = settings.wy, settings.wx, settings.widen, settings.inv_k2, settings.scale
+    detail, kernel_y = step.enabled, step.kernel_y
     rows_e, cols = test_image.shape
-    rows = image.shape[0]
+    rows = frame.image.shape[0]
     changed = np.empty((rows_e, cols), np.bool_)
     changed_rows = np.empty(rows_e, np.intp)
     flagged = np.empty((rows_e, cols), np.bool_)
@@ -656,41 +800,42 @@ def _fuse_strip(keep, test_image, test_mean, test_weight, test_variance, test_bo
         last = rows if t == rows_e else min(t - widen - keep, rows)
         while following < last:
             slot = ring[following % ring.shape[0]]
-            _update_row(following, first_row, old_weight, motion, old_mean, old_own, image, signal, censored,
-                        inverse, floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test,
-                        separate, own_slope, own_floor, slope_scale, floor_scale, noisier, slot, detail, along, row)
+            _update_row(following, first_row, history, frame, tables, outputs, settings, step, slot, row)
             g = first_row + following
             if detail and (sharp_stop <= sharp_first or g < sharp_first + a or g >= sharp_stop - a):
                 evidence[following] = slot  # read by the detail step of rows it does not sharpen
             if sharp_first <= g - a < sharp_stop:  # the rows below it are in
-                _sharpen_row(ring, g - a, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold,
-                             sharpens, local)
+                _sharpen_row(ring, g - a, first_row, frame_rows, step, fused, own, reset, out, local)
             following += 1
     for g in range(max(sharp_first, first_row + rows - a), sharp_stop):  # at the frame's bottom
-        _sharpen_row(ring, g, first_row, frame_rows, kernel_y, fused, own, reset, out, threshold, sharpens, local)
+        _sharpen_row(ring, g, first_row, frame_rows, step, fused, own, reset, out, local)
     return count
 
 
 @kernel
-def _update_row(r, first_row, old_weight, motion, old_mean, old_own, image, signal, censored, inverse,
-                floor_weight, scale, reset, weight, fused, own, old_test, tested, fused_test, separate,
-                own_slope, own_floor, slope_scale, floor_scale, noisier, evidence, detail, along, row):
+def _update_row(r, first_row, history, frame, tables, outputs, settings, step, evidence, row):
     """The running means of row ``r`` of a strip starting at frame row ``first_row``; also sets
-    ``reset`` where ``motion`` is. ``row``: (W,) scratch; ``evidence``: the row's, (W,).
+    ``reset`` where ``motion`` is (:class:`_Outputs`). ``row``: (W,) scratch; ``evidence``: the row's, (W,).
 
-    (R, W) arrays but for ``inverse``, ``own_slope`` and ``own_floor``, (P, W) by row phase
-    (:class:`FrameEstimate`; tables of no rows: ``inverse`` times ``slope_scale``, and squared
-    times ``floor_scale``). Writes weight (1/n -> 1/(n + 1), at least ``floor_weight``, 1 where
-    reset), the fused image and own readings; with ``separate`` the running mean of the tested
-    estimate ``tested`` with its history ``old_test`` (``fused_test``); with ``detail`` the evidence:
-    (own - fused)^2 over the fused own reading's variance (one reading's, from the row-phase tables,
-    times the weight and ``noisier``), summed along its row with the symmetric kernel ``along``
-    (numerics._symmetric_row; a single tap of 1: as it is). Row by row, each step a loop of its own
-    over few arrays (with many, LLVM stops vectorising), while the row's results are still in cache.
+    Reads ``history`` (:class:`_History`), ``frame`` (:class:`_Frame`), ``tables`` (:class:`_Tables`),
+    ``settings`` (:class:`_FuseSettings`) and ``step`` (:class:`_DetailStep`). Writes weight (1/n ->
+    1/(n + 1), at least ``floor_weight``, 1 where reset), the fused image and own readings; with
+    ``separate`` the running mean of the tested estimate with its history (``fused_test``); with the
+    detail step the evidence: (own - fused)^2 over the fused own reading's variance (one reading's,
+    from the row-phase tables, times the weight and ``noisier``), summed along its row with the
+    symmetric kernel ``along``. Row by row, each step a loop of its own over few arrays (with many,
+    LLVM stops vectorising), while the row's results are still in cache.
     """
+    old_weight, old_mean, old_own, old_test = history
+    image, signal, censored, tested = frame
+    inverse, own_slope, own_floor, slope_scale, floor_scale = tables
+    motion, reset, weight, fused, own = outputs.motion, outputs.reset, outputs.weight, outputs.fused, outputs.own
+    fused_test = outputs.fused_test
+    floor_weight, scale, separate, noisier = settings.floor_weight, settings.scale, settings.separate, settings.noisier
+    detail, along = step.enabled, step.along
     one, zero = np.float32(1), np.float32(0)
     period = inverse.shape[0]
-    tables = own_slope.shape[0]
+    table_rows = own_slope.shape[0]
     p = (first_row + r) % period
     for c in range(image.shape[1]):
         restart = reset[r, c] or motion[r, c]
@@ -705,8 +850,8 @@ def _update_row(r, first_row, old_weight, motion, old_mean, old_own, image, sign
         for c in range(image.shape[1]):
             fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], weight[r, c], scale)
     if detail:
-        if tables:
-            q = (first_row + r) % tables
+        if table_rows:
+            q = (first_row + r) % table_rows
             for c in range(image.shape[1]):
                 f = fused[r, c]
                 d = own[r, c] - f
@@ -756,21 +901,23 @@ def detail_threshold(kernel_y: np.ndarray, kernel_x: np.ndarray, sigmas: float) 
 
 
 @kernel
-def _detail_rows(evidence, first, stop, kernel, fused, own, reset, out, threshold, sharpens):
+def _detail_rows(evidence, first, stop, step, fused, own, reset, out):
     """:func:`_detail_pass` of rows ``first:stop`` of the (H, W) arrays, ``local`` made here: the window
-    mean of ``evidence`` (summed along rows already) down the columns with the symmetric ``kernel``,
-    rows beyond the frame mirrored, in OpenCV's order (numerics._symmetric_row): bit-identical to
-    methods.base.smooth's for kernels of up to numerics.INLINE_TAPS taps."""
+    mean of ``evidence`` (summed along rows already) down the columns with the symmetric
+    ``step.kernel_y`` (:class:`_DetailStep`), rows beyond the frame mirrored, in OpenCV's order
+    (numerics._symmetric_row): bit-identical to methods.base.smooth's for kernels of up to
+    numerics.INLINE_TAPS taps."""
     local = np.empty(evidence.shape[1], np.float32)
     for r in range(first, stop):
-        _sharpen_row(evidence, r, 0, evidence.shape[0], kernel, fused, own, reset, out, threshold, sharpens, local)
+        _sharpen_row(evidence, r, 0, evidence.shape[0], step, fused, own, reset, out, local)
 
 
 @kernel(inline="always")
-def _sharpen_row(evidence, r, first, rows, kernel, fused, own, reset, out, threshold, sharpens, local):
+def _sharpen_row(evidence, r, first, rows, step, fused, own, reset, out, local):
     """:func:`_detail_rows` of frame row ``r`` of a frame of ``rows`` rows, the arrays holding frame
     rows from ``first`` on (``evidence`` frame row x at ``(x - first) % len(evidence)``: also a ring
-    of the rows around ``r``); ``local``: (W,) scratch."""
+    of the rows around ``r``); ``step``: :class:`_DetailStep`; ``local``: (W,) scratch."""
+    kernel, threshold, sharpens = step.kernel_y, step.threshold, step.sharpens
     a = kernel.size // 2
     zero, one = np.float32(0), np.float32(1)
     cols, n = local.size, evidence.shape[0]
