@@ -104,7 +104,8 @@ from svelive.reconstruction.methods.adaptive.evidence import noise_model
 from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, joined, wide_fallback
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, kernels
 from svelive.reconstruction.methods.adaptive.posterior import POSTERIOR_HIGH, posterior_polynomial
-from svelive.reconstruction.methods.adaptive.strip_pass import fused_pass, pattern_exposure_sum
+from svelive.reconstruction.methods.adaptive.strip_pass import (
+    PassNoise, PassOutputs, PassReadings, PassSettings, PassWindow, fused_pass, pattern_exposure_sum)
 from svelive.reconstruction.methods.base import Estimate, SveInput, fill_lower_bounds, map_on, window_kernels
 
 
@@ -250,13 +251,15 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     lower, candidates = np.empty(shape, bool), np.empty(shape, bool)
     variance = np.empty(shape if want_variance else (0, 0), f32)
     kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
-    count, lowered = fused_pass(inp.signal, e, censored, flagged, exposure_sum, first, last, ky, kx, f32(noise[0]),
-                            f32(noise[1]), f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
-                            f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(),
-                            -f32(inp.sensor.black_level), f32(CONTRAST_SIGMA**2),
-                            w, wn, x, image, estimate, total, lower, candidates, variance,
-                            np.empty((2, 0, 0), f32) if window is None else window,
-                            np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32))
+    count, lowered = fused_pass(
+        PassReadings(inp.signal, e, censored, flagged, exposure_sum), first, last,
+        PassNoise(f32(noise[0]), f32(noise[1])),
+        PassSettings(ky, kx, f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
+                     f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(), -f32(inp.sensor.black_level),
+                     f32(CONTRAST_SIGMA**2)),
+        PassOutputs(w, wn, x, image, estimate, total, lower, candidates, variance),
+        PassWindow(np.empty((2, 0, 0), f32) if window is None else window,
+                   np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32)))
     if flagged:
         bound_only = censored_pixels(inp, image, w, x, ky, kx)
         lowered = lowered or bool(bound_only.any())

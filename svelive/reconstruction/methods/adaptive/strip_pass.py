@@ -5,6 +5,7 @@ per-pixel stages between them (weights, residuals, blend)."""
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -15,10 +16,92 @@ from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, POS
 from svelive.reconstruction.methods.base import count_true, reflect_101, rows_min, smooth, window_level_row
 
 
+class PassReadings(NamedTuple):
+    """What :func:`fused_pass` reads of a strip.
+
+    Attributes:
+        signal, exposure: float32 (H, W), the readings s and their exposures e.
+        censored: bool (H, W), the censored readings.
+        flagged: bool, the strip holds censored pixels: the chain takes :func:`_weights_censored`.
+        exposure_sum: float32 (H, W), the window sums of ``exposure`` (the pattern's, cached), or of
+            no rows: computed (of the uncensored exposures) in the pass.
+    """
+
+    signal: np.ndarray
+    exposure: np.ndarray
+    censored: np.ndarray
+    flagged: bool
+    exposure_sum: np.ndarray
+
+
+class PassNoise(NamedTuple):
+    """The noise model of :func:`fused_pass` (adaptive's ``noise_model``): float32 1 / gain and floor variance."""
+
+    gain_inv: np.float32
+    floor: np.float32
+
+
+class PassSettings(NamedTuple):
+    """The kernels and thresholds of :func:`fused_pass`.
+
+    Attributes:
+        ky, kx: float32, the window's binomial kernels (parameters.kernels).
+        centre: float32, their centre taps' product; kernel_square: float32, sum G^2 of the window.
+        threshold: float32, :func:`_blend`'s, 2 CONTRAST_SIGMA^2 kernel_square.
+        coefficients: float32, step 4's polynomial (posterior.posterior_polynomial).
+        bottom: float32, the reading s of a raw 0 (minus the black level): step 4's 0 at the bottom of the raw range.
+        z2: float32, CONTRAST_SIGMA^2, the wide fallback's candidates' threshold (:func:`_candidates`).
+    """
+
+    ky: np.ndarray
+    kx: np.ndarray
+    centre: np.float32
+    kernel_square: np.float32
+    threshold: np.float32
+    coefficients: np.ndarray
+    bottom: np.float32
+    z2: np.float32
+
+
+class PassOutputs(NamedTuple):
+    """What :func:`fused_pass` writes: float32 (H, W) but where said.
+
+    Attributes:
+        w: the weights; wn: the neighbours' weights (``w`` itself unless ``flagged``).
+        x: s / e, (H, W) where ``flagged`` (the censored step reads it; then x, w and wn are set on every
+            row), else a ring of the window's height.
+        image, estimate, total: in rows [first, last) the result, L^ and its information.
+        lower: bool, exposure sum <= 0 where w is set, False elsewhere.
+        candidates: bool, the wide fallback's, in rows [first, last).
+        variance: 1 / total in rows [first, last), or of no rows: not computed.
+    """
+
+    w: np.ndarray
+    wn: np.ndarray
+    x: np.ndarray
+    image: np.ndarray
+    estimate: np.ndarray
+    total: np.ndarray
+    lower: np.ndarray
+    candidates: np.ndarray
+    variance: np.ndarray
+
+
+class PassWindow(NamedTuple):
+    """The motion tests' window mean :func:`fused_pass` makes beside the method (base.window_level_row).
+
+    Attributes:
+        means: float32 (2, H, W), the window mean and its variance in rows [first, last), or of no rows:
+            not computed; 0 and an infinite variance where the window holds no uncensored reading.
+        noise: float32 (2,), (1 / g, sigma^2) of the sensor.
+    """
+
+    means: np.ndarray
+    noise: np.ndarray
+
+
 @kernel
-def fused_pass(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_inv, floor, centre, kernel_square,
-           threshold, coefficients, bottom, z2, w, wn, x, image, estimate, total, lower, candidates, variance,
-           window, window_noise):
+def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     """Steps 1-4 but the censored pixels' own values, on the rows [first, last) of (H, W) arrays, in one pass
     down the rows: the chain of :func:`_weights` (:func:`_weights_censored` where ``flagged``: the strip holds
     censored pixels), :func:`_residuals`, :func:`_blend`, :func:`_zero_bottom_row` and
@@ -28,19 +111,18 @@ def fused_pass(s, e, censored, flagged, exposure_sum, first, last, ky, kx, gain_
     Each window sum is a row filter into a ring of the window's height of filtered rows, then a column filter
     of the ring's rows (:func:`_row_filter`, :func:`_column_filter`: ``smooth``'s arithmetic and borders,
     reflect-101 at the array's ends), so a stage reads rows the one before has just written, in cache,
-    instead of whole arrays. ``exposure_sum``: the window sums of ``e`` (the pattern's, cached), or empty to
-    compute them (of the uncensored exposures) in the pass.
-    Out: ``w``; ``wn`` (``w`` itself unless ``flagged``); x = s / e into ``x``: (H, W) where ``flagged`` (the
-    censored step reads it; then x, w and wn are set on every row), else a ring of the window's height; in rows
-    [first, last) the result (``image``), L^ (``estimate``), its information (``total``), the wide fallback's
-    ``candidates`` and 1 / total in ``variance`` unless it is empty; exposure sum <= 0 (``lower``) where w
-    is set, False elsewhere. Returns (the candidates' count, whether any pixel is ``lower``): the caller
-    fills the lower bounds.
+    instead of whole arrays. ``readings``: :class:`PassReadings`; ``noise``: :class:`PassNoise`;
+    ``settings``: :class:`PassSettings`; ``outputs``: :class:`PassOutputs`. Returns (the candidates' count,
+    whether any pixel is ``lower``): the caller fills the lower bounds.
 
-    ``window``: (2, H, W) float32, or of no rows: also the motion tests' window mean and its variance in rows
-    [first, last) (base.window_level_row; the window sums of the uncensored readings are the pilot's, and
-    those of G^2 e and G^2 two more row and column filters), with ``window_noise`` (1 / g, sigma^2) of the
-    sensor; 0 and an infinite variance where the window holds no uncensored reading."""
+    ``motion_window`` (:class:`PassWindow`): also the motion tests' window mean and its variance (the window
+    sums of the uncensored readings are the pilot's, and those of G^2 e and G^2 two more row and column
+    filters)."""
+    s, e, censored, flagged, exposure_sum = readings
+    gain_inv, floor = noise
+    ky, kx, centre, kernel_square, threshold, coefficients, bottom, z2 = settings
+    w, wn, x, image, estimate, total, lower, candidates, variance = outputs
+    window, window_noise = motion_window
     h, width = s.shape
     ry = ky.size // 2
     windowed = window.shape[1] > 0
