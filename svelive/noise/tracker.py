@@ -98,7 +98,8 @@ class NoiseTracker:
             camera: its camera; a change of pattern, colour filter, levels or shape starts over.
             static_mask: bool (H, W), pixels known not to have changed since the previous frame (e.g.
                 the motion test's static pixels); None gives no temporal samples (a moving camera
-                would bias them), only the single-frame ones.
+                would bias them), only the single-frame ones. A frame equal to the previous one adds
+                nothing.
             signal: the linear signal above black when the camera has a response (see :func:`estimate_from_frame`).
         """
         sensor = camera.sensor
@@ -112,6 +113,10 @@ class NoiseTracker:
             return
         source, offset, floor = _signal_of(raw, camera, signal)
         sig = np.asarray(source, np.float32) - np.float32(offset)
+        if self._previous is not None and np.array_equal(sig, self._previous):
+            # the frame before delivered again (a buffer sent twice, a short loop of recorded frames): its
+            # differences would say the sensor has no temporal noise, and its own samples are counted already
+            return
         static = None if static_mask is None else np.asarray(static_mask, bool)
         if static is not None and static.shape != sig.shape:
             raise SveliveError(f"static mask has shape {static.shape} but the frame {sig.shape}")
