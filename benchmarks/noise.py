@@ -134,7 +134,7 @@ def tracker_runs(radiance: np.ndarray, pattern: Pattern, truth: Sensor, cfa: str
                  runs: int) -> list:
     """The estimates of a fresh NoiseTracker after each of ``runs`` runs of three frames of ``radiance``.
 
-    As the live service's noise stage (service/pipeline/noise.py) feeds it: every run, the first frame
+    As a stream's model (svelive.noise.StreamNoise, the library's and the live service's) feeds it: every run, the first frame
     without a static mask, the next two with one (here every pixel: the scene is static). Frame ``j``
     (0, 1, 2, ... over all runs) has the noise seed ``seed + 1000 j``: the first run's three frames are
     those of ``--pair``.

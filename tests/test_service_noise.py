@@ -33,22 +33,32 @@ def static_camera(n: int = 8) -> Camera:
     return Camera(fps=20, raws=[simulate(np.ascontiguousarray(scene), pattern, TRUE, seed=rng).raw for _ in range(n)])
 
 
-def test_the_live_service_estimates_and_uses_the_noise_model():
+def test_the_live_service_estimates_and_uses_the_noise_model(monkeypatch):
+    """The service runs the library stream's model (one code path): the first frame's estimate, then fits of
+    runs of frames on the stream's noise thread (never on a reconstruction thread), fusion once trusted."""
+    import threading
+
+    from svelive.noise import NoiseTracker
+
+    threads = []
+    fit = NoiseTracker.fit
+    monkeypatch.setattr(NoiseTracker, "fit", lambda self: threads.append(threading.current_thread().name) or fit(self))
     config = PipelineConfig(source="sim", temporal=True, offline_after_s=0.6, retry_s=0.2)
     pipeline = Pipeline(config, lambda: UntoldSource(static_camera()))
-    pipeline.reconstruction.noise.interval_s = 0.3
     with pipeline:
         deadline = time.monotonic() + 60
-        while (pipeline.reconstruction.noise.updates < 4 or pipeline.latest() is None
-               or pipeline.latest().hdr.camera.sensor.gain is None):
-            assert time.monotonic() < deadline, f"no estimate in use: {pipeline.reconstruction.noise.state()}"
+        while True:
+            state, published = pipeline.reconstruction.noise_state(), pipeline.latest()
+            if state is not None and state["trusted"] and published is not None and published.noise is not None \
+                    and published.noise.gain == state["gain"]:
+                break
+            assert time.monotonic() < deadline, f"no trusted estimate in use: {state}"
             time.sleep(0.1)
-        state = pipeline.reconstruction.noise.state()
-        published = pipeline.latest()
         used = published.hdr.camera.sensor
-        described = pipeline.reconstruction.noise.model_of(published.hdr.camera).attributes()
-    assert described["noiseSource"] == state["in_use"]["source"] and described["noiseGain"] == used.gain
-    assert state["source"] != "given" and state["runs"] >= 4 and state["in_use"] is not None
+        described = published.noise.attributes()
+    assert threads and all(name.startswith("svelive-noise") for name in threads), threads
+    assert state["source"] == "estimated" and state["fits"] >= 2 and state["error"] is None
+    assert described["noiseSource"] == "estimated" and described["noiseGain"] == used.gain
     # the read noise is what the weights need most; the defaults (3 e- at 10 000 e- full well) say 1.2 DN
     assert abs(used.read_noise - TRUE.read_noise) < 0.15 * TRUE.read_noise, (used, TRUE)
     assert abs(used.gain - TRUE.gain) < 0.3 * TRUE.gain, (used, TRUE)
@@ -57,46 +67,43 @@ def test_the_live_service_estimates_and_uses_the_noise_model():
 def test_a_given_noise_model_is_never_replaced():
     config = PipelineConfig(source="sim", temporal=True, offline_after_s=0.6, retry_s=0.2)
     pipeline = Pipeline(config, lambda: SimSource(static_camera(4)))
-    pipeline.reconstruction.noise.interval_s = 0.1
     with pipeline:
         deadline = time.monotonic() + 30
         while pipeline.reconstructed.count < 10:
             assert time.monotonic() < deadline
             time.sleep(0.05)
-        assert pipeline.reconstruction.noise.state() is None
-        assert pipeline.latest().hdr.camera.sensor == SimSource(static_camera(1)).camera.sensor
+        assert pipeline.reconstruction.noise_state() is None
+        published = pipeline.latest()
+        assert published.hdr.camera.sensor == SimSource(static_camera(1)).camera.sensor
+        assert published.noise.source == "given"
 
 
-def test_frames_dropped_between_reconstructed_ones_still_make_runs():
-    """Live at full size the reconstruction takes the newest frame and the ids between are dropped; three
-    frames reconstructed one after another (static by their motion masks against the fused history) still
-    make a run for the tracker, and a frame id that goes back (a replay loop) starts afresh."""
-    import threading
+def test_a_model_fitted_on_a_thread_is_the_one_fitted_in_line():
+    """StreamNoise with an executor (the service's) takes the same models as without (the library's), one
+    run of three frames: the fits after its second and third frames."""
+    from concurrent.futures import ThreadPoolExecutor
 
-    from service.pipeline.noise import NoiseStage
-    from svelive.core.frame import Frame
+    from svelive.noise import StreamNoise
 
-    camera = static_camera(1)
-    untold = UntoldSource(camera).camera
-    stage = NoiseStage(threading.Event(), interval_s=0.0)
-    still = np.zeros((8, 8), bool)
-    raw = np.zeros((8, 8), np.uint16)
-    for frame_id in (0, 4, 9):
-        stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
-    taken, run = stage._runs.get_newest(0, 0)
-    assert [f.frame_id for f in run.frames] == [0, 4, 9] and len(run.static) == 2
-    for frame_id in (12, 3, 5):
-        stage.offer(Frame(raw, frame_id=frame_id, host_time_ns=0, camera=untold), untold, still)
-    assert stage._runs.get_newest(taken, 0) is None
+    camera = UntoldSource(static_camera(1)).camera
+    raws = static_camera(3).raws
+    still = np.ones(raws[0].shape, bool)
+    inline = StreamNoise()
+    with ThreadPoolExecutor(1) as pool:
+        threaded = StreamNoise(executor=pool)
+        for i, raw in enumerate(raws):
+            for noise in (inline, threaded):
+                noise.first(raw, camera)
+                noise.observe(raw, camera, None if i == 0 else still)
+    assert inline.fits == threaded.fits == 2 and threaded.error is None
+    assert threaded.estimate == inline.estimate and threaded.trusted == inline.trusted
+    assert inline.estimate.source == "estimated"
 
 
 def test_unfused_frames_are_not_offered_as_still():
-    """Without fusion a frame's motion mask is all False and says nothing of which pixels are still: the noise
-    stage gets no run of such frames (it took them as still and fitted moving pixels' differences)."""
-    import time
-
-    from service.pipeline import Pipeline, PipelineConfig
-
+    """Without fusion a frame's motion mask is all False and says nothing of which pixels are still: the
+    stream's noise model gets no run of such frames (it took them as still and fitted moving pixels'
+    differences)."""
     config = PipelineConfig(source="demo", source_options={"width": 160, "height": 96, "fps": 15}, temporal=False,
                             live_quality="fixed")
     with Pipeline(config) as pipeline:
@@ -105,4 +112,5 @@ def test_unfused_frames_are_not_offered_as_still():
             assert time.monotonic() < deadline, "no frames"
             time.sleep(0.1)
         time.sleep(1.0)  # a run offered at the 3rd frame would have been fitted by now
-        assert pipeline.reconstruction.noise.updates == 0
+        state = pipeline.reconstruction.noise_state()
+        assert state is not None and state["fits"] == 0 and not state["trusted"]

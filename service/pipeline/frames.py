@@ -10,6 +10,7 @@ import numpy as np
 
 from svelive.core.camera import Camera
 from svelive.core.frame import HdrFrame
+from svelive.noise import NoiseEstimate
 
 
 @dataclass(frozen=True)
@@ -21,11 +22,14 @@ class Published:
             camera it was reconstructed with).
         seq: the pipeline's own counter of published frames.
         published_ns: monotonic time it was published.
+        noise: the noise model it was reconstructed with (source, uncertainty; for the EXR's attributes),
+            or None.
     """
 
     hdr: HdrFrame
     seq: int
     published_ns: int
+    noise: NoiseEstimate | None = None
 
     @property
     def camera(self) -> Camera:

@@ -13,13 +13,12 @@ from service.pipeline.calibration import Calibration
 from service.pipeline.frames import Published
 from service.pipeline.handoff import Newest, NewestSlot
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
-from service.pipeline.noise import NoiseStage
 from service.pipeline.quality import LiveQuality, LiveStep
 from svelive.core.camera import Camera
 from svelive.core.frame import Frame, HdrFrame
 from svelive.reconstruction import Reconstructor
 from svelive.reconstruction.single import confidence_from_variance
-from svelive.reconstruction.stream import SequenceResult
+from svelive.reconstruction.stream import Estimated, SequenceResult
 
 
 class ReconstructionStage:
@@ -46,8 +45,11 @@ class ReconstructionStage:
     The confidence map is made only when asked (a pixel read-out, the confidence overlay, an
     EXR snapshot with its channel: ``HdrFrame.confidence_map``), once per frame: at 1920x1200 it
     costs several ms, and most frames are never asked. A camera whose gain or read noise is
-    unknown gets them from ``noise`` (:class:`NoiseStage`, its own thread), which
-    the stage feeds with the frames and motion masks it made.
+    unknown gets them as a library stream does (``svelive.Reconstructor``'s own model,
+    svelive.noise.StreamNoise: the first frame's estimate, refined from the static pixels of
+    runs of frames, fusion only once it is trusted), with the fits on the stream's noise thread;
+    a stream that replaces another of the same camera (a live-quality step) goes on from its
+    model (``Reconstructor.continue_noise``).
     """
 
     def __init__(self, slot: NewestSlot, calibration: Calibration, quality: LiveQuality, captured: RateMeter,
@@ -67,7 +69,6 @@ class ReconstructionStage:
         self.error: str | None = None
         self.reconstructed = RateMeter()
         self.latency = {name: LatencyWindow() for name in ("queue", "reconstruct", "arrival_to_hdr")}
-        self.noise = NoiseStage(stop)
         self._take = threading.Lock()  # taking a frame, its ticket and its stream
         self._turn = threading.Condition()  # whose ticket fuses and publishes next
         self._tickets = 0  # given out
@@ -82,13 +83,25 @@ class ReconstructionStage:
         """The reconstructor for this camera and live step: the current one, or a new one (the old one closed).
         Called under ``_take``."""
         key = (camera, step)
+        previous = None
         if self._current is not None:
             if self._current[0] == key:
                 return self._current[1]
-            self._current[1].close()
-        self._current = key, Reconstructor(camera, method=step.method, temporal=step.temporal,
-                                           workers=max(1, self.workers // self.frames))
-        return self._current[1]
+            previous = self._current[1]
+        stream = Reconstructor(camera, method=step.method, temporal=step.temporal,
+                               workers=max(1, self.workers // self.frames), noise_thread=True)
+        if previous is not None:
+            if self._current[0][0] == camera:
+                stream.continue_noise(previous)
+            previous.close()
+        self._current = key, stream
+        return stream
+
+    def noise_state(self) -> dict | None:
+        """For /api/state: the noise model the current stream estimates (``Reconstructor.noise_state``), None
+        when the camera gives its own."""
+        current = self._current
+        return None if current is None else current[1].noise_state()
 
     def _failed(self, exc: BaseException, stream: Reconstructor | None) -> None:
         """A frame could not be reconstructed: say why, count it, and start the stream afresh."""
@@ -101,7 +114,6 @@ class ReconstructionStage:
 
     def run(self) -> None:
         """The reconstruction threads (this one and ``frames - 1`` more): until ``stop`` is set."""
-        self.noise.start()
         others = [threading.Thread(target=self._loop, name=f"svelive-reconstruct-{i + 1}", daemon=True)
                   for i in range(self.frames - 1)]
         for thread in others:
@@ -111,7 +123,6 @@ class ReconstructionStage:
         finally:
             for thread in others:
                 thread.join(5.0)
-            self.noise.join(0.5)
             if self._current is not None:
                 self._current[1].close()
 
@@ -127,8 +138,7 @@ class ReconstructionStage:
                 failure: BaseException | None = None
                 step = self.quality.step
                 try:
-                    calibrated = self._calibration.apply(frame.camera)
-                    camera = self.noise.camera_for(calibrated)
+                    camera = self._calibration.apply(frame.camera)
                     stream = self._reconstructor(camera, step)
                 except Exception as exc:
                     failure = exc
@@ -149,12 +159,12 @@ class ReconstructionStage:
                     if failure is not None:
                         self._failed(failure, stream)
                     else:
-                        self._publish(frame, calibrated, camera, result, start_ns, step)
+                        self._publish(frame, estimated, result, start_ns, step)
                 finally:
                     self._next += 1
                     self._turn.notify_all()
 
-    def _publish(self, frame: Frame, calibrated: Camera, camera: Camera, result, start_ns: int,
+    def _publish(self, frame: Frame, estimated: Estimated, result: SequenceResult, start_ns: int,
                  step: LiveStep) -> None:
         """Publish a reconstructed frame as the newest (called in arrival order), and tell the live quality."""
         done_ns = time.monotonic_ns()
@@ -162,16 +172,10 @@ class ReconstructionStage:
         timings = {"queue": (start_ns - frame.host_time_ns) / 1e6, "reconstruct": (done_ns - start_ns) / 1e6}
         hdr = HdrFrame(image=result.image, confidence=None, frame_id=frame.frame_id,
                        host_time_ns=frame.host_time_ns, device_time_ns=frame.device_time_ns,
-                       method=result.method, motion=result.motion, timings_ms=timings, camera=camera,
+                       method=result.method, motion=result.motion, timings_ms=timings, camera=estimated.camera,
                        confidence_of=_confidence_of(result))
         self.motion_fraction = result.moving_fraction
-        # a frame not fused with a history (a step without fusion, a stream's first frame) has an all-False motion
-        # mask that says nothing of which pixels are still: the noise stage must not take it for one. The pixels
-        # that kept their history (not ``reset``) are what the library's tracker reads too: ``motion`` leaves out
-        # the pixels reset where readings crossed the censor level, most of a moving bright object's edges
-        fused = step.temporal and result.frame_index > 0
-        self.noise.offer(frame, calibrated, result.reset if fused else None)
-        published = Published(hdr, self.hdr_port.seq + 1, done_ns)  # the only writer: the port's next number
+        published = Published(hdr, self.hdr_port.seq + 1, done_ns, estimated.noise)  # the only writer: the port's next number
         self.reconstructed.tick(done_ns)
         self.latency["queue"].add(timings["queue"])
         self.latency["reconstruct"].add(timings["reconstruct"])

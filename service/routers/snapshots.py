@@ -29,9 +29,8 @@ def router(cam: ServedCamera) -> APIRouter:
         if published is None:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)
         hdr = published.hdr
-        noise = pipeline.reconstruction.noise.model_of(published.camera)
         info = FrameInfo(published.camera, hdr.method, frame_id=hdr.frame_id, timestamp=published.wall_time,
-                         attributes=noise.attributes())
+                         attributes={} if published.noise is None else published.noise.attributes())
         # white balance (the preview's), output space and compression off the event loop
         data = await run_in_threadpool(pipeline.colour.exr_bytes, published, info, half=half, confidence=confidence)
         return Response(data, media_type="image/x-exr",

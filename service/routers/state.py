@@ -27,7 +27,7 @@ async def camera_state(cam: ServedCamera, settings: ServerSettings) -> dict[str,
     out = await run_in_threadpool(cam.pipeline.state)
     mjpeg = cam.hub.state()
     out["camera_name"] = cam.name
-    out["noise"] = cam.pipeline.reconstruction.noise.state()
+    out["noise"] = cam.pipeline.reconstruction.noise_state()
     out["fps"]["streamed"] = mjpeg["streamed_fps"]
     out["frames"]["streamed"] = mjpeg["streamed"]
     out["latency_ms"]["arrival_to_sent"] = mjpeg["arrival_to_sent"]

@@ -3,7 +3,10 @@ refines it and when it is trusted (:class:`NoiseSchedule`, :class:`StreamNoise`)
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import Executor
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -60,13 +63,23 @@ class StreamNoise:
     reset, a cut) is dropped; before the first complete run the next frame starts another. The first
     run's last fit replaces the fit after its second frame whatever it says (it holds that fit's samples
     and the three frames'); a later run's fit that disagrees with the model (:func:`agree`) keeps the
-    model but distrusts it until a fit agrees. A given gain or read noise is kept. Not thread-safe: one
-    caller at a time, frames in order.
+    model but distrusts it until a fit agrees. A given gain or read noise is kept. One caller of
+    :meth:`first` and :meth:`observe` at a time, frames in order; :attr:`estimate` and :attr:`trusted`
+    may be read from any thread.
+
+    With an ``executor`` (one thread: the live service, where a fit's 250 ms at 1920x1200 would stall the
+    stream) the tracker reads a run's frames and fits there, in order, and a fit's model is taken when it
+    is done; the gap to the next run is then chosen from the trust before that fit. A failure there is
+    kept in :attr:`error` (the model in use stays); without one it is raised to the caller.
     """
 
-    def __init__(self, schedule: NoiseSchedule = NoiseSchedule(), tracker: NoiseTracker | None = None) -> None:
+    def __init__(self, schedule: NoiseSchedule = NoiseSchedule(), tracker: NoiseTracker | None = None,
+                 executor: Executor | None = None) -> None:
         self.schedule = schedule
         self.tracker = tracker if tracker is not None else NoiseTracker()
+        self.executor = executor
+        self.error: str | None = None  # the last failure of the executor's work, None after a success
+        self._lock = threading.RLock()  # the model, for readers on other threads than the executor's
         self.fits = 0  # tracker fits so far
         self._estimate: NoiseEstimate | None = None
         self._fitted = False  # whether _estimate is a fit with temporal samples (not the first frame's)
@@ -79,25 +92,28 @@ class StreamNoise:
     @property
     def estimate(self) -> NoiseEstimate | None:
         """The model in use, None before the first frame."""
-        return self._estimate
+        with self._lock:
+            return self._estimate
 
     @property
     def trusted(self) -> bool:
         """Whether the model is known well enough for fusion (``schedule.trusted_below``): given, or a
         tracker's fit with temporal samples that states it that well. The first frame's estimate never is."""
-        estimate = self._estimate
+        with self._lock:
+            estimate, fitted, conflict = self._estimate, self._fitted, self._conflict
         if estimate is None:
             return False
         if estimate.source == "given":
             return True
-        return self._fitted and not self._conflict and variance_uncertainty(estimate) <= self.schedule.trusted_below
+        return fitted and not conflict and variance_uncertainty(estimate) <= self.schedule.trusted_below
 
     def first(self, raw: np.ndarray, camera: Camera, *, signal: np.ndarray | None = None) -> NoiseEstimate:
         """The model for a frame when there is none yet: the frame's own (:func:`estimate_from_frame`, as a
         single frame is reconstructed), kept until the tracker's first fit."""
-        if self._estimate is None:
-            self._estimate = estimate_from_frame(raw, camera, signal=signal)
-        return self._estimate
+        with self._lock:
+            if self._estimate is None:
+                self._estimate = estimate_from_frame(raw, camera, signal=signal)
+            return self._estimate
 
     def needs_static(self) -> bool:
         """Whether :meth:`observe` reads the next frame's static mask (the frame continues a run; a frame
@@ -114,7 +130,8 @@ class StreamNoise:
                 None where that is unknown (the first frame, after a reset or a lost frame).
             signal: the linear signal above black for a camera with a response curve.
         Returns:
-            The new model when the tracker was fitted after this frame, else None.
+            The new model when the tracker was fitted after this frame, else None (always None with an
+            executor: the fit is taken when done).
         """
         schedule = self.schedule
         if self._position is not None and static is None:  # the run is broken: drop it
@@ -127,19 +144,40 @@ class StreamNoise:
             static = None
         else:
             self._position += 1
-        self.tracker.add(raw, camera, static, signal=signal)
         last = self._position == schedule.run_frames - 1
         if last:
             self._position = None
             self._runs += 1
-        elif not (self._runs == 0 and self._position >= 1):
+        fit = last or (self._runs == 0 and self._position >= 1)
+        work = partial(self._work, raw, camera, static, signal, fit, self._runs)
+        if self.executor is not None:
+            if last:
+                self._wait = self._next_wait()
+            self.executor.submit(work)
             return None
-        fit = self.tracker.fit()
-        self.fits += 1
-        taken = self._take(fit)
+        taken = work()
         if last:
             self._wait = self._next_wait()
         return taken
+
+    def _work(self, raw: np.ndarray, camera: Camera, static: np.ndarray | None, signal: np.ndarray | None,
+              fit: bool, runs: int) -> NoiseEstimate | None:
+        """The tracker's part of :meth:`observe`: read the frame, and fit and take the model if ``fit``;
+        ``runs``: the complete runs when the frame came."""
+        try:
+            self.tracker.add(raw, camera, static, signal=signal)
+            if not fit:
+                return None
+            model = self.tracker.fit()
+        except Exception as exc:
+            if self.executor is None:
+                raise
+            self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            return None
+        self.error = None
+        with self._lock:
+            self.fits += 1
+            return self._take(model, runs)
 
     def _next_wait(self) -> int:
         """Frames between the run just complete and the next: the schedule's once the model is trusted; while it
@@ -154,11 +192,11 @@ class StreamNoise:
         self._untrusted_runs += 1
         return min(full, schedule.run_frames * (2 ** (self._untrusted_runs - 1) - 1))
 
-    def _take(self, fit: NoiseEstimate) -> NoiseEstimate | None:
+    def _take(self, fit: NoiseEstimate, runs: int) -> NoiseEstimate | None:
         """The model after a tracker's fit (see the class): the fit, or None where the model in use is kept."""
         if fit.source == "default":  # the frames told nothing (no unclipped flat or static pixels): keep the model
             return None
-        if self._fitted and self._runs > 1 and not agree(fit, self._estimate):
+        if self._fitted and runs > 1 and not agree(fit, self._estimate):
             # two fits of one sensor that their stated uncertainties cannot reconcile: something the motion
             # masks missed (or texture) is in the samples; keep the model in use, and distrust it until a fit agrees.
             # Not within the first run: its last fit holds every sample of the one before and the three frames'

@@ -182,6 +182,9 @@ class Reconstructor:
             model changes (its frames are weighed equally whatever the model). A given value is
             never overridden.
         noise_schedule: when the model is refined and trusted (svelive.noise.NoiseSchedule).
+        noise_thread: refine the model on a thread of the stream's own (a fit takes about 250 ms CPU at
+            1920x1200, which a live stream cannot stall for): a fit's model is taken when it is done,
+            the frames meanwhile use the one before.
         motion_config: thresholds (svelive.reconstruction.config.MotionConfig).
         detail: with temporal fusion, sharpen static pixels that have history
             towards their own fused readings (svelive.reconstruction.fusion.sharpen).
@@ -202,7 +205,8 @@ class Reconstructor:
                  exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
                  motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
-                 noise_schedule: NoiseSchedule | None = None, **method_options) -> None:
+                 noise_schedule: NoiseSchedule | None = None, noise_thread: bool = False,
+                 **method_options) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
             raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
         if exposure_timing not in EXPOSURE_TIMINGS:
@@ -237,6 +241,8 @@ class Reconstructor:
         self._last_moving = 0.0
         self._cameras: dict[np.dtype, Camera] = {}
         self.noise_schedule = noise_schedule or NoiseSchedule()
+        self._noise_executor = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="svelive-noise")
+                                if noise_thread else None)
         self._noise_lock = threading.Lock()  # the stream's noise model: first frame (any thread), fuse (in order)
         self._noise: StreamNoise | None = None
         self._noise_base: Camera | None = None  # the camera (without the estimate) the model is of
@@ -270,10 +276,45 @@ class Reconstructor:
                 self._generation += 1
 
     def close(self) -> None:
-        """Stop the stream's pool of worker threads (with ``workers`` > 1); later frames make a pool per frame."""
+        """Stop the stream's pool of worker threads (with ``workers`` > 1; later frames make a pool per frame) and
+        its noise thread (a fit under way is finished, later frames do not refine the model)."""
         pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=False)
+        with self._noise_lock:
+            noise_pool, self._noise_executor = self._noise_executor, None
+            if self._noise is not None:
+                self._noise.executor = None if noise_pool is None else _Closed()
+        if noise_pool is not None:
+            noise_pool.shutdown(wait=False, cancel_futures=True)
+
+    def continue_noise(self, other: Reconstructor) -> None:
+        """Take over ``other``'s noise model, its tracker and its noise thread (``other`` then refines it no
+        more): a stream of the same camera that replaces ``other`` (the live service's step changes) goes on
+        from the model ``other`` has, instead of estimating one afresh. Call before this stream's first frame."""
+        with other._noise_lock:
+            noise, base, executor = other._noise, other._noise_base, other._noise_executor
+            other._noise = other._noise_base = other._noise_camera = None
+            other._noise_executor = None if noise is not None else executor
+        if noise is None:
+            return
+        with self._noise_lock:
+            own, self._noise_executor = self._noise_executor, executor
+            self._noise, self._noise_base, self._noise_camera = noise, base, None
+        if own is not None and own is not executor:
+            own.shutdown(wait=False)
+
+    def noise_state(self) -> dict[str, object] | None:
+        """JSON-ready: the model the stream estimates (:attr:`noise`, its ``to_dict``) with ``trusted``, the
+        tracker's ``fits`` and the last ``error`` of its noise thread; None when the camera gives its model
+        (or before the first frame)."""
+        if self.camera is not None and not _needs_noise(self.camera):
+            return None
+        with self._noise_lock:
+            noise = self._noise
+        if noise is None or noise.estimate is None:
+            return None
+        return {**noise.estimate.to_dict(), "trusted": noise.trusted, "fits": noise.fits, "error": noise.error}
 
     def __enter__(self) -> Reconstructor:
         return self
@@ -311,20 +352,23 @@ class Reconstructor:
         with self._noise_lock:
             return self._noise is not None and self._noise.trusted
 
-    def _with_noise(self, raw: np.ndarray, camera: Camera, signal: np.ndarray | None) -> tuple[Camera, bool]:
+    def _with_noise(self, raw: np.ndarray, camera: Camera,
+                    signal: np.ndarray | None) -> tuple[Camera, bool, NoiseEstimate]:
         """``camera`` with the stream's noise model where its sensor lacks gain or read noise (the first
-        frame's own estimate before any fit), and whether that model is trusted. ``raw``: uint (H, W)."""
+        frame's own estimate before any fit), whether that model is trusted, and the model. ``raw``: uint
+        (H, W)."""
         if not _needs_noise(camera):
-            return camera, True
+            return camera, True, NoiseEstimate.given(camera.sensor)
         with self._noise_lock:
             if self._noise is None or self._noise_base != camera:
-                self._noise, self._noise_base, self._noise_camera = StreamNoise(self.noise_schedule), camera, None
+                self._noise, self._noise_base, self._noise_camera = (
+                    StreamNoise(self.noise_schedule, executor=self._noise_executor), camera, None)
             noise = self._noise
             model = noise.estimate if noise.estimate is not None else noise.first(raw, camera, signal=signal)
             cached = self._noise_camera
             if cached is None or cached[0] is not model or cached[1] != camera:
                 cached = self._noise_camera = model, camera, camera.replace(sensor=model.apply(camera.sensor))
-            return cached[2], noise.trusted
+            return cached[2], noise.trusted, model
 
     def _observe_noise(self, estimated: Estimated, reset: np.ndarray | None) -> None:
         """Feed a fused frame to the stream's noise model (on its schedule); ``reset``: the pixels that did
@@ -409,7 +453,7 @@ class Reconstructor:
         signal = None
         if _needs_noise(base) and base.response is not None:
             signal = prepare(array, base).signal  # the tracker reads the linearised signal
-        camera, trusted = self._with_noise(array, base, signal)
+        camera, trusted, model = self._with_noise(array, base, signal)
         inp, est, parts = self._estimate(raw, method, camera)
         t1 = time.perf_counter()
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
@@ -431,7 +475,7 @@ class Reconstructor:
                     else own_reading_scales(lum.exposure, inp.sensor, parts.inverse_exposure))
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
-                         (time.perf_counter() - t1) * 1e3, array, base, trusted, signal)
+                         (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model)
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
@@ -507,6 +551,8 @@ class Estimated:
             output is its own estimate, not the fused one).
         signal: the linearised signal above black (float32 (H, W)) of a camera with a response
             curve whose noise is estimated, else None.
+        camera: the camera the frame was reconstructed with (``base`` with the noise model in use).
+        noise: that noise model (source "given" where the camera gives it).
     """
 
     estimate: Estimate
@@ -521,6 +567,8 @@ class Estimated:
     base: Camera | None = None
     trusted: bool = True
     signal: np.ndarray | None = None
+    camera: Camera | None = None
+    noise: NoiseEstimate | None = None
 
 
 def _needs_noise(camera: Camera) -> bool:
@@ -668,7 +716,7 @@ def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, *
 
 
 #: Frames of a stream's start that give its noise model where the camera does not (:func:`stream_noise`):
-#: as in each update of the live service's estimate (service.pipeline.noise), the first frame's own samples,
+#: as in each run of a stream's model (svelive.noise.StreamNoise), the first frame's own samples,
 #: then the differences of the pixels found static in the next two (three frames group them without bias).
 NOISE_FRAMES = 3
 
@@ -704,3 +752,10 @@ def stream_noise(frames: Sequence[np.ndarray | Frame], camera: Camera, *, method
         for frame in frames:
             stream.process(camera.check(np.asarray(getattr(frame, "raw", frame))))
         return stream.noise
+
+
+class _Closed:
+    """The executor of a closed stream's noise model: work offered to it is dropped."""
+
+    def submit(self, fn: Callable[..., object], /, *args: object, **kwargs: object) -> None:
+        return None
