@@ -1,8 +1,8 @@
 """The FastAPI app: one set of routers per served camera, the first also at the root paths.
 
 Each camera's routes (viewer, MJPEG stream, snapshots, state, settings, calibration)
-live in ``service/routers/``; the MJPEG fan-out in ``service/publishers/mjpeg.py``, the
-RTSP server in ``service/publishers/rtsp.py``; the token and the body bound in
+live in ``service/routers/``; the publishers they call (the MJPEG fan-out, the RTSP server,
+snapshots, the state, metrics) in ``service/publishers/``; the token and the body bound in
 ``service/guard.py``. This module only assembles them and starts and stops the
 pipelines and the publishers with the server (its lifespan).
 """

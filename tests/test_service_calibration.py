@@ -85,11 +85,11 @@ def test_calibrate_endpoint_fits_the_newest_frame_applies_it_live_and_refuses_ba
         assert srv.state()["response"]["coefficients"] == applied["coefficients"]
 
         # one calibration at a time
-        assert srv.pipeline._calibrating.acquire(timeout=5)
+        assert srv.pipeline.calibration.busy.acquire(timeout=5)
         try:
             assert httpx.post(srv.url + url, timeout=10).status_code == 409
         finally:
-            srv.pipeline._calibrating.release()
+            srv.pipeline.calibration.busy.release()
 
         r = httpx.delete(srv.url + url, timeout=10)
         assert r.status_code == 200 and r.json() == {"response": None}

@@ -1,6 +1,6 @@
 """The live pipeline: capture thread -> newest-frame hand-off -> reconstruction -> preview encoder.
 
-    capture thread ──(Frame)──> NewestSlot ──> reconstruction thread ──> hdr_port: Newest[Published] ──> EXR, state
+    capture thread ──(Frame)──> NewestSlot ──> reconstruction thread ──> hdr_port: Newest[Published] ──> EXR snapshot, state
                                 (drops the oldest)                            │
                                                         encoder thread <──────┘  (only while someone
                                                         tone map + JPEG          watches or a snapshot
@@ -30,7 +30,8 @@ One role per module:
 - ``encoder``: EncoderStage (tone map once, JPEG for MJPEG watchers, previews for RTSP, no-signal frames,
   its ports, watchers, snapshots);
 - ``calibration``: Calibration (response in use, live response calibration, mask) and CalibrationBusy;
-- ``pipeline``: Pipeline, which wires the stages and assembles ``state()`` and ``settings()``.
+- ``pipeline``: Pipeline, which wires the stages and their ports and holds the run-time ``settings()``; the
+  outputs (MJPEG, RTSP, snapshots, the state) are made by ``service.publishers`` from its ports.
 """
 
 from service.pipeline.calibration import Calibration, CalibrationBusy

@@ -5,8 +5,8 @@ frame's white balance and output space from here, so they agree: the preview's b
 automatic estimate smoothed over frame time (or the fixed multipliers), updated by the encoder
 thread as it tone-maps (:meth:`ColourStage.preview_matrix`); a snapshot of a frame asks
 :meth:`ColourStage.white_balance`, which gives the preview's smoothed balance while it is recent,
-else the frame's own estimate (nobody watched, so nothing was smoothed). The EXR is written by
-``svelive.frame_exr`` as every EXR is (:meth:`ColourStage.exr_bytes`).
+else the frame's own estimate (nobody watched, so nothing was smoothed). The EXR snapshot
+(``service.publishers.snapshot``) takes the balance and the output space from here.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 
 from service.pipeline.frames import Published
-from svelive.frame_exr import FrameInfo, frame_exr_bytes
 from svelive.whitebalance import ColourSettings, WhiteBalance, WhiteBalancer, output_matrix
 
 
@@ -46,16 +45,6 @@ class ColourStage:
         if published is None or published.hdr.image.ndim != 3:
             return None
         return self._balancer.for_frame(published.hdr.image, published.hdr.host_time_ns, self.settings)
-
-    def exr_bytes(self, published: Published, info: FrameInfo, *, half: bool = False,
-                  confidence: bool = False) -> bytes:
-        """The EXR of ``published`` in the output space in use, with the preview's white balance (any thread);
-        with ``confidence`` also its "confidence" channel where the frame has one (``HdrFrame.confidence_map``)."""
-        settings = self.settings
-        sure = published.hdr.confidence_map() if confidence else None
-        planes = None if sure is None else {"confidence": sure}
-        return frame_exr_bytes(published.hdr.image, info, settings, self.white_balance(published), planes,
-                               half=half)
 
     def public(self) -> dict:
         """The colour settings for /api/settings and /api/state (``ColourSettings.public``)."""

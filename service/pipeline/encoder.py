@@ -186,11 +186,18 @@ class EncoderStage:
         matrix = self.colour.preview_matrix(latest, colour)
         return mapper(image, time_ns) if matrix is None else mapper(image, time_ns, matrix, bgr=True)
 
+    def preview_size(self, width: int, height: int) -> tuple[int, int]:
+        """(width, height) of the preview of an image of ``width`` x ``height``: scaled down to ``preview_width``
+        when it is wider, else the same."""
+        limit = self.config.preview_width
+        if limit and width > limit:
+            return limit, max(1, round(height * limit / width))
+        return width, height
+
     def _resize(self, image: np.ndarray) -> np.ndarray:
-        width = self.config.preview_width
-        if width and image.shape[1] > width:
-            height = max(1, round(image.shape[0] * width / image.shape[1]))
-            return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+        size = self.preview_size(image.shape[1], image.shape[0])
+        if size != (image.shape[1], image.shape[0]):
+            return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         return image
 
     def watch(self, delta: int) -> None:

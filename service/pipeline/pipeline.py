@@ -25,7 +25,6 @@ from svelive.calibrate.response import SWEEP_KNOTS
 from svelive.capture import Source
 from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
-from svelive.reconstruction.single import methods as method_names
 from svelive.reconstruction.stream import default_method
 
 
@@ -61,7 +60,9 @@ class Pipeline:
     Its ports, each a :class:`Newest` hand-off any publisher reads (and none is queued for):
     ``hdr_port`` the newest reconstructed frame (:class:`Published`; EXR snapshots, state),
     ``jpeg_port`` the newest preview JPEG (MJPEG, JPEG snapshots), ``preview_port`` the newest
-    tone-mapped 8-bit preview while a preview watcher asks for them (RTSP).
+    tone-mapped 8-bit preview while a preview watcher asks for them (RTSP). It makes no output of its
+    own: MJPEG, RTSP, the snapshots and the state are publisher modules (``service.publishers``) over
+    its ports and stages.
     """
 
     def __init__(self, config: PipelineConfig, source_factory: Callable[[], Source] | None = None) -> None:
@@ -91,9 +92,9 @@ class Pipeline:
         self.reconstructed = self.reconstruction.reconstructed
         self.encoded = self.encoder.encoded
         self.latency = {**self.reconstruction.latency, **self.encoder.latency}
-        self._calibrating = self.calibration.busy
         self._threads: list[threading.Thread] = []
-        self._started_ns = time.monotonic_ns()
+        #: when the pipeline was made (``time.monotonic_ns``; the state's uptime)
+        self.started_ns = time.monotonic_ns()
         #: the service prepares its kernels before it starts the threads (set by the app, cleared by :meth:`start`)
         self.warming_up = False
 
@@ -151,21 +152,17 @@ class Pipeline:
         only while there is one."""
         self.encoder.watch_previews(delta)
 
+    def preview_size(self, width: int, height: int) -> tuple[int, int]:
+        """(width, height) of the preview of a frame of ``width`` x ``height`` (scaled down to ``preview_width``)."""
+        return self.encoder.preview_size(width, height)
+
     def latest_preview(self) -> PreviewFrame | None:
         """The newest tone-mapped preview of a reconstructed frame (never a no-signal one), or None."""
         return self.encoder.latest_preview()
 
-    def latest_jpeg(self) -> EncodedFrame | None:
-        """The newest preview JPEG (possibly a no-signal frame), or None."""
-        return self.encoder.latest_jpeg()
-
     def snapshot_jpeg(self, timeout: float = 2.0) -> EncodedFrame | None:
         """A JPEG of the newest reconstructed frame, encoding it if nobody did; None if there is none."""
         return self.encoder.snapshot_jpeg(timeout)
-
-    def calibrate_response(self, max_degree: int = 6, apply: bool = False) -> dict[str, Any] | None:
-        """See :meth:`service.pipeline.calibration.Calibration.calibrate_response`."""
-        return self.calibration.calibrate_response(max_degree, apply)
 
     def start_sweep(self, times: list[float], max_degree: int = 6, apply: bool = False,
                     max_knots: int = SWEEP_KNOTS) -> dict[str, Any]:
@@ -174,16 +171,9 @@ class Pipeline:
         # the capture stage's open source (it has no public accessor yet)
         return self.calibration.start_sweep(times, self.capture.source, max_degree, apply, max_knots=max_knots)
 
-    def last_calibration(self) -> dict[str, Any] | None:
-        """The result of the last successful calibration, with the newest sweep's ``job``; None if neither."""
-        return self.calibration.last_calibration()
-
-    def reset_response(self) -> dict[str, Any] | None:
-        """Go back to the configured response (the ``response`` file, or none); returns response_state()."""
-        return self.calibration.reset_response()
-
     def response_state(self) -> dict[str, Any] | None:
-        """The response in use: origin (file path or "calibrated live"), degree, coefficients, domain; None if linear."""
+        """The response in use: origin (file path or "calibrated live"), degree, coefficients, domain; None if linear
+        (:meth:`service.pipeline.calibration.Calibration.response_state`)."""
         return self.calibration.response_state()
 
     # ----- settings ----------------------------------------------------
@@ -217,61 +207,7 @@ class Pipeline:
 
     # ----- state -------------------------------------------------------
     def state(self) -> dict[str, Any]:
-        """Pipeline state as a JSON-ready dict (see docs/service.md)."""
-        drops = self.drops.snapshot()
-        with self._cond:
-            watchers = self.encoder.watchers
-        for cause, n in self.capture.source_drops().items():
-            drops[f"source_{cause}"] = n
-        capture, latest = self.capture, self.latest()
-        balance = self.colour.white_balance(latest)  # colour frames only
-        warming = self.warming_up
-        return {
-            "warming_up": warming,
-            "source": {
-                "spec": self.config.source,
-                **capture.status(),
-                # not started yet: no source opened, nothing offline about it
-                **({"state": "warming_up", "error": None} if warming else {}),
-                "width": None if latest is None else int(latest.hdr.image.shape[1]),
-                "height": None if latest is None else int(latest.hdr.image.shape[0]),
-                "pixel_format": capture.stats.get("pixel_format"),
-                # the exposure the newest frame was taken at (the camera's unit), null when the source cannot tell
-                "exposure_time": getattr(capture.latest_raw(), "exposure_time", None),
-            },
-            "fps": {"captured": round(self.captured.rate(), 2), "reconstructed": round(self.reconstructed.rate(), 2),
-                    "encoded": round(self.encoded.rate(), 2)},
-            "frames": {"captured": self.captured.count, "reconstructed": self.reconstructed.count,
-                       "encoded": self.encoded.count, "tone_mapped": self.encoder.previews.count,
-                       "not_watched": self.encoder.not_watched,
-                       "last_frame_id": None if latest is None else latest.hdr.frame_id},
-            "drops": drops,
-            "dropped": sum(drops.values()),
-            "latency_ms": {name: window.summary() for name, window in self.latency.items()},
-            "method": self.quality.configured.method,
-            "methods": method_names(),
-            "temporal": self.config.temporal,
-            # what runs now: the configured method and fusion, or a cheaper step while the camera's rate is not kept
-            "live_quality": self.quality.state(),
-            "motion_fraction": self.reconstruction.motion_fraction,
-            "response": self.response_state(),
-            "calibration": self.calibration.job_state(),
-            "mask": self.config.mask,
-            "workers": self.workers,
-            "parallel_frames": self.reconstruction.frames,
-            "reconstruct_error": self.reconstruction.error,
-            "pattern": None if capture.camera is None else str(capture.camera.pattern),
-            "cfa": None if capture.camera is None or capture.camera.cfa is None else capture.camera.cfa.name,
-            "sensor": None if latest is None else {"bits": latest.camera.sensor.bits,
-                                                   "black_level": latest.camera.sensor.black_level,
-                                                   "white_level": latest.camera.sensor.white_level},
-            "tone": dict(vars(self.encoder.tone)),
-            "white_balance": None if balance is None else balance.public(),
-            **{name: value for name, value in self.colour.public().items() if name != "white_balance"},
-            "jpeg_quality": self.encoder.jpeg_quality,
-            "preview_width": self.config.preview_width,
-            "watchers": watchers,
-            "preview_watchers": self.encoder.preview_watchers,
-            "opencv_threads": cv2.getNumThreads(),
-            "uptime_s": round((time.monotonic_ns() - self._started_ns) / 1e9, 1),
-        }
+        """The pipeline's part of /api/state (``service.publishers.state.pipeline_state``, which assembles it)."""
+        from service.publishers.state import pipeline_state  # the state publisher reads the pipeline
+
+        return pipeline_state(self)

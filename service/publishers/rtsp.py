@@ -684,9 +684,8 @@ class RtspPublisher:
             height, width = latest.hdr.image.shape[:2]
         else:  # no frame yet: the no-signal frame's size
             width, height = 640, 360
-        preview_width = self.pipeline.config.preview_width
-        if preview is None and preview_width and width > preview_width:
-            height, width = max(1, round(height * preview_width / width)), preview_width
+        if preview is None:  # the size of a preview of that frame
+            width, height = self.pipeline.preview_size(width, height)
         return launch_description(width // 2 * 2, height // 2 * 2, self.settings)
 
     def _on_media_configure(self, factory: Any, media: Any) -> None:

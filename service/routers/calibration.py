@@ -49,20 +49,20 @@ def router(cam: ServedCamera) -> APIRouter:
             except ExposureUnsupported as exc:
                 return JSONResponse({"detail": str(exc)}, status_code=409)
             return JSONResponse(job, status_code=202, headers=NO_STORE)
-        data = await run_in_threadpool(pipeline.calibrate_response, request.max_degree, request.apply)
+        data = await run_in_threadpool(pipeline.calibration.calibrate_response, request.max_degree, request.apply)
         if data is None:
             return JSONResponse({"detail": "no frame yet"}, status_code=503)
         return JSONResponse(data, headers=NO_STORE)
 
     @api.get("/api/calibrate/response")
     async def last_calibration() -> Any:
-        data = pipeline.last_calibration()
+        data = pipeline.calibration.last_calibration()
         if data is None:
             return JSONResponse({"detail": "no calibration yet"}, status_code=404)
         return JSONResponse(data, headers=NO_STORE)
 
     @api.delete("/api/calibrate/response")
     async def reset_response() -> dict[str, Any]:
-        return {"response": pipeline.reset_response()}
+        return {"response": pipeline.calibration.reset_response()}
 
     return api

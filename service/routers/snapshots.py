@@ -1,4 +1,4 @@
-"""Snapshots: the newest preview as JPEG, the newest HDR frame as OpenEXR."""
+"""Snapshots: the newest preview as JPEG, the newest HDR frame as OpenEXR (made by ``service.publishers.snapshot``)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,15 @@ from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from svelive.frame_exr import FrameInfo
-
+from service.publishers.snapshot import Snapshot, exr_snapshot, jpeg_snapshot
 from service.routers import NO_STORE, ServedCamera
+
+
+def answer(snapshot: Snapshot | None) -> Response:
+    """The snapshot's file with its headers, or 503 before the first frame."""
+    if snapshot is None:
+        return JSONResponse({"detail": "no frame yet"}, status_code=503)
+    return Response(snapshot.data, media_type=snapshot.media_type, headers={**NO_STORE, **snapshot.headers()})
 
 
 def router(cam: ServedCamera) -> APIRouter:
@@ -17,25 +23,11 @@ def router(cam: ServedCamera) -> APIRouter:
 
     @api.get("/snapshot.jpg")
     async def snapshot_jpg() -> Response:
-        item = await run_in_threadpool(pipeline.snapshot_jpeg, 2.0)
-        if item is None:
-            return JSONResponse({"detail": "no frame yet"}, status_code=503)
-        return Response(item.jpeg, media_type="image/jpeg",
-                        headers={**NO_STORE, "X-Timestamp": f"{item.wall_time:.6f}", "X-Frame-Id": str(item.frame_id)})
+        return answer(await run_in_threadpool(jpeg_snapshot, pipeline, 2.0))
 
     @api.get("/snapshot.exr")
     async def snapshot_exr(half: bool = Query(False), confidence: bool = Query(False)) -> Response:
-        published = pipeline.latest()  # one immutable record: never torn between two frames
-        if published is None:
-            return JSONResponse({"detail": "no frame yet"}, status_code=503)
-        hdr = published.hdr
-        info = FrameInfo(published.camera, hdr.method, frame_id=hdr.frame_id, timestamp=published.wall_time,
-                         attributes={} if published.noise is None else published.noise.attributes())
         # white balance (the preview's), output space and compression off the event loop
-        data = await run_in_threadpool(pipeline.colour.exr_bytes, published, info, half=half, confidence=confidence)
-        return Response(data, media_type="image/x-exr",
-                        headers={**NO_STORE, "X-Timestamp": f"{published.wall_time:.6f}",
-                                 "X-Frame-Id": str(hdr.frame_id),
-                                 "Content-Disposition": f'attachment; filename="svelive-{hdr.frame_id}.exr"'})
+        return answer(await run_in_threadpool(exr_snapshot, pipeline, half=half, confidence=confidence))
 
     return api
