@@ -28,7 +28,7 @@ import svelive  # noqa: E402
 from svelive import Pattern, Sensor, simulate  # noqa: E402
 from svelive.exr import read_luminance  # noqa: E402
 from svelive.metrics import pu21_psnr  # noqa: E402
-from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene  # noqa: E402
+from svelive.simulation import SAMPLE_SCENES, exposure_scale, load_sample_scene  # noqa: E402
 
 PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
 BRIGHTNESS = {"bright": 0.0, "dim": 5.0}

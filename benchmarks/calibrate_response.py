@@ -47,7 +47,7 @@ from svelive import Pattern, Sensor  # noqa: E402
 from svelive.calibrate import CURVES, ResponseFitConfig, fit_response, simulate_nonlinear  # noqa: E402
 from svelive.calibrate import response as response_module  # noqa: E402
 from svelive.exr import read_luminance  # noqa: E402
-from svelive.simulate import exposure_scale  # noqa: E402
+from svelive.simulation import exposure_scale  # noqa: E402
 
 
 def debevec_error(radiance: np.ndarray, levels: np.ndarray, sensor: Sensor, curve, seed: int) -> float:

@@ -44,7 +44,7 @@ import svelive  # noqa: E402
 from svelive import Pattern, Sensor  # noqa: E402
 from svelive.exr import read_luminance  # noqa: E402
 from svelive.scenes import moving_disc, render_sequence, static  # noqa: E402
-from svelive.simulate import exposure_scale  # noqa: E402
+from svelive.simulation import exposure_scale  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from motion import region_pu21  # noqa: E402  (PU21-PSNR over a region, display scaling from the whole truth)
@@ -124,7 +124,7 @@ COLOUR_LAYOUTS = ("assorted-4x4", "dual-iso", "quad-bayer")
 def colour_images(size: int, shared: bool) -> list[tuple[str, np.ndarray]]:
     """(name, linear RGB float32 (H, W, 3)) of the colour scenes: shipped crops, and shared images if asked."""
     from svelive.exr import read_exr
-    from svelive.simulate import load_sample_scene
+    from svelive.simulation import load_sample_scene
 
     out = [(name, np.maximum(load_sample_scene(name, rgb=True), 0)[:size, :size]) for name in SHIPPED]
     if shared and SHARED.is_dir():
@@ -142,7 +142,7 @@ def measure_colour(rgb: np.ndarray, layout: str, sensor: Sensor, stops: float, s
     """PU21 of Rec. 709 luminance per stream ('readme', 'true', 'single') at FRAMES of a still colour scene."""
     from svelive.core.camera import COLOUR_LAYOUTS as LAYOUTS
     from svelive.metrics import luminance, pu21_psnr
-    from svelive.simulate import simulate
+    from svelive.simulation import simulate
 
     pattern, cfa = LAYOUTS[layout]
     scene = rgb * np.float32(exposure_scale(rgb, Pattern.parse(pattern), sensor, stops_below_fill=stops))

@@ -45,7 +45,7 @@ from svelive.metrics import PU21_PEAK, display_scale, pu21_encode  # noqa: E402
 from svelive.reconstruction.methods import DEFAULT_METHOD  # noqa: E402
 from svelive.reconstruction.stream import Reconstructor  # noqa: E402
 from svelive.scenes import load_beachball, moving_disc, panning, placed_frames, render_sequence, static  # noqa: E402
-from svelive.simulate import exposure_scale  # noqa: E402
+from svelive.simulation import exposure_scale  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 PATTERN = "1,4/16,64"

@@ -56,7 +56,7 @@ from svelive.core.pattern import Pattern  # noqa: E402
 from svelive.core.sensor import Sensor  # noqa: E402
 from svelive.exr import read_exr  # noqa: E402
 from svelive.noise import EstimatorConfig, NoiseTracker, estimate_from_frame  # noqa: E402
-from svelive.simulate import exposure_scale, simulate  # noqa: E402
+from svelive.simulation import exposure_scale, simulate  # noqa: E402
 
 PATTERNS = ("1,4/16,64", "1,2/4,8", "1/1/8/8")
 #: light levels: stops below the fill of the lowest exposure (issue 12: bright, -3, -5, -7)
@@ -340,7 +340,7 @@ def time_estimate(patterns: list[str], seed: int, repeats: int = 5) -> int:
     """Print the median wall time of estimate_from_frame on one 1920x1200 frame per pattern and configuration."""
     import cv2
 
-    from svelive.simulate import load_sample_scene
+    from svelive.simulation import load_sample_scene
 
     sensor = Sensor.from_full_well(12, 10_000, 2, black_level=64)
     scene = np.maximum(cv2.resize(load_sample_scene("desk"), (1920, 1200), interpolation=cv2.INTER_CUBIC), 0)

@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 import svelive  # noqa: E402
 from svelive import Pattern, Sensor  # noqa: E402
 from svelive.core.camera import COLOUR_LAYOUTS  # noqa: E402
-from svelive.simulate import exposure_scale, load_sample_scene, simulate  # noqa: E402
+from svelive.simulation import exposure_scale, load_sample_scene, simulate  # noqa: E402
 
 SIZE = (1200, 1920)
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

@@ -7,8 +7,9 @@ from svelive.core.frame import Frame, HdrFrame
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.core.version import __version__
-from svelive.reconstruction import Reconstructor, methods, reconstruct, reconstruct_sequence
-from svelive.simulate import SimulatedFrame, simulate
+from svelive.reconstruction import Reconstructor, reconstruct, reconstruct_sequence
+from svelive.reconstruction.single import methods
+from svelive.simulation import SimulatedFrame, simulate
 
 __all__ = ["__version__", "Camera", "ColourFilter", "Frame", "HdrFrame", "Pattern", "Sensor", "SveliveError", "methods",
            "reconstruct", "simulate", "SimulatedFrame", "Reconstructor", "reconstruct_sequence"]

@@ -37,7 +37,7 @@ from svelive.noise import PRIOR_LOG_SIGMA, NoiseEstimate
 from svelive.options import CameraSettings, add_camera_option, build_camera, parse_cfa
 from svelive.reconstruction.input import prepare, with_noise_model
 from svelive.reconstruction.single import methods, reconstruct
-from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
+from svelive.simulation import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
 from svelive.whitebalance import OUTPUT_SPACES, ColourSettings
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".pgm", ".npy")

@@ -33,7 +33,7 @@ from svelive.core.errors import SveliveError
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.exr import read_exr, read_luminance
-from svelive.simulate import simulate
+from svelive.simulation import simulate
 
 Scene = Callable[[float], np.ndarray]
 TIMINGS = ("mask", "integration")

@@ -26,7 +26,7 @@ from svelive.exr import write_exr
 from svelive.metrics import pu21_psnr
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import baseline
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
 

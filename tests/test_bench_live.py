@@ -12,7 +12,7 @@ from svelive.cli import main
 from svelive.core.errors import SveliveError
 from svelive.exr import write_exr
 from svelive.reconstruction.live import LADDER
-from svelive.simulate import load_sample_scene
+from svelive.simulation import load_sample_scene
 
 TINY = (96, 128)  # rows, cols: whole tiles of every pattern and layout
 TINY_CONFIG = live.LiveBenchConfig(mono_patterns=("1,4/16,64",), timing_size=TINY, timing_frames=4, warmup=1)

@@ -7,7 +7,7 @@ from svelive import Pattern, Sensor, SveliveError, reconstruct, simulate
 from svelive.calibrate import calibrate_noise, estimate_mask, load_mask, save_mask
 from svelive.cli import main
 from svelive.metrics import log_psnr
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 PATTERN = Pattern.parse("1,4/16,64")
 
@@ -156,7 +156,7 @@ def test_calibrate_noise_from_one_textured_frame_uses_the_reconstructions_estima
     # texture-cancelled fit that svelive.reconstruct uses gets it within 15 %
     from svelive.core.camera import Camera
     from svelive.noise import estimate_from_frame as library_estimate
-    from svelive.simulate import load_sample_scene
+    from svelive.simulation import load_sample_scene
 
     pattern = "1,4/16,64"
     sensor = Sensor.from_full_well(12, 10_000, 3, black_level=64)

@@ -10,7 +10,7 @@ from svelive.calibrate import (CURVES, Response, ResponseFitConfig, calibrate_fr
                                load_response, save_response, simulate_nonlinear)
 from svelive.calibrate.response import SWEEP_KNOTS, common_ratio
 from svelive.cli import main
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 PATTERN = Pattern.parse("1,4/16,64")
 

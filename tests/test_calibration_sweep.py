@@ -435,7 +435,7 @@ def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsy
     from svelive.cli import main
     from svelive.commands import png_with_sbit, write_raw
     from svelive.core.errors import SveliveError
-    from svelive.simulate import sample_scene_path
+    from svelive.simulation import sample_scene_path
 
     raw = np.random.default_rng(1).integers(0, 3000, (40, 48)).astype(np.uint16)  # nothing saturated
     write_raw(tmp_path / "f.png", raw, bits=12)

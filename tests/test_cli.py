@@ -45,7 +45,7 @@ def test_demo_writes_exr_and_prints_range(tmp_path):
 
 @pytest.fixture
 def raw_png(tmp_path):
-    from svelive.simulate import sample_scene_path
+    from svelive.simulation import sample_scene_path
 
     path = tmp_path / "raw.png"
     out = svelive("simulate", sample_scene_path("cannon"), "--pattern", "1,4/16,64", "--black-level", "64",
@@ -107,7 +107,7 @@ def test_reconstruct_bad_options(raw_png, tmp_path, args, words):
 @pytest.fixture
 def bayer_png(tmp_path):
     """A simulated dual-ISO RGGB raw frame of a shipped RGB crop, and its RGB truth."""
-    from svelive.simulate import sample_scene_path
+    from svelive.simulation import sample_scene_path
 
     path = tmp_path / "bayer.png"
     out = svelive("simulate", sample_scene_path("desk"), "--pattern", "1/1/8/8", "--cfa", "RGGB", "--black-level",
@@ -161,7 +161,7 @@ def test_colour_refusals_are_one_line(bayer_png, tmp_path, args, words):
 
 
 def test_cfa_with_a_demosaiced_image_and_simulate_refusals(tmp_path):
-    from svelive.simulate import sample_scene_path
+    from svelive.simulation import sample_scene_path
 
     rgb = _write(tmp_path / "rgb.png", np.full((8, 8, 3), 100, np.uint8))
     out = svelive("reconstruct", rgb, "--pattern", "1/1/8/8", "--cfa", "RGGB", "-o", tmp_path / "out.exr")

@@ -17,7 +17,7 @@ from svelive.reconstruction import colour
 from svelive.reconstruction.colour import run_colour
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import METHODS
-from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene
+from svelive.simulation import SAMPLE_SCENES, exposure_scale, load_sample_scene
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
 

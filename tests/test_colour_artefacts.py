@@ -30,7 +30,7 @@ from svelive.bench.stability import (
 from svelive.core.camera import COLOUR_LAYOUTS, Camera
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
-from svelive.simulate import simulate
+from svelive.simulation import simulate
 
 
 def _run(truth: np.ndarray, layout: str, mode: str, seed: int = 11) -> np.ndarray:

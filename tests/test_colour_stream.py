@@ -19,7 +19,7 @@ from svelive.core.camera import COLOUR_LAYOUTS
 from svelive.metrics import PU21_PEAK, display_scale, luminance, pu21_encode, pu21_psnr
 from svelive.reconstruction.methods import DEFAULT_METHOD
 from svelive.reconstruction.stream import Reconstructor
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 SENSOR = Sensor.from_full_well(12, 10_000, 3)
 KW = dict(white_level=SENSOR.white_level, gain=SENSOR.gain, read_noise=SENSOR.read_noise)

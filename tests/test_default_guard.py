@@ -15,7 +15,7 @@ from svelive.bench.stability import (GRID_RIVALS, GRID_SENSORS, GRID_TOLERANCE_D
                                      given_noise, grid_scene_rows)
 from svelive.metrics import log_psnr, pu21_psnr
 from svelive.reconstruction.methods import DEFAULT_METHOD
-from svelive.simulate import load_sample_scene
+from svelive.simulation import load_sample_scene
 
 CROPS = ("desk", "mttamwest", "cannon")
 #: (crop, pattern, stops, model): cells where the default still loses by more than the tolerance (strict: each

@@ -11,7 +11,7 @@ from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.noise import variance_uncertainty
 from svelive.scenes import moving_disc, render_sequence
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 PATTERN = "1,4/16,64"
 LEVELS = dict(black_level=64, white_level=4095)

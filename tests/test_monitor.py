@@ -14,7 +14,7 @@ from svelive import monitor
 from svelive.core.camera import Camera as CameraDescription
 from svelive.core.pattern import Pattern
 from svelive.exr import read_exr
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.simulation import exposure_scale, load_sample_scene, simulate
 from svelive.tonemap import ToneSettings
 from tests.test_service_helpers import PATTERN, SENSOR, Camera, ServerThread, make_camera
 

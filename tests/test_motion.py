@@ -14,17 +14,17 @@ from svelive import Pattern, Sensor, SveliveError
 from svelive.cli import main
 from svelive.exr import read_exr
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode, pu21_psnr
-from svelive.reconstruction.methods.base import binomial_kernel, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import exposure_consistency
 from svelive.reconstruction.fusion import FrameEstimate, TemporalState, camera_moved, detail_threshold, fuse, sharpen
-from svelive.reconstruction.methods import DEFAULT_METHOD
-from svelive.reconstruction.numerics import disagree, window_estimate
 from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods import DEFAULT_METHOD
+from svelive.reconstruction.methods.base import binomial_kernel, smooth, support_size
+from svelive.reconstruction.numerics import disagree, window_estimate
 from svelive.reconstruction.single import estimate_variance, run_method
 from svelive.reconstruction.stream import Reconstructor, default_method, own_reading_rows, reconstruct_sequence
 from svelive.scenes import mains_flicker, modulated, moving_disc, panning, render_sequence, static
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

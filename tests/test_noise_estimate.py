@@ -27,7 +27,7 @@ from svelive.noise import (
 )
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 BITS, BLACK = 12, 64
 #: (full well e-, read noise DN): the bench sensor's and the corners of a wide range

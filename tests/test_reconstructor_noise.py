@@ -13,7 +13,7 @@ from svelive.core.sensor import Sensor
 from svelive.metrics import pu21_psnr
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise, agree, estimate_from_frame, variance_uncertainty
 from svelive.scenes import render_sequence, static
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 PATTERN = "1,4/16,64"
 LEVELS = dict(black_level=64, white_level=4095)

@@ -24,7 +24,7 @@ from svelive.core.camera import Camera as CameraDescription
 from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.exr import REC709_CHROMATICITIES, read_exr
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.simulation import exposure_scale, load_sample_scene, simulate
 from tests.test_service_helpers import (PATTERN, SENSOR, Camera, PortReader, ServerThread, SimSource, make_camera,
                                         mjpeg_parts)
 

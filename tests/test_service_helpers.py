@@ -25,7 +25,7 @@ from svelive.core.camera import Camera as CameraDescription
 from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.simulation import exposure_scale, load_sample_scene, simulate
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

@@ -10,7 +10,7 @@ import numpy as np
 from service.pipeline import Pipeline, PipelineConfig
 from svelive import Sensor
 from svelive.core.pattern import Pattern
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.simulation import exposure_scale, load_sample_scene, simulate
 from tests.test_service_helpers import PATTERN, Camera, SimSource
 
 TRUE = Sensor.from_full_well(12, 6_000, 6)  # gain 1.47 e-/DN, read noise 4.1 DN: far from the defaults

@@ -14,7 +14,7 @@ from svelive import Pattern, Sensor, SveliveError
 from svelive.reconstruction.fusion import fuse
 from svelive.reconstruction.stream import Reconstructor, default_method
 from svelive.scenes import moving_disc, panning, render_sequence
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 PATTERN = "1,4/16,64"
 SENSOR = Sensor.from_full_well(12, 10_000, 3)

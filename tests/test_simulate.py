@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from svelive import Pattern, Sensor, simulate
-from svelive.simulate import exposure_scale, load_sample_scene
+from svelive.simulation import exposure_scale, load_sample_scene
 
 
 def test_seeded_and_typed():

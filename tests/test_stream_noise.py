@@ -18,7 +18,7 @@ from svelive.exr import read_exr
 from svelive.motion_commands import with_cameras
 from svelive.noise import estimate_from_frame
 from svelive.reconstruction.stream import NOISE_FRAMES, Reconstructor, stream_noise
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.simulation import exposure_scale, load_sample_scene, simulate
 
 PATTERN = "1,4/16,64"
 #: far from the defaults (10 000 e- full well, 3 e- read noise): 40 000 e-, 6 e- (0.6 DN at 12 bits)

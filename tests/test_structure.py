@@ -110,3 +110,18 @@ def test_the_import_graph_sees_imports_inside_functions(tmp_path):
     module = tmp_path / "m.py"
     module.write_text("def f():\n    from svelive.core.camera import Camera\n    return Camera\n")
     assert _imports(module, "m", set(graph)) == {"svelive.core.camera"}
+
+
+def test_every_package_is_reachable_by_its_dotted_name():
+    """A package's attribute must not shadow a subpackage: ``svelive.reconstruction`` exported the function
+    ``methods``, so ``import svelive.reconstruction.methods.adaptive as x`` found the function, not the package."""
+    import svelive
+    import svelive.reconstruction.methods.adaptive as adaptive
+
+    assert adaptive.__name__ == "svelive.reconstruction.methods.adaptive"
+    assert callable(svelive.methods) and svelive.methods()[0] == "adaptive"
+    for name in sorted(_modules()):
+        parent, _, child = name.rpartition(".")
+        if parent:
+            module = __import__(name, fromlist=["_"])
+            assert getattr(__import__(parent, fromlist=["_"]), child) is module, name

@@ -9,7 +9,7 @@ from svelive import Sensor
 from svelive.core.errors import SveliveError
 from svelive.core.pattern import Pattern
 from svelive.reconstruction.single import reconstruct
-from svelive.simulate import exposure_scale, load_sample_scene, simulate
+from svelive.simulation import exposure_scale, load_sample_scene, simulate
 from svelive.tonemap import ToneMapper, ToneSettings, ToneStats, srgb_encode
 
 FRAME_NS = 33_333_333  # 30 fps

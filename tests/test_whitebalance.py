@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from svelive.core.errors import SveliveError
-from svelive.simulate import load_sample_scene
+from svelive.simulation import load_sample_scene
 from svelive.whitebalance import (
     ColourSettings,
     WhiteBalance,

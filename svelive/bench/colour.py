@@ -37,7 +37,7 @@ from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD
 from svelive.reconstruction.methods.base import SveInput
 from svelive.reconstruction.single import run_method
-from svelive.simulate import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
+from svelive.simulation import SAMPLE_SCENES, exposure_scale, load_sample_scene, simulate
 
 #: Whole tiles of every colour layout (the assorted-pixels tile is 4x4).
 CROP = 4
@@ -177,7 +177,7 @@ class ColourCondition:
 
         Bright: the 99.9th percentile of every pixel's brightest channel just fills the
         shortest exposure (the mono definition with the brightest channel for luminance,
-        svelive.simulate.exposure_scale); dim: 5 stops below.
+        svelive.simulation.exposure_scale); dim: 5 stops below.
         """
         scale = exposure_scale(scene, self.camera(sensor).require_pattern(), sensor,
                                stops_below_fill=NOISE_LEVELS[self.noise])

@@ -47,7 +47,7 @@ def choice_map_example(pattern: str = "1,2/4,8"):
     from svelive.bench.scenes import BENCH_SENSOR, Condition
     from svelive.reconstruction.input import prepare
     from svelive.reconstruction.methods.adaptive import own_share
-    from svelive.simulate import load_sample_scene, simulate
+    from svelive.simulation import load_sample_scene, simulate
 
     scene = load_sample_scene("desk")
     frame = simulate(Condition(pattern, "bright").radiance(scene), pattern, BENCH_SENSOR, seed=0)

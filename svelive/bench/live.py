@@ -38,7 +38,7 @@ from svelive.core.errors import SveliveError
 from svelive.metrics import pu21_psnr, pu21_psnr_colour
 from svelive.reconstruction import Reconstructor
 from svelive.reconstruction.live import LADDER, LiveStep
-from svelive.simulate import SAMPLE_SCENES, sample_scene_path, simulate
+from svelive.simulation import SAMPLE_SCENES, sample_scene_path, simulate
 
 #: The colour layout the live chart measures by default: the colour demo camera's.
 LIVE_COLOUR_LAYOUTS: tuple[str, ...] = ("dual-iso",)

@@ -33,7 +33,7 @@ from svelive.bench.sweep import Sweep
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.scenes import Scene, panning, render_sequence
-from svelive.simulate import exposure_scale
+from svelive.simulation import exposure_scale
 
 #: frames a pixel stays in the trail region after it moved (as benchmarks/motion.py)
 TRAIL_FRAMES = 3
@@ -195,7 +195,7 @@ def stream_sweeps(size: int = 96, pattern: str = "1,4/16,64", seed: int = 11) ->
     """
     import svelive
     from svelive.scenes import static
-    from svelive.simulate import load_sample_scene
+    from svelive.simulation import load_sample_scene
 
     levels = dict(black_level=64, white_level=4095)
     sensor = Sensor.from_full_well(12, 3_000, 2.0, **levels)

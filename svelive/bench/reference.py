@@ -12,7 +12,7 @@ import numpy as np
 
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
-from svelive.simulate import simulate
+from svelive.simulation import simulate
 
 
 def bracketing_merge(signals: list[np.ndarray], exposures: list[float], sensor: Sensor) -> np.ndarray:

@@ -27,7 +27,7 @@ from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS, baseline
 from svelive.reconstruction.methods.base import Estimate, SveInput
 from svelive.reconstruction.single import run_method
-from svelive.simulate import simulate
+from svelive.simulation import simulate
 
 TIMING_SIZE = (1200, 1920)  # rows, cols
 

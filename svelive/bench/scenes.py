@@ -12,7 +12,7 @@ from svelive.core.errors import SveliveError
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.exr import read_luminance
-from svelive.simulate import exposure_scale
+from svelive.simulation import exposure_scale
 
 #: The benchmark sensor: 12 bits, 10 000 e- full well, 3 e- read noise (machine-vision CMOS).
 BENCH_SENSOR = Sensor.from_full_well(12, 10_000, 3)

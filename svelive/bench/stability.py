@@ -43,7 +43,7 @@ from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import METHODS
-from svelive.simulate import exposure_scale, simulate
+from svelive.simulation import exposure_scale, simulate
 
 SIZE = 96
 PATTERN = "1,4/16,64"

@@ -23,7 +23,7 @@ camera's RGB. Frames are labelled with the Bayer format of the filter
 label and bit depth are the format's, the colour filter is the one its name
 gives, and a contradicting ``cfa`` is refused (:func:`source.resolve_cfa`).
 
-Noise: ``exact=True`` renders with :func:`svelive.simulate.simulate`
+Noise: ``exact=True`` renders with :func:`svelive.simulation.simulate`
 (Poisson-Gaussian, colour through ``cfa``; slow). The default renders the same model's Gaussian
 approximation (mean ``e L``, variance ``Sensor.signal_variance``) in one
 compiled pass (shift, light, colour filter, exposure, noise, rounding); the
@@ -94,7 +94,7 @@ class DemoConfig:
         width, height: frame size in pixels; None: the scene's native size (one given: the
             other from the scene's aspect ratio).
         fps: frame rate (frames per second); 0 renders as fast as possible.
-        scene: ``mttamwest-wide`` or a 256x256 sample scene (see svelive.simulate.SAMPLE_SCENES).
+        scene: ``mttamwest-wide`` or a 256x256 sample scene (see svelive.simulation.SAMPLE_SCENES).
         period_s: seconds for one full pan ellipse (and one pass of the light); 0: a still scene.
         exposure_us: exposure time in microseconds (REFERENCE_EXPOSURE_US fills the sensor
             as described above; the light collected scales with it).
@@ -119,14 +119,14 @@ class DemoConfig:
 
 def scene_names() -> list[str]:
     """The scene names the demo accepts."""
-    from svelive.simulate import SAMPLE_SCENES
+    from svelive.simulation import SAMPLE_SCENES
 
     return [*DEMO_SCENES, *SAMPLE_SCENES]
 
 
 def load_scene_rgb(name: str) -> np.ndarray:
     """A shipped scene's linear RGB, float32 (H, W, 3), non-negative and finite, relative units."""
-    from svelive.simulate import sample_scene_path
+    from svelive.simulation import sample_scene_path
 
     if name in DEMO_SCENES:
         path = Path(str(resources.files("svelive") / "data" / DEMO_SCENES[name]))
@@ -210,7 +210,7 @@ class DemoSource(Source):
         self._label = fmt.name if fmt is not None else formats.unpacked_name(self.sensor.bits, self.camera.cfa)
 
     def _open(self) -> None:
-        from svelive.simulate import exposure_scale
+        from svelive.simulation import exposure_scale
 
         c = self.config
         rgb = load_scene_rgb(c.scene)
@@ -325,7 +325,7 @@ class DemoSource(Source):
 
     def _render(self, t: float) -> np.ndarray:
         if self.config.exact:
-            from svelive.simulate import simulate
+            from svelive.simulation import simulate
 
             scale = np.float32(self._exposure_us / REFERENCE_EXPOSURE_US)
             return simulate(self.radiance(t) * scale, self.camera.require_pattern(), self.sensor,

@@ -2,7 +2,9 @@
 
 The public names are re-exported by :mod:`svelive`: ``reconstruct`` and
 ``methods`` (single frames, :mod:`.single`), ``Reconstructor`` and
-``reconstruct_sequence`` (streams, :mod:`.stream`). The modules:
+``reconstruct_sequence`` (streams, :mod:`.stream`); ``methods`` is not re-exported
+here, where the name is the subpackage's (``import svelive.reconstruction.methods.adaptive``
+must find the package, not the function). The modules:
 
 - ``input``: the camera applied to a raw frame (response, black level,
   exposures, censoring, colour channels) -> ``SveInput``;
@@ -14,8 +16,8 @@ The public names are re-exported by :mod:`svelive`: ``reconstruct`` and
 - ``warmup``: compiles every kernel a stream can run.
 """
 
-from svelive.reconstruction.single import methods, reconstruct
+from svelive.reconstruction.single import reconstruct
 from svelive.reconstruction.stream import Reconstructor, SequenceResult, reconstruct_sequence
 from svelive.reconstruction.warmup import warm_up
 
-__all__ = ["methods", "reconstruct", "Reconstructor", "SequenceResult", "reconstruct_sequence", "warm_up"]
+__all__ = ["reconstruct", "Reconstructor", "SequenceResult", "reconstruct_sequence", "warm_up"]

@@ -19,7 +19,7 @@ the same history weights and resets (a cell takes the largest weight, i.e. the
 most recent reset, of the pixels its chroma reads: its own and its neighbour
 cells'), so a moving pixel restarts all its channels together; so is the
 chroma's coarse luminance. The fused luminance is refined against the fused
-coarse one with the fused variances (svelive.reconstruction.colour.refine: a
+coarse one with the fused variances (svelive.reconstruction.colour.refinement: a
 history lowers the noise, so fewer pixels fall back to the coarse estimate
 than in one frame), and the output is that luminance times the fused shares.
 """

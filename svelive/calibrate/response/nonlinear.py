@@ -11,7 +11,7 @@ from numpy.polynomial import polynomial as P
 
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
-from svelive.simulate import simulate
+from svelive.simulation import simulate
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ def simulate_nonlinear(radiance: np.ndarray, pattern: Pattern | str, sensor: Sen
     """Raw SVE frame of a camera with response ``curve``, uint8/uint16 (H, W).
 
     The light is collected and made noisy linearly (the sensor's gain and read
-    noise, :func:`svelive.simulate.simulate` at 16 bits of the same full well),
+    noise, :func:`svelive.simulation.simulate` at 16 bits of the same full well),
     then the response maps it to brightness and the ADC quantises to the
     sensor's bits.
 

@@ -125,22 +125,22 @@ Units: radiance in DN at relative exposure 1 per channel (before white
 balance); the luminance Y in that unit, which ``variance`` and
 ``lower_bound`` of the result describe.
 
-The modules, one job each: ``run`` (:func:`run_colour`, the public entry), ``split`` (the baseline),
+The modules, one job each: ``run`` (:func:`run_colour`, the public entry), ``split_baseline`` (the baseline),
 ``cells`` (the cells' layout and per-cell statistics), ``highlights`` (the white balance and the rules for
-censored and clipped channels), ``chroma`` (step a), ``interpolation`` (from cells to pixels),
-``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refine`` (step b') and ``joint`` (the joint
+censored and clipped channels), ``shares`` (step a), ``interpolate`` (from cells to pixels),
+``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refinement`` (step b') and ``joint_parts`` (the joint
 reconstruction and its parts).
 """
 
 from svelive.reconstruction.colour.cells import CellLayout, cell_layout
-from svelive.reconstruction.colour.chroma import COARSE_NONE, SHARE_FLOOR, Chroma, chroma
 from svelive.reconstruction.colour.folding import colourise, folded_exposure, luminance_input
 from svelive.reconstruction.colour.highlights import WHITE_CELLS, WHITE_MIN_CELLS, WHITE_SNR, white_balance
-from svelive.reconstruction.colour.interpolation import PIECE_ROWS, Interpolation, interpolation
-from svelive.reconstruction.colour.joint import Joint, joint
-from svelive.reconstruction.colour.refine import refine
+from svelive.reconstruction.colour.interpolate import PIECE_ROWS, Interpolation, interpolation
+from svelive.reconstruction.colour.joint_parts import Joint, joint
+from svelive.reconstruction.colour.refinement import refine
 from svelive.reconstruction.colour.run import MODES, run_colour
-from svelive.reconstruction.colour.split import demosaic, split
+from svelive.reconstruction.colour.shares import COARSE_NONE, SHARE_FLOOR, Chroma, chroma
+from svelive.reconstruction.colour.split_baseline import demosaic, split
 
 __all__ = ["COARSE_NONE", "MODES", "PIECE_ROWS", "SHARE_FLOOR", "WHITE_CELLS", "WHITE_MIN_CELLS", "WHITE_SNR",
            "CellLayout", "Chroma", "Interpolation", "Joint", "cell_layout", "chroma", "colourise", "demosaic",

@@ -12,7 +12,7 @@ import numpy as np
 from svelive.core.cfa import ColourFilter
 from svelive.core.pattern import Pattern
 from svelive.jit import kernel
-from svelive.reconstruction.colour.interpolation import Interpolation, _pieces
+from svelive.reconstruction.colour.interpolate import Interpolation, _pieces
 from svelive.reconstruction.methods.base import SveInput, map_on
 
 

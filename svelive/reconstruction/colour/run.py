@@ -4,8 +4,8 @@
 from __future__ import annotations
 
 from svelive.core.errors import SveliveError
-from svelive.reconstruction.colour.joint import joint
-from svelive.reconstruction.colour.split import split
+from svelive.reconstruction.colour.joint_parts import joint
+from svelive.reconstruction.colour.split_baseline import split
 from svelive.reconstruction.methods import MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput
 

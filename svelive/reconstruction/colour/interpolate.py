@@ -13,7 +13,7 @@ from numba import types
 from numba.extending import intrinsic
 
 from svelive.jit import kernel
-from svelive.reconstruction.colour.chroma import Chroma
+from svelive.reconstruction.colour.shares import Chroma
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from svelive.jit import kernel
-from svelive.reconstruction.colour.interpolation import Interpolation, _full_width, _pieces
+from svelive.reconstruction.colour.interpolate import Interpolation, _full_width, _pieces
 from svelive.reconstruction.methods.base import map_on
 
 

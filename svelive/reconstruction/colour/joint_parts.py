@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from svelive.reconstruction.colour.chroma import Chroma, chroma
 from svelive.reconstruction.colour.folding import colourise, luminance_input
-from svelive.reconstruction.colour.interpolation import Interpolation, interpolation
-from svelive.reconstruction.colour.refine import refine
+from svelive.reconstruction.colour.interpolate import Interpolation, interpolation
+from svelive.reconstruction.colour.refinement import refine
+from svelive.reconstruction.colour.shares import Chroma, chroma
 from svelive.reconstruction.methods import MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput
 
