@@ -265,3 +265,41 @@ def test_viewer_readout_follows_the_cursor_and_overlays_change_the_picture(tmp_p
         assert rgba[:3] == list(monitor.CONFIDENCE_LEVELS[0][1]) and rgba[3] > 0
         page.check("#zoom11")
         assert page.evaluate("document.getElementById('live').getBoundingClientRect().width") == SHAPE[1]
+
+
+def test_viewer_offers_the_hdr_view_on_an_hdr_display(tmp_path):
+    """Where the display reports ``dynamic-range: high`` (Chromium told its screen is HDR10), the viewer offers
+    the HDR view, which shows the newest frame as the AVIF snapshot in place of the SDR preview; on an SDR
+    display it does not offer it."""
+    pytest.importorskip("playwright.sync_api", reason="pip install playwright (uses /usr/bin/chromium)")
+    from pathlib import Path
+
+    from svelive import hdr_encode
+    from tests.test_viewer import CHROMIUM, browser_page
+
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"no Chromium at {CHROMIUM}")
+    if not hdr_encode.available():
+        pytest.skip(f"HDR snapshots need imagecodecs: {hdr_encode.INSTALL}")
+    camera = clipped_block_camera()
+    with ServerThread(camera) as srv:
+        with browser_page(tmp_path / "sdr", 700, 20_000) as page:
+            page.goto(srv.url + "/")
+            page.wait_for_function("document.getElementById('live').naturalWidth > 0")
+            assert not page.evaluate("matchMedia('(dynamic-range: high)').matches")
+            assert page.locator("#hdr-view-label").is_hidden() and "HDR display" not in page.text_content("#snapavif")
+        with browser_page(tmp_path / "hdr", 700, 20_000, ("--force-color-profile=hdr10",)) as page:
+            page.goto(srv.url + "/")
+            page.wait_for_function("document.getElementById('live').naturalWidth > 0")
+            assert page.evaluate("matchMedia('(dynamic-range: high)').matches")
+            assert "(HDR display)" in page.text_content("#snapavif")
+            page.check("#hdr-view")
+            page.wait_for_function("!document.getElementById('hdr').hidden && "
+                                   "document.getElementById('hdr').naturalWidth > 0")
+            assert page.evaluate("document.getElementById('hdr').naturalWidth") == SHAPE[1]
+            frame = int(page.get_attribute("#hdr", "data-frame"))
+            box, live = page.locator("#hdr").bounding_box(), page.locator("#live").bounding_box()
+            assert abs(box["width"] - live["width"]) < 1 and abs(box["x"] - live["x"]) < 1  # in the preview's place
+            page.wait_for_function(f"parseInt(document.getElementById('hdr').dataset.frame) > {frame}")  # it follows
+            page.uncheck("#hdr-view")
+            assert page.locator("#hdr").is_hidden()

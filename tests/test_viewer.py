@@ -23,11 +23,12 @@ if not Path(CHROMIUM).exists():
 
 
 @contextmanager
-def browser_page(tmp_path: Path, height: int, timeout_ms: int):
-    """A page of a fresh headless Chromium (viewport 900 x ``height``), closed afterwards."""
+def browser_page(tmp_path: Path, height: int, timeout_ms: int, flags: tuple[str, ...] = ()):
+    """A page of a fresh headless Chromium (viewport 900 x ``height``; more command-line ``flags``), closed
+    afterwards."""
     with playwright_api.sync_playwright() as pw:
         context = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=FLAGS,
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=[*FLAGS, *flags],
             viewport={"width": 900, "height": height})
         try:
             page = context.new_page()
