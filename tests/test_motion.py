@@ -458,3 +458,23 @@ def test_a_frame_estimated_before_a_reset_starts_from_no_history_and_leaves_none
     assert result.frame_index == 0 and float(result.weight.min()) == 1.0  # no history used
     assert stream.state()["frames"] == 0  # and none kept: the next frame is the stream's first
     assert stream.process(frames[3]).frame_index == 0
+
+
+def test_a_stream_given_loose_levels_makes_one_camera_and_refuses_another_frame_type():
+    """Reconstructor(pattern, levels) is a thin edge over a Camera: one is made from the levels and the first
+    frame's dtype, and kept (it was one per dtype: a uint16 frame in an 8-bit stream got a camera of its own);
+    a frame of another type is refused with one line instead of reconstructed with another sensor."""
+    import svelive
+
+    stream = svelive.Reconstructor(PATTERN, black_level=0)
+    assert stream.camera is None
+    stream.process(np.full((16, 16), 100, np.uint8))
+    camera = stream.camera
+    assert camera is not None and camera.sensor.bits == 8 and camera.sensor.white_level == 255
+    stream.process(np.full((16, 16), 120, np.uint8))
+    assert stream.camera is camera
+    with pytest.raises(SveliveError, match="uint8 .* but a frame is uint16"):
+        stream.process(np.full((16, 16), 1000, np.uint16))
+    given = svelive.Reconstructor(camera)
+    given.process(np.full((16, 16), 100, np.uint8))
+    assert given.camera is camera

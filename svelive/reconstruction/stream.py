@@ -171,7 +171,9 @@ class Reconstructor:
         consistency: run the within-frame exposure-consistency test; None means
             on for ``integration`` timing, off for ``mask``.
         black_level, white_level, gain, read_noise: the sensor, as for svelive.reconstruct,
-            when ``pattern`` is not a Camera. A gain or read noise the camera does not give is
+            when ``pattern`` is not a Camera: the stream makes its Camera from them once, the bit
+            depth from the first frame's dtype (:attr:`camera`), and refuses frames of another
+            type. A gain or read noise the camera does not give is
             estimated from the stream's own frames (:class:`svelive.noise.StreamNoise`): the first
             frame's single-frame estimate (as svelive.reconstruct's), then a
             :class:`svelive.noise.NoiseTracker` fed runs of consecutive frames with the pixels the
@@ -217,7 +219,8 @@ class Reconstructor:
             self.camera: Camera | None = pattern
             pattern = pattern.require_pattern()
         else:
-            self.camera = None  # built per raw dtype from the levels below (see _camera_for)
+            self.camera = None  # built once from the levels below and the first frame's dtype (_camera_for)
+        self._loose_dtype: np.dtype | None = None  # that dtype, for a stream given loose levels
         self.pattern = Pattern.parse(pattern)
         self.cfa = self.camera.cfa if self.camera is not None else (None if cfa is None else ColourFilter.parse(cfa))
         self.temporal = bool(temporal)
@@ -239,7 +242,6 @@ class Reconstructor:
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
-        self._cameras: dict[np.dtype, Camera] = {}
         self.noise_schedule = noise_schedule or NoiseSchedule()
         self._noise_executor = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="svelive-noise")
                                 if noise_thread else None)
@@ -394,15 +396,23 @@ class Reconstructor:
                     "moving_fraction": self._last_moving}
 
     def _camera_for(self, raw: np.ndarray | Frame) -> Camera:
-        """The camera of this stream; a Frame's own camera must agree with it on colour."""
-        if self.camera is not None:
-            camera = self.camera
-        else:
+        """The camera of this stream; a Frame's own camera must agree with it on colour. A stream given loose
+        levels instead of a Camera gets one here, once: ``Camera`` of its pattern, colour filter and levels,
+        the bit depth from the first frame's dtype (unless the white level says more); later frames are checked
+        against it as any stream's are."""
+        camera = self.camera
+        if camera is None or self._loose_dtype is not None:
             dtype = np.asarray(getattr(raw, "raw", raw)).dtype
-            camera = self._cameras.get(dtype)
-            if camera is None:
-                camera = self._cameras[dtype] = camera_for_raw(np.empty(0, dtype), self.pattern, cfa=self.cfa,
-                                                               **self.sensor_levels)
+            with self._lock:
+                if self.camera is None:
+                    self.camera = camera_for_raw(np.empty(0, dtype), self.pattern, cfa=self.cfa,
+                                                 **self.sensor_levels)
+                    self._loose_dtype = dtype
+                camera = self.camera
+            if dtype != self._loose_dtype:
+                raise SveliveError(f"this stream's camera was made from its first frame, {self._loose_dtype} "
+                                   f"({camera.sensor.bits}-bit), but a frame is {dtype}: give every frame the "
+                                   "same type, or a Camera")
         if isinstance(raw, Frame) and raw.camera.cfa != camera.cfa:
             def kind(c: Camera) -> str:
                 return "monochrome" if c.cfa is None else f"colour ({c.cfa.name})"
