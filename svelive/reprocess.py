@@ -841,7 +841,7 @@ def run_stream(frames: Iterable[tuple[Frame | np.ndarray, Camera, NoiseEstimate]
 
     Args:
         frames: (a Frame or a bare raw array, the camera to reconstruct it with, its noise model), in order
-            (svelive.motion_commands.with_cameras); a frame whose camera differs from the one before it
+            (svelive.cli.motion.with_cameras); a frame whose camera differs from the one before it
             starts a new stream, and ``on_camera`` is given its noise model.
         output: the output directory, made at the first frame.
         method, temporal, timing, colour, half: as in :class:`Job`.

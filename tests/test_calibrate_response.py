@@ -322,7 +322,7 @@ def test_bits_from_png_sbit_and_from_saturation(tmp_path):
     import struct
     import zlib
 
-    from svelive.calibrate.commands import png_significant_bits, saturation_bits
+    from svelive.cli.calibrate import png_significant_bits, saturation_bits
 
     cv2 = pytest.importorskip("cv2")
     raw = np.zeros((32, 32), np.uint16)

@@ -410,7 +410,7 @@ def test_calibrate_response_from_a_recorded_sweep(tmp_path, capsys):
 def test_a_recorded_sweep_keeps_its_own_black_level_unless_one_is_given(tmp_path):
     """calibrate response reads a recording's levels from it: --black-level left out is not 0."""
     from replay import RecordingWriter
-    from svelive.calibrate.commands import _recorded_sweep
+    from svelive.cli.calibrate import _recorded_sweep
     from svelive.cli import build_parser
     from svelive.core.camera import Camera as CameraDescription
     from svelive.core.sensor import Sensor
@@ -431,9 +431,9 @@ def test_simulated_png_says_its_bit_depth_and_calibrate_reads_it(tmp_path, capsy
 
     import cv2
 
-    from svelive.calibrate.commands import png_significant_bits
+    from svelive.cli.calibrate import png_significant_bits
     from svelive.cli import main
-    from svelive.commands import png_with_sbit, write_raw
+    from svelive.cli.reconstruct import png_with_sbit, write_raw
     from svelive.core.errors import SveliveError
     from svelive.simulation import sample_scene_path
 

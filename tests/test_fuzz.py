@@ -143,7 +143,7 @@ def test_an_image_file_reads_or_gives_a_one_line_error(tmp_path_factory, kind: s
                                                        maxval: int, body: bytes) -> None:
     """A header with any size and depth, then any bytes: a raw frame or a one-line error, never a crash or an
     allocation of what the header claims."""
-    from svelive.commands import read_raw
+    from svelive.cli.reconstruct import read_raw
 
     head = {"pgm": f"P5\n{width} {height}\n{maxval}\n".encode(),
             "png": b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0dIHDR" + width.to_bytes(4, "big") + height.to_bytes(4, "big"),

@@ -10,7 +10,7 @@ import subprocess
 import sys
 import time
 
-from svelive.bench.commands import part_announcer
+from svelive.cli.bench import part_announcer
 
 #: the interpreter of a machine without Dask: ``distributed`` cannot be imported
 WITHOUT_DASK = "import sys; sys.modules['distributed'] = None; from svelive.cli import main; sys.exit(main())"

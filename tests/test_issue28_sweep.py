@@ -12,7 +12,7 @@ import httpx
 import numpy as np
 
 from svelive.capture import open_source
-from svelive.commands import write_raw
+from svelive.cli.reconstruct import write_raw
 from tests.test_calibration_sweep import URL, server
 
 

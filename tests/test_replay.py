@@ -394,7 +394,7 @@ def test_export_skips_and_counts_a_damaged_frame(tmp_path: Path, capsys: pytest.
     names = sorted(p.name for p in out.iterdir())
     assert len(names) == 19 and names[0] == "frame_000001.png"
     assert "1 damaged frames skipped: 0" in capsys.readouterr().err
-    from svelive.commands import read_raw
+    from svelive.cli.reconstruct import read_raw
 
     np.testing.assert_array_equal(read_raw(out / "frame_000019.png"), frames[19].raw)
 

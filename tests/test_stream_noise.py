@@ -15,7 +15,7 @@ from svelive.core.camera import Camera
 from svelive.core.frame import Frame
 from svelive.core.sensor import Sensor
 from svelive.exr import read_exr
-from svelive.motion_commands import with_cameras
+from svelive.cli.motion import with_cameras
 from svelive.noise import estimate_from_frame
 from svelive.reconstruction.stream import NOISE_FRAMES, Reconstructor, stream_noise
 from svelive.simulation import exposure_scale, load_sample_scene, simulate

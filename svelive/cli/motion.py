@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from svelive.capture.commands import add_source_arguments, source_from_args
 from svelive.capture.images import natural_key
-from svelive.commands import add_colour_arguments, colour_settings
+from svelive.cli import print_json
+from svelive.cli.capture import add_source_arguments, parse_opts, source_from_args
+from svelive.cli.reconstruct import add_colour_arguments, colour_settings
 from svelive.core.camera import Camera, camera_for_raw
 from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
@@ -197,8 +198,6 @@ def _reprocess(args: argparse.Namespace, settings: object) -> int:
     """``--source replay:FILE``: svelive.reprocess, in this process or on Dask."""
     from svelive import reprocess
     from svelive.capture import parse_spec
-    from svelive.capture.commands import parse_opts
-    from svelive.cli import print_json
 
     _, path = parse_spec(args.source)
     options = {**CameraSettings.from_args(args).source_options(), **parse_opts(args.opt)}

@@ -15,7 +15,8 @@ import numpy as np
 from svelive.calibrate.mask import MaskConfig, estimate_mask, parse_tile, save_mask
 from svelive.calibrate.noise import calibrate_noise
 from svelive.calibrate.response import SWEEP_KNOTS, ResponseFitConfig, fit_response, save_response, write_json
-from svelive.commands import read_raw
+from svelive.cli import existing_file, parse_times
+from svelive.cli.reconstruct import read_raw
 from svelive.core.atomic import check_output_target
 from svelive.core.camera import Camera, one_colour_plane
 from svelive.core.errors import SveliveError
@@ -211,7 +212,6 @@ def _levels(p: argparse.ArgumentParser) -> None:
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    from svelive.cli import existing_file, parse_times
 
     cal = sub.add_parser("calibrate", help="calibrate the response, the exposure mask or the noise from data")
     verbs = cal.add_subparsers(dest="calibration", required=True, metavar="WHAT")

@@ -18,6 +18,7 @@ from typing import Any, Iterator
 from replay import CorruptFrameError, RecordingReader, RecordingWriter, WriterConfig
 from replay.reader import _ranges, report
 from svelive.capture import AfterChange, open_source
+from svelive.cli import parse_times, print_json
 from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
 from svelive.options import SOURCE_CFA_HELP, CameraSettings, add_camera_option
@@ -26,7 +27,6 @@ from svelive.progress import Progress, add_quiet_argument
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add the capture verbs to the ``svelive`` parser."""
-    from svelive.cli import parse_times
 
     p = sub.add_parser("record", help="record raw frames from a source into a crash-safe recording",
                        description="Record raw frames losslessly with pattern, sensor metadata and timestamps. "
@@ -190,7 +190,6 @@ def _record(args: argparse.Namespace) -> int:
                "dropped_by_recorder": dropped, "source_drops": stats["drops"], "interrupted": interrupted}
     if times:
         summary.update(exposure_times=stepped.applied, exposure_time_restored=stepped.restored)
-    from svelive.cli import print_json
 
     print_json(summary)
     if writer.frames == 0:
@@ -244,7 +243,6 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 
 
 def _replay_info(args: argparse.Namespace) -> int:
-    from svelive.cli import print_json
 
     with RecordingReader(args.path) as reader:
         info = reader.info()
@@ -283,7 +281,7 @@ def _verify(reader: RecordingReader, quiet: bool) -> list[int]:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from svelive.commands import write_raw
+    from svelive.cli.reconstruct import write_raw
 
     if args.every < 1:
         raise SveliveError("--every must be >= 1")

@@ -1,9 +1,13 @@
 """The ``svelive`` command.
 
-Each verb is a small function over the library. Verbs of other parts of the
-product (capture, replay, service, calibration, benchmarks) live beside their
-code in a module with ``add_commands(subparsers)``, listed in COMMAND_MODULES.
-Every library error reaches the user as one line on stderr and exit status 2.
+Each verb is a small function over the library. This package holds the command
+line: the parser and ``main`` here, and one module per group of verbs, each with
+``add_commands(subparsers)``, listed in COMMAND_MODULES: ``reconstruct`` (info,
+methods, simulate, reconstruct, demo), ``calibrate``, ``capture`` (record,
+replay-info, export), ``motion`` (reconstruct-sequence), ``bench``. The ``serve``
+verb stays in ``service/commands.py``, loaded by name, so that svelive imports
+nothing of service. Every library error reaches the user as one line on stderr
+and exit status 2.
 """
 
 from __future__ import annotations
@@ -21,12 +25,12 @@ from svelive.core.errors import SveliveError
 
 #: Modules that add verbs of their own: each defines add_commands(subparsers).
 COMMAND_MODULES: tuple[str, ...] = (
-    "svelive.commands",
-    "svelive.calibrate.commands",
-    "svelive.capture.commands",
-    "svelive.motion_commands",
-    "service.commands",
-    "svelive.bench.commands",
+    "svelive.cli.reconstruct",
+    "svelive.cli.calibrate",
+    "svelive.cli.capture",
+    "svelive.cli.motion",
+    "service.commands",  # by name: svelive imports nothing of service
+    "svelive.cli.bench",
 )
 
 
@@ -82,6 +86,3 @@ def parse_times(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"{text!r}: exposure times must differ")
     return times
 
-
-if __name__ == "__main__":
-    sys.exit(main())
