@@ -15,6 +15,10 @@ import numpy as np
 
 from svelive.core.errors import SveliveError
 
+#: Variance of rounding to integer DN (uniform quantisation), DN^2: the least signal-independent noise a
+#: reading has.
+QUANTISATION_VARIANCE = 1.0 / 12.0
+
 #: Assumed when the datasheet values are unknown: a 10 000 e- full well and 3 e-
 #: read noise, typical of machine-vision CMOS. Inverse-variance weights depend only
 #: on the ratio of shot to read noise, so these only shape the weights, never
@@ -92,7 +96,7 @@ class Sensor:
     @property
     def floor_variance(self) -> float:
         """Signal-independent variance, DN^2: read noise plus uniform quantisation (1/12)."""
-        return self.effective_read_noise**2 + 1.0 / 12.0
+        return self.effective_read_noise**2 + QUANTISATION_VARIANCE
 
     def signal_variance(self, signal_dn: np.ndarray | float) -> np.ndarray | float:
         """Variance of a raw reading (DN^2) whose expected signal above black is ``signal_dn``."""

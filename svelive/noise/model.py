@@ -13,11 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from svelive.core.sensor import Sensor
-
-
-#: Variance of uniform quantisation to integers, DN^2.
-QUANTISATION_VARIANCE = 1.0 / 12.0
+from svelive.core.sensor import QUANTISATION_VARIANCE, Sensor
 
 
 @dataclass(frozen=True)

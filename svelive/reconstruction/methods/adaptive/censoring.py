@@ -104,7 +104,7 @@ def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
     the same terms in the same order.
     """
     h, width = censored.shape
-    ry, rx = ky.size // 2, kx.size // 2
+    rx = kx.size // 2
     rows = np.empty(ky.size, np.int64)
     cols = np.empty(kx.size, np.int64)
     count, total, bound = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
@@ -227,7 +227,6 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     not the number of levels: a row with few of them visits each one's window, a row with many (more than one in
     DENSE_ROW) sums every pixel's window at once, a loop over the row per window row (vectorised)."""
     h, width = censored.shape
-    ry = ky.size // 2
     zero, tiny = np.float32(0.0), np.float32(TINY)
     reach = np.empty((h, width), np.float32)
     reached = np.zeros(h, np.bool_)

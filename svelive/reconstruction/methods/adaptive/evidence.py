@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from svelive.core.sensor import QUANTISATION_VARIANCE
 from svelive.jit import kernel
 from svelive.reconstruction.methods.base import SveInput
 
@@ -15,8 +16,6 @@ EVIDENCE_ROWS = 32
 #: value there: a low quantile, so that texture (which only adds to a difference) moves it little, and not lower,
 #: where integer readings' differences of 0 would take over.
 EVIDENCE_QUANTILE, CHI2_1_AT_QUANTILE = 0.25, 0.10153104
-#: Variance of rounding to integer DN, the least signal-independent noise a reading has.
-QUANTISATION_VARIANCE = 1.0 / 12.0
 #: Fixed-point steps of the floor's evidence (each a partition of the pairs; 3 settle it to about 1 %).
 EVIDENCE_ITERATIONS = 3
 #: Readings within this many of the model's floor deviations of the raw range's bottom (raw 0) are left out of
