@@ -43,7 +43,7 @@ from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
-from svelive.noise import NoiseEstimate, NoiseSchedule, NoiseTracker, StreamNoise
+from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
@@ -279,14 +279,15 @@ class Reconstructor:
 
     def close(self) -> None:
         """Stop the stream's pool of worker threads (with ``workers`` > 1; later frames make a pool per frame) and
-        its noise thread (a fit under way is finished, later frames do not refine the model)."""
+        its noise thread (a fit under way is finished; later frames refine the model in line, as a stream
+        without ``noise_thread`` does)."""
         pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=False)
         with self._noise_lock:
             noise_pool, self._noise_executor = self._noise_executor, None
             if self._noise is not None:
-                self._noise.executor = None if noise_pool is None else _Closed()
+                self._noise.executor = None
         if noise_pool is not None:
             noise_pool.shutdown(wait=False, cancel_futures=True)
 
@@ -762,10 +763,3 @@ def stream_noise(frames: Sequence[np.ndarray | Frame], camera: Camera, *, method
         for frame in frames:
             stream.process(camera.check(np.asarray(getattr(frame, "raw", frame))))
         return stream.noise
-
-
-class _Closed:
-    """The executor of a closed stream's noise model: work offered to it is dropped."""
-
-    def submit(self, fn: Callable[..., object], /, *args: object, **kwargs: object) -> None:
-        return None
