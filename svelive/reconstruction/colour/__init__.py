@@ -32,7 +32,9 @@ are averaged with inverse-variance weights e_k^2 / (e_k L0 / g + sigma^2) of
 the noise model at a pilot L0 (the channel's shot-noise estimate sum s / sum e
 in the cell), then smoothed over the 3x3 neighbouring cells ([1, 2, 1] / 4 each
 way) weighted by the share of each cell's information its uncensored readings
-hold (1 without censoring). Not by the cells' information itself: evaluated at
+hold (1 without censoring), the smallest over its channels, so that every
+channel of a cell weighs alike (per channel, a small light whose red and green
+clipped spread its measured blue into the black cells around: violet). Not by the cells' information itself: evaluated at
 each cell's own pilot it is larger for darker cells (1 / L in the shot-noise
 regime), which biased every edge towards its dark side and cost 2 dB PU21.
 Each channel's cell value stands for the centroid of its samples in the cell

@@ -52,7 +52,8 @@ def chroma(inp: SveInput) -> Chroma:
     """The chroma of a colour frame (package docstring, step a), at cell resolution.
 
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
-    the share of each cell's information its uncensored readings hold), the censoring and
+    the share of each cell's information its uncensored readings hold, the smallest over the
+    channels: :func:`_smooth_cells`), the censoring and
     highlight rules give C_c, which is moved from the centroid of the channel's samples to the
     cells' centres (bilinearly), and the shares are k_c = C_c / L there. The same from each
     cell's own readings moves them where the two differ beyond noise (:func:`_blend`), the
@@ -75,9 +76,7 @@ def chroma(inp: SveInput) -> Chroma:
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)  # the sum of the squared weights of the cells' smoothing
     numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    for c in range(3):
-        cv2.sepFilter2D(weighted[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
-        cv2.sepFilter2D(kept[c], cv2.CV_32F, k, k, dst=denominator[c], borderType=cv2.BORDER_REFLECT_101)
+    _smooth_cells(weighted, kept, mean, k, numerator, denominator)
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
@@ -100,6 +99,44 @@ def chroma(inp: SveInput) -> Chroma:
         cv2.medianBlur(shares[c], 3, dst=shares[c])
     _normalise(shares, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
+
+
+def _smooth_cells(weighted: np.ndarray, kept: np.ndarray, mean: np.ndarray, k: np.ndarray,
+                  numerator: np.ndarray, denominator: np.ndarray) -> None:
+    """The sums of the cells' 3x3 smoothing (3, Hc, Wc), in place: every channel of a cell weighted
+    alike, by the smallest share of a channel's information its uncensored readings hold in it.
+
+    Per channel (``kept`` of each) a cell beside a light that clipped some channels gave its
+    unclipped channels in full and its clipped ones at the share of their unclipped (darker)
+    readings: on dual-ISO a 3x3 orange light whose red and green clip the long rows spread its
+    blue, measured there, into the dark cells around, whose shares turned violet (blue 5.5 times
+    the luminance) and the 3x3 median carried that into the light. With one weight for every
+    channel the ratios the smoothing forms are those of the cells it averages. Where that weight is
+    0 for every cell around (a channel with only censored readings in each), each channel keeps
+    the cell's own readings (the highlight rules take the censored ones)."""
+    common, products = np.empty(kept.shape[1:], np.float32), np.empty_like(mean)
+    _common_weights(kept, mean, common, products)
+    for c in range(3):
+        cv2.sepFilter2D(products[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
+    cv2.sepFilter2D(common, cv2.CV_32F, k, k, dst=denominator[0], borderType=cv2.BORDER_REFLECT_101)
+    denominator[1:] = denominator[0]
+    none = np.nonzero(denominator[0] <= 0)
+    if none[0].size:
+        for c in range(3):
+            numerator[c][none], denominator[c][none] = weighted[c][none], kept[c][none]
+
+
+@kernel
+def _common_weights(kept, mean, common, products):
+    """common (Hc, Wc) = min_c kept_c; products (3, Hc, Wc) = common mean_c. Loops over the cells of a row."""
+    for i in range(common.shape[0]):
+        w, k0, k1, k2 = common[i], kept[0, i], kept[1, i], kept[2, i]
+        for j in range(w.size):
+            w[j] = min(min(k0[j], k1[j]), k2[j])
+        for c in range(3):
+            m, p = mean[c, i], products[c, i]
+            for j in range(w.size):
+                p[j] = w[j] * m[j]
 
 
 def _centred(values: np.ndarray, layout: CellLayout) -> np.ndarray:
