@@ -108,6 +108,21 @@ def test_prepare_gives_channels_only_with_a_cfa():
     np.testing.assert_array_equal(piece.channels, colour.channels[2:4, :2])
 
 
+
+@pytest.mark.parametrize("dtype, bits, black, order", [(np.uint16, 12, 64, "C"), (np.uint8, 8, 3, "C"),
+                                                        (np.uint16, 16, 17, "F"), (np.float64, 12, 64.5, "C")])
+def test_prepare_signal_and_censoring_are_numpys(dtype, bits, black, order):
+    """The signal is the raw as float32 minus the float32 black level, and the censoring compares it with the
+    censor level in float32, as numpy's own arithmetic does (the compiled pass must not round differently)."""
+    rng = np.random.default_rng(3)
+    top = 2 ** bits
+    raw = np.asarray(rng.integers(0, top, (48, 40)).astype(dtype) + (0.25 if dtype == np.float64 else 0), order=order)
+    sensor = Sensor(bits, black_level=black, white_level=top - 1)
+    inp = prepare(raw, Camera.build("1,4/16,64", sensor=sensor))
+    signal = raw.astype(np.float32) - np.float32(black)
+    np.testing.assert_array_equal(inp.signal, signal)
+    np.testing.assert_array_equal(inp.censored, signal >= sensor.censor_level)
+    assert inp.censored.any() and not inp.censored.all()
 def test_a_frame_carries_its_camera_into_the_stream():
     camera = Camera.build("1,4/16,64", sensor=Sensor(12))
     raw = np.full((8, 8), 100, np.uint16)

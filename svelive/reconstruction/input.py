@@ -21,6 +21,7 @@ from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.response import linearise
 from svelive.core.sensor import Sensor
+from svelive.jit import flat, kernel
 from svelive.noise import NoiseEstimate, estimate_from_frame
 from svelive.reconstruction.methods.base import SveInput, exposure_maps
 
@@ -64,13 +65,22 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
     if camera.response is not None:
         raw = linearise(raw, camera.response, sensor)
     exposure, _ = exposure_maps(pattern, raw.shape)
-    signal = raw.astype(np.float32)
-    signal -= np.float32(sensor.black_level)
-    censored = signal >= sensor.censor_level
+    signal, censored = np.empty(raw.shape, np.float32), np.empty(raw.shape, bool)
+    # numpy's arithmetic (raw as float32, minus the float32 black level; the censor level as float32), in one pass
+    _signal(*flat(raw, signal, censored), np.float32(sensor.black_level), np.float32(sensor.censor_level))
     integral = raw.dtype.kind in "ui" and float(sensor.black_level).is_integer()
     channels = None if camera.cfa is None else channel_map(camera.cfa, raw.shape)
     return SveInput(signal=signal, exposure=exposure, censored=censored, pattern=pattern, sensor=sensor,
                     integral=integral, cfa=camera.cfa, channels=channels)
+
+
+@kernel
+def _signal(raw, signal, censored, black, censor):
+    """signal = raw - black in float32, censored = signal >= censor; flat arrays."""
+    for k in range(signal.size):
+        value = np.float32(raw[k]) - black
+        signal[k] = value
+        censored[k] = value >= censor
 
 
 def with_noise_model(raw: np.ndarray, camera: Camera, inp: SveInput,
