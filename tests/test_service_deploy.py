@@ -134,7 +134,10 @@ def test_metric_families_from_a_state():
              "fps": {"captured": 30.0}, "drops": {"reconstruct_busy": 1},
              "source": {"online": False, "reconnects": 2, "spec": "demo"}, "clients": 2,
              "noise": {"gain": 2.5, "read_noise": 1.2, "gain_sigma": 0.1, "read_noise_sigma": 0.05},
-             "white_balance": {"multipliers": [2.0, 1.0, 1.5]}, "pattern": "1,4/16,64", "cfa": "RGGB"}
+             "white_balance": {"multipliers": [2.0, 1.0, 1.5]}, "pattern": "1,4/16,64", "cfa": "RGGB",
+             "warming_up": True,
+             "live_quality": {"mode": "adaptive", "step": 1, "name": "weighted+fusion",
+                              "steps": ["adaptive+fusion", "weighted+fusion", "weighted"]}}
     text = exposition(families({"x": state}, {"x": {"reconstruct": ([(10.0, 3), (50.0, 5)], 120.0, 6)}}),
                       process=False).decode()
     assert 'svelive_drops_total{camera="x",cause="reconstruct_busy"} 1.0' in text
@@ -144,6 +147,14 @@ def test_metric_families_from_a_state():
     assert 'svelive_stage_latency_seconds_bucket{camera="x",le="0.05",stage="reconstruct"} 5.0' in text
     assert 'svelive_stage_latency_seconds_bucket{camera="x",le="+Inf",stage="reconstruct"} 6.0' in text
     assert 'svelive_stage_latency_seconds_sum{camera="x",stage="reconstruct"} 0.12' in text
+    assert 'svelive_warming_up{camera="x"} 1.0' in text
+    # the step's index under labels that do not change with it, and one series per step of the ladder
+    assert 'svelive_live_quality_step{camera="x",mode="adaptive"} 1.0' in text
+    assert 'svelive_live_quality{camera="x",step_name="weighted+fusion"} 1.0' in text
+    assert 'svelive_live_quality{camera="x",step_name="adaptive+fusion"} 0.0' in text
+    assert 'svelive_live_quality{camera="x",step_name="weighted"} 0.0' in text
+    ready = exposition(families({"x": {**state, "warming_up": False}}), process=False).decode()
+    assert 'svelive_warming_up{camera="x"} 0.0' in ready
 
 
 def write(path, text: str) -> str:

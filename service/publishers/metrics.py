@@ -54,7 +54,13 @@ def families(snapshots: Mapping[str, dict[str, Any]],
                                 labels=["camera", "channel"])
     quality = GaugeMetricFamily("svelive_live_quality_step", "Step of the live-quality ladder that runs (0: the "
                                 "configured setting; higher: cheaper, while the camera's rate is not kept)",
-                                labels=["camera", "step_name", "mode"])
+                                labels=["camera", "mode"])
+    # one series per step of the ladder, 1 for the step that runs (a state set): a label that changed with the step
+    # would end one series and start another at every step
+    steps = GaugeMetricFamily("svelive_live_quality", "1 for the live-quality ladder's step that runs, 0 for the "
+                              "others", labels=["camera", "step_name"])
+    warming = GaugeMetricFamily("svelive_warming_up", "1 while the service prepares its kernels (no frames yet; "
+                                "/healthz answers 503)", labels=["camera"])
     latency = HistogramMetricFamily("svelive_stage_latency_seconds", "Time each stage took per frame",
                                     labels=["camera", "stage"])
     for name, state in snapshots.items():
@@ -80,7 +86,10 @@ def families(snapshots: Mapping[str, dict[str, Any]],
                          str(state.get("cfa") or "none"), str(state.get("method") or "")], 1.0)
         live = state.get("live_quality")
         if live:
-            quality.add_metric([name, str(live["name"]), str(live["mode"])], float(live["step"]))
+            quality.add_metric([name, str(live["mode"])], float(live["step"]))
+            for step in live.get("steps") or [live["name"]]:
+                steps.add_metric([name, str(step)], 1.0 if step == live["name"] else 0.0)
+        warming.add_metric([name], 1.0 if state.get("warming_up") else 0.0)
         for quantity, value in _noise_values(state.get("noise")):
             noise.add_metric([name, quantity], value)
         wb = state.get("white_balance") or {}
@@ -91,7 +100,8 @@ def families(snapshots: Mapping[str, dict[str, Any]],
             if not seconds or seconds[-1][0] != "+Inf":
                 seconds.append(("+Inf", float(count)))
             latency.add_metric([name, stage], seconds, total_ms / 1e3)
-    return [frames, fps, drops, online, reconnects, clients, motion, info, noise, balance, quality, latency]
+    return [frames, fps, drops, online, reconnects, clients, motion, info, noise, balance, quality, steps, warming,
+            latency]
 
 
 def _bound(ms: float) -> str:
