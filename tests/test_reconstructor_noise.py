@@ -130,3 +130,49 @@ def test_without_fusion_the_first_frames_model_is_final(monkeypatch):
                 stream.process(raw)
             assert stream.noise is not None and stream.noise.source != "given"
         assert (len(added) > 0) == temporal, (temporal, len(added))
+
+
+def test_in_line_work_after_the_noise_thread_is_dropped_waits_for_its_fit():
+    """A closed stream fits in line (its noise thread is dropped, ``executor`` None) while the thread may still
+    be fitting: the tracker is not thread-safe, so the in-line work starts only once that fit is done."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svelive.noise import NoiseTracker
+
+    fitting, spans = threading.Event(), []
+
+    class Slow(NoiseTracker):  # the real tracker, its calls timed and its fit made slow
+        def add(self, *args, **kwargs):
+            start = time.monotonic()
+            super().add(*args, **kwargs)
+            spans.append((threading.get_ident(), start, time.monotonic()))
+
+        def fit(self):
+            start = time.monotonic()
+            fitting.set()
+            time.sleep(0.3)
+            model = super().fit()
+            spans.append((threading.get_ident(), start, time.monotonic()))
+            return model
+
+    frames = [f.raw for f in dim_frames("desk", 3)]
+    camera = svelive.Camera.build(PATTERN, None, Sensor(12, **LEVELS))
+    static = np.ones(frames[0].shape, bool)
+    thread = ThreadPoolExecutor(1)
+    noise = StreamNoise(NoiseSchedule(run_frames=3), Slow(), executor=thread)
+    noise.observe(frames[0], camera, None)
+    noise.observe(frames[1], camera, static)  # the first run's second frame: a fit, on the thread
+    assert fitting.wait(10)
+    noise.executor = None  # what Reconstructor.close() does
+    thread.shutdown(wait=False)
+    noise.observe(frames[2], camera, static)  # in line: the run's last frame, read and fitted here
+    thread.shutdown(wait=True)
+    here = threading.get_ident()
+    in_line = [(start, end) for who, start, end in spans if who == here]
+    on_thread = [(start, end) for who, start, end in spans if who != here]
+    assert in_line and on_thread
+    assert min(start for start, _ in in_line) >= max(end for _, end in on_thread), \
+        "the in-line work overlapped the noise thread's"
+    assert noise.fits == 2

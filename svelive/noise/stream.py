@@ -80,6 +80,9 @@ class StreamNoise:
         self.executor = executor
         self.error: str | None = None  # the last failure of the executor's work, None after a success
         self._lock = threading.RLock()  # the model, for readers on other threads than the executor's
+        # the tracker, used by one piece of work at a time: an executor's work still under way when the executor
+        # was dropped (a closed stream then fits in line) is finished before in-line work starts
+        self._work_lock = threading.Lock()
         self.fits = 0  # tracker fits so far
         self._estimate: NoiseEstimate | None = None
         self._fitted = False  # whether _estimate is a fit with temporal samples (not the first frame's)
@@ -165,10 +168,11 @@ class StreamNoise:
         """The tracker's part of :meth:`observe`: read the frame, and fit and take the model if ``fit``;
         ``runs``: the complete runs when the frame came."""
         try:
-            self.tracker.add(raw, camera, static, signal=signal)
-            if not fit:
-                return None
-            model = self.tracker.fit()
+            with self._work_lock:
+                self.tracker.add(raw, camera, static, signal=signal)
+                if not fit:
+                    return None
+                model = self.tracker.fit()
         except Exception as exc:
             if self.executor is None:
                 raise
