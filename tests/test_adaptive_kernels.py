@@ -578,3 +578,23 @@ def test_a_small_bright_light_keeps_its_level_at_every_row_phase(top):
     light = hdr[8 + top:11 + top, 10:13]
     # a short reading of 300 DN has a deviation of about 11 DN (4 %): 15 % is four of them
     assert np.abs(light / 300.0 - 1).max() < 0.15, light
+
+
+def test_strips_without_dark_pixels_free_what_only_the_wide_fallback_reads():
+    """A frame dark at the top and bright below: the bright strips' Dark keeps only the weights (the fallback's
+    blocks reach into them), the dark strips' keep all; the result is the same as when every strip keeps all."""
+    pattern = "1,4/16,64"
+    truth = np.full((384, 128), 300.0, np.float32)
+    truth[:96] = 300.0 / 2**9  # cannot tell its level from 0 in a 3x3 window
+    inp = prepare(simulate(truth, pattern, SENSOR, seed=5).raw, pattern, SENSOR)
+    noise = evidence.noise_model(inp)
+    lean = adaptive._estimate(inp, noise, 1, want_variance=True)
+    full = adaptive._estimate(inp, noise, 1, want_variance=True, want_darks=True)
+    darks = lean[4]
+    assert len(darks) >= 4 and darks[0].count > 0 and darks[-1].count == 0
+    for dark, whole in zip(darks, full[4]):
+        assert dark.weights.shape == whole.weights.shape
+        kept = dark.count > 0
+        assert (dark.estimate.size > 0) == kept and (dark.candidates.size > 0) == kept
+    for a, b in zip(lean[:3], full[:3]):
+        np.testing.assert_array_equal(a, b)

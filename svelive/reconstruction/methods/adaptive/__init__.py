@@ -159,7 +159,7 @@ def path_shares(inp: SveInput) -> dict[str, float]:
     pixels left at a lower bound; ``plain``: uncensored pixels that take none of these
     (steps 1-3 alone, the closed form). A diagnostic for benchmarks/paths.py: it runs the method.
     """
-    _, lower, _, _, darks, _ = _estimate(inp, noise_model(inp), 1)
+    _, lower, _, _, darks, _ = _estimate(inp, noise_model(inp), 1, want_darks=True)
     estimate = np.concatenate([d.estimate for d in darks])
     information = np.concatenate([d.information for d in darks])
     candidates = np.concatenate([d.candidates for d in darks])
@@ -174,9 +174,11 @@ def path_shares(inp: SveInput) -> dict[str, float]:
 
 
 def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor, want_variance: bool = False,
-              want_share: bool = False, want_window: bool = False):
+              want_share: bool = False, want_window: bool = False, want_darks: bool = False):
     """The method on a frame: (image, lower_bound, variance or None, share or None, the strips' Dark, the window
-    mean and its variance as a (2, H, W) array, or of no rows without ``want_window``).
+    mean and its variance as a (2, H, W) array, or of no rows without ``want_window``). A strip's Dark holds
+    its estimate, information and candidates only where the wide fallback reads them (the strip has candidates),
+    or with ``want_darks`` or ``want_share``; else they are freed with the strip (arrays of no rows).
 
     Steps 1-4 run in strips of about 64 rows (a window three deep above and
     below each, as base.in_strips does; the result does not depend on them),
@@ -202,7 +204,11 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         for whole, piece in zip((image, lower, variance, own), pieces[:4]):
             if whole is not None:
                 whole[top:bottom] = piece[keep]
-        return pieces[4].rows(keep)
+        dark = pieces[4].rows(keep)
+        if dark.count or want_darks or want_share:
+            return dark
+        # the fallback reads only the weights of a strip without candidates (its neighbours' blocks reach it)
+        return Dark(dark.weights, _NO_ROWS, _NO_ROWS, _NO_ROWS.astype(bool), 0)
 
     darks = map_on(workers, strip, spans)
     if WIDE_SCALES > 0 and any(d.count for d in darks):
@@ -211,6 +217,9 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
     if want_share:
         share = np.divide(own, joined([d.information for d in darks]))
     return image, lower, variance, share, darks, window
+
+
+_NO_ROWS = np.empty((0, 0), np.float32)
 
 
 def _spans(inp: SveInput, halo: int, rows: int) -> list[tuple[int, int, int, int]]:
