@@ -130,7 +130,8 @@ balance); the luminance Y in that unit, which ``variance`` and
 The modules, one job each: ``run`` (:func:`run_colour`, the public entry), ``split_baseline`` (the baseline),
 ``cells`` (the cells' layout and per-cell statistics), ``highlights`` (the white balance and the rules for
 censored and clipped channels), ``shares`` (step a), ``interpolate`` (from cells to pixels),
-``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refinement`` (step b') and ``joint_parts`` (the joint
+``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refinement`` (step b'), ``sites`` (opt-in chroma per
+site on Bayer CFAs, after step c) and ``joint_parts`` (the joint
 reconstruction and its parts).
 """
 
