@@ -54,7 +54,10 @@ from svelive.core.cfa import ColourFilter  # noqa: E402
 from svelive.core.errors import SveliveError  # noqa: E402
 from svelive.core.sensor import Sensor  # noqa: E402
 from svelive.metrics import display_scale, luminance, pu21_encode, pu21_psnr  # noqa: E402
+from svelive.reconstruction.colour import joint  # noqa: E402
 from svelive.reconstruction.input import prepare  # noqa: E402
+from svelive.reconstruction.methods.base import SveInput  # noqa: E402
+from svelive.reconstruction.single import method_spec  # noqa: E402
 
 #: Where scripts/build-cr2hdr.sh puts the binary by default.
 DEFAULT_CR2HDR = ROOT / "out" / "cr2hdr" / "cr2hdr"
@@ -109,6 +112,15 @@ class PeerConfig:
     layout: str = "dual-iso"
     repeats: int = 3  # svelive timing runs per frame (median, after a warm-up)
     seed: int = 0
+    site_chroma: bool = False  # svelive with the opt-in chroma per site (colour.joint's site_chroma)
+
+
+@dataclass(frozen=True)
+class SiteChromaSetting(ColourSetting):
+    """The joint default with chroma per site (``--site-chroma``)."""
+
+    def run(self, inp: SveInput) -> np.ndarray:
+        return joint(inp, method_spec(self.method), site_chroma=True).estimate.image
 
 
 # ----- the DNG -------------------------------------------------------------------------------
@@ -351,9 +363,12 @@ class FrameSetup:
     truth: np.ndarray  # float32 (H, W, 3)
 
 
-def score_svelive(raw: np.ndarray, condition: ColourCondition, setup: FrameSetup, repeats: int) -> Scores:
-    """svelive's default colour reconstruction of ``raw`` (uint16 (H, W)), scored and timed."""
-    setting, camera = ColourSetting(DEFAULT_LABEL, "joint"), condition.camera()
+def score_svelive(raw: np.ndarray, condition: ColourCondition, setup: FrameSetup, repeats: int,
+                  site_chroma: bool = False) -> Scores:
+    """svelive's default colour reconstruction of ``raw`` (uint16 (H, W)), scored and timed; with ``site_chroma``
+    the opt-in chroma per site."""
+    setting = (SiteChromaSetting if site_chroma else ColourSetting)(DEFAULT_LABEL, "joint")
+    camera = condition.camera()
     rgb = setting.run(prepare(raw, camera))
     got = scores(rgb, sites(rgb, setup.cfa), setup.truth, setup.cfa, setup.clip)
     got.seconds = time_colour(setting, raw, camera, repeats) / 1e3
@@ -390,7 +405,8 @@ def run_frame(name: str, scene: np.ndarray, noise: str, config: PeerConfig, bina
     frame = condition.simulate(condition.radiance(scene), config.seed)
     levels = condition.camera().require_pattern().levels
     setup = FrameSetup(ColourFilter.parse(condition.cfa), BENCH_SENSOR.range_dn / float(min(levels)), frame.truth)
-    row = PeerRow(name, noise, frame.raw.shape, score_svelive(frame.raw, condition, setup, config.repeats))
+    row = PeerRow(name, noise, frame.raw.shape, score_svelive(frame.raw, condition, setup, config.repeats,
+                                                                  config.site_chroma))
     if binary is not None:
         dng = workdir / f"{name}-{noise}.dng"
         raw14 = canon_raw(frame.raw, BENCH_SENSOR, layout, np.random.default_rng(config.seed + 1))
@@ -495,13 +511,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=PeerConfig.repeats, help="svelive timing runs per frame")
     parser.add_argument("--seed", type=int, default=PeerConfig.seed)
     parser.add_argument("--keep", type=Path, help="keep the DNGs (input and cr2hdr's output) in this directory")
+    parser.add_argument("--site-chroma", action="store_true",
+                        help="svelive with the opt-in chroma per site (docs/peers.md)")
     parser.add_argument("-o", "--output", type=Path, help="write the results as JSON here")
     args = parser.parse_args(argv)
     problem = cr2hdr_problem(args.cr2hdr)
     if problem:
         print(f"peers: {problem}", file=sys.stderr)
         return 2
-    config = PeerConfig(images=tuple(args.images), repeats=args.repeats, seed=args.seed)
+    config = PeerConfig(images=tuple(args.images), repeats=args.repeats, seed=args.seed, site_chroma=args.site_chroma)
     scenes, skipped = pick_scenes(args.data, config.images, args.quick)
     if skipped:
         print("skipped: " + "; ".join(f"{k} ({v})" for k, v in skipped.items()), file=sys.stderr)

@@ -16,10 +16,6 @@ from svelive.reconstruction.colour.sites import site_chroma as site_chroma_into
 from svelive.reconstruction.methods import MethodSpec
 from svelive.reconstruction.methods.base import Estimate, SveInput
 
-#: Whether :func:`joint` takes chroma per site (svelive.reconstruction.colour.sites) where the noise
-#: model supports it, when its ``site_chroma`` is not given.
-SITE_CHROMA = False
-
 
 @dataclass(frozen=True)
 class Joint:
@@ -44,7 +40,7 @@ class Joint:
 
 
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
-          site_chroma: bool | None = None, **options) -> Joint:
+          site_chroma: bool = False, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
@@ -52,7 +48,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
     ``inverse_exposure``: also 1 / e' (Joint.inverse_exposure), made while e' is (a method that
-    reads per-pixel exposures only). ``site_chroma`` (None: SITE_CHROMA): with ``rgb``, each
+    reads per-pixel exposures only). ``site_chroma`` (opt-in, docs/peers.md): with ``rgb``, each
     pixel's colour ratios from its own 3x3 neighbourhood where the noise model supports them
     (svelive.reconstruction.colour.sites; 2x2 Bayer CFAs), the cells' elsewhere.
     """
@@ -71,7 +67,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
                            new_variance=True, workers=workers)
         variance = refined_variance
     image = colourise(luminance, inter, workers) if rgb else luminance
-    if rgb and (SITE_CHROMA if site_chroma is None else site_chroma):
+    if rgb and site_chroma:
         luminance = luminance.copy() if luminance is est.image else luminance  # (the method's own array stays)
         site_chroma_into(inp, luminance, image, ch.layout.share, workers)
     return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)
