@@ -40,7 +40,8 @@ shared media:
   with a basic challenge, so clients that hold credentials in the URL retry with them.
 - At most ``max_clients`` connections (64): beyond it the oldest connection that is not
   playing is closed (one that only holds a socket cannot lock out a recorder), or the new
-  one when all the others play.
+  one when all the others play; checked at each accepted connection and, every CAP_SWEEP_S, against
+  the server's own list of clients (a count that drifted or a close that did not take is corrected).
 - The GLib main loop of the server runs in a thread of its own (its own main context).
 - ``clients`` in the state counts the clients playing the stream (counted at PLAY, by path).
 
@@ -79,6 +80,8 @@ BITS_PER_PIXEL = 0.07
 ROLE = "viewer"
 #: Connections the RTSP port keeps at once (players and connections still negotiating).
 MAX_CLIENTS = 64
+#: How often (s) the server recounts its clients against MAX_CLIENTS, besides at each accepted connection.
+CAP_SWEEP_S = 0.25
 #: Connections waiting to be accepted (GStreamer's default, 5, made a burst of clients wait 1-3 s in SYN retries).
 BACKLOG = 128
 #: The longest a PLAY waits for the frame going through the payloader to be taken from the server's sinks (s).
@@ -387,13 +390,16 @@ class RtspServer:
         self.token = token
         self.max_clients = max_clients
         self.publishers: list[RtspPublisher] = []
-        #: connected clients, oldest first (GLib thread only)
+        #: connected clients, oldest first: added on the server's GLib thread, removed by their ``closed`` signal,
+        #: which comes on the thread that drops the client's watch (often gst-rtsp-server's client thread): locked
         self._clients: dict[Any, None] = {}
+        self._clients_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._loop: Any = None
         self._context: Any = None
         self._server: Any = None
         self._source_id = 0
+        self._sweep_source: Any = None
 
     def add(self, publisher: RtspPublisher) -> None:
         """Serve ``publisher`` at its paths (before ``start``); a path already served is a SveliveError."""
@@ -440,6 +446,11 @@ class RtspServer:
             raise port_error(self.host, self.port)
         self.port = server.get_bound_port()
         self._server, self._context, self._source_id = server, context, source_id
+        # the cap again, from the server's own list of clients, every CAP_SWEEP_S (see _sweep)
+        sweep = GLib.timeout_source_new(int(CAP_SWEEP_S * 1000))
+        sweep.set_callback(self._sweep)
+        sweep.attach(context)
+        self._sweep_source = sweep
         self._loop = GLib.MainLoop.new(context, False)
         for publisher in self.publishers:
             publisher.attach()
@@ -462,6 +473,8 @@ class RtspServer:
             source = self._context.find_source_by_id(self._source_id)
             if source is not None:
                 source.destroy()
+            if self._sweep_source is not None:
+                self._sweep_source.destroy()
             self._loop.quit()
             done.set()
             return False
@@ -490,17 +503,53 @@ class RtspServer:
         """GLib thread, a connection accepted: beyond ``max_clients`` the oldest one that is not playing is
         closed to make room (a connection that holds a slot without playing cannot lock out a recorder), or,
         when every other one plays, the new one."""
-        self._clients[client] = None
-        client.connect("closed", self._clients.pop, None)
-        if len(self._clients) > self.max_clients:
-            idle = [c for c in self._clients if c is not client and getattr(c, "svelive_publisher", None) is None]
-            victim = idle[0] if idle else client
-            self._clients.pop(victim, None)
+        with self._clients_lock:
+            self._clients[client] = None
+        client.connect("closed", self._forget_client)
+        victims = self._over_cap(newest=client)
+        for victim in victims:
             victim.close()
-            if victim is client:
-                return
+        if client in victims:
+            return
         client.connect("pre-play-request", self._on_pre_play)
         client.connect("play-request", self._on_play)
+
+    def _forget_client(self, client: Any) -> None:
+        """Any thread, ``client`` closed."""
+        with self._clients_lock:
+            self._clients.pop(client, None)
+
+    def _over_cap(self, newest: Any = None) -> list[Any]:
+        """The clients to close to be within ``max_clients`` (taken out of the count): the oldest that are not
+        playing, then ``newest`` (a connection being accepted), then the oldest of the others."""
+        with self._clients_lock:
+            excess = len(self._clients) - self.max_clients
+            if excess <= 0:
+                return []
+            order = [c for c in self._clients if c is not newest]
+            idle = [c for c in order if getattr(c, "svelive_publisher", None) is None]
+            playing = [c for c in order if getattr(c, "svelive_publisher", None) is not None]
+            ranked = idle + ([newest] if newest is not None else []) + playing
+            victims = ranked[:excess]
+            for victim in victims:
+                self._clients.pop(victim, None)
+        return victims
+
+    def _sweep(self, *_: Any) -> bool:
+        """GLib thread, every CAP_SWEEP_S: the cap held against the server's own list of its clients. Entries
+        whose ``closed`` never came are dropped, clients the count lost are put back (as the newest), and the
+        excess is closed. The server thread also accepts, so no client is here between its ``client-connected``
+        and the attaching of its watch."""
+        live = self._server.client_filter(None) if self._server is not None else []
+        alive = set(live)
+        with self._clients_lock:
+            for client in [c for c in self._clients if c not in alive]:
+                del self._clients[client]
+            for client in reversed(live):  # the server's list is newest first
+                self._clients.setdefault(client, None)
+        for victim in self._over_cap():
+            victim.close()
+        return True
 
     def _on_pre_play(self, client: Any, ctx: Any) -> Any:
         """GLib thread, a PLAY is about to be answered: hold frames back until it is (see
