@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
 import pytest
@@ -22,23 +23,31 @@ MAX_CLIENTS = 64  # service.publishers.rtsp.MAX_CLIENTS
 
 
 @pytest.fixture(scope="module")
-def service() -> Iterator[tuple[int, int]]:
-    """``svelive serve`` (small still demo, RTSP on) on two free loopback ports; yields (http_port, rtsp_port)."""
+def service(tmp_path_factory) -> Iterator[tuple[int, int, Path]]:
+    """``svelive serve`` (small still demo, RTSP on) on two free loopback ports; yields (http_port, rtsp_port,
+    the file its output goes to), so that a failure can say what the server said."""
     http_port, rtsp_port = free_port(), free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "svelive.cli", "serve", "--source", "demo", "--cfa", "none",
-         "--source-option", "width=160", "--source-option", "height=96", "--source-option", "period_s=0",
-         "--source-option", "fps=10", "--port", str(http_port), "--rtsp", str(rtsp_port)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log = tmp_path_factory.mktemp("serve") / "serve.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "svelive.cli", "serve", "--source", "demo", "--cfa", "none",
+             "--source-option", "width=160", "--source-option", "height=96", "--source-option", "period_s=0",
+             "--source-option", "fps=10", "--port", str(http_port), "--rtsp", str(rtsp_port)],
+            stdout=out, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 300  # a first run on a machine compiles the kernels
         while not healthy(http_port):
-            assert proc.poll() is None, "serve exited"
+            assert proc.poll() is None, f"serve exited: {tail(log)}"
             assert time.monotonic() < deadline, "serve did not answer /healthz in 300 s"
             time.sleep(0.3)
-        yield http_port, rtsp_port
+        yield http_port, rtsp_port, log
     finally:
         stop_process(proc)
+
+
+def tail(log: Path, lines: int = 20) -> str:
+    """The last ``lines`` lines the server wrote, for a failure's message."""
+    return "\n".join(log.read_text(errors="replace").splitlines()[-lines:])
 
 
 def healthy(port: int, timeout: float = 2.0) -> bool:
@@ -93,7 +102,7 @@ def closed_by_peer(s: socket.socket) -> bool:
 
 
 def test_slow_header_connections_do_not_lock_out_the_health_check(service):
-    http_port, _ = service
+    http_port, _, _ = service
     with held_connections(http_port, 600, b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n") as socks:
         started = time.monotonic()
         assert healthy(http_port, timeout=3), "/healthz unanswered with 600 slow-header connections open"
@@ -103,10 +112,11 @@ def test_slow_header_connections_do_not_lock_out_the_health_check(service):
 
 @pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg (the RTSP client) not installed")
 def test_the_rtsp_port_caps_its_connections_and_still_serves_a_player(service):
-    _, rtsp_port = service
+    _, rtsp_port, log = service
     options = f"OPTIONS rtsp://127.0.0.1:{rtsp_port}/live RTSP/1.0\r\nCSeq: 1\r\n\r\n".encode()
     with held_connections(rtsp_port, 300, options) as socks:
-        assert still_open(socks, at_most=MAX_CLIENTS) <= MAX_CLIENTS
+        left = still_open(socks, at_most=MAX_CLIENTS)
+        assert left <= MAX_CLIENTS, f"{left} RTSP connections open; the server said:\n{tail(log)}"
         out = subprocess.run(["ffmpeg", "-hide_banner", "-loglevel", "error", "-rtsp_transport", "tcp",
                               "-i", f"rtsp://127.0.0.1:{rtsp_port}/live", "-frames:v", "3", "-f", "null", "-"],
                              capture_output=True, text=True, timeout=30)
