@@ -575,8 +575,9 @@ def staircase(settings: list[ColourSetting], layouts: tuple[str, ...] = tuple(CO
 def dark_region(layout: str, level: float, size: int = SIZE) -> tuple[np.ndarray, np.ndarray]:
     """A flat grey (:data:`CAMERA_WHITE`) region ``level`` read-noise deviations of the longest exposure,
     with four bright lights (discs of radius 3 px at the shortest exposure's full scale) so that the frame
-    is exposed for them: camera RGB (size, size, 3) float32, and the mask (size, size) of sites at least
-    10 px from every light's centre."""
+    is exposed for them: camera RGB (size, size, 3) float32, and the mask (size, size) of sites whose whole
+    SPECK_WINDOW neighbourhood lies at least 10 px from every light's centre (a neighbourhood reaching a
+    light's halo would make a flat site read "below its neighbourhood": a halo, not a speck)."""
     camera = Camera.build(layout, sensor=BENCH_SENSOR)
     levels = camera.require_pattern().levels
     flat = level * np.sqrt(BENCH_SENSOR.floor_variance) / float(levels[-1])
@@ -587,7 +588,7 @@ def dark_region(layout: str, level: float, size: int = SIZE) -> tuple[np.ndarray
     for cy, cx in ((0.2, 0.3), (0.25, 0.8), (0.75, 0.2), (0.8, 0.7)):
         r2 = (y - cy * size) ** 2 + (x - cx * size) ** 2
         level_map[r2 <= 3.0**2] = full
-        far &= r2 >= 10.0**2
+        far &= r2 >= (10.0 + SPECK_WINDOW // 2) ** 2
     return (level_map[..., None] * CAMERA_WHITE).astype(np.float32), far
 
 
