@@ -1,7 +1,7 @@
 """The README's library stream without a noise model, against the single-frame default, in dim light (issue 26).
 
     .venv/bin/python benchmarks/library_noise.py [--quick] [--crop 320] [--shared-only | --shipped-only]
-    .venv/bin/python benchmarks/library_noise.py --colour [--quick]
+    .venv/bin/python benchmarks/library_noise.py --colour [--quick] [--moving]
 
 Dim 12-bit scenes (black level 64, 4 and 5 stops under full scale) from the shipped crops
 (svelive/data) and the shared HDR images (../shared/data/hdr, when present), rendered with a
@@ -23,6 +23,15 @@ noise estimate after frame 8 against the truth.
 ``--colour``: the same on colour streams (the colour layouts, the shipped RGB crops and the shared images'
 RGB when present, still scenes), PU21 of Rec. 709 luminance: ``Reconstructor(layout pattern, cfa=...,
 black_level=64, white_level=4095)`` and the true model given, against ``svelive.reconstruct`` of the frame.
+The column ``ideal`` is ``svelive.reconstruct`` (true model) of one frame holding the light of FRAMES[-1]
+frames (a 15-bit sensor of 8x the DN, the same gain, sqrt(8)x the read noise in DN: the noise of 8 frames
+summed): what a reconstruction from every frame's readings at once gives, which fusion approaches at best.
+``--colour --moving``: a bright orange disc (3 stops over the scene's 99.9th percentile, radius a tenth of
+the crop) crosses each scene at 20 px per frame; stream minus single (the ``true`` stream minus the single
+frame given the true model too: the fusion's own effect) on still pixels (no motion in this
+frame or the three before), moving pixels (the truth changed since the frame before) and trail pixels
+(moved in the three frames before, still now), and the ghost residue (svelive.bench.motion_cases) of the
+stream and the single frame on the trail, at frames 3 and 8.
 """
 
 from __future__ import annotations
@@ -138,8 +147,22 @@ def colour_images(size: int, shared: bool) -> list[tuple[str, np.ndarray]]:
     return out
 
 
+def ideal_colour(scene: np.ndarray, pattern: str, cfa: str, sensor: Sensor, frames: int, seed: int) -> np.ndarray:
+    """``svelive.reconstruct`` (true model) of one frame holding the light of ``frames`` frames: a sensor of
+    ``frames`` x the DN (16 bits at most), the same gain, sqrt(frames) x the read noise in DN."""
+    from svelive.simulation import simulate
+
+    bits = min(16, 12 + int(np.ceil(np.log2(frames))))
+    big = Sensor(bits, BLACK * frames, BLACK * frames + (WHITE - BLACK) * frames, sensor.gain,
+                 sensor.read_noise * np.sqrt(frames))
+    raw = simulate(scene * np.float32(frames), pattern, big, cfa=cfa, seed=seed).raw
+    return svelive.reconstruct(raw, pattern, cfa=cfa, black_level=big.black_level, white_level=big.white_level,
+                               gain=big.gain, read_noise=big.read_noise) / np.float32(frames)
+
+
 def measure_colour(rgb: np.ndarray, layout: str, sensor: Sensor, stops: float, seed: int) -> dict:
-    """PU21 of Rec. 709 luminance per stream ('readme', 'true', 'single') at FRAMES of a still colour scene."""
+    """PU21 of Rec. 709 luminance per stream ('readme', 'true', 'single') at FRAMES of a still colour scene,
+    and ('ideal', FRAMES[-1]): :func:`ideal_colour`."""
     from svelive.core.camera import COLOUR_LAYOUTS as LAYOUTS
     from svelive.metrics import luminance, pu21_psnr
     from svelive.simulation import simulate
@@ -158,32 +181,111 @@ def measure_colour(rgb: np.ndarray, layout: str, sensor: Sensor, stops: float, s
         if i in FRAMES:
             for name, x in images.items():
                 out[(name, i)] = pu21_psnr(luminance(x), truth)
+    out[("ideal", max(FRAMES))] = pu21_psnr(luminance(ideal_colour(scene, pattern, cfa, sensor, max(FRAMES), seed)),
+                                           truth)
     return out
+
+
+def measure_colour_moving(rgb: np.ndarray, layout: str, sensor: Sensor, stops: float, seed: int) -> dict:
+    """PU21 of Rec. 709 luminance per stream ('readme', 'true', 'single', 'single_true': the true model
+    given to the single frame), region ('still', 'moving',
+    'trail') and frame (3 and FRAMES[-1]), and the trail's ghost residue per stream and frame, of a
+    colour scene that a bright orange disc crosses (module docstring)."""
+    from svelive.bench.motion_cases import ghost_residue, region_masks, trail_before
+    from svelive.core.camera import COLOUR_LAYOUTS as LAYOUTS
+    from svelive.metrics import luminance
+    from svelive.simulation import simulate
+
+    pattern, cfa = LAYOUTS[layout]
+    background = rgb * np.float32(exposure_scale(rgb, Pattern.parse(pattern), sensor, stops_below_fill=stops))
+    h, w, _ = background.shape
+    peak = float(np.percentile(background.max(axis=2), 99.9))
+    yy, xx = np.mgrid[:h, :w]
+    levels = dict(black_level=BLACK, white_level=WHITE)
+    runs = {"readme": svelive.Reconstructor(pattern, cfa=cfa, **levels),
+            "true": svelive.Reconstructor(pattern, cfa=cfa, **levels, gain=sensor.gain, read_noise=sensor.read_noise)}
+    truths, motions, out = [], [], {}
+    for i in range(1, max(FRAMES) + 1):
+        disc = (yy - h / 2) ** 2 + (xx - 0.1 * w - 20 * (i - 1)) ** 2 <= (min(h, w) / 10) ** 2
+        scene = background.copy()
+        scene[disc] = np.float32([8.0, 4.0, 1.0]) * np.float32(peak)
+        truths.append(luminance(scene))
+        motions.append(np.zeros((h, w), bool) if i == 1 else truths[-1] != truths[-2])
+        raw = simulate(scene, pattern, sensor, cfa=cfa, seed=seed + i).raw
+        images = {"single": svelive.reconstruct(raw, pattern, cfa=cfa, **levels),
+                  "single_true": svelive.reconstruct(raw, pattern, cfa=cfa, **levels, gain=sensor.gain,
+                                                     read_noise=sensor.read_noise)}
+        images.update({name: stream.process(raw).image for name, stream in runs.items()})
+        if i in (3, max(FRAMES)):
+            regions = region_masks(motions, i - 1)
+            before = trail_before(motions, truths, i - 1)
+            for name, x in images.items():
+                y = luminance(x)
+                for region, mask in regions.items():
+                    out[(name, region, i)] = region_pu21(y, truths[-1], mask) if mask.any() else float("nan")
+                out[(name, "ghost", i)] = ghost_residue(y, truths[-1], before, regions["trail"])
+    return out
+
+
+def colour_cases(quick: bool, size: int, shared: bool):
+    """(label, rgb, layout, sensor, stops, seed) of every colour run, in the tables' order."""
+    for name, rgb in colour_images(size, shared):
+        for layout in COLOUR_LAYOUTS:
+            for full_well, read_e in SENSORS[:2] if quick else SENSORS:
+                sensor = Sensor.from_full_well(12, full_well, read_e, black_level=BLACK, white_level=WHITE)
+                for st in STOPS[:1] if quick else STOPS:
+                    yield (f"{name:11s} {layout:12s} {full_well:5d}e/{read_e:4.1f}e -{st:.0f}st", rgb, layout, sensor, st,
+                           int(full_well + 10 * st))
+
+
+def colour_moving_main(quick: bool, size: int, shared: bool) -> None:
+    """The colour table with a moving disc (see the module docstring)."""
+    print(f"# colour, a disc crossing, {size} px crops; stream minus single-frame default (dB), PU21 of luminance "
+          "at frames 3 and 8: still moving trail; ghost residue (% of the change) stream / single")
+    totals: dict = {}
+    for label, rgb, layout, sensor, st, seed in colour_cases(quick, size, shared):
+        res = measure_colour_moving(rgb, layout, sensor, st, seed)
+        cells = []
+        for stream in ("readme", "true"):
+            cell = []
+            ref = "single" if stream == "readme" else "single_true"
+            for i in (3, max(FRAMES)):
+                d = [res[(stream, r, i)] - res[(ref, r, i)] for r in ("still", "moving", "trail")]
+                for r, v in zip(("still", "moving", "trail"), d):
+                    totals.setdefault((stream, r, i), []).append(v)
+                g = (res[(stream, "ghost", i)], res[(ref, "ghost", i)])
+                totals.setdefault((stream, "ghost", i), []).append(g[0] - g[1])
+                cell.append(" ".join(f"{v:+5.2f}" for v in d) + f" g {100 * g[0]:+4.1f}/{100 * g[1]:+4.1f}")
+            cells.append(f"{stream} " + " ; ".join(cell))
+        print(f"{label} | {' | '.join(cells)}", flush=True)
+    for stream in ("readme", "true"):
+        for i in (3, max(FRAMES)):
+            print(f"colour moving {stream:6s} f{i} " + "  ".join(
+                f"{r} {np.nanmean(totals[(stream, r, i)]):+5.2f} (min {np.nanmin(totals[(stream, r, i)]):+5.2f})"
+                for r in ("still", "moving", "trail"))
+                + f"  ghost stream-single {100 * np.nanmean(totals[(stream, 'ghost', i)]):+.2f} % "
+                  f"(max {100 * np.nanmax(totals[(stream, 'ghost', i)]):+.2f})")
 
 
 def colour_main(quick: bool, size: int, shared: bool) -> None:
     """The colour table (see the module docstring)."""
-    sensors = SENSORS[:2] if quick else SENSORS
-    stops = STOPS[:1] if quick else STOPS
     print(f"# colour, still, {size} px crops; stream minus single-frame default (dB), PU21 of luminance at frames {FRAMES}")
     totals: dict = {}
-    for name, rgb in colour_images(size, shared):
-        for layout in COLOUR_LAYOUTS:
-            for full_well, read_e in sensors:
-                sensor = Sensor.from_full_well(12, full_well, read_e, black_level=BLACK, white_level=WHITE)
-                for st in stops:
-                    res = measure_colour(rgb, layout, sensor, st, seed=int(full_well + 10 * st))
-                    cells = []
-                    for stream in ("readme", "true"):
-                        d = [res[(stream, i)] - res[("single", i)] for i in FRAMES]
-                        for i, v in zip(FRAMES, d):
-                            totals.setdefault((stream, i), []).append(v)
-                        cells.append(f"{stream} " + " ".join(f"{v:+5.2f}" for v in d))
-                    print(f"{name:11s} {layout:12s} {full_well:5d}e/{read_e:4.1f}e -{st:.0f}st single f8 "
-                          f"{res[('single', 8)]:5.2f} | {' | '.join(cells)}", flush=True)
+    for label, rgb, layout, sensor, st, seed in colour_cases(quick, size, shared):
+        res = measure_colour(rgb, layout, sensor, st, seed)
+        cells = []
+        for stream in ("readme", "true"):
+            d = [res[(stream, i)] - res[("single", i)] for i in FRAMES]
+            for i, v in zip(FRAMES, d):
+                totals.setdefault((stream, i), []).append(v)
+            cells.append(f"{stream} " + " ".join(f"{v:+5.2f}" for v in d))
+        ideal = res[("ideal", max(FRAMES))] - res[("single", max(FRAMES))]
+        totals.setdefault("ideal", []).append(ideal)
+        print(f"{label} single f8 {res[('single', 8)]:5.2f} | {' | '.join(cells)} | ideal {ideal:+5.2f}", flush=True)
     for stream in ("readme", "true"):
         print(f"colour {stream:6s} " + "  ".join(f"f{i} {np.mean(totals[(stream, i)]):+5.2f} "
                                                   f"(min {np.min(totals[(stream, i)]):+5.2f})" for i in FRAMES))
+    print(f"colour ideal  f{max(FRAMES)} {np.mean(totals['ideal']):+5.2f} (min {np.min(totals['ideal']):+5.2f})")
 
 
 def main() -> None:
@@ -193,10 +295,12 @@ def main() -> None:
     parser.add_argument("--shared-only", action="store_true")
     parser.add_argument("--shipped-only", action="store_true")
     parser.add_argument("--colour", action="store_true", help="the colour streams' table instead")
+    parser.add_argument("--moving", action="store_true", help="with --colour: a disc crossing each scene")
     args = parser.parse_args()
     size = 256 if args.quick else args.crop
     if args.colour:
-        colour_main(args.quick, 128 if args.quick else 192, not args.shipped_only)
+        (colour_moving_main if args.moving else colour_main)(args.quick, 128 if args.quick else 192,
+                                                             not args.shipped_only)
         return
     sensors = SENSORS[:2] if args.quick else SENSORS
     stops = STOPS[:1] if args.quick else STOPS
