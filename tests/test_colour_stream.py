@@ -104,8 +104,14 @@ def test_static_colour_scene_fuses_every_layout(layout, method):
     assert_finite(fused)
 
 
+#: Since the detail step's share error (docs/motion.md, "Colour streams"), the ``weighted`` stream gains
+#: more than the default on this one: 31.64 -> 32.06 dB against 31.86 -> 31.87 (one frame 31.53).
+WEIGHTED_AHEAD = pytest.mark.xfail(strict=True, reason="the weighted colour stream gains more from the share "
+                                   "error than the default on quad-bayer mttamwest at 3 stops (docs/motion.md)")
+
+
 @pytest.mark.parametrize("layout, scene, stops", [(LAYOUT, "desk", 5), ("dual-iso", "mttamwest", 3),
-                                                  ("quad-bayer", "mttamwest", 3)])
+                                                  pytest.param("quad-bayer", "mttamwest", 3, marks=WEIGHTED_AHEAD)])
 def test_the_default_colour_stream_beats_the_weighted_one(layout, scene, stops):
     """The stream's default is the single-frame default, and on a static scene its fused output is
     better than one frame of it and than the ``weighted`` stream's."""

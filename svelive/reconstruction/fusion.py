@@ -57,6 +57,11 @@ class TemporalState:
         censored: bool (H, W), the last frame's censored readings.
         test: float32 (H, W), the fused estimate the temporal test compares frames with
             (:attr:`FrameEstimate.test`), or None when that is ``mean``.
+        own_variance: float32 (H, W), the running mean (weights as ``mean``'s) of each frame's own
+            reading's variance at its estimate, where frames give a share error (colour frames, whose
+            exposures e' = e k change with the shares from frame to frame: a reading over a share that
+            was small in one frame, beside a moving object's colour, is that much noisier); None else
+            (the exposures are fixed, and the current frame's tables give the variance).
     """
 
     mean: np.ndarray
@@ -65,6 +70,7 @@ class TemporalState:
     bound: np.ndarray
     censored: np.ndarray
     test: np.ndarray | None = None
+    own_variance: np.ndarray | None = None
 
     @property
     def tested(self) -> np.ndarray:
@@ -95,6 +101,14 @@ class FrameEstimate:
             is the same in every frame of a static scene
             (svelive.reconstruction.numerics.window_estimate), so that the test does not depend
             on how sharp the method's ``image`` is. None: ``image`` and ``variance`` themselves.
+        share_error: float32 (H, W), the relative variance of an error of each pixel's own reading
+            that frames do not average, or None (none: a monochrome frame). A colour frame's own
+            reading is s / (e k), k its cell's share of its channel, which colour within the cells
+            moves: the detail step's variance of the fused own reading is then its noise's plus
+            ``share_error`` times the fused value squared, so that it does not sharpen towards that bias.
+            Given only with per-pixel exposures (``own_slope`` and ``own_floor`` numbers, no tables);
+            the fused own readings' noise variance is then tracked in the history
+            (:attr:`TemporalState.own_variance`), since e' changes with the shares from frame to frame.
     """
 
     image: np.ndarray
@@ -107,6 +121,7 @@ class FrameEstimate:
     own_floor: np.ndarray | float
     test: np.ndarray | None = None
     test_variance: np.ndarray | None = None
+    share_error: np.ndarray | None = None
 
     @property
     def tested(self) -> tuple[np.ndarray, np.ndarray]:
@@ -270,6 +285,10 @@ def _subsampled_exceeding(image, mean, weight, variance, bound, old_bound, censo
 _NO_TABLE = np.empty((0, 0), np.float32)
 _NO_TABLE.setflags(write=False)
 
+#: An output of no rows (:class:`_Outputs`' own variance without one): never written, but writable, as the
+#: arrays it stands for are.
+_NO_ROWS = np.empty((0, 0), np.float32)
+
 #: The row sums' kernel when the detail step's window is OpenCV's: a single tap of 1, read-only as
 #: binomial kernels are (a kernel's compiled signature tells the two apart).
 _ONE_TAP = np.ones(1, np.float32)
@@ -287,7 +306,25 @@ RATIO_TOLERANCE = 2e-3
 def start(frame: FrameEstimate) -> TemporalState:
     """A history holding one frame."""
     return TemporalState(frame.image, frame.own, np.ones(frame.image.shape, np.float32), frame.bound, frame.censored,
-                         frame.test)
+                         frame.test, None if frame.share_error is None else own_variance(frame))
+
+
+def own_variance(frame: FrameEstimate) -> np.ndarray:
+    """float32 (H, W), the variance of each pixel's own reading at the frame's estimate (a frame without
+    row-phase tables: :class:`FrameEstimate`), as :func:`_update_row` computes it."""
+    out = np.empty(frame.image.shape, np.float32)
+    _own_variance_rows(frame.image, frame.inverse, np.float32(frame.own_slope), np.float32(frame.own_floor), out)
+    return out
+
+
+@kernel
+def _own_variance_rows(image, inverse, slope_scale, floor_scale, out):
+    zero = np.float32(0)
+    for r in range(out.shape[0]):
+        p = r % inverse.shape[0]
+        for c in range(out.shape[1]):
+            i = inverse[p, c]
+            out[r, c] = i * slope_scale * _maximum(image[r, c], zero) + i * i * floor_scale
 
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
@@ -342,7 +379,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     first, on a subsample.
     """
     image, variance, bound = frame.image, frame.variance, frame.bound
-    if state is None or state.mean.shape != image.shape or (state.test is None) != (frame.test is None):
+    if (state is None or state.mean.shape != image.shape or (state.test is None) != (frame.test is None)
+            or (state.own_variance is None) != (frame.share_error is None)):
         return _restart(frame, inconsistency, 1.0, np.zeros(image.shape, bool))
     tested, tested_variance = frame.tested
     history = state.tested
@@ -363,6 +401,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     reset = np.empty(image.shape, bool)
 
     fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
+    own_var = None if state.own_variance is None else np.empty_like(image)
     separate = frame.test is not None  # the test's estimate has a history of its own
     fused_test = np.empty_like(image) if separate else fused
     # the output differs from the history's mean where sharpened or replaced by the within-frame test
@@ -417,10 +456,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         count = _fuse_strip(_StripRows(core.start - top, core.start, done.start, done.stop, h),
                             _Halo(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
                                   state.bound[ext], frame.censored[ext], state.censored[ext]),
-                            _History(state.weight[core], state.mean[core], state.own[core], history[core]),
-                            _Frame(image[core], frame.signal[core], frame.censored[core], tested[core]), tables,
+                            _History(state.weight[core], state.mean[core], state.own[core], history[core],
+                                     _NO_TABLE if own_var is None else state.own_variance[core]),
+                            _Frame(image[core], frame.signal[core], frame.censored[core], tested[core],
+                                   _NO_TABLE if frame.share_error is None else frame.share_error[core]), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
-                                     fused_test[core], evidence[core], out[core]), settings, step)
+                                     fused_test[core], evidence[core], out[core],
+                                     _NO_ROWS if own_var is None else own_var[core]), settings, step)
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -479,7 +521,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
-    state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None)
+    state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None, own_var)
     # the update applied the within-frame test's finding to the output where it reset the history
     return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset), reset)
 
@@ -634,24 +676,27 @@ class _Halo(NamedTuple):
 
 class _History(NamedTuple):
     """The old state of a strip's rows, which :func:`_update_row` reads: float32 (R, W) rows of
-    :class:`TemporalState`'s weight (1 / n), mean, own and tested estimate (``mean`` unless the test
-    has a history of its own)."""
+    :class:`TemporalState`'s weight (1 / n), mean, own, tested estimate (``mean`` unless the test
+    has a history of its own) and own variance (of no rows, :data:`_NO_TABLE`, without one)."""
 
     weight: np.ndarray
     mean: np.ndarray
     own: np.ndarray
     test: np.ndarray
+    own_variance: np.ndarray
 
 
 class _Frame(NamedTuple):
     """The new frame's rows of a strip, which :func:`_update_row` reads: (R, W) rows of
-    :class:`FrameEstimate`'s image (float32), signal s (float32), censored (bool) and tested estimate
-    (float32, read where ``separate``)."""
+    :class:`FrameEstimate`'s image (float32), signal s (float32), censored (bool), tested estimate
+    (float32, read where ``separate``) and share error (float32; of no rows, :data:`_NO_TABLE`, without
+    one)."""
 
     image: np.ndarray
     signal: np.ndarray
     censored: np.ndarray
     tested: np.ndarray
+    share_error: np.ndarray
 
 
 class _Tables(NamedTuple):
@@ -683,6 +728,8 @@ class _Outputs(NamedTuple):
         evidence: float32, the detail step's evidence summed along rows, written only for the rows the
             later detail step reads (all when the strip sharpens none).
         out: float32, the output, in the rows the pass sharpens.
+        own_variance: float32, the running mean of the own readings' variance (:class:`TemporalState`;
+            of no rows without one).
     """
 
     motion: np.ndarray
@@ -693,6 +740,7 @@ class _Outputs(NamedTuple):
     fused_test: np.ndarray
     evidence: np.ndarray
     out: np.ndarray
+    own_variance: np.ndarray
 
 
 class _FuseSettings(NamedTuple):
@@ -820,14 +868,15 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
     Reads ``history`` (:class:`_History`), ``frame`` (:class:`_Frame`), ``tables`` (:class:`_Tables`),
     ``settings`` (:class:`_FuseSettings`) and ``step`` (:class:`_DetailStep`). Writes weight (1/n ->
     1/(n + 1), at least ``floor_weight``, 1 where reset), the fused image and own readings; with
-    ``separate`` the running mean of the tested estimate with its history (``fused_test``); with the
-    detail step the evidence: (own - fused)^2 over the fused own reading's variance (one reading's,
+    ``separate`` the running mean of the tested estimate with its history (``fused_test``); with an own
+    variance (:class:`TemporalState`) its running mean; with the detail step the evidence: (own - fused)^2 over the fused own reading's variance (one reading's,
     from the row-phase tables, times the weight and ``noisier``), summed along its row with the
-    symmetric kernel ``along``. Row by row, each step a loop of its own over few arrays (with many,
+    symmetric kernel ``along``; with a ``share_error`` its share of the fused value squared adds to
+    that variance (:class:`FrameEstimate`). Row by row, each step a loop of its own over few arrays (with many,
     LLVM stops vectorising), while the row's results are still in cache.
     """
-    old_weight, old_mean, old_own, old_test = history
-    image, signal, censored, tested = frame
+    old_weight, old_mean, old_own, old_test, old_own_variance = history
+    image, signal, censored, tested, share_error = frame
     inverse, own_slope, own_floor, slope_scale, floor_scale = tables
     motion, reset, weight, fused, own = outputs.motion, outputs.reset, outputs.weight, outputs.fused, outputs.own
     fused_test = outputs.fused_test
@@ -849,8 +898,21 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
     if separate:
         for c in range(image.shape[1]):
             fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], weight[r, c], scale)
+    own_variance = outputs.own_variance
+    if own_variance.shape[0]:
+        # exposures that change from frame to frame (a colour frame's e' = e k): the fused own readings'
+        # variance is the running mean of each frame's, at its estimate; no row-phase tables
+        for c in range(image.shape[1]):
+            i = inverse[p, c]
+            v = i * slope_scale * _maximum(image[r, c], zero) + i * i * floor_scale
+            own_variance[r, c] = _running_mean(old_own_variance[r, c], v, weight[r, c], one)
     if detail:
-        if table_rows:
+        if share_error.shape[0]:  # and an error of the own readings that no frame count averages
+            for c in range(image.shape[1]):
+                f = _maximum(fused[r, c], zero)
+                d = own[r, c] - fused[r, c]
+                row[c] = d * d / (own_variance[r, c] * weight[r, c] * noisier + share_error[r, c] * f * f)
+        elif table_rows:
             q = (first_row + r) % table_rows
             for c in range(image.shape[1]):
                 f = fused[r, c]

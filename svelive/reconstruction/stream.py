@@ -503,7 +503,12 @@ class Reconstructor:
         held = self.temporal and not estimated.trusted
         reset = None
         if self.temporal:
-            fused = fuse(history, estimated.frame, self.motion_config, self.pattern.shape, inconsistency,
+            frame = estimated.frame
+            if parts is not None and self.detail:
+                planes = (chroma_history[:3] if chroma_history is not None
+                          and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
+                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
+            fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency,
                          detail=self.detail, workers=self.workers, executor=self._pool)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             if history is not None and history.mean.shape == image.shape:
@@ -632,6 +637,69 @@ def _own_reading_pass(exposure, inverse, slope, floor, slope_scale, floor_scale)
         inverse[k] = i
         slope[k] = i * slope_scale
         floor[k] = i * i * floor_scale
+
+
+def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
+    """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error).
+
+    A colour pixel's own reading is s / (e k), k its channel's share interpolated from the cells'
+    centres (``shares``, float32 (3, Hc, Wc): a stream's fused shares, else the frame's); colour that
+    changes within the cells makes it k_true / k times the luminance, an error that does not average
+    over frames. Its relative variance is taken as the spread of the channel's share over the 3x3
+    cells around the pixel's cell: the mean of (k_j / k_0 - 1)^2 over them with the chroma's
+    [1, 2, 1] / 4 weights each way, 0 where the colour is the same over the cells.
+    """
+    planes = np.ascontiguousarray(shares, np.float32)
+    cells = np.empty_like(planes)
+    _share_spread(planes, cells)
+    out = np.empty(shape, np.float32)
+    _share_gather(cells, layout.channels, out)
+    return out
+
+
+@kernel
+def _share_spread(shares, out):
+    """out[c, i, j] = sum over the 3x3 cells around (i, j) (mirrored at the edges) of [1, 2, 1] / 4
+    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2."""
+    n, hc, wc = shares.shape
+    for c in range(n):
+        k = shares[c]
+        for i in range(hc):
+            up, down = (abs(i - 1), i + 1 if i + 1 < hc else 2 * hc - 3 - i) if hc > 1 else (0, 0)
+            above, middle, below, o = k[up], k[i], k[down], out[c, i]
+            for j in range(1, wc - 1):  # a loop without branches, that vectorises
+                o[j] = _spread_of(above, middle, below, j - 1, j, j + 1)
+            if wc > 1:  # the ends, mirrored
+                o[0] = _spread_of(above, middle, below, 1, 0, 1)
+                o[wc - 1] = _spread_of(above, middle, below, wc - 2, wc - 1, wc - 2)
+            else:
+                o[0] = _spread_of(above, middle, below, 0, 0, 0)
+
+
+@kernel(inline="always")
+def _spread_of(above, middle, below, left, j, right):
+    """:func:`_share_spread` of cell column ``j`` of three cell rows, its neighbours ``left`` and ``right``."""
+    one, quarter, half = np.float32(1), np.float32(0.25), np.float32(0.5)
+    inv = one / middle[j]
+    a, b, d = above[left] * inv - one, above[j] * inv - one, above[right] * inv - one
+    top = quarter * (a * a + d * d) + half * b * b
+    a, b, d = middle[left] * inv - one, middle[j] * inv - one, middle[right] * inv - one
+    centre = quarter * (a * a + d * d) + half * b * b
+    a, b, d = below[left] * inv - one, below[j] * inv - one, below[right] * inv - one
+    return quarter * (top + quarter * (a * a + d * d) + half * b * b) + half * centre
+
+
+@kernel
+def _share_gather(cells, channels, out):
+    """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell."""
+    cy, cx = channels.shape
+    w = out.shape[1]
+    for r in range(out.shape[0]):
+        i, phase, row = r // cy, channels[r % cy], out[r]
+        for t in range(cx):
+            plane = cells[phase[t], i]
+            for j in range((w - t + cx - 1) // cx):
+                row[j * cx + t] = plane[j]
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
