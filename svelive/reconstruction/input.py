@@ -65,9 +65,13 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
     if camera.response is not None:
         raw = linearise(raw, camera.response, sensor)
     exposure, _ = exposure_maps(pattern, raw.shape)
-    signal, censored = np.empty(raw.shape, np.float32), np.empty(raw.shape, bool)
-    # numpy's arithmetic (raw as float32, minus the float32 black level; the censor level as float32), in one pass
-    _signal(*flat(raw, signal, censored), np.float32(sensor.black_level), np.float32(sensor.censor_level))
+    if raw.dtype == np.uint16:  # the cameras' type: numpy's arithmetic (below) in one compiled pass
+        signal, censored = np.empty(raw.shape, np.float32), np.empty(raw.shape, bool)
+        _signal(*flat(raw, signal, censored), np.float32(sensor.black_level), np.float32(sensor.censor_level))
+    else:  # (one kernel type only: the warm-up compiles it, and no other raw type waits for a compile)
+        signal = raw.astype(np.float32)
+        signal -= np.float32(sensor.black_level)
+        censored = signal >= np.float32(sensor.censor_level)
     integral = raw.dtype.kind in "ui" and float(sensor.black_level).is_integer()
     channels = None if camera.cfa is None else channel_map(camera.cfa, raw.shape)
     return SveInput(signal=signal, exposure=exposure, censored=censored, pattern=pattern, sensor=sensor,
@@ -76,7 +80,7 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
 
 @kernel
 def _signal(raw, signal, censored, black, censor):
-    """signal = raw - black in float32, censored = signal >= censor; flat arrays."""
+    """signal = raw - black in float32, censored = signal >= censor; flat arrays (raw uint16)."""
     for k in range(signal.size):
         value = np.float32(raw[k]) - black
         signal[k] = value
