@@ -319,12 +319,17 @@ def own_variance(frame: FrameEstimate) -> np.ndarray:
 
 @kernel
 def _own_variance_rows(image, inverse, slope_scale, floor_scale, out):
-    zero = np.float32(0)
     for r in range(out.shape[0]):
         p = r % inverse.shape[0]
         for c in range(out.shape[1]):
-            i = inverse[p, c]
-            out[r, c] = i * slope_scale * _maximum(image[r, c], zero) + i * i * floor_scale
+            out[r, c] = _own_reading_variance(inverse[p, c], image[r, c], slope_scale, floor_scale)
+
+
+@kernel(inline="always")
+def _own_reading_variance(inverse, estimate, slope_scale, floor_scale):
+    """The variance of a pixel's own reading (1 / e = ``inverse``) at ``estimate``, float32: shot noise at
+    the estimate (not below 0) and the floor, both scaled as the frame's per-pixel numbers say."""
+    return inverse * slope_scale * _maximum(estimate, np.float32(0)) + inverse * inverse * floor_scale
 
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
@@ -903,8 +908,7 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
         # exposures that change from frame to frame (a colour frame's e' = e k): the fused own readings'
         # variance is the running mean of each frame's, at its estimate; no row-phase tables
         for c in range(image.shape[1]):
-            i = inverse[p, c]
-            v = i * slope_scale * _maximum(image[r, c], zero) + i * i * floor_scale
+            v = _own_reading_variance(inverse[p, c], image[r, c], slope_scale, floor_scale)
             own_variance[r, c] = _running_mean(old_own_variance[r, c], v, weight[r, c], one)
     if detail:
         if share_error.shape[0]:  # and an error of the own readings that no frame count averages
