@@ -114,8 +114,8 @@ def _smooth_cells(weighted: np.ndarray, kept: np.ndarray, mean: np.ndarray, k: n
     channel the ratios the smoothing forms are those of the cells it averages. Where that weight is
     0 for every cell around (a channel with only censored readings in each), each channel keeps
     the cell's own readings (the highlight rules take the censored ones)."""
-    common, products = np.empty(kept.shape[1:], np.float32), np.empty_like(mean)
-    _common_weights(kept, mean, common, products)
+    common = kept.min(axis=0)
+    products = common * mean
     for c in range(3):
         cv2.sepFilter2D(products[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
     cv2.sepFilter2D(common, cv2.CV_32F, k, k, dst=denominator[0], borderType=cv2.BORDER_REFLECT_101)
@@ -124,19 +124,6 @@ def _smooth_cells(weighted: np.ndarray, kept: np.ndarray, mean: np.ndarray, k: n
     if none[0].size:
         for c in range(3):
             numerator[c][none], denominator[c][none] = weighted[c][none], kept[c][none]
-
-
-@kernel
-def _common_weights(kept, mean, common, products):
-    """common (Hc, Wc) = min_c kept_c; products (3, Hc, Wc) = common mean_c. Loops over the cells of a row."""
-    for i in range(common.shape[0]):
-        w, k0, k1, k2 = common[i], kept[0, i], kept[1, i], kept[2, i]
-        for j in range(w.size):
-            w[j] = min(min(k0[j], k1[j]), k2[j])
-        for c in range(3):
-            m, p = mean[c, i], products[c, i]
-            for j in range(w.size):
-                p[j] = w[j] * m[j]
 
 
 def _centred(values: np.ndarray, layout: CellLayout) -> np.ndarray:
