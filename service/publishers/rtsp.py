@@ -41,7 +41,7 @@ shared media:
 - At most ``max_clients`` connections (64): beyond it the oldest connection that is not
   playing is closed (one that only holds a socket cannot lock out a recorder), or the new
   one when all the others play; checked at each accepted connection and, every CAP_SWEEP_S, against
-  the server's own list of clients (a count that drifted or a close that did not take is corrected).
+  the server's own list of clients (an entry whose ``closed`` never came is dropped).
 - The GLib main loop of the server runs in a thread of its own (its own main context).
 - ``clients`` in the state counts the clients playing the stream (counted at PLAY, by path).
 
@@ -370,6 +370,23 @@ def check_port(host: str, port: int) -> None:
             raise port_error(host, port) from None
 
 
+def _close(client: Any) -> None:
+    """Close ``client`` from the server's thread: its socket is shut down, so that the thread serving the client
+    reads the end and closes it there. ``gst_rtsp_client_close`` from another thread than the client's races with
+    its read (GLib-GIO-CRITICAL "g_pollable_input_stream_read_nonblocking: assertion failed") and under load left
+    the connection open: 128 of 300 held connections against a cap of 64. The client's own close is the fallback
+    when it has no socket yet."""
+    connection = client.get_connection()
+    socket = connection.get_read_socket() if connection is not None else None
+    if socket is None:
+        client.close()
+        return
+    try:
+        socket.shutdown(True, True)
+    except Exception:  # already shut (GLib.Error): the client is closing anyway
+        pass
+
+
 class RtspServer:
     """One RTSP server: one port, one GLib main loop (a thread of its own), one token, and a mount
     point per stream (:class:`RtspPublisher`), so that every camera of a service is on one port
@@ -508,7 +525,7 @@ class RtspServer:
         client.connect("closed", self._forget_client)
         victims = self._over_cap(newest=client)
         for victim in victims:
-            victim.close()
+            _close(victim)
         if client in victims:
             return
         client.connect("pre-play-request", self._on_pre_play)
@@ -536,19 +553,17 @@ class RtspServer:
         return victims
 
     def _sweep(self, *_: Any) -> bool:
-        """GLib thread, every CAP_SWEEP_S: the cap held against the server's own list of its clients. Entries
-        whose ``closed`` never came are dropped, clients the count lost are put back (as the newest), and the
-        excess is closed. The server thread also accepts, so no client is here between its ``client-connected``
-        and the attaching of its watch."""
-        live = self._server.client_filter(None) if self._server is not None else []
-        alive = set(live)
+        """GLib thread, every CAP_SWEEP_S: the count checked against the server's own list of its clients.
+        Entries whose ``closed`` never came are dropped, and any excess is closed. Clients the server still lists
+        but the count does not are not put back: they are the ones the cap closed, whose watch the server has not
+        dropped yet (put back as the newest, they made the count of a burst of connections look hundreds over
+        the cap, and the cap then closed every idle client, a player still negotiating among them)."""
+        alive = set(self._server.client_filter(None) if self._server is not None else [])
         with self._clients_lock:
             for client in [c for c in self._clients if c not in alive]:
                 del self._clients[client]
-            for client in reversed(live):  # the server's list is newest first
-                self._clients.setdefault(client, None)
         for victim in self._over_cap():
-            victim.close()
+            _close(victim)
         return True
 
     def _on_pre_play(self, client: Any, ctx: Any) -> Any:
