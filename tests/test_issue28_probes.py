@@ -118,3 +118,17 @@ def test_a_fifo_given_as_a_recording_fails_at_once(verb, tmp_path):
               cwd=tmp_path, timeout=20)  # before: blocked in open() until the timeout
     assert out.returncode == 2 and time.monotonic() - start < 20
     assert "is not a regular file" in one_line(out.stderr), out.stderr
+
+
+def test_a_local_dask_cluster_closes_without_killing_its_workers(tmp_path):
+    """Item 15: ``reconstruct-sequence --workers 2`` as the README shows it ends with no warning from the
+    cluster's shutdown (the nanny's "Worker process still alive after 4.0 seconds, killing")."""
+    recorded = run("record", "--source", "demo", "-o", "run.sverec", "--frames", "6", cwd=tmp_path)
+    assert recorded.returncode == 0, recorded.stderr
+    out = run("reconstruct-sequence", "--source", "replay:run.sverec", "-o", "exr-dask/", "--workers", "2",
+              cwd=tmp_path, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert len(list((tmp_path / "exr-dask").glob("*.exr"))) == 6
+    noise = [line for line in out.stderr.splitlines()
+             if not line.startswith(("noise (", "reconstructing:")) and line.strip()]
+    assert noise == [], "\n".join(noise)
