@@ -95,6 +95,15 @@ noise-limited scenes, -0.6 dB on the third, within 0.3 dB at bright exposure).
 (c) RGB = Y k_c for each channel c, with the same k_c as the folding (so at a
 pixel whose own reading decided Y, its own channel is that reading).
 
+(c'') Saturated colour (single frames, 2x2 Bayer CFAs): where a pixel's own
+channel holds under 10 % of its brightest channel's share (blended up to 30 %),
+its reading says next to nothing about Y, which is then the mono method's
+interpolation over readings of the other channels; there its other channels
+come from their own lattices (log-bilinear over the 3x3), as a demosaicing
+does, so that fine detail of a saturated colour survives
+(svelive.reconstruction.colour.lattice; docs/peers.md: BrightRings +1.5 to
++2.1 dB PU21 over all channels, no shared frame lower).
+
 Highlights. Where a channel has censored readings in a cell, its uncensored
 neighbours are the darker ones, so the cell keeps its own readings (at least
 their bound); where it has censored readings and no uncensored one, its value
@@ -130,8 +139,8 @@ balance); the luminance Y in that unit, which ``variance`` and
 The modules, one job each: ``run`` (:func:`run_colour`, the public entry), ``split_baseline`` (the baseline),
 ``cells`` (the cells' layout and per-cell statistics), ``highlights`` (the white balance and the rules for
 censored and clipped channels), ``shares`` (step a), ``interpolate`` (from cells to pixels),
-``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refinement`` (step b'), ``sites`` (opt-in chroma per
-site on Bayer CFAs, after step c) and ``joint_parts`` (the joint
+``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refinement`` (step b'), ``lattice`` (step c''),
+``sites`` (opt-in chroma per site on Bayer CFAs, after step c) and ``joint_parts`` (the joint
 reconstruction and its parts).
 """
 

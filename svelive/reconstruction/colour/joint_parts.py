@@ -10,6 +10,7 @@ import numpy as np
 
 from svelive.reconstruction.colour.folding import colourise, luminance_input
 from svelive.reconstruction.colour.interpolate import Interpolation, interpolation
+from svelive.reconstruction.colour.lattice import lattice_channels
 from svelive.reconstruction.colour.refinement import refine
 from svelive.reconstruction.colour.shares import Chroma, chroma
 from svelive.reconstruction.colour.sites import site_chroma as site_chroma_into
@@ -40,7 +41,7 @@ class Joint:
 
 
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
-          site_chroma: bool = False, **options) -> Joint:
+          site_chroma: bool = False, lattice: bool = True, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
@@ -50,7 +51,9 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     ``inverse_exposure``: also 1 / e' (Joint.inverse_exposure), made while e' is (a method that
     reads per-pixel exposures only). ``site_chroma`` (opt-in, docs/peers.md): with ``rgb``, each
     pixel's colour ratios from its own 3x3 neighbourhood where the noise model supports them
-    (svelive.reconstruction.colour.sites; 2x2 Bayer CFAs), the cells' elsewhere.
+    (svelive.reconstruction.colour.sites; 2x2 Bayer CFAs), the cells' elsewhere. ``lattice`` (default on):
+    with ``rgb``, a strongly saturated colour's other channels from their own lattices where a pixel's own
+    channel carries almost none of its light (svelive.reconstruction.colour.lattice; 2x2 Bayer CFAs).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
     ch = chroma(inp)
@@ -67,7 +70,10 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
                            new_variance=True, workers=workers)
         variance = refined_variance
     image = colourise(luminance, inter, workers) if rgb else luminance
-    if rgb and site_chroma:
+    if rgb:
         luminance = luminance.copy() if luminance is est.image else luminance  # (the method's own array stays)
-        site_chroma_into(inp, luminance, image, ch.layout.share, workers)
+        if lattice:
+            lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers)
+        if site_chroma:
+            site_chroma_into(inp, luminance, image, ch.layout.share, workers)
     return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)
