@@ -696,9 +696,15 @@ def _share_gather(cells, channels, out):
     w = out.shape[1]
     for r in range(out.shape[0]):
         i, phase, row = r // cy, channels[r % cy], out[r]
+        start = 0
+        if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
+            left, right, start = cells[phase[0], i], cells[phase[1], i], w // 2
+            for j in range(start):
+                row[2 * j] = left[j]
+                row[2 * j + 1] = right[j]
         for t in range(cx):
             plane = cells[phase[t], i]
-            for j in range((w - t + cx - 1) // cx):
+            for j in range(start, (w - t + cx - 1) // cx):
                 row[j * cx + t] = plane[j]
 
 
