@@ -486,7 +486,8 @@ class Reconstructor:
                     else own_reading_scales(lum.exposure, inp.sensor, parts.inverse_exposure))
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
-                         (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model)
+                         (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model,
+                         None if parts is None else inp)
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
@@ -530,8 +531,13 @@ class Reconstructor:
                 luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
             else:
-                luminance, inter = image, parts.interpolation
+                luminance, inter = image.copy(), parts.interpolation  # (the method's own array stays)
             image = colour.colourise(luminance, inter, self._threads)
+            # saturated colour's other channels from their own lattices, as a single frame's joint colour
+            fused_shares = self.temporal and chroma_history.shape[1:] == parts.chroma.shares.shape[1:]
+            shares = chroma_history[:3] if fused_shares else parts.chroma.shares
+            colour.lattice_channels(estimated.colour_input, luminance, image, shares, parts.chroma.layout,
+                                    self._threads)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
         # without fusion no frame's motion says which pixels are still: the first frame's model is final (fed
         # every frame, each would start a run of the tracker's own that is never fitted, at a tracker's cost)
@@ -569,6 +575,8 @@ class Estimated:
             curve whose noise is estimated, else None.
         camera: the camera the frame was reconstructed with (``base`` with the noise model in use).
         noise: that noise model (source "given" where the camera gives it).
+        colour_input: a colour frame's own input (its CFA channels and censoring: the lattice stage
+            reads them after the fused luminance is coloured), else None.
     """
 
     estimate: Estimate
@@ -585,6 +593,7 @@ class Estimated:
     signal: np.ndarray | None = None
     camera: Camera | None = None
     noise: NoiseEstimate | None = None
+    colour_input: SveInput | None = None
 
 
 def _needs_noise(camera: Camera) -> bool:

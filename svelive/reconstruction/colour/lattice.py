@@ -20,8 +20,9 @@ around has all its shares within F_HIGH of its largest (every scene without stro
 nothing changes: cells are tested first, and only pixel rows near a flagged cell are visited.
 
 Each pixel keeps its own channel (Y k_own); the luminance becomes sum_c n_c RGB_c where a pixel changed.
-2x2 Bayer CFAs only (other CFAs are left as they are). A single frame's colour only: a stream colours
-its fused luminance elsewhere (svelive.reconstruction.stream).
+2x2 Bayer CFAs only (other CFAs are left as they are). A single frame's joint colour runs it after
+colourising (joint_parts.joint), a stream after colouring its fused luminance with its fused shares
+(svelive.reconstruction.stream).
 """
 
 from __future__ import annotations
