@@ -113,6 +113,7 @@ class PeerConfig:
     repeats: int = 3  # svelive timing runs per frame (median, after a warm-up)
     seed: int = 0
     site_chroma: bool = False  # svelive with the opt-in chroma per site (colour.joint's site_chroma)
+    directional: bool = False  # svelive with the directional demosaicing stage (colour.joint's directional)
 
 
 @dataclass(frozen=True)
@@ -121,6 +122,14 @@ class SiteChromaSetting(ColourSetting):
 
     def run(self, inp: SveInput) -> np.ndarray:
         return joint(inp, method_spec(self.method), site_chroma=True).estimate.image
+
+
+@dataclass(frozen=True)
+class DirectionalSetting(ColourSetting):
+    """The joint default with the directional demosaicing stage (``--directional``)."""
+
+    def run(self, inp: SveInput) -> np.ndarray:
+        return joint(inp, method_spec(self.method), directional=True).estimate.image
 
 
 # ----- the DNG -------------------------------------------------------------------------------
@@ -364,10 +373,11 @@ class FrameSetup:
 
 
 def score_svelive(raw: np.ndarray, condition: ColourCondition, setup: FrameSetup, repeats: int,
-                  site_chroma: bool = False) -> Scores:
+                  site_chroma: bool = False, directional: bool = False) -> Scores:
     """svelive's default colour reconstruction of ``raw`` (uint16 (H, W)), scored and timed; with ``site_chroma``
-    the opt-in chroma per site."""
-    setting = (SiteChromaSetting if site_chroma else ColourSetting)(DEFAULT_LABEL, "joint")
+    the opt-in chroma per site, with ``directional`` the directional demosaicing stage."""
+    kind = SiteChromaSetting if site_chroma else DirectionalSetting if directional else ColourSetting
+    setting = kind(DEFAULT_LABEL, "joint")
     camera = condition.camera()
     rgb = setting.run(prepare(raw, camera))
     got = scores(rgb, sites(rgb, setup.cfa), setup.truth, setup.cfa, setup.clip)
@@ -406,7 +416,7 @@ def run_frame(name: str, scene: np.ndarray, noise: str, config: PeerConfig, bina
     levels = condition.camera().require_pattern().levels
     setup = FrameSetup(ColourFilter.parse(condition.cfa), BENCH_SENSOR.range_dn / float(min(levels)), frame.truth)
     row = PeerRow(name, noise, frame.raw.shape, score_svelive(frame.raw, condition, setup, config.repeats,
-                                                                  config.site_chroma))
+                                                                  config.site_chroma, config.directional))
     if binary is not None:
         dng = workdir / f"{name}-{noise}.dng"
         raw14 = canon_raw(frame.raw, BENCH_SENSOR, layout, np.random.default_rng(config.seed + 1))
@@ -513,13 +523,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", type=Path, help="keep the DNGs (input and cr2hdr's output) in this directory")
     parser.add_argument("--site-chroma", action="store_true",
                         help="svelive with the opt-in chroma per site (docs/peers.md)")
+    parser.add_argument("--directional", action="store_true",
+                        help="svelive with the directional demosaicing stage (docs/peers.md)")
     parser.add_argument("-o", "--output", type=Path, help="write the results as JSON here")
     args = parser.parse_args(argv)
     problem = cr2hdr_problem(args.cr2hdr)
     if problem:
         print(f"peers: {problem}", file=sys.stderr)
         return 2
-    config = PeerConfig(images=tuple(args.images), repeats=args.repeats, seed=args.seed, site_chroma=args.site_chroma)
+    config = PeerConfig(images=tuple(args.images), repeats=args.repeats, seed=args.seed, site_chroma=args.site_chroma,
+                        directional=args.directional)
     scenes, skipped = pick_scenes(args.data, config.images, args.quick)
     if skipped:
         print("skipped: " + "; ".join(f"{k} ({v})" for k, v in skipped.items()), file=sys.stderr)

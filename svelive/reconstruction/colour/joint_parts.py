@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from svelive.reconstruction.colour.directional import directional_channels, log_floor
 from svelive.reconstruction.colour.folding import colourise, luminance_input
 from svelive.reconstruction.colour.interpolate import Interpolation, interpolation
 from svelive.reconstruction.colour.lattice import lattice_channels
@@ -41,7 +42,7 @@ class Joint:
 
 
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
-          site_chroma: bool = False, lattice: bool = True, **options) -> Joint:
+          site_chroma: bool = False, lattice: bool = True, directional: bool = False, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
@@ -54,6 +55,9 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     (svelive.reconstruction.colour.sites; 2x2 Bayer CFAs), the cells' elsewhere. ``lattice`` (default on):
     with ``rgb``, a strongly saturated colour's other channels from their own lattices where a pixel's own
     channel carries almost none of its light (svelive.reconstruction.colour.lattice; 2x2 Bayer CFAs).
+    ``directional``: with ``rgb``, after the lattice stage, each pixel's other channels from a directional
+    demosaicing of every pixel's own channel in the logarithm where the colour is not strongly saturated
+    and the readings are above their noise (svelive.reconstruction.colour.directional; 2x2 Bayer CFAs).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
     ch = chroma(inp)
@@ -74,6 +78,8 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
         luminance = luminance.copy() if luminance is est.image else luminance  # (the method's own array stays)
         if lattice:
             lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers)
+        if directional:
+            directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout))
         if site_chroma:
             site_chroma_into(inp, luminance, image, ch.layout.share, workers)
     return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)

@@ -1,0 +1,110 @@
+"""Directional demosaicing of the joint colour's site values (svelive.reconstruction.colour.directional):
+Menon et al.'s algorithm against colour-demosaicing's implementation where it is installed, its
+properties without it, and the stage (opt-in ``joint(..., directional=True)``): own channels kept,
+luminance consistent, censored neighbourhoods and non-Bayer CFAs untouched."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from svelive.bench.stability import BENCH_SENSOR, _simulated_rgb
+from svelive.core.camera import Camera
+from svelive.reconstruction.colour import joint
+from svelive.reconstruction.colour.directional import demosaic_log
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods import METHODS
+
+#: Bayer pattern name -> (row, column) of red.
+PATTERNS = {"RGGB": (0, 0), "BGGR": (1, 1), "GRBG": (0, 1), "GBRG": (1, 0)}
+
+
+def _mosaics(shape=(24, 32)) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:shape[0], :shape[1]].astype(np.float32)
+    structured = np.sin(0.7 * xx + 0.2 * yy) + 0.3 * (xx > 15) + 0.5 * (yy % 7 == 0)
+    return {"random": rng.random(shape).astype(np.float32), "structured": structured.astype(np.float32)}
+
+
+def _own(rgb: np.ndarray, red: tuple[int, int]) -> np.ndarray:
+    h, w = rgb.shape[:2]
+    rr = (np.arange(h) % 2 == red[0])[:, None]
+    rc = (np.arange(w) % 2 == red[1])[None, :]
+    ch = np.where(rr & rc, 0, np.where(~rr & ~rc, 2, 1))
+    return np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0]
+
+
+@pytest.mark.parametrize("pattern", sorted(PATTERNS))
+@pytest.mark.parametrize("refine", [False, True])
+def test_matches_colour_demosaicing(pattern, refine):
+    """The same algorithm as colour-demosaicing's demosaicing_CFA_Bayer_Menon2007 (borders included)."""
+    colour_demosaicing = pytest.importorskip("colour_demosaicing")
+    for name, mosaic in _mosaics().items():
+        theirs = colour_demosaicing.demosaicing_CFA_Bayer_Menon2007(mosaic.astype(np.float64), pattern,
+                                                                     refining_step=refine)
+        mine = demosaic_log(mosaic, PATTERNS[pattern], refine)
+        np.testing.assert_allclose(mine, theirs, atol=1e-4, err_msg=name)
+
+
+@pytest.mark.parametrize("pattern", sorted(PATTERNS))
+def test_properties(pattern):
+    """Own channel kept, finite output, a flat colour stays flat."""
+    red = PATTERNS[pattern]
+    for mosaic in _mosaics().values():
+        out = demosaic_log(mosaic, red)
+        assert np.all(np.isfinite(out))
+        np.testing.assert_array_equal(_own(out, red), mosaic)
+    flat = np.array([1.5, -0.25, 3.0], np.float32)
+    mosaic = _own(np.broadcast_to(flat, (16, 20, 3)).copy(), red)
+    np.testing.assert_allclose(demosaic_log(mosaic, red), np.broadcast_to(flat, (16, 20, 3)), atol=1e-5)
+
+
+@pytest.mark.parametrize("vertical", [True, False])
+def test_edges_interpolated_along_the_edge(vertical):
+    """A grey step (all channels equal on each side): every missing channel takes its own side's value,
+    as interpolation along the edge gives (across it, the two sides would be mixed)."""
+    shape = (20, 24)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    grey = np.where((xx if vertical else yy) < 11, 0.0, 4.0).astype(np.float32)
+    out = demosaic_log(grey, (0, 0))
+    np.testing.assert_allclose(out[3:-3, 3:-3], np.repeat(grey[3:-3, 3:-3, None], 3, axis=2), atol=1e-5)
+
+
+def _frame(layout: str, seed: int = 4) -> tuple:
+    rng = np.random.default_rng(seed)
+    shape = (64, 96)
+    yy, xx = np.mgrid[:shape[0], :shape[1]].astype(np.float32)
+    base = 1.0 + 0.8 * np.sin(0.35 * xx + 0.1 * yy)
+    tint = np.stack([1.0 + 0.5 * (xx > 40), np.ones(shape), 1.2 - 0.4 * (yy > 30)], axis=-1)
+    full = BENCH_SENSOR.censor_level / float(Camera.build(layout, sensor=BENCH_SENSOR).require_pattern().levels[0])
+    truth = (base[..., None] * tint * rng.uniform(0.9, 1.1, (1, 1, 3)) * 0.02 * full).astype(np.float32)
+    truth[10:13, 10:13] *= 40.0  # a clipped light
+    return prepare(_simulated_rgb(truth, layout, seed), Camera.build(layout, sensor=BENCH_SENSOR))
+
+
+def test_stage_keeps_own_channels_and_luminance():
+    inp = _frame("dual-iso")
+    spec = METHODS["adaptive"]
+    before = joint(inp, spec).estimate
+    after = joint(inp, spec, directional=True).estimate
+    ch = inp.channels.astype(np.intp)[..., None]
+    np.testing.assert_array_equal(np.take_along_axis(after.image, ch, 2), np.take_along_axis(before.image, ch, 2))
+    assert np.all(np.isfinite(after.image)) and np.all(after.image >= 0)
+    changed = np.any(after.image != before.image, axis=2)
+    assert changed.mean() > 0.5
+    share = joint(inp, spec).chroma.layout.share
+    np.testing.assert_allclose(after.luminance[changed], after.image[changed] @ share, rtol=1e-5)
+    np.testing.assert_array_equal(after.luminance[~changed], before.luminance[~changed])
+    # within a pixel of a censored reading, nothing changes (the highlight rules stay)
+    assert inp.censored.any()
+    near = np.zeros_like(inp.censored)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near |= np.roll(np.roll(inp.censored, dy, 0), dx, 1)
+    assert not changed[near].any()
+
+
+def test_stage_leaves_other_cfas():
+    inp = _frame("quad-bayer")
+    spec = METHODS["adaptive"]
+    np.testing.assert_array_equal(joint(inp, spec, directional=True).estimate.image, joint(inp, spec).estimate.image)
