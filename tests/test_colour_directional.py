@@ -1,6 +1,6 @@
 """Directional demosaicing of the joint colour's site values (svelive.reconstruction.colour.directional):
-Menon et al.'s algorithm against colour-demosaicing's implementation where it is installed, its
-properties without it, and the stage (opt-in ``joint(..., directional=True)``): own channels kept,
+Menon et al.'s algorithm against colour-demosaicing's implementation (the test extra), its
+properties, and the stage (opt-in ``joint(..., directional=True)``): own channels kept,
 luminance consistent, censored neighbourhoods and non-Bayer CFAs untouched."""
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def _own(rgb: np.ndarray, red: tuple[int, int]) -> np.ndarray:
 @pytest.mark.parametrize("refine", [False, True])
 def test_matches_colour_demosaicing(pattern, refine):
     """The same algorithm as colour-demosaicing's demosaicing_CFA_Bayer_Menon2007 (borders included)."""
-    colour_demosaicing = pytest.importorskip("colour_demosaicing")
+    import colour_demosaicing  # the test extra's reference implementation
     for name, mosaic in _mosaics().items():
         theirs = colour_demosaicing.demosaicing_CFA_Bayer_Menon2007(mosaic.astype(np.float64), pattern,
                                                                      refining_step=refine)
