@@ -11,7 +11,7 @@ import pytest
 from svelive.bench.stability import BENCH_SENSOR, _simulated_rgb
 from svelive.core.camera import Camera
 from svelive.reconstruction.colour import joint
-from svelive.reconstruction.colour.directional import demosaic_log
+from svelive.reconstruction.colour.directional import PARITY, Grid, demosaic_log, directional_channels, log_floor
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import METHODS
 
@@ -108,3 +108,47 @@ def test_stage_leaves_other_cfas():
     inp = _frame("quad-bayer")
     spec = METHODS["adaptive"]
     np.testing.assert_array_equal(joint(inp, spec, directional=True).estimate.image, joint(inp, spec).estimate.image)
+
+
+@pytest.mark.parametrize("pattern", sorted(PATTERNS))
+def test_matches_colour_demosaicing_odd_sizes(pattern):
+    """Odd heights and widths (the quarter planes' padding then covers a missing last row or column)."""
+    import colour_demosaicing
+    mosaic = _mosaics((25, 31))["random"]
+    theirs = colour_demosaicing.demosaicing_CFA_Bayer_Menon2007(mosaic.astype(np.float64), pattern)
+    np.testing.assert_allclose(demosaic_log(mosaic, PATTERNS[pattern]), theirs, atol=1e-4)
+
+
+@pytest.mark.parametrize("shape", [(8, 10), (9, 7)])
+@pytest.mark.parametrize("pattern", sorted(PATTERNS))
+def test_grid_planes_mirror_the_frame(shape, pattern):
+    """Grid.split: each quarter plane holds its parity's pixels of the frame padded by mirroring about the
+    edge pixels (cv2.BORDER_REFLECT_101), red at even rows and columns of the padded frame."""
+    import cv2
+
+    red = PATTERNS[pattern]
+    frame = np.random.default_rng(2).random(shape).astype(np.float32)
+    grid = Grid(shape, red)
+    planes = grid.planes(4)
+    grid.split(frame, planes)
+    bottom, right = 2 * grid.hq - grid.top - shape[0], 2 * grid.wq - grid.left - shape[1]
+    # (the padding is at most 4 deep: within reach of a single reflection for these sizes)
+    padded = cv2.copyMakeBorder(frame, grid.top, bottom, grid.left, right, cv2.BORDER_REFLECT_101)
+    for kind, (py, px) in enumerate(PARITY):
+        np.testing.assert_array_equal(planes[kind], padded[py::2, px::2])
+    assert padded[grid.top + red[0], grid.left + red[1]] == frame[red] and (grid.top + red[0]) % 2 == 0
+    assert (grid.left + red[1]) % 2 == 0
+
+
+def test_stage_independent_of_workers():
+    inp = _frame("dual-iso", seed=5)
+    spec = METHODS["adaptive"]
+    base = joint(inp, spec)
+    images = []
+    for workers in (1, 3):
+        image, luminance = base.estimate.image.copy(), base.estimate.luminance.copy()
+        assert directional_channels(inp, luminance, image, base.chroma.layout.share,
+                                    log_floor(inp, base.chroma.layout), workers=workers)
+        images.append((image, luminance))
+    np.testing.assert_array_equal(images[0][0], images[1][0])
+    np.testing.assert_array_equal(images[0][1], images[1][1])
