@@ -70,9 +70,8 @@ def test_edges_interpolated_along_the_edge(vertical):
     np.testing.assert_allclose(out[3:-3, 3:-3], np.repeat(grey[3:-3, 3:-3, None], 3, axis=2), atol=1e-5)
 
 
-def _frame(layout: str, seed: int = 4) -> tuple:
+def _frame(layout: str, seed: int = 4, shape: tuple[int, int] = (64, 96)) -> tuple:
     rng = np.random.default_rng(seed)
-    shape = (64, 96)
     yy, xx = np.mgrid[:shape[0], :shape[1]].astype(np.float32)
     base = 1.0 + 0.8 * np.sin(0.35 * xx + 0.1 * yy)
     tint = np.stack([1.0 + 0.5 * (xx > 40), np.ones(shape), 1.2 - 0.4 * (yy > 30)], axis=-1)
@@ -141,7 +140,7 @@ def test_grid_planes_mirror_the_frame(shape, pattern):
 
 
 def test_stage_independent_of_workers():
-    inp = _frame("dual-iso", seed=5)
+    inp = _frame("dual-iso", seed=5, shape=(300, 96))  # several pieces of rows (of the frame and of the planes)
     spec = METHODS["adaptive"]
     base = joint(inp, spec)
     images = []
@@ -152,3 +151,34 @@ def test_stage_independent_of_workers():
         images.append((image, luminance))
     np.testing.assert_array_equal(images[0][0], images[1][0])
     np.testing.assert_array_equal(images[0][1], images[1][1])
+
+
+def test_weights_match_opencv_windows():
+    """_site_weights' rings of rows against the windows done with OpenCV: the lattice blend of the 3x3's
+    smallest share (edge replicated) times the 5x5 mean of m^2 / (m^2 + v) (cv2.BORDER_REFLECT), 0 within a
+    pixel of a censored reading; and the planes get ln(max(m, 0) + floor) of each site."""
+    import cv2
+
+    from svelive.reconstruction.colour.directional import _site_weights, red_site
+    from svelive.reconstruction.colour.lattice import F_HIGH, F_LOW
+
+    inp = _frame("dual-iso", seed=6, shape=(150, 70))
+    j = joint(inp, METHODS["adaptive"])
+    rgb, floor = j.estimate.image, np.float32(log_floor(inp, j.chroma.layout))
+    own = np.take_along_axis(rgb, inp.channels.astype(np.intp)[..., None], 2)[..., 0]
+    top = rgb.max(axis=2)
+    share = np.where(top > 0, own / np.where(top > 0, top, 1), 1).astype(np.float32)
+    e, level = inp.exposure.astype(np.float32), np.maximum(own, 0)
+    variance = (e * level / inp.sensor.effective_gain + inp.sensor.floor_variance) / (e * e)
+    snr = (level ** 2 / (level ** 2 + variance)).astype(np.float32)
+    smallest = cv2.erode(share, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    expected = np.clip((smallest - F_LOW) / (F_HIGH - F_LOW), 0, 1) * cv2.blur(snr, (5, 5), borderType=cv2.BORDER_REFLECT)
+    expected[cv2.dilate(inp.censored.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)] = 0
+    grid = Grid(inp.shape, red_site(inp))
+    planes = grid.planes(4)
+    for workers in (1, 2):
+        weight = _site_weights(inp, rgb, grid, planes, floor, workers)
+        np.testing.assert_allclose(weight, expected, atol=1e-6)
+        logs = grid.planes(4)
+        grid.split(np.log(level + floor).astype(np.float32), logs)
+        np.testing.assert_allclose(planes, logs, rtol=1e-6, atol=1e-6)

@@ -51,7 +51,7 @@ from concurrent.futures import Executor
 import cv2
 import numpy as np
 
-from svelive.jit import flat, kernel
+from svelive.jit import kernel
 from svelive.reconstruction.colour.cells import CellLayout
 from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.colour.lattice import F_HIGH, F_LOW
@@ -61,6 +61,9 @@ from svelive.reconstruction.methods.base import SveInput, map_on
 #: Planes of the padded mosaic, by (row, column) parity: red, green on red rows, green on blue rows, blue.
 R, GR, GB, B = 0, 1, 2, 3
 PARITY = ((0, 0), (0, 1), (1, 0), (1, 1))
+#: For each kind of site (R, GR, GB, B), the planes of :func:`demosaic_grid`'s output holding its R, G, B
+#: (-1: the site's own channel).
+OUTPUTS = np.array([[-1, 0, 6], [2, -1, 3], [4, -1, 5], [7, 1, -1]], np.intp)
 
 
 class Grid:
@@ -146,26 +149,34 @@ def _decide(d, gh, gv, horizontal, first, last):
     """Step 2's decision at the red and blue sites: the window sums of the gradients ``d`` (module docstring;
     summed in the order of OpenCV's filter2D over the full-resolution window); green along the rows
     (``gh``, written in place, ``horizontal`` 1) where the columns' sum is at least the rows', else ``gv``."""
-    hr, vr, hb, vb = d[0], d[1], d[2], d[3]
+    sums = np.empty((4, d.shape[2]), np.float32)
     three = np.float32(3.0)
     for i in range(first, last):
-        for j in range(1, d.shape[2] - 1):
-            s = hr[i - 1, j - 1] + hr[i - 1, j] + hb[i - 1, j - 1]
-            s = three * hr[i, j] + (three * hr[i, j - 1] + s)
-            rows = s + hb[i, j - 1] + hr[i + 1, j - 1] + hr[i + 1, j]
-            s = (three * vr[i - 1, j] + vr[i - 1, j - 1]) + vr[i - 1, j + 1] + vb[i - 1, j - 1] + vb[i - 1, j] + vr[i, j - 1]
-            cols = three * vr[i, j] + s + vr[i, j + 1]
-            along = cols >= rows
-            horizontal[0, i, j] = along
-            gh[0, i, j] = gh[0, i, j] if along else gv[0, i, j]
-            s = hb[i - 1, j - 1] + hb[i - 1, j] + hr[i, j]
-            s = three * hb[i, j] + (three * hb[i, j - 1] + s)
-            rows = s + hr[i + 1, j] + hb[i + 1, j - 1] + hb[i + 1, j]
-            s = (three * vb[i - 1, j] + vb[i - 1, j - 1]) + vb[i - 1, j + 1] + vr[i, j] + vr[i, j + 1] + vb[i, j - 1]
-            cols = three * vb[i, j] + s + vb[i, j + 1]
-            along = cols >= rows
-            horizontal[1, i, j] = along
-            gh[1, i, j] = gh[1, i, j] if along else gv[1, i, j]
+        hr0, hr1, hr2, hb0, hb1, hb2 = d[0, i - 1], d[0, i], d[0, i + 1], d[2, i - 1], d[2, i], d[2, i + 1]
+        vr0, vr1, vb0, vb1 = d[1, i - 1], d[1, i], d[3, i - 1], d[3, i]
+        rows_r, cols_r, rows_b, cols_b = sums[0], sums[1], sums[2], sums[3]
+        for j in range(1, d.shape[2] - 1):  # (the window sums first, a loop with few arrays: it vectorises)
+            s = hr0[j - 1] + hr0[j] + hb0[j - 1]
+            s = three * hr1[j] + (three * hr1[j - 1] + s)
+            rows_r[j] = s + hb1[j - 1] + hr2[j - 1] + hr2[j]
+            s = (three * vr0[j] + vr0[j - 1]) + vr0[j + 1] + vb0[j - 1] + vb0[j] + vr1[j - 1]
+            cols_r[j] = three * vr1[j] + s + vr1[j + 1]
+            s = hb0[j - 1] + hb0[j] + hr1[j]
+            s = three * hb1[j] + (three * hb1[j - 1] + s)
+            rows_b[j] = s + hr2[j] + hb2[j - 1] + hb2[j]
+            s = (three * vb0[j] + vb0[j - 1]) + vb0[j + 1] + vr1[j] + vr1[j + 1] + vb1[j - 1]
+            cols_b[j] = three * vb1[j] + s + vb1[j + 1]
+        for k in range(2):
+            _choose(sums[2 * k], sums[2 * k + 1], gh[k, i], gv[k, i], horizontal[k, i])
+
+
+@kernel(inline="always")
+def _choose(rows, cols, gh, gv, horizontal):
+    """Green along the rows (``gh``, in place; ``horizontal`` 1) where ``cols`` >= ``rows``, else ``gv``."""
+    for j in range(1, gh.size - 1):
+        along = cols[j] >= rows[j]
+        horizontal[j] = along
+        gh[j] = gh[j] if along else gv[j]
 
 
 @kernel
@@ -219,13 +230,16 @@ def _refine_green(m, greens, horizontal, g, first, last):
             g[1, i, j] = b[i, j] - third * ((rows if horizontal[1, i, j] else cols) + (b[i, j] - g[1, i, j]))
 
 
-def demosaic_grid(grid: Grid, m: np.ndarray, refine: bool = True, workers: int | Executor = 1):
-    """The demosaicing on the planes ``m`` (4, hq, wq, float32, mirrored padding) of ``grid``. Returns
-    (g, greens, other): green at the red and blue sites (2, hq, wq), red and blue at the greens of red rows
-    and of blue rows (4, hq, wq), blue at the red sites and red at the blue ones (2, hq, wq); valid inside
-    the frame."""
-    gh, gv, d = grid.planes(2), grid.planes(2), np.zeros((4, grid.hq, grid.wq), np.float32)
-    horizontal, other = grid.planes(2, np.uint8), np.zeros((2, grid.hq, grid.wq), np.float32)
+def demosaic_grid(grid: Grid, m: np.ndarray, refine: bool = True, workers: int | Executor = 1) -> np.ndarray:
+    """The demosaicing on the planes ``m`` (4, hq, wq, float32, mirrored padding) of ``grid``. Returns the
+    other channels of each kind of site, float32 (8, hq, wq), valid inside the frame (:data:`OUTPUTS`):
+    green at the red and blue sites, red and blue at the greens of red rows and of blue rows, blue at the
+    red sites and red at the blue ones."""
+    out = grid.planes(8)
+    g, greens, other, horizontal = out[0:2], out[2:6], out[6:8], grid.planes(2, np.uint8)
+    # until the decision: green along the rows in g, along the columns in other (which step 3's
+    # _at_opposite reads with weight 0: finite), the gradients in greens
+    gh, gv, d = g, other, greens
     pieces = _pieces(grid.hq - 2)
 
     def run(function, *args):
@@ -237,9 +251,8 @@ def demosaic_grid(grid: Grid, m: np.ndarray, refine: bool = True, workers: int |
         grid.mirror(gv[k], kind)
     run(_gradients, m, gh, gv, d)
     for k, kind in enumerate((R, R, B, B)):
-        grid.zero(d[k], kind)
+        grid.zero(d[k], kind)  # (the window sums' border: zeros)
     run(_decide, d, gh, gv, horizontal)
-    g, greens = gh, d  # (the gradients are spent)
     for step in range(2 if refine else 1):
         if step:
             run(_refine_green, m, greens, horizontal, g)
@@ -249,7 +262,7 @@ def demosaic_grid(grid: Grid, m: np.ndarray, refine: bool = True, workers: int |
         for k, kind in enumerate((GR, GR, GB, GB)):
             grid.mirror(greens[k], kind)
         run(_at_opposite, m, greens, horizontal, other, np.float32(step))
-    return g, greens, other
+    return out
 
 
 def demosaic_log(mosaic: np.ndarray, red: tuple[int, int], refine: bool = True) -> np.ndarray:
@@ -268,13 +281,10 @@ def demosaic_log(mosaic: np.ndarray, red: tuple[int, int], refine: bool = True) 
     grid = Grid(mosaic.shape, red)
     m = grid.planes(4)
     grid.split(np.asarray(mosaic, np.float32), m)
-    g, greens, other = demosaic_grid(grid, m, refine)
-    # each kind of site's R, G, B planes
-    sources = ((m[R], g[0], other[0]), (greens[0], m[GR], greens[1]), (greens[2], m[GB], greens[3]),
-               (other[1], g[1], m[B]))
+    out = demosaic_grid(grid, m, refine)
     full = np.empty((2 * grid.hq, 2 * grid.wq, 3), np.float32)
-    for (py, px), planes in zip(PARITY, sources):
-        full[py::2, px::2] = np.stack(planes, axis=-1)
+    for kind, (py, px) in enumerate(PARITY):
+        full[py::2, px::2] = np.stack([m[kind] if k < 0 else out[k] for k in OUTPUTS[kind]], axis=-1)
     return full[grid.top:grid.top + grid.h, grid.left:grid.left + grid.w].copy()
 
 
@@ -285,43 +295,117 @@ def _run(y, x0, top, left, w):
     return 2 * ((y + top) % 2) + (x0 + left) % 2, (y + top) // 2, (x0 + left) // 2, (w - x0 + 1) // 2
 
 
-@kernel
-def _site_terms(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, share, snr, first, last):
-    """Rows ``first`` to ``last`` of the frame: each pixel's own channel's value V (of ``rgb``, float32
-    (H, W, 3)), its share of its brightest channel (``share``, 1 where all are 0), V^2 / (V^2 + v) (``snr``;
-    v = (e V / g + floor variance) / e^2 the noise model's variance at its exposure e), and max(V, 0) +
-    ``floor`` into the planes ``m`` (4, hq, wq) of the grid with padding ``top``, ``left``."""
+@kernel(inline="always")  # (called from a kernel: inlined, its loops vectorise)
+def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
+    """Frame row ``y``: each pixel's share of its brightest channel of its own channel's value V (of ``rgb``,
+    float32 (H, W, 3); 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
+    floor variance) / e^2 the noise model's variance at its exposure e), and, if ``write``, max(V, 0) +
+    ``floor`` (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``,
+    ``left``. (A flat row and selects between the channels, so that the loop vectorises.)"""
     zero, one = np.float32(0.0), np.float32(1.0)
-    w = share.shape[1]
-    for y in range(first, last):
+    w = share.size
+    row, ex = rgb[y].reshape(-1), exposure[y]
+    red_row, odd_left = (y + top) % 2 == 0, left % 2
+    for x in range(w):
+        r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
+        odd = (x + odd_left) & 1 == 1
+        v = (g if odd else r) if red_row else (b if odd else g)
+        brightest = max(r, max(g, b))
+        share[x] = v / brightest if brightest > zero else one
+        positive = max(v, zero)
+        e = ex[x]
+        variance = (e * positive * inverse_gain + floor_variance) / (e * e)
+        snr[x] = positive * positive / (positive * positive + variance)
+        level[x] = positive + floor
+    if write:
         for x0 in range(2):
             kind, i, j0, n = _run(y, x0, top, left, w)
-            channel = 0 if kind == 0 else 2 if kind == 3 else 1
             plane = m[kind, i]
             for k in range(n):
-                x = x0 + 2 * k
-                v = rgb[y, x, channel]
-                brightest = max(rgb[y, x, 0], max(rgb[y, x, 1], rgb[y, x, 2]))
-                share[y, x] = v / brightest if brightest > zero else one
-                level = max(v, zero)
-                e = exposure[y, x]
-                variance = (e * level * inverse_gain + floor_variance) / (e * e)
-                snr[y, x] = level * level / (level * level + variance)
-                plane[j0 + k] = level + floor
+                plane[j0 + k] = level[x0 + 2 * k]
+
+
+@kernel(inline="always")
+def _mirror(i, n):
+    """Index ``i`` of 0 .. n - 1 mirrored about the edge with the edge repeated (-1 -> 0, n -> n - 1)."""
+    return -1 - i if i < 0 else 2 * n - 1 - i if i >= n else i
+
+
+@kernel(inline="always")
+def _row_windows(share, snr, censored, smallest, total, near):
+    """One row's horizontal parts of the weight's windows: the smallest share over x - 1 .. x + 1
+    (``smallest``), the sum of ``snr`` over x - 2 .. x + 2 (``total``, mirrored about the edge with the edge
+    repeated, as cv2.BORDER_REFLECT), whether x - 1 .. x + 1 holds a censored reading (``near``)."""
+    w = share.size
+    for x in range(1, w - 1):
+        smallest[x] = min(share[x - 1], min(share[x], share[x + 1]))
+    for x in range(1, w - 1):
+        near[x] = censored[x - 1] | censored[x] | censored[x + 1]
+    for x in range(2, w - 2):
+        total[x] = snr[x - 2] + snr[x - 1] + snr[x] + snr[x + 1] + snr[x + 2]
+    for x in (0, w - 1):
+        lo, hi = max(x - 1, 0), min(x + 1, w - 1)
+        smallest[x] = min(share[lo], min(share[x], share[hi]))
+        near[x] = censored[lo] | censored[x] | censored[hi]
+    for x in (0, 1, w - 2, w - 1):
+        total[x] = (snr[_mirror(x - 2, w)] + snr[_mirror(x - 1, w)] + snr[x] + snr[_mirror(x + 1, w)]
+                    + snr[_mirror(x + 2, w)])
+
+
+@kernel(inline="always")
+def _least(a, b, c, out):
+    """Element-wise minimum of three rows."""
+    for x in range(out.size):
+        out[x] = min(a[x], min(b[x], c[x]))
+
+
+@kernel(inline="always")
+def _mean(a, b, c, d, e, scale, out):
+    """The sum of five rows times ``scale``."""
+    for x in range(out.size):
+        out[x] = (a[x] + b[x] + c[x] + d[x] + e[x]) * scale
+
+
+@kernel(inline="always")
+def _any(a, b, c, out):
+    """Element-wise or of three bool rows."""
+    for x in range(out.size):
+        out[x] = a[x] | b[x] | c[x]
 
 
 @kernel
-def _weights(smallest, snr_mean, near, low, scale, weight):
-    """The weight (module docstring, Where) from the 3x3's smallest share, the 5x5 mean of the sites'
-    signal-to-noise weights and the censored neighbourhoods (flat float32 / uint8 arrays). Returns the
-    count of nonzero weights."""
-    zero, one = np.float32(0.0), np.float32(1.0)
+def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, floor, low, scale, top, left, m,
+                       weight, first, last):
+    """Rows ``first`` to ``last`` of the weight (module docstring, Where; float32 (H, W)) in one pass over
+    rings of five rows: the lattice blend of the 3x3's smallest share times the 5x5 mean of the sites'
+    signal-to-noise weights, 0 within a pixel of a censored reading (``censored``, bool (H, W)). The planes
+    ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`). Returns the count of nonzero weights."""
+    h, w = weight.shape
+    zero, one, fifth = np.float32(0.0), np.float32(1.0), np.float32(1.0 / 25.0)
+    share, snr, level = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    smallest, total = np.empty((5, w), np.float32), np.empty((5, w), np.float32)
+    near = np.empty((5, w), np.bool_)
+    least, mean, close = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.bool_)
+    done = max(first - 2, 0)  # the next row to compute
     count = 0
-    for k in range(weight.size):
-        wt = min(max((smallest[k] - low) * scale, zero), one) * snr_mean[k]
-        wt = zero if near[k] else wt
-        weight[k] = wt
-        count += wt > zero
+    for y in range(first, last):
+        while done <= min(y + 2, h - 1):
+            _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, done,
+                      first <= done < last, share, snr, level)
+            _row_windows(share, snr, censored[done], smallest[done % 5], total[done % 5], near[done % 5])
+            done += 1
+        up, down = max(y - 1, 0) % 5, min(y + 1, h - 1) % 5
+        # (the columns' parts one after the other: few arrays a loop, so that each vectorises)
+        _least(smallest[up], smallest[y % 5], smallest[down], least)
+        _mean(total[_mirror(y - 2, h) % 5], total[_mirror(y - 1, h) % 5], total[y % 5],
+              total[_mirror(y + 1, h) % 5], total[_mirror(y + 2, h) % 5], fifth, mean)
+        _any(near[up], near[y % 5], near[down], close)
+        out = weight[y]
+        for x in range(w):
+            wt = min(max((least[x] - low) * scale, zero), one) * mean[x]
+            wt = zero if close[x] else wt
+            out[x] = wt
+            count += wt > zero
     return count
 
 
@@ -329,28 +413,42 @@ def _weights(smallest, snr_mean, near, low, scale, weight):
 def _blend(rgb, luminance, weight, exps, floor, share, top, left, first, last):
     """Rows ``first`` to ``last``: at each pixel of nonzero ``weight``, its other two channels move by the
     weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (8, hq, wq),
-    the exponentials of green and blue at red sites, red and blue at the greens of red rows, of blue rows,
-    red and green at blue sites), and the luminance becomes sum_c n_c RGB_c."""
+    :func:`demosaic_grid`'s output exponentiated), and the luminance becomes sum_c n_c RGB_c (``share``)."""
     zero = np.float32(0.0)
     w = luminance.shape[1]
+    first_other, second_other = np.empty(w, np.float32), np.empty(w, np.float32)
+    n0, n1, n2 = share[0], share[1], share[2]
     for y in range(first, last):
-        row, lum, wts = rgb[y], luminance[y], weight[y]
-        for x0 in range(2):
+        red_row, odd_left = (y + top) % 2 == 0, left % 2
+        for x0 in range(2):  # each pixel's other channels (R before G before B) into rows of the frame
             kind, i, j0, n = _run(y, x0, top, left, w)
-            c1 = 1 if kind == 0 else 0
-            c2 = 1 if kind == 3 else 2
-            a, b = exps[2 * kind, i], exps[2 * kind + 1, i]
-            for k in range(n):  # branch-free (selects), so that it vectorises
-                x = x0 + 2 * k
-                wt = wts[x]
-                p = row[x]
-                p1 = p[c1] + wt * (max(a[j0 + k] - floor, zero) - p[c1])
-                p2 = p[c2] + wt * (max(b[j0 + k] - floor, zero) - p[c2])
-                moved = wt > zero
-                p[c1] = p1 if moved else p[c1]
-                p[c2] = p2 if moved else p[c2]
-                y_new = share[0] * p[0] + share[1] * p[1] + share[2] * p[2]
-                lum[x] = y_new if moved else lum[x]
+            a, b = (exps[0, i], exps[6, i]) if kind == R else (exps[7, i], exps[1, i]) if kind == B else \
+                (exps[2, i], exps[3, i]) if kind == GR else (exps[4, i], exps[5, i])
+            for k in range(n):
+                first_other[x0 + 2 * k] = max(a[j0 + k] - floor, zero)
+                second_other[x0 + 2 * k] = max(b[j0 + k] - floor, zero)
+        _blend_row(rgb[y].reshape(-1), luminance[y], weight[y], first_other, second_other, red_row, odd_left,
+                   n0, n1, n2)
+
+
+@kernel(inline="always")
+def _blend_row(row, lum, weight, first_other, second_other, red_row, odd_left, n0, n1, n2):
+    """One row of :func:`_blend` (``row``: the flat RGB row; selects, so that it vectorises)."""
+    zero = np.float32(0.0)
+    for x in range(lum.size):
+        wt = weight[x]
+        r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
+        odd = (x + odd_left) & 1 == 1
+        red, blue = red_row and not odd, odd and not red_row
+        new_r = r if red else r + wt * (first_other[x] - r)
+        green_target = first_other[x] if red else second_other[x]
+        new_g = g if not (red or blue) else g + wt * (green_target - g)
+        new_b = b if blue else b + wt * (second_other[x] - b)
+        moved = wt > zero
+        row[3 * x] = new_r if moved else r
+        row[3 * x + 1] = new_g if moved else g
+        row[3 * x + 2] = new_b if moved else b
+        lum[x] = n0 * new_r + n1 * new_g + n2 * new_b if moved else lum[x]
 
 
 def log_floor(inp: SveInput, layout: CellLayout) -> float:
@@ -385,9 +483,7 @@ def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, 
     weight = _site_weights(inp, rgb, grid, m, f32(floor), workers)
     if weight is None:
         return True
-    g, greens, other = demosaic_grid(grid, m, refine, workers)
-    # the demosaiced channels of each kind of site, in _blend's order
-    exps = np.stack([g[0], other[0], greens[0], greens[1], greens[2], greens[3], other[1], g[1]])
+    exps = demosaic_grid(grid, m, refine, workers)
     cv2.exp(exps.reshape(-1, grid.wq), exps.reshape(-1, grid.wq))
     n = np.asarray(share, f32)
     map_on(workers, lambda part: _blend(rgb, luminance, weight, exps, f32(floor), n, grid.top, grid.left,
@@ -400,18 +496,16 @@ def _site_weights(inp: SveInput, rgb: np.ndarray, grid: Grid, m: np.ndarray, flo
     """float32 (H, W): the demosaiced channels' weight (module docstring, Where), or None where it is 0
     everywhere; ``m`` (4, hq, wq) filled with the logarithms of the sites' values plus ``floor``."""
     f32 = np.float32
-    h, w = grid.h, grid.w
-    share, snr = np.empty((h, w), f32), np.empty((h, w), f32)
     sensor = inp.sensor
     exposure = np.asarray(inp.exposure, f32)
-    map_on(workers, lambda part: _site_terms(rgb, exposure, f32(1.0 / sensor.effective_gain),
-                                             f32(sensor.floor_variance), floor, grid.top, grid.left, m, share,
-                                             snr, part.start, part.stop), _pieces(h))
-    smallest = cv2.erode(share, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    snr_mean = cv2.blur(snr, (5, 5), dst=snr, borderType=cv2.BORDER_REFLECT)
-    near = cv2.dilate(inp.censored.view(np.uint8), np.ones((3, 3), np.uint8))
-    weight = share  # (the shares are spent)
-    if _weights(*flat(smallest, snr_mean, near), f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)), flat(weight)[0]) == 0:
+    weight = np.empty((grid.h, grid.w), f32)
+
+    def piece(part: slice) -> int:
+        return _site_weights_rows(rgb, exposure, inp.censored, f32(1.0 / sensor.effective_gain),
+                                  f32(sensor.floor_variance), floor, f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)),
+                                  grid.top, grid.left, m, weight, part.start, part.stop)
+
+    if sum(map_on(workers, piece, _pieces(grid.h))) == 0:
         return None
     planes = m.reshape(-1, grid.wq)
     cv2.log(planes, planes)
