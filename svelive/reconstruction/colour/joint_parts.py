@@ -79,7 +79,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
         if lattice:
             lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers)
         if directional:
-            directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout))
+            directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout), workers=workers)
         if site_chroma:
             site_chroma_into(inp, luminance, image, ch.layout.share, workers)
     return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)
