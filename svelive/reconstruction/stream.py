@@ -530,12 +530,13 @@ class Reconstructor:
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
+                shares = chroma[:3]
             else:
                 luminance, inter = image.copy(), parts.interpolation  # (the method's own array stays)
+                shares = parts.chroma.shares
             image = colour.colourise(luminance, inter, self._threads)
-            # saturated colour's other channels from their own lattices, as a single frame's joint colour
-            fused_shares = self.temporal and chroma_history.shape[1:] == parts.chroma.shares.shape[1:]
-            shares = chroma_history[:3] if fused_shares else parts.chroma.shares
+            # saturated colour's other channels from their own lattices, as a single frame's joint colour,
+            # flagged by the shares that coloured the image
             colour.lattice_channels(estimated.colour_input, luminance, image, shares, parts.chroma.layout,
                                     self._threads)
         moving_fraction = float(np.count_nonzero(motion)) / motion.size
