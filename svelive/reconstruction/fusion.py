@@ -36,10 +36,10 @@ from typing import NamedTuple
 import numpy as np
 
 from svelive.jit import flat, kernel
-from svelive.reconstruction.methods.base import binomial_kernel, map_on, smooth, support_size
+from svelive.reconstruction.methods.base import binomial_kernel, map_on, reflect_101, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
-from svelive.reconstruction.numerics import INLINE_TAPS, _maximum, _reflect, _strips, _symmetric_row
+from svelive.reconstruction.numerics import INLINE_TAPS, _maximum, _strips, _symmetric_row
 
 
 @dataclass(frozen=True)
@@ -991,8 +991,8 @@ def _sharpen_row(evidence, r, first, rows, step, fused, own, reset, out, local):
     for c in range(cols):
         local[c] = centre[c] * kc
     for j in range(1, a + 1):
-        above = evidence[(_reflect(r - j, rows) - first) % n]
-        below = evidence[(_reflect(r + j, rows) - first) % n]
+        above = evidence[(reflect_101(r - j, rows) - first) % n]
+        below = evidence[(reflect_101(r + j, rows) - first) % n]
         kj = kernel[a + j]
         for c in range(cols):
             local[c] = local[c] + (above[c] + below[c]) * kj

@@ -12,7 +12,8 @@ import numpy as np
 
 from svelive.core.pattern import Pattern
 from svelive.jit import flat, kernel
-from svelive.reconstruction.methods.base import SveInput, map_on, smooth, tile_rows, window_kernels, window_level_row
+from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, smooth, tile_rows, window_kernels,
+                                                 window_level_row)
 
 
 def _grow(mask: np.ndarray, window: tuple[int, int]) -> np.ndarray:
@@ -253,19 +254,6 @@ def _row_sums(inp: SveInput, rows: slice, kernel: np.ndarray, squares: np.ndarra
 
 
 @kernel
-def _reflect(i, n):
-    """Index ``i`` mirrored into 0..n-1 without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
-    if n == 1:
-        return 0
-    while i < 0 or i >= n:
-        if i < 0:
-            i = -i
-        if i >= n:
-            i = 2 * n - 2 - i
-    return i
-
-
-@kernel
 def _symmetric_row(x, k, out):
     """out = x (1-D) filtered with the symmetric kernel ``k`` (odd length), ends mirrored
     (BORDER_REFLECT_101), summed in the order OpenCV sums rows of up to 3 taps and columns of up
@@ -283,9 +271,9 @@ def _symmetric_row(x, k, out):
             for c in range(inner):
                 middle[c] = middle[c] + (left[c] + right[c]) * kj
         for c in range(min(j, n)):
-            out[c] = out[c] + (x[_reflect(c - j, n)] + x[_reflect(c + j, n)]) * kj
+            out[c] = out[c] + (x[reflect_101(c - j, n)] + x[reflect_101(c + j, n)]) * kj
         for c in range(max(n - j, j), n):
-            out[c] = out[c] + (x[_reflect(c - j, n)] + x[_reflect(c + j, n)]) * kj
+            out[c] = out[c] + (x[reflect_101(c - j, n)] + x[reflect_101(c + j, n)]) * kj
 
 
 @kernel
@@ -331,7 +319,7 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
     following = first - a  # the next window row to sum along
     for r in range(first, stop):
         while following <= r + a:
-            src = _reflect(following, rows)
+            src = reflect_101(following, rows)
             slot = (following - first + a) % size
             following += 1
             if row_sums.shape[1]:
