@@ -55,12 +55,16 @@ def _reference(inp):
     bias2 = np.maximum(smooth(q * ((x - m) ** 2 - var_r), ky, kx) / sum_q
                        - f32(parameters.CONTRAST_SIGMA) * standard_error, f32(0))
     # at least the pixel's own residual's excess beyond OWN_SIGMA deviations
-    bias2 = np.maximum(bias2, (x - m) ** 2 - f32(strip_pass.OWN_SIGMA ** 2) * var_r)
+    own_excess = (x - m) ** 2 - f32(strip_pass.OWN_SIGMA ** 2) * var_r
+    bias2 = np.maximum(bias2, own_excess)
 
     # L^ = (x / v_p + m / (v_m + b^2)) / (1 / v_p + 1 / (v_m + b^2)), then exp(E[log L]) of N(L^, 1 / total) on L >= 0
     weight_m = f32(1) / (var_m + bias2)
     total = w + weight_m
     estimate = (w * x + weight_m * m) / total
+    # where the own excess is positive, the reading's information in total at the lower of the pilot's level and L^
+    at_level = e * e / (np.maximum(estimate, f32(0)) * e * gain_inv + floor)
+    total = total + np.where((own_excess > 0) & (w > 0), np.maximum(at_level - w, f32(0)), f32(0))
     image = _nonnegative(estimate, total)
     # every reading of the window at raw 0: 0
     bottom = cv2.erode((s <= -inp.sensor.black_level).astype(np.uint8), np.ones(window, np.uint8),
@@ -421,8 +425,9 @@ def _passes(inp, noise):
     excess_q, q = wx, np.empty(inp.shape, f32)
     strip_pass._residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    strip_pass._blend(*flat(image, total, var_m, m, w, x), f32(parameters.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
-                    posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
+    strip_pass._blend(*flat(image, total, var_m, m, w, x, e), gain_inv, floor,
+                      f32(parameters.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
+                      posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
     zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
     lower = exposure_sum <= 0
     if censored.any():

@@ -31,7 +31,13 @@ does not make noise look like structure. Per pixel p:
    noise-optimal weights; where the neighbours disagree with the pixel beyond
    their noise (edges, texture) b^2 grows and a well-exposed pixel keeps its own
    reading at full resolution; a noisy reading (short exposure, low light)
-   counts for little either way.
+   counts for little either way. Where p's own residual passes OWN_SIGMA (it
+   is not at its neighbours' level), the variance the result reports (steps 4
+   and 5 read it) takes p's reading's model variance at the lower of the
+   pilot's level and L^, not at the pilot's alone: beside light the pilot is
+   the light's level, and a dark pixel's noise taken at it was lifted by
+   step 4 to about three of its deviations above 0 (5 stops dim, dark rings
+   2 px wide on a saturated disc; docs/peers.md).
 4. Radiance is not negative: within 25 deviations of 0 the result is
    exp(E[log L]) of N(L^, variance) restricted to L >= 0 (:func:`nonnegative`),
    the estimate that minimises the expected squared error in log radiance

@@ -210,8 +210,8 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
             _window_rows(r, h, depth, rows)
             _column_filter(excess_rows, rows, ky, image[r])
             _column_filter(q_rows, rows, ky, total[r])
-            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], w[r], x[r % x.shape[0]], threshold,
-                   coefficients, index, packed)
+            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], w[r], x[r % x.shape[0]], e[r], gain_inv,
+                   floor, threshold, coefficients, index, packed)
             _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
             if variance.size > 0:
                 _reciprocal(total[r], variance[r])
@@ -468,10 +468,17 @@ OWN_SIGMA = 5.0
 
 
 @kernel
-def _blend(image, total, var_m, m, w, x, threshold, coefficients, index, packed):
+def _blend(image, total, var_m, m, w, x, e, gain_inv, floor, threshold, coefficients, index, packed):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0), and at least
     the pixel's own excess (x - m)^2 - OWN_SIGMA^2 (v_p + v_m) where that is positive.
+
+    Where that own excess is positive (the pixel is not at its neighbours' level), the reading's information in
+    ``total`` (not in L^'s weights) is that of the model at the lower of the pilot's level and L^ (``e`` the
+    pixel's exposure, ``gain_inv`` and ``floor`` the model's): the pilot is its neighbours' level, and beside
+    light it overstates a dark pixel's noise, which step 4 and the wide fallback then read as a level they cannot
+    tell from 0 (5 stops dim, dark rings 2 px wide on a saturated disc came out at about 3 of their deviations above
+    0: docs/peers.md).
 
     B = sum excess_q / sum q is the window's estimate of the squared bias, SE its
     standard error under a flat scene, sqrt(2 kernel_square / sum q) (each
@@ -491,6 +498,9 @@ def _blend(image, total, var_m, m, w, x, threshold, coefficients, index, packed)
         excess = max(max(image[k] / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
         t = one / excess + w[k]
         estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
+        ek = e[k]
+        at_level = ek * ek / (max(estimate, zero) * ek * gain_inv + floor)  # the reading's information at L^
+        t += max(at_level - w[k], zero) if (own > zero) & (w[k] > zero) else zero
         image[k] = estimate
         var_m[k] = estimate  # kept for the pixels near 0, below
         total[k] = t
