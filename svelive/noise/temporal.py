@@ -215,7 +215,8 @@ def _whole_codes(x: np.ndarray) -> tuple[np.ndarray, int] | None:
 def _stratified(which: np.ndarray, budget: int, strata: int) -> np.ndarray:
     """At most ``budget`` positions of ``which`` (uint8 (N,), each position's stratum, < ``strata`` <= 255):
     the largest per-stratum quota whose total fits the budget, every stratum with fewer positions keeping
-    them all; within a stratum every m-th position in order. int64 (M,), ascending."""
+    them all; within a stratum every m-th position in order. int32 (M,) (int64 beyond 2**31 positions, or
+    when all are kept), ascending."""
     if which.size <= budget:
         return np.arange(which.size)
     counts = np.bincount(which, minlength=strata)
@@ -226,10 +227,29 @@ def _stratified(which: np.ndarray, budget: int, strata: int) -> np.ndarray:
     j = int(np.count_nonzero(below + ordered * above <= budget))  # the j smallest strata keep all theirs
     quota = max((budget - int(below[j])) // int(above[j]), 1) if j < strata else int(ordered[-1])
     step = np.maximum(-(-counts // quota), 1)
-    order = np.argsort(which, kind="stable")  # a radix sort (uint8): each stratum's positions in order
+    order = _stratum_order(which, counts)
     starts = np.cumsum(counts) - counts
     picks = [np.arange(first, first + n, m) for first, n, m in zip(starts, counts, step) if n]
     return np.sort(order[np.concatenate(picks)])
+
+
+def _stratum_order(which: np.ndarray, counts: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+    """Each stratum's positions in ``which`` (uint8 (N,); ``counts``: its bincount), in order, stratum after
+    stratum: a stable argsort's result, as int32 (intp beyond 2**31 positions). Sorted by chunks of ``chunk``
+    positions (radix sorts of uint8) put in place, so that no int64 array of N is made beside it."""
+    order = np.empty(which.size, np.int32 if which.size <= np.iinfo(np.int32).max else np.intp)
+    free = np.cumsum(counts) - counts  # each stratum's next place in ``order``
+    for start in range(0, which.size, chunk):
+        part = which[start:start + chunk]
+        local = np.argsort(part, kind="stable") + start
+        here = np.bincount(part, minlength=counts.size)
+        first = 0
+        for stratum in np.flatnonzero(here):
+            n = here[stratum]
+            order[free[stratum]:free[stratum] + n] = local[first:first + n]
+            free[stratum] += n
+            first += n
+    return order
 
 
 def pair_fit(previous: np.ndarray, current: np.ndarray, sensor: Sensor, *, floor: float | None = None,
