@@ -3,14 +3,18 @@
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
                                  [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
                                  [--size 1920x1200]
-                                 [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive]
+                                 [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
 default: monochrome, pattern 1,4/16,64; ``--cfa RGGB``: the colour demo camera,
 a Bayer mosaic with its dual-ISO exposures, labelled BayerRG12) at the target rate (``--scene pan``: the demo's camera pans, so every frame moves
 and temporal fusion restarts each frame; ``static``: the same view, new noise in
-every frame, so fusion runs on every pixel), then, from this process:
+every frame, so fusion runs on every pixel). The 24 frames are rendered once by a
+feeder process and copied through a pipe into a new buffer of the server's for each
+frame it takes, as a camera's driver delivers them (``--replay held``: the server
+process holds the 24 frames itself, about 110 MB of its resident memory at
+1920x1200, and hands out the same arrays again). Then, from this process:
 
 1. no client for ``--idle-s`` s: the server's CPU use (encoding is off when nobody watches);
 2. ``--clients`` MJPEG clients for ``--minutes`` minutes: captured / reconstructed /
@@ -37,8 +41,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import fcntl
 import json
 import os
+import pickle
 import platform
 import socket
 import subprocess
@@ -56,21 +62,106 @@ sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 sys.path.insert(0, os.path.dirname(_HERE))  # this checkout, not an editable install's
 
 
-def replay_source_factory(fps: float, width: int, height: int, n: int = 24, static: bool = False,
-                          cfa: str = "none"):
-    """A factory of Sources replaying n pre-rendered demo frames at ``fps`` (fresh timestamps).
-
-    ``static``: the demo's pan is stopped (a still view, independent noise in every frame).
-    ``cfa``: ``"none"`` for the monochrome demo, else the colour filter of the colour demo.
-    """
-    from svelive.capture import Source
+def render_replay(fps: float, width: int, height: int, n: int = 24, static: bool = False,
+                  cfa: str = "none") -> tuple[list[np.ndarray], str, object]:
+    """The n demo frames the replay cycles through (uint16 (height, width) raw arrays), their pixel format label
+    and their camera. ``static``: the demo's pan is stopped (a still view, independent noise in every frame).
+    ``cfa``: ``"none"`` for the monochrome demo, else the colour filter of the colour demo."""
     from svelive.capture.demo import DemoSource
-    from svelive.core.frame import Frame
 
     demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9 if static else n / fps * 4, cfa=cfa)
     rendered = list(demo.frames(limit=n))
     demo.close()
-    raws, label, camera = [f.raw for f in rendered], rendered[0].pixel_format, rendered[0].camera
+    return [f.raw for f in rendered], rendered[0].pixel_format, rendered[0].camera
+
+
+class FrameFeed:
+    """The replay's frames from a feeder process (``--feed``) through a pipe: frame k on request, into a buffer
+    of this process's own, as a camera's frames come from its driver; the feeder holds the rendered frames, so
+    this process holds only the frames in flight. One frame is requested ahead (the pipe holds it)."""
+
+    def __init__(self, fps: float, width: int, height: int, n: int, static: bool, cfa: str) -> None:
+        self._process = subprocess.Popen(
+            [sys.executable, __file__, "--feed", str(n), "--fps", str(fps), "--size", f"{width}x{height}",
+             "--scene", "static" if static else "pan", "--cfa", cfa], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self._out = self._process.stdout.fileno()
+        try:  # room for a whole frame in the pipe: the feeder writes the frame asked ahead at once
+            fcntl.fcntl(self._out, getattr(fcntl, "F_SETPIPE_SZ", 1031), width * height * 2)
+        except OSError:
+            pass
+        size = int.from_bytes(self._read(bytearray(8)), "little")
+        self.label, self.camera, self.dtype = pickle.loads(self._read(bytearray(size)))
+        self.shape = (height, width)
+        self._pending: int | None = None
+
+    def _read(self, buffer: bytearray | memoryview) -> bytearray | memoryview:
+        view, done = memoryview(buffer).cast("B"), 0
+        while done < len(view):
+            got = os.readv(self._out, [view[done:]])
+            if got == 0:
+                raise EOFError("the frame feeder stopped")
+            done += got
+        return buffer
+
+    def _ask(self, k: int) -> None:
+        self._process.stdin.write(k.to_bytes(4, "little"))
+        self._process.stdin.flush()
+        self._pending = k
+
+    def frame(self, k: int, then: int) -> np.ndarray:
+        """Frame ``k`` (uint (H, W), a new array), asking for frame ``then`` next."""
+        if self._pending is not None and self._pending != k:  # (a new Replay starts again at 0)
+            self._read(np.empty(self.shape, self.dtype))
+            self._pending = None
+        if self._pending is None:
+            self._ask(k)
+        raw = self._read(np.empty(self.shape, self.dtype))
+        self._ask(then)
+        return raw
+
+    def close(self) -> None:
+        self._process.kill()
+        self._process.wait()
+
+
+def feed(fps: float, width: int, height: int, n: int, static: bool, cfa: str) -> None:
+    """The feeder process (``--feed n``): renders the replay's frames (:func:`render_replay`), writes their
+    label, camera and dtype (pickled, after its length), then frame k for each index k read from stdin."""
+    raws, label, camera = render_replay(fps, width, height, n, static, cfa)
+    out, requests = sys.stdout.buffer, sys.stdin.buffer
+    header = pickle.dumps((label, camera, raws[0].dtype))
+    out.write(len(header).to_bytes(8, "little") + header)
+    out.flush()
+    try:
+        while len(k := requests.read(4)) == 4:  # until the server goes (its end of the pipe closes)
+            out.write(memoryview(raws[int.from_bytes(k, "little")]).cast("B"))
+            out.flush()
+    except BrokenPipeError:
+        pass
+
+
+def replay_source_factory(fps: float, width: int, height: int, n: int = 24, static: bool = False,
+                          cfa: str = "none", fed: bool = False):
+    """A factory of Sources replaying n pre-rendered demo frames (:func:`render_replay`) at ``fps`` (fresh
+    timestamps), frame k of a source being the (k mod n)-th.
+
+    ``fed``: the frames come from a feeder process (:class:`FrameFeed`), copied into a new array each, as a
+    camera delivers them; else this process holds the n frames and hands them out themselves.
+    """
+    from svelive.capture import Source
+    from svelive.core.frame import Frame
+
+    if fed:
+        source = FrameFeed(fps, width, height, n, static, cfa)
+        label, camera = source.label, source.camera
+
+        def raw_of(k: int) -> np.ndarray:
+            return source.frame(k % n, (k + 1) % n)
+    else:
+        raws, label, camera = render_replay(fps, width, height, n, static, cfa)
+
+        def raw_of(k: int) -> np.ndarray:
+            return raws[k % n]
 
     class Replay(Source):
         poll_s = 0.05
@@ -90,9 +181,8 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
                 return None
             if time.monotonic() - due > 1.0:  # far behind: restart the clock rather than burst
                 self._t0 = time.monotonic() - self._n / fps
-            raw = raws[self._n % n]
-            frame = Frame(raw=raw, frame_id=self._n, host_time_ns=time.monotonic_ns(), pixel_format=label,
-                          camera=self.camera)
+            frame = Frame(raw=raw_of(self._n), frame_id=self._n, host_time_ns=time.monotonic_ns(),
+                          pixel_format=label, camera=self.camera)
             self._n += 1
             return frame
 
@@ -101,9 +191,9 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
           size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1,
-          live_quality: str = "fixed") -> None:
+          live_quality: str = "fixed", fed: bool = True) -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
-    ``/bench/rtsp``)."""
+    ``/bench/rtsp``); ``fed``: its frames from a feeder process (:func:`replay_source_factory`)."""
     import uvicorn
 
     from service.app import create_app, listen_socket
@@ -115,7 +205,7 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
         keep_freed_memory()
     except ImportError:
         pass
-    factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa)
+    factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa, fed=fed)
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers,
                                        parallel_frames=parallel_frames, live_quality=live_quality), factory)
     settings = ServerSettings(port=port, log_level="warning")
@@ -408,22 +498,31 @@ def main() -> None:
                         help="only measure the RTSP encoder's CPU per frame on tone-mapped demo previews (no service)")
     parser.add_argument("--x264-threads", type=int, default=0, help="x264 threads (default 0: x264 chooses)")
     parser.add_argument("--x264-preset", default="ultrafast", help="x264 speed preset (default ultrafast)")
+    parser.add_argument("--replay", choices=("fed", "held"), default="fed",
+                        help="fed (default): the frames come from a feeder process through a pipe, a new buffer each, "
+                             "as from a camera's driver; held: the server process holds the 24 rendered frames "
+                             "(about 110 MB at 1920x1200, counted in its resident memory; the figures before "
+                             "2026-11-29)")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--feed", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rtsp-port", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x"))
+    if args.feed:
+        feed(args.fps, size[0], size[1], args.feed, args.scene == "static", args.cfa)
+        return
     if args.h264_cost:
         print(f"# load average {' '.join(open('/proc/loadavg').read().split()[:3])}, {os.cpu_count()} cores")
         print(json.dumps(h264_cost(size, args.fps, args.cfa, threads=args.x264_threads, preset=args.x264_preset)))
         return
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
-              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality)
+              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality, args.replay == "fed")
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
            "--parallel-frames", str(args.parallel_frames), "--scene", args.scene, "--size", args.size, "--cfa", args.cfa,
-           "--live-quality", args.live_quality]
+           "--live-quality", args.live_quality, "--replay", args.replay]
     if args.method:
         cmd += ["--method", args.method]
     if args.no_temporal:
@@ -466,7 +565,7 @@ def main() -> None:
           f"{load_before}; {args.size} 12-bit "
           f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, parallel frames {args.parallel_frames}, {args.scene} scene, "
-          f"live quality {args.live_quality}, {args.clients} clients, {args.minutes:g} min per phase")
+          f"live quality {args.live_quality}, replay {args.replay}, {args.clients} clients, {args.minutes:g} min per phase")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
           f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "
           f"fps {idle['fps']}")

@@ -151,8 +151,7 @@ def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, sta
     if min(sums) <= 0:
         return NoiseSamples(np.zeros(0), np.zeros(0))
     k, ratio = sums[0] / sums[1], sums[0] / sums[2]
-    candidates = np.arange(flat[2].size) if mask is None else np.flatnonzero(mask)
-    candidates, which = _clear_strata(flat[2], candidates, ratio, floor, high, model, strata)
+    candidates, which = _clear_strata(flat[2], mask, ratio, floor, high, model, strata)
     chosen = _stratified(which, max_samples, strata)
     if chosen.size < 100:
         return NoiseSamples(np.zeros(0), np.zeros(0))
@@ -161,34 +160,63 @@ def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, sta
     return _difference_samples(a, b, k, _grouped(0.5 * (a + k * b), c * ratio))
 
 
-def _clear_strata(third: np.ndarray, candidates: np.ndarray, ratio: float, floor: float, high: float,
+def _clear_strata(third: np.ndarray, mask: np.ndarray | None, ratio: float, floor: float, high: float,
                   model: tuple[float, float], strata: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``candidates`` (int64 indices into ``third``, float (N,) DN) whose value times ``ratio`` is clear
-    of clipping (:func:`_clear_of_clipping`), and the signal stratum of each (uint8, :func:`_bin_index` over
-    them). Readings of whole DN (no response curve) are looked up in a table of their values: the same
-    result as computing it for every pixel, at a fraction of the cost."""
-    x = third[candidates]
-    lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 0.0)
-    code = x.astype(np.int64) - int(lo) if hi - lo < 2**20 else None
-    if code is None or not np.array_equal(code + int(lo), x):  # not whole DN: per pixel
-        c = x.astype(np.float64) * ratio
+    """The positions in ``third`` (float (N,) DN) that ``mask`` (bool (N,); None: all) holds and whose value times
+    ``ratio`` is clear of clipping (:func:`_clear_of_clipping`), int32 (int64 beyond 2**31 pixels), and the signal
+    stratum of each (uint8, :func:`_bin_index` over them). Readings of whole DN (no response curve) are looked up
+    in a table of their values: the same result as computing it for every pixel, at a fraction of the cost.
+
+    A live stream runs this beside the reconstruction of the next frames, so its whole-frame arrays add to the
+    process's peak: positions and codes are 4-byte integers and each is dropped once replaced."""
+    candidates = _positions(third.size, mask)
+    code = _whole_codes(third[candidates])
+    if code is None:  # not whole DN: per pixel
+        c = third[candidates].astype(np.float64) * ratio
         keep = _clear_of_clipping(c, floor, high, model)
         which = _bin_index(c[keep], strata)[0] if keep.any() else np.zeros(0, np.int64)
         return candidates[keep], which.astype(np.uint8)
-    values = (np.arange(code.max() + 1 if code.size else 0) + int(lo)).astype(np.float64) * ratio
+    code, lo = code
+    values = (np.arange(int(code.max()) + 1 if code.size else 0) + lo).astype(np.float64) * ratio
     keep = _clear_of_clipping(values, floor, high, model)[code]
-    candidates, code = candidates[keep], code[keep]
-    present = np.flatnonzero(np.bincount(code, minlength=values.size))
+    if not keep.all():
+        candidates = candidates[keep]
+        code = code[keep]
+    del keep
+    seen = np.zeros(values.size, bool)
+    seen[code] = True
+    present = np.flatnonzero(seen)
     table = np.zeros(values.size, np.uint8)
     if present.size:
         table[present] = _bin_index(values[present], strata)[0]
     return candidates, table[code]
 
 
+def _positions(size: int, mask: np.ndarray | None) -> np.ndarray:
+    """The positions ``mask`` (bool (size,); None: all) holds, ascending: int32 where ``size`` allows, else intp."""
+    positions = np.arange(size, dtype=np.int32 if size <= np.iinfo(np.int32).max else np.intp)
+    return positions if mask is None else positions[mask]
+
+
+def _whole_codes(x: np.ndarray) -> tuple[np.ndarray, int] | None:
+    """Where every value of ``x`` (float (N,), DN) is a whole number spanning less than 2**20: (each value minus
+    the smallest, int32 (int64 beyond its range); that smallest value), else None."""
+    lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 0.0)
+    if not hi - lo < 2**20:
+        return None
+    wide = not (np.iinfo(np.int32).min < lo and hi < np.iinfo(np.int32).max)
+    code = x.astype(np.int64 if wide else np.int32)
+    if not np.array_equal(code, x):
+        return None
+    code -= int(lo)
+    return code, int(lo)
+
+
 def _stratified(which: np.ndarray, budget: int, strata: int) -> np.ndarray:
     """At most ``budget`` positions of ``which`` (uint8 (N,), each position's stratum, < ``strata`` <= 255):
     the largest per-stratum quota whose total fits the budget, every stratum with fewer positions keeping
-    them all; within a stratum every m-th position in order. int64 (M,), ascending."""
+    them all; within a stratum every m-th position in order. int32 (M,) (int64 beyond 2**31 positions, or
+    when all are kept), ascending."""
     if which.size <= budget:
         return np.arange(which.size)
     counts = np.bincount(which, minlength=strata)
@@ -199,10 +227,29 @@ def _stratified(which: np.ndarray, budget: int, strata: int) -> np.ndarray:
     j = int(np.count_nonzero(below + ordered * above <= budget))  # the j smallest strata keep all theirs
     quota = max((budget - int(below[j])) // int(above[j]), 1) if j < strata else int(ordered[-1])
     step = np.maximum(-(-counts // quota), 1)
-    order = np.argsort(which, kind="stable")  # a radix sort (uint8): each stratum's positions in order
+    order = _stratum_order(which, counts)
     starts = np.cumsum(counts) - counts
     picks = [np.arange(first, first + n, m) for first, n, m in zip(starts, counts, step) if n]
     return np.sort(order[np.concatenate(picks)])
+
+
+def _stratum_order(which: np.ndarray, counts: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+    """Each stratum's positions in ``which`` (uint8 (N,); ``counts``: its bincount), in order, stratum after
+    stratum: a stable argsort's result, as int32 (intp beyond 2**31 positions). Sorted by chunks of ``chunk``
+    positions (radix sorts of uint8) put in place, so that no int64 array of N is made beside it."""
+    order = np.empty(which.size, np.int32 if which.size <= np.iinfo(np.int32).max else np.intp)
+    free = np.cumsum(counts) - counts  # each stratum's next place in ``order``
+    for start in range(0, which.size, chunk):
+        part = which[start:start + chunk]
+        local = np.argsort(part, kind="stable") + start
+        here = np.bincount(part, minlength=counts.size)
+        first = 0
+        for stratum in np.flatnonzero(here):
+            n = here[stratum]
+            order[free[stratum]:free[stratum] + n] = local[first:first + n]
+            free[stratum] += n
+            first += n
+    return order
 
 
 def pair_fit(previous: np.ndarray, current: np.ndarray, sensor: Sensor, *, floor: float | None = None,

@@ -752,7 +752,11 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, va
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)
-        colour.refine(luminance, variance_of(), inter, cell, out_variance=out, new_variance=True)
+        # the interpolation made again (a few ms) rather than kept: a published frame holds this closure, and
+        # the interpolation (float32 (5, Hc, W)) is twice the fused cells it is made from, for a variance
+        # that is seldom asked for
+        colour.refine(luminance, variance_of(), colour.interpolation(fused, coarse=True), cell, out_variance=out,
+                      new_variance=True)
         return out
 
     return refined, refined_variance, inter
