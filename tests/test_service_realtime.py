@@ -130,9 +130,12 @@ def test_frames_nobody_watched_are_not_drops():
             h.publish(seq)
         h.wait(lambda: h.stage.not_watched == 19 + 4, "26..29 not watched")
         assert h.stage.snapshot_jpeg(timeout=10).hdr_seq == 30  # a snapshot takes the newest
+        # the port keeps only the newest JPEG: let the reader take 30 before 33 replaces it
+        h.wait(lambda: [j.hdr_seq for j in h.jpegs][-1:] == [30], "the JPEG of snapshot 30 read")
         h.publish(31, 32)
         h.publish(33)
         assert h.stage.snapshot_jpeg(timeout=10).hdr_seq == 33
+        h.wait(lambda: [j.hdr_seq for j in h.jpegs][-1:] == [33], "the JPEG of snapshot 33 read")
         h.wait(lambda: h.stage.not_watched == 23 + 2, "31, 32 not watched")
         # an RTSP-like preview watcher: tone-mapped previews, no JPEG; its skipped frames are drops
         h.stage.watch_previews(+1)
