@@ -791,7 +791,9 @@ def connect(workers: int, scheduler: str | None) -> Any:
         except (OSError, TimeoutError) as exc:
             raise SveliveError(f"cannot reach the Dask scheduler {scheduler} ({exc}); start one with "
                                "`dask scheduler` and workers with `dask worker tcp://HOST:8786`") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    # the scheduler serves HTTP even without a dashboard, on 8787 unless told: a free port, so that a second
+    # cluster on the machine (another run, a notebook) does not make it warn that 8787 is taken
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
     return Client(cluster)
 
 
