@@ -119,10 +119,6 @@ class FrameFeed:
         self._ask(then)
         return raw
 
-    def close(self) -> None:
-        self._process.kill()
-        self._process.wait()
-
 
 def feed(fps: float, width: int, height: int, n: int, static: bool, cfa: str) -> None:
     """The feeder process (``--feed n``): renders the replay's frames (:func:`render_replay`), writes their

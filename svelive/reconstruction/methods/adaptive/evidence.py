@@ -101,10 +101,9 @@ def floor_evidence(inp: SveInput, gain_inv: float, floor: float) -> float:
     rows = np.unique(np.linspace(0, h - 1, min(h, EVIDENCE_ROWS)).round().astype(np.intp))
     s, e, c = inp.signal[rows], inp.exposure[rows], inp.censored[rows]
     # readings near the raw range's bottom may have been clipped there (a black level of 0): left out, like censored
-    black = float(inp.sensor.black_level)
+    lowest = -float(inp.sensor.black_level) + EVIDENCE_CLIP_SIGMA * np.sqrt(floor)
     if inp.integral and not inp.folded:
         pairs = np.empty((2, rows.size * (w - tw)), np.float32)
-        lowest = -black + EVIDENCE_CLIP_SIGMA * np.sqrt(floor)
         count = _lattice_pairs(s, e, c, tw, np.float32(gain_inv), np.float32(floor), np.float32(lowest), pairs)
         if count < EVIDENCE_PAIRS:
             return 1.0
@@ -115,7 +114,6 @@ def floor_evidence(inp: SveInput, gain_inv: float, floor: float) -> float:
         read = _read_variance(total, span, tent, max(float(floor), span * span), float(gain_inv))
         return (read + QUANTISATION_VARIANCE) / floor
     pairs = np.empty((3, rows.size * (w - tw)), np.float32)
-    lowest = -black + EVIDENCE_CLIP_SIGMA * np.sqrt(floor)
     count = _pairs(s, e, c, tw, np.float32(gain_inv), np.float32(floor), np.float32(lowest), pairs)
     if count < EVIDENCE_PAIRS:
         return 1.0
