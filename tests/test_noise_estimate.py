@@ -650,14 +650,37 @@ def test_whole_dn_readings_are_chosen_as_per_pixel():
     x = np.round(np.random.default_rng(1).gamma(1.0, 300.0, 100_000)).astype(np.float32) - 5
     candidates = np.arange(x.size)
     model = (0.4, 4.0)
-    table = _clear_strata(x, candidates, 1.01, -2.0, 2000.0, model, 24)
+    table = _clear_strata(x, np.ones(x.size, bool), 1.01, -2.0, 2000.0, model, 24)
     c = x.astype(np.float64) * 1.01
     keep = _clear_of_clipping(c, -2.0, 2000.0, model)
     assert 0 < keep.sum() < x.size
     assert np.array_equal(table[0], candidates[keep])
     assert np.array_equal(table[1], _bin_index(c[keep], 24)[0])
-    per_pixel = _clear_strata(x + np.float32(0.25), candidates, 1.01, -2.0, 2000.0, model, 24)
+    per_pixel = _clear_strata(x + np.float32(0.25), None, 1.01, -2.0, 2000.0, model, 24)
     assert per_pixel[1].dtype == np.uint8 and per_pixel[1].max() == 23
+
+
+def test_whole_dn_readings_are_chosen_alike_in_any_chunks():
+    """Whole-DN readings are read chunk by chunk (the live stream's peak memory): any chunk size, chunks that
+    the mask leaves empty included, chooses the same positions and strata as one chunk of the whole frame,
+    which are those of the per-pixel clip test and strata."""
+    from svelive.noise.stats import _bin_index
+    from svelive.noise.temporal import _clear_of_clipping, _clear_strata
+
+    rng = np.random.default_rng(2)
+    x = np.round(rng.gamma(1.0, 300.0, 100_000)).astype(np.float32) - 5
+    mask = rng.random(x.size) < 0.7
+    mask[10_000:20_000] = False
+    model = (0.4, 4.0)
+    whole = _clear_strata(x, mask, 1.01, -2.0, 2000.0, model, 24, chunk=x.size)
+    c = x[mask].astype(np.float64) * 1.01
+    keep = _clear_of_clipping(c, -2.0, 2000.0, model)
+    assert np.array_equal(whole[0], np.flatnonzero(mask)[keep])
+    assert np.array_equal(whole[1], _bin_index(c[keep], 24)[0])
+    for chunk in (999, 4096, 10_000, 33_333):
+        chosen = _clear_strata(x, mask, 1.01, -2.0, 2000.0, model, 24, chunk=chunk)
+        assert chosen[0].dtype == np.int32 and chosen[1].dtype == np.uint8
+        assert np.array_equal(chosen[0], whole[0]) and np.array_equal(chosen[1], whole[1]), chunk
 
 
 def test_three_frames_bright_end_of_a_dim_frame_is_not_inflated():

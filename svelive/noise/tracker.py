@@ -112,7 +112,8 @@ class NoiseTracker:
             self._sensor = sensor
             return
         source, offset, floor = _signal_of(raw, camera, signal)
-        sig = np.asarray(source, np.float32) - np.float32(offset)
+        sig = np.array(source, np.float32)  # the tracker's own copy (kept as the previous frame), made once
+        sig -= np.float32(offset)
         if self._previous is not None and np.array_equal(sig, self._previous):
             # the frame before delivered again (a buffer sent twice, a short loop of recorded frames): its
             # differences would say the sensor has no temporal noise, and its own samples are counted already
@@ -133,12 +134,12 @@ class NoiseTracker:
                                                              camera.period))
         self._sensor = sensor
         config = self.config
-        temporal = self._temporal()
-        if temporal.size < self.temporal_enough:
+        temporal = self._temporal_size()
+        if temporal < self.temporal_enough:
             samples, _ = frame_samples(raw, camera, signal=sig, config=config)
             self._frame_parts.append(samples)
         # temporal samples are texture-free: with any, the pooled line is the better evidence
-        if config.cancellation and sensor.gain is None and temporal.size == 0:
+        if config.cancellation and sensor.gain is None and temporal == 0:
             frame_joint = cancellation_fit(sig, 0.0, floor, camera, config, start=self._line()[0])
             if frame_joint is not None:
                 self._joint_fits.append(frame_joint)
@@ -146,7 +147,7 @@ class NoiseTracker:
             self._before_previous, self._previous_static = self._previous, static
         else:
             self._before_previous = self._previous_static = None
-        self._previous = np.array(sig, copy=True)
+        self._previous = sig
 
     def fit(self) -> NoiseEstimate:
         """The estimate from every frame added (refitted only when the pool changed since the last fit)."""
@@ -157,7 +158,7 @@ class NoiseTracker:
             self._estimate = NoiseEstimate.given(sensor)
             return self._estimate
         config = self.config
-        with_joint = config.cancellation and sensor.gain is None and self._temporal().size == 0
+        with_joint = config.cancellation and sensor.gain is None and self._temporal_size() == 0
         pool, joints = self._pool()[0], tuple(self._joint_fits) if with_joint else ()
         if self._estimate_of is not None and _same(self._estimate_of, (pool, joints)):
             return self._estimate
@@ -169,9 +170,10 @@ class NoiseTracker:
         self._estimate_of = (pool, joints)
         return self._estimate
 
-    def _temporal(self) -> NoiseSamples:
-        """The temporal samples the pool holds: three frames' alone once enough, else with the pairs'."""
-        return NoiseSamples.join(self._temporal_list())
+    def _temporal_size(self) -> int:
+        """How many temporal samples the pool holds: three frames' alone once enough, else with the pairs' (counted,
+        not joined: a full pool's join is a copy of 16 runs' samples, 13 MB, at every frame added)."""
+        return sum(p.size for p in self._temporal_list())
 
     def _temporal_list(self) -> list[NoiseSamples]:
         triples = list(self._triple_parts)
