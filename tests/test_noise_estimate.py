@@ -595,6 +595,35 @@ def test_a_run_fitted_once_gives_the_estimate_of_a_fit_per_frame_to_the_bit(stat
     assert len({(e.gain, e.samples) for e in once}) == 4  # every run moved it: the comparison compares
 
 
+def test_a_tracker_at_rest_between_runs_keeps_no_frame_and_estimates_the_same():
+    """A stream's tracker rests after each run (``NoiseTracker.rest``: its frames dropped, 20 MiB at 1920x1200,
+    a digest of the last one kept): the estimates after every run are those of a tracker that kept its frames,
+    to the bit, and the last frame delivered again after the rest still adds nothing."""
+    truth = true_sensor(3_000, 2.0)
+    camera = unknown("1,4/16,64")
+    scene = load_sample_scene("mttamwest")[:192, :256]
+    raws = [frame(scene, "1,4/16,64", truth, 2, seed=seed).raw for seed in range(9)]
+    # (every frame's own samples pooled too: a frame added shows in the pool)
+    kept, rested = NoiseTracker(temporal_enough=10**9), NoiseTracker(temporal_enough=10**9)
+    static = np.ones(raws[0].shape, bool)
+    for r in range(3):
+        for j, raw in enumerate(raws[3 * r:3 * r + 3]):
+            for tracker in (kept, rested):
+                tracker.add(raw, camera, static if j else None)
+        rested.rest()
+        assert rested._previous is None and rested._before_previous is None and rested._previous_static is None
+        assert kept._previous is not None
+        assert rested.fit() == kept.fit()
+    pooled = len(rested._frame_parts)
+    for tracker in (kept, rested):
+        tracker.add(raws[8].copy(), camera, None)  # the last frame again: nothing added
+    assert len(rested._frame_parts) == len(kept._frame_parts) == pooled
+    assert rested._previous is None  # (nor kept: the next frame is compared with the digest still)
+    for tracker in (kept, rested):
+        tracker.add(raws[0], camera, None)  # a new frame is
+    assert len(rested._frame_parts) == pooled + 1 and rested.fit() == kept.fit()
+
+
 def test_the_pool_is_fitted_once_per_run(monkeypatch):
     """Once three frames' samples suffice (here one run's: a small frame), the pool does not change
     between a run's first two frames and the run before, so a run costs one fit of the pool, however
