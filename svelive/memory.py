@@ -70,9 +70,12 @@ def outside_heap(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     and their temporaries added to the heap's peak, which a process then keeps resident for good. Pages are
     zero-filled when first written (a fault each), which is why a stream's every-frame buffers stay in the heap.
     """
+    private, anonymous = getattr(mmap, "MAP_PRIVATE", None), getattr(mmap, "MAP_ANONYMOUS", None)
+    if private is None or anonymous is None:  # (not a POSIX system: the heap, as numpy allocates)
+        return np.empty(shape, dtype)
     count = int(np.prod(shape, dtype=np.int64))
     dtype = np.dtype(dtype)
-    pages = mmap.mmap(-1, max(count * dtype.itemsize, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    pages = mmap.mmap(-1, max(count * dtype.itemsize, 1), flags=private | anonymous)
     return np.frombuffer(pages, dtype, count).reshape(shape)
 
 
