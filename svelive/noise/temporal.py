@@ -10,6 +10,7 @@ from collections.abc import Callable
 import numpy as np
 
 from svelive.core.sensor import DEFAULT_FULL_WELL_E, DEFAULT_READ_NOISE_E, Sensor
+from svelive.memory import outside_heap
 from svelive.noise.inputs import _fixed, _high_level
 from svelive.noise.model import QUANTISATION_VARIANCE, EstimatorConfig, LineFit, NoiseSamples
 from svelive.noise.stats import _bin_index, bin_samples, fit_line
@@ -97,15 +98,30 @@ def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarr
     return _difference_samples(a[keep], b[keep], k, _grouped(mean[keep], by[keep]))
 
 
-def _static_sums(frames: list[np.ndarray], static: np.ndarray | None) -> list[float]:
+def _static_sums(frames: list[np.ndarray], static: np.ndarray | None, chunk: int = 1 << 18) -> list[float]:
     """The sum of each frame (float (N,), DN) over every static pixel (bool (N,), None: all), float64.
 
     Their ratios remove a global change of brightness (flicker) from frame differences. Taken over
     the pixels sampled rather than all, a ratio's own noise (about 1 % at 50 000 pixels of a dim frame)
     puts ``(1 - k)^2 s^2`` into every difference: nothing at the dark end, a variance twice the noise's
     at the bright end of a dim frame, where the gain is read (40 000 e- / 6 DN, 7 stops dark: the
-    gain 20 % low after 16 runs)."""
-    return [float(np.sum(x if static is None else x[static], dtype=np.float64)) for x in frames]
+    gain 20 % low after 16 runs).
+
+    The static pixels of each frame go to one buffer outside malloc's heap (``svelive.memory.outside_heap``):
+    a whole frame's worth, made only while a stream's noise tracker reads a run, which the heap would keep."""
+    if static is None:
+        return [float(np.sum(x, dtype=np.float64)) for x in frames]
+    count, kept, sums = int(np.count_nonzero(static)), None, []
+    for x in frames:
+        if kept is None or kept.dtype != x.dtype:
+            kept = outside_heap((count,), x.dtype)
+        at = 0
+        for start in range(0, x.size, chunk):  # x[static], a chunk at a time (np.compress indexes by intp)
+            part = x[start:start + chunk][static[start:start + chunk]]
+            kept[at:at + part.size] = part
+            at += part.size
+        sums.append(float(np.sum(kept, dtype=np.float64)))
+    return sums
 
 
 def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span: float = 400.0) -> np.ndarray:
@@ -206,8 +222,8 @@ def _clear_strata(third: np.ndarray, mask: np.ndarray | None, ratio: float, floo
     table = np.zeros(values.size, np.uint8)
     if present.size:
         table[present] = _bin_index(values[present], strata)[0]
-    candidates = np.empty(count, _position_type(third.size))
-    which = np.empty(count, np.uint8)
+    candidates = outside_heap((count,), _position_type(third.size))  # (a run's, seldom: not kept in the heap)
+    which = outside_heap((count,), np.uint8)
     at = 0
     for span in spans:
         code, keep = kept(span)
