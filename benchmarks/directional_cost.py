@@ -17,8 +17,12 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
+import shutil
 import sys
+import tempfile
 import time
+from types import ModuleType
+from typing import Callable
 
 import numpy as np
 
@@ -27,11 +31,24 @@ sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 sys.path.insert(0, os.path.dirname(_HERE))  # this checkout, not an editable install's
 
 
-def cpu_ms(run) -> float:
+def cpu_ms(run: Callable[[], object]) -> float:
     """This thread's CPU time of ``run()``, ms."""
     start = time.thread_time()
     run()
     return (time.thread_time() - start) * 1e3
+
+
+def load_copy(path: str, directory: str) -> ModuleType:
+    """The module of the file ``path`` imported from a copy in ``directory`` under a name of its own: its kernels
+    compile afresh (numba's disk cache keys on the file's path, and a module imported by path cannot be found
+    again by name when a later run loads its cached machine code)."""
+    copy = os.path.join(directory, "directional_compared.py")
+    shutil.copyfile(path, copy)
+    spec = importlib.util.spec_from_file_location("directional_compared", copy)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def main() -> int:
@@ -40,6 +57,12 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=9)
     ap.add_argument("--compare", help="another version's directional.py, timed alternated with this one's")
     args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as scratch:
+        return measure(args, scratch)
+
+
+def measure(args: argparse.Namespace, scratch: str) -> int:
+    """The timings (module docstring); ``scratch``: a directory for the compared version's copy."""
     import cv2
 
     from svelive.capture.demo import DemoSource
@@ -60,9 +83,7 @@ def main() -> int:
     share, floor = base.chroma.layout.share, directional.log_floor(inp, base.chroma.layout)
     versions = {"this": directional}
     if args.compare:
-        spec_file = importlib.util.spec_from_file_location("directional_compared", args.compare)
-        versions["compared"] = importlib.util.module_from_spec(spec_file)
-        spec_file.loader.exec_module(versions["compared"])
+        versions["compared"] = load_copy(args.compare, scratch)
     print(f"# {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}; demo {args.size} RGGB, one thread, CPU, "
           f"median of {args.repeats} after a warm-up", flush=True)
     times: dict[str, list[float]] = {name: [] for name in versions}
