@@ -54,6 +54,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("joint.chroma.blend", "reconstruction.colour.shares", "_blend"),
     ("joint.chroma.shrink", "reconstruction.colour.shares", "_shrink"),
     ("joint.chroma.normalise", "reconstruction.colour.shares", "_normalise"),
+    ("joint.chroma.share_pass", "reconstruction.colour.shares", "_share_pass"),  # cell_values .. normalise in one
     ("joint.interpolation", "reconstruction.colour.joint_parts", "interpolation"),
     ("joint.fold", "reconstruction.colour.joint_parts", "luminance_input"),
     ("joint.method", "", ""),  # the method's run, wrapped through the stream's method_spec
@@ -66,7 +67,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("fuse_chroma", "reconstruction.stream", "fuse_chroma"),
     ("refined", "reconstruction.stream", "_refined"),
     ("refined.interpolation", "reconstruction.colour", "interpolation"),
-    ("refined.refine", "reconstruction.colour", "refine"),
+    ("refined.refine", "reconstruction.colour", "refine"),  # (and colourise, since they share a pass)
     ("colourise", "reconstruction.colour", "colourise"),
     ("lattice", "reconstruction.colour", "lattice_channels"),
 )

@@ -132,3 +132,44 @@ def test_the_pass_filters_match_opencv_on_random_planes():
         for i in range(h):
             S._median_row(plane[max(i - 1, 0)], plane[i], plane[min(i + 1, h - 1)], out[i], columns)
         np.testing.assert_array_equal(out, cv2.medianBlur(plane, 3))
+
+
+@pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer"])
+def test_refine_colours_its_result_as_colourise_does(layout):
+    """``refine(..., rgb=)`` (a stream's fused luminance coloured in the refinement's pass) is bit for bit
+    ``colourise`` of the refined luminance, with and without a history weight and over threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svelive.reconstruction.colour import colourise, interpolation, refine
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:150, :200]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=2).raw, Camera.build(pattern, cfa, SENSOR))
+    ch = chroma(inp)
+    inter = interpolation(ch, coarse=True)
+    rng = np.random.default_rng(0)
+    luminance = (rgb @ np.array([0.25, 0.5, 0.25], np.float32) * scale).astype(np.float32)
+    variance = (luminance / 10 + 4 + rng.random(luminance.shape, np.float32)).astype(np.float32)
+    weight = rng.random(luminance.shape, np.float32)
+    with ThreadPoolExecutor(2) as pool:
+        for w in (None, weight):
+            for workers in (1, pool):
+                out = np.empty((*luminance.shape, 3), np.float32)
+                refined = refine(luminance, variance, inter, ch.layout.cell, weight=w, rgb=out, workers=workers)
+                np.testing.assert_array_equal(refined, refine(luminance, variance, inter, ch.layout.cell, weight=w))
+                np.testing.assert_array_equal(out, colourise(refined, inter))
+    with pytest.raises(ValueError):
+        refine(luminance, variance, inter, ch.layout.cell, out=np.empty_like(luminance), rgb=out)
+
+
+def test_colourise_copies_the_luminance_in_its_pass():
+    from svelive.reconstruction.colour import colourise, interpolation
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:64, :96]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=2).raw, Camera.build(pattern, cfa, SENSOR))
+    inter = interpolation(chroma(inp))
+    luminance = np.random.default_rng(1).random((64, 96), np.float32)
+    copy = np.full_like(luminance, np.nan)
+    np.testing.assert_array_equal(colourise(luminance, inter, copy=copy), colourise(luminance, inter))
+    np.testing.assert_array_equal(copy, luminance)
