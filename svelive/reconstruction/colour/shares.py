@@ -56,9 +56,10 @@ def chroma(inp: SveInput) -> Chroma:
     channels: :func:`_smooth_cells`), the censoring and
     highlight rules give C_c, which is moved from the centroid of the channel's samples to the
     cells' centres (bilinearly), and the shares are k_c = C_c / L there. The same from each
-    cell's own readings moves them where the two differ beyond noise (:func:`_blend`), the
-    garrote towards the neutral follows (:func:`_shrink`), then each channel's median over 3x3
-    cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1.
+    cell's own readings moves them where the two differ beyond noise (:func:`_blend_row`), the
+    garrote towards the neutral follows (:func:`_shrink_row`), then each channel's median over 3x3
+    cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1: all of
+    it after the white balance in one pass over the cell rows (:func:`_share_pass`).
     """
     layout = cell_layout(inp.pattern, inp.cfa)
     (cy, cx), (h, w) = layout.cell, inp.shape
@@ -353,7 +354,7 @@ def _shares_row(values, info, bound, censored, share, neutral, floor, spread, co
 @kernel
 def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i):
     """values (3, Hc, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
-    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares` with the cell's own
+    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares_row` with the cell's own
     readings alone (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE).
     ``residual`` (out): (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
     zero, one, none, tiny = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE), np.float32(1e-30)
