@@ -528,13 +528,13 @@ class Reconstructor:
             if self.temporal:
                 chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
-                luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
+                luminance, variance_of, image = _refined(image, variance, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
             else:
-                luminance, inter = image.copy(), parts.interpolation  # (the method's own array stays)
+                luminance = np.empty(image.shape, np.float32)  # a copy: the method's own array stays
                 shares = parts.chroma.shares
-            image = colour.colourise(luminance, inter, self._threads)
+                image = colour.colourise(image, parts.interpolation, self._threads, copy=luminance)
             # saturated colour's other channels from their own lattices, as a single frame's joint colour,
             # flagged by the shares that coloured the image
             colour.lattice_channels(estimated.colour_input, luminance, image, shares, parts.chroma.layout,
@@ -742,13 +742,15 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
 
 def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, variance_of: OutputVariance,
              fused: colour.Chroma,
-             workers: int | Executor = 1) -> tuple[np.ndarray, Callable[[], np.ndarray], colour.Interpolation]:
+             workers: int | Executor = 1) -> tuple[np.ndarray, Callable[[], np.ndarray], np.ndarray]:
     """A colour stream's output luminance (the fused one refined against the fused coarse luminance,
     with v_Y the frame's variance times the history weight), the variance of that on demand, and
-    the fused chroma's interpolation."""
+    that luminance coloured with the fused shares, float32 (H, W, 3) (colour.colourise's, made in the
+    refinement's pass)."""
     inter = colour.interpolation(fused, coarse=True)
     cell = fused.layout.cell
-    refined = colour.refine(luminance, variance, inter, cell, weight=weight, workers=workers)
+    rgb = np.empty((*luminance.shape, 3), np.float32)
+    refined = colour.refine(luminance, variance, inter, cell, weight=weight, rgb=rgb, workers=workers)
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)
@@ -759,7 +761,7 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, va
                       new_variance=True)
         return out
 
-    return refined, refined_variance, inter
+    return refined, refined_variance, rgb
 
 
 @kernel

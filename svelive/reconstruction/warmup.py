@@ -86,5 +86,7 @@ def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: 
                 for frame in frames:
                     result = reconstructor.process(frame)
                 result.variance  # noqa: B018
-        for frames in (clean, saturated):
-            reconstruct(frames[0], cameras[3], method=method, return_confidence=True)
+        # single joint frames colour with folding.colourise (a stream colours in its refinement's pass): cells of
+        # 6 columns give it the shares' rows as a strided view, as a frame whose width no cell divides does
+        for frames, camera in product((clean, saturated), (cameras[1], cameras[3])):
+            reconstruct(frames[0], camera, method=method, return_confidence=True)
