@@ -28,6 +28,7 @@ Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import cached_property
@@ -334,7 +335,9 @@ def _own_reading_variance(inverse, estimate, slope_scale, floor_scale):
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
          inconsistency: Inconsistency | None = None, detail: bool = True, workers: int = 1,
-         strip_rows: int = FUSE_ROWS, executor: Executor | None = None) -> Fused:
+         strip_rows: int = FUSE_ROWS, executor: Executor | None = None,
+         predicted: list[tuple[int, int]] | None = None,
+         complete: Callable[[], FrameEstimate] | None = None) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
@@ -353,6 +356,12 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         strip_rows: rows per strip; the result does not depend on it either.
         executor: a pool of ``workers`` threads the caller keeps across frames
             (svelive.reconstruction.methods.base.map_on); None: one is made for this call.
+        predicted: rows ([start, stop) pairs) the method skipped (prototype, svelive.reconstruction.settle):
+            their estimate is taken as the history's mean times the brightness ratio (so the mean stays,
+            exactly) and their lower bound as the history's, written into ``frame.image`` and
+            ``frame.bound`` here; the caller then gives the pixels this frame resets there their
+            estimate. Needs ``complete``: called before any restart (every pixel then takes the frame's
+            own estimate), it returns the frame with every row estimated.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it (x, v: the
@@ -386,6 +395,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     image, variance, bound = frame.image, frame.variance, frame.bound
     if (state is None or state.mean.shape != image.shape or (state.test is None) != (frame.test is None)
             or (state.own_variance is None) != (frame.share_error is None)):
+        if predicted:
+            frame = complete()
         return _restart(frame, inconsistency, 1.0, np.zeros(image.shape, bool))
     tested, tested_variance = frame.tested
     history = state.tested
@@ -394,7 +405,15 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
     if camera_moved(state, frame, scale, config):
+        if predicted:
+            frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
+    if predicted:
+        # the skipped rows' estimate: the history's mean times the ratio (the running mean then keeps
+        # it, bit for bit: ``_running_mean`` of mean * scale and itself), and the history's bound
+        for a, b in predicted:
+            np.multiply(state.mean[a:b], scale, out=image[a:b])
+            bound[a:b] = state.bound[a:b]
     h = image.shape[0]
     strips = _strips(h, strip_rows)
     window = tuple(support_size(n) for n in pattern_shape)
@@ -525,6 +544,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     if moved[0] > limit:
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
+        if predicted:
+            frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None, own_var)
     # the update applied the within-frame test's finding to the output where it reset the history

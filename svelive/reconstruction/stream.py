@@ -47,7 +47,7 @@ from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
+from svelive.reconstruction.fusion import FrameEstimate, Fused, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
@@ -193,6 +193,10 @@ class Reconstructor:
         workers: threads for one frame: the strips of the method (where it takes
             a ``workers`` option) and of the motion stage are spread over them.
             The results do not depend on it; 1 keeps everything on the caller's thread.
+        refresh: prototype (issue 25, svelive.reconstruction.settle), 0 (off) or K >= 1: a monochrome stream
+            with temporal fusion and method ``adaptive`` (no within-frame test) runs the method per frame only
+            on the bands whose history is not settled and a round-robin 1 / K of the others; skipped pixels
+            keep their history's mean, pixels the test resets there get their estimate on demand.
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
@@ -207,7 +211,7 @@ class Reconstructor:
                  exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
                  motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
-                 noise_schedule: NoiseSchedule | None = None, noise_thread: bool = False,
+                 noise_schedule: NoiseSchedule | None = None, noise_thread: bool = False, refresh: int = 0,
                  **method_options) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
             raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
@@ -235,6 +239,11 @@ class Reconstructor:
         # one pool for the stream's whole life: a pool per frame costs thread start-ups and grows memory
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="svelive-strip") if workers > 1 else None
         self.method_options = dict(method_options)
+        self.refresh = int(refresh)
+        self._tick = 0  # frames estimated, for the round-robin of settled bands
+        self._last_variance: np.ndarray | None = None  # the last partial frame's variance (placeholders)
+        self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
+        self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._lock = threading.Lock()
         self._method = self._checked(method)
         self._history: TemporalState | None = None
@@ -331,6 +340,7 @@ class Reconstructor:
             self._history = self._chroma = None
             self._generation += 1
             self._frames = 0
+            self._band_motion = []
 
     @property
     def noise(self) -> NoiseEstimate | None:
@@ -465,11 +475,18 @@ class Reconstructor:
         if _needs_noise(base) and base.response is not None:
             signal = prepare(array, base).signal  # the tracker reads the linearised signal
         camera, trusted, model = self._with_noise(array, base, signal)
-        inp, est, parts = self._estimate(raw, method, camera)
+        partial = None
+        if self._settles(method, camera):
+            inp, est, partial = self._estimate_partial(raw, camera)
+            parts = None
+        else:
+            inp, est, parts = self._estimate(raw, method, camera)
         t1 = time.perf_counter()
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
         inconsistency = window = None
-        if self.temporal or self.consistency:
+        if partial is not None:
+            window = est.window
+        elif self.temporal or self.consistency:
             # what the motion tests compare: a window mean beside the method's estimate, whatever the method
             # (made in the method's own pass where it can: bit-identical)
             window = (completed_window(est.window, est.image, est.variance) if est.window is not None
@@ -487,7 +504,107 @@ class Reconstructor:
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model,
-                         None if parts is None else inp)
+                         None if parts is None else inp, partial)
+
+    def _on_demand(self, partial, fused, frame: FrameEstimate, predicted: list[tuple[int, int]],
+                   history: TemporalState) -> Fused:
+        """The pixels the test reset in rows the method skipped (``predicted``; svelive.reconstruction.settle):
+        where they moved (``motion``) or the history is a lower bound, this frame's
+        estimate on demand, into the frame's arrays, the history's mean and own readings and the output; the
+        others (reset only because a reading in their window crossed the censor level, the window means
+        agreeing) keep their history as it was (times the brightness ratio): they skip this frame, as the
+        method did, rather than average two estimates of different kinds."""
+        from svelive.reconstruction import settle
+        from svelive.reconstruction.fusion import RATIO_TOLERANCE
+
+        ratio = fused.illumination_ratio
+        scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
+        state = fused.state
+        # a kept pixel's history keeps the censoring it was made of (else the next frame, whose readings keep
+        # this one's censoring, would test a window mean of another kind against it)
+        censored = frame.censored.copy()
+        h, w = censored.shape
+        ys, xs = np.empty(h * w, np.intp), np.empty(h * w, np.intp)
+        n, kept = 0, 0
+        no_rows = np.empty((0, 0), np.float32)
+        for a, b in predicted:
+            found, k = settle.skipped_resets(a, b, fused.reset, fused.motion, history.bound, history.weight,
+                                             history.own, no_rows if history.test is None else history.test,
+                                             history.censored, scale, state.weight, state.own,
+                                             no_rows if state.test is None else state.test, censored, ys[n:], xs[n:])
+            n += found
+            kept += k
+        ys, xs = ys[:n], xs[:n]
+        ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads)
+        partial.stats.update(stats, kept_px=kept)
+        fused = replace(fused, state=replace(state, censored=censored))
+        if not ys.size:
+            return fused
+        for target, value in ((frame.image, img), (frame.variance, var), (frame.bound, low), (state.mean, img),
+                              (fused.image, img)):
+            target[ys, xs] = value
+        inverse = frame.inverse[ys % frame.inverse.shape[0], xs]
+        state.own[ys, xs] = np.where(frame.censored[ys, xs], img, frame.signal[ys, xs] * inverse)
+        return fused
+
+    def _settles(self, method: str, camera: Camera) -> bool:
+        """Whether this frame takes the partial path (``refresh``; svelive.reconstruction.settle)."""
+        return (self.refresh > 0 and self.temporal and not self.consistency and method == "adaptive"
+                and camera.cfa is None and self.pattern.pixel_map is None)
+
+    def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
+        """(input, estimate with the window mean, settle.Partial): the method on the bands the latest history
+        asks for (a hint: the frame may be fused after another), the window mean everywhere."""
+        from svelive.reconstruction import settle
+        from svelive.reconstruction.methods.adaptive import noise_model
+
+        inp = prepare(getattr(raw, "raw", raw), camera)
+        noise = noise_model(inp)
+        h, w = inp.shape
+        spans = settle.bands(h)
+        with self._lock:
+            hint, tick = self._history, self._tick
+            self._tick += 1
+        last_variance = self._last_variance
+        if hint is None or hint.mean.shape != (h, w) or last_variance is None or last_variance.shape != (h, w):
+            selected = np.ones(len(spans), bool)
+        else:
+            # the bands where something moved within the last max_history frames (on every 4th row; not the
+            # isolated false alarms, nor the pixels reset where a reading crossed the censor level)
+            moving = self._band_motion
+            selected = (np.max(moving, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if moving
+                        else np.zeros(len(spans), bool))
+            # and those whose history is mostly unsettled (a stream's start, after a restart)
+            floor = np.float32(1.0 / self.motion_config.max_history)
+            selected |= np.array([np.count_nonzero(hint.weight[b.start:b.stop:4] > floor)
+                                  > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
+            # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
+            selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
+        image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool),
+                                  np.empty((h, w), np.float32))
+        window = np.empty((2, h, w), np.float32)  # (rows the pass does not make are made below)
+        settle.method_on_bands(inp, noise, selected, image, lower, variance, window, self._threads)
+        from svelive.reconstruction.methods.adaptive import _shares_window
+        skipped = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(~selected)]
+        # the skipped rows' estimate and bound are the history's (fuse writes them, times its brightness ratio);
+        # their variance, the last frame's (a placeholder: the output's variance, which the live path never reads)
+        for a, b in skipped:
+            variance[a:b] = last_variance[a:b]
+        # the window mean where the method did not make it (the history's mean where its window holds no
+        # uncensored reading)
+        if skipped:
+            settle.window_rows(inp, hint.mean, variance, skipped, window[0], window[1])
+        if not _shares_window(inp):
+            computed = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(selected)]
+            settle.window_rows(inp, image, variance, computed, window[0], window[1])
+        for a, b in settle.runs(selected):  # (the window rows made here hold no infinite variance)
+            rows = slice(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h))
+            completed_window((window[0, rows], window[1, rows]), image[rows], variance[rows])
+        self._last_variance = variance
+        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
+        est = Estimate(image, lower, variance, window=(window[0], window[1]))
+        return inp, est, settle.Partial(inp, noise, selected, rows,
+                                        dict(bands=len(spans), computed=int(np.count_nonzero(selected))))
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
@@ -509,8 +626,33 @@ class Reconstructor:
                 planes = (chroma_history[:3] if chroma_history is not None
                           and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
                 frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
+            partial = estimated.partial
+            predicted = complete = None
+            if partial is not None and not partial.computed.all():
+                from svelive.reconstruction import settle
+
+                def completed() -> FrameEstimate:
+                    # every band again, one crop (a run's halo rows would overwrite its computed neighbours')
+                    settle.method_on_bands(partial.inp, partial.noise, np.ones_like(partial.computed), frame.image,
+                                           frame.bound, frame.variance, None, self._threads)
+                    partial.computed[:] = True
+                    partial.rows[:] = True
+                    partial.stats["completed"] = True
+                    return frame
+
+                complete = completed
+                predicted = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, frame.image.shape[0]))
+                             for a, b in settle.runs(~partial.computed)]
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency,
-                         detail=self.detail, workers=self.workers, executor=self._pool)
+                         detail=self.detail, workers=self.workers, executor=self._pool,
+                         predicted=predicted, complete=complete)
+            if partial is not None:
+                if not partial.rows.all():
+                    fused = self._on_demand(partial, fused, frame, predicted, history)
+                self._band_motion.append(np.add.reduceat(fused.motion[::4].sum(axis=1),
+                                                         np.arange(0, -(-fused.motion.shape[0] // 4), 16)))
+                del self._band_motion[:-self.motion_config.max_history]
+                self.last_partial = dict(partial.stats)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             if history is not None and history.mean.shape == image.shape:
                 reset = fused.reset
@@ -578,6 +720,7 @@ class Estimated:
         noise: that noise model (source "given" where the camera gives it).
         colour_input: a colour frame's own input (its CFA channels and censoring: the lattice stage
             reads them after the fused luminance is coloured), else None.
+        partial: the bands the method ran on where the stream's ``refresh`` skips some (settle.Partial), else None.
     """
 
     estimate: Estimate
@@ -595,6 +738,7 @@ class Estimated:
     camera: Camera | None = None
     noise: NoiseEstimate | None = None
     colour_input: SveInput | None = None
+    partial: object | None = None  # settle.Partial: the method ran on some bands only (``refresh``)
 
 
 def _needs_noise(camera: Camera) -> bool:

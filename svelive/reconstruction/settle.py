@@ -1,0 +1,277 @@
+"""Prototype (issue 25): a live stream that runs ``adaptive`` only where its history needs a new estimate.
+
+In a still view almost every pixel's history is settled (n = max_history: a new frame adds 1 / n of its
+estimate). :class:`svelive.reconstruction.stream.Reconstructor` with ``refresh=K`` (monochrome frames, method
+``adaptive``, temporal fusion, no within-frame test) then runs the method per frame on
+
+- the bands (:data:`BAND_ROWS` rows) whose history is not settled (more than :data:`UNSETTLED_SHARE` of
+  their pixels with n < max_history: moving regions, not the isolated false alarms of the test),
+- a round-robin 1 / K of the settled bands (the history keeps refreshing and follows slow changes),
+- every band when there is no history (a stream's first frame, after a reset or a restart);
+
+a pixel of a skipped band takes its history's mean (times the brightness ratio) as this frame's estimate
+(:func:`svelive.reconstruction.fusion.fuse`'s ``predicted`` rows): its mean stays as it is, its own readings,
+the test's window mean (made for every pixel, every frame: :func:`window_rows`) and its weight go on; a pixel
+the test resets there gets this frame's estimate on demand (:func:`on_demand`: whole bands where they hold
+many, else a patch atlas of :data:`CELL` px cells with their halos).
+
+The method on a crop with a halo of :data:`HALO` rows and columns (a multiple of the tile) gives the full
+frame's results in the crop's interior, bit for bit, given the full frame's noise model (computed once per
+frame): so do the bands and the atlas here.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from svelive.jit import kernel
+from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
+from svelive.reconstruction.methods.base import SveInput, window_kernels
+from svelive.reconstruction.numerics import INLINE_TAPS, _window_layout, _window_strip
+
+#: Rows of a band, the unit of the selection (adaptive's strips: 64 rows).
+BAND_ROWS = 64
+#: Rows and columns around a computed region that the method reads (its window, three deep, and the wide
+#: fallback's blocks reach 13); a multiple of every tile's rows used here.
+HALO = 16
+#: A band whose share of moving pixels exceeded this in one of the last max_history frames runs the method every
+#: frame (the test's isolated false alarms, widened, are about 2e-4 of the frame).
+MOVING_SHARE = 0.002
+#: A band more than this share of whose pixels are unsettled (n < max_history: a stream's start, a restart) runs
+#: the method every frame.
+UNSETTLED_SHARE = 0.3
+#: Cells of the on-demand atlas (px, square), aligned to the frame's grid.
+CELL = 16
+#: A band with at least this many on-demand cells is computed whole instead (a band with its halos costs
+#: (BAND_ROWS + 2 HALO) W pixels, a cell (CELL + 2 HALO)^2).
+CELL_LIMIT_SHARE = 0.6
+
+
+@dataclass
+class Partial:
+    """A frame whose method ran on some bands only (``computed``, bool per band)."""
+
+    inp: SveInput
+    noise: tuple[float, float]
+    computed: np.ndarray
+    rows: np.ndarray  # bool (H,), rows whose estimate is this frame's
+    stats: dict = field(default_factory=dict)
+
+
+def bands(h: int) -> list[slice]:
+    return [slice(top, min(top + BAND_ROWS, h)) for top in range(0, h, BAND_ROWS)]
+
+
+def runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of the runs of True in a 1-d bool array."""
+    out, start = [], None
+    for i, f in enumerate(flags):
+        if f and start is None:
+            start = i
+        elif not f and start is not None:
+            out.append((start, i))
+            start = None
+    if start is not None:
+        out.append((start, len(flags)))
+    return out
+
+
+def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
+                    lower: np.ndarray, variance: np.ndarray, window: np.ndarray | None,
+                    workers: int | Executor = 1) -> None:
+    """The method on the selected bands (bool per band), each run of them one crop with its halo, written into
+    ``image``, ``lower``, ``variance`` and (with ``window``, (2, H, W)) the window mean: the rows of the selected
+    bands hold their results; the halo rows of each crop, within HALO rows of them, are overwritten too (with
+    what the crop gives there), the other rows are left. A band between two runs is at least HALO rows: runs do
+    not overwrite each other's results."""
+    h = inp.shape[0]
+    in_pass = window is not None and _shares_window(inp)
+    for a, b in runs(selected):
+        top, stop = a * BAND_ROWS, min(b * BAND_ROWS, h)
+        rows = slice(max(top - HALO, 0), min(stop + HALO, h))
+        _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
+                  out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
+
+
+def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: list[tuple[int, int]],
+                level: np.ndarray, noise: np.ndarray) -> None:
+    """The motion tests' window mean (numerics.window_estimate, bit-identical) of the frame rows ``rows``
+    ([start, stop) pairs) into ``level`` and ``noise``; ``image`` and ``variance`` where the window holds no
+    uncensored reading. Nominal tiles with inline windows only."""
+    layout = _window_layout(inp.pattern, inp.period, inp.shape)
+    kernels = layout.kernels
+    if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
+        raise NotImplementedError("window_rows: windows longer than the inline taps")
+    h, w = inp.shape
+    period = min(inp.pattern.shape[0], h)
+    sensor = inp.sensor
+    inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
+    no_rows = np.empty((4, 0, w), np.float32)
+    for start, stop in rows:
+        _window_strip(inp.signal, inp.exposure[:period], inp.censored, start, stop, *kernels, inv_gain, floor,
+                      image, variance, level, noise, no_rows)
+
+
+def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np.ndarray, np.ndarray]:
+    """The patches of ``cells`` ((n, 2) (row, col) of cells inside the frame by HALO) with their halos, stacked in a
+    grid of ``columns`` patches a row; returns the atlas and each cell's offset (atlas minus frame coordinates),
+    rows and columns."""
+    p = CELL + 2 * HALO
+    n = len(cells)
+    shape = (-(-n // columns) * p, min(n, columns) * p)
+    signal = np.zeros(shape, np.float32)
+    censored = np.zeros(shape, bool)
+    # every patch starts on whole tiles: the atlas's exposures are the pattern's
+    exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
+    k = np.arange(n)
+    ys, xs = (k // columns) * p, (k % columns) * p
+    fys, fxs = cells[:, 0] * CELL - HALO, cells[:, 1] * CELL - HALO
+    for y, x, fy, fx in zip(ys.tolist(), xs.tolist(), fys.tolist(), fxs.tolist()):
+        signal[y:y + p, x:x + p] = inp.signal[fy:fy + p, fx:fx + p]
+        censored[y:y + p, x:x + p] = inp.censored[fy:fy + p, fx:fx + p]
+    atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+    return atlas, ys - fys, xs - fxs
+
+
+def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1
+              ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
+    """This frame's estimate at the pixels (``ys``, ``xs``, intp), in rows the method skipped: (ys, xs), their
+    (image, lower, variance), and counts (pixels, bands computed whole, cells).
+
+    Cells of CELL px holding such pixels go into one atlas (their patches with their halos side by side) unless a
+    band holds so many that the band costs less whole; cells at the frame's edges into a stack per side."""
+    inp, noise = part.inp, part.noise
+    h, w = inp.shape
+    n = ys.size
+    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0)
+    values = (np.empty(n, np.float32), np.empty(n, bool), np.empty(n, np.float32))
+    if not n:
+        return ys, xs, values, stats
+    cw = -(-w // CELL)
+    cell_of = (ys // CELL) * cw + xs // CELL
+    cells, inverse = np.unique(cell_of, return_inverse=True)
+    ci, cj = cells // cw, cells % cw
+    band_of_cell = (ci * CELL) // BAND_ROWS
+    limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * HALO) * w / (CELL + 2 * HALO) ** 2
+    whole = np.zeros(len(part.computed), bool)
+    counts = np.bincount(band_of_cell, minlength=len(whole))
+    whole[:] = counts >= limit
+    in_whole = whole[band_of_cell]
+    inside = (ci * CELL - HALO >= 0) & ((ci + 1) * CELL + HALO <= h) & (cj * CELL - HALO >= 0) & \
+        ((cj + 1) * CELL + HALO <= w)
+    stats["demand_bands"] = int(np.count_nonzero(whole))
+    stats["demand_cells"] = int(np.count_nonzero(~in_whole))
+
+    def take(pixels: np.ndarray, arrays, oy, ox) -> None:
+        """values at ``pixels`` (indices into ys, xs) from result arrays at (ys + oy, xs + ox)."""
+        y, x = ys[pixels] + oy, xs[pixels] + ox
+        for value, array in zip(values, arrays):
+            value[pixels] = array[y, x]
+
+    if whole.any():
+        image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool), np.empty((h, w), np.float32))
+        method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
+        take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
+    atlas_cells = np.nonzero(~in_whole & inside)[0]
+    if atlas_cells.size:
+        columns = max(1, min(atlas_cells.size, 2048 // (CELL + 2 * HALO)))
+        atlas, oy, ox = _atlas(inp, np.stack([ci[atlas_cells], cj[atlas_cells]], axis=1), columns)
+        arrays = _estimate(atlas, noise, workers, want_variance=True)[:3]
+        slot = np.full(cells.size, -1, np.intp)
+        slot[atlas_cells] = np.arange(atlas_cells.size)
+        pixels = np.nonzero(slot[inverse] >= 0)[0]
+        s = slot[inverse[pixels]]
+        take(pixels, arrays, oy[s], ox[s])
+    edge_cells = np.nonzero(~in_whole & ~inside)[0]
+    if edge_cells.size:
+        for members, arrays, oy, ox in _edge_stacks(inp, noise, [(int(ci[c]), int(cj[c])) for c in edge_cells],
+                                                   workers):
+            slot = np.full(cells.size, -1, np.intp)
+            slot[edge_cells[members]] = np.arange(len(members))
+            pixels = np.nonzero(slot[inverse] >= 0)[0]
+            s = slot[inverse[pixels]]
+            take(pixels, arrays, oy[s], ox[s])
+    return ys, xs, values, stats
+
+
+def _edge_stacks(inp: SveInput, noise: tuple[float, float], cells: list[tuple[int, int]],
+                 workers: int | Executor) -> list:
+    """:func:`on_demand`'s results of cells whose halo crosses the frame's edge: each cell the box of its halo
+    clipped to the frame, the boxes of one side of the frame stacked along it into one call (top and bottom rows
+    side by side in column order, left and right columns one under the other), each box's clipped side on the
+    stack's edge (mirrored as the frame's), boxes that abut meeting at their halos. Per side: (indices of its
+    cells in ``cells``, (image, lower, variance) of the stack, offsets (stack minus frame coordinates) per cell)."""
+    h, w = inp.shape
+    groups: dict[str, list[int]] = {}
+    for k in sorted(range(len(cells)), key=lambda k: (cells[k][1], cells[k][0])):
+        i, j = cells[k]
+        side = ("top" if i * CELL - HALO < 0 else "bottom" if (i + 1) * CELL + HALO > h
+                else "left" if j * CELL - HALO < 0 else "right")
+        groups.setdefault(side, []).append(k)
+    out = []
+    for side, members in groups.items():
+        along = side in ("top", "bottom")  # side by side along the rows, else one under the other
+        boxes = [(max(i * CELL - HALO, 0), min((i + 1) * CELL + HALO, h), max(j * CELL - HALO, 0),
+                  min((j + 1) * CELL + HALO, w)) for i, j in (cells[k] for k in members)]
+        across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in boxes)
+        total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in boxes)
+        shape = (across, total) if along else (total, across)
+        # a bottom (right) box shorter across than the others sits at the stack's far edge; above (left of) it
+        # zero readings with the pattern's exposures, beyond its halo
+        signal, censored = np.zeros(shape, np.float32), np.zeros(shape, bool)
+        exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
+        oy, ox, offset = [], [], 0
+        for r0, r1, c0, c1 in boxes:
+            if along:
+                y, x = (0 if side == "top" else across - (r1 - r0)), offset
+                offset += c1 - c0
+            else:
+                y, x = offset, (0 if side == "left" else across - (c1 - c0))
+                offset += r1 - r0
+            signal[y:y + r1 - r0, x:x + c1 - c0] = inp.signal[r0:r1, c0:c1]
+            censored[y:y + r1 - r0, x:x + c1 - c0] = inp.censored[r0:r1, c0:c1]
+            exposure[y:y + r1 - r0, x:x + c1 - c0] = inp.exposure[r0:r1, c0:c1]
+            oy.append(y - r0)
+            ox.append(x - c0)
+        stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+        arrays = _estimate(stack, noise, workers, want_variance=True)[:3]
+        out.append((np.array(members, np.intp), arrays, np.array(oy, np.intp), np.array(ox, np.intp)))
+    return out
+
+
+@kernel
+def skipped_resets(first, stop, reset, motion, old_bound, old_weight, old_own, old_test, old_censored, scale,
+                   weight, own, test, censored, ys, xs):
+    """In frame rows ``first:stop`` (the method skipped them), the pixels the fusion reset: where they moved
+    (``motion``) or the history is a lower bound, their coordinates into ``ys``, ``xs`` (from their start; returns
+    (how many, kept)); the others keep their history as it was (weight, own readings, the test's estimate and the
+    censoring it was made of; the mean is the history's already), times ``scale``. ``test``: of no rows where the
+    test has no history of its own."""
+    n, kept = 0, 0
+    separate = test.shape[0] > 0
+    for r in range(first, stop):
+        for c in range(reset.shape[1]):
+            if not reset[r, c]:
+                continue
+            if motion[r, c] or old_bound[r, c]:
+                ys[n], xs[n] = r, c
+                n += 1
+                continue
+            kept += 1
+            weight[r, c] = old_weight[r, c]
+            own[r, c] = old_own[r, c] * scale
+            if separate:
+                test[r, c] = old_test[r, c] * scale
+            censored[r, c] = old_censored[r, c]
+    return n, kept
+
+
+def window_kernel_ok(inp: SveInput) -> bool:
+    """Whether :func:`window_rows` can make the frame's window mean (nominal tile, inline windows)."""
+    if inp.pattern.pixel_map is not None or inp.folded or inp.cfa is not None:
+        return False
+    k = window_kernels(inp.period)
+    return k[0].size <= INLINE_TAPS[0] and k[1].size <= INLINE_TAPS[1]
