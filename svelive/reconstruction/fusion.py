@@ -398,6 +398,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if predicted:
             frame = complete()
         return _restart(frame, inconsistency, 1.0, np.zeros(image.shape, bool))
+    if predicted:  # the skipped rows' bound is the history's (before anything reads it)
+        for a, b in predicted:
+            bound[a:b] = state.bound[a:b]
     tested, tested_variance = frame.tested
     history = state.tested
     ratio = (illumination_ratio(state, tested, tested_variance, bound) if config.compensate_illumination
@@ -410,10 +413,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     if predicted:
         # the skipped rows' estimate: the history's mean times the ratio (the running mean then keeps
-        # it, bit for bit: ``_running_mean`` of mean * scale and itself), and the history's bound
+        # it, bit for bit: ``_running_mean`` of mean * scale and itself)
         for a, b in predicted:
             np.multiply(state.mean[a:b], scale, out=image[a:b])
-            bound[a:b] = state.bound[a:b]
     h = image.shape[0]
     strips = _strips(h, strip_rows)
     window = tuple(support_size(n) for n in pattern_shape)

@@ -43,6 +43,11 @@ MOVING_SHARE = 0.002
 #: A band more than this share of whose pixels are unsettled (n < max_history: a stream's start, a restart) runs
 #: the method every frame.
 UNSETTLED_SHARE = 0.3
+#: Noise deviations beyond which a pixel the fusion reset where a reading in its window crossed the censor level
+#: takes this frame's estimate in a skipped band (else it keeps its history): looser than the fusion's test
+#: (MotionConfig.temporal_sigmas), since such a window mean shifts beyond its noise (the still demo: 5 % of them
+#: beyond 4 deviations).
+UNSTABLE_SIGMAS = 8.0
 #: Cells of the on-demand atlas (px, square), aligned to the frame's grid.
 CELL = 16
 #: A band with at least this many on-demand cells is computed whole instead (a band with its halos costs
@@ -244,19 +249,27 @@ def _edge_stacks(inp: SveInput, noise: tuple[float, float], cells: list[tuple[in
 
 @kernel
 def skipped_resets(first, stop, reset, motion, old_bound, old_weight, old_own, old_test, old_censored, scale,
-                   weight, own, test, censored, ys, xs):
+                   tested, tested_variance, inv_k2, keep, weight, own, test, censored, ys, xs):
     """In frame rows ``first:stop`` (the method skipped them), the pixels the fusion reset: where they moved
-    (``motion``) or the history is a lower bound, their coordinates into ``ys``, ``xs`` (from their start; returns
-    (how many, kept)); the others keep their history as it was (weight, own readings, the test's estimate and the
-    censoring it was made of; the mean is the history's already), times ``scale``. ``test``: of no rows where the
-    test has no history of its own."""
+    (``motion``), the history is a lower bound, or the frame's tested estimate differs from the history's by more
+    than 1 / sqrt(inv_k2) noise deviations (the fusion's test, looser: it is not applied where a reading in the
+    window crossed the censor level, whose window mean then shifts beyond its noise alone), their coordinates into
+    ``ys``, ``xs`` (from their start; returns (how many, kept)); the others keep their history as it was (weight,
+    own readings, the test's estimate and the censoring it was made of; the mean is the history's already), times
+    ``scale``; none keeps it without ``keep``. ``old_test``, ``test``: the history's tested estimate and its new one, of no rows where the test
+    has no history of its own (``old_test`` is then the mean)."""
     n, kept = 0, 0
     separate = test.shape[0] > 0
+    one = np.float32(1)
     for r in range(first, stop):
         for c in range(reset.shape[1]):
             if not reset[r, c]:
                 continue
-            if motion[r, c] or old_bound[r, c]:
+            d = tested[r, c] - old_test[r, c] * scale
+            v = tested_variance[r, c]
+            # (an infinite variance: the window holds no uncensored reading, the frame's estimate is a bound)
+            differs = d * d * inv_k2 > (old_weight[r, c] + one) * v or v == np.inf
+            if motion[r, c] or old_bound[r, c] or differs or not keep:
                 ys[n], xs[n] = r, c
                 n += 1
                 continue

@@ -244,6 +244,8 @@ class Reconstructor:
         self._last_variance: np.ndarray | None = None  # the last partial frame's variance (placeholders)
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
+        self._infinite: np.ndarray | None = None  # float32 (H, W) of inf (settle: lost windows' variance)
+        self._last_ratio = 1.0  # the last fused frame's brightness ratio
         self._lock = threading.Lock()
         self._method = self._checked(method)
         self._history: TemporalState | None = None
@@ -476,7 +478,7 @@ class Reconstructor:
             signal = prepare(array, base).signal  # the tracker reads the linearised signal
         camera, trusted, model = self._with_noise(array, base, signal)
         partial = None
-        if self._settles(method, camera):
+        if trusted and self._settles(method, camera):  # (an untrusted model's output is the frame's own estimate)
             inp, est, partial = self._estimate_partial(raw, camera)
             parts = None
         else:
@@ -509,10 +511,11 @@ class Reconstructor:
     def _on_demand(self, partial, fused, frame: FrameEstimate, predicted: list[tuple[int, int]],
                    history: TemporalState) -> Fused:
         """The pixels the test reset in rows the method skipped (``predicted``; svelive.reconstruction.settle):
-        where they moved (``motion``) or the history is a lower bound, this frame's
+        where they moved (``motion``), the history is a lower bound or the window means differ beyond
+        settle.UNSTABLE_SIGMAS, this frame's
         estimate on demand, into the frame's arrays, the history's mean and own readings and the output; the
         others (reset only because a reading in their window crossed the censor level, the window means
-        agreeing) keep their history as it was (times the brightness ratio): they skip this frame, as the
+        agreeing within that) keep their history as it was (times the brightness ratio): they skip this frame, as the
         method did, rather than average two estimates of different kinds."""
         from svelive.reconstruction import settle
         from svelive.reconstruction.fusion import RATIO_TOLERANCE
@@ -520,6 +523,10 @@ class Reconstructor:
         ratio = fused.illumination_ratio
         scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
         state = fused.state
+        tested, tested_variance = frame.tested
+        # (where the light changed, every pixel reset takes this frame's estimate: a history kept with its old
+        # censoring, scaled, meets the next frame's readings at yet another level, and the test flags them)
+        inv_k2 = np.float32(1.0 / settle.UNSTABLE_SIGMAS ** 2)
         # a kept pixel's history keeps the censoring it was made of (else the next frame, whose readings keep
         # this one's censoring, would test a window mean of another kind against it)
         censored = frame.censored.copy()
@@ -529,8 +536,8 @@ class Reconstructor:
         no_rows = np.empty((0, 0), np.float32)
         for a, b in predicted:
             found, k = settle.skipped_resets(a, b, fused.reset, fused.motion, history.bound, history.weight,
-                                             history.own, no_rows if history.test is None else history.test,
-                                             history.censored, scale, state.weight, state.own,
+                                             history.own, history.tested, history.censored, scale, tested,
+                                             tested_variance, inv_k2, scale == 1, state.weight, state.own,
                                              no_rows if state.test is None else state.test, censored, ys[n:], xs[n:])
             n += found
             kept += k
@@ -545,6 +552,11 @@ class Reconstructor:
             target[ys, xs] = value
         inverse = frame.inverse[ys % frame.inverse.shape[0], xs]
         state.own[ys, xs] = np.where(frame.censored[ys, xs], img, frame.signal[ys, xs] * inverse)
+        lost = np.isinf(tested_variance[ys, xs])  # the window mean is the method's estimate there
+        if lost.any():
+            ly, lx = ys[lost], xs[lost]
+            tested[ly, lx], tested_variance[ly, lx] = img[lost], var[lost]
+            state.tested[ly, lx] = img[lost]
         return fused
 
     def _settles(self, method: str, camera: Camera) -> bool:
@@ -556,6 +568,7 @@ class Reconstructor:
         """(input, estimate with the window mean, settle.Partial): the method on the bands the latest history
         asks for (a hint: the frame may be fused after another), the window mean everywhere."""
         from svelive.reconstruction import settle
+        from svelive.reconstruction.fusion import RATIO_TOLERANCE
         from svelive.reconstruction.methods.adaptive import noise_model
 
         inp = prepare(getattr(raw, "raw", raw), camera)
@@ -571,7 +584,10 @@ class Reconstructor:
         else:
             # the bands where something moved within the last max_history frames (on every 4th row; not the
             # isolated false alarms, nor the pixels reset where a reading crossed the censor level)
-            moving = self._band_motion
+            if abs(self._last_ratio - 1.0) > RATIO_TOLERANCE:  # the light changed: every band
+                moving = [np.full(len(spans), np.iinfo(np.int64).max)]
+            else:
+                moving = self._band_motion
             selected = (np.max(moving, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if moving
                         else np.zeros(len(spans), bool))
             # and those whose history is mostly unsettled (a stream's start, after a restart)
@@ -592,8 +608,11 @@ class Reconstructor:
             variance[a:b] = last_variance[a:b]
         # the window mean where the method did not make it (the history's mean where its window holds no
         # uncensored reading)
-        if skipped:
-            settle.window_rows(inp, hint.mean, variance, skipped, window[0], window[1])
+        if skipped:  # (an infinite variance where the window holds no uncensored reading: fuse's tests pass over
+            # such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
+            if self._infinite is None or self._infinite.shape != (h, w):
+                self._infinite = np.full((h, w), np.inf, np.float32)
+            settle.window_rows(inp, hint.mean, self._infinite, skipped, window[0], window[1])
         if not _shares_window(inp):
             computed = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(selected)]
             settle.window_rows(inp, image, variance, computed, window[0], window[1])
@@ -653,6 +672,7 @@ class Reconstructor:
                                                          np.arange(0, -(-fused.motion.shape[0] // 4), 16)))
                 del self._band_motion[:-self.motion_config.max_history]
                 self.last_partial = dict(partial.stats)
+                self._last_ratio = fused.illumination_ratio
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             if history is not None and history.mean.shape == image.shape:
                 reset = fused.reset
