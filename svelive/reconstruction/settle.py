@@ -248,31 +248,83 @@ def _edge_stacks(inp: SveInput, noise: tuple[float, float], cells: list[tuple[in
 
 
 @kernel
-def skipped_resets(first, stop, reset, motion, old_bound, old_weight, old_own, old_test, old_censored, scale,
-                   tested, tested_variance, inv_k2, keep, weight, own, test, censored, ys, xs):
-    """In frame rows ``first:stop`` (the method skipped them), the pixels the fusion reset: where they moved
-    (``motion``), the history is a lower bound, or the frame's tested estimate differs from the history's by more
-    than 1 / sqrt(inv_k2) noise deviations (the fusion's test, looser: it is not applied where a reading in the
-    window crossed the censor level, whose window mean then shifts beyond its noise alone), their coordinates into
-    ``ys``, ``xs`` (from their start; returns (how many, kept)); the others keep their history as it was (weight,
-    own readings, the test's estimate and the censoring it was made of; the mean is the history's already), times
-    ``scale``; none keeps it without ``keep``. ``old_test``, ``test``: the history's tested estimate and its new one, of no rows where the test
-    has no history of its own (``old_test`` is then the mean)."""
+def skipped_resets(skipped, reset, motion, new_censored, old_bound, old_weight, old_own, old_test, old_censored,
+                   scale, tested, tested_variance, inv_k2, keep, wy, wx, weight, own, test, censored, mark, ys, xs):
+    """The pixels the fusion reset in the frame rows the method skipped (``skipped``, bool per row): which take
+    this frame's estimate on demand (their coordinates into ``ys``, ``xs``; returns (how many, kept)) and which
+    keep their history as it was (weight, own readings, the test's estimate and the censoring it was made of,
+    times ``scale``; the mean is the history's already). ``mark``: int8 (H, W) zeros, scratch.
+
+    On demand: where they moved (``motion``), the history is a lower bound, the window holds no uncensored reading
+    (infinite ``tested_variance``) or the frame's tested estimate differs from the history's by more than
+    1 / sqrt(inv_k2) noise deviations (the fusion's test, looser: it does not apply where a reading in the
+    window crossed the censor level, whose window mean then shifts beyond its noise alone); every one without
+    ``keep``. Then, since a history is made of windows whose readings kept their censoring: where a reading that
+    crossed the censor level lies in the window (``wy``, ``wx`` either side) of a pixel taking this frame (on
+    demand, or reset outside the skipped rows), every pixel whose window holds it takes it too, and so on.
+    ``old_test``, ``test``: the history's tested estimate and its new one, of no rows where the test has no
+    history of its own (``old_test`` is then the mean)."""
+    h, w = reset.shape
+    one = np.float32(1)
+    # the skipped rows' reset pixels, listed (from the end of ys, xs; the stack grows from the start)
+    size = ys.size
+    count = 0
+    for r in range(h):
+        if not skipped[r]:
+            continue
+        for c in range(w):
+            if reset[r, c]:
+                count += 1
+                ys[size - count], xs[size - count] = r, c
+    top = 0
+    for k in range(size - count, size):
+        r, c = ys[k], xs[k]
+        d = tested[r, c] - old_test[r, c] * scale
+        v = tested_variance[r, c]
+        differs = d * d * inv_k2 > (old_weight[r, c] + one) * v or v == np.inf
+        if motion[r, c] or old_bound[r, c] or differs or not keep:
+            mark[r, c] = 2
+            ys[top], xs[top] = r, c
+            top += 1
+        else:
+            mark[r, c] = 1
+    # a history is made of windows whose readings kept their censoring: a reading that crossed the censor level
+    # and lies in the window of a pixel taking this frame (on demand, or reset outside the skipped rows) is stored
+    # with its new censoring, so every kept pixel whose window holds it takes this frame too, and so on
+    for r in range(h):
+        if skipped[r]:
+            continue
+        near = False
+        for rr in range(max(r - 2 * wy, 0), min(r + 2 * wy + 1, h)):
+            near = near or skipped[rr]
+        if not near:
+            continue
+        for c in range(w):
+            if reset[r, c]:
+                ys[top], xs[top] = r, c
+                top += 1
+    while top > 0:
+        top -= 1
+        r, c = ys[top], xs[top]
+        for qr in range(max(r - wy, 0), min(r + wy + 1, h)):
+            for qc in range(max(c - wx, 0), min(c + wx + 1, w)):
+                if new_censored[qr, qc] == old_censored[qr, qc] or mark[qr, qc] >= 8:
+                    continue
+                mark[qr, qc] += 8  # (a reading visited)
+                for yr in range(max(qr - wy, 0), min(qr + wy + 1, h)):
+                    for yc in range(max(qc - wx, 0), min(qc + wx + 1, w)):
+                        if mark[yr, yc] % 8 == 1:
+                            mark[yr, yc] += 1
+                            ys[top], xs[top] = yr, yc
+                            top += 1
     n, kept = 0, 0
     separate = test.shape[0] > 0
-    one = np.float32(1)
-    for r in range(first, stop):
-        for c in range(reset.shape[1]):
-            if not reset[r, c]:
-                continue
-            d = tested[r, c] - old_test[r, c] * scale
-            v = tested_variance[r, c]
-            # (an infinite variance: the window holds no uncensored reading, the frame's estimate is a bound)
-            differs = d * d * inv_k2 > (old_weight[r, c] + one) * v or v == np.inf
-            if motion[r, c] or old_bound[r, c] or differs or not keep:
-                ys[n], xs[n] = r, c
-                n += 1
-                continue
+    for k in range(size - count, size):
+        r, c = ys[k], xs[k]
+        if mark[r, c] % 8 == 2:
+            ys[n], xs[n] = r, c
+            n += 1
+        else:
             kept += 1
             weight[r, c] = old_weight[r, c]
             own[r, c] = old_own[r, c] * scale

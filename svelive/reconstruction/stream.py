@@ -50,7 +50,7 @@ from svelive.reconstruction.consistency import Inconsistency, exposure_consisten
 from svelive.reconstruction.fusion import FrameEstimate, Fused, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
-from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
+from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, support_size
 from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 
@@ -531,16 +531,14 @@ class Reconstructor:
         # this one's censoring, would test a window mean of another kind against it)
         censored = frame.censored.copy()
         h, w = censored.shape
-        ys, xs = np.empty(h * w, np.intp), np.empty(h * w, np.intp)
-        n, kept = 0, 0
+        ys, xs = np.empty(2 * h * w, np.intp), np.empty(2 * h * w, np.intp)  # (lazily touched)
         no_rows = np.empty((0, 0), np.float32)
-        for a, b in predicted:
-            found, k = settle.skipped_resets(a, b, fused.reset, fused.motion, history.bound, history.weight,
-                                             history.own, history.tested, history.censored, scale, tested,
-                                             tested_variance, inv_k2, scale == 1, state.weight, state.own,
-                                             no_rows if state.test is None else state.test, censored, ys[n:], xs[n:])
-            n += found
-            kept += k
+        wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
+        n, kept = settle.skipped_resets(~partial.rows, fused.reset, fused.motion, frame.censored, history.bound,
+                                        history.weight, history.own, history.tested, history.censored, scale, tested,
+                                        tested_variance, inv_k2, scale == 1, wy, wx, state.weight, state.own,
+                                        no_rows if state.test is None else state.test, censored,
+                                        np.zeros((h, w), np.int8), ys, xs)
         ys, xs = ys[:n], xs[:n]
         ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads)
         partial.stats.update(stats, kept_px=kept)
