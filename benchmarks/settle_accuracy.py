@@ -33,7 +33,16 @@ def main() -> int:
     ap.add_argument("--refresh", default="2,4")
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data")
     ap.add_argument("--cases", default="crossing,stops at 4,cut at 4,Beachball")
+    ap.add_argument("--aggressive", action="store_true",
+                    help="skip bands from the second frame on (no band runs for an unsettled history): the worst case")
+    ap.add_argument("--sigmas", type=float, default=None, help="settle.UNSTABLE_SIGMAS")
     args = ap.parse_args()
+    if args.sigmas:
+        from svelive.reconstruction import settle
+        settle.UNSTABLE_SIGMAS = args.sigmas
+    if args.aggressive:
+        from svelive.reconstruction import settle
+        settle.UNSETTLED_SHARE = 2.0
     if args.data.exists():
         motion.DATA = args.data
     elif Path("/work/shared/data").exists():

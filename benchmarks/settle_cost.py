@@ -25,7 +25,15 @@ def main() -> int:
     ap.add_argument("--size", default="1920x1200")
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--refresh", default="2,4")
+    ap.add_argument("--sigmas", type=float, default=None, help="settle.UNSTABLE_SIGMAS")
+    ap.add_argument("--cell", type=int, default=None, help="the on-demand atlas's cell (px), else settle.CELL")
     args = ap.parse_args()
+    if args.sigmas:
+        from svelive.reconstruction import settle
+        settle.UNSTABLE_SIGMAS = args.sigmas
+    if args.cell:
+        from svelive.reconstruction import settle
+        settle.CELL = args.cell
     from svelive.capture.demo import DemoSource
     from svelive.reconstruction import Reconstructor
     from svelive.memory import keep_freed_memory
