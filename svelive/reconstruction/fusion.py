@@ -358,8 +358,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             (svelive.reconstruction.methods.base.map_on); None: one is made for this call.
         predicted: rows ([start, stop) pairs) the method skipped (prototype, svelive.reconstruction.settle):
             their estimate is taken as the history's mean times the brightness ratio (so the mean stays,
-            exactly) and their lower bound as the history's, written into ``frame.image`` and
-            ``frame.bound`` here; the caller then gives the pixels this frame resets there their
+            exactly) and their lower bound as the history's, written into ``frame.image`` (not where the
+            ratio is 1 and a whole strip is skipped: its rows are then left unwritten) and ``frame.bound``
+            here; the caller then gives the pixels this frame resets there their
             estimate. Needs ``complete``: called before any restart (every pixel then takes the frame's
             own estimate), it returns the frame with every row estimated.
 
@@ -411,12 +412,17 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if predicted:
             frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
-    if predicted:
-        # the skipped rows' estimate: the history's mean times the ratio (the running mean then keeps
-        # it, bit for bit: ``_running_mean`` of mean * scale and itself)
-        for a, b in predicted:
-            np.multiply(state.mean[a:b], scale, out=image[a:b])
     h = image.shape[0]
+    # the skipped rows' estimate: the history's mean times the ratio (the running mean then keeps it, bit for
+    # bit: ``_running_mean`` of mean * scale and itself). With no brightness correction (mean * 1 is the mean),
+    # a strip whose rows are all skipped reads the history's mean rows as the frame's instead (no pass writing
+    # them into ``frame.image``, whose rows there are then left unwritten); the others' are written as it goes
+    same = scale == 1
+    kept = np.zeros(h, bool)
+    for a, b in predicted or ():
+        kept[a:b] = True
+        if not same:
+            np.multiply(state.mean[a:b], scale, out=image[a:b])
     strips = _strips(h, strip_rows)
     window = tuple(support_size(n) for n in pattern_shape)
     # rows a strip's motion mask depends on: censor changes grow by window // 2, then
@@ -479,12 +485,21 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
         ext = slice(top, stop)
         done = inner(core)
+        frame_image = image[core]
+        if same and kept[core].any():
+            if kept[core].all():
+                frame_image = state.mean[core]
+            else:
+                for a, b in predicted:
+                    a, b = max(a, core.start), min(b, core.stop)
+                    if a < b:
+                        image[a:b] = state.mean[a:b]
         count = _fuse_strip(_StripRows(core.start - top, core.start, done.start, done.stop, h),
                             _Halo(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
                                   state.bound[ext], frame.censored[ext], state.censored[ext]),
                             _History(state.weight[core], state.mean[core], state.own[core], history[core],
                                      _NO_TABLE if own_var is None else state.own_variance[core]),
-                            _Frame(image[core], frame.signal[core], frame.censored[core], tested[core],
+                            _Frame(frame_image, frame.signal[core], frame.censored[core], tested[core],
                                    _NO_TABLE if frame.share_error is None else frame.share_error[core]), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
                                      fused_test[core], evidence[core], out[core],

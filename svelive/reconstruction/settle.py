@@ -29,8 +29,9 @@ import numpy as np
 
 from svelive.jit import kernel
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
-from svelive.reconstruction.methods.base import SveInput, window_kernels
-from svelive.reconstruction.numerics import INLINE_TAPS, _window_layout, _window_strip
+from svelive.reconstruction.methods.base import SveInput, reflect_101, tile_rows, window_kernels, window_level_row
+from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
+                                             _window_layout)
 
 #: Rows of a band, the unit of the selection (adaptive's strips: 64 rows).
 BAND_ROWS = 64
@@ -116,10 +117,138 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     period = min(inp.pattern.shape[0], h)
     sensor = inp.sensor
     inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
-    no_rows = np.empty((4, 0, w), np.float32)
+    exposure = inp.exposure[:period]
+    row_tables, tables, row_of = _clean_tables(exposure, kernels, inp.pattern.shape[0], inp.period[0], h)
     for start, stop in rows:
-        _window_strip(inp.signal, inp.exposure[:period], inp.censored, start, stop, *kernels, inv_gain, floor,
-                      image, variance, level, noise, no_rows)
+        _window_strip_clean(inp.signal, exposure, inp.censored, start, stop, *kernels, inv_gain, floor,
+                            image, variance, level, noise, row_tables, tables, row_of)
+
+
+_TABLES: dict = {}
+
+
+def _clean_tables(exposure: np.ndarray, kernels, pattern_rows: int, window_rows: int, h: int):
+    """(row_tables, tables, row_of) of :func:`_window_strip_clean` for a frame of ``h`` rows whose exposures repeat
+    ``exposure`` ((P, W), row r's is row r % P): the sums along a row of e (``kernels[1]``), of e and of 1
+    (``kernels[3]``) by row phase, (3, P, W); those sums down the window's rows (``kernels[0]``, ``kernels[2]``) of
+    a frame without censored readings, (3, S, W), on the rows of numerics' small frame (methods.base.tile_rows),
+    ``row_of`` (H,) mapping the frame's rows to them. Made with the kernels that sum the frame's windows (the same
+    arithmetic, in the same order): computed once per exposure rows, kernels and height."""
+    key = (exposure.tobytes(), exposure.shape, tuple(k.tobytes() for k in kernels), pattern_rows, window_rows, h)
+    if key not in _TABLES:
+        a = kernels[0].size // 2
+        small, row_of = tile_rows(h, int(np.lcm(window_rows, pattern_rows)), a)
+        row_tables = np.empty((3, exposure.shape[0], exposure.shape[1]), np.float32)
+        tables = np.empty((3, small, exposure.shape[1]), np.float32)
+        _fill_tables(np.ascontiguousarray(exposure, np.float32), *kernels, row_tables, tables)
+        row_of = row_of.astype(np.intp)
+        for array in (row_tables, tables, row_of):
+            array.setflags(write=False)
+        _TABLES.clear()  # (one stream's frames: one entry)
+        _TABLES[key] = (row_tables, tables, row_of)
+    return _TABLES[key]
+
+
+@kernel
+def _fill_tables(exposure, ky, kx, ky2, kx2, row_tables, tables):
+    """:func:`_clean_tables`' arrays, into ``row_tables`` and ``tables``."""
+    period, cols = exposure.shape
+    ones = np.ones(cols, np.float32)
+    e = np.empty(cols, np.float32)
+    one = np.float32(1)
+    for p in range(period):
+        for c in range(cols):
+            e[c] = exposure[p, c] * one  # (as the frame's kept exposures)
+        _symmetric_row(e, kx, row_tables[0, p])
+        _symmetric_row(e, kx2, row_tables[1, p])
+        _symmetric_row(ones, kx2, row_tables[2, p])
+    small = tables.shape[1]
+    a = ky.size // 2
+    phases = np.empty(ky.size, np.intp)
+    for t in range(small):
+        for j in range(ky.size):
+            phases[j] = reflect_101(t - a + j, small) % period
+        _symmetric_column(row_tables, 0, phases, ky, tables[0, t])
+        _symmetric_column(row_tables, 1, phases, ky2, tables[1, t])
+        _symmetric_column(row_tables, 2, phases, ky2, tables[2, t])
+
+
+@kernel
+def _column_mixed(ring, q, slots, clean, row_tables, phases, k, out):
+    """numerics._symmetric_column of the window's rows, a row without censored readings (``clean`` by slot) read
+    from ``row_tables[q - 1, phases[slot]]`` instead of the ring."""
+    a = k.size // 2
+    s = slots[a]
+    centre = row_tables[q - 1, phases[s]] if clean[s] else ring[q, s]
+    kc = k[a]
+    for c in range(out.size):
+        out[c] = centre[c] * kc
+    for j in range(1, a + 1):
+        s, t = slots[a - j], slots[a + j]
+        above = row_tables[q - 1, phases[s]] if clean[s] else ring[q, s]
+        below = row_tables[q - 1, phases[t]] if clean[t] else ring[q, t]
+        kj = k[a + j]
+        for c in range(out.size):
+            out[c] = out[c] + (above[c] + below[c]) * kj
+
+
+@kernel
+def _window_strip_clean(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv_gain, floor, image, variance,
+                        out, out_var, row_tables, tables, row_of):
+    """numerics._window_strip (without ``row_sums``) of rows ``first:stop``, bit for bit, where rows hold no censored
+    reading: such a window row's sums of e, G^2 e and G^2 along it are its phase's ``row_tables`` row (only its sum
+    of s is made), and an output row whose window rows all hold none takes those sums down its window from
+    ``tables`` (row ``row_of[r]``); see :func:`_clean_tables`. The readings change every frame, so the sum of s is
+    made for every pixel; the other three depend on the censoring alone."""
+    rows, cols = signal.shape
+    period = exposure.shape[0]
+    size = ky.size
+    a = size // 2
+    one = np.float32(1)
+    ring = np.empty((4, size, cols), np.float32)
+    clean = np.zeros(size, np.bool_)
+    phases = np.zeros(size, np.intp)
+    kept, kept_signal, kept_exposure = (np.empty(cols, np.float32), np.empty(cols, np.float32),
+                                        np.empty(cols, np.float32))
+    sums = np.empty((4, cols), np.float32)
+    slots = np.empty(size, np.intp)
+    never = np.zeros(size, np.bool_)  # (the sums of s: always the ring's)
+    following = first - a
+    for r in range(first, stop):
+        while following <= r + a:
+            src = reflect_101(following, rows)
+            slot = (following - first + a) % size
+            following += 1
+            e_row, s_row, c_row = exposure[src % period], signal[src], censored[src]
+            n = 0
+            for c in range(cols):
+                n += c_row[c]
+            phases[slot] = src % period
+            clean[slot] = n == 0
+            if n == 0:  # s * 1 is s: the kept signal is the row
+                for c in range(cols):
+                    kept_signal[c] = s_row[c] * one
+                _symmetric_row(kept_signal, kx, ring[0, slot])
+                continue
+            _kept_row_sums(e_row, s_row, c_row, kx, kx2, kept, kept_signal, kept_exposure, ring, slot)
+        whole = True
+        for j in range(size):
+            slots[j] = (r - a + j - first + a) % size
+            whole = whole and clean[slots[j]]
+        _column_mixed(ring, 0, slots, never, row_tables, phases, ky, sums[0])
+        level_row, noise_row = out[r], out_var[r]
+        if whole:
+            t = row_of[r]
+            lost = window_level_row(sums[0], tables[0, t], tables[1, t], tables[2, t], inv_gain, floor, level_row,
+                                    noise_row)
+        else:
+            _column_mixed(ring, 1, slots, clean, row_tables, phases, ky, sums[1])
+            _column_mixed(ring, 2, slots, clean, row_tables, phases, ky2, sums[2])
+            _column_mixed(ring, 3, slots, clean, row_tables, phases, ky2, sums[3])
+            lost = window_level_row(sums[0], sums[1], sums[2], sums[3], inv_gain, floor, level_row, noise_row)
+        for c in range(cols if lost else 0):
+            if np.isinf(noise_row[c]):
+                level_row[c], noise_row[c] = image[r, c], variance[r, c]
 
 
 def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np.ndarray, np.ndarray]:
