@@ -379,7 +379,7 @@ def _edge_stacks(inp: SveInput, noise: tuple[float, float], cells: list[tuple[in
 
 
 @kernel
-def skipped_resets(skipped, reset, motion, new_censored, old_bound, old_weight, old_own, old_test, old_censored,
+def skipped_resets(skipped, reset, words, motion, new_censored, old_bound, old_weight, old_own, old_test, old_censored,
                    scale, tested, tested_variance, inv_k2, keep, wy, wx, weight, own, test, censored, mark, ys, xs):
     """The pixels the fusion reset in the frame rows the method skipped (``skipped``, bool per row): which take
     this frame's estimate on demand (their coordinates into ``ys``, ``xs``; returns (how many, kept)) and which
@@ -394,19 +394,24 @@ def skipped_resets(skipped, reset, motion, new_censored, old_bound, old_weight, 
     crossed the censor level lies in the window (``wy``, ``wx`` either side) of a pixel taking this frame (on
     demand, or reset outside the skipped rows), every pixel whose window holds it takes it too, and so on.
     ``old_test``, ``test``: the history's tested estimate and its new one, of no rows where the test has no
-    history of its own (``old_test`` is then the mean)."""
+    history of its own (``old_test`` is then the mean). ``words``: ``reset``'s rows as uint64 words (8 pixels
+    each, the rows' first 8 * n pixels: :func:`reset_words`), which the listing skips where 0."""
     h, w = reset.shape
     one = np.float32(1)
     # the skipped rows' reset pixels, listed (from the end of ys, xs; the stack grows from the start)
     size = ys.size
     count = 0
+    nw = words.shape[1]
     for r in range(h):
         if not skipped[r]:
             continue
-        for c in range(w):
-            if reset[r, c]:
-                count += 1
-                ys[size - count], xs[size - count] = r, c
+        for k in range(nw + 1):
+            if k < nw and words[r, k] == 0:
+                continue
+            for c in range(8 * k, w if k == nw else 8 * k + 8):
+                if reset[r, c]:
+                    count += 1
+                    ys[size - count], xs[size - count] = r, c
     top = 0
     for k in range(size - count, size):
         r, c = ys[k], xs[k]
@@ -463,6 +468,15 @@ def skipped_resets(skipped, reset, motion, new_censored, old_bound, old_weight, 
                 test[r, c] = old_test[r, c] * scale
             censored[r, c] = old_censored[r, c]
     return n, kept
+
+
+def reset_words(reset: np.ndarray) -> np.ndarray:
+    """:func:`skipped_resets`' ``words`` of a bool (H, W) array: its rows' first 8 * (W // 8) bytes as uint64 words
+    (a view where the rows allow it; else of no words, and every pixel is read)."""
+    h, w = reset.shape
+    if reset.flags.c_contiguous and w % 8 == 0:
+        return reset.view(np.uint64)
+    return np.empty((h, 0), np.uint64)
 
 
 def window_kernel_ok(inp: SveInput) -> bool:

@@ -534,11 +534,11 @@ class Reconstructor:
         ys, xs = np.empty(2 * h * w, np.intp), np.empty(2 * h * w, np.intp)  # (lazily touched)
         no_rows = np.empty((0, 0), np.float32)
         wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
-        n, kept = settle.skipped_resets(~partial.rows, fused.reset, fused.motion, frame.censored, history.bound,
-                                        history.weight, history.own, history.tested, history.censored, scale, tested,
-                                        tested_variance, inv_k2, scale == 1, wy, wx, state.weight, state.own,
-                                        no_rows if state.test is None else state.test, censored,
-                                        np.zeros((h, w), np.int8), ys, xs)
+        n, kept = settle.skipped_resets(~partial.rows, fused.reset, settle.reset_words(fused.reset), fused.motion,
+                                        frame.censored, history.bound, history.weight, history.own, history.tested,
+                                        history.censored, scale, tested, tested_variance, inv_k2, scale == 1, wy, wx,
+                                        state.weight, state.own, no_rows if state.test is None else state.test,
+                                        censored, np.zeros((h, w), np.int8), ys, xs)
         ys, xs = ys[:n], xs[:n]
         ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads)
         partial.stats.update(stats, kept_px=kept)
