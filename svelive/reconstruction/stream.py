@@ -739,6 +739,8 @@ class Estimated:
         colour_input: a colour frame's own input (its CFA channels and censoring: the lattice stage
             reads them after the fused luminance is coloured), else None.
         partial: the bands the method ran on where the stream's ``refresh`` skips some (settle.Partial), else None.
+            The estimate's ``image`` holds no value on the skipped rows (fusion.fuse's ``predicted``: the
+            history's mean stands for it there, and the rows of wholly skipped strips stay unwritten).
     """
 
     estimate: Estimate
