@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
 from svelive.reconstruction.methods.base import SveInput, reflect_101, tile_rows, window_kernels, window_level_row
@@ -60,12 +61,25 @@ CELL_LIMIT_SHARE = 0.6
 
 @dataclass
 class Partial:
-    """A frame whose method ran on some bands only (``computed``, bool per band)."""
+    """A frame whose method ran on some bands only.
+
+    Attributes:
+        inp: the frame's prepared input; noise: its noise model (gain, read noise) as the method takes it.
+        computed: bool (bands,), the bands whose rows hold the method's estimate (and the window mean completed
+            with it); at :meth:`Reconstructor.estimate` a hint taken from the history the stream held then,
+            made the stream's own selection by :meth:`Reconstructor.fuse`.
+        rows: bool (H,), ``computed`` by row.
+        hint: the history whose mean the skipped rows' window mean took where the window holds no uncensored
+            reading (None: every band computed).
+        stats: counts for benchmarks (bands, computed, on-demand pixels and cells, bands the fuse added or
+            dropped against the hint).
+    """
 
     inp: SveInput
     noise: tuple[float, float]
     computed: np.ndarray
-    rows: np.ndarray  # bool (H,), rows whose estimate is this frame's
+    rows: np.ndarray
+    hint: object | None = None
     stats: dict = field(default_factory=dict)
 
 
@@ -104,11 +118,32 @@ def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndar
                   out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
 
 
+def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
+                        lower: np.ndarray, variance: np.ndarray, workers: int | Executor = 1) -> None:
+    """:func:`method_on_bands` (without the window mean) writing the selected bands' rows alone: each run of
+    them one crop with its halo into arrays of its own, whose band rows are copied into ``image`` (float32
+    (H, W), DN), ``lower`` (bool (H, W)) and ``variance`` (float32 (H, W), DN^2); every other row is left as it
+    was (a band computed beside one the frame holds already: :meth:`Reconstructor.fuse` completing an estimate
+    whose selection was a hint)."""
+    h, w = inp.shape
+    for a, b in runs(selected):
+        top, stop = a * BAND_ROWS, min(b * BAND_ROWS, h)
+        rows = slice(max(top - HALO, 0), min(stop + HALO, h))
+        n = rows.stop - rows.start
+        out = np.empty((n, w), np.float32), np.empty((n, w), bool), np.empty((n, w), np.float32)
+        _estimate(inp.crop(rows), noise, workers, want_variance=True, out=(*out, None))
+        core = slice(top - rows.start, stop - rows.start)
+        for target, crop in zip((image, lower, variance), out):
+            target[top:stop] = crop[core]
+
+
 def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: list[tuple[int, int]],
-                level: np.ndarray, noise: np.ndarray) -> None:
+                level: np.ndarray, noise: np.ndarray, cache: dict | None = None) -> None:
     """The motion tests' window mean (numerics.window_estimate, bit-identical) of the frame rows ``rows``
-    ([start, stop) pairs) into ``level`` and ``noise``; ``image`` and ``variance`` where the window holds no
-    uncensored reading. Nominal tiles with inline windows only."""
+    ([start, stop) pairs) into ``level`` and ``noise`` (float32 (H, W), DN and DN^2); ``image`` and ``variance``
+    (float32 (H, W)) where the window holds no uncensored reading. Nominal tiles with inline windows only.
+    ``cache``: a dict the caller keeps across a stream's frames for the tables of :func:`_clean_tables` (one
+    entry), or None (made for this call)."""
     layout = _window_layout(inp.pattern, inp.period, inp.shape)
     kernels = layout.kernels
     if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
@@ -118,24 +153,23 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     sensor = inp.sensor
     inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
     exposure = inp.exposure[:period]
-    row_tables, tables, row_of = _clean_tables(exposure, kernels, inp.pattern.shape[0], inp.period[0], h)
+    row_tables, tables, row_of = _clean_tables(exposure, kernels, inp.pattern.shape[0], inp.period[0], h,
+                                               {} if cache is None else cache)
     for start, stop in rows:
         _window_strip_clean(inp.signal, exposure, inp.censored, start, stop, *kernels, inv_gain, floor,
                             image, variance, level, noise, row_tables, tables, row_of)
 
 
-_TABLES: dict = {}
-
-
-def _clean_tables(exposure: np.ndarray, kernels, pattern_rows: int, window_rows: int, h: int):
+def _clean_tables(exposure: np.ndarray, kernels, pattern_rows: int, window_rows: int, h: int, cache: dict):
     """(row_tables, tables, row_of) of :func:`_window_strip_clean` for a frame of ``h`` rows whose exposures repeat
     ``exposure`` ((P, W), row r's is row r % P): the sums along a row of e (``kernels[1]``), of e and of 1
     (``kernels[3]``) by row phase, (3, P, W); those sums down the window's rows (``kernels[0]``, ``kernels[2]``) of
     a frame without censored readings, (3, S, W), on the rows of numerics' small frame (methods.base.tile_rows),
     ``row_of`` (H,) mapping the frame's rows to them. Made with the kernels that sum the frame's windows (the same
-    arithmetic, in the same order): computed once per exposure rows, kernels and height."""
+    arithmetic, in the same order): kept in ``cache`` (one entry: a stream's frames share them), made again when
+    the exposure rows, kernels or height change."""
     key = (exposure.tobytes(), exposure.shape, tuple(k.tobytes() for k in kernels), pattern_rows, window_rows, h)
-    if key not in _TABLES:
+    if key not in cache:
         a = kernels[0].size // 2
         small, row_of = tile_rows(h, int(np.lcm(window_rows, pattern_rows)), a)
         row_tables = np.empty((3, exposure.shape[0], exposure.shape[1]), np.float32)
@@ -144,9 +178,9 @@ def _clean_tables(exposure: np.ndarray, kernels, pattern_rows: int, window_rows:
         row_of = row_of.astype(np.intp)
         for array in (row_tables, tables, row_of):
             array.setflags(write=False)
-        _TABLES.clear()  # (one stream's frames: one entry)
-        _TABLES[key] = (row_tables, tables, row_of)
-    return _TABLES[key]
+        cache.clear()  # (one stream's frames: one entry)
+        cache[key] = (row_tables, tables, row_of)
+    return cache[key]
 
 
 @kernel
@@ -479,9 +513,12 @@ def reset_words(reset: np.ndarray) -> np.ndarray:
     return np.empty((h, 0), np.uint64)
 
 
-def window_kernel_ok(inp: SveInput) -> bool:
-    """Whether :func:`window_rows` can make the frame's window mean (nominal tile, inline windows)."""
-    if inp.pattern.pixel_map is not None or inp.folded or inp.cfa is not None:
+def supports(pattern: Pattern) -> bool:
+    """Whether a monochrome stream of this exposure pattern can skip bands: a nominal tile (no per-pixel map)
+    whose sides divide :data:`CELL`, :data:`HALO` and :data:`BAND_ROWS` (every band, crop and patch starts on
+    whole tiles) and whose motion window :func:`window_rows` makes inline."""
+    if pattern.pixel_map is not None:
         return False
-    k = window_kernels(inp.period)
-    return k[0].size <= INLINE_TAPS[0] and k[1].size <= INLINE_TAPS[1]
+    sides = all(CELL % n == 0 and HALO % n == 0 and BAND_ROWS % n == 0 for n in pattern.shape)
+    k = window_kernels(pattern.shape)
+    return sides and k[0].size <= INLINE_TAPS[0] and k[1].size <= INLINE_TAPS[1]

@@ -240,8 +240,10 @@ class Reconstructor:
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="svelive-strip") if workers > 1 else None
         self.method_options = dict(method_options)
         self.refresh = int(refresh)
-        self._tick = 0  # frames estimated, for the round-robin of settled bands
-        self._last_variance: np.ndarray | None = None  # the last partial frame's variance (placeholders)
+        self._tick = 0  # partial frames estimated: the round-robin's hint
+        self._fused_partials = 0  # partial frames fused: the round-robin's turn
+        self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
+        self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._infinite: np.ndarray | None = None  # float32 (H, W) of inf (settle: lost windows' variance)
@@ -559,69 +561,119 @@ class Reconstructor:
 
     def _settles(self, method: str, camera: Camera) -> bool:
         """Whether this frame takes the partial path (``refresh``; svelive.reconstruction.settle)."""
+        from svelive.reconstruction import settle
+
         return (self.refresh > 0 and self.temporal and not self.consistency and method == "adaptive"
-                and camera.cfa is None and self.pattern.pixel_map is None)
+                and camera.cfa is None and settle.supports(camera.pattern))
+
+    def _selection(self, history: TemporalState | None, tick: int, shape: tuple[int, int],
+                   band_motion: list[np.ndarray], last_ratio: float,
+                   last_variance: np.ndarray | None) -> np.ndarray:
+        """bool (bands,): the bands of a frame of ``shape`` the method runs on, given the history it is fused
+        into (svelive.reconstruction.settle): every band without a history of this shape (or before a partial
+        frame was fused: ``last_variance``, its variance), or after a frame whose brightness ratio
+        (``last_ratio``) moved; else those where something moved within the last max_history frames
+        (``band_motion``: moving pixels per band on every 4th row, of the last fused frames), those whose
+        history is mostly unsettled (a stream's start, a restart) and the round-robin's ``tick``-th 1 / K."""
+        from svelive.reconstruction import settle
+        from svelive.reconstruction.fusion import RATIO_TOLERANCE
+
+        h, w = shape
+        spans = settle.bands(h)
+        if (history is None or history.mean.shape != shape or last_variance is None
+                or last_variance.shape != shape or abs(last_ratio - 1.0) > RATIO_TOLERANCE):
+            return np.ones(len(spans), bool)
+        # not the isolated false alarms, nor the pixels reset where a reading crossed the censor level
+        selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
+                    else np.zeros(len(spans), bool))
+        floor = np.float32(1.0 / self.motion_config.max_history)
+        selected |= np.array([np.count_nonzero(history.weight[b.start:b.stop:4] > floor)
+                              > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
+        # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
+        selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
+        return selected
+
+    def _selection_state(self) -> tuple[list[np.ndarray], float, np.ndarray | None]:
+        """(band motion, last brightness ratio, last partial frame's variance) as the last fused frame left
+        them: what :meth:`_selection` reads besides the history. Called under ``_lock``."""
+        return list(self._band_motion), self._last_ratio, self._last_variance
 
     def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
         """(input, estimate with the window mean, settle.Partial): the method on the bands the latest history
-        asks for (a hint: the frame may be fused after another), the window mean everywhere."""
+        asks for, the window mean everywhere. The selection is a hint: the frame may be fused into a later
+        history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
         from svelive.reconstruction import settle
-        from svelive.reconstruction.fusion import RATIO_TOLERANCE
-        from svelive.reconstruction.methods.adaptive import noise_model
+        from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
 
         inp = prepare(getattr(raw, "raw", raw), camera)
         noise = noise_model(inp)
         h, w = inp.shape
-        spans = settle.bands(h)
         with self._lock:
             hint, tick = self._history, self._tick
             self._tick += 1
-        last_variance = self._last_variance
-        if hint is None or hint.mean.shape != (h, w) or last_variance is None or last_variance.shape != (h, w):
-            selected = np.ones(len(spans), bool)
-        else:
-            # the bands where something moved within the last max_history frames (on every 4th row; not the
-            # isolated false alarms, nor the pixels reset where a reading crossed the censor level)
-            if abs(self._last_ratio - 1.0) > RATIO_TOLERANCE:  # the light changed: every band
-                moving = [np.full(len(spans), np.iinfo(np.int64).max)]
-            else:
-                moving = self._band_motion
-            selected = (np.max(moving, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if moving
-                        else np.zeros(len(spans), bool))
-            # and those whose history is mostly unsettled (a stream's start, after a restart)
-            floor = np.float32(1.0 / self.motion_config.max_history)
-            selected |= np.array([np.count_nonzero(hint.weight[b.start:b.stop:4] > floor)
-                                  > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
-            # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
-            selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
+            selected = self._selection(hint, tick, (h, w), *self._selection_state())
+            if not selected.all() and (self._infinite is None or self._infinite.shape != (h, w)):
+                self._infinite = np.full((h, w), np.inf, np.float32)
+            infinite = self._infinite
         image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool),
                                   np.empty((h, w), np.float32))
         window = np.empty((2, h, w), np.float32)  # (rows the pass does not make are made below)
         settle.method_on_bands(inp, noise, selected, image, lower, variance, window, self._threads)
-        from svelive.reconstruction.methods.adaptive import _shares_window
-        skipped = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(~selected)]
-        # the skipped rows' estimate and bound are the history's (fuse writes them, times its brightness ratio);
-        # their variance, the last frame's (a placeholder: the output's variance, which the live path never reads)
-        for a, b in skipped:
-            variance[a:b] = last_variance[a:b]
-        # the window mean where the method did not make it (the history's mean where its window holds no
-        # uncensored reading)
-        if skipped:  # (an infinite variance where the window holds no uncensored reading: fuse's tests pass over
-            # such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
-            if self._infinite is None or self._infinite.shape != (h, w):
-                self._infinite = np.full((h, w), np.inf, np.float32)
-            settle.window_rows(inp, hint.mean, self._infinite, skipped, window[0], window[1])
+        skipped = _band_rows(~selected, h)
+        # the skipped rows' estimate and bound are the history's (fuse writes them, times its brightness ratio),
+        # their variance the last fused frame's (fuse writes it too); the window mean where the method did not make
+        # it, the history's mean where its window holds no uncensored reading (with an infinite variance: fuse's
+        # tests pass over such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
+        if skipped:
+            settle.window_rows(inp, hint.mean, infinite, skipped, window[0], window[1], self._window_tables)
         if not _shares_window(inp):
-            computed = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(selected)]
-            settle.window_rows(inp, image, variance, computed, window[0], window[1])
-        for a, b in settle.runs(selected):  # (the window rows made here hold no infinite variance)
-            rows = slice(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h))
-            completed_window((window[0, rows], window[1, rows]), image[rows], variance[rows])
-        self._last_variance = variance
+            settle.window_rows(inp, image, variance, _band_rows(selected, h), window[0], window[1],
+                               self._window_tables)
+        for a, b in _band_rows(selected, h):  # (the window rows made here hold no infinite variance)
+            completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
         rows = np.repeat(selected, settle.BAND_ROWS)[:h]
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
-        return inp, est, settle.Partial(inp, noise, selected, rows,
-                                        dict(bands=len(spans), computed=int(np.count_nonzero(selected))))
+        return inp, est, settle.Partial(inp, noise, selected, rows, None if selected.all() else hint,
+                                        dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
+
+    def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
+        """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
+        whatever its estimate's hint took (svelive.reconstruction.settle): the bands the hint skipped and the
+        selection wants are computed now (their rows alone, and their window mean completed with them); the
+        bands the hint computed and the selection skips take the history's window level where their window
+        holds no uncensored reading, as a skipped band does; skipped rows whose hint was another history take
+        this one's mean there; every skipped row takes the last fused partial frame's variance (a placeholder:
+        the output's variance there, :class:`OutputVariance`). The frame then fuses as the sequential stream's
+        would, bit for bit, however far ahead it was estimated. In ``frame``'s and ``partial``'s arrays."""
+        from svelive.reconstruction import settle
+
+        h, w = frame.image.shape
+        selected = self._selection(history, self._fused_partials, (h, w), *self._selection_state())
+        hinted = partial.computed
+        missing, extra = selected & ~hinted, hinted & ~selected
+        level, noise = frame.test, frame.test_variance
+        if missing.any():
+            settle.method_on_band_rows(partial.inp, partial.noise, missing, frame.image, frame.bound, frame.variance,
+                                       self._threads)
+            for a, b in _band_rows(missing, h):  # (the skipped rows' lost windows: infinite, so completed here)
+                completed_window((level[a:b], noise[a:b]), frame.image[a:b], frame.variance[a:b])
+        if extra.any():
+            if self._infinite is None or self._infinite.shape != (h, w):
+                self._infinite = np.full((h, w), np.inf, np.float32)
+            settle.window_rows(partial.inp, history.mean, self._infinite, _band_rows(extra, h), level, noise,
+                               self._window_tables)
+        if partial.hint is not history:
+            for a, b in _band_rows(~selected & ~hinted, h):
+                lost = np.isinf(noise[a:b])
+                if lost.any():
+                    level[a:b][lost] = history.mean[a:b][lost]
+        for a, b in _band_rows(~selected, h):
+            frame.variance[a:b] = self._last_variance[a:b]
+        partial.computed[:] = selected
+        partial.rows[:] = np.repeat(selected, settle.BAND_ROWS)[:h]
+        partial.hint = None if selected.all() else history
+        partial.stats.update(computed=int(np.count_nonzero(selected)), added=int(np.count_nonzero(missing)),
+                             dropped=int(np.count_nonzero(extra)))
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
@@ -645,6 +697,8 @@ class Reconstructor:
                 frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
             partial = estimated.partial
             predicted = complete = None
+            if partial is not None:
+                self._settle_at_fuse(partial, frame, history)
             if partial is not None and not partial.computed.all():
                 from svelive.reconstruction import settle
 
@@ -666,11 +720,14 @@ class Reconstructor:
             if partial is not None:
                 if not partial.rows.all():
                     fused = self._on_demand(partial, fused, frame, predicted, history)
-                self._band_motion.append(np.add.reduceat(fused.motion[::4].sum(axis=1),
-                                                         np.arange(0, -(-fused.motion.shape[0] // 4), 16)))
-                del self._band_motion[:-self.motion_config.max_history]
+                band_motion = np.add.reduceat(fused.motion[::4].sum(axis=1),
+                                              np.arange(0, -(-fused.motion.shape[0] // 4), 16))
+                with self._lock:  # (what the next frames' selection reads, estimate's hints too)
+                    self._band_motion = [*self._band_motion, band_motion][-self.motion_config.max_history:]
+                    self._last_ratio = fused.illumination_ratio
+                    self._last_variance = frame.variance
+                    self._fused_partials += 1
                 self.last_partial = dict(partial.stats)
-                self._last_ratio = fused.illumination_ratio
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             if history is not None and history.mean.shape == image.shape:
                 reset = fused.reset
@@ -759,6 +816,14 @@ class Estimated:
     noise: NoiseEstimate | None = None
     colour_input: SveInput | None = None
     partial: object | None = None  # settle.Partial: the method ran on some bands only (``refresh``)
+
+
+def _band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
+    """[start, stop) rows of the runs of True in ``flags`` (bool per band of settle.BAND_ROWS rows) of a frame
+    of ``h`` rows."""
+    from svelive.reconstruction import settle
+
+    return [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(flags)]
 
 
 def _needs_noise(camera: Camera) -> bool:
