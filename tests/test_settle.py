@@ -113,3 +113,31 @@ def test_frames_estimated_ahead_fuse_as_the_sequential_stream():
                                                   err_msg=f"lag {lag}, frame {i}: history {name}")
         assert changed > 0  # the hints missed bands or took some the stream skips: the reconciliation ran
         assert skipped > 0  # and bands were skipped
+
+
+def test_refresh_is_checked_and_colour_streams_ignore_it():
+    import pytest
+
+    from service.pipeline import PipelineConfig
+    from svelive import SveliveError
+    from svelive.reconstruction.live import LIVE_REFRESH
+
+    for bad in (-1, 65, 2.5, True):
+        with pytest.raises(SveliveError, match="refresh"):
+            Reconstructor("1,4/16,64", refresh=bad)
+        with pytest.raises(SveliveError, match="refresh"):
+            PipelineConfig(refresh=bad)
+    assert PipelineConfig().refresh == LIVE_REFRESH and Reconstructor("1,4/16,64").refresh == 0
+    frames = _frames(2)
+    colour = DemoSource("demo", width=128, height=128, fps=0, period_s=1e9)  # the demo's colour camera
+    try:
+        raw = next(iter(colour.frames(limit=1)))
+    finally:
+        colour.close()
+    assert raw.camera.cfa is not None
+    stream = Reconstructor(raw.camera, refresh=8)
+    stream.process(raw)
+    assert stream.last_partial is None and stream.refresh_state()["applies"] is False
+    mono = Reconstructor(frames[0].camera, refresh=8)
+    mono.process(frames[0])
+    assert mono.refresh_state()["applies"] is True

@@ -193,10 +193,14 @@ class Reconstructor:
         workers: threads for one frame: the strips of the method (where it takes
             a ``workers`` option) and of the motion stage are spread over them.
             The results do not depend on it; 1 keeps everything on the caller's thread.
-        refresh: prototype (issue 25, svelive.reconstruction.settle), 0 (off) or K >= 1: a monochrome stream
-            with temporal fusion and method ``adaptive`` (no within-frame test) runs the method per frame only
-            on the bands whose history is not settled and a round-robin 1 / K of the others; skipped pixels
-            keep their history's mean, pixels the test resets there get their estimate on demand.
+        refresh: 0 (off, the default) or K in 1..64 (svelive.reconstruction.settle, issue 25): a monochrome
+            stream with temporal fusion and method ``adaptive`` (no within-frame test, a nominal tile of sides
+            dividing 16), once its noise model is trusted, runs the method per frame only on the bands of 64
+            rows whose history is not settled (recent motion, a start or restart) and a round-robin 1 / K of
+            the others; skipped pixels keep their history's mean, pixels the test resets there get their
+            estimate on demand. Which bands run is decided by the history a frame is fused into, so frames
+            estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it. The live
+            service's default for monochrome streams (svelive.reconstruction.live.LIVE_REFRESH).
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
@@ -239,6 +243,8 @@ class Reconstructor:
         # one pool for the stream's whole life: a pool per frame costs thread start-ups and grows memory
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="svelive-strip") if workers > 1 else None
         self.method_options = dict(method_options)
+        if isinstance(refresh, bool) or not isinstance(refresh, (int, np.integer)) or not 0 <= refresh <= 64:
+            raise SveliveError(f"refresh must be an integer 0..64 (0: off), got {refresh!r}")
         self.refresh = int(refresh)
         self._tick = 0  # partial frames estimated: the round-robin's hint
         self._fused_partials = 0  # partial frames fused: the round-robin's turn
@@ -331,6 +337,23 @@ class Reconstructor:
         if noise is None or noise.estimate is None:
             return None
         return {**noise.estimate.to_dict(), "trusted": noise.trusted, "fits": noise.fits, "error": noise.error}
+
+    def refresh_state(self) -> dict[str, object] | None:
+        """JSON-ready, None with ``refresh`` off: ``refresh`` (K), ``applies`` (this stream skips bands once its
+        model is trusted: monochrome, ``adaptive``, fusion, a supported tile), and of the last fused frame that
+        took the partial path ``bands`` and ``computed`` (bands the method ran on) and ``on_demand_px``, or None
+        before one."""
+        if not self.refresh:
+            return None
+        with self._lock:
+            method = self._method
+        camera = self.camera
+        applies = camera is not None and self._settles(method, camera)
+        last = self.last_partial
+        return {"refresh": self.refresh, "applies": applies,
+                "bands": None if last is None else last.get("bands"),
+                "computed": None if last is None else last.get("computed"),
+                "on_demand_px": None if last is None else last.get("demand_px", 0)}
 
     def __enter__(self) -> Reconstructor:
         return self
