@@ -3,7 +3,8 @@
     python benchmarks/service.py [--minutes 10] [--clients 10] [--fps 30] [--idle-s 15] [--method weighted]
                                  [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
                                  [--size 1920x1200]
-                                 [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held] [--refresh K]
+                                 [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held]
+                                 [--refresh K]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
