@@ -1,4 +1,5 @@
-"""Prototype (issue 25): accuracy of ``Reconstructor(refresh=K)`` against refresh off, on issue 26's cases.
+"""The band refresh (issue 25, svelive.reconstruction.settle): accuracy of ``Reconstructor(refresh=K)`` against
+refresh off, on issue 26's cases.
 
     python benchmarks/settle_accuracy.py [--crop 256] [--frames 20] [--refresh 2,4] [--data ../shared/data]
 

@@ -1,4 +1,5 @@
-"""Prototype (issue 25): CPU per frame of a still 1920x1200 demo stream, refresh off against ``refresh=K``.
+"""The band refresh (issue 25, svelive.reconstruction.settle): CPU per frame of a still 1920x1200 demo stream,
+refresh off against ``refresh=K``.
 
     python benchmarks/settle_cost.py [--size 1920x1200] [--frames 30] [--refresh 2,4]
 

@@ -1,4 +1,4 @@
-"""The prototype of issue 25 (svelive.reconstruction.settle): ``adaptive`` on bands, cells and edge stacks gives the
+"""The band refresh of issue 25 (svelive.reconstruction.settle): ``adaptive`` on bands, cells and edge stacks gives the
 full frame's results bit for bit; ``refresh=K`` streams skip bands and stay close to the stream without it."""
 
 import numpy as np

@@ -356,7 +356,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         strip_rows: rows per strip; the result does not depend on it either.
         executor: a pool of ``workers`` threads the caller keeps across frames
             (svelive.reconstruction.methods.base.map_on); None: one is made for this call.
-        predicted: rows ([start, stop) pairs) the method skipped (prototype, svelive.reconstruction.settle):
+        predicted: rows ([start, stop) pairs) the method skipped (the band refresh, svelive.reconstruction.settle):
             their estimate is taken as the history's mean times the brightness ratio (so the mean stays,
             exactly) and their lower bound as the history's, written into ``frame.image`` (not where the
             ratio is 1 and a whole strip is skipped: its rows are then left unwritten) and ``frame.bound``

@@ -1,4 +1,4 @@
-"""Prototype (issue 25): a live stream that runs ``adaptive`` only where its history needs a new estimate.
+"""The band refresh (issue 25): a live stream that runs ``adaptive`` only where its history needs a new estimate.
 
 In a still view almost every pixel's history is settled (n = max_history: a new frame adds 1 / n of its
 estimate). :class:`svelive.reconstruction.stream.Reconstructor` with ``refresh=K`` (monochrome frames, method
@@ -18,6 +18,12 @@ many, else a patch atlas of :data:`CELL` px cells with their halos).
 The method on a crop with a halo of :data:`HALO` rows and columns (a multiple of the tile) gives the full
 frame's results in the crop's interior, bit for bit, given the full frame's noise model (computed once per
 frame): so do the bands and the atlas here.
+
+Which bands run is decided by the history a frame is fused into: ``Reconstructor.estimate`` takes a hint from
+the history the stream holds then, and ``Reconstructor.fuse`` computes the bands the hint missed
+(:func:`method_on_band_rows`) and treats those it took beyond the selection as skipped, so frames estimated
+ahead fuse as the sequential stream's, bit for bit. The live service runs it for monochrome streams
+(svelive.reconstruction.live.LIVE_REFRESH); the library's default is off.
 """
 
 from __future__ import annotations
