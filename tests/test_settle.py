@@ -112,6 +112,9 @@ def test_frames_estimated_ahead_fuse_as_the_sequential_stream():
                     np.testing.assert_array_equal(getattr(ahead._history, name), getattr(sequential._history, name),
                                                   err_msg=f"lag {lag}, frame {i}: history {name}")
         assert changed > 0  # the hints missed bands or took some the stream skips: the reconciliation ran
+        state = ahead.refresh_state()
+        assert state["hint_added"] + state["hint_dropped"] == changed
+        assert sequential.refresh_state()["hint_added"] == sequential.refresh_state()["hint_dropped"] == 0
         assert skipped > 0  # and bands were skipped
 
 

@@ -248,6 +248,7 @@ class Reconstructor:
         self.refresh = int(refresh)
         self._tick = 0  # partial frames estimated: the round-robin's hint
         self._fused_partials = 0  # partial frames fused: the round-robin's turn
+        self._hint_changes = [0, 0]  # bands fuse computed beyond the estimates' hints, and dropped from them
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
@@ -342,7 +343,9 @@ class Reconstructor:
         """JSON-ready, None with ``refresh`` off: ``refresh`` (K), ``applies`` (this stream skips bands once its
         model is trusted: monochrome, ``adaptive``, fusion, a supported tile), and of the last fused frame that
         took the partial path ``bands`` and ``computed`` (bands the method ran on) and ``on_demand_px``, or None
-        before one."""
+        before one; ``hint_added`` and ``hint_dropped``: bands :meth:`fuse` computed beyond its frames' estimates
+        and dropped from them, over the stream's life (frames estimated ahead of the history they are fused into).
+        """
         if not self.refresh:
             return None
         with self._lock:
@@ -353,7 +356,8 @@ class Reconstructor:
         return {"refresh": self.refresh, "applies": applies,
                 "bands": None if last is None else last.get("bands"),
                 "computed": None if last is None else last.get("computed"),
-                "on_demand_px": None if last is None else last.get("demand_px", 0)}
+                "on_demand_px": None if last is None else last.get("demand_px", 0),
+                "hint_added": self._hint_changes[0], "hint_dropped": self._hint_changes[1]}
 
     def __enter__(self) -> Reconstructor:
         return self
@@ -697,6 +701,8 @@ class Reconstructor:
         partial.hint = None if selected.all() else history
         partial.stats.update(computed=int(np.count_nonzero(selected)), added=int(np.count_nonzero(missing)),
                              dropped=int(np.count_nonzero(extra)))
+        self._hint_changes = [self._hint_changes[0] + partial.stats["added"],
+                              self._hint_changes[1] + partial.stats["dropped"]]
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
