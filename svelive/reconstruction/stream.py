@@ -622,7 +622,8 @@ class Reconstructor:
 
     def _selection_state(self) -> tuple[list[np.ndarray], float, np.ndarray | None]:
         """(band motion, last brightness ratio, last partial frame's variance) as the last fused frame left
-        them: what :meth:`_selection` reads besides the history. Called under ``_lock``."""
+        them: what :meth:`_selection` reads besides the history. Called under ``_lock`` (:meth:`estimate`), or by
+        :meth:`fuse`, their only writer."""
         return list(self._band_motion), self._last_ratio, self._last_variance
 
     def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
