@@ -144,3 +144,21 @@ def test_refresh_is_checked_and_colour_streams_ignore_it():
     mono = Reconstructor(frames[0].camera, refresh=8)
     mono.process(frames[0])
     assert mono.refresh_state()["applies"] is True
+
+
+def test_a_frame_estimated_and_never_fused_leaves_the_hints_aligned():
+    """A frame the caller estimates and drops (a live service that gives up on it) takes no round-robin turn: the
+    frames after it are estimated with the bands their fusion selects (no band added or dropped by fuse), and
+    fuse as a stream that never saw it does."""
+    raws, sensor = _moving_disc_raws(22)
+    kw = dict(black_level=64, white_level=4095, gain=sensor.gain, read_noise=sensor.read_noise, refresh=4)
+    dropping, plain = Reconstructor("1,4/16,64", **kw), Reconstructor("1,4/16,64", **kw)
+    for i, raw in enumerate(raws):
+        if i in (10, 15):
+            dropping.estimate(raw)  # and never fused
+            continue
+        got, want = dropping.process(raw), plain.process(raw)
+        np.testing.assert_array_equal(got.image, want.image, err_msg=f"frame {i}")
+    state = dropping.refresh_state()
+    assert state["hint_added"] == state["hint_dropped"] == 0, state
+    assert plain.last_partial["computed"] < plain.last_partial["bands"]

@@ -65,7 +65,7 @@ CELL = 16
 CELL_LIMIT_SHARE = 0.6
 
 
-@dataclass
+@dataclass(eq=False)  # (by identity: the stream holds the frames in flight in a WeakSet)
 class Partial:
     """A frame whose method ran on some bands only.
 
@@ -77,6 +77,7 @@ class Partial:
         rows: bool (H,), ``computed`` by row.
         hint: the history whose mean the skipped rows' window mean took where the window holds no uncensored
             reading (None: every band computed).
+        tick: the round-robin's turn the hint took (the partial frames fused and in flight when it was estimated).
         stats: counts for benchmarks (bands, computed, on-demand pixels and cells, bands the fuse added or
             dropped against the hint).
     """
@@ -86,6 +87,7 @@ class Partial:
     computed: np.ndarray
     rows: np.ndarray
     hint: object | None = None
+    tick: int = 0
     stats: dict = field(default_factory=dict)
 
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -246,7 +247,9 @@ class Reconstructor:
         if isinstance(refresh, bool) or not isinstance(refresh, (int, np.integer)) or not 0 <= refresh <= 64:
             raise SveliveError(f"refresh must be an integer 0..64 (0: off), got {refresh!r}")
         self.refresh = int(refresh)
-        self._tick = 0  # partial frames estimated: the round-robin's hint
+        # partial frames estimated and not fused yet (weakly: one never fused leaves with its Estimated), whose
+        # count ahead of the frames fused gives an estimate's hint its round-robin turn
+        self._in_flight: weakref.WeakSet = weakref.WeakSet()
         self._fused_partials = 0  # partial frames fused: the round-robin's turn
         self._hint_changes = [0, 0]  # bands fuse computed beyond the estimates' hints, and dropped from them
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
@@ -637,12 +640,15 @@ class Reconstructor:
         noise = noise_model(inp)
         h, w = inp.shape
         with self._lock:
-            hint, tick = self._history, self._tick
-            self._tick += 1
+            hint, tick = self._history, self._fused_partials + len(self._in_flight)
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
             if not selected.all() and (self._infinite is None or self._infinite.shape != (h, w)):
                 self._infinite = np.full((h, w), np.inf, np.float32)
             infinite = self._infinite
+            partial = settle.Partial(inp, noise, selected, np.repeat(selected, settle.BAND_ROWS)[:h],
+                                     None if selected.all() else hint, tick,
+                                     dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
+            self._in_flight.add(partial)  # (at once: a frame estimated beside it takes the next turn)
         image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool),
                                   np.empty((h, w), np.float32))
         window = np.empty((2, h, w), np.float32)  # (rows the pass does not make are made below)
@@ -659,10 +665,8 @@ class Reconstructor:
                                self._window_tables)
         for a, b in _band_rows(selected, h):  # (the window rows made here hold no infinite variance)
             completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
-        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
-        return inp, est, settle.Partial(inp, noise, selected, rows, None if selected.all() else hint,
-                                        dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
+        return inp, est, partial
 
     def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
         """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
@@ -756,6 +760,7 @@ class Reconstructor:
                     self._band_motion = [*self._band_motion, band_motion][-self.motion_config.max_history:]
                     self._last_ratio = fused.illumination_ratio
                     self._last_variance = frame.variance
+                    self._in_flight.discard(partial)
                     self._fused_partials += 1
                 self.last_partial = dict(partial.stats)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
