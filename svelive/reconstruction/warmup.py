@@ -71,15 +71,18 @@ def _warm_up_refresh(rng: np.random.Generator) -> None:
     the service's default): still frames of four bands (the noise model given, so trusted at once) until the
     histories settle and bands are skipped, then frames that move a little and a lot (pixels reset in skipped
     bands take their estimate on demand, in cells and at the frame's edges), with and without saturated pixels,
-    and a frame estimated ahead of the one before it (the fusion completes the bands its hint missed)."""
+    and a frame estimated ahead of the one before it (the fusion completes the bands its hint missed). The
+    frames are wide and noisy enough for ``adaptive``'s floor evidence to find its pairs of readings dominated by
+    the noise floor (``evidence._read_variance``, which every full-size live frame runs and the small frames
+    above never reach)."""
     from svelive.reconstruction.settle import BAND_ROWS
 
-    scene = rng.uniform(0, 400, (3 * BAND_ROWS + 8, 48))
+    scene = rng.uniform(0, 1500, (3 * BAND_ROWS + 8, 128))
     for pattern, saturate in product(("1,4/16,64", "1/1/8/8"), (False, True)):
-        stream = Reconstructor(pattern, white_level=4095, gain=1.0, read_noise=3.0, refresh=2)
+        stream = Reconstructor(pattern, white_level=4095, gain=1.0, read_noise=20.0, refresh=2)
         frames = []
         for moved in (0,) * 11 + (1, 30, 30, 0):
-            frame = np.clip(rng.normal(np.roll(scene, moved, axis=1), 3), 0, 4095).astype(np.uint16)
+            frame = np.clip(rng.normal(np.roll(scene, moved, axis=1), 20), 0, 4095).astype(np.uint16)
             if saturate:
                 frame[BAND_ROWS:BAND_ROWS + 2, :6] = 4095
             frames.append(frame)
