@@ -63,7 +63,7 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
     if methods is None or "adaptive" in methods:
         _warm_up_refresh(rng)
     ToneMapper()(result.image, 0)
-    _warm_up_colour(methods if methods is not None else [m for m in METHODS if m != "cubic"], clean, saturated)
+    _warm_up_colour(methods if methods is not None else [m for m in METHODS if m != "cubic"], clean, saturated, speck)
 
 
 def _warm_up_refresh(rng: np.random.Generator) -> None:
@@ -93,8 +93,10 @@ def _warm_up_refresh(rng: np.random.Generator) -> None:
             stream.fuse(estimated).variance  # noqa: B018 (computed on demand)
 
 
-def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: list[np.ndarray]) -> None:
-    """The colour half of :func:`warm_up` on the same frames, read as colour mosaics."""
+def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: list[np.ndarray],
+                    speck: list[np.ndarray]) -> None:
+    """The colour half of :func:`warm_up` on the same frames, read as colour mosaics (``speck``: adaptive's
+    wide fallback pixel by pixel, whose exposures are a folded frame's, not a pattern's read-only map)."""
     from svelive.reconstruction.single import reconstruct
 
     sensor = Sensor(12)
@@ -110,7 +112,8 @@ def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: 
         for camera, timing in product(cameras, EXPOSURE_TIMINGS):
             if timing == "integration" and camera.pattern.pixel_map is not None:
                 continue
-            for frames in (clean, saturated):
+            kinds = (clean, saturated, speck) if method == "adaptive" and timing == "mask" else (clean, saturated)
+            for frames in kinds:
                 reconstructor = Reconstructor(camera, method=method, exposure_timing=timing)
                 for frame in frames:
                     result = reconstructor.process(frame)
