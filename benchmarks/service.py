@@ -4,6 +4,7 @@
                                  [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
                                  [--size 1920x1200]
                                  [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held]
+                                 [--refresh K]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
@@ -188,9 +189,10 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
           size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1,
-          live_quality: str = "fixed", fed: bool = True) -> None:
+          live_quality: str = "fixed", fed: bool = True, refresh: int | None = None) -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
-    ``/bench/rtsp``); ``fed``: its frames from a feeder process (:func:`replay_source_factory`)."""
+    ``/bench/rtsp``); ``fed``: its frames from a feeder process (:func:`replay_source_factory`); ``refresh``:
+    ``PipelineConfig.refresh``, None: the checkout's default."""
     import uvicorn
 
     from service.app import create_app, listen_socket
@@ -203,8 +205,9 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     except ImportError:
         pass
     factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa, fed=fed)
+    extra = {} if refresh is None else {"refresh": refresh}
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers,
-                                       parallel_frames=parallel_frames, live_quality=live_quality), factory)
+                                       parallel_frames=parallel_frames, live_quality=live_quality, **extra), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
     app = create_app(pipeline, settings)
@@ -400,6 +403,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
         "latency_server_ms": end_state["latency_ms"],
         "drops": end_state["drops"],
         "live_quality": end_state.get("live_quality"),
+        "refresh": end_state.get("refresh"),
         "cpu_percent": round(100 * (end_cpu - start_cpu) / span, 1),
         "clients_cpu_percent": round(100 * (end_own - start_own) / span, 1),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
@@ -486,6 +490,8 @@ def report(name: str, load: dict) -> None:
               f"{'; client error: ' + r['error'] if r['error'] else ''}")
     print(f"  server stages: {json.dumps(load['latency_server_ms'])}")
     print(f"  drops: {json.dumps(load['drops'])}")
+    if load.get("refresh"):
+        print(f"  refresh at the end: {json.dumps(load['refresh'])}")
     live = load.get("live_quality")
     if live:
         print(f"  live quality ({live['mode']}) at the end: step {live['step']} {live['name']}, {live['changes']} "
@@ -521,6 +527,9 @@ def main() -> None:
                              "as from a camera's driver; held: the server process holds the 24 rendered frames "
                              "(about 110 MB at 1920x1200, counted in its resident memory; the figures before "
                              "2026-11-29)")
+    parser.add_argument("--refresh", type=int, default=None, metavar="K",
+                        help="the service's refresh setting (monochrome streams with fusion run the method on the "
+                             "bands that need it and 1/K of the settled ones; 0: off); default: the checkout's")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--feed", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rtsp-port", type=int, default=0, help=argparse.SUPPRESS)
@@ -535,7 +544,7 @@ def main() -> None:
         return
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
-              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality, args.replay == "fed")
+              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality, args.replay == "fed", args.refresh)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
@@ -545,6 +554,8 @@ def main() -> None:
         cmd += ["--method", args.method]
     if args.no_temporal:
         cmd.append("--no-temporal")
+    if args.refresh is not None:
+        cmd += ["--refresh", str(args.refresh)]
     rtsp_port = free_port() if args.rtsp else 0
     if rtsp_port:
         cmd += ["--rtsp-port", str(rtsp_port)]

@@ -26,6 +26,8 @@ from functools import partial
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 #: Decorator of every compiled kernel: no GIL, cached on disk, numpy's division semantics.
 kernel = partial(numba.njit, nogil=True, cache=True, error_model="numpy")
@@ -34,3 +36,12 @@ kernel = partial(numba.njit, nogil=True, cache=True, error_model="numpy")
 def flat(*arrays: np.ndarray) -> list[np.ndarray]:
     """1-D views of C-contiguous arrays (a copy only for a non-contiguous one), for kernels that loop once."""
     return [a.reshape(-1) for a in arrays]
+
+
+@intrinsic
+def fma32(typingctx, a, b, c):
+    """a b + c rounded once (float32), inside kernels: where a kernel must round as other code does (OpenCV's
+    vectorised filters and resizes take a fused multiply-add per tap); numba itself never fuses."""
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return types.float32(types.float32, types.float32, types.float32), codegen

@@ -171,6 +171,29 @@ def test_posterior_against_numerical_integration():
     assert tail == pytest.approx(posterior.TAIL / 300, rel=1e-3)
 
 
+@pytest.mark.parametrize("share", [0.0, 0.01, 0.3, 0.49, 0.5, 0.8, 1.0])
+def test_posterior_at_is_the_posterior_of_the_whole_array_where_changed(share):
+    """posterior_at (rows packed or taken whole, by the share of their pixels changed) gives, at the changed
+    pixels, bit for bit what nonnegative gives on the whole arrays, and 1 / information as the variance; the
+    other pixels keep their values. Rows of every share around DENSE_CHANGED, scattered pixels, odd width."""
+    rng = np.random.default_rng(int(share * 100))
+    shape = (40, 301)
+    estimate = rng.normal(0, 3, shape).astype(np.float32)
+    estimate[:, :20] *= 100  # some far beyond POSTERIOR_HIGH deviations
+    information = rng.uniform(0.05, 20, shape).astype(np.float32)
+    changed = rng.random(shape) < share
+    changed[::7] = rng.random((len(changed[::7]), shape[1])) < rng.uniform(0, 1, (len(changed[::7]), 1))
+    whole = estimate.copy()
+    posterior.nonnegative(*flat(whole, estimate, information), posterior.posterior_polynomial())
+    for with_variance in (True, False):
+        image, variance = np.full(shape, -1, np.float32), np.full(shape, -2, np.float32)
+        posterior.posterior_at(changed, estimate, information, image, posterior.posterior_polynomial(),
+                               variance if with_variance else np.empty((0, 0), np.float32))
+        np.testing.assert_array_equal(image, np.where(changed, whole, np.float32(-1)))
+        np.testing.assert_array_equal(variance, np.where(changed & with_variance, np.float32(1) / information,
+                                                         np.float32(-2)))
+
+
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
 def test_noise_floor_from_the_frame(pattern):
     """The floor variance the method uses follows the frame's read noise whatever the sensor says, and the

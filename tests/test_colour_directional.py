@@ -182,3 +182,31 @@ def test_weights_match_opencv_windows():
         logs = grid.planes(4)
         grid.split(np.log(level + floor).astype(np.float32), logs)
         np.testing.assert_allclose(planes, logs, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("pattern", sorted(PATTERNS))
+def test_streamed_rows_independent_of_chunks_and_pieces(pattern):
+    """The streamed demosaicing (_stream) gives every plane row the same values whatever the size of its
+    output ring (the chunks the stage exponentiates and blends) and whichever rows a run covers (the
+    stage's pieces on several threads, each recomputing the steps' reach beyond its rows)."""
+    from svelive.reconstruction.colour.directional import _stream
+
+    frame = np.random.default_rng(3).random((37, 29)).astype(np.float32)
+    grid = Grid(frame.shape, PATTERNS[pattern])
+    planes = grid.planes(4)
+    grid.split(frame, planes)
+    rows = slice(1, grid.hq - 1)
+    whole = np.full((grid.hq, 8, grid.wq), np.nan, np.float32)
+    _stream(grid, planes, True, 1, grid.hq - 1, whole, lambda a, b: None)
+    assert np.all(np.isfinite(whole[rows, :, 1:-1]))
+    for size in (1, 3, 8):
+        ring = np.empty((size, 8, grid.wq), np.float32)
+        got = np.full_like(whole, np.nan)
+
+        def chunk(a: int, b: int) -> None:
+            assert b - a <= size and (a % size) + (b - a) <= size  # a chunk never wraps the ring
+            got[a:b] = ring[a % size:(b - 1) % size + 1]
+
+        for first, last in ((1, 5), (5, 6), (6, grid.hq - 1)):
+            _stream(grid, planes, True, first, last, ring, chunk)
+        np.testing.assert_array_equal(got[rows, :, 1:-1], whole[rows, :, 1:-1])

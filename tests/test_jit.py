@@ -51,5 +51,19 @@ def test_warm_up_compiles_what_a_stream_runs():
     for _ in range(2):
         result = reconstructor.process(np.clip(rng.normal(bright, 20), 0, 4095).astype(np.uint16))
     result.variance  # noqa: B018
+    # the band refresh (the live service's monochrome default): bands skipped once the histories settle, pixels
+    # reset in them on demand (a small move, then a large one), a frame estimated ahead of the one before it
+    for pattern, scene in product(patterns[:2], (dark, bright)):
+        for dtype, white in ((np.uint16, 4095), (np.uint8, 255)):
+            reconstructor = Reconstructor(pattern, white_level=white, gain=0.5, read_noise=2.0, refresh=3)
+            raws = [np.clip(rng.normal(np.roll(scene, moved, axis=1), 20) * white / 4095, 0, white).astype(dtype)
+                    for moved in (0,) * 10 + (1, 40, 40)]
+            for raw in raws[:-2]:
+                result = reconstructor.process(raw)
+            ahead = [reconstructor.estimate(raw) for raw in raws[-2:]]
+            for estimated in ahead:
+                result = reconstructor.fuse(estimated)
+            assert reconstructor.last_partial["bands"] == 3
+            result.variance  # noqa: B018
     after = {name: len(k.signatures) for name, k in found.items()}
     assert after == before

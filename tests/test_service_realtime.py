@@ -150,10 +150,10 @@ def test_frames_nobody_watched_are_not_drops():
         h.close()
 
 
-@pytest.mark.parametrize("workers, frames", [(1, 1), (2, 1), (2, 2), (3, 3), (4, 2)])
-def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, frames):
-    """The live stage's threads each estimate a frame and fuse in arrival order: what it publishes is
-    exactly the sequential stream's output, frame for frame."""
+def run_stage(raws, workers: int, frames: int, refresh: int = 0):
+    """The real live stage (ReconstructionStage) over ``raws`` all waiting at once (every thread has a frame to
+    take), until it has published each: (its frames as published, in publishing order; its ``refresh_state()``
+    after each; the stage)."""
     from service.pipeline.calibration import Calibration
     from service.pipeline.handoff import Newest, NewestSlot
     from service.pipeline.meters import DropCounter, RateMeter
@@ -162,27 +162,24 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
     from svelive.core.camera import Camera
     from svelive.core.frame import Frame
 
-    image = scene(0)
-    disc = moving_disc(image[:96, :128], float(image.max() * 4), 12.0, (40.0, 30.0), (3.0, 5.0))
-    raws = [f.raw for f in render_sequence(disc, 7, PATTERN, SENSOR, seed=4)]
     camera = Camera.build(PATTERN, sensor=SENSOR)
-    expected = [r.image for r in run_plain(raws)]
     slot, stop, port = NewestSlot(len(raws)), threading.Event(), Newest()
-    for i, raw in enumerate(raws):  # all waiting at once: every thread has a frame to take
+    for i, raw in enumerate(raws):
         slot.put(Frame(raw=raw, frame_id=i, host_time_ns=time.monotonic_ns(), pixel_format="Mono12", camera=camera))
-    published = []
+    published, states = [], []
 
     class Recorded(ReconstructionStage):
         def _publish(self, *args) -> None:  # the real stage, every frame it publishes noted
             super()._publish(*args)
             published.append(self.latest())
+            states.append(self.refresh_state())
 
     quality = LiveQuality(default_method(True), True, "fixed")
     stage = Recorded(slot, Calibration(None, None, lambda: None, stop), quality, RateMeter(), workers, port,
-                     DropCounter(), stop, frames=frames)
+                     DropCounter(), stop, frames=frames, refresh=refresh)
     thread = threading.Thread(target=stage.run)
     thread.start()
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     while len(published) < len(raws) and time.monotonic() < deadline:
         time.sleep(0.05)
     stop.set()
@@ -190,9 +187,37 @@ def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, 
     thread.join(10)
     assert not thread.is_alive() and stage.error is None
     assert [p.hdr.frame_id for p in published] == list(range(len(raws)))  # every frame, in order
+    return published, states, stage
+
+
+@pytest.mark.parametrize("workers, frames", [(1, 1), (2, 1), (2, 2), (3, 3), (4, 2)])
+def test_stage_reconstructs_frames_at_once_and_publishes_them_in_order(workers, frames):
+    """The live stage's threads each estimate a frame and fuse in arrival order: what it publishes is
+    exactly the sequential stream's output, frame for frame."""
+    image = scene(0)
+    disc = moving_disc(image[:96, :128], float(image.max() * 4), 12.0, (40.0, 30.0), (3.0, 5.0))
+    raws = [f.raw for f in render_sequence(disc, 7, PATTERN, SENSOR, seed=4)]
+    expected = [r.image for r in run_plain(raws)]
+    published, _, stage = run_stage(raws, workers, frames)
     for p, image in zip(published, expected):
         np.testing.assert_array_equal(p.hdr.image, image)
     assert stage.motion_fraction == pytest.approx(float(np.count_nonzero(published[-1].hdr.motion)) / image.size)
+
+
+@pytest.mark.parametrize("workers, frames", [(2, 2), (3, 3)])
+def test_stage_with_band_refresh_publishes_the_sequential_streams_frames(workers, frames):
+    """With ``refresh`` (a monochrome stream skipping settled bands) the stage's threads estimate frames ahead of
+    their fusion, each with a band selection taken from an older history: what it publishes is still exactly
+    the sequential refresh stream's output, frame for frame, and bands were skipped."""
+    image = scene(0)[:256, :192]
+    disc = moving_disc(image, float(image.max() * 4), 12.0, (150.0, 20.0), (0.0, 6.0))
+    raws = [f.raw for f in render_sequence(disc, 22, PATTERN, SENSOR, seed=5)]
+    sequential = Reconstructor(PATTERN, **KW, black_level=SENSOR.black_level, refresh=8)
+    expected = [sequential.process(raw).image for raw in raws]
+    published, states, _ = run_stage(raws, workers, frames, refresh=8)
+    for p, want in zip(published, expected):
+        np.testing.assert_array_equal(p.hdr.image, want)
+    assert min(state["computed"] for state in states[10:]) < 4  # bands skipped (4 bands of 64 rows)
 
 
 def run_plain(raws) -> list:

@@ -13,7 +13,7 @@ from svelive.core.camera import Camera
 from svelive.core.cfa import ColourFilter
 from svelive.core.errors import SveliveError
 from svelive.options import CameraSettings
-from svelive.reconstruction.live import check_live_quality
+from svelive.reconstruction.live import LIVE_REFRESH, check_live_quality
 from svelive.reconstruction.single import methods as method_names
 from svelive.tonemap import ToneSettings
 from svelive.whitebalance import ColourSettings
@@ -47,6 +47,9 @@ class PipelineConfig:
             and published in arrival order. 1: each frame spread over every thread (the lowest
             latency); 2: more frames per second when the cores are otherwise free, at the latency of
             a frame on fewer threads (measured in docs/service.md).
+        refresh: monochrome streams with fusion and ``adaptive``: run the method per frame only on the bands
+            whose history needs it and a round-robin 1 / ``refresh`` of the settled ones (``Reconstructor(refresh=
+            ...)``, once the noise model is trusted); 0: every band every frame. Colour streams ignore it.
         queue: frames the capture -> reconstruction hand-off holds (1..8).
         tone: preview tone-mapping parameters.
         colour: colour output of a colour camera (svelive.whitebalance.ColourSettings: white
@@ -71,6 +74,7 @@ class PipelineConfig:
     mask: str | None = None
     workers: int = 0
     parallel_frames: int = 1
+    refresh: int = LIVE_REFRESH
     queue: int = 1
     tone: ToneSettings = field(default_factory=ToneSettings)
     colour: ColourSettings = field(default_factory=ColourSettings)
@@ -93,6 +97,8 @@ class PipelineConfig:
         if isinstance(self.parallel_frames, bool) or not isinstance(self.parallel_frames, int) \
                 or not 1 <= self.parallel_frames <= 4:
             raise SveliveError(f"parallel_frames must be 1..4, got {self.parallel_frames!r}")
+        if isinstance(self.refresh, bool) or not isinstance(self.refresh, int) or not 0 <= self.refresh <= 64:
+            raise SveliveError(f"refresh must be 0..64 (0: off), got {self.refresh!r}")
         if not 1 <= self.queue <= 8:
             raise SveliveError(f"queue must hold 1..8 frames, got {self.queue}")
         if not 0 <= self.preview_width <= 16384:

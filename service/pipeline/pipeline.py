@@ -81,7 +81,8 @@ class Pipeline:
         self.quality = LiveQuality(config.method or default_method(config.temporal), config.temporal,
                                    config.live_quality, parallel=frames)
         self.reconstruction = ReconstructionStage(self._slot, self.calibration, self.quality, self.capture.captured,
-                                                  self.workers, self.hdr_port, self.drops, self._stop, frames=frames)
+                                                  self.workers, self.hdr_port, self.drops, self._stop, frames=frames,
+                                                  refresh=config.refresh)
         #: white balance and output space, shared by the preview (JPEG, RTSP) and the EXR snapshot
         self.colour = ColourStage(config.colour)
         self.encoder = EncoderStage(config, self.hdr_port, self.capture.online, self._cond, self.drops, self._stop,

@@ -33,6 +33,11 @@ class ReconstructionStage:
     with the camera's arrivals (``captured``) and the frames dropped while it was busy;
     ``LiveQuality.configure`` changes the configured method at run time.
 
+    ``refresh`` (K, ``PipelineConfig.refresh``) is every stream's ``Reconstructor(refresh=K)``: a monochrome
+    stream with fusion and ``adaptive`` runs the method per frame only on the bands whose history needs it and a
+    round-robin 1 / K of the settled ones, once its noise model is trusted (other streams, colour among them,
+    ignore it); which bands run is decided when a frame is fused, so ``frames`` > 1 gives the same frames.
+
     ``frames`` threads each take the next frame and make its history-free part
     (``Reconstructor.estimate``, spread over ``workers // frames`` strip threads), then
     fuse and publish it when every frame taken before it has been
@@ -54,13 +59,14 @@ class ReconstructionStage:
 
     def __init__(self, slot: NewestSlot, calibration: Calibration, quality: LiveQuality, captured: RateMeter,
                  workers: int, hdr_port: Newest[Published], drops: DropCounter, stop: threading.Event,
-                 frames: int = 1) -> None:
+                 frames: int = 1, refresh: int = 0) -> None:
         self._slot = slot
         self._calibration = calibration
         self.quality = quality
         self._captured = captured
         self.workers = workers
         self.frames = frames
+        self.refresh = refresh  # Reconstructor(refresh=...): monochrome streams with fusion skip settled bands
         #: the newest reconstructed frame; its sequence number is the frame's ``Published.seq``
         self.hdr_port = hdr_port
         self._drops = drops
@@ -89,7 +95,7 @@ class ReconstructionStage:
                 return self._current[1]
             previous = self._current[1]
         stream = Reconstructor(camera, method=step.method, temporal=step.temporal,
-                               workers=max(1, self.workers // self.frames), noise_thread=True)
+                               workers=max(1, self.workers // self.frames), noise_thread=True, refresh=self.refresh)
         if previous is not None:
             if self._current[0][0] == camera:
                 stream.continue_noise(previous)
@@ -102,6 +108,11 @@ class ReconstructionStage:
         when the camera gives its own."""
         current = self._current
         return None if current is None else current[1].noise_state()
+
+    def refresh_state(self) -> dict | None:
+        """For /api/state: the current stream's band refresh (``Reconstructor.refresh_state``), None when off."""
+        current = self._current
+        return None if current is None else current[1].refresh_state()
 
     def _failed(self, exc: BaseException, stream: Reconstructor | None) -> None:
         """A frame could not be reconstructed: say why, count it, and start the stream afresh."""

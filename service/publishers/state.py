@@ -68,6 +68,8 @@ def pipeline_state(pipeline: Pipeline) -> dict[str, Any]:
         "mask": config.mask,
         "workers": pipeline.workers,
         "parallel_frames": reconstruction.frames,
+        # a monochrome stream with fusion skips the settled bands (Reconstructor(refresh=K)); None: off
+        "refresh": reconstruction.refresh_state(),
         "reconstruct_error": reconstruction.error,
         "pattern": None if camera is None else str(camera.pattern),
         "cfa": None if camera is None or camera.cfa is None else camera.cfa.name,

@@ -28,6 +28,7 @@ Units: radiance in DN at relative exposure 1, variances in DN^2 at exposure 1.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import cached_property
@@ -335,7 +336,9 @@ def _own_reading_variance(inverse, estimate, slope_scale, floor_scale):
 
 def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig, pattern_shape: tuple[int, int],
          inconsistency: Inconsistency | None = None, detail: bool = True, workers: int = 1,
-         strip_rows: int = FUSE_ROWS, executor: Executor | None = None) -> Fused:
+         strip_rows: int = FUSE_ROWS, executor: Executor | None = None,
+         predicted: list[tuple[int, int]] | None = None,
+         complete: Callable[[], FrameEstimate] | None = None) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
@@ -354,6 +357,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         strip_rows: rows per strip; the result does not depend on it either.
         executor: a pool of ``workers`` threads the caller keeps across frames
             (svelive.reconstruction.methods.base.map_on); None: one is made for this call.
+        predicted: rows ([start, stop) pairs) the method skipped (the band refresh, svelive.reconstruction.settle):
+            their estimate is taken as the history's mean times the brightness ratio (so the mean stays,
+            exactly) and their lower bound as the history's, written into ``frame.image`` (not where the
+            ratio is 1 and a whole strip is skipped: its rows are then left unwritten) and ``frame.bound``
+            here; the caller then gives the pixels this frame resets there their
+            estimate. Needs ``complete``: called before any restart (every pixel then takes the frame's
+            own estimate), it returns the frame with every row estimated.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it (x, v: the
@@ -387,7 +397,12 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     image, variance, bound = frame.image, frame.variance, frame.bound
     if (state is None or state.mean.shape != image.shape or (state.test is None) != (frame.test is None)
             or (state.own_variance is None) != (frame.share_error is None)):
+        if predicted:
+            frame = complete()
         return _restart(frame, inconsistency, 1.0, np.zeros(image.shape, bool))
+    if predicted:  # the skipped rows' bound is the history's (before anything reads it)
+        for a, b in predicted:
+            bound[a:b] = state.bound[a:b]
     tested, tested_variance = frame.tested
     history = state.tested
     ratio = (illumination_ratio(state, tested, tested_variance, bound) if config.compensate_illumination
@@ -395,8 +410,20 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
     if camera_moved(state, frame, scale, config):
+        if predicted:
+            frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     h = image.shape[0]
+    # the skipped rows' estimate: the history's mean times the ratio (the running mean then keeps it, bit for
+    # bit: ``_running_mean`` of mean * scale and itself). With no brightness correction (mean * 1 is the mean),
+    # a strip whose rows are all skipped reads the history's mean rows as the frame's instead (no pass writing
+    # them into ``frame.image``, whose rows there are then left unwritten); the others' are written as it goes
+    same = scale == 1
+    kept = np.zeros(h, bool)
+    for a, b in predicted or ():
+        kept[a:b] = True
+        if not same:
+            np.multiply(state.mean[a:b], scale, out=image[a:b])
     strips = _strips(h, strip_rows)
     window = tuple(support_size(n) for n in pattern_shape)
     # rows a strip's motion mask depends on: censor changes grow by window // 2, then
@@ -460,12 +487,21 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         top, stop = max(core.start - halo, 0), min(core.stop + halo, h)
         ext = slice(top, stop)
         done = inner(core)
+        frame_image = image[core]
+        if same and kept[core].any():
+            if kept[core].all():
+                frame_image = state.mean[core]
+            else:
+                for a, b in predicted:
+                    a, b = max(a, core.start), min(b, core.stop)
+                    if a < b:
+                        image[a:b] = state.mean[a:b]
         count = _fuse_strip(_StripRows(core.start - top, core.start, done.start, done.stop, h),
                             _Halo(tested[ext], history[ext], state.weight[ext], tested_variance[ext], bound[ext],
                                   state.bound[ext], frame.censored[ext], state.censored[ext]),
                             _History(state.weight[core], state.mean[core], state.own[core], history[core],
                                      _NO_TABLE if own_var is None else state.own_variance[core]),
-                            _Frame(image[core], frame.signal[core], frame.censored[core], tested[core],
+                            _Frame(frame_image, frame.signal[core], frame.censored[core], tested[core],
                                    _NO_TABLE if frame.share_error is None else frame.share_error[core]), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
                                      fused_test[core], evidence[core], out[core],
@@ -527,6 +563,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     if moved[0] > limit:
         # the camera moved: what was not flagged moved below the noise; every pixel
         # restarts from this frame, as a stream's first frame does
+        if predicted:
+            frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
     state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None, own_var)
     # the update applied the within-frame test's finding to the output where it reset the history

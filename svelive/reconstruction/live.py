@@ -13,6 +13,14 @@ from dataclasses import dataclass
 
 from svelive.core.errors import SveliveError
 
+#: The live service's ``Reconstructor(refresh=...)`` for monochrome streams with fusion and ``adaptive`` (the top
+#: step of :data:`LADDER`; svelive.reconstruction.settle): a settled band of a still view runs the method every 8th
+#: frame, once per ``max_history`` frames (so its history's mean takes a fresh estimate as often as it holds
+#: frames), moving and unsettled bands every frame. Chosen on ``benchmarks/settle_cost.py`` and
+#: ``benchmarks/settle_accuracy.py`` (docs/benchmarks.md): on the still 1920x1200 demo K = 8 costs x0.70 of the
+#: stream without it, K = 4 x0.76; on issue 26's cases both within 0.04 dB PU21 of off. Colour streams ignore it.
+LIVE_REFRESH = 8
+
 #: ``--live-quality`` values: ``adaptive`` steps down and up the ladder, ``fixed`` keeps the configured setting.
 QUALITY_MODES = ("adaptive", "fixed")
 

@@ -293,6 +293,18 @@ def _symmetric_column(ring, q, slots, k, out):
 
 
 @kernel
+def _kept_row_sums(e_row, s_row, c_row, kx, kx2, kept, kept_signal, kept_exposure, ring, slot):
+    """One row's sums along it over its uncensored readings (exposures ``e_row``, readings ``s_row``, censored
+    ``c_row``): of s and e with ``kx``, of e and 1 with ``kx2``, into ``ring[0..3, slot]`` (:func:`_window_strip`'s
+    ring); ``kept``, ``kept_signal``, ``kept_exposure``: (W,) scratch."""
+    _uncensored(s_row, e_row, c_row, kept, kept_signal, kept_exposure)
+    _symmetric_row(kept_signal, kx, ring[0, slot])
+    _symmetric_row(kept_exposure, kx, ring[1, slot])
+    _symmetric_row(kept_exposure, kx2, ring[2, slot])
+    _symmetric_row(kept, kx2, ring[3, slot])
+
+
+@kernel
 def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv_gain, floor, image, variance,
                   out, out_var, row_sums):
     """:func:`window_estimate` of rows ``first:stop`` of the (H, W) frame (``exposure``: (P, W), row r's
@@ -310,7 +322,6 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
     period = exposure.shape[0]
     size = ky.size
     a = size // 2
-    zero, one = np.float32(0), np.float32(1)
     ring = np.empty((4, size, cols), np.float32)  # per window row: sum G s, sum G e, sum G^2 e, sum G^2
     kept, kept_signal, kept_exposure = (np.empty(cols, np.float32), np.empty(cols, np.float32),
                                         np.empty(cols, np.float32))
@@ -326,16 +337,8 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
                 for q in range(4):
                     ring[q, slot] = row_sums[q, src - max(first - a, 0)]
                 continue
-            e_row, s_row, c_row = exposure[src % period], signal[src], censored[src]
-            for c in range(cols):
-                u = zero if c_row[c] else one
-                kept[c] = u
-                kept_signal[c] = s_row[c] * u
-                kept_exposure[c] = e_row[c] * u
-            _symmetric_row(kept_signal, kx, ring[0, slot])
-            _symmetric_row(kept_exposure, kx, ring[1, slot])
-            _symmetric_row(kept_exposure, kx2, ring[2, slot])
-            _symmetric_row(kept, kx2, ring[3, slot])
+            _kept_row_sums(exposure[src % period], signal[src], censored[src], kx, kx2, kept, kept_signal,
+                           kept_exposure, ring, slot)
         for j in range(size):
             slots[j] = (r - a + j - first + a) % size
         _symmetric_column(ring, 0, slots, ky, sums[0])

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -47,10 +48,10 @@ from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import FrameEstimate, OutputVariance, TemporalState, fuse
+from svelive.reconstruction.fusion import FrameEstimate, Fused, OutputVariance, TemporalState, fuse
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
-from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps
+from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, support_size
 from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 
@@ -193,6 +194,14 @@ class Reconstructor:
         workers: threads for one frame: the strips of the method (where it takes
             a ``workers`` option) and of the motion stage are spread over them.
             The results do not depend on it; 1 keeps everything on the caller's thread.
+        refresh: 0 (off, the default) or K in 1..64 (svelive.reconstruction.settle, issue 25): a monochrome
+            stream with temporal fusion and method ``adaptive`` (no within-frame test, a nominal tile of sides
+            dividing 16), once its noise model is trusted, runs the method per frame only on the bands of 64
+            rows whose history is not settled (recent motion, a start or restart) and a round-robin 1 / K of
+            the others; skipped pixels keep their history's mean, pixels the test resets there get their
+            estimate on demand. Which bands run is decided by the history a frame is fused into, so frames
+            estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it. The live
+            service's default for monochrome streams (svelive.reconstruction.live.LIVE_REFRESH).
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
@@ -207,7 +216,7 @@ class Reconstructor:
                  exposure_timing: str = "mask", consistency: bool | None = None, black_level: float = 0,
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
                  motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
-                 noise_schedule: NoiseSchedule | None = None, noise_thread: bool = False,
+                 noise_schedule: NoiseSchedule | None = None, noise_thread: bool = False, refresh: int = 0,
                  **method_options) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
             raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
@@ -235,6 +244,20 @@ class Reconstructor:
         # one pool for the stream's whole life: a pool per frame costs thread start-ups and grows memory
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="svelive-strip") if workers > 1 else None
         self.method_options = dict(method_options)
+        if isinstance(refresh, bool) or not isinstance(refresh, (int, np.integer)) or not 0 <= refresh <= 64:
+            raise SveliveError(f"refresh must be an integer 0..64 (0: off), got {refresh!r}")
+        self.refresh = int(refresh)
+        # partial frames estimated and not fused yet (weakly: one never fused leaves with its Estimated), whose
+        # count ahead of the frames fused gives an estimate's hint its round-robin turn
+        self._in_flight: weakref.WeakSet = weakref.WeakSet()
+        self._fused_partials = 0  # partial frames fused: the round-robin's turn
+        self._hint_changes = [0, 0]  # bands fuse computed beyond the estimates' hints, and dropped from them
+        self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
+        self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
+        self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
+        self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
+        self._infinite: np.ndarray | None = None  # float32 (H, W) of inf (settle: lost windows' variance)
+        self._last_ratio = 1.0  # the last fused frame's brightness ratio
         self._lock = threading.Lock()
         self._method = self._checked(method)
         self._history: TemporalState | None = None
@@ -319,6 +342,26 @@ class Reconstructor:
             return None
         return {**noise.estimate.to_dict(), "trusted": noise.trusted, "fits": noise.fits, "error": noise.error}
 
+    def refresh_state(self) -> dict[str, object] | None:
+        """JSON-ready, None with ``refresh`` off: ``refresh`` (K), ``applies`` (this stream skips bands once its
+        model is trusted: monochrome, ``adaptive``, fusion, a supported tile), and of the last fused frame that
+        took the partial path ``bands`` and ``computed`` (bands the method ran on) and ``on_demand_px``, or None
+        before one; ``hint_added`` and ``hint_dropped``: bands :meth:`fuse` computed beyond its frames' estimates
+        and dropped from them, over the stream's life (frames estimated ahead of the history they are fused into).
+        """
+        if not self.refresh:
+            return None
+        with self._lock:
+            method = self._method
+        camera = self.camera
+        applies = camera is not None and self._settles(method, camera)
+        last = self.last_partial
+        return {"refresh": self.refresh, "applies": applies,
+                "bands": None if last is None else last.get("bands"),
+                "computed": None if last is None else last.get("computed"),
+                "on_demand_px": None if last is None else last.get("demand_px", 0),
+                "hint_added": self._hint_changes[0], "hint_dropped": self._hint_changes[1]}
+
     def __enter__(self) -> Reconstructor:
         return self
 
@@ -331,6 +374,7 @@ class Reconstructor:
             self._history = self._chroma = None
             self._generation += 1
             self._frames = 0
+            self._band_motion = []
 
     @property
     def noise(self) -> NoiseEstimate | None:
@@ -465,11 +509,18 @@ class Reconstructor:
         if _needs_noise(base) and base.response is not None:
             signal = prepare(array, base).signal  # the tracker reads the linearised signal
         camera, trusted, model = self._with_noise(array, base, signal)
-        inp, est, parts = self._estimate(raw, method, camera)
+        partial = None
+        if trusted and self._settles(method, camera):  # (an untrusted model's output is the frame's own estimate)
+            inp, est, partial = self._estimate_partial(raw, camera)
+            parts = None
+        else:
+            inp, est, parts = self._estimate(raw, method, camera)
         t1 = time.perf_counter()
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
         inconsistency = window = None
-        if self.temporal or self.consistency:
+        if partial is not None:
+            window = est.window
+        elif self.temporal or self.consistency:
             # what the motion tests compare: a window mean beside the method's estimate, whatever the method
             # (made in the method's own pass where it can: bit-identical)
             window = (completed_window(est.window, est.image, est.variance) if est.window is not None
@@ -487,7 +538,176 @@ class Reconstructor:
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model,
-                         None if parts is None else inp)
+                         None if parts is None else inp, partial)
+
+    def _on_demand(self, partial, fused, frame: FrameEstimate, predicted: list[tuple[int, int]],
+                   history: TemporalState) -> Fused:
+        """The pixels the test reset in rows the method skipped (``predicted``; svelive.reconstruction.settle):
+        where they moved (``motion``), the history is a lower bound or the window means differ beyond
+        settle.UNSTABLE_SIGMAS, this frame's
+        estimate on demand, into the frame's arrays, the history's mean and own readings and the output; the
+        others (reset only because a reading in their window crossed the censor level, the window means
+        agreeing within that) keep their history as it was (times the brightness ratio): they skip this frame, as the
+        method did, rather than average two estimates of different kinds."""
+        from svelive.reconstruction import settle
+        from svelive.reconstruction.fusion import RATIO_TOLERANCE
+
+        ratio = fused.illumination_ratio
+        scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
+        state = fused.state
+        tested, tested_variance = frame.tested
+        # (where the light changed, every pixel reset takes this frame's estimate: a history kept with its old
+        # censoring, scaled, meets the next frame's readings at yet another level, and the test flags them)
+        inv_k2 = np.float32(1.0 / settle.UNSTABLE_SIGMAS ** 2)
+        # a kept pixel's history keeps the censoring it was made of (else the next frame, whose readings keep
+        # this one's censoring, would test a window mean of another kind against it)
+        censored = frame.censored.copy()
+        h, w = censored.shape
+        ys, xs = np.empty(2 * h * w, np.intp), np.empty(2 * h * w, np.intp)  # (lazily touched)
+        no_rows = np.empty((0, 0), np.float32)
+        wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
+        n, kept = settle.skipped_resets(~partial.rows, fused.reset, settle.reset_words(fused.reset), fused.motion,
+                                        frame.censored, history.bound, history.weight, history.own, history.tested,
+                                        history.censored, scale, tested, tested_variance, inv_k2, scale == 1, wy, wx,
+                                        state.weight, state.own, no_rows if state.test is None else state.test,
+                                        censored, np.zeros((h, w), np.int8), ys, xs)
+        ys, xs = ys[:n], xs[:n]
+        ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads)
+        partial.stats.update(stats, kept_px=kept)
+        fused = replace(fused, state=replace(state, censored=censored))
+        if not ys.size:
+            return fused
+        for target, value in ((frame.image, img), (frame.variance, var), (frame.bound, low), (state.mean, img),
+                              (fused.image, img)):
+            target[ys, xs] = value
+        inverse = frame.inverse[ys % frame.inverse.shape[0], xs]
+        state.own[ys, xs] = np.where(frame.censored[ys, xs], img, frame.signal[ys, xs] * inverse)
+        lost = np.isinf(tested_variance[ys, xs])  # the window mean is the method's estimate there
+        if lost.any():
+            ly, lx = ys[lost], xs[lost]
+            tested[ly, lx], tested_variance[ly, lx] = img[lost], var[lost]
+            state.tested[ly, lx] = img[lost]
+        return fused
+
+    def _settles(self, method: str, camera: Camera) -> bool:
+        """Whether this frame takes the partial path (``refresh``; svelive.reconstruction.settle)."""
+        from svelive.reconstruction import settle
+
+        return (self.refresh > 0 and self.temporal and not self.consistency and method == "adaptive"
+                and camera.cfa is None and settle.supports(camera.pattern))
+
+    def _selection(self, history: TemporalState | None, tick: int, shape: tuple[int, int],
+                   band_motion: list[np.ndarray], last_ratio: float,
+                   last_variance: np.ndarray | None) -> np.ndarray:
+        """bool (bands,): the bands of a frame of ``shape`` the method runs on, given the history it is fused
+        into (svelive.reconstruction.settle): every band without a history of this shape (or before a partial
+        frame was fused: ``last_variance``, its variance), or after a frame whose brightness ratio
+        (``last_ratio``) moved; else those where something moved within the last max_history frames
+        (``band_motion``: moving pixels per band on every 4th row, of the last fused frames), those whose
+        history is mostly unsettled (a stream's start, a restart) and the round-robin's ``tick``-th 1 / K."""
+        from svelive.reconstruction import settle
+        from svelive.reconstruction.fusion import RATIO_TOLERANCE
+
+        h, w = shape
+        spans = settle.bands(h)
+        if (history is None or history.mean.shape != shape or last_variance is None
+                or last_variance.shape != shape or abs(last_ratio - 1.0) > RATIO_TOLERANCE):
+            return np.ones(len(spans), bool)
+        # not the isolated false alarms, nor the pixels reset where a reading crossed the censor level
+        selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
+                    else np.zeros(len(spans), bool))
+        floor = np.float32(1.0 / self.motion_config.max_history)
+        selected |= np.array([np.count_nonzero(history.weight[b.start:b.stop:4] > floor)
+                              > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
+        # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
+        selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
+        return selected
+
+    def _selection_state(self) -> tuple[list[np.ndarray], float, np.ndarray | None]:
+        """(band motion, last brightness ratio, last partial frame's variance) as the last fused frame left
+        them: what :meth:`_selection` reads besides the history. Called under ``_lock`` (:meth:`estimate`), or by
+        :meth:`fuse`, their only writer."""
+        return list(self._band_motion), self._last_ratio, self._last_variance
+
+    def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
+        """(input, estimate with the window mean, settle.Partial): the method on the bands the latest history
+        asks for, the window mean everywhere. The selection is a hint: the frame may be fused into a later
+        history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
+        from svelive.reconstruction import settle
+        from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
+
+        inp = prepare(getattr(raw, "raw", raw), camera)
+        noise = noise_model(inp)
+        h, w = inp.shape
+        with self._lock:
+            hint, tick = self._history, self._fused_partials + len(self._in_flight)
+            selected = self._selection(hint, tick, (h, w), *self._selection_state())
+            if not selected.all() and (self._infinite is None or self._infinite.shape != (h, w)):
+                self._infinite = np.full((h, w), np.inf, np.float32)
+            infinite = self._infinite
+            partial = settle.Partial(inp, noise, selected, np.repeat(selected, settle.BAND_ROWS)[:h],
+                                     None if selected.all() else hint, tick,
+                                     dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
+            self._in_flight.add(partial)  # (at once: a frame estimated beside it takes the next turn)
+        image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool),
+                                  np.empty((h, w), np.float32))
+        window = np.empty((2, h, w), np.float32)  # (rows the pass does not make are made below)
+        settle.method_on_bands(inp, noise, selected, image, lower, variance, window, self._threads)
+        skipped = _band_rows(~selected, h)
+        # the skipped rows' estimate and bound are the history's (fuse writes them, times its brightness ratio),
+        # their variance the last fused frame's (fuse writes it too); the window mean where the method did not make
+        # it, the history's mean where its window holds no uncensored reading (with an infinite variance: fuse's
+        # tests pass over such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
+        if skipped:
+            settle.window_rows(inp, hint.mean, infinite, skipped, window[0], window[1], self._window_tables)
+        if not _shares_window(inp):
+            settle.window_rows(inp, image, variance, _band_rows(selected, h), window[0], window[1],
+                               self._window_tables)
+        for a, b in _band_rows(selected, h):  # (the window rows made here hold no infinite variance)
+            completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
+        est = Estimate(image, lower, variance, window=(window[0], window[1]))
+        return inp, est, partial
+
+    def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
+        """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
+        whatever its estimate's hint took (svelive.reconstruction.settle): the bands the hint skipped and the
+        selection wants are computed now (their rows alone, and their window mean completed with them); the
+        bands the hint computed and the selection skips take the history's window level where their window
+        holds no uncensored reading, as a skipped band does; skipped rows whose hint was another history take
+        this one's mean there; every skipped row takes the last fused partial frame's variance (a placeholder:
+        the output's variance there, :class:`OutputVariance`). The frame then fuses as the sequential stream's
+        would, bit for bit, however far ahead it was estimated. In ``frame``'s and ``partial``'s arrays."""
+        from svelive.reconstruction import settle
+
+        h, w = frame.image.shape
+        selected = self._selection(history, self._fused_partials, (h, w), *self._selection_state())
+        hinted = partial.computed
+        missing, extra = selected & ~hinted, hinted & ~selected
+        level, noise = frame.test, frame.test_variance
+        if missing.any():
+            settle.method_on_band_rows(partial.inp, partial.noise, missing, frame.image, frame.bound, frame.variance,
+                                       self._threads)
+            for a, b in _band_rows(missing, h):  # (the skipped rows' lost windows: infinite, so completed here)
+                completed_window((level[a:b], noise[a:b]), frame.image[a:b], frame.variance[a:b])
+        if extra.any():
+            if self._infinite is None or self._infinite.shape != (h, w):
+                self._infinite = np.full((h, w), np.inf, np.float32)
+            settle.window_rows(partial.inp, history.mean, self._infinite, _band_rows(extra, h), level, noise,
+                               self._window_tables)
+        if partial.hint is not history:
+            for a, b in _band_rows(~selected & ~hinted, h):
+                lost = np.isinf(noise[a:b])
+                if lost.any():
+                    level[a:b][lost] = history.mean[a:b][lost]
+        for a, b in _band_rows(~selected, h):
+            frame.variance[a:b] = self._last_variance[a:b]
+        partial.computed[:] = selected
+        partial.rows[:] = np.repeat(selected, settle.BAND_ROWS)[:h]
+        partial.hint = None if selected.all() else history
+        partial.stats.update(computed=int(np.count_nonzero(selected)), added=int(np.count_nonzero(missing)),
+                             dropped=int(np.count_nonzero(extra)))
+        self._hint_changes = [self._hint_changes[0] + partial.stats["added"],
+                              self._hint_changes[1] + partial.stats["dropped"]]
 
     def fuse(self, estimated: Estimated) -> SequenceResult:
         """The rest of :meth:`process`: the frame's :meth:`estimate` fused into the stream's history
@@ -509,8 +729,40 @@ class Reconstructor:
                 planes = (chroma_history[:3] if chroma_history is not None
                           and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
                 frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
+            partial = estimated.partial
+            predicted = complete = None
+            if partial is not None:
+                self._settle_at_fuse(partial, frame, history)
+            if partial is not None and not partial.computed.all():
+                from svelive.reconstruction import settle
+
+                def completed() -> FrameEstimate:
+                    # every band again, one crop (a run's halo rows would overwrite its computed neighbours')
+                    settle.method_on_bands(partial.inp, partial.noise, np.ones_like(partial.computed), frame.image,
+                                           frame.bound, frame.variance, None, self._threads)
+                    partial.computed[:] = True
+                    partial.rows[:] = True
+                    partial.stats["completed"] = True
+                    return frame
+
+                complete = completed
+                predicted = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, frame.image.shape[0]))
+                             for a, b in settle.runs(~partial.computed)]
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency,
-                         detail=self.detail, workers=self.workers, executor=self._pool)
+                         detail=self.detail, workers=self.workers, executor=self._pool,
+                         predicted=predicted, complete=complete)
+            if partial is not None:
+                if not partial.rows.all():
+                    fused = self._on_demand(partial, fused, frame, predicted, history)
+                band_motion = np.add.reduceat(fused.motion[::4].sum(axis=1),
+                                              np.arange(0, -(-fused.motion.shape[0] // 4), 16))
+                with self._lock:  # (what the next frames' selection reads, estimate's hints too)
+                    self._band_motion = [*self._band_motion, band_motion][-self.motion_config.max_history:]
+                    self._last_ratio = fused.illumination_ratio
+                    self._last_variance = frame.variance
+                    self._in_flight.discard(partial)
+                    self._fused_partials += 1
+                self.last_partial = dict(partial.stats)
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             if history is not None and history.mean.shape == image.shape:
                 reset = fused.reset
@@ -528,13 +780,13 @@ class Reconstructor:
             if self.temporal:
                 chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
-                luminance, variance_of, inter = _refined(image, variance, weight, variance_of,
+                luminance, variance_of, image = _refined(image, variance, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
             else:
-                luminance, inter = image.copy(), parts.interpolation  # (the method's own array stays)
+                luminance = np.empty(image.shape, np.float32)  # a copy: the method's own array stays
                 shares = parts.chroma.shares
-            image = colour.colourise(luminance, inter, self._threads)
+                image = colour.colourise(image, parts.interpolation, self._threads, copy=luminance)
             # saturated colour's other channels from their own lattices, as a single frame's joint colour,
             # flagged by the shares that coloured the image
             colour.lattice_channels(estimated.colour_input, luminance, image, shares, parts.chroma.layout,
@@ -578,6 +830,9 @@ class Estimated:
         noise: that noise model (source "given" where the camera gives it).
         colour_input: a colour frame's own input (its CFA channels and censoring: the lattice stage
             reads them after the fused luminance is coloured), else None.
+        partial: the bands the method ran on where the stream's ``refresh`` skips some (settle.Partial), else None.
+            The estimate's ``image`` holds no value on the skipped rows (fusion.fuse's ``predicted``: the
+            history's mean stands for it there, and the rows of wholly skipped strips stay unwritten).
     """
 
     estimate: Estimate
@@ -595,6 +850,15 @@ class Estimated:
     camera: Camera | None = None
     noise: NoiseEstimate | None = None
     colour_input: SveInput | None = None
+    partial: object | None = None  # settle.Partial: the method ran on some bands only (``refresh``)
+
+
+def _band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
+    """[start, stop) rows of the runs of True in ``flags`` (bool per band of settle.BAND_ROWS rows) of a frame
+    of ``h`` rows."""
+    from svelive.reconstruction import settle
+
+    return [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(flags)]
 
 
 def _needs_noise(camera: Camera) -> bool:
@@ -742,13 +1006,15 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
 
 def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, variance_of: OutputVariance,
              fused: colour.Chroma,
-             workers: int | Executor = 1) -> tuple[np.ndarray, Callable[[], np.ndarray], colour.Interpolation]:
+             workers: int | Executor = 1) -> tuple[np.ndarray, Callable[[], np.ndarray], np.ndarray]:
     """A colour stream's output luminance (the fused one refined against the fused coarse luminance,
     with v_Y the frame's variance times the history weight), the variance of that on demand, and
-    the fused chroma's interpolation."""
+    that luminance coloured with the fused shares, float32 (H, W, 3) (colour.colourise's, made in the
+    refinement's pass)."""
     inter = colour.interpolation(fused, coarse=True)
     cell = fused.layout.cell
-    refined = colour.refine(luminance, variance, inter, cell, weight=weight, workers=workers)
+    rgb = np.empty((*luminance.shape, 3), np.float32)
+    refined = colour.refine(luminance, variance, inter, cell, weight=weight, rgb=rgb, workers=workers)
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)
@@ -759,7 +1025,7 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, va
                       new_variance=True)
         return out
 
-    return refined, refined_variance, inter
+    return refined, refined_variance, rgb
 
 
 @kernel

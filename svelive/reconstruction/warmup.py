@@ -60,12 +60,43 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
                 for frame in frames:
                     result = reconstructor.process(frame)
                 result.variance  # noqa: B018 (computed on demand: the within-frame test's variance kernel)
+    if methods is None or "adaptive" in methods:
+        _warm_up_refresh(rng)
     ToneMapper()(result.image, 0)
-    _warm_up_colour(methods if methods is not None else [m for m in METHODS if m != "cubic"], clean, saturated)
+    _warm_up_colour(methods if methods is not None else [m for m in METHODS if m != "cubic"], clean, saturated, speck)
 
 
-def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: list[np.ndarray]) -> None:
-    """The colour half of :func:`warm_up` on the same frames, read as colour mosaics."""
+def _warm_up_refresh(rng: np.random.Generator) -> None:
+    """The band refresh of monochrome live streams (``Reconstructor(refresh=K)``, svelive.reconstruction.settle;
+    the service's default): still frames of four bands (the noise model given, so trusted at once) until the
+    histories settle and bands are skipped, then frames that move a little and a lot (pixels reset in skipped
+    bands take their estimate on demand, in cells and at the frame's edges), with and without saturated pixels,
+    and a frame estimated ahead of the one before it (the fusion completes the bands its hint missed). The
+    frames are wide and noisy enough for ``adaptive``'s floor evidence to find its pairs of readings dominated by
+    the noise floor (``evidence._read_variance``, which every full-size live frame runs and the small frames
+    above never reach)."""
+    from svelive.reconstruction.settle import BAND_ROWS
+
+    scene = rng.uniform(0, 1500, (3 * BAND_ROWS + 8, 128))
+    for pattern, saturate in product(("1,4/16,64", "1/1/8/8"), (False, True)):
+        stream = Reconstructor(pattern, white_level=4095, gain=1.0, read_noise=20.0, refresh=2)
+        frames = []
+        for moved in (0,) * 11 + (1, 30, 30, 0):
+            frame = np.clip(rng.normal(np.roll(scene, moved, axis=1), 20), 0, 4095).astype(np.uint16)
+            if saturate:
+                frame[BAND_ROWS:BAND_ROWS + 2, :6] = 4095
+            frames.append(frame)
+        for frame in frames[:-2]:
+            stream.process(frame)
+        ahead = [stream.estimate(frame) for frame in frames[-2:]]
+        for estimated in ahead:
+            stream.fuse(estimated).variance  # noqa: B018 (computed on demand)
+
+
+def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: list[np.ndarray],
+                    speck: list[np.ndarray]) -> None:
+    """The colour half of :func:`warm_up` on the same frames, read as colour mosaics (``speck``: adaptive's
+    wide fallback pixel by pixel, whose exposures are a folded frame's, not a pattern's read-only map)."""
     from svelive.reconstruction.single import reconstruct
 
     sensor = Sensor(12)
@@ -81,10 +112,13 @@ def _warm_up_colour(methods: Iterable[str], clean: list[np.ndarray], saturated: 
         for camera, timing in product(cameras, EXPOSURE_TIMINGS):
             if timing == "integration" and camera.pattern.pixel_map is not None:
                 continue
-            for frames in (clean, saturated):
+            kinds = (clean, saturated, speck) if method == "adaptive" and timing == "mask" else (clean, saturated)
+            for frames in kinds:
                 reconstructor = Reconstructor(camera, method=method, exposure_timing=timing)
                 for frame in frames:
                     result = reconstructor.process(frame)
                 result.variance  # noqa: B018
-        for frames in (clean, saturated):
-            reconstruct(frames[0], cameras[3], method=method, return_confidence=True)
+        # single joint frames colour with folding.colourise (a stream colours in its refinement's pass): cells of
+        # 6 columns give it the shares' rows as a strided view, as a frame whose width no cell divides does
+        for frames, camera in product((clean, saturated), (cameras[1], cameras[3])):
+            reconstruct(frames[0], camera, method=method, return_confidence=True)

@@ -25,11 +25,14 @@ The demosaicing (:func:`demosaic_log`, on a 2x2 Bayer mosaic of log values):
    pixel (red and blue there).
 
 It runs on the four quarter planes of the mosaic (:class:`Grid`: red sites, greens of red rows, greens
-of blue rows, blue sites, each (H/2, W/2)), so each step is a branch-free kernel over neighbours at
-fixed offsets, which vectorises; the padding of each plane is the frame mirrored about its edge pixel,
-refreshed after each step. Sums feeding the decision are taken in the order (and with the fused
-multiply-adds) of the OpenCV filters of the first, full-resolution version, so that near-ties fall the
-same way (the output is bit for bit that version's).
+of blue rows, blue sites, each (H/2, W/2)), so each step is a branch-free loop over neighbours at fixed
+offsets, which vectorises; the padding of each plane is the frame mirrored about its edge pixel. The steps
+are streamed (:func:`_advance`): each step's rows live in a ring of a few rows, and step k computes plane
+row r once step k - 1 has computed row r + LAG, so the planes between steps stay in cache instead of going
+through memory a whole plane at a time; a row outside the frame is read from its mirror source. The stage
+exponentiates and blends each chunk of rows as it comes out. Sums feeding the decision are taken in the
+order (and with the fused multiply-adds) of the OpenCV filters of the first, full-resolution version, so
+that near-ties fall the same way (the output is bit for bit that version's).
 
 Where. A strongly saturated colour's other channels are the lattice stage's (colour.lattice): the
 demosaicer's green-guided differences fail where green reads noise. So the weight of the demosaiced
@@ -61,7 +64,7 @@ from svelive.reconstruction.methods.base import SveInput, map_on
 #: Planes of the padded mosaic, by (row, column) parity: red, green on red rows, green on blue rows, blue.
 R, GR, GB, B = 0, 1, 2, 3
 PARITY = ((0, 0), (0, 1), (1, 0), (1, 1))
-#: For each kind of site (R, GR, GB, B), the planes of :func:`demosaic_grid`'s output holding its R, G, B
+#: For each kind of site (R, GR, GB, B), the planes of the demosaicing's output (:func:`_advance`) holding its R, G, B
 #: (-1: the site's own channel).
 OUTPUTS = np.array([[-1, 0, 6], [2, -1, 3], [4, -1, 5], [7, 1, -1]], np.intp)
 
@@ -79,6 +82,20 @@ class Grid:
         self.hq, self.wq = (self.top + self.h + 4) // 2, (self.left + self.w + 4) // 2
         self._rows = [self._edges(self.top, self.h, p, self.hq) for p in (0, 1)]
         self._cols = [self._edges(self.left, self.w, p, self.wq) for p in (0, 1)]
+        #: intp (2, hq): each plane row's mirror source by row parity (itself inside the frame); bool
+        #: (2, hq): whether inside
+        self.rowsrc = np.tile(np.arange(self.hq), (2, 1))
+        self.rowin = np.ones((2, self.hq), bool)
+        for p, (pad, source) in enumerate(self._rows):
+            self.rowsrc[p, pad], self.rowin[p, pad] = source, False
+        #: intp (2, k): the padding columns and their mirror sources by column parity (``ncol`` of each)
+        self.ncol = np.array([len(c[0]) for c in self._cols], np.intp)
+        self.colpad, self.colsrc = np.zeros((2, self.ncol.max()), np.intp), np.zeros((2, self.ncol.max()), np.intp)
+        for p, (pad, source) in enumerate(self._cols):
+            self.colpad[p, :len(pad)], self.colsrc[p, :len(pad)] = pad, source
+        reach = np.arange(1, self.hq - 1)
+        lead = max(int((self.rowsrc[:, reach + step] - reach).max()) for step in (-1, 0, 1))
+        assert lead <= LAG, "a mirror source beyond the streamed stages' lag"  # (frames of at least 3x3)
 
     @staticmethod
     def _edges(start: int, n: int, parity: int, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,11 +118,6 @@ class Grid:
         plane[rows] = plane[rsrc]
         plane[:, cols] = plane[:, csrc]
 
-    def zero(self, plane: np.ndarray, kind: int) -> None:
-        """Set the padding of a plane of ``kind`` to 0, in place."""
-        plane[self._rows[PARITY[kind][0]][0]] = 0
-        plane[:, self._cols[PARITY[kind][1]][0]] = 0
-
     def split(self, image: np.ndarray, out: np.ndarray) -> None:
         """Frame (H, W) -> its four planes ``out`` (4, hq, wq) with mirrored padding."""
         for kind, (py, px) in enumerate(PARITY):
@@ -116,153 +128,256 @@ class Grid:
             self.mirror(out[kind], kind)
 
 
-@kernel
-def _green(m, gh, gv, first, last):
-    """Step 1 on quarter rows ``first`` to ``last`` (columns 1 to wq - 2): green along the rows (``gh``)
-    and the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the planes ``m``
-    (4, hq, wq): half the site plus half the two greens beside it minus a quarter of the two own sites two
-    pixels away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
-    half, quarter = np.float32(0.5), np.float32(-0.25)
-    r, gr, gb, b = m[0], m[1], m[2], m[3]
-    for i in range(first, last):
-        for j in range(1, m.shape[2] - 1):
-            gh[0, i, j] = r[i, j] * half + (gr[i, j - 1] + gr[i, j]) * half + (r[i, j - 1] + r[i, j + 1]) * quarter
-            gv[0, i, j] = r[i, j] * half + (gb[i - 1, j] + gb[i, j]) * half + (r[i - 1, j] + r[i + 1, j]) * quarter
-            gh[1, i, j] = b[i, j] * half + (gb[i, j] + gb[i, j + 1]) * half + (b[i, j - 1] + b[i, j + 1]) * quarter
-            gv[1, i, j] = b[i, j] * half + (gr[i, j] + gr[i + 1, j]) * half + (b[i - 1, j] + b[i + 1, j]) * quarter
-
-
-@kernel
-def _gradients(m, gh, gv, d, first, last):
-    """Step 2's gradients: ``d`` (4, hq, wq) = |C(x) - C(x + 2)| of C = X - G along the rows at red (d[0])
-    and blue (d[2]) sites, along the columns (d[1], d[3])."""
-    for k in range(2):
-        x = m[3 * k]
-        for i in range(first, last):
-            for j in range(1, m.shape[2] - 1):
-                d[2 * k, i, j] = abs((x[i, j] - gh[k, i, j]) - (x[i, j + 1] - gh[k, i, j + 1]))
-                d[2 * k + 1, i, j] = abs((x[i, j] - gv[k, i, j]) - (x[i + 1, j] - gv[k, i + 1, j]))
-
-
-@kernel(fastmath={"contract"})
-def _decide(d, gh, gv, horizontal, first, last):
-    """Step 2's decision at the red and blue sites: the window sums of the gradients ``d`` (module docstring;
-    summed in the order of OpenCV's filter2D over the full-resolution window); green along the rows
-    (``gh``, written in place, ``horizontal`` 1) where the columns' sum is at least the rows', else ``gv``."""
-    sums = np.empty((4, d.shape[2]), np.float32)
-    three = np.float32(3.0)
-    for i in range(first, last):
-        hr0, hr1, hr2, hb0, hb1, hb2 = d[0, i - 1], d[0, i], d[0, i + 1], d[2, i - 1], d[2, i], d[2, i + 1]
-        vr0, vr1, vb0, vb1 = d[1, i - 1], d[1, i], d[3, i - 1], d[3, i]
-        rows_r, cols_r, rows_b, cols_b = sums[0], sums[1], sums[2], sums[3]
-        for j in range(1, d.shape[2] - 1):  # (the window sums first, a loop with few arrays: it vectorises)
-            s = hr0[j - 1] + hr0[j] + hb0[j - 1]
-            s = three * hr1[j] + (three * hr1[j - 1] + s)
-            rows_r[j] = s + hb1[j - 1] + hr2[j - 1] + hr2[j]
-            s = (three * vr0[j] + vr0[j - 1]) + vr0[j + 1] + vb0[j - 1] + vb0[j] + vr1[j - 1]
-            cols_r[j] = three * vr1[j] + s + vr1[j + 1]
-            s = hb0[j - 1] + hb0[j] + hr1[j]
-            s = three * hb1[j] + (three * hb1[j - 1] + s)
-            rows_b[j] = s + hr2[j] + hb2[j - 1] + hb2[j]
-            s = (three * vb0[j] + vb0[j - 1]) + vb0[j + 1] + vr1[j] + vr1[j + 1] + vb1[j - 1]
-            cols_b[j] = three * vb1[j] + s + vb1[j + 1]
-        for k in range(2):
-            _choose(sums[2 * k], sums[2 * k + 1], gh[k, i], gv[k, i], horizontal[k, i])
+#: Quarter rows between the stages of the streamed demosaicing (:func:`_advance`): a stage computes row r
+#: once the stage before has computed row r + LAG, which covers its reach (rows r - 1 to r + 1) and the
+#: mirror sources of the padding rows near the top (Grid.lead checks it).
+LAG = 3
+#: Rows held of each stage's planes (a ring; more than the distance between a row's writing and its last read).
+RING = 16
+#: Plane rows exponentiated and blended at a time (the streamed output's ring, (CHUNK, 8, wq)).
+CHUNK = 32
+#: Plane rows of a piece of the stage when it runs on several threads (each piece streams its own rows and
+#: recomputes the stages' reach beyond them).
+STREAM_ROWS = 160
+#: Stages of the demosaicing: green along rows and columns, gradients, decision, red and blue at the greens,
+#: at the opposite sites; with the refinement, green refined, red and blue at the greens and at the opposite
+#: sites again.
+STAGES, STAGES_UNREFINED = 8, 5
 
 
 @kernel(inline="always")
-def _choose(rows, cols, gh, gv, horizontal):
-    """Green along the rows (``gh``, in place; ``horizontal`` 1) where ``cols`` >= ``rows``, else ``gv``."""
-    for j in range(1, gh.size - 1):
+def _slot(rowsrc, parity, r):
+    """Ring slot of plane row ``r`` of a plane of row ``parity``: its mirror source's (Grid.rowsrc)."""
+    return rowsrc[parity, r] % RING
+
+
+@kernel(inline="always")
+def _dslot(rowin, parity, r):
+    """Ring slot of gradient row ``r`` of row ``parity``: its own inside the frame, else the zero row (RING)."""
+    return r % RING if rowin[parity, r] else RING
+
+
+@kernel(inline="always")
+def _mirror_cols(row, pads, sources, count):
+    """A ring row's padding columns from their mirror sources (Grid.colpad), in place."""
+    for c in range(count):
+        row[pads[c]] = row[sources[c]]
+
+
+@kernel
+def _green_row(m, i, gh, gv, s):
+    """Step 1 at plane row ``i`` (columns 1 to wq - 2) into ring slot ``s``: green along the rows (``gh``) and
+    the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the planes ``m`` (4, hq,
+    wq): half the site plus half the two greens beside it minus a quarter of the two own sites two pixels
+    away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
+    half, quarter = np.float32(0.5), np.float32(-0.25)
+    r, gr, gb, b = m[0], m[1], m[2], m[3]
+    for j in range(1, m.shape[2] - 1):
+        gh[0, s, j] = r[i, j] * half + (gr[i, j - 1] + gr[i, j]) * half + (r[i, j - 1] + r[i, j + 1]) * quarter
+        gv[0, s, j] = r[i, j] * half + (gb[i - 1, j] + gb[i, j]) * half + (r[i - 1, j] + r[i + 1, j]) * quarter
+        gh[1, s, j] = b[i, j] * half + (gb[i, j] + gb[i, j + 1]) * half + (b[i, j - 1] + b[i, j + 1]) * quarter
+        gv[1, s, j] = b[i, j] * half + (gr[i, j] + gr[i + 1, j]) * half + (b[i - 1, j] + b[i + 1, j]) * quarter
+
+
+@kernel
+def _gradients_row(m, i, gh, gv, r0, r1, b0, b1, d, s):
+    """Step 2's gradients at plane row ``i`` into slot ``s`` of ``d`` (4, RING + 1, wq): |C(x) - C(x + 2)| of
+    C = X - G along the rows at red (d[0]) and blue (d[2]) sites, along the columns (d[1], d[3]); ``r0``,
+    ``r1`` the slots of rows i, i + 1 of the red planes of ``gh``, ``gv``; ``b0``, ``b1`` of the blue ones."""
+    for k in range(2):
+        x = m[3 * k]
+        s0, s1 = (r0, r1) if k == 0 else (b0, b1)
+        for j in range(1, m.shape[2] - 1):
+            d[2 * k, s, j] = abs((x[i, j] - gh[k, s0, j]) - (x[i, j + 1] - gh[k, s0, j + 1]))
+            d[2 * k + 1, s, j] = abs((x[i, j] - gv[k, s0, j]) - (x[i + 1, j] - gv[k, s1, j]))
+
+
+@kernel(fastmath={"contract"})
+def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sums):
+    """Step 2's decision at one plane row: the window sums of the gradients ``d`` (module docstring; slots
+    ``ru``, ``rm``, ``rd`` of the red planes' rows i - 1, i, i + 1, ``bu``, ``bm``, ``bd`` of the blue ones;
+    summed in the order of OpenCV's filter2D over the full-resolution window); into slot ``s`` of ``g``
+    (2, RING, wq) green along the rows (``gh``, slot ``r0`` red, ``b0`` blue) where the columns' sum is at
+    least the rows', else along the columns (``gv``), ``horizontal`` 1 where along the rows."""
+    three = np.float32(3.0)
+    hr0, hr1, hr2, hb0, hb1, hb2 = d[0, ru], d[0, rm], d[0, rd], d[2, bu], d[2, bm], d[2, bd]
+    vr0, vr1, vb0, vb1 = d[1, ru], d[1, rm], d[3, bu], d[3, bm]
+    rows_r, cols_r, rows_b, cols_b = sums[0], sums[1], sums[2], sums[3]
+    for j in range(1, d.shape[2] - 1):  # (the window sums first, a loop with few arrays: it vectorises)
+        t = hr0[j - 1] + hr0[j] + hb0[j - 1]
+        t = three * hr1[j] + (three * hr1[j - 1] + t)
+        rows_r[j] = t + hb1[j - 1] + hr2[j - 1] + hr2[j]
+        t = (three * vr0[j] + vr0[j - 1]) + vr0[j + 1] + vb0[j - 1] + vb0[j] + vr1[j - 1]
+        cols_r[j] = three * vr1[j] + t + vr1[j + 1]
+        t = hb0[j - 1] + hb0[j] + hr1[j]
+        t = three * hb1[j] + (three * hb1[j - 1] + t)
+        rows_b[j] = t + hr2[j] + hb2[j - 1] + hb2[j]
+        t = (three * vb0[j] + vb0[j - 1]) + vb0[j + 1] + vr1[j] + vr1[j + 1] + vb1[j - 1]
+        cols_b[j] = three * vb1[j] + t + vb1[j + 1]
+    for k in range(2):
+        _choose(sums[2 * k], sums[2 * k + 1], gh[k, r0 if k == 0 else b0], gv[k, r0 if k == 0 else b0],
+                g[k, s], horizontal[k, s])
+
+
+@kernel(inline="always")
+def _choose(rows, cols, gh, gv, g, horizontal):
+    """Green along the rows (``gh``; ``horizontal`` 1) where ``cols`` >= ``rows``, else ``gv``, into ``g``."""
+    for j in range(1, g.size - 1):
         along = cols[j] >= rows[j]
         horizontal[j] = along
-        gh[j] = gh[j] if along else gv[j]
+        g[j] = gh[j] if along else gv[j]
 
 
 @kernel
-def _at_green(m, g, out, first, last):
-    """Step 3 at the green sites: ``out`` (4, hq, wq) = red and blue at the greens of red rows (out[0],
-    out[1]) and of blue rows (out[2], out[3]): green plus the mean of X - G (``g``: green at the red and
-    blue sites) over the two X sites beside it."""
+def _at_green_row(m, i, g, r0, r1, bu, b0, out, s):
+    """Step 3 at the green sites of plane row ``i``, into slot ``s`` of ``out`` (4, RING, wq): red and blue
+    at the greens of red rows (out[0], out[1]) and of blue rows (out[2], out[3]): green plus the mean of
+    X - G (``g``: green at the red sites, slots ``r0``, ``r1`` of rows i, i + 1, and at the blue ones, ``bu``,
+    ``b0`` of rows i - 1, i) over the two X sites beside it."""
     half = np.float32(0.5)
     r, gr, gb, b, gre, gbl = m[0], m[1], m[2], m[3], g[0], g[1]
-    for i in range(first, last):
-        for j in range(1, m.shape[2] - 1):
-            out[0, i, j] = gr[i, j] + half * ((r[i, j] - gre[i, j]) + (r[i, j + 1] - gre[i, j + 1]))
-            out[1, i, j] = gr[i, j] + half * ((b[i - 1, j] - gbl[i - 1, j]) + (b[i, j] - gbl[i, j]))
-            out[2, i, j] = gb[i, j] + half * ((r[i, j] - gre[i, j]) + (r[i + 1, j] - gre[i + 1, j]))
-            out[3, i, j] = gb[i, j] + half * ((b[i, j - 1] - gbl[i, j - 1]) + (b[i, j] - gbl[i, j]))
+    for j in range(1, m.shape[2] - 1):
+        out[0, s, j] = gr[i, j] + half * ((r[i, j] - gre[r0, j]) + (r[i, j + 1] - gre[r0, j + 1]))
+        out[1, s, j] = gr[i, j] + half * ((b[i - 1, j] - gbl[bu, j]) + (b[i, j] - gbl[b0, j]))
+        out[2, s, j] = gb[i, j] + half * ((r[i, j] - gre[r0, j]) + (r[i + 1, j] - gre[r1, j]))
+        out[3, s, j] = gb[i, j] + half * ((b[i, j - 1] - gbl[b0, j - 1]) + (b[i, j] - gbl[b0, j]))
 
 
 @kernel
-def _at_opposite(m, greens, horizontal, other, centre, first, last):
-    """Step 3 (``centre`` 0) and the refinement (1) at the red and blue sites: ``other`` (2, hq, wq), blue at
-    the red sites and red at the blue ones: the site's value minus (plus) the mean of R - B over its two
-    green neighbours along the chosen direction (``greens``: :func:`_at_green`'s planes) and, with weight
-    ``centre``, the site's own R - B (its ``other`` from step 3)."""
+def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1, centre, other):
+    """Step 3 (``centre`` 0) and the refinement (1) at the red and blue sites of plane row ``i``: ``other``
+    (2, wq), blue at the red sites and red at the blue ones: the site's value minus (plus) the mean of R - B
+    over its two green neighbours along the chosen direction (``greens``: :func:`_at_green_row`'s ring; slots
+    ``p0``, ``p1`` of rows i, i + 1 of the greens of red rows, ``q0``, ``qu`` of rows i, i - 1 of those of
+    blue rows; ``horizontal`` slot ``h``) and, with weight ``centre``, the site's own R - B (``before``
+    (2, ., wq), slots ``c0`` and ``c1``: its value from step 3; finite)."""
     r, b, rgr, bgr, rgb, bgb = m[0], m[3], greens[0], greens[1], greens[2], greens[3]
     scale = np.float32(2.0) + centre
-    for i in range(first, last):
-        for j in range(1, m.shape[2] - 1):
-            rows = (rgr[i, j - 1] - bgr[i, j - 1]) + (rgr[i, j] - bgr[i, j])
-            cols = (rgb[i - 1, j] - bgb[i - 1, j]) + (rgb[i, j] - bgb[i, j])
-            diff = (rows if horizontal[0, i, j] else cols) + centre * (r[i, j] - other[0, i, j])
-            other[0, i, j] = r[i, j] - diff / scale
-            rows = (rgb[i, j] - bgb[i, j]) + (rgb[i, j + 1] - bgb[i, j + 1])
-            cols = (rgr[i, j] - bgr[i, j]) + (rgr[i + 1, j] - bgr[i + 1, j])
-            diff = (rows if horizontal[1, i, j] else cols) + centre * (other[1, i, j] - b[i, j])
-            other[1, i, j] = b[i, j] + diff / scale
+    for j in range(1, m.shape[2] - 1):
+        rows = (rgr[p0, j - 1] - bgr[p0, j - 1]) + (rgr[p0, j] - bgr[p0, j])
+        cols = (rgb[qu, j] - bgb[qu, j]) + (rgb[q0, j] - bgb[q0, j])
+        diff = (rows if horizontal[0, h, j] else cols) + centre * (r[i, j] - before[0, c0, j])
+        other[0, j] = r[i, j] - diff / scale
+        rows = (rgb[q0, j] - bgb[q0, j]) + (rgb[q0, j + 1] - bgb[q0, j + 1])
+        cols = (rgr[p0, j] - bgr[p0, j]) + (rgr[p1, j] - bgr[p1, j])
+        diff = (rows if horizontal[1, h, j] else cols) + centre * (before[1, c1, j] - b[i, j])
+        other[1, j] = b[i, j] + diff / scale
 
 
 @kernel
-def _refine_green(m, greens, horizontal, g, first, last):
-    """The refinement of green at the red and blue sites (``g``, in place): the site's value minus the
-    three-pixel mean of X - G along the chosen direction."""
+def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s):
+    """The refinement of green at the red and blue sites of plane row ``i`` into slot ``s`` of ``out``: the
+    site's value minus the three-pixel mean of X - G along the chosen direction (``g``: green before, slots
+    ``g0`` red, ``g1`` blue; other slots as :func:`_at_opposite_row`'s)."""
     third = np.float32(1.0 / 3.0)
     r, gr, gb, b, rgr, bgr, rgb, bgb = m[0], m[1], m[2], m[3], greens[0], greens[1], greens[2], greens[3]
-    for i in range(first, last):
-        for j in range(1, m.shape[2] - 1):
-            rows = (rgr[i, j - 1] - gr[i, j - 1]) + (rgr[i, j] - gr[i, j])
-            cols = (rgb[i - 1, j] - gb[i - 1, j]) + (rgb[i, j] - gb[i, j])
-            g[0, i, j] = r[i, j] - third * ((rows if horizontal[0, i, j] else cols) + (r[i, j] - g[0, i, j]))
-            rows = (bgb[i, j] - gb[i, j]) + (bgb[i, j + 1] - gb[i, j + 1])
-            cols = (bgr[i, j] - gr[i, j]) + (bgr[i + 1, j] - gr[i + 1, j])
-            g[1, i, j] = b[i, j] - third * ((rows if horizontal[1, i, j] else cols) + (b[i, j] - g[1, i, j]))
+    for j in range(1, m.shape[2] - 1):
+        rows = (rgr[p0, j - 1] - gr[i, j - 1]) + (rgr[p0, j] - gr[i, j])
+        cols = (rgb[qu, j] - gb[i - 1, j]) + (rgb[q0, j] - gb[i, j])
+        out[0, s, j] = r[i, j] - third * ((rows if horizontal[0, h, j] else cols) + (r[i, j] - g[0, g0, j]))
+        rows = (bgb[q0, j] - gb[i, j]) + (bgb[q0, j + 1] - gb[i, j + 1])
+        cols = (bgr[p0, j] - gr[i, j]) + (bgr[p1, j] - gr[i + 1, j])
+        out[1, s, j] = b[i, j] - third * ((rows if horizontal[1, h, j] else cols) + (b[i, j] - g[1, g1, j]))
 
 
-def demosaic_grid(grid: Grid, m: np.ndarray, refine: bool = True, workers: int | Executor = 1) -> np.ndarray:
-    """The demosaicing on the planes ``m`` (4, hq, wq, float32, mirrored padding) of ``grid``. Returns the
-    other channels of each kind of site, float32 (8, hq, wq), valid inside the frame (:data:`OUTPUTS`):
-    green at the red and blue sites, red and blue at the greens of red rows and of blue rows, blue at the
-    red sites and red at the blue ones."""
-    out = grid.planes(8)
-    g, greens, other, horizontal = out[0:2], out[2:6], out[6:8], grid.planes(2, np.uint8)
-    # until the decision: green along the rows in g, along the columns in other (which step 3's
-    # _at_opposite reads with weight 0: finite), the gradients in greens
-    gh, gv, d = g, other, greens
-    pieces = _pieces(grid.hq - 2)
+@kernel
+def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, lo, hi, t0, t1):
+    """The demosaicing's stages (:data:`STAGES`; :data:`STAGES_UNREFINED` without ``refine``) from time
+    ``t0`` to ``t1``: at time t stage k computes plane row t - k LAG where that is in its rows lo[k] to
+    hi[k] (plane rows), into its ring (``rings`` float32 (18, RING, wq): green along rows 0-1, along columns
+    2-3, decided 4-5, red and blue at the greens 6-9, the opposite sites 10-11, refined green 12-13, red and
+    blue at the greens again 14-17; ``hz`` uint8 (2, RING, wq) the decision; ``d`` (4, RING + 1, wq) the
+    gradients, row RING zero). Rows of a plane outside the frame are read from their mirror sources
+    (``rowsrc`` (2, hq) by row parity; ``rowin`` whether inside), padding columns mirrored after each row
+    (``colpad``, ``colsrc`` (2, k) by column parity, ``ncol`` how many). The last stage's plane row r goes to
+    ``out`` (n, 8, wq) row r % n: green at the red and blue sites, red and blue at the greens of red rows and of blue
+    rows, blue at the red sites and red at the blue ones (:data:`OUTPUTS`)."""
+    gh, gv, g0, gn0, o0, g1, gn1 = rings[0:2], rings[2:4], rings[4:6], rings[6:10], rings[10:12], rings[12:14], \
+        rings[14:18]
+    last = STAGES - 1 if refine else STAGES_UNREFINED - 1
+    sums = np.empty((4, m.shape[2]), np.float32)
+    other = np.empty((2, m.shape[2]), np.float32)
+    n = out.shape[0]
+    for t in range(t0, t1):
+        for k in range(last + 1):
+            r = t - k * LAG
+            if r < lo[k] or r >= hi[k]:
+                continue
+            s = r % RING
+            p0, p1 = _slot(rowsrc, 0, r), _slot(rowsrc, 0, r + 1)
+            q0, q1, qu = _slot(rowsrc, 1, r), _slot(rowsrc, 1, r + 1), _slot(rowsrc, 1, r - 1)
+            if k == 0:
+                _green_row(m, r, gh, gv, s)
+                for c in range(2):  # (plane 0 of each: red sites, column parity 0; plane 1: blue, 1)
+                    _mirror_cols(gh[c, s], colpad[c], colsrc[c], ncol[c])
+                    _mirror_cols(gv[c, s], colpad[c], colsrc[c], ncol[c])
+            elif k == 1:
+                _gradients_row(m, r, gh, gv, p0, p1, q0, q1, d, s)
+                for c in range(4):
+                    pads = colpad[c // 2]
+                    for x in range(ncol[c // 2]):
+                        d[c, s, pads[x]] = 0
+            elif k == 2:
+                _decide_row(d, _dslot(rowin, 0, r - 1), _dslot(rowin, 0, r), _dslot(rowin, 0, r + 1),
+                            _dslot(rowin, 1, r - 1), _dslot(rowin, 1, r), _dslot(rowin, 1, r + 1),
+                            gh, gv, p0, q0, g0, hz, s, sums)
+                for c in range(2):
+                    _mirror_cols(g0[c, s], colpad[c], colsrc[c], ncol[c])
+            elif k == 3 or k == 6:
+                g, gn = (g0, gn0) if k == 3 else (g1, gn1)
+                _at_green_row(m, r, g, p0, p1, qu, q0, gn, s)
+                for c in range(4):  # (greens of red rows: column parity 1; of blue rows: 0)
+                    _mirror_cols(gn[c, s], colpad[1 - c // 2], colsrc[1 - c // 2], ncol[1 - c // 2])
+            elif k == 4:
+                _at_opposite_row(m, r, gn0, p0, p1, q0, qu, hz, r % RING, gv, p0, q0, np.float32(0.0), other)
+                o0[:, s] = other
+            elif k == 5:
+                _refine_row(m, r, gn0, p0, p1, q0, qu, hz, s, g0, p0, q0, g1, s)
+                for c in range(2):
+                    _mirror_cols(g1[c, s], colpad[c], colsrc[c], ncol[c])
+            else:
+                _at_opposite_row(m, r, gn1, p0, p1, q0, qu, hz, r % RING, o0, s, s, np.float32(1.0), other)
+            if k == last:
+                g, gn = (g1, gn1) if refine else (g0, gn0)
+                row = out[r % n]
+                row[0], row[1] = g[0, p0], g[1, q0]
+                row[2], row[3], row[4], row[5] = gn[0, p0], gn[1, p0], gn[2, q0], gn[3, q0]
+                row[6], row[7] = other[0], other[1]
 
-    def run(function, *args):
-        map_on(workers, lambda part: function(*args, part.start + 1, part.stop + 1), pieces)
 
-    run(_green, m, gh, gv)
-    for k, kind in enumerate((R, B)):
-        grid.mirror(gh[k], kind)
-        grid.mirror(gv[k], kind)
-    run(_gradients, m, gh, gv, d)
-    for k, kind in enumerate((R, R, B, B)):
-        grid.zero(d[k], kind)  # (the window sums' border: zeros)
-    run(_decide, d, gh, gv, horizontal)
-    for step in range(2 if refine else 1):
-        if step:
-            run(_refine_green, m, greens, horizontal, g)
-        for k, kind in enumerate((R, B)):
-            grid.mirror(g[k], kind)
-        run(_at_green, m, g, greens)
-        for k, kind in enumerate((GR, GR, GB, GB)):
-            grid.mirror(greens[k], kind)
-        run(_at_opposite, m, greens, horizontal, other, np.float32(step))
-    return out
+def _stage_rows(grid: Grid, first: int, last: int, stages: int) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (stages,) intp: the plane rows each stage computes so that the last one gives rows ``first``
+    to ``last``: each stage's rows' neighbours (r - 1 to r + 1) read through their mirror sources."""
+    lo, hi = np.empty(stages, np.intp), np.empty(stages, np.intp)
+    lo[-1], hi[-1] = first, last
+    for k in range(stages - 2, -1, -1):
+        rows = np.arange(max(lo[k + 1] - 1, 0), min(hi[k + 1] + 1, grid.hq))
+        sources = grid.rowsrc[:, rows]
+        lo[k], hi[k] = max(int(sources.min()), 1), min(int(sources.max()) + 1, grid.hq - 1)
+    return lo, hi
+
+
+def _stream(grid: Grid, m: np.ndarray, refine: bool, first: int, last: int, out: np.ndarray, chunk) -> None:
+    """The demosaicing of plane rows ``first`` to ``last`` (of 1 .. hq - 2) of the planes ``m`` (4, hq, wq,
+    float32, mirrored padding), in chunks of ``out``'s rows (n, 8, wq): after each, ``chunk(a, b)`` with plane
+    rows a to b in ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap)."""
+    stages = STAGES if refine else STAGES_UNREFINED
+    lo, hi = _stage_rows(grid, first, last, stages)
+    rings = np.empty((18, RING, grid.wq), np.float32)
+    d = np.empty((4, RING + 1, grid.wq), np.float32)
+    d[:, RING] = 0
+    hz = np.empty((2, RING, grid.wq), np.uint8)
+    n = out.shape[0]
+    t = int(min(lo[k] + k * LAG for k in range(stages)))
+    a = first
+    while a < last:
+        b = min((a // n + 1) * n, last)
+        end = b - 1 + (stages - 1) * LAG + 1
+        _advance(m, grid.rowsrc, grid.rowin, grid.colpad, grid.colsrc, grid.ncol, rings, hz, d, out, refine, lo,
+                 hi, t, end)
+        t = end
+        chunk(a, b)
+        a = b
 
 
 def demosaic_log(mosaic: np.ndarray, red: tuple[int, int], refine: bool = True) -> np.ndarray:
@@ -281,10 +396,11 @@ def demosaic_log(mosaic: np.ndarray, red: tuple[int, int], refine: bool = True) 
     grid = Grid(mosaic.shape, red)
     m = grid.planes(4)
     grid.split(np.asarray(mosaic, np.float32), m)
-    out = demosaic_grid(grid, m, refine)
+    out = np.empty((grid.hq, 8, grid.wq), np.float32)
+    _stream(grid, m, refine, 1, grid.hq - 1, out, lambda a, b: None)
     full = np.empty((2 * grid.hq, 2 * grid.wq, 3), np.float32)
     for kind, (py, px) in enumerate(PARITY):
-        full[py::2, px::2] = np.stack([m[kind] if k < 0 else out[k] for k in OUTPUTS[kind]], axis=-1)
+        full[py::2, px::2] = np.stack([m[kind] if k < 0 else out[:, k] for k in OUTPUTS[kind]], axis=-1)
     return full[grid.top:grid.top + grid.h, grid.left:grid.left + grid.w].copy()
 
 
@@ -411,20 +527,23 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
 
 @kernel
 def _blend(rgb, luminance, weight, exps, floor, share, top, left, first, last):
-    """Rows ``first`` to ``last``: at each pixel of nonzero ``weight``, its other two channels move by the
-    weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (8, hq, wq),
-    :func:`demosaic_grid`'s output exponentiated), and the luminance becomes sum_c n_c RGB_c (``share``)."""
+    """Frame rows ``first`` to ``last``: at each pixel of nonzero ``weight``, its other two channels move by the
+    weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq),
+    plane row i of :func:`_advance`'s output exponentiated at row i % n), and the luminance becomes
+    sum_c n_c RGB_c (``share``)."""
     zero = np.float32(0.0)
     w = luminance.shape[1]
+    n = exps.shape[0]
     first_other, second_other = np.empty(w, np.float32), np.empty(w, np.float32)
     n0, n1, n2 = share[0], share[1], share[2]
     for y in range(first, last):
         red_row, odd_left = (y + top) % 2 == 0, left % 2
         for x0 in range(2):  # each pixel's other channels (R before G before B) into rows of the frame
-            kind, i, j0, n = _run(y, x0, top, left, w)
-            a, b = (exps[0, i], exps[6, i]) if kind == R else (exps[7, i], exps[1, i]) if kind == B else \
-                (exps[2, i], exps[3, i]) if kind == GR else (exps[4, i], exps[5, i])
-            for k in range(n):
+            kind, i, j0, count = _run(y, x0, top, left, w)
+            e = exps[i % n]
+            a, b = (e[0], e[6]) if kind == R else (e[7], e[1]) if kind == B else \
+                (e[2], e[3]) if kind == GR else (e[4], e[5])
+            for k in range(count):
                 first_other[x0 + 2 * k] = max(a[j0 + k] - floor, zero)
                 second_other[x0 + 2 * k] = max(b[j0 + k] - floor, zero)
         _blend_row(rgb[y].reshape(-1), luminance[y], weight[y], first_other, second_other, red_row, odd_left,
@@ -483,11 +602,23 @@ def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, 
     weight = _site_weights(inp, rgb, grid, m, f32(floor), workers)
     if weight is None:
         return True
-    exps = demosaic_grid(grid, m, refine, workers)
-    cv2.exp(exps.reshape(-1, grid.wq), exps.reshape(-1, grid.wq))
     n = np.asarray(share, f32)
-    map_on(workers, lambda part: _blend(rgb, luminance, weight, exps, f32(floor), n, grid.top, grid.left,
-                                        part.start, part.stop), _pieces(h))
+
+    def piece(part: slice) -> None:
+        exps = np.empty((CHUNK, 8, grid.wq), f32)
+
+        def chunk(a: int, b: int) -> None:  # plane rows a to b: exp, then the frame rows they hold
+            rows = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, grid.wq)
+            cv2.exp(rows, rows)
+            _blend(rgb, luminance, weight, exps, f32(floor), n, grid.top, grid.left,
+                   max(2 * a - grid.top, 0), min(2 * b - grid.top, h))
+
+        _stream(grid, m, refine, part.start, part.stop, exps, chunk)
+
+    rows = grid.hq - 2
+    count = 1 if workers == 1 else max(2, -(-rows // STREAM_ROWS))
+    step = -(-rows // count)
+    map_on(workers, piece, [slice(1 + r, 1 + min(r + step, rows)) for r in range(0, rows, step)])
     return True
 
 

@@ -23,9 +23,11 @@ def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor
     out = np.empty(inp.shape, np.float32)
     channel_rows = _channel_rows(inp.cfa, inp.shape[1])
     none = np.empty((0, 0), np.float32)
+    # a nominal pattern's exposures repeat with its tile's rows: the kernel reads those rows, not a whole frame
+    exposure = inp.exposure if inp.pattern.pixel_map is not None else inp.exposure[:inp.pattern.shape[0]]
 
     def piece(rows: slice) -> None:
-        _fold(inp.exposure[rows], channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows],
+        _fold(exposure, channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows],
               none if inverse is None else inverse[rows])
 
     map_on(workers, piece, _pieces(inp.shape[0]))
@@ -40,15 +42,19 @@ def _channel_rows(cfa: ColourFilter, width: int) -> np.ndarray:
     return rows
 
 
-def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Executor = 1) -> np.ndarray:
-    """RGB = Y k_c, float32 (H, W, 3), from the luminance Y (H, W) (package docstring, step c)."""
+def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Executor = 1,
+              copy: np.ndarray | None = None) -> np.ndarray:
+    """RGB = Y k_c, float32 (H, W, 3), from the luminance Y (H, W) (package docstring, step c). ``copy``:
+    float32 (H, W) or None, where Y is copied in the same pass (each row while it is in cache)."""
     out = np.empty((*luminance.shape, 3), np.float32)
     luminance = np.ascontiguousarray(luminance, np.float32)
+    none = np.empty((0, 0), np.float32)
 
     interleaved = out.reshape(luminance.shape[0], -1)  # (H, 3 W): the kernel's stores, one flat row each
 
     def piece(rows: slice) -> None:
-        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows], interleaved[rows])
+        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows], interleaved[rows],
+                   none if copy is None else copy[rows])
 
     map_on(workers, piece, _pieces(luminance.shape[0]))
     return out
@@ -57,16 +63,18 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
 @kernel
 def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse):
     """out = e k_c of each pixel's channel c (``channel_rows``: the CFA's rows; the arrays' row r is
-    frame row ``first`` + r), k_c interpolated between the pixel's two cell rows: the two values of
-    its channel chosen first (every value loaded before the choice, which vectorises), then one
-    interpolation per pixel (not three into a scratch row, then the choice: 25 % faster).
+    frame row ``first`` + r, whose exposures are ``exposure``'s row (``first`` + r) modulo its rows: the
+    whole frame's, or a nominal pattern's tile rows), k_c interpolated between the pixel's two cell
+    rows: the two values of its channel chosen first (every value loaded before the choice, which
+    vectorises), then one interpolation per pixel (not three into a scratch row, then the choice:
+    25 % faster).
     ``inverse``: 1 / out where it is not empty."""
     period, last = channel_rows.shape[0], rows.shape[1] - 1
-    for r in range(exposure.shape[0]):
+    for r in range(out.shape[0]):
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
         a0, b0, a1, b1, a2, b2 = rows[0, t0], rows[0, t1], rows[1, t0], rows[1, t1], rows[2, t0], rows[2, t1]
-        ch, e, o = channel_rows[(first + r) % period], exposure[r], out[r]
+        ch, e, o = channel_rows[(first + r) % period], exposure[(first + r) % exposure.shape[0]], out[r]
         for x in range(o.size):
             c, p0, p1, p2, q0, q1, q2 = ch[x], a0[x], a1[x], a2[x], b0[x], b1[x], b2[x]
             a = p0 if c == 0 else (p1 if c == 1 else p2)
@@ -79,21 +87,29 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse):
 
 
 @kernel
-def _colourise(luminance, rows, top, frac, out):
+def _colourise(luminance, rows, top, frac, out, copy):
     """out (H, 3 W), the rows of (H, W, 3) = Y k_c, the shares interpolated between each row's two
     cell rows in the loop. Stores into flat rows: into (H, W, 3) the loop does not vectorise (25 %
-    slower)."""
+    slower). ``copy`` (H, W), unless empty: the luminance's rows copied there."""
     last = rows.shape[1] - 1
     for r in range(luminance.shape[0]):
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
-        a0, b0, a1, b1, a2, b2 = rows[0, t0], rows[0, t1], rows[1, t0], rows[1, t1], rows[2, t0], rows[2, t1]
-        y, o = luminance[r], out[r]
-        for x in range(y.size):
-            v = y[x]
-            o[3 * x] = v * (a0[x] + (b0[x] - a0[x]) * f)
-            o[3 * x + 1] = v * (a1[x] + (b1[x] - a1[x]) * f)
-            o[3 * x + 2] = v * (a2[x] + (b2[x] - a2[x]) * f)
+        _colour_row(luminance[r], rows[0, t0], rows[0, t1], rows[1, t0], rows[1, t1], rows[2, t0], rows[2, t1], f,
+                    out[r])
+        if copy.size > 0:
+            copy[r] = luminance[r]
+
+
+@kernel(inline="always")
+def _colour_row(y, a0, b0, a1, b1, a2, b2, f, o):
+    """o (3 W,) = one row of (W, 3) RGB = ``y`` (W,) times each channel's share interpolated at ``f``
+    between its two cell rows (``a``, ``b``; (W,) each)."""
+    for x in range(y.size):
+        v = y[x]
+        o[3 * x] = v * (a0[x] + (b0[x] - a0[x]) * f)
+        o[3 * x + 1] = v * (a1[x] + (b1[x] - a1[x]) * f)
+        o[3 * x + 2] = v * (a2[x] + (b2[x] - a2[x]) * f)
 
 
 def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True,

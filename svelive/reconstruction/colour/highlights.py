@@ -1,6 +1,6 @@
 """Clipped channels (svelive.reconstruction.colour, "Highlights"): the white balance from the cells
 (:func:`white_balance`), and each cell's channel values with the censoring and highlight rules, a clipped
-channel raised to the white-balanced level of the measured ones (:func:`_cell_values`)."""
+channel raised to the white-balanced level of the measured ones (:func:`_cell_values_row`)."""
 
 from __future__ import annotations
 
@@ -46,19 +46,11 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
 
 
 @kernel
-def _cell_values(numerator, denominator, weighted, kept, mean, info, bound, white, out, own, brightest):
-    """Each cell's C_c (3, Hc, Wc) from the smoothed sums (``numerator`` / ``denominator``) and
-    the cells' statistics (:func:`_cell_stats`): the censoring and highlight rules (package
-    docstring); ``own``: the same from each cell's own readings alone (``weighted`` / ``kept``).
-    Cell row by cell row, both while the row's statistics are in cache. ``brightest``: (Wc,) scratch."""
-    for i in range(out.shape[1]):
-        _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i)
-        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i)
-
-
-@kernel
 def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i):
-    """:func:`_cell_values` of cell row ``i`` into ``out``. Loops over the cells of the row (which vectorise)."""
+    """Each cell's C_c (3, Hc, Wc) of cell row ``i`` into ``out``, from the smoothed sums ``numerator`` /
+    ``denominator`` (or, for each cell's own readings alone, ``weighted`` / ``kept``) and the cells'
+    statistics (:func:`_cell_stats`): the censoring and highlight rules (package docstring).
+    ``brightest``: (Wc,) scratch. Loops over the cells of the row (which vectorise)."""
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
     # brightest: max over the measured channels of C / white (-1: none measured)
     brightest[:] = none

@@ -9,10 +9,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-from numba import types
-from numba.extending import intrinsic
-
-from svelive.jit import kernel
+from svelive.jit import fma32, kernel
 from svelive.reconstruction.colour.shares import Chroma
 
 
@@ -60,14 +57,6 @@ def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int) -> np.ndarray:
     return rows[:, :, :w]
 
 
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """a b + c rounded once (float32), as OpenCV's linear resize computes its taps."""
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-    return types.float32(types.float32, types.float32, types.float32), codegen
-
-
 @kernel
 def _widen(planes, cx, out):
     """out (N, cx Wc) = ``planes`` (N, Wc) float32 interpolated linearly along rows, cell j at column
@@ -84,17 +73,17 @@ def _widen(planes, cx, out):
             for j in range(wc - 1):
                 a = p[j]
                 d = p[j + 1] - a
-                o[2 * j + 1] = _fma(d, q, a)
-                o[2 * j + 2] = _fma(d, t, a)
+                o[2 * j + 1] = fma32(d, q, a)
+                o[2 * j + 2] = fma32(d, t, a)
         else:
             f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
             for j in range(wc - 1):
                 a = p[j]
                 d = p[j + 1] - a
-                o[4 * j + 2] = _fma(d, f0, a)
-                o[4 * j + 3] = _fma(d, f1, a)
-                o[4 * j + 4] = _fma(d, f2, a)
-                o[4 * j + 5] = _fma(d, f3, a)
+                o[4 * j + 2] = fma32(d, f0, a)
+                o[4 * j + 3] = fma32(d, f1, a)
+                o[4 * j + 4] = fma32(d, f2, a)
+                o[4 * j + 5] = fma32(d, f3, a)
         for x in range(cx * (wc - 1) + c0, o.size):
             o[x] = p[wc - 1]
 

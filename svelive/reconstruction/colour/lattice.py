@@ -48,8 +48,19 @@ def flagged_cells(shares: np.ndarray, high: float = F_HIGH) -> np.ndarray:
     """uint8 (Hc, Wc): 1 within one cell of a cell whose smallest share is below ``high`` times its
     largest, from the cells' shares (3, Hc, Wc). A pixel between four unflagged cells has every
     channel's share at least ``high`` times its largest (a bilinear mean of cells where that holds)."""
-    low = (shares.min(axis=0) < np.float32(high) * shares.max(axis=0)).astype(np.uint8)
+    low = np.empty(shares.shape[1:], np.uint8)
+    _low_cells(np.ascontiguousarray(shares, np.float32), np.float32(high), low)
     return cv2.dilate(low, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+@kernel
+def _low_cells(shares, high, out):
+    """out (Hc, Wc) uint8 = 1 where the smallest of a cell's shares (3, Hc, Wc) is below ``high`` times its
+    largest (float32), else 0: one pass instead of numpy's five over the planes."""
+    for i in range(out.shape[0]):
+        r, g, b, o = shares[0, i], shares[1, i], shares[2, i], out[i]
+        for j in range(o.size):
+            o[j] = np.uint8(min(min(r[j], g[j]), b[j]) < high * max(max(r[j], g[j]), b[j]))
 
 
 def lattice_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, shares: np.ndarray,

@@ -9,13 +9,14 @@ from concurrent.futures import Executor
 import numpy as np
 
 from svelive.jit import kernel
+from svelive.reconstruction.colour.folding import _colour_row
 from svelive.reconstruction.colour.interpolate import Interpolation, _full_width, _pieces
 from svelive.reconstruction.methods.base import map_on
 
 
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,
            weight: np.ndarray | None = None, out: np.ndarray | None = None,
-           out_variance: np.ndarray | None = None, new_variance: bool = False,
+           out_variance: np.ndarray | None = None, new_variance: bool = False, rgb: np.ndarray | None = None,
            workers: int | Executor = 1) -> np.ndarray:
     """Move the luminance Y towards the coarse L where they differ by no more than noise.
 
@@ -41,6 +42,9 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
             computed, when None).
         new_variance: ``out_variance`` is none of the inputs (with ``out`` None, both are
             written in one loop that vectorises, without a scratch row).
+        rgb: float32 (H, W, 3) or None: where to write the refined Y coloured, Y k_c with the shares
+            of ``inter`` (bit for bit folding.colourise of the result), each row while it is in cache;
+            only with ``out`` None and a new ``out_variance`` (or none).
         workers: threads for its pieces of rows (base.map_on); the result does not depend on it.
 
     Returns:
@@ -57,13 +61,18 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
     map_on(workers, cells, _pieces(h, cy))
     residual_rows = _full_width((residual,), cx, w)[0]
     none = np.empty((0, 0), np.float32)
-    if out is None and (out_variance is None or new_variance):  # written in the loop (no scratch row: 40 % faster)
+    fresh_out = out is None and (out_variance is None or new_variance)
+    if rgb is not None and not fresh_out:
+        raise ValueError("refine writes rgb only into a new out (and a new out_variance or none)")
+    if fresh_out:  # written in the loop (no scratch row: 40 % faster)
         out = np.empty((h, w), np.float32)
+        interleaved = none if rgb is None else rgb.reshape(h, 3 * w)  # (H, 3 W): flat rows, as colourise's
 
         def fresh(rows: slice) -> None:
             _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
                          inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows],
-                         none if out_variance is None else out_variance[rows])
+                         none if out_variance is None else out_variance[rows], inter.rows,
+                         none if rgb is None else interleaved[rows])
 
         map_on(workers, fresh, _pieces(h))
         return out
@@ -149,9 +158,12 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 
 
 @kernel
-def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out, out_variance):
+def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out, out_variance,
+                 planes, rgb):
     """:func:`_refine` into ``out`` and ``out_variance`` (may be empty) that are none of the inputs:
-    the same arithmetic per pixel, stored in the loop."""
+    the same arithmetic per pixel, stored in the loop. ``rgb`` (R, 3 W), unless empty: each row's
+    result times the shares ``planes[0:3]`` (P, Hc, W) interpolated between its two cell rows, as
+    folding._colourise, from the row just written (in cache)."""
     weighted, with_variance = weight.size > 0, out_variance.size > 0
     last = coarse.shape[0] - 1
     for r in range(luminance.shape[0]):
@@ -166,3 +178,6 @@ def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual,
                                 e0[x], e1[x], f)
             if with_variance:
                 out_variance[r, x] = ov
+        if rgb.size > 0:
+            _colour_row(o, planes[0, t0], planes[0, t1], planes[1, t0], planes[1, t1], planes[2, t0], planes[2, t1],
+                        f, rgb[r])

@@ -11,9 +11,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from svelive.jit import kernel
+from svelive.jit import fma32, kernel
 from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, cell_layout
-from svelive.reconstruction.colour.highlights import _cell_values, white_balance
+from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
 from svelive.reconstruction.methods.base import SveInput, binomial_kernel
 
 #: A channel's share of luminance is at least this (a zero would make its pixels' exposure 0).
@@ -56,9 +56,10 @@ def chroma(inp: SveInput) -> Chroma:
     channels: :func:`_smooth_cells`), the censoring and
     highlight rules give C_c, which is moved from the centroid of the channel's samples to the
     cells' centres (bilinearly), and the shares are k_c = C_c / L there. The same from each
-    cell's own readings moves them where the two differ beyond noise (:func:`_blend`), the
-    garrote towards the neutral follows (:func:`_shrink`), then each channel's median over 3x3
-    cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1.
+    cell's own readings moves them where the two differ beyond noise (:func:`_blend_row`), the
+    garrote towards the neutral follows (:func:`_shrink_row`), then each channel's median over 3x3
+    cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1: all of
+    it after the white balance in one pass over the cell rows (:func:`_share_pass`).
     """
     layout = cell_layout(inp.pattern, inp.cfa)
     (cy, cx), (h, w) = layout.cell, inp.shape
@@ -76,33 +77,25 @@ def chroma(inp: SveInput) -> Chroma:
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)  # the sum of the squared weights of the cells' smoothing
     numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    _smooth_cells(weighted, kept, mean, k, numerator, denominator)
+    _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32))
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
-    values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    # the smoothed values, and each cell's own readings' (own), in one pass over the cells' statistics
-    _cell_values(numerator, denominator, weighted, kept, mean, info, bound, white, values, own, np.empty(wc, f32))
-    shares, own_shares = _centred(values, layout), _centred(own, layout)
+    # the rest in one pass over the cell rows (:func:`_share_pass`): every stage's rows are still in cache when
+    # the next reads them, instead of a dozen passes over whole (3, Hc, Wc) planes
     neutral = (white / f32(layout.share @ white)).astype(f32)
-    coarse = np.empty((2, hc, wc), f32)
-    noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
-    _shares(shares, info, bound, censored, layout.share, neutral, f32(SHARE_FLOOR), spread, coarse, noise, deviation,
-            own_shares, own_noise, residual, np.empty(wc, f32))
-    for c in range(3):
-        cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
-    _blend(shares, noise, own_shares, own_noise, residual, neutral, deviation)
-    for c in range(3):
-        cv2.sepFilter2D(deviation[c], cv2.CV_32F, k, k, dst=deviation[c], borderType=cv2.BORDER_REFLECT_101)
-    _shrink(shares, neutral, noise, deviation)
-    for c in range(3):  # a cell whose channels read different sides of an edge is an outlier among its neighbours
-        cv2.medianBlur(shares[c], 3, dst=shares[c])
-    _normalise(shares, layout.share, f32(SHARE_FLOOR), np.empty(wc, f32))
+    shares, coarse = np.empty((3, hc, wc), f32), np.empty((2, hc, wc), f32)
+    values, own, smoothed, own_shares, noise, own_noise, residual, deviation = (
+        np.empty((3, hc, wc), f32) for _ in range(8))
+    _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share, neutral,
+                f32(SHARE_FLOOR), spread, _centring_taps(layout), k, values, own, smoothed, own_shares, noise,
+                own_noise, residual, deviation, coarse, shares, np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32),
+                np.empty(wc, f32), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
 
 
-def _smooth_cells(weighted: np.ndarray, kept: np.ndarray, mean: np.ndarray, k: np.ndarray,
-                  numerator: np.ndarray, denominator: np.ndarray) -> None:
+@kernel
+def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
     """The sums of the cells' 3x3 smoothing (3, Hc, Wc), in place: every channel of a cell weighted
     alike, by the smallest share of a channel's information its uncensored readings hold in it.
 
@@ -113,26 +106,39 @@ def _smooth_cells(weighted: np.ndarray, kept: np.ndarray, mean: np.ndarray, k: n
     the luminance) and the 3x3 median carried that into the light. With one weight for every
     channel the ratios the smoothing forms are those of the cells it averages. Where that weight is
     0 for every cell around (a channel with only censored readings in each), each channel keeps
-    the cell's own readings (the highlight rules take the censored ones)."""
-    common = kept.min(axis=0)
-    products = common * mean
-    for c in range(3):
-        cv2.sepFilter2D(products[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
-    cv2.sepFilter2D(common, cv2.CV_32F, k, k, dst=denominator[0], borderType=cv2.BORDER_REFLECT_101)
-    denominator[1:] = denominator[0]
-    none = np.nonzero(denominator[0] <= 0)
-    if none[0].size:
-        for c in range(3):
-            numerator[c][none], denominator[c][none] = weighted[c][none], kept[c][none]
+    the cell's own readings (the highlight rules take the censored ones).
 
-
-def _centred(values: np.ndarray, layout: CellLayout) -> np.ndarray:
-    """Cell values (3, Hc, Wc) moved from the centroid of each channel's samples to the cells'
-    centres (bilinearly, :func:`_centring_kernels`), float32 (3, Hc, Wc)."""
-    out = np.empty_like(values)
-    for c, (ky, kx) in enumerate(_centring_kernels(layout)):
-        cv2.sepFilter2D(values[c], cv2.CV_32F, kx, ky, dst=out[c], borderType=cv2.BORDER_REPLICATE)
-    return out
+    ``numerator`` (out): the smoothing ``k`` (float32 (3,), symmetric) each way, mirrored at the
+    edges, of the common weight times ``mean``; ``denominator`` (out): of the common weight (the
+    same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. One pass over the cell
+    rows, the smoothing across rows one row behind the one along them. ``rings`` (4, 3, Wc): the
+    last three rows of the pass along rows (numerators, then the weight); ``row`` (Wc,): scratch.
+    """
+    hc, wc = kept.shape[1], kept.shape[2]
+    for t in range(hc + 1):
+        if t < hc:
+            common = rings[3, t % 3]  # the weight's row first, smoothed along the row below
+            for j in range(wc):
+                row[j] = min(min(kept[0, t, j], kept[1, t, j]), kept[2, t, j])
+            for c in range(3):
+                products, m = common, mean[c, t]  # (a scratch row: the ring's slot is written after it)
+                for j in range(wc):
+                    products[j] = row[j] * m[j]
+                _binomial_along(products, k, rings[c, t % 3])
+            _binomial_along(row, k, common)
+        u = t - 1
+        if 0 <= u < hc:
+            up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
+            for c in range(4):
+                _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
+                                 numerator[c, u] if c < 3 else denominator[0, u])
+            d0 = denominator[0, u]
+            denominator[1, u, :] = d0
+            denominator[2, u, :] = d0
+            for j in range(wc):
+                if d0[j] <= 0:  # no weight around: each channel's own readings
+                    for c in range(3):
+                        numerator[c, u, j], denominator[c, u, j] = weighted[c, u, j], kept[c, u, j]
 
 
 @lru_cache(maxsize=16)
@@ -153,50 +159,202 @@ def _centring_kernels(layout: CellLayout) -> tuple[tuple[np.ndarray, np.ndarray]
     return tuple(out)
 
 
+@lru_cache(maxsize=16)
+def _centring_taps(layout: CellLayout) -> np.ndarray:
+    """:func:`_centring_kernels` as one float32 (3, 2, 3) array: per channel the taps along rows (0) and
+    along columns (1), read-only."""
+    taps = np.array([[rows, cols] for rows, cols in _centring_kernels(layout)], np.float32)
+    taps.setflags(write=False)
+    return taps
+
+
 @kernel
-def _shares(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, deviation,
-            own, own_noise, residual, lum):
-    """values (3, Hc, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place.
+def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
+                spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
+                out, rings, columns, brightest, lum):
+    """Step (a) after the cells' smoothing and the white balance, in one pass over the cell rows: each
+    row's values (:func:`_cell_values_row`, smoothed and own), moved to the cells' centres (``taps``,
+    :func:`_centring_taps`), their shares and coarse luminance (:func:`_shares_row`,
+    :func:`_own_shares_row`), the 3x3 mean of the squared own - smoothed residual, the blend towards
+    the own shares (:func:`_blend_row`), the 3x3 mean of the squared deviation from the neutral, the
+    garrote towards it (:func:`_shrink_row`), the 3x3 median and the normalisation
+    (:func:`_normalise_row`). Bit for bit the chain of whole-plane steps with OpenCV's filters it
+    replaces (``sepFilter2D`` with the binomial ``k`` and its mirrored border, with the centring
+    taps and the edge's value repeated, ``medianBlur`` of 3): each stage runs on a row a few rows
+    behind the one before, whose rows it reads are then done and still in cache.
+
+    In: the cells' statistics and sums (3, Hc, Wc) (:func:`chroma`), ``censored`` uint8 (Hc, Wc),
+    ``white``, ``share``, ``neutral`` float32 (3,), ``floor`` and ``spread`` float32, ``taps``
+    float32 (3, 2, 3), ``k`` float32 (3,). Out: ``out`` (3, Hc, Wc), the shares; ``coarse`` (2, Hc,
+    Wc) (:func:`_shares_row`). Scratch: ``values``, ``own``, ``smoothed``, ``own_shares``,
+    ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, Hc, Wc); ``rings`` (4, 3, 3, Wc), the
+    last three rows of each filter's pass along rows; ``columns`` (3, Wc) (:func:`_median_row`);
+    ``brightest`` and ``lum`` (Wc,).
+    """
+    hc = values.shape[1]
+    for t in range(hc + 4):
+        if t < hc:  # the cells' values of row t, and the centring along the row
+            _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t)
+            _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t)
+            for c in range(3):
+                _taps_along(values[c, t], taps[c, 1], rings[0, t % 3, c])
+                _taps_along(own[c, t], taps[c, 1], rings[1, t % 3, c])
+        u = t - 1
+        if 0 <= u < hc:  # centred, the shares of row u, and its residual along the row
+            up, down = max(u - 1, 0), min(u + 1, hc - 1)
+            for c in range(3):
+                _taps_across(rings[0, up % 3, c], rings[0, u % 3, c], rings[0, down % 3, c], taps[c, 0],
+                             smoothed[c, u])
+                _taps_across(rings[1, up % 3, c], rings[1, u % 3, c], rings[1, down % 3, c], taps[c, 0],
+                             own_shares[c, u])
+            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u)
+            _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u)
+            for c in range(3):
+                _binomial_along(residual[c, u], k, rings[2, u % 3, c])
+        u = t - 2
+        if 0 <= u < hc:  # the residual's 3x3 mean, the blend, and the deviation along the row
+            up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
+            for c in range(3):
+                _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, u])
+            _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, u)
+            for c in range(3):
+                _binomial_along(deviation[c, u], k, rings[3, u % 3, c])
+        u = t - 3
+        if 0 <= u < hc:  # the deviation's 3x3 mean and the garrote
+            up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
+            for c in range(3):
+                _binomial_across(rings[3, up % 3, c], rings[3, u % 3, c], rings[3, down % 3, c], k,
+                                 deviation[c, u])
+            _shrink_row(smoothed, neutral, noise, deviation, u)
+        u = t - 4
+        if 0 <= u < hc:  # the median and the normalisation
+            up, down = max(u - 1, 0), min(u + 1, hc - 1)
+            for c in range(3):
+                _median_row(smoothed[c, up], smoothed[c, u], smoothed[c, down], out[c, u], columns)
+            _normalise_row(out, share, floor, lum, u)
+
+
+@kernel(inline="always")
+def _mirrored(i, n):
+    """Row ``i`` (one beyond the ends at most) of ``n`` mirrored at the ends without repeating them
+    (OpenCV's BORDER_REFLECT_101; 0 for a single row)."""
+    i = -i if i < 0 else (2 * n - 2 - i if i >= n else i)
+    return min(max(i, 0), n - 1)
+
+
+@kernel
+def _taps_along(x, taps, out):
+    """out (W,) = 3 ``taps`` along ``x`` (W,), the ends' values repeated: OpenCV's row filter of a
+    float32 ``sepFilter2D`` (a fused multiply-add per tap after the first)."""
+    w = x.size
+    k0, k1, k2 = taps[0], taps[1], taps[2]
+    for j in range(1, w - 1):
+        out[j] = fma32(x[j + 1], k2, fma32(x[j], k1, x[j - 1] * k0))
+    out[0] = fma32(x[min(1, w - 1)], k2, fma32(x[0], k1, x[0] * k0))
+    if w > 1:
+        out[w - 1] = fma32(x[w - 1], k2, fma32(x[w - 1], k1, x[w - 2] * k0))
+
+
+@kernel
+def _taps_across(a, b, c, taps, out):
+    """out (W,) = 3 ``taps`` across the rows ``a``, ``b``, ``c`` (W,): OpenCV's column filter of a float32
+    ``sepFilter2D`` (products, then their sum from the first)."""
+    k0, k1, k2 = taps[0], taps[1], taps[2]
+    for j in range(out.size):
+        out[j] = (a[j] * k0 + b[j] * k1) + c[j] * k2
+
+
+@kernel
+def _binomial_along(x, k, out):
+    """out (W,) = the symmetric 3 taps ``k`` along ``x`` (W,), mirrored at the ends (BORDER_REFLECT_101):
+    OpenCV's symmetric row filter, the outer pair's sum times k_0 plus the centre times k_1."""
+    w = x.size
+    k0, k1 = k[0], k[1]
+    for j in range(1, w - 1):
+        out[j] = (x[j - 1] + x[j + 1]) * k0 + x[j] * k1
+    out[0] = (x[_mirrored(-1, w)] + x[_mirrored(1, w)]) * k0 + x[0] * k1
+    if w > 1:
+        out[w - 1] = (x[w - 2] + x[_mirrored(w, w)]) * k0 + x[w - 1] * k1
+
+
+@kernel
+def _binomial_across(a, b, c, k, out):
+    """out (W,) = the symmetric 3 taps ``k`` across the rows ``a``, ``b``, ``c`` (W,), as :func:`_binomial_along`."""
+    k0, k1 = k[0], k[1]
+    for j in range(out.size):
+        out[j] = (a[j] + c[j]) * k0 + b[j] * k1
+
+
+@kernel
+def _median_row(a, b, c, out, sorted_columns):
+    """out (W,) = the median of the 3x3 values around each column of the rows ``a``, ``b``, ``c`` (W,),
+    the end columns repeated (OpenCV's ``medianBlur`` of 3 on float32): each column's three sorted
+    (into ``sorted_columns``, (3, W) scratch), then the median of the largest of the smallest, the
+    median of the medians and the smallest of the largest of the three columns around."""
+    w = out.size
+    lo, mid, hi = sorted_columns[0], sorted_columns[1], sorted_columns[2]
+    for j in range(w):
+        lo[j], mid[j], hi[j] = _sorted3(a[j], b[j], c[j])
+    for j in range(1, w - 1):
+        out[j] = _median_of(lo[j - 1], lo[j], lo[j + 1], mid[j - 1], mid[j], mid[j + 1], hi[j - 1], hi[j], hi[j + 1])
+    out[0] = _median_of(lo[0], lo[0], lo[min(1, w - 1)], mid[0], mid[0], mid[min(1, w - 1)], hi[0], hi[0],
+                        hi[min(1, w - 1)])
+    if w > 1:
+        out[w - 1] = _median_of(lo[w - 2], lo[w - 1], lo[w - 1], mid[w - 2], mid[w - 1], mid[w - 1], hi[w - 2],
+                                hi[w - 1], hi[w - 1])
+
+
+@kernel(inline="always")
+def _median_of(lo0, lo1, lo2, mid0, mid1, mid2, hi0, hi1, hi2):
+    """The median of 9 values given as three sorted columns (smallest, median, largest of each)."""
+    return _sorted3(max(max(lo0, lo1), lo2), _sorted3(mid0, mid1, mid2)[1], min(min(hi0, hi1), hi2))[1]
+
+
+@kernel(inline="always")
+def _sorted3(x, y, z):
+    """(smallest, median, largest) of three values."""
+    lo, hi = min(x, y), max(x, y)
+    return min(lo, z), max(lo, min(hi, z)), max(hi, z)
+
+
+@kernel
+def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i):
+    """values (3, Hc, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
+    cell row ``i``.
 
     ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
     censored readings, ``bound`` > 0, which keeps its own), COARSE_NONE where ``censored`` (Hc, Wc)
-    is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's
-    noise; ``deviation``: (k_c - neutral_c)^2. ``own`` (3, Hc, Wc): each cell's own C_c in, its
-    shares out (:func:`_own_shares_row`, ``own_noise`` and ``residual``), cell row by cell row
-    after the smoothed ones while the row's are in cache. ``lum``: (Wc,) scratch. Loops over the
-    cells of a row (which vectorise).
+    is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's noise. Loops over the
+    cells of the row (which vectorise).
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
     tiny = np.float32(1e-30)
-    for i in range(values.shape[1]):
-        lum_row, var = coarse[0, i], coarse[1, i]
-        r, g, b = values[0, i], values[1, i], values[2, i]
+    lum_row, var = coarse[0, i], coarse[1, i]
+    r, g, b = values[0, i], values[1, i], values[2, i]
+    for j in range(lum_row.size):
+        lum_row[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+        var[j] = zero
+    for c in range(3):
+        k, n, inf, level, weight = values[c, i], noise[c, i], info[c, i], neutral[c], share[c]
+        b = bound[c, i]
         for j in range(lum_row.size):
-            lum_row[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
-            var[j] = zero
-        for c in range(3):
-            k, n, d, inf, level, weight = values[c, i], noise[c, i], deviation[c, i], info[c, i], neutral[c], share[c]
-            b = bound[c, i]
-            for j in range(lum_row.size):
-                ok = lum_row[j] > zero
-                inverse = one / lum_row[j] if ok else zero
-                v = (spread if b[j] <= zero else one) / max(inf[j], tiny)
-                kc = max(k[j] * inverse, floor) if ok else level
-                k[j] = kc
-                n[j] = min(v * inverse * inverse, none) if ok else none
-                d[j] = (kc - level) * (kc - level)
-                var[j] += weight * weight * v
-        lost = censored[i]
-        for j in range(lum_row.size):
-            var[j] = none if lost[j] else min(var[j], none)
-        _own_shares_row(own, info, share, neutral, floor, values, own_noise, residual, lum, i)
+            ok = lum_row[j] > zero
+            inverse = one / lum_row[j] if ok else zero
+            v = (spread if b[j] <= zero else one) / max(inf[j], tiny)
+            kc = max(k[j] * inverse, floor) if ok else level
+            k[j] = kc
+            n[j] = min(v * inverse * inverse, none) if ok else none
+            var[j] += weight * weight * v
+    lost = censored[i]
+    for j in range(lum_row.size):
+        var[j] = none if lost[j] else min(var[j], none)
 
 
 @kernel
 def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i):
     """values (3, Hc, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
-    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares` with the cell's own
+    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares_row` with the cell's own
     readings alone (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE).
     ``residual`` (out): (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
     zero, one, none, tiny = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE), np.float32(1e-30)
@@ -216,8 +374,9 @@ def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residu
 
 
 @kernel
-def _blend(shares, noise, own, own_noise, residual, neutral, deviation):
-    """The smoothed shares moved towards each cell's own where they differ beyond noise, in place.
+def _blend_row(shares, noise, own, own_noise, residual, neutral, deviation, i):
+    """The smoothed shares of cell row ``i`` moved towards each cell's own where they differ beyond noise,
+    in place.
 
     ``shares`` and ``noise`` (3, Hc, Wc): the shares of the 3x3 cells' smoothed values and their
     variance v_s; ``own`` and ``own_noise``: those of each cell's own readings, v_o. The smoothed
@@ -232,49 +391,46 @@ def _blend(shares, noise, own, own_noise, residual, neutral, deviation):
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
     for c in range(3):
         level = neutral[c]
-        for i in range(shares.shape[1]):
-            k, v, ko, vo, e, d = shares[c, i], noise[c, i], own[c, i], own_noise[c, i], residual[c, i], deviation[c, i]
-            for j in range(k.size):
-                t = max(vo[j] - v[j], zero)
-                beta = max(one - t / max(e[j], tiny), zero)
-                kc = k[j] + beta * (ko[j] - k[j])
-                k[j] = kc
-                v[j] += beta * t
-                d[j] = (kc - level) * (kc - level)
+        k, v, ko, vo, e, d = shares[c, i], noise[c, i], own[c, i], own_noise[c, i], residual[c, i], deviation[c, i]
+        for j in range(k.size):
+            t = max(vo[j] - v[j], zero)
+            beta = max(one - t / max(e[j], tiny), zero)
+            kc = k[j] + beta * (ko[j] - k[j])
+            k[j] = kc
+            v[j] += beta * t
+            d[j] = (kc - level) * (kc - level)
 
 
 @kernel
-def _shrink(shares, neutral, noise, deviation):
-    """Shares towards the neutral's where their deviation from it is within their noise, in place:
-    k_c = neutral_c + beta_c (k_c - neutral_c), beta_c = max(0, 1 - noise_c / E_c) with E_c the
+def _shrink_row(shares, neutral, noise, deviation, i):
+    """Shares of cell row ``i`` towards the neutral's where their deviation from it is within their noise,
+    in place: k_c = neutral_c + beta_c (k_c - neutral_c), beta_c = max(0, 1 - noise_c / E_c) with E_c the
     3x3 cells' mean squared deviation (``deviation``, smoothed).
 
     The chroma's own garrote (as :func:`refine`'s for luminance): a colour is kept where the
     cells around show it beyond the noise, and noise in the dark is not painted as colour.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
-    for i in range(shares.shape[1]):
-        for c in range(3):
-            k, n, d, level = shares[c, i], noise[c, i], deviation[c, i], neutral[c]
-            for j in range(k.size):
-                beta = max(one - n[j] / max(d[j], tiny), zero)
-                k[j] = level + beta * (k[j] - level)
+    for c in range(3):
+        k, n, d, level = shares[c, i], noise[c, i], deviation[c, i], neutral[c]
+        for j in range(k.size):
+            beta = max(one - n[j] / max(d[j], tiny), zero)
+            k[j] = level + beta * (k[j] - level)
 
 
 @kernel
-def _normalise(shares, share, floor, total):
-    """Shares (3, Hc, Wc) scaled so that sum_c n_c k_c = 1 in each cell, then at least ``floor``,
-    in place. ``total``: (Wc,) scratch."""
+def _normalise_row(shares, share, floor, total, i):
+    """Shares (3, Hc, Wc) of cell row ``i`` scaled so that sum_c n_c k_c = 1 in each cell, then at least
+    ``floor``, in place. ``total``: (Wc,) scratch."""
     zero, one = np.float32(0.0), np.float32(1.0)
-    for i in range(shares.shape[1]):
-        total[:] = zero
-        for c in range(3):
-            k, weight = shares[c, i], share[c]
-            for j in range(k.size):
-                total[j] += weight * k[j]
-        for j in range(total.size):
-            total[j] = one / total[j]
-        for c in range(3):
-            k = shares[c, i]
-            for j in range(k.size):
-                k[j] = max(k[j] * total[j], floor)
+    total[:] = zero
+    for c in range(3):
+        k, weight = shares[c, i], share[c]
+        for j in range(k.size):
+            total[j] += weight * k[j]
+    for j in range(total.size):
+        total[j] = one / total[j]
+    for c in range(3):
+        k = shares[c, i]
+        for j in range(k.size):
+            k[j] = max(k[j] * total[j], floor)

@@ -180,7 +180,7 @@ def path_shares(inp: SveInput) -> dict[str, float]:
 
 
 def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor, want_variance: bool = False,
-              want_share: bool = False, want_window: bool = False, want_darks: bool = False):
+              want_share: bool = False, want_window: bool = False, want_darks: bool = False, out=None):
     """The method on a frame: (image, lower_bound, variance or None, share or None, the strips' Dark, the window
     mean and its variance as a (2, H, W) array, or of no rows without ``want_window``). A strip's Dark holds
     its estimate, information and candidates only where the wide fallback reads them (the strip has candidates),
@@ -190,15 +190,23 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
     below each, as base.in_strips does; the result does not depend on them),
     then the wide fallback over the strips holding pixels that cannot tell
     their level from 0, reading their neighbours' rows as far as its widest
-    window reaches."""
+    window reaches.
+
+    ``out``: (image, lower, variance, window) arrays of the input's shape ((2, H, W) for the window) to write
+    into instead of new ones (svelive.reconstruction.settle: views of a frame's rows), or None."""
     ky, kx = kernels(inp.pattern.shape)
     halo = 3 * (max(len(ky), len(kx)) // 2)  # pilot, neighbour estimate, bias: three windows deep
     spans = _spans(inp, halo, 64)
     h, w = inp.shape
-    image, lower = np.empty((h, w), np.float32), np.empty((h, w), bool)
-    variance = np.empty((h, w), np.float32) if want_variance else None
+    if out is not None:
+        image, lower, variance, window = out
+        if not want_window:
+            window = np.empty((2, 0, 0), np.float32)
+    else:
+        image, lower = np.empty((h, w), np.float32), np.empty((h, w), bool)
+        variance = np.empty((h, w), np.float32) if want_variance else None
+        window = np.empty((2, h, w) if want_window else (2, 0, 0), np.float32)
     own = np.empty((h, w), np.float32) if want_share else None
-    window = np.empty((2, h, w) if want_window else (2, 0, 0), np.float32)
 
     def strip(span: tuple[int, int, int, int]) -> Dark:
         # each strip's kept rows copied into the frame's arrays by its own thread (no serial join)

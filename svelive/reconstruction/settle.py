@@ -1,0 +1,532 @@
+"""The band refresh (issue 25): a live stream that runs ``adaptive`` only where its history needs a new estimate.
+
+In a still view almost every pixel's history is settled (n = max_history: a new frame adds 1 / n of its
+estimate). :class:`svelive.reconstruction.stream.Reconstructor` with ``refresh=K`` (monochrome frames, method
+``adaptive``, temporal fusion, no within-frame test) then runs the method per frame on
+
+- the bands (:data:`BAND_ROWS` rows) whose history is not settled (more than :data:`UNSETTLED_SHARE` of
+  their pixels with n < max_history: moving regions, not the isolated false alarms of the test),
+- a round-robin 1 / K of the settled bands (the history keeps refreshing and follows slow changes),
+- every band when there is no history (a stream's first frame, after a reset or a restart);
+
+a pixel of a skipped band takes its history's mean (times the brightness ratio) as this frame's estimate
+(:func:`svelive.reconstruction.fusion.fuse`'s ``predicted`` rows): its mean stays as it is, its own readings,
+the test's window mean (made for every pixel, every frame: :func:`window_rows`) and its weight go on; a pixel
+the test resets there gets this frame's estimate on demand (:func:`on_demand`: whole bands where they hold
+many, else a patch atlas of :data:`CELL` px cells with their halos).
+
+The method on a crop with a halo of :data:`HALO` rows and columns (a multiple of the tile) gives the full
+frame's results in the crop's interior, bit for bit, given the full frame's noise model (computed once per
+frame): so do the bands and the atlas here.
+
+Which bands run is decided by the history a frame is fused into: ``Reconstructor.estimate`` takes a hint from
+the history the stream holds then, and ``Reconstructor.fuse`` computes the bands the hint missed
+(:func:`method_on_band_rows`) and treats those it took beyond the selection as skipped, so frames estimated
+ahead fuse as the sequential stream's, bit for bit. The live service runs it for monochrome streams
+(svelive.reconstruction.live.LIVE_REFRESH); the library's default is off.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from svelive.core.pattern import Pattern
+from svelive.jit import kernel
+from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
+from svelive.reconstruction.methods.base import SveInput, reflect_101, tile_rows, window_kernels, window_level_row
+from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
+                                             _window_layout)
+
+#: Rows of a band, the unit of the selection (adaptive's strips: 64 rows).
+BAND_ROWS = 64
+#: Rows and columns around a computed region that the method reads (its window, three deep, and the wide
+#: fallback's blocks reach 13); a multiple of every tile's rows used here.
+HALO = 16
+#: A band whose share of moving pixels exceeded this in one of the last max_history frames runs the method every
+#: frame (the test's isolated false alarms, widened, are about 2e-4 of the frame).
+MOVING_SHARE = 0.002
+#: A band more than this share of whose pixels are unsettled (n < max_history: a stream's start, a restart) runs
+#: the method every frame.
+UNSETTLED_SHARE = 0.3
+#: Noise deviations beyond which a pixel the fusion reset where a reading in its window crossed the censor level
+#: takes this frame's estimate in a skipped band (else it keeps its history): far looser than the fusion's test
+#: (MotionConfig.temporal_sigmas), since such a window mean shifts beyond its noise (the still demo: 5 % of them
+#: beyond 4 deviations); an object moving in seeds it, and the spread through the readings that crossed
+#: (:func:`skipped_resets`) takes the rest (8, 16 and 32 pass the motion tests alike with bands skipped from
+#: the second frame; the demo's demand: 1800, 1100, 800 pixels a frame).
+UNSTABLE_SIGMAS = 16.0
+#: Cells of the on-demand atlas (px, square), aligned to the frame's grid.
+CELL = 16
+#: A band with at least this many on-demand cells is computed whole instead (a band with its halos costs
+#: (BAND_ROWS + 2 HALO) W pixels, a cell (CELL + 2 HALO)^2).
+CELL_LIMIT_SHARE = 0.6
+
+
+@dataclass(eq=False)  # (by identity: the stream holds the frames in flight in a WeakSet)
+class Partial:
+    """A frame whose method ran on some bands only.
+
+    Attributes:
+        inp: the frame's prepared input; noise: its noise model (gain, read noise) as the method takes it.
+        computed: bool (bands,), the bands whose rows hold the method's estimate (and the window mean completed
+            with it); at :meth:`Reconstructor.estimate` a hint taken from the history the stream held then,
+            made the stream's own selection by :meth:`Reconstructor.fuse`.
+        rows: bool (H,), ``computed`` by row.
+        hint: the history whose mean the skipped rows' window mean took where the window holds no uncensored
+            reading (None: every band computed).
+        tick: the round-robin's turn the hint took (the partial frames fused and in flight when it was estimated).
+        stats: counts for benchmarks (bands, computed, on-demand pixels and cells, bands the fuse added or
+            dropped against the hint).
+    """
+
+    inp: SveInput
+    noise: tuple[float, float]
+    computed: np.ndarray
+    rows: np.ndarray
+    hint: object | None = None
+    tick: int = 0
+    stats: dict = field(default_factory=dict)
+
+
+def bands(h: int) -> list[slice]:
+    return [slice(top, min(top + BAND_ROWS, h)) for top in range(0, h, BAND_ROWS)]
+
+
+def runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of the runs of True in a 1-d bool array."""
+    out, start = [], None
+    for i, f in enumerate(flags):
+        if f and start is None:
+            start = i
+        elif not f and start is not None:
+            out.append((start, i))
+            start = None
+    if start is not None:
+        out.append((start, len(flags)))
+    return out
+
+
+def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
+                    lower: np.ndarray, variance: np.ndarray, window: np.ndarray | None,
+                    workers: int | Executor = 1) -> None:
+    """The method on the selected bands (bool per band), each run of them one crop with its halo, written into
+    ``image``, ``lower``, ``variance`` and (with ``window``, (2, H, W)) the window mean: the rows of the selected
+    bands hold their results; the halo rows of each crop, within HALO rows of them, are overwritten too (with
+    what the crop gives there), the other rows are left. A band between two runs is at least HALO rows: runs do
+    not overwrite each other's results."""
+    h = inp.shape[0]
+    in_pass = window is not None and _shares_window(inp)
+    for a, b in runs(selected):
+        top, stop = a * BAND_ROWS, min(b * BAND_ROWS, h)
+        rows = slice(max(top - HALO, 0), min(stop + HALO, h))
+        _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
+                  out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
+
+
+def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
+                        lower: np.ndarray, variance: np.ndarray, workers: int | Executor = 1) -> None:
+    """:func:`method_on_bands` (without the window mean) writing the selected bands' rows alone: each run of
+    them one crop with its halo into arrays of its own, whose band rows are copied into ``image`` (float32
+    (H, W), DN), ``lower`` (bool (H, W)) and ``variance`` (float32 (H, W), DN^2); every other row is left as it
+    was (a band computed beside one the frame holds already: :meth:`Reconstructor.fuse` completing an estimate
+    whose selection was a hint)."""
+    h, w = inp.shape
+    for a, b in runs(selected):
+        top, stop = a * BAND_ROWS, min(b * BAND_ROWS, h)
+        rows = slice(max(top - HALO, 0), min(stop + HALO, h))
+        n = rows.stop - rows.start
+        out = np.empty((n, w), np.float32), np.empty((n, w), bool), np.empty((n, w), np.float32)
+        _estimate(inp.crop(rows), noise, workers, want_variance=True, out=(*out, None))
+        core = slice(top - rows.start, stop - rows.start)
+        for target, crop in zip((image, lower, variance), out):
+            target[top:stop] = crop[core]
+
+
+def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: list[tuple[int, int]],
+                level: np.ndarray, noise: np.ndarray, cache: dict | None = None) -> None:
+    """The motion tests' window mean (numerics.window_estimate, bit-identical) of the frame rows ``rows``
+    ([start, stop) pairs) into ``level`` and ``noise`` (float32 (H, W), DN and DN^2); ``image`` and ``variance``
+    (float32 (H, W)) where the window holds no uncensored reading. Nominal tiles with inline windows only.
+    ``cache``: a dict the caller keeps across a stream's frames for the tables of :func:`_clean_tables` (one
+    entry), or None (made for this call)."""
+    layout = _window_layout(inp.pattern, inp.period, inp.shape)
+    kernels = layout.kernels
+    if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
+        raise NotImplementedError("window_rows: windows longer than the inline taps")
+    h, w = inp.shape
+    period = min(inp.pattern.shape[0], h)
+    sensor = inp.sensor
+    inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
+    exposure = inp.exposure[:period]
+    row_tables, tables, row_of = _clean_tables(exposure, kernels, inp.pattern.shape[0], inp.period[0], h,
+                                               {} if cache is None else cache)
+    for start, stop in rows:
+        _window_strip_clean(inp.signal, exposure, inp.censored, start, stop, *kernels, inv_gain, floor,
+                            image, variance, level, noise, row_tables, tables, row_of)
+
+
+def _clean_tables(exposure: np.ndarray, kernels, pattern_rows: int, window_rows: int, h: int, cache: dict):
+    """(row_tables, tables, row_of) of :func:`_window_strip_clean` for a frame of ``h`` rows whose exposures repeat
+    ``exposure`` ((P, W), row r's is row r % P): the sums along a row of e (``kernels[1]``), of e and of 1
+    (``kernels[3]``) by row phase, (3, P, W); those sums down the window's rows (``kernels[0]``, ``kernels[2]``) of
+    a frame without censored readings, (3, S, W), on the rows of numerics' small frame (methods.base.tile_rows),
+    ``row_of`` (H,) mapping the frame's rows to them. Made with the kernels that sum the frame's windows (the same
+    arithmetic, in the same order): kept in ``cache`` (one entry: a stream's frames share them), made again when
+    the exposure rows, kernels or height change."""
+    key = (exposure.tobytes(), exposure.shape, tuple(k.tobytes() for k in kernels), pattern_rows, window_rows, h)
+    if key not in cache:
+        a = kernels[0].size // 2
+        small, row_of = tile_rows(h, int(np.lcm(window_rows, pattern_rows)), a)
+        row_tables = np.empty((3, exposure.shape[0], exposure.shape[1]), np.float32)
+        tables = np.empty((3, small, exposure.shape[1]), np.float32)
+        _fill_tables(np.ascontiguousarray(exposure, np.float32), *kernels, row_tables, tables)
+        row_of = row_of.astype(np.intp)
+        for array in (row_tables, tables, row_of):
+            array.setflags(write=False)
+        cache.clear()  # (one stream's frames: one entry)
+        cache[key] = (row_tables, tables, row_of)
+    return cache[key]
+
+
+@kernel
+def _fill_tables(exposure, ky, kx, ky2, kx2, row_tables, tables):
+    """:func:`_clean_tables`' arrays, into ``row_tables`` and ``tables``."""
+    period, cols = exposure.shape
+    ones = np.ones(cols, np.float32)
+    e = np.empty(cols, np.float32)
+    one = np.float32(1)
+    for p in range(period):
+        for c in range(cols):
+            e[c] = exposure[p, c] * one  # (as the frame's kept exposures)
+        _symmetric_row(e, kx, row_tables[0, p])
+        _symmetric_row(e, kx2, row_tables[1, p])
+        _symmetric_row(ones, kx2, row_tables[2, p])
+    small = tables.shape[1]
+    a = ky.size // 2
+    phases = np.empty(ky.size, np.intp)
+    for t in range(small):
+        for j in range(ky.size):
+            phases[j] = reflect_101(t - a + j, small) % period
+        _symmetric_column(row_tables, 0, phases, ky, tables[0, t])
+        _symmetric_column(row_tables, 1, phases, ky2, tables[1, t])
+        _symmetric_column(row_tables, 2, phases, ky2, tables[2, t])
+
+
+@kernel
+def _column_mixed(ring, q, slots, clean, row_tables, phases, k, out):
+    """numerics._symmetric_column of the window's rows, a row without censored readings (``clean`` by slot) read
+    from ``row_tables[q - 1, phases[slot]]`` instead of the ring."""
+    a = k.size // 2
+    s = slots[a]
+    centre = row_tables[q - 1, phases[s]] if clean[s] else ring[q, s]
+    kc = k[a]
+    for c in range(out.size):
+        out[c] = centre[c] * kc
+    for j in range(1, a + 1):
+        s, t = slots[a - j], slots[a + j]
+        above = row_tables[q - 1, phases[s]] if clean[s] else ring[q, s]
+        below = row_tables[q - 1, phases[t]] if clean[t] else ring[q, t]
+        kj = k[a + j]
+        for c in range(out.size):
+            out[c] = out[c] + (above[c] + below[c]) * kj
+
+
+@kernel
+def _window_strip_clean(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv_gain, floor, image, variance,
+                        out, out_var, row_tables, tables, row_of):
+    """numerics._window_strip (without ``row_sums``) of rows ``first:stop``, bit for bit, where rows hold no censored
+    reading: such a window row's sums of e, G^2 e and G^2 along it are its phase's ``row_tables`` row (only its sum
+    of s is made), and an output row whose window rows all hold none takes those sums down its window from
+    ``tables`` (row ``row_of[r]``); see :func:`_clean_tables`. The readings change every frame, so the sum of s is
+    made for every pixel; the other three depend on the censoring alone."""
+    rows, cols = signal.shape
+    period = exposure.shape[0]
+    size = ky.size
+    a = size // 2
+    one = np.float32(1)
+    ring = np.empty((4, size, cols), np.float32)
+    clean = np.zeros(size, np.bool_)
+    phases = np.zeros(size, np.intp)
+    kept, kept_signal, kept_exposure = (np.empty(cols, np.float32), np.empty(cols, np.float32),
+                                        np.empty(cols, np.float32))
+    sums = np.empty((4, cols), np.float32)
+    slots = np.empty(size, np.intp)
+    never = np.zeros(size, np.bool_)  # (the sums of s: always the ring's)
+    following = first - a
+    for r in range(first, stop):
+        while following <= r + a:
+            src = reflect_101(following, rows)
+            slot = (following - first + a) % size
+            following += 1
+            e_row, s_row, c_row = exposure[src % period], signal[src], censored[src]
+            n = 0
+            for c in range(cols):
+                n += c_row[c]
+            phases[slot] = src % period
+            clean[slot] = n == 0
+            if n == 0:  # s * 1 is s: the kept signal is the row
+                for c in range(cols):
+                    kept_signal[c] = s_row[c] * one
+                _symmetric_row(kept_signal, kx, ring[0, slot])
+                continue
+            _kept_row_sums(e_row, s_row, c_row, kx, kx2, kept, kept_signal, kept_exposure, ring, slot)
+        whole = True
+        for j in range(size):
+            slots[j] = (r - a + j - first + a) % size
+            whole = whole and clean[slots[j]]
+        _column_mixed(ring, 0, slots, never, row_tables, phases, ky, sums[0])
+        level_row, noise_row = out[r], out_var[r]
+        if whole:
+            t = row_of[r]
+            lost = window_level_row(sums[0], tables[0, t], tables[1, t], tables[2, t], inv_gain, floor, level_row,
+                                    noise_row)
+        else:
+            _column_mixed(ring, 1, slots, clean, row_tables, phases, ky, sums[1])
+            _column_mixed(ring, 2, slots, clean, row_tables, phases, ky2, sums[2])
+            _column_mixed(ring, 3, slots, clean, row_tables, phases, ky2, sums[3])
+            lost = window_level_row(sums[0], sums[1], sums[2], sums[3], inv_gain, floor, level_row, noise_row)
+        for c in range(cols if lost else 0):
+            if np.isinf(noise_row[c]):
+                level_row[c], noise_row[c] = image[r, c], variance[r, c]
+
+
+def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np.ndarray, np.ndarray]:
+    """The patches of ``cells`` ((n, 2) (row, col) of cells inside the frame by HALO) with their halos, stacked in a
+    grid of ``columns`` patches a row; returns the atlas and each cell's offset (atlas minus frame coordinates),
+    rows and columns."""
+    p = CELL + 2 * HALO
+    n = len(cells)
+    shape = (-(-n // columns) * p, min(n, columns) * p)
+    signal = np.zeros(shape, np.float32)
+    censored = np.zeros(shape, bool)
+    # every patch starts on whole tiles: the atlas's exposures are the pattern's
+    exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
+    k = np.arange(n)
+    ys, xs = (k // columns) * p, (k % columns) * p
+    fys, fxs = cells[:, 0] * CELL - HALO, cells[:, 1] * CELL - HALO
+    for y, x, fy, fx in zip(ys.tolist(), xs.tolist(), fys.tolist(), fxs.tolist()):
+        signal[y:y + p, x:x + p] = inp.signal[fy:fy + p, fx:fx + p]
+        censored[y:y + p, x:x + p] = inp.censored[fy:fy + p, fx:fx + p]
+    atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+    return atlas, ys - fys, xs - fxs
+
+
+def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1
+              ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
+    """This frame's estimate at the pixels (``ys``, ``xs``, intp), in rows the method skipped: (ys, xs), their
+    (image, lower, variance), and counts (pixels, bands computed whole, cells).
+
+    Cells of CELL px holding such pixels go into one atlas (their patches with their halos side by side) unless a
+    band holds so many that the band costs less whole; cells at the frame's edges into a stack per side."""
+    inp, noise = part.inp, part.noise
+    h, w = inp.shape
+    n = ys.size
+    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0)
+    values = (np.empty(n, np.float32), np.empty(n, bool), np.empty(n, np.float32))
+    if not n:
+        return ys, xs, values, stats
+    cw = -(-w // CELL)
+    cell_of = (ys // CELL) * cw + xs // CELL
+    cells, inverse = np.unique(cell_of, return_inverse=True)
+    ci, cj = cells // cw, cells % cw
+    band_of_cell = (ci * CELL) // BAND_ROWS
+    limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * HALO) * w / (CELL + 2 * HALO) ** 2
+    whole = np.zeros(len(part.computed), bool)
+    counts = np.bincount(band_of_cell, minlength=len(whole))
+    whole[:] = counts >= limit
+    in_whole = whole[band_of_cell]
+    inside = (ci * CELL - HALO >= 0) & ((ci + 1) * CELL + HALO <= h) & (cj * CELL - HALO >= 0) & \
+        ((cj + 1) * CELL + HALO <= w)
+    stats["demand_bands"] = int(np.count_nonzero(whole))
+    stats["demand_cells"] = int(np.count_nonzero(~in_whole))
+
+    def take(pixels: np.ndarray, arrays, oy, ox) -> None:
+        """values at ``pixels`` (indices into ys, xs) from result arrays at (ys + oy, xs + ox)."""
+        y, x = ys[pixels] + oy, xs[pixels] + ox
+        for value, array in zip(values, arrays):
+            value[pixels] = array[y, x]
+
+    if whole.any():
+        image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool), np.empty((h, w), np.float32))
+        method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
+        take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
+    atlas_cells = np.nonzero(~in_whole & inside)[0]
+    if atlas_cells.size:
+        columns = max(1, min(atlas_cells.size, 2048 // (CELL + 2 * HALO)))
+        atlas, oy, ox = _atlas(inp, np.stack([ci[atlas_cells], cj[atlas_cells]], axis=1), columns)
+        arrays = _estimate(atlas, noise, workers, want_variance=True)[:3]
+        slot = np.full(cells.size, -1, np.intp)
+        slot[atlas_cells] = np.arange(atlas_cells.size)
+        pixels = np.nonzero(slot[inverse] >= 0)[0]
+        s = slot[inverse[pixels]]
+        take(pixels, arrays, oy[s], ox[s])
+    edge_cells = np.nonzero(~in_whole & ~inside)[0]
+    if edge_cells.size:
+        for members, arrays, oy, ox in _edge_stacks(inp, noise, [(int(ci[c]), int(cj[c])) for c in edge_cells],
+                                                   workers):
+            slot = np.full(cells.size, -1, np.intp)
+            slot[edge_cells[members]] = np.arange(len(members))
+            pixels = np.nonzero(slot[inverse] >= 0)[0]
+            s = slot[inverse[pixels]]
+            take(pixels, arrays, oy[s], ox[s])
+    return ys, xs, values, stats
+
+
+def _edge_stacks(inp: SveInput, noise: tuple[float, float], cells: list[tuple[int, int]],
+                 workers: int | Executor) -> list:
+    """:func:`on_demand`'s results of cells whose halo crosses the frame's edge: each cell the box of its halo
+    clipped to the frame, the boxes of one side of the frame stacked along it into one call (top and bottom rows
+    side by side in column order, left and right columns one under the other), each box's clipped side on the
+    stack's edge (mirrored as the frame's), boxes that abut meeting at their halos. Per side: (indices of its
+    cells in ``cells``, (image, lower, variance) of the stack, offsets (stack minus frame coordinates) per cell)."""
+    h, w = inp.shape
+    groups: dict[str, list[int]] = {}
+    for k in sorted(range(len(cells)), key=lambda k: (cells[k][1], cells[k][0])):
+        i, j = cells[k]
+        side = ("top" if i * CELL - HALO < 0 else "bottom" if (i + 1) * CELL + HALO > h
+                else "left" if j * CELL - HALO < 0 else "right")
+        groups.setdefault(side, []).append(k)
+    out = []
+    for side, members in groups.items():
+        along = side in ("top", "bottom")  # side by side along the rows, else one under the other
+        boxes = [(max(i * CELL - HALO, 0), min((i + 1) * CELL + HALO, h), max(j * CELL - HALO, 0),
+                  min((j + 1) * CELL + HALO, w)) for i, j in (cells[k] for k in members)]
+        across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in boxes)
+        total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in boxes)
+        shape = (across, total) if along else (total, across)
+        # a bottom (right) box shorter across than the others sits at the stack's far edge; above (left of) it
+        # zero readings with the pattern's exposures, beyond its halo
+        signal, censored = np.zeros(shape, np.float32), np.zeros(shape, bool)
+        exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
+        oy, ox, offset = [], [], 0
+        for r0, r1, c0, c1 in boxes:
+            if along:
+                y, x = (0 if side == "top" else across - (r1 - r0)), offset
+                offset += c1 - c0
+            else:
+                y, x = offset, (0 if side == "left" else across - (c1 - c0))
+                offset += r1 - r0
+            signal[y:y + r1 - r0, x:x + c1 - c0] = inp.signal[r0:r1, c0:c1]
+            censored[y:y + r1 - r0, x:x + c1 - c0] = inp.censored[r0:r1, c0:c1]
+            exposure[y:y + r1 - r0, x:x + c1 - c0] = inp.exposure[r0:r1, c0:c1]
+            oy.append(y - r0)
+            ox.append(x - c0)
+        stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+        arrays = _estimate(stack, noise, workers, want_variance=True)[:3]
+        out.append((np.array(members, np.intp), arrays, np.array(oy, np.intp), np.array(ox, np.intp)))
+    return out
+
+
+@kernel
+def skipped_resets(skipped, reset, words, motion, new_censored, old_bound, old_weight, old_own, old_test, old_censored,
+                   scale, tested, tested_variance, inv_k2, keep, wy, wx, weight, own, test, censored, mark, ys, xs):
+    """The pixels the fusion reset in the frame rows the method skipped (``skipped``, bool per row): which take
+    this frame's estimate on demand (their coordinates into ``ys``, ``xs``; returns (how many, kept)) and which
+    keep their history as it was (weight, own readings, the test's estimate and the censoring it was made of,
+    times ``scale``; the mean is the history's already). ``mark``: int8 (H, W) zeros, scratch.
+
+    On demand: where they moved (``motion``), the history is a lower bound, the window holds no uncensored reading
+    (infinite ``tested_variance``) or the frame's tested estimate differs from the history's by more than
+    1 / sqrt(inv_k2) noise deviations (the fusion's test, looser: it does not apply where a reading in the
+    window crossed the censor level, whose window mean then shifts beyond its noise alone); every one without
+    ``keep``. Then, since a history is made of windows whose readings kept their censoring: where a reading that
+    crossed the censor level lies in the window (``wy``, ``wx`` either side) of a pixel taking this frame (on
+    demand, or reset outside the skipped rows), every pixel whose window holds it takes it too, and so on.
+    ``old_test``, ``test``: the history's tested estimate and its new one, of no rows where the test has no
+    history of its own (``old_test`` is then the mean). ``words``: ``reset``'s rows as uint64 words (8 pixels
+    each, the rows' first 8 * n pixels: :func:`reset_words`), which the listing skips where 0."""
+    h, w = reset.shape
+    one = np.float32(1)
+    # the skipped rows' reset pixels, listed (from the end of ys, xs; the stack grows from the start)
+    size = ys.size
+    count = 0
+    nw = words.shape[1]
+    for r in range(h):
+        if not skipped[r]:
+            continue
+        for k in range(nw + 1):
+            if k < nw and words[r, k] == 0:
+                continue
+            for c in range(8 * k, w if k == nw else 8 * k + 8):
+                if reset[r, c]:
+                    count += 1
+                    ys[size - count], xs[size - count] = r, c
+    top = 0
+    for k in range(size - count, size):
+        r, c = ys[k], xs[k]
+        d = tested[r, c] - old_test[r, c] * scale
+        v = tested_variance[r, c]
+        differs = d * d * inv_k2 > (old_weight[r, c] + one) * v or v == np.inf
+        if motion[r, c] or old_bound[r, c] or differs or not keep:
+            mark[r, c] = 2
+            ys[top], xs[top] = r, c
+            top += 1
+        else:
+            mark[r, c] = 1
+    # a history is made of windows whose readings kept their censoring: a reading that crossed the censor level
+    # and lies in the window of a pixel taking this frame (on demand, or reset outside the skipped rows) is stored
+    # with its new censoring, so every kept pixel whose window holds it takes this frame too, and so on
+    for r in range(h):
+        if skipped[r]:
+            continue
+        near = False
+        for rr in range(max(r - 2 * wy, 0), min(r + 2 * wy + 1, h)):
+            near = near or skipped[rr]
+        if not near:
+            continue
+        for c in range(w):
+            if reset[r, c]:
+                ys[top], xs[top] = r, c
+                top += 1
+    while top > 0:
+        top -= 1
+        r, c = ys[top], xs[top]
+        for qr in range(max(r - wy, 0), min(r + wy + 1, h)):
+            for qc in range(max(c - wx, 0), min(c + wx + 1, w)):
+                if new_censored[qr, qc] == old_censored[qr, qc] or mark[qr, qc] >= 8:
+                    continue
+                mark[qr, qc] += 8  # (a reading visited)
+                for yr in range(max(qr - wy, 0), min(qr + wy + 1, h)):
+                    for yc in range(max(qc - wx, 0), min(qc + wx + 1, w)):
+                        if mark[yr, yc] % 8 == 1:
+                            mark[yr, yc] += 1
+                            ys[top], xs[top] = yr, yc
+                            top += 1
+    n, kept = 0, 0
+    separate = test.shape[0] > 0
+    for k in range(size - count, size):
+        r, c = ys[k], xs[k]
+        if mark[r, c] % 8 == 2:
+            ys[n], xs[n] = r, c
+            n += 1
+        else:
+            kept += 1
+            weight[r, c] = old_weight[r, c]
+            own[r, c] = old_own[r, c] * scale
+            if separate:
+                test[r, c] = old_test[r, c] * scale
+            censored[r, c] = old_censored[r, c]
+    return n, kept
+
+
+def reset_words(reset: np.ndarray) -> np.ndarray:
+    """:func:`skipped_resets`' ``words`` of a bool (H, W) array: its rows' first 8 * (W // 8) bytes as uint64 words
+    (a view where the rows allow it; else of no words, and every pixel is read)."""
+    h, w = reset.shape
+    if reset.flags.c_contiguous and w % 8 == 0:
+        return reset.view(np.uint64)
+    return np.empty((h, 0), np.uint64)
+
+
+def supports(pattern: Pattern) -> bool:
+    """Whether a monochrome stream of this exposure pattern can skip bands: a nominal tile (no per-pixel map)
+    whose sides divide :data:`CELL`, :data:`HALO` and :data:`BAND_ROWS` (every band, crop and patch starts on
+    whole tiles) and whose motion window :func:`window_rows` makes inline."""
+    if pattern.pixel_map is not None:
+        return False
+    sides = all(CELL % n == 0 and HALO % n == 0 and BAND_ROWS % n == 0 for n in pattern.shape)
+    k = window_kernels(pattern.shape)
+    return sides and k[0].size <= INLINE_TAPS[0] and k[1].size <= INLINE_TAPS[1]

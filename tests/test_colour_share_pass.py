@@ -1,0 +1,175 @@
+"""The chroma's one pass over the cell rows (svelive.reconstruction.colour.shares: ``_smooth_cells`` and
+``_share_pass``) against the chain of whole-plane steps with OpenCV's filters it replaced (issue 25, colour
+speed): bit for bit, on every colour layout, bright and dim (clipped and noise-limited), at sizes down to a
+single cell row and column."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from svelive import Camera, Pattern, Sensor, simulate
+from svelive.core.camera import COLOUR_LAYOUTS
+from svelive.reconstruction.colour import chroma
+from svelive.reconstruction.colour import shares as S
+from svelive.reconstruction.colour.cells import _cell_stats, cell_layout
+from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
+from svelive.reconstruction.input import prepare
+from svelive.reconstruction.methods.base import SveInput, binomial_kernel
+from svelive.simulation import exposure_scale, load_sample_scene
+
+SENSOR = Sensor.from_full_well(12, 10_000, 3)
+
+
+def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(shares, coarse, white) of ``chroma`` as it was computed before the one pass: each step over whole
+    (3, Hc, Wc) planes, the smoothing, centring and median by OpenCV, the per-cell arithmetic by the
+    pass's own row kernels called row by row from here."""
+    f32 = np.float32
+    layout = cell_layout(inp.pattern, inp.cfa)
+    (cy, cx), (h, w) = layout.cell, inp.shape
+    hc, wc = -(-h // cy), -(-w // cx)
+    mean, info, kept, weighted, bound = (np.empty((3, hc, wc), f32) for _ in range(5))
+    flags = np.empty((2, hc, wc), np.uint8)
+    sensor = inp.sensor
+    _cell_stats(inp.signal, inp.censored, layout.channels, layout.levels, layout.exposures, False,
+                f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
+                mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
+                np.empty((6, wc), f32))
+    k = binomial_kernel(3)
+    spread = f32(np.sum(k * k) ** 2)
+    common = kept.min(axis=0)
+    products = common * mean
+    numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
+    for c in range(3):
+        cv2.sepFilter2D(products[c], cv2.CV_32F, k, k, dst=numerator[c], borderType=cv2.BORDER_REFLECT_101)
+    cv2.sepFilter2D(common, cv2.CV_32F, k, k, dst=denominator[0], borderType=cv2.BORDER_REFLECT_101)
+    denominator[1:] = denominator[0]
+    none = np.nonzero(denominator[0] <= 0)
+    for c in range(3):
+        numerator[c][none], denominator[c][none] = weighted[c][none], kept[c][none]
+    box = np.ones((3, 3), np.uint8)
+    clipped, censored = (cv2.dilate(flags[i], box, borderType=cv2.BORDER_REFLECT_101) for i in range(2))
+    white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
+    values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
+    brightest = np.empty(wc, f32)
+    for i in range(hc):
+        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i)
+
+    def centred(planes: np.ndarray) -> np.ndarray:
+        out = np.empty_like(planes)
+        for c, (ky, kx) in enumerate(S._centring_kernels(layout)):
+            cv2.sepFilter2D(planes[c], cv2.CV_32F, kx, ky, dst=out[c], borderType=cv2.BORDER_REPLICATE)
+        return out
+
+    shares, own_shares = centred(values), centred(own)
+    neutral = (white / f32(layout.share @ white)).astype(f32)
+    coarse = np.empty((2, hc, wc), f32)
+    noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
+    for i in range(hc):
+        S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse,
+                      noise, i)
+        S._own_shares_row(own_shares, info, layout.share, neutral, f32(S.SHARE_FLOOR), shares, own_noise, residual,
+                          brightest, i)
+    for c in range(3):
+        cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
+    for i in range(hc):
+        S._blend_row(shares, noise, own_shares, own_noise, residual, neutral, deviation, i)
+    for c in range(3):
+        cv2.sepFilter2D(deviation[c], cv2.CV_32F, k, k, dst=deviation[c], borderType=cv2.BORDER_REFLECT_101)
+    for i in range(hc):
+        S._shrink_row(shares, neutral, noise, deviation, i)
+    for c in range(3):
+        cv2.medianBlur(shares[c], 3, dst=shares[c])
+    for i in range(hc):
+        S._normalise_row(shares, layout.share, f32(S.SHARE_FLOOR), brightest, i)
+    return shares, coarse, white
+
+
+@pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
+@pytest.mark.parametrize("stops", [0.0, 5.0])
+@pytest.mark.parametrize("shape", [(64, 96), (37, 53), (9, 14), (4, 4), (1, 8), (16, 1)])
+def test_one_pass_is_the_whole_plane_chain_bit_for_bit(layout, stops, shape):
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[40:40 + shape[0], 60:60 + shape[1]]
+    # 2 stops over the fill at "bright": the long exposures clip, so the censoring rules are exercised
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops - 2))
+    frame = simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=11)
+    inp = prepare(frame.raw, Camera.build(pattern, cfa, SENSOR))
+    got = chroma(inp)
+    shares, coarse, white = _whole_planes(inp)
+    np.testing.assert_array_equal(got.white, white)
+    np.testing.assert_array_equal(got.coarse, coarse)
+    np.testing.assert_array_equal(got.shares, shares)
+    if stops == 0.0 and min(shape) > 8:
+        assert np.count_nonzero(inp.censored) > 0  # the clipped case is the one tested
+
+
+def test_the_pass_filters_match_opencv_on_random_planes():
+    """The pass's filters alone, on planes with every kind of value (their own drivers: rows of a plane)."""
+    rng = np.random.default_rng(5)
+    k = binomial_kernel(3)
+    taps = np.array([[0.31944445, 0.6805556, 0.0], [0.25, 0.75, 0.0]], np.float32)
+    for h, w in ((300, 96), (7, 13), (2, 3), (1, 1), (1, 5), (5, 1)):
+        plane = (rng.standard_normal((h, w)) * 1e3).astype(np.float32)
+        along = np.empty_like(plane)
+        out = np.empty_like(plane)
+        for i in range(h):
+            S._binomial_along(plane[i], k, along[i])
+        for i in range(h):
+            S._binomial_across(along[S._mirrored(i - 1, h)], along[i], along[S._mirrored(i + 1, h)], k, out[i])
+        np.testing.assert_array_equal(out, cv2.sepFilter2D(plane, cv2.CV_32F, k, k,
+                                                           borderType=cv2.BORDER_REFLECT_101))
+        for i in range(h):
+            S._taps_along(plane[i], taps[1], along[i])
+        for i in range(h):
+            S._taps_across(along[max(i - 1, 0)], along[i], along[min(i + 1, h - 1)], taps[0], out[i])
+        np.testing.assert_array_equal(out, cv2.sepFilter2D(plane, cv2.CV_32F, taps[1], taps[0],
+                                                           borderType=cv2.BORDER_REPLICATE))
+        columns = np.empty((3, w), np.float32)
+        for i in range(h):
+            S._median_row(plane[max(i - 1, 0)], plane[i], plane[min(i + 1, h - 1)], out[i], columns)
+        np.testing.assert_array_equal(out, cv2.medianBlur(plane, 3))
+
+
+@pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer"])
+def test_refine_colours_its_result_as_colourise_does(layout):
+    """``refine(..., rgb=)`` (a stream's fused luminance coloured in the refinement's pass) is bit for bit
+    ``colourise`` of the refined luminance, with and without a history weight and over threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svelive.reconstruction.colour import colourise, interpolation, refine
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:150, :200]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=2).raw, Camera.build(pattern, cfa, SENSOR))
+    ch = chroma(inp)
+    inter = interpolation(ch, coarse=True)
+    rng = np.random.default_rng(0)
+    luminance = (rgb @ np.array([0.25, 0.5, 0.25], np.float32) * scale).astype(np.float32)
+    variance = (luminance / 10 + 4 + rng.random(luminance.shape, np.float32)).astype(np.float32)
+    weight = rng.random(luminance.shape, np.float32)
+    with ThreadPoolExecutor(2) as pool:
+        for w in (None, weight):
+            for workers in (1, pool):
+                out = np.empty((*luminance.shape, 3), np.float32)
+                refined = refine(luminance, variance, inter, ch.layout.cell, weight=w, rgb=out, workers=workers)
+                np.testing.assert_array_equal(refined, refine(luminance, variance, inter, ch.layout.cell, weight=w))
+                np.testing.assert_array_equal(out, colourise(refined, inter))
+    with pytest.raises(ValueError):
+        refine(luminance, variance, inter, ch.layout.cell, out=np.empty_like(luminance), rgb=out)
+
+
+def test_colourise_copies_the_luminance_in_its_pass():
+    from svelive.reconstruction.colour import colourise, interpolation
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:64, :96]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=2).raw, Camera.build(pattern, cfa, SENSOR))
+    inter = interpolation(chroma(inp))
+    luminance = np.random.default_rng(1).random((64, 96), np.float32)
+    copy = np.full_like(luminance, np.nan)
+    np.testing.assert_array_equal(colourise(luminance, inter, copy=copy), colourise(luminance, inter))
+    np.testing.assert_array_equal(copy, luminance)
