@@ -22,7 +22,8 @@ process holds the 24 frames itself, about 110 MB of its resident memory at
    streamed fps, drops by cause, latency from frame arrival to the part received by a
    client (X-Timestamp vs the receive time, same host clock) p50 / p95, the
    server's own arrival-to-sent latency, and its resident memory every 10 s (growth
-   from the end of the first minute to the end).
+   from the end of the first minute to the end; VmRSS, in MiB) and at its peak over the
+   measured part of the phase (VmHWM, whose record is restarted as that part starts).
 
 The clients run in this process (asyncio, headers parsed, bodies skipped) and
 so share the machine's cores with the server; on a real deployment they are
@@ -236,6 +237,25 @@ def get_state(port: int) -> dict:
         return json.load(r)
 
 
+def reset_peak_rss(pid: int) -> bool:
+    """Restart the kernel's record of the process's peak resident memory (VmHWM); False where it cannot."""
+    try:
+        with open(f"/proc/{pid}/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb(pid: int) -> float | None:
+    """The process's peak resident memory (VmHWM) in MiB, as its state's ``rss_mb``; None where not told."""
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    return None
+
+
 def cpu_seconds(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as f:
         fields = f.read().rsplit(")", 1)[1].split()
@@ -355,12 +375,14 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
     latencies.clear()
     if reader:
         reader.latencies.clear()
+    peak_from = reset_peak_rss(pid)  # the phase's own peak, not the start-up's
     while time.monotonic() - t0 < seconds:
         await asyncio.sleep(10)
         rss.append((time.monotonic() - t0, get_state(port)["server"]["rss_mb"]))
     if not rss:
         rss.append((time.monotonic() - t0, get_state(port)["server"]["rss_mb"]))
     end_state, end_cpu, end_t = get_state(port), cpu_seconds(pid), time.monotonic()
+    peak = peak_rss_mb(pid) if peak_from else None
     end_own, end_rtsp = sum(os.times()[:2]), get_json(port, "/bench/rtsp") if rtsp_url else None
     end_counts, end_rtsp_frames = list(counts), reader.frames if reader else 0
     stop.set()
@@ -386,7 +408,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
         "clients_cpu_percent": round(100 * (end_own - start_own) / span, 1),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
                    "growth_percent": round(100 * (rss[-1][1] - first_minute[-1]) / first_minute[-1], 2),
-                   "samples": rss},
+                   "samples": rss, "peak": peak},
     }
     if reader:
         out["rtsp"] = {"fps_server": round((end_rtsp["frames_encoded"] - start_rtsp["frames_encoded"]) / span, 2),
@@ -581,7 +603,8 @@ def main() -> None:
     load = loads[f"{args.clients} MJPEG clients"]
     print("RSS samples (s, MB): " + ", ".join(f"{t:.0f}: {m}" for t, m in load["rss_mb"]["samples"][5::6]))
     print(f"RSS after first minute {load['rss_mb']['after_first_minute']} MB, at end {load['rss_mb']['end']} MB, "
-          f"growth {load['rss_mb']['growth_percent']} %")
+          f"growth {load['rss_mb']['growth_percent']} %; peak over the measured phase (VmHWM) "
+          f"{load['rss_mb']['peak']} MB")
     if rtsp_port:
         base, both = loads[f"{args.clients} MJPEG clients"], loads[f"{args.clients} MJPEG clients + 1 RTSP client"]
         print(f"with / without RTSP (same run): server CPU {both['cpu_percent'] / base['cpu_percent']:.2f}, "

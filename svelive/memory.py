@@ -24,6 +24,9 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import mmap
+
+import numpy as np
 
 #: mallopt parameters (glibc's malloc.h)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
@@ -56,6 +59,24 @@ def keep_freed_memory(arenas: int = 1) -> bool:
     return (bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
             and bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
             and (arenas <= 0 or bool(libc.mallopt(_M_ARENA_MAX, arenas))))
+
+
+def outside_heap(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
+    """An uninitialised array in pages of its own (an anonymous mapping), handed back to the system as soon as the
+    array goes, never kept in malloc's heap.
+
+    For whole-frame buffers a stream makes seldom, which :func:`keep_freed_memory` would otherwise keep: a
+    noise tracker reads three frames in every 64 (``svelive.noise.NoiseTracker``); from the heap, its frames
+    and their temporaries added to the heap's peak, which a process then keeps resident for good. Pages are
+    zero-filled when first written (a fault each), which is why a stream's every-frame buffers stay in the heap.
+    """
+    private, anonymous = getattr(mmap, "MAP_PRIVATE", None), getattr(mmap, "MAP_ANONYMOUS", None)
+    if private is None or anonymous is None:  # (not a POSIX system: the heap, as numpy allocates)
+        return np.empty(shape, dtype)
+    count = int(np.prod(shape, dtype=np.int64))
+    dtype = np.dtype(dtype)
+    pages = mmap.mmap(-1, max(count * dtype.itemsize, 1), flags=private | anonymous)
+    return np.frombuffer(pages, dtype, count).reshape(shape)
 
 
 def release_memory() -> None:

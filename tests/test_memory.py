@@ -72,3 +72,33 @@ def test_threads_share_one_arena_of_kept_buffers():
     shared, own = _resident_kb(1), _resident_kb(0)
     frame_kb = 6 * 1200 * 1920 * 4 // 1024
     assert shared < own - 2 * frame_kb, (shared, own)
+
+
+OUTSIDE = """
+import sys
+import numpy as np
+from svelive.memory import keep_freed_memory, outside_heap
+assert keep_freed_memory()
+def anon():
+    return next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("RssAnon:"))
+before = anon()
+a = outside_heap((1200, 1920), np.float32) if sys.argv[1] == "outside" else np.empty((1200, 1920), np.float32)
+a[...] = 1.5
+assert a.shape == (1200, 1920) and a.dtype == np.float32 and a.flags.writeable and float(a.sum()) == 1.5 * a.size
+held = anon()
+del a
+print(held - before, anon() - before)
+"""
+
+
+def test_a_buffer_outside_the_heap_goes_back_to_the_system_when_dropped():
+    # in a child: a 9 MB frame from the heap stays resident once freed (the policy), one outside it does not
+    out = {}
+    for where in ("outside", "heap"):
+        done = subprocess.run([sys.executable, "-c", OUTSIDE, where], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        out[where] = [int(v) for v in done.stdout.split()]
+    frame_kb = 1200 * 1920 * 4 // 1024
+    assert out["outside"][0] > 0.9 * frame_kb and out["heap"][0] > 0.9 * frame_kb
+    assert out["outside"][1] < 0.1 * frame_kb
+    assert out["heap"][1] > 0.9 * frame_kb

@@ -595,6 +595,35 @@ def test_a_run_fitted_once_gives_the_estimate_of_a_fit_per_frame_to_the_bit(stat
     assert len({(e.gain, e.samples) for e in once}) == 4  # every run moved it: the comparison compares
 
 
+def test_a_tracker_at_rest_between_runs_keeps_no_frame_and_estimates_the_same():
+    """A stream's tracker rests after each run (``NoiseTracker.rest``: its frames dropped, 20 MiB at 1920x1200,
+    a digest of the last one kept): the estimates after every run are those of a tracker that kept its frames,
+    to the bit, and the last frame delivered again after the rest still adds nothing."""
+    truth = true_sensor(3_000, 2.0)
+    camera = unknown("1,4/16,64")
+    scene = load_sample_scene("mttamwest")[:192, :256]
+    raws = [frame(scene, "1,4/16,64", truth, 2, seed=seed).raw for seed in range(9)]
+    # (every frame's own samples pooled too: a frame added shows in the pool)
+    kept, rested = NoiseTracker(temporal_enough=10**9), NoiseTracker(temporal_enough=10**9)
+    static = np.ones(raws[0].shape, bool)
+    for r in range(3):
+        for j, raw in enumerate(raws[3 * r:3 * r + 3]):
+            for tracker in (kept, rested):
+                tracker.add(raw, camera, static if j else None)
+        rested.rest()
+        assert rested._previous is None and rested._before_previous is None and rested._previous_static is None
+        assert kept._previous is not None
+        assert rested.fit() == kept.fit()
+    pooled = len(rested._frame_parts)
+    for tracker in (kept, rested):
+        tracker.add(raws[8].copy(), camera, None)  # the last frame again: nothing added
+    assert len(rested._frame_parts) == len(kept._frame_parts) == pooled
+    assert rested._previous is None  # (nor kept: the next frame is compared with the digest still)
+    for tracker in (kept, rested):
+        tracker.add(raws[0], camera, None)  # a new frame is
+    assert len(rested._frame_parts) == pooled + 1 and rested.fit() == kept.fit()
+
+
 def test_the_pool_is_fitted_once_per_run(monkeypatch):
     """Once three frames' samples suffice (here one run's: a small frame), the pool does not change
     between a run's first two frames and the run before, so a run costs one fit of the pool, however
@@ -650,14 +679,37 @@ def test_whole_dn_readings_are_chosen_as_per_pixel():
     x = np.round(np.random.default_rng(1).gamma(1.0, 300.0, 100_000)).astype(np.float32) - 5
     candidates = np.arange(x.size)
     model = (0.4, 4.0)
-    table = _clear_strata(x, candidates, 1.01, -2.0, 2000.0, model, 24)
+    table = _clear_strata(x, np.ones(x.size, bool), 1.01, -2.0, 2000.0, model, 24)
     c = x.astype(np.float64) * 1.01
     keep = _clear_of_clipping(c, -2.0, 2000.0, model)
     assert 0 < keep.sum() < x.size
     assert np.array_equal(table[0], candidates[keep])
     assert np.array_equal(table[1], _bin_index(c[keep], 24)[0])
-    per_pixel = _clear_strata(x + np.float32(0.25), candidates, 1.01, -2.0, 2000.0, model, 24)
+    per_pixel = _clear_strata(x + np.float32(0.25), None, 1.01, -2.0, 2000.0, model, 24)
     assert per_pixel[1].dtype == np.uint8 and per_pixel[1].max() == 23
+
+
+def test_whole_dn_readings_are_chosen_alike_in_any_chunks():
+    """Whole-DN readings are read chunk by chunk (the live stream's peak memory): any chunk size, chunks that
+    the mask leaves empty included, chooses the same positions and strata as one chunk of the whole frame,
+    which are those of the per-pixel clip test and strata."""
+    from svelive.noise.stats import _bin_index
+    from svelive.noise.temporal import _clear_of_clipping, _clear_strata
+
+    rng = np.random.default_rng(2)
+    x = np.round(rng.gamma(1.0, 300.0, 100_000)).astype(np.float32) - 5
+    mask = rng.random(x.size) < 0.7
+    mask[10_000:20_000] = False
+    model = (0.4, 4.0)
+    whole = _clear_strata(x, mask, 1.01, -2.0, 2000.0, model, 24, chunk=x.size)
+    c = x[mask].astype(np.float64) * 1.01
+    keep = _clear_of_clipping(c, -2.0, 2000.0, model)
+    assert np.array_equal(whole[0], np.flatnonzero(mask)[keep])
+    assert np.array_equal(whole[1], _bin_index(c[keep], 24)[0])
+    for chunk in (999, 4096, 10_000, 33_333):
+        chosen = _clear_strata(x, mask, 1.01, -2.0, 2000.0, model, 24, chunk=chunk)
+        assert chosen[0].dtype == np.int32 and chosen[1].dtype == np.uint8
+        assert np.array_equal(chosen[0], whole[0]) and np.array_equal(chosen[1], whole[1]), chunk
 
 
 def test_three_frames_bright_end_of_a_dim_frame_is_not_inflated():

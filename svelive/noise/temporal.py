@@ -5,10 +5,12 @@ altogether (variance ``2 (s / g + R)``), whatever its texture (:func:`temporal_s
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
 from svelive.core.sensor import DEFAULT_FULL_WELL_E, DEFAULT_READ_NOISE_E, Sensor
+from svelive.memory import outside_heap
 from svelive.noise.inputs import _fixed, _high_level
 from svelive.noise.model import QUANTISATION_VARIANCE, EstimatorConfig, LineFit, NoiseSamples
 from svelive.noise.stats import _bin_index, bin_samples, fit_line
@@ -96,15 +98,30 @@ def temporal_samples(previous: np.ndarray, current: np.ndarray, static: np.ndarr
     return _difference_samples(a[keep], b[keep], k, _grouped(mean[keep], by[keep]))
 
 
-def _static_sums(frames: list[np.ndarray], static: np.ndarray | None) -> list[float]:
+def _static_sums(frames: list[np.ndarray], static: np.ndarray | None, chunk: int = 1 << 18) -> list[float]:
     """The sum of each frame (float (N,), DN) over every static pixel (bool (N,), None: all), float64.
 
     Their ratios remove a global change of brightness (flicker) from frame differences. Taken over
     the pixels sampled rather than all, a ratio's own noise (about 1 % at 50 000 pixels of a dim frame)
     puts ``(1 - k)^2 s^2`` into every difference: nothing at the dark end, a variance twice the noise's
     at the bright end of a dim frame, where the gain is read (40 000 e- / 6 DN, 7 stops dark: the
-    gain 20 % low after 16 runs)."""
-    return [float(np.sum(x if static is None else x[static], dtype=np.float64)) for x in frames]
+    gain 20 % low after 16 runs).
+
+    The static pixels of each frame go to one buffer outside malloc's heap (``svelive.memory.outside_heap``):
+    a whole frame's worth, made only while a stream's noise tracker reads a run, which the heap would keep."""
+    if static is None:
+        return [float(np.sum(x, dtype=np.float64)) for x in frames]
+    count, kept, sums = int(np.count_nonzero(static)), None, []
+    for x in frames:
+        if kept is None or kept.dtype != x.dtype:
+            kept = outside_heap((count,), x.dtype)
+        at = 0
+        for start in range(0, x.size, chunk):  # x[static], a chunk at a time (np.compress indexes by intp)
+            part = x[start:start + chunk][static[start:start + chunk]]
+            kept[at:at + part.size] = part
+            at += part.size
+        sums.append(float(np.sum(kept, dtype=np.float64)))
+    return sums
 
 
 def _tweedie(observed: np.ndarray, variance: np.ndarray, where: np.ndarray, span: float = 400.0) -> np.ndarray:
@@ -161,65 +178,104 @@ def triple_samples(first: np.ndarray, second: np.ndarray, third: np.ndarray, sta
 
 
 def _clear_strata(third: np.ndarray, mask: np.ndarray | None, ratio: float, floor: float, high: float,
-                  model: tuple[float, float], strata: int) -> tuple[np.ndarray, np.ndarray]:
+                  model: tuple[float, float], strata: int, chunk: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
     """The positions in ``third`` (float (N,) DN) that ``mask`` (bool (N,); None: all) holds and whose value times
     ``ratio`` is clear of clipping (:func:`_clear_of_clipping`), int32 (int64 beyond 2**31 pixels), and the signal
     stratum of each (uint8, :func:`_bin_index` over them). Readings of whole DN (no response curve) are looked up
     in a table of their values: the same result as computing it for every pixel, at a fraction of the cost.
 
     A live stream runs this beside the reconstruction of the next frames, so its whole-frame arrays add to the
-    process's peak: positions and codes are 4-byte integers and each is dropped once replaced."""
-    candidates = _positions(third.size, mask)
-    code = _whole_codes(third[candidates])
-    if code is None:  # not whole DN: per pixel
+    process's peak: whole-DN readings are read in passes of ``chunk`` pixels (their range, the codes present,
+    then the positions and strata kept; the result does not depend on it), so that beside the two results only
+    one chunk's temporaries are held (at 1920x1200 with every pixel static, 11 MiB at most instead of 37)."""
+    spans = [(start, min(start + chunk, third.size)) for start in range(0, third.size, chunk)]
+
+    def values_in(span: tuple[int, int]) -> np.ndarray:
+        part = third[span[0]:span[1]]
+        return part if mask is None else part[mask[span[0]:span[1]]]
+
+    whole = _whole_range(values_in, spans)
+    if whole is None:  # not whole DN: per pixel
+        candidates = _positions(third.size, mask)
         c = third[candidates].astype(np.float64) * ratio
         keep = _clear_of_clipping(c, floor, high, model)
         which = _bin_index(c[keep], strata)[0] if keep.any() else np.zeros(0, np.int64)
         return candidates[keep], which.astype(np.uint8)
-    code, lo = code
-    values = (np.arange(int(code.max()) + 1 if code.size else 0) + lo).astype(np.float64) * ratio
-    keep = _clear_of_clipping(values, floor, high, model)[code]
-    if not keep.all():
-        candidates = candidates[keep]
-        code = code[keep]
-    del keep
+    lo, top, code_type = whole
+    values = (np.arange(top + 1) + lo).astype(np.float64) * ratio
+    clear = _clear_of_clipping(values, floor, high, model)
+
+    def kept(span: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """The codes (value minus ``lo``) of the chunk's readings clear of clipping, and which readings they are."""
+        code = values_in(span).astype(code_type)
+        code -= lo
+        keep = clear[code]
+        return code[keep], keep
+
     seen = np.zeros(values.size, bool)
-    seen[code] = True
+    count = 0
+    for span in spans:
+        code = kept(span)[0]
+        seen[code] = True
+        count += code.size
     present = np.flatnonzero(seen)
     table = np.zeros(values.size, np.uint8)
     if present.size:
         table[present] = _bin_index(values[present], strata)[0]
-    return candidates, table[code]
+    candidates = outside_heap((count,), _position_type(third.size))  # (a run's, seldom: not kept in the heap)
+    which = outside_heap((count,), np.uint8)
+    at = 0
+    for span in spans:
+        code, keep = kept(span)
+        positions = np.arange(*span, dtype=candidates.dtype)
+        candidates[at:at + code.size] = (positions if mask is None else positions[mask[span[0]:span[1]]])[keep]
+        which[at:at + code.size] = table[code]
+        at += code.size
+    return candidates, which
 
 
 def _positions(size: int, mask: np.ndarray | None) -> np.ndarray:
     """The positions ``mask`` (bool (size,); None: all) holds, ascending: int32 where ``size`` allows, else intp."""
-    positions = np.arange(size, dtype=np.int32 if size <= np.iinfo(np.int32).max else np.intp)
+    positions = np.arange(size, dtype=_position_type(size))
     return positions if mask is None else positions[mask]
 
 
-def _whole_codes(x: np.ndarray) -> tuple[np.ndarray, int] | None:
-    """Where every value of ``x`` (float (N,), DN) is a whole number spanning less than 2**20: (each value minus
-    the smallest, int32 (int64 beyond its range); that smallest value), else None."""
-    lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 0.0)
+def _position_type(size: int) -> type:
+    """The type of positions in an array of ``size`` elements: int32 where it holds them, else intp."""
+    return np.int32 if size <= np.iinfo(np.int32).max else np.intp
+
+
+def _whole_range(values_in: Callable[[tuple[int, int]], np.ndarray],
+                 spans: list[tuple[int, int]]) -> tuple[int, int, type] | None:
+    """Where every value of the chunks ``values_in(span)`` (float, DN), read twice, is a whole number and all of
+    them span less than 2**20: (the smallest, the largest minus it, the integer type that holds them: int32, else
+    int64), else None. (0, 0, int32) for no values."""
+    ends = [(part.min(), part.max()) for part in map(values_in, spans) if part.size]
+    lo, hi = (float(np.min([e[0] for e in ends])), float(np.max([e[1] for e in ends]))) if ends else (0.0, 0.0)
     if not hi - lo < 2**20:
         return None
-    wide = not (np.iinfo(np.int32).min < lo and hi < np.iinfo(np.int32).max)
-    code = x.astype(np.int64 if wide else np.int32)
-    if not np.array_equal(code, x):
-        return None
-    code -= int(lo)
-    return code, int(lo)
+    code_type = np.int64 if not (np.iinfo(np.int32).min < lo and hi < np.iinfo(np.int32).max) else np.int32
+    top = 0
+    for part in map(values_in, spans):
+        code = part.astype(code_type)
+        if not np.array_equal(code, part):
+            return None
+        if code.size:
+            top = max(top, int(code.max()) - int(lo))
+    return int(lo), top, code_type
 
 
-def _stratified(which: np.ndarray, budget: int, strata: int) -> np.ndarray:
+def _stratified(which: np.ndarray, budget: int, strata: int, chunk: int = 1 << 16) -> np.ndarray:
     """At most ``budget`` positions of ``which`` (uint8 (N,), each position's stratum, < ``strata`` <= 255):
     the largest per-stratum quota whose total fits the budget, every stratum with fewer positions keeping
-    them all; within a stratum every m-th position in order. int32 (M,) (int64 beyond 2**31 positions, or
-    when all are kept), ascending."""
+    them all; within a stratum every m-th position in order (its 0th, m-th, 2m-th, ...). int32 (M,) (int64
+    beyond 2**31 positions, or when all are kept), ascending. Read ``chunk`` positions at a time (the result
+    does not depend on it), so that nothing of N is made beside ``which``."""
     if which.size <= budget:
         return np.arange(which.size)
-    counts = np.bincount(which, minlength=strata)
+    chunks = range(0, which.size, chunk)
+    # (np.bincount reads its input as intp: a chunk at a time, not a copy of N at 8 bytes a position)
+    counts = sum(np.bincount(which[start:start + chunk], minlength=strata) for start in chunks)
     ordered = np.sort(counts)
     # water filling: the quota q with sum(min(counts, q)) <= budget
     below = np.concatenate([[0], np.cumsum(ordered)])[:-1]
@@ -227,29 +283,18 @@ def _stratified(which: np.ndarray, budget: int, strata: int) -> np.ndarray:
     j = int(np.count_nonzero(below + ordered * above <= budget))  # the j smallest strata keep all theirs
     quota = max((budget - int(below[j])) // int(above[j]), 1) if j < strata else int(ordered[-1])
     step = np.maximum(-(-counts // quota), 1)
-    order = _stratum_order(which, counts)
-    starts = np.cumsum(counts) - counts
-    picks = [np.arange(first, first + n, m) for first, n, m in zip(starts, counts, step) if n]
-    return np.sort(order[np.concatenate(picks)])
-
-
-def _stratum_order(which: np.ndarray, counts: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
-    """Each stratum's positions in ``which`` (uint8 (N,); ``counts``: its bincount), in order, stratum after
-    stratum: a stable argsort's result, as int32 (intp beyond 2**31 positions). Sorted by chunks of ``chunk``
-    positions (radix sorts of uint8) put in place, so that no int64 array of N is made beside it."""
-    order = np.empty(which.size, np.int32 if which.size <= np.iinfo(np.int32).max else np.intp)
-    free = np.cumsum(counts) - counts  # each stratum's next place in ``order``
-    for start in range(0, which.size, chunk):
+    seen = np.zeros(counts.size, np.int64)  # each stratum's positions in the chunks before
+    picks = []
+    for start in chunks:
         part = which[start:start + chunk]
-        local = np.argsort(part, kind="stable") + start
+        local = np.argsort(part, kind="stable")  # the chunk's positions stratum by stratum, in order
         here = np.bincount(part, minlength=counts.size)
-        first = 0
-        for stratum in np.flatnonzero(here):
-            n = here[stratum]
-            order[free[stratum]:free[stratum] + n] = local[first:first + n]
-            free[stratum] += n
-            first += n
-    return order
+        first = np.cumsum(here) - here  # each stratum's first place in ``local``
+        stratum = part[local]
+        rank = seen[stratum] + np.arange(local.size) - first[stratum]  # each position's place in its stratum
+        picks.append(local[rank % step[stratum] == 0] + start)
+        seen += here
+    return np.sort(np.concatenate(picks)).astype(_position_type(which.size))
 
 
 def pair_fit(previous: np.ndarray, current: np.ndarray, sensor: Sensor, *, floor: float | None = None,

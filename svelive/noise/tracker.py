@@ -7,6 +7,7 @@ history, and the line is refitted.
 
 from __future__ import annotations
 
+import hashlib
 from collections import deque
 from dataclasses import replace
 from typing import TYPE_CHECKING
@@ -15,6 +16,7 @@ import numpy as np
 
 from svelive.core.errors import SveliveError
 from svelive.core.sensor import Sensor
+from svelive.memory import outside_heap
 from svelive.noise.cancellation import cancellation_fit
 from svelive.noise.frame import _preferred, frame_samples
 from svelive.noise.inputs import _fixed, _high_level, _signal_of
@@ -60,6 +62,7 @@ class NoiseTracker:
         self._previous: np.ndarray | None = None
         self._before_previous: np.ndarray | None = None  # the frame before it, when it was static to it
         self._previous_static: np.ndarray | None = None  # the mask that related the two
+        self._rested: bytes | None = None  # the digest of the last frame added before :meth:`rest`
         self._estimate: NoiseEstimate | None = None
         self._camera_key: tuple | None = None
         self._sensor: Sensor | None = None  # of the frames added since the last reset
@@ -78,6 +81,7 @@ class NoiseTracker:
         self._joint_fits.clear()
         self._triple_parts.clear()
         self._previous = self._before_previous = self._previous_static = None
+        self._rested = None
         self._estimate = None
         self._camera_key = None
         self._sensor = None
@@ -112,8 +116,12 @@ class NoiseTracker:
             self._sensor = sensor
             return
         source, offset, floor = _signal_of(raw, camera, signal)
-        sig = np.asarray(source, np.float32) - np.float32(offset)
-        if self._previous is not None and np.array_equal(sig, self._previous):
+        # the tracker's own copy (kept as the previous frame), made once, outside the heap (svelive.memory)
+        sig = outside_heap(np.shape(source), np.float32)
+        np.copyto(sig, source, casting="unsafe")
+        sig -= np.float32(offset)
+        if (np.array_equal(sig, self._previous) if self._previous is not None
+                else self._rested is not None and _digest(sig) == self._rested):
             # the frame before delivered again (a buffer sent twice, a short loop of recorded frames): its
             # differences would say the sensor has no temporal noise, and its own samples are counted already
             return
@@ -133,12 +141,12 @@ class NoiseTracker:
                                                              camera.period))
         self._sensor = sensor
         config = self.config
-        temporal = self._temporal()
-        if temporal.size < self.temporal_enough:
+        temporal = self._temporal_size()
+        if temporal < self.temporal_enough:
             samples, _ = frame_samples(raw, camera, signal=sig, config=config)
             self._frame_parts.append(samples)
         # temporal samples are texture-free: with any, the pooled line is the better evidence
-        if config.cancellation and sensor.gain is None and temporal.size == 0:
+        if config.cancellation and sensor.gain is None and temporal == 0:
             frame_joint = cancellation_fit(sig, 0.0, floor, camera, config, start=self._line()[0])
             if frame_joint is not None:
                 self._joint_fits.append(frame_joint)
@@ -146,7 +154,18 @@ class NoiseTracker:
             self._before_previous, self._previous_static = self._previous, static
         else:
             self._before_previous = self._previous_static = None
-        self._previous = np.array(sig, copy=True)
+        self._previous = sig
+        self._rested = None
+
+    def rest(self) -> None:
+        """Drop the frames kept for the next frame's samples, keeping a digest of the last one: for a pause in
+        the frames added (a stream's tracker reads runs of three frames every 64, ``svelive.noise.StreamNoise``),
+        after which the next frame comes without a static mask. Such a frame reads no frame before it but to
+        tell whether it is the last one again (then it adds nothing, as without the pause); with a static mask
+        it would have given temporal samples from the frame before, which are now not taken."""
+        if self._previous is not None:
+            self._rested = _digest(self._previous)
+        self._previous = self._before_previous = self._previous_static = None
 
     def fit(self) -> NoiseEstimate:
         """The estimate from every frame added (refitted only when the pool changed since the last fit)."""
@@ -157,7 +176,7 @@ class NoiseTracker:
             self._estimate = NoiseEstimate.given(sensor)
             return self._estimate
         config = self.config
-        with_joint = config.cancellation and sensor.gain is None and self._temporal().size == 0
+        with_joint = config.cancellation and sensor.gain is None and self._temporal_size() == 0
         pool, joints = self._pool()[0], tuple(self._joint_fits) if with_joint else ()
         if self._estimate_of is not None and _same(self._estimate_of, (pool, joints)):
             return self._estimate
@@ -169,9 +188,10 @@ class NoiseTracker:
         self._estimate_of = (pool, joints)
         return self._estimate
 
-    def _temporal(self) -> NoiseSamples:
-        """The temporal samples the pool holds: three frames' alone once enough, else with the pairs'."""
-        return NoiseSamples.join(self._temporal_list())
+    def _temporal_size(self) -> int:
+        """How many temporal samples the pool holds: three frames' alone once enough, else with the pairs' (counted,
+        not joined: a full pool's join is a copy of 16 runs' samples, 13 MB, at every frame added)."""
+        return sum(p.size for p in self._temporal_list())
 
     def _temporal_list(self) -> list[NoiseSamples]:
         triples = list(self._triple_parts)
@@ -196,6 +216,13 @@ class NoiseTracker:
                        outlier_tolerance=self.config.outlier_tolerance)
         self._line_of = ((parts, only_temporal), fit, pooled.size)
         return fit, pooled.size
+
+
+def _digest(signal: np.ndarray) -> bytes:
+    """A digest of a float32 frame's shape and bits, to tell a frame delivered again without keeping the frame."""
+    digest = hashlib.blake2b(repr(signal.shape).encode(), digest_size=32)
+    digest.update(np.ascontiguousarray(signal))
+    return digest.digest()
 
 
 def _same(a: object, b: object) -> bool:

@@ -37,6 +37,7 @@ from typing import NamedTuple
 import numpy as np
 
 from svelive.jit import flat, kernel
+from svelive.memory import outside_heap
 from svelive.reconstruction.methods.base import binomial_kernel, map_on, reflect_101, smooth, support_size
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
@@ -442,8 +443,9 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # with detail: each pixel's squared difference own - fused over its variance, whose window
     # mean is the local evidence of detail (once the rows of the window are fused); summed along
     # rows in the update where the detail step sums the columns itself. Written only where the
-    # detail step of the rows around the strips' joins reads it (the strips' pass keeps a ring).
-    evidence = np.empty_like(image) if detail else image
+    # detail step of the rows around the strips' joins reads it (the strips' pass keeps a ring): so in
+    # pages of its own, of which only those rows' are ever touched (a few %), not a frame's worth of heap
+    evidence = outside_heap(image.shape, image.dtype) if detail else image
     ky, kx = (binomial_kernel(n) for n in window)
     radius = ky.size // 2
     inline = ky.size <= INLINE_TAPS[0] and kx.size <= INLINE_TAPS[1]
