@@ -118,6 +118,31 @@ def test_frames_estimated_ahead_fuse_as_the_sequential_stream():
         assert skipped > 0  # and bands were skipped
 
 
+def test_a_fused_frame_keeps_no_history_alive():
+    """A partial frame's estimate, held after its fusion (a live service's loop holds it until its next frame),
+    holds neither the history it was fused into nor a whole frame of its own beyond the estimate's: the stream's
+    history alone lives on (issue 25, memory)."""
+    import gc
+    import weakref
+
+    raws, sensor = _moving_disc_raws(14)
+    stream = Reconstructor("1,4/16,64", black_level=64, white_level=4095, gain=sensor.gain,
+                           read_noise=sensor.read_noise, refresh=4)
+    checked = 0
+    for raw in raws:
+        before = weakref.ref(stream._history) if stream._history is not None else None
+        estimated = stream.estimate(raw)
+        stream.fuse(estimated)
+        partial = estimated.partial
+        if before is None or partial is None or partial.computed.all():
+            continue
+        gc.collect()
+        assert before() is None  # the history this frame was fused into went, though its estimate is held
+        assert partial.hint() is None
+        checked += 1
+    assert checked > 0  # bands were skipped in frames whose history had gone
+
+
 def test_refresh_is_checked_and_colour_streams_ignore_it():
     import pytest
 

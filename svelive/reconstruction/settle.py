@@ -35,6 +35,7 @@ import numpy as np
 
 from svelive.core.pattern import Pattern
 from svelive.jit import kernel
+from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
 from svelive.reconstruction.methods.base import SveInput, reflect_101, tile_rows, window_kernels, window_level_row
 from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
@@ -75,8 +76,10 @@ class Partial:
             with it); at :meth:`Reconstructor.estimate` a hint taken from the history the stream held then,
             made the stream's own selection by :meth:`Reconstructor.fuse`.
         rows: bool (H,), ``computed`` by row.
-        hint: the history whose mean the skipped rows' window mean took where the window holds no uncensored
-            reading (None: every band computed).
+        hint: a weak reference (weakref.ref) to the history whose mean the skipped rows' window mean took where
+            the window holds no uncensored reading (None: every band computed): weak, since a frame in flight
+            holding it strongly kept a whole history (about 40 MB at 1920x1200) alive after the stream moved on,
+            and :meth:`Reconstructor.fuse` only asks whether it is the history the frame is fused into.
         tick: the round-robin's turn the hint took (the partial frames fused and in flight when it was estimated).
         stats: counts for benchmarks (bands, computed, on-demand pixels and cells, bands the fuse added or
             dropped against the hint).
@@ -350,7 +353,10 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
             value[pixels] = array[y, x]
 
     if whole.any():
-        image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool), np.empty((h, w), np.float32))
+        # (whole frames of which a few bands are written and read: pages of their own, handed back when they go,
+        # not 21 MB more on malloc's heap that the process keeps at its peak)
+        image, lower, variance = (outside_heap((h, w), np.float32), outside_heap((h, w), bool),
+                                  outside_heap((h, w), np.float32))
         method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
         take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
     atlas_cells = np.nonzero(~in_whole & inside)[0]

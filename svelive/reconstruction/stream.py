@@ -44,6 +44,7 @@ from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
+from svelive.memory import outside_heap
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour
 from svelive.reconstruction.config import MotionConfig
@@ -256,7 +257,6 @@ class Reconstructor:
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
-        self._infinite: np.ndarray | None = None  # float32 (H, W) of inf (settle: lost windows' variance)
         self._last_ratio = 1.0  # the last fused frame's brightness ratio
         self._lock = threading.Lock()
         self._method = self._checked(method)
@@ -563,7 +563,8 @@ class Reconstructor:
         # this one's censoring, would test a window mean of another kind against it)
         censored = frame.censored.copy()
         h, w = censored.shape
-        ys, xs = np.empty(2 * h * w, np.intp), np.empty(2 * h * w, np.intp)  # (lazily touched)
+        # (touched lazily, a few pages of 74 MB: pages of their own, never malloc's heap whatever the frame's size)
+        ys, xs = outside_heap(2 * h * w, np.intp), outside_heap(2 * h * w, np.intp)
         no_rows = np.empty((0, 0), np.float32)
         wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
         n, kept = settle.skipped_resets(~partial.rows, fused.reset, settle.reset_words(fused.reset), fused.motion,
@@ -642,11 +643,8 @@ class Reconstructor:
         with self._lock:
             hint, tick = self._history, self._fused_partials + len(self._in_flight)
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
-            if not selected.all() and (self._infinite is None or self._infinite.shape != (h, w)):
-                self._infinite = np.full((h, w), np.inf, np.float32)
-            infinite = self._infinite
             partial = settle.Partial(inp, noise, selected, np.repeat(selected, settle.BAND_ROWS)[:h],
-                                     None if selected.all() else hint, tick,
+                                     None if selected.all() else weakref.ref(hint), tick,
                                      dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
             self._in_flight.add(partial)  # (at once: a frame estimated beside it takes the next turn)
         image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool),
@@ -659,7 +657,8 @@ class Reconstructor:
         # it, the history's mean where its window holds no uncensored reading (with an infinite variance: fuse's
         # tests pass over such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
         if skipped:
-            settle.window_rows(inp, hint.mean, infinite, skipped, window[0], window[1], self._window_tables)
+            settle.window_rows(inp, hint.mean, _infinite((h, w)), skipped, window[0], window[1],
+                               self._window_tables)
         if not _shares_window(inp):
             settle.window_rows(inp, image, variance, _band_rows(selected, h), window[0], window[1],
                                self._window_tables)
@@ -690,11 +689,9 @@ class Reconstructor:
             for a, b in _band_rows(missing, h):  # (the skipped rows' lost windows: infinite, so completed here)
                 completed_window((level[a:b], noise[a:b]), frame.image[a:b], frame.variance[a:b])
         if extra.any():
-            if self._infinite is None or self._infinite.shape != (h, w):
-                self._infinite = np.full((h, w), np.inf, np.float32)
-            settle.window_rows(partial.inp, history.mean, self._infinite, _band_rows(extra, h), level, noise,
+            settle.window_rows(partial.inp, history.mean, _infinite((h, w)), _band_rows(extra, h), level, noise,
                                self._window_tables)
-        if partial.hint is not history:
+        if partial.hint is None or partial.hint() is not history:  # (a hint gone is not this history)
             for a, b in _band_rows(~selected & ~hinted, h):
                 lost = np.isinf(noise[a:b])
                 if lost.any():
@@ -703,7 +700,7 @@ class Reconstructor:
             frame.variance[a:b] = self._last_variance[a:b]
         partial.computed[:] = selected
         partial.rows[:] = np.repeat(selected, settle.BAND_ROWS)[:h]
-        partial.hint = None if selected.all() else history
+        partial.hint = None if selected.all() else weakref.ref(history)
         partial.stats.update(computed=int(np.count_nonzero(selected)), added=int(np.count_nonzero(missing)),
                              dropped=int(np.count_nonzero(extra)))
         self._hint_changes = [self._hint_changes[0] + partial.stats["added"],
@@ -851,6 +848,13 @@ class Estimated:
     noise: NoiseEstimate | None = None
     colour_input: SveInput | None = None
     partial: object | None = None  # settle.Partial: the method ran on some bands only (``refresh``)
+
+
+def _infinite(shape: tuple[int, int]) -> np.ndarray:
+    """float32 ``shape`` of inf, read-only and of one element (a broadcast view): settle.window_rows' variance where
+    a skipped row's window holds no uncensored reading (a whole frame of it, kept by the stream, was 9 MB at
+    1920x1200)."""
+    return np.broadcast_to(np.float32(np.inf), shape)
 
 
 def _band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
