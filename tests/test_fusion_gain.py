@@ -48,12 +48,15 @@ def test_a_bright_object_crossing_does_not_spoil_the_streams_noise_model(full_we
 
 
 class _FittedTracker:
-    """A NoiseTracker stand-in whose fits are given in order (StreamNoise reads add and fit)."""
+    """A NoiseTracker stand-in whose fits are given in order (StreamNoise calls add, rest and fit)."""
 
     def __init__(self, fits):
         self.fits = list(fits)
 
     def add(self, raw, camera, static, *, signal=None):
+        pass
+
+    def rest(self):
         pass
 
     def fit(self):
