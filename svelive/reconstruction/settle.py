@@ -100,16 +100,19 @@ def bands(h: int) -> list[slice]:
 
 def runs(flags: np.ndarray) -> list[tuple[int, int]]:
     """[start, stop) of the runs of True in a 1-d bool array."""
-    out, start = [], None
-    for i, f in enumerate(flags):
-        if f and start is None:
-            start = i
-        elif not f and start is not None:
-            out.append((start, i))
-            start = None
-    if start is not None:
-        out.append((start, len(flags)))
-    return out
+    edges = np.flatnonzero(np.diff(np.concatenate(([False], flags, [False])).astype(np.int8)))
+    return [(int(a), int(b)) for a, b in edges.reshape(-1, 2)]
+
+
+def band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
+    """[start, stop) frame rows of the runs of True in ``flags`` (bool (bands,), one per :data:`BAND_ROWS` rows)
+    of a frame of ``h`` rows."""
+    return [(a * BAND_ROWS, min(b * BAND_ROWS, h)) for a, b in runs(flags)]
+
+
+def band_mask(flags: np.ndarray, h: int) -> np.ndarray:
+    """bool (h,): ``flags`` (bool (bands,)) by frame row."""
+    return np.repeat(flags, BAND_ROWS)[:h]
 
 
 def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
@@ -122,8 +125,7 @@ def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndar
     not overwrite each other's results."""
     h = inp.shape[0]
     in_pass = window is not None and _shares_window(inp)
-    for a, b in runs(selected):
-        top, stop = a * BAND_ROWS, min(b * BAND_ROWS, h)
+    for top, stop in band_rows(selected, h):
         rows = slice(max(top - HALO, 0), min(stop + HALO, h))
         _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
                   out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
@@ -137,8 +139,7 @@ def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.
     was (a band computed beside one the frame holds already: :meth:`Reconstructor.fuse` completing an estimate
     whose selection was a hint)."""
     h, w = inp.shape
-    for a, b in runs(selected):
-        top, stop = a * BAND_ROWS, min(b * BAND_ROWS, h)
+    for top, stop in band_rows(selected, h):
         rows = slice(max(top - HALO, 0), min(stop + HALO, h))
         n = rows.stop - rows.start
         out = np.empty((n, w), np.float32), np.empty((n, w), bool), np.empty((n, w), np.float32)

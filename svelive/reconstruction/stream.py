@@ -46,12 +46,14 @@ from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
 from svelive.memory import outside_heap
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
-from svelive.reconstruction import colour
+from svelive.reconstruction import colour, settle
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import FrameEstimate, Fused, OutputVariance, TemporalState, fuse
+from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, TemporalState,
+                                          fuse)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
+from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
 from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, support_size
 from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
@@ -549,8 +551,6 @@ class Reconstructor:
         others (reset only because a reading in their window crossed the censor level, the window means
         agreeing within that) keep their history as it was (times the brightness ratio): they skip this frame, as the
         method did, rather than average two estimates of different kinds."""
-        from svelive.reconstruction import settle
-        from svelive.reconstruction.fusion import RATIO_TOLERANCE
 
         ratio = fused.illumination_ratio
         scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
@@ -592,8 +592,6 @@ class Reconstructor:
 
     def _settles(self, method: str, camera: Camera) -> bool:
         """Whether this frame takes the partial path (``refresh``; svelive.reconstruction.settle)."""
-        from svelive.reconstruction import settle
-
         return (self.refresh > 0 and self.temporal and not self.consistency and method == "adaptive"
                 and camera.cfa is None and settle.supports(camera.pattern))
 
@@ -606,8 +604,6 @@ class Reconstructor:
         (``last_ratio``) moved; else those where something moved within the last max_history frames
         (``band_motion``: moving pixels per band on every 4th row, of the last fused frames), those whose
         history is mostly unsettled (a stream's start, a restart) and the round-robin's ``tick``-th 1 / K."""
-        from svelive.reconstruction import settle
-        from svelive.reconstruction.fusion import RATIO_TOLERANCE
 
         h, w = shape
         spans = settle.bands(h)
@@ -634,8 +630,6 @@ class Reconstructor:
         """(input, estimate with the window mean, settle.Partial): the method on the bands the latest history
         asks for, the window mean everywhere. The selection is a hint: the frame may be fused into a later
         history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
-        from svelive.reconstruction import settle
-        from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
 
         inp = prepare(getattr(raw, "raw", raw), camera)
         noise = noise_model(inp)
@@ -643,7 +637,7 @@ class Reconstructor:
         with self._lock:
             hint, tick = self._history, self._fused_partials + len(self._in_flight)
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
-            partial = settle.Partial(inp, noise, selected, np.repeat(selected, settle.BAND_ROWS)[:h],
+            partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
                                      None if selected.all() else weakref.ref(hint), tick,
                                      dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
             self._in_flight.add(partial)  # (at once: a frame estimated beside it takes the next turn)
@@ -651,7 +645,7 @@ class Reconstructor:
                                   np.empty((h, w), np.float32))
         window = np.empty((2, h, w), np.float32)  # (rows the pass does not make are made below)
         settle.method_on_bands(inp, noise, selected, image, lower, variance, window, self._threads)
-        skipped = _band_rows(~selected, h)
+        skipped = settle.band_rows(~selected, h)
         # the skipped rows' estimate and bound are the history's (fuse writes them, times its brightness ratio),
         # their variance the last fused frame's (fuse writes it too); the window mean where the method did not make
         # it, the history's mean where its window holds no uncensored reading (with an infinite variance: fuse's
@@ -660,9 +654,9 @@ class Reconstructor:
             settle.window_rows(inp, hint.mean, _infinite((h, w)), skipped, window[0], window[1],
                                self._window_tables)
         if not _shares_window(inp):
-            settle.window_rows(inp, image, variance, _band_rows(selected, h), window[0], window[1],
+            settle.window_rows(inp, image, variance, settle.band_rows(selected, h), window[0], window[1],
                                self._window_tables)
-        for a, b in _band_rows(selected, h):  # (the window rows made here hold no infinite variance)
+        for a, b in settle.band_rows(selected, h):  # (the window rows made here hold no infinite variance)
             completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
         return inp, est, partial
@@ -676,8 +670,6 @@ class Reconstructor:
         this one's mean there; every skipped row takes the last fused partial frame's variance (a placeholder:
         the output's variance there, :class:`OutputVariance`). The frame then fuses as the sequential stream's
         would, bit for bit, however far ahead it was estimated. In ``frame``'s and ``partial``'s arrays."""
-        from svelive.reconstruction import settle
-
         h, w = frame.image.shape
         selected = self._selection(history, self._fused_partials, (h, w), *self._selection_state())
         hinted = partial.computed
@@ -686,20 +678,21 @@ class Reconstructor:
         if missing.any():
             settle.method_on_band_rows(partial.inp, partial.noise, missing, frame.image, frame.bound, frame.variance,
                                        self._threads)
-            for a, b in _band_rows(missing, h):  # (the skipped rows' lost windows: infinite, so completed here)
+            # (the skipped rows' lost windows: infinite, so completed here)
+            for a, b in settle.band_rows(missing, h):
                 completed_window((level[a:b], noise[a:b]), frame.image[a:b], frame.variance[a:b])
         if extra.any():
-            settle.window_rows(partial.inp, history.mean, _infinite((h, w)), _band_rows(extra, h), level, noise,
-                               self._window_tables)
+            settle.window_rows(partial.inp, history.mean, _infinite((h, w)), settle.band_rows(extra, h), level,
+                               noise, self._window_tables)
         if partial.hint is None or partial.hint() is not history:  # (a hint gone is not this history)
-            for a, b in _band_rows(~selected & ~hinted, h):
+            for a, b in settle.band_rows(~selected & ~hinted, h):
                 lost = np.isinf(noise[a:b])
                 if lost.any():
                     level[a:b][lost] = history.mean[a:b][lost]
-        for a, b in _band_rows(~selected, h):
+        for a, b in settle.band_rows(~selected, h):
             frame.variance[a:b] = self._last_variance[a:b]
         partial.computed[:] = selected
-        partial.rows[:] = np.repeat(selected, settle.BAND_ROWS)[:h]
+        partial.rows[:] = settle.band_mask(selected, h)
         partial.hint = None if selected.all() else weakref.ref(history)
         partial.stats.update(computed=int(np.count_nonzero(selected)), added=int(np.count_nonzero(missing)),
                              dropped=int(np.count_nonzero(extra)))
@@ -731,8 +724,6 @@ class Reconstructor:
             if partial is not None:
                 self._settle_at_fuse(partial, frame, history)
             if partial is not None and not partial.computed.all():
-                from svelive.reconstruction import settle
-
                 def completed() -> FrameEstimate:
                     # every band again, one crop (a run's halo rows would overwrite its computed neighbours')
                     settle.method_on_bands(partial.inp, partial.noise, np.ones_like(partial.computed), frame.image,
@@ -743,8 +734,7 @@ class Reconstructor:
                     return frame
 
                 complete = completed
-                predicted = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, frame.image.shape[0]))
-                             for a, b in settle.runs(~partial.computed)]
+                predicted = settle.band_rows(~partial.computed, frame.image.shape[0])
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency,
                          detail=self.detail, workers=self.workers, executor=self._pool,
                          predicted=predicted, complete=complete)
@@ -855,14 +845,6 @@ def _infinite(shape: tuple[int, int]) -> np.ndarray:
     a skipped row's window holds no uncensored reading (a whole frame of it, kept by the stream, was 9 MB at
     1920x1200)."""
     return np.broadcast_to(np.float32(np.inf), shape)
-
-
-def _band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
-    """[start, stop) rows of the runs of True in ``flags`` (bool per band of settle.BAND_ROWS rows) of a frame
-    of ``h`` rows."""
-    from svelive.reconstruction import settle
-
-    return [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(flags)]
 
 
 def _needs_noise(camera: Camera) -> bool:
