@@ -221,3 +221,16 @@ def test_token_guards_every_endpoint_but_healthz():
         # no CORS unless configured
         r = httpx.get(srv.url + "/api/state", headers={**auth, "Origin": "http://evil.example"}, timeout=5)
         assert r.status_code == 200 and "access-control-allow-origin" not in r.headers
+
+
+def test_an_mjpeg_part_is_made_once_per_frame_for_every_client():
+    from service.pipeline import EncodedFrame, Newest
+    from service.publishers.mjpeg import StreamHub, part_bytes
+
+    hub = StreamHub(Newest())
+    first = EncodedFrame(1, b"\xff\xd8jpeg one\xff\xd9", True, 7, 3, 1_000, 1.5, 4, 2)
+    second = EncodedFrame(2, b"\xff\xd8jpeg two\xff\xd9", True, 8, 4, 2_000, 2.5, 4, 2)
+    part = hub.part(first)
+    assert part == part_bytes(first) and b"X-Frame-Id: 7" in part and part.endswith(first.jpeg + b"\r\n")
+    assert hub.part(first) is part  # the second client sends the same bytes, not a copy
+    assert hub.part(second) == part_bytes(second) and hub.part(second) is not part

@@ -47,6 +47,14 @@ class StreamHub:
         self.streamed = RateMeter()
         self._max_sent_seq = 0
         self.sent_latency = LatencyWindow()
+        self._part: tuple[EncodedFrame, bytes] | None = None  # the newest frame's part, shared by every client
+
+    def part(self, item: EncodedFrame) -> bytes:
+        """``item``'s multipart part (:func:`part_bytes`), made once for every client that sends it (the event
+        loop is the only caller): a part is the JPEG's size, and ten clients would otherwise copy it ten times."""
+        if self._part is None or self._part[0] is not item:
+            self._part = (item, part_bytes(item))
+        return self._part[1]
 
     async def wait_newer(self, seq: int, timeout: float) -> EncodedFrame | None:
         """The newest JPEG if its seq is above ``seq``, waiting up to ``timeout`` s for one; else None."""

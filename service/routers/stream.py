@@ -8,7 +8,7 @@ from importlib import resources
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import HTMLResponse, StreamingResponse
 
-from service.publishers.mjpeg import BOUNDARY, part_bytes
+from service.publishers.mjpeg import BOUNDARY
 from service.routers import NO_STORE, ServedCamera
 
 
@@ -47,7 +47,7 @@ def router(cam: ServedCamera) -> APIRouter:
                         if await request.is_disconnected():
                             return
                         continue
-                    yield part_bytes(item)
+                    yield hub.part(item)
                     hub.sent(client, item, last)
                     last = item.seq
                     if min_interval:  # a rate cap, cut short when the server closes
