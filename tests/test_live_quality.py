@@ -35,9 +35,10 @@ def test_ladder_starts_at_the_configured_setting_and_only_gets_cheaper():
 
 
 def feed(quality: LiveQuality, seconds: float, ms_of, lost_every: dict[str, int], start_ns: int = 0,
-         counts: list[int] | None = None) -> int:
+         counts: list[int] | None = None, rows_of=lambda name: 1.0) -> int:
     """A 30 fps camera for ``seconds``: each arrival publishes a frame of the current step taking
-    ``ms_of(step name)`` ms, except one in ``lost_every[step name]`` (dropped: the reconstruction was busy).
+    ``ms_of(step name)`` ms, its method on ``rows_of(step name)`` of the rows, except one in
+    ``lost_every[step name]`` (dropped: the reconstruction was busy).
     Returns the time reached; ``counts`` ([arrived, lost]) carries on between calls."""
     counts = counts if counts is not None else [0, 0]
     now = start_ns
@@ -49,7 +50,7 @@ def feed(quality: LiveQuality, seconds: float, ms_of, lost_every: dict[str, int]
         if every and counts[0] % every:
             counts[1] += 1
             continue
-        quality.observe(now, counts[0], counts[1], ms_of(step.name), step)
+        quality.observe(now, counts[0], counts[1], ms_of(step.name), step, rows_of(step.name))
     return now
 
 
@@ -106,6 +107,31 @@ def test_no_step_up_without_headroom():
     # 28 ms of 33: the step above (cost 1 / 0.83 of it) would not fit in 80 % of the interval
     feed(quality, 10.0, lambda name: 28.0, {}, start_ns=now, counts=counts)
     assert quality.step.name == "weighted+fusion"
+
+
+@pytest.mark.parametrize("rows, below", [(1.0, "weighted+fusion"), (0.5, "adaptive"), (0.125, "weighted")])
+def test_a_top_step_the_band_refresh_made_cheaper_steps_down_to_a_cheaper_step(rows, below):
+    """A still view whose top step ran the method on ``rows`` of the frame (the band refresh) costs
+    1 - 0.34 (1 - rows) of its declared cost (0.83 at 1/2, 0.70 at 1/8): falling behind, it steps down
+    to the first step below 0.9 of that (weighted+fusion 0.83, adaptive 0.68, weighted 0.47)."""
+    quality = LiveQuality("adaptive", True)
+    feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3}, rows_of=lambda name: rows)
+    assert quality.step.name == below and quality.state()["changes"] == 1
+
+
+def test_a_step_up_goes_to_the_best_step_predicted_to_fit_by_its_cost_as_it_ran():
+    """Back up from below a refreshed top step: the top's cost as it last ran (0.70, the method on 1/8 of
+    the rows) predicts it fits, so the ladder goes straight to it, past adaptive and weighted+fusion
+    (declared 0.68 and 0.83), which would fit too."""
+    quality = LiveQuality("adaptive", True, config=QualityConfig(hold_s=2.0))
+    counts = [0, 0]
+    rows = {"adaptive+fusion": 0.125}
+    now = feed(quality, 3.0, lambda name: 60.0, {"adaptive+fusion": 3}, counts=counts,
+               rows_of=lambda name: rows.get(name, 1.0))
+    assert quality.step.name == "weighted"
+    # 12 ms of 33: the top predicted at 12 x 0.70 / 0.47 = 17.9 ms fits in 80 % of the interval
+    feed(quality, 5.0, lambda name: 12.0, {}, start_ns=now, counts=counts, rows_of=lambda name: rows.get(name, 1.0))
+    assert quality.step.name == "adaptive+fusion" and quality.state()["changes"] == 2
 
 
 def test_fixed_mode_keeps_the_setting_and_reports_that_it_is_behind():

@@ -61,6 +61,7 @@ def test_a_refresh_stream_skips_bands_of_a_still_view_and_stays_close():
         a, b = off.process(f), on.process(f)
         p = on.last_partial  # (None while the estimated noise model is not trusted: the method everywhere)
         computed.append(1.0 if p is None else p["computed"] / p["bands"])
+        assert b.method_rows == computed[-1] and a.method_rows == 1.0  # what the live ladder's costs read
         assert np.isfinite(b.image).all() and (b.image >= 0).all()
     assert min(computed[9:]) < 0.75  # bands skipped once the history settled
     rel = np.abs(b.image - a.image) / np.maximum(a.image, 1.0)

@@ -193,7 +193,7 @@ class ReconstructionStage:
         self.latency["arrival_to_hdr"].add((done_ns - frame.host_time_ns) / 1e6)
         self.hdr_port.put(published)
         self.quality.observe(done_ns, self._captured.count, self._drops.snapshot().get("reconstruct_busy", 0),
-                             timings["reconstruct"], step)
+                             timings["reconstruct"], step, result.method_rows)
 
 
 def _confidence_of(result: SequenceResult) -> Callable[[], np.ndarray]:

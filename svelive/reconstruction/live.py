@@ -21,6 +21,11 @@ from svelive.core.errors import SveliveError
 #: stream without it, K = 4 x0.76; on issue 26's cases both within 0.04 dB PU21 of off. Colour streams ignore it.
 LIVE_REFRESH = 8
 
+#: The method's share of the top step's CPU per frame, the part the band refresh saves on the bands it keeps:
+#: ``benchmarks/settle_cost.py --refresh 4,8`` (still 1920x1200 demo, 2026-11-29) put K = 4 at x0.75 with 24.9 % of
+#: the bands computed and K = 8 at x0.69 with 12.4 %: 1 - x = 0.33-0.35 of (1 - computed).
+REFRESH_METHOD_SHARE = 0.34
+
 #: ``--live-quality`` values: ``adaptive`` steps down and up the ladder, ``fixed`` keeps the configured setting.
 QUALITY_MODES = ("adaptive", "fixed")
 
@@ -36,7 +41,8 @@ class LiveStep:
     """One live setting: a reconstruction method with or without temporal fusion.
 
     ``cost``: its CPU per frame relative to the top of :data:`LADDER` (measured with
-    ``benchmarks/live_ladder.py``), used only to predict whether the step above would fit before trying it.
+    ``benchmarks/live_ladder.py``, without the band refresh: :meth:`cost_at`), used only to predict which
+    step would fit before trying it.
     """
 
     method: str
@@ -46,6 +52,11 @@ class LiveStep:
     @property
     def name(self) -> str:
         return f"{self.method}+fusion" if self.temporal else self.method
+
+    def cost_at(self, method_rows: float) -> float:
+        """``cost`` when the method ran on ``method_rows`` (0..1) of the frame's rows: the band refresh keeps
+        settled bands, so a still view's top step can cost less than steps below it."""
+        return self.cost * (1.0 - REFRESH_METHOD_SHARE * (1.0 - min(max(method_rows, 0.0), 1.0)))
 
 
 #: The declared ladder, costliest first. ``cost``: CPU per frame relative to the top, the mean of monochrome and

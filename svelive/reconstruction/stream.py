@@ -91,6 +91,8 @@ class SequenceResult:
             and where the test flagged a pixel alone, a reading crossed the censor level or a side is a
             lower bound); None without a history to compare with (no fusion, a stream's first frame,
             after a reset or a method change).
+        method_rows: the share of the frame's rows the single-frame method ran on: below 1 where the band
+            refresh (``refresh``) kept settled bands, else 1 (its pixels on demand not counted).
 
     ``variance`` (float32 (H, W), predicted noise variance of ``image``, DN^2 at exposure 1;
     of the fused smooth estimate where detail sharpening moved a pixel), ``confidence``,
@@ -109,6 +111,7 @@ class SequenceResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     luminance: np.ndarray | None = None
     reset: np.ndarray | None = None
+    method_rows: float = 1.0
 
     @property
     def plane(self) -> np.ndarray:
@@ -712,7 +715,7 @@ class Reconstructor:
             chroma_history = self._chroma if current else None
         image, variance = est.image, est.variance
         held = self.temporal and not estimated.trusted
-        reset = None
+        reset, method_rows = None, 1.0
         if self.temporal:
             frame = estimated.frame
             if parts is not None and self.detail:
@@ -750,6 +753,7 @@ class Reconstructor:
                     self._in_flight.discard(partial)
                     self._fused_partials += 1
                 self.last_partial = dict(partial.stats)
+                method_rows = partial.stats["computed"] / partial.stats["bands"]
             image, variance_of, motion, weight = fused.image, fused.variance_of, fused.motion, fused.history
             if history is not None and history.mean.shape == image.shape:
                 reset = fused.reset
@@ -792,7 +796,7 @@ class Reconstructor:
             self._last_moving = moving_fraction
         return SequenceResult(image, motion, variance_of, est.lower_bound, weight, moving_fraction, ratio,
                               estimated.method, index, {"method": estimated.method_ms, "motion": motion_ms}, luminance,
-                              reset)
+                              reset, method_rows)
 
 
 @dataclass(frozen=True)
