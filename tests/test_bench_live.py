@@ -11,7 +11,7 @@ from svelive.bench.scenes import BENCH_SENSOR
 from svelive.cli import main
 from svelive.core.errors import SveliveError
 from svelive.exr import write_exr
-from svelive.reconstruction.live import LADDER
+from svelive.reconstruction.live import LADDER, LIVE_REFRESH
 from svelive.simulation import load_sample_scene
 
 TINY = (96, 128)  # rows, cols: whole tiles of every pattern and layout
@@ -140,3 +140,16 @@ def test_cli_bench_live_on_images_without_colour_charts_mono_only(tmp_path, monk
     assert main(["bench", *off, "-o", str(tmp_path / "out"), "--data", str(tmp_path / "hdr")]) == 0
     results = json.loads((tmp_path / "out" / "live.json").read_text())
     assert results["skipped"] == ["dual-iso"] and {r["kind"] for r in results["rows"]} == {"mono"}
+
+
+def test_the_top_monochrome_step_runs_the_services_band_refresh():
+    """The chart's top step is the service's: once a still view's bands settle, its method runs on some of
+    them only (``method_rows`` < 1); the steps the refresh does not apply to run it everywhere."""
+    scene = load_sample_scene("desk")[:320, :256]
+    camera = live.case_camera("1,4/16,64")
+    frames, _ = live.static_frames(live.case_radiance("1,4/16,64", "bright", scene), camera, 12, seed=0)
+    for step, skips in ((LADDER[0], True), (LADDER[1], False)):
+        with live.stream(step, camera, 1) as s:
+            rows = [s.process(raw).method_rows for raw in frames]
+        assert (min(rows) < 1.0) == skips, (step.name, rows)
+    assert live.LiveBenchConfig().refresh == LIVE_REFRESH

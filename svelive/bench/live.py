@@ -3,13 +3,15 @@
 For every step of :data:`svelive.reconstruction.live.LADDER` (a method with or
 without temporal fusion), monochrome (the bench's patterns) and colour (the
 colour layouts of real sensors, dual-ISO by default), two measurements of an
-ordinary ``svelive.Reconstructor(camera, method=..., temporal=..., workers=...)``:
+ordinary ``svelive.Reconstructor(camera, method=..., temporal=..., workers=..., refresh=...)`` with the live
+service's band refresh (:data:`svelive.reconstruction.live.LIVE_REFRESH`, which only monochrome ``adaptive`` with
+fusion takes: the top step as the service runs it):
 
 - **speed**: a still scene (a bench image resized to the live frame size,
   1920x1200 by default, as the bench's timing frames) rendered as a sequence of
   raw frames with new noise in each; wall time and the process's CPU time (every
   thread: the stream's strip pool too) of ``process`` per frame, median over the
-  frames after the warm-up ones; fps = 1000 / median wall ms. Times depend on the
+  frames after the warm-up ones (enough for the band refresh to settle); fps = 1000 / median wall ms. Times depend on the
   machine and its load, which the results record.
 - **accuracy**: PU21-PSNR (luminance PU21 for colour, svelive.metrics) of the
   stream's output for the last of ``frames`` frames of a static scene (new noise
@@ -37,7 +39,7 @@ from svelive.core.camera import COLOUR_LAYOUTS, Camera
 from svelive.core.errors import SveliveError
 from svelive.metrics import pu21_psnr, pu21_psnr_colour
 from svelive.reconstruction import Reconstructor
-from svelive.reconstruction.live import LADDER, LiveStep
+from svelive.reconstruction.live import LADDER, LIVE_REFRESH, LiveStep
 from svelive.simulation import SAMPLE_SCENES, sample_scene_path, simulate
 
 #: The colour layout the live chart measures by default: the colour demo camera's.
@@ -52,9 +54,10 @@ class LiveBenchConfig:
     """What a live-chart run covers.
 
     ``timing_size``: (rows, cols) of the timed frames; ``timing_frames``: frames per timed
-    sequence, of which the first ``warmup`` are not counted; ``timed_images``: how many
-    scenes (the first ones) are timed, under every noise level; ``frames``: the static
-    frames fused before the accuracy is scored.
+    sequence, of which the first ``warmup`` are not counted (the band refresh runs every band
+    until a band's history settles); ``timed_images``: how many scenes (the first ones) are
+    timed, under every noise level; ``frames``: the static frames fused before the accuracy is
+    scored; ``refresh``: the streams' ``Reconstructor(refresh=...)``, the service's by default.
     """
 
     mono_patterns: tuple[str, ...] = PATTERNS
@@ -62,12 +65,13 @@ class LiveBenchConfig:
     noise_levels: tuple[str, ...] = tuple(NOISE_LEVELS)
     frames: int = 8
     timing_size: tuple[int, int] = TIMING_SIZE
-    timing_frames: int = 10
-    warmup: int = 3
+    timing_frames: int = 16
+    warmup: int = 8
     timed_images: int = 1
     workers: int = 2
     opencv_threads: int = 1
     seed: int = 0
+    refresh: int = LIVE_REFRESH
 
     def __post_init__(self) -> None:
         if self.frames < 1 or self.timing_frames <= self.warmup or self.warmup < 0 or self.timed_images < 1:
@@ -80,8 +84,8 @@ class LiveBenchConfig:
 
 
 def quick_live_config() -> LiveBenchConfig:
-    """Under a minute with the shipped crops: 960x600 timed frames, 4 counted after 2 warm-up, one pattern."""
-    return LiveBenchConfig(mono_patterns=PATTERNS[:1], timing_size=(600, 960), timing_frames=6, warmup=2)
+    """Under a minute with the shipped crops: 960x600 timed frames, 4 counted after 8 warm-up, one pattern."""
+    return LiveBenchConfig(mono_patterns=PATTERNS[:1], timing_size=(600, 960), timing_frames=12, warmup=8)
 
 
 def kind_of(case: str) -> str:
@@ -114,17 +118,18 @@ def resized(scene: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.maximum(cv2.resize(scene, size[::-1], interpolation=cv2.INTER_CUBIC), 0)
 
 
-def stream(step: LiveStep, camera: Camera, workers: int) -> Reconstructor:
-    """The live step's stream: an ordinary Reconstructor with the step's method and fusion."""
-    return Reconstructor(camera, method=step.method, temporal=step.temporal, workers=workers)
+def stream(step: LiveStep, camera: Camera, workers: int, refresh: int = LIVE_REFRESH) -> Reconstructor:
+    """The live step's stream: an ordinary Reconstructor with the step's method and fusion, and the band refresh
+    (which only monochrome ``adaptive`` with fusion takes)."""
+    return Reconstructor(camera, method=step.method, temporal=step.temporal, workers=workers, refresh=refresh)
 
 
 def time_step(step: LiveStep, camera: Camera, frames: Sequence[np.ndarray], warmup: int,
-              workers: int) -> tuple[list[float], list[float]]:
+              workers: int, refresh: int = LIVE_REFRESH) -> tuple[list[float], list[float]]:
     """Wall and process CPU time (ms; CPU summed over every thread) of each frame after the first ``warmup``,
     one stream over ``frames`` in order."""
     walls, cpus = [], []
-    with stream(step, camera, workers) as s:
+    with stream(step, camera, workers, refresh) as s:
         for raw in frames:
             wall, cpu = time.perf_counter(), time.process_time()
             s.process(raw)
@@ -139,11 +144,11 @@ def score(image: np.ndarray, truth: np.ndarray) -> float:
 
 
 def step_accuracy(step: LiveStep, camera: Camera, frames: Sequence[np.ndarray], truth: np.ndarray,
-                  workers: int) -> float:
+                  workers: int, refresh: int = LIVE_REFRESH) -> float:
     """PU21-PSNR (dB) of the step's output for the last of ``frames`` (a static scene) against ``truth``.
     Without fusion a frame's output has no history (and the bench sensor gives the stream its noise model, so
     nothing else is learnt over frames), so only the last frame is reconstructed."""
-    with stream(step, camera, workers) as s:
+    with stream(step, camera, workers, refresh) as s:
         for raw in frames if step.temporal else frames[-1:]:
             image = s.process(raw).image
     return score(image, truth)
@@ -225,11 +230,12 @@ def run_case(case: str, scenes: dict[str, np.ndarray], config: LiveBenchConfig, 
     for step in ladder:
         walls, cpus = [], []
         for seq in timed:
-            w, c = time_step(step, camera, seq.frames, config.warmup, config.workers)
+            w, c = time_step(step, camera, seq.frames, config.warmup, config.workers, config.refresh)
             walls += w
             cpus += c
         scores = [{"image": seq.image, "noise": seq.noise,
-                   "pu21": step_accuracy(step, camera, seq.frames, seq.truth, config.workers)} for seq in scored]
+                   "pu21": step_accuracy(step, camera, seq.frames, seq.truth, config.workers, config.refresh)}
+                  for seq in scored]
         record = {"step": step.name, "kind": kind_of(case), "camera": case, "wall_ms": walls, "cpu_ms": cpus,
                   "scores": scores}
         row = row_of(step.name, kind_of(case), case, [record])
