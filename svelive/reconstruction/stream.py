@@ -1053,15 +1053,18 @@ def _cell_means(spread, weight, cy, cx, cells):
 
 @kernel
 def _larger_rows(variance, cells, weight, cy, cx, out):
-    """out = max(variance, the cell's mean spread) where ``weight`` < 1, else variance (:func:`measured_variance`)."""
+    """out = max(variance, the cell's mean spread) where ``weight`` < 1, else variance (:func:`measured_variance`):
+    each cell row's means spread over a row of pixels once, then a loop per pixel row that vectorises."""
     one = np.float32(1)
-    w = out.shape[1]
-    for r in range(out.shape[0]):
-        mean, v, wt, o = cells[r // cy], variance[r], weight[r], out[r]
-        for j in range(mean.size):
-            m = mean[j]
-            for x in range(j * cx, min(j * cx + cx, w)):
-                o[x] = max(v[x], m) if wt[x] < one else v[x]
+    h, w = out.shape
+    mean = np.empty(w, np.float32)
+    for i in range(cells.shape[0]):
+        for x in range(w):
+            mean[x] = cells[i, x // cx]
+        for r in range(i * cy, min(i * cy + cy, h)):
+            v, wt, o = variance[r], weight[r], out[r]
+            for x in range(w):
+                o[x] = max(v[x], mean[x]) if wt[x] < one else v[x]
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
