@@ -26,6 +26,7 @@ black_level=64, white_level=4095)`` and the true model given, against ``svelive.
 The column ``ideal`` is ``svelive.reconstruct`` (true model) of one frame holding the light of FRAMES[-1]
 frames (a 15-bit sensor of 8x the DN, the same gain, sqrt(8)x the read noise in DN: the noise of 8 frames
 summed): what a reconstruction from every frame's readings at once gives, which fusion approaches at best.
+``--stops 6,7``: other light levels than 4 and 5 stops under full scale (every table).
 ``--colour --moving``: a bright orange disc (3 stops over the scene's 99.9th percentile, radius a tenth of
 the crop) crosses each scene at 20 px per frame; stream minus single (the ``true`` stream minus the single
 frame given the true model too: the fusion's own effect) on still pixels (no motion in this
@@ -227,23 +228,23 @@ def measure_colour_moving(rgb: np.ndarray, layout: str, sensor: Sensor, stops: f
     return out
 
 
-def colour_cases(quick: bool, size: int, shared: bool):
+def colour_cases(quick: bool, size: int, shared: bool, stops: tuple[float, ...] = STOPS):
     """(label, rgb, layout, sensor, stops, seed) of every colour run, in the tables' order."""
     for name, rgb in colour_images(size, shared):
         for layout in COLOUR_LAYOUTS:
             for full_well, read_e in SENSORS[:2] if quick else SENSORS:
                 sensor = Sensor.from_full_well(12, full_well, read_e, black_level=BLACK, white_level=WHITE)
-                for st in STOPS[:1] if quick else STOPS:
+                for st in stops[:1] if quick else stops:
                     yield (f"{name:11s} {layout:12s} {full_well:5d}e/{read_e:4.1f}e -{st:.0f}st", rgb, layout, sensor, st,
                            int(full_well + 10 * st))
 
 
-def colour_moving_main(quick: bool, size: int, shared: bool) -> None:
+def colour_moving_main(quick: bool, size: int, shared: bool, stops: tuple[float, ...] = STOPS) -> None:
     """The colour table with a moving disc (see the module docstring)."""
     print(f"# colour, a disc crossing, {size} px crops; stream minus single-frame default (dB), PU21 of luminance "
           "at frames 3 and 8: still moving trail; ghost residue (% of the change) stream / single")
     totals: dict = {}
-    for label, rgb, layout, sensor, st, seed in colour_cases(quick, size, shared):
+    for label, rgb, layout, sensor, st, seed in colour_cases(quick, size, shared, stops):
         res = measure_colour_moving(rgb, layout, sensor, st, seed)
         cells = []
         for stream in ("readme", "true"):
@@ -267,11 +268,11 @@ def colour_moving_main(quick: bool, size: int, shared: bool) -> None:
                   f"(max {100 * np.nanmax(totals[(stream, 'ghost', i)]):+.2f})")
 
 
-def colour_main(quick: bool, size: int, shared: bool) -> None:
+def colour_main(quick: bool, size: int, shared: bool, stops: tuple[float, ...] = STOPS) -> None:
     """The colour table (see the module docstring)."""
     print(f"# colour, still, {size} px crops; stream minus single-frame default (dB), PU21 of luminance at frames {FRAMES}")
     totals: dict = {}
-    for label, rgb, layout, sensor, st, seed in colour_cases(quick, size, shared):
+    for label, rgb, layout, sensor, st, seed in colour_cases(quick, size, shared, stops):
         res = measure_colour(rgb, layout, sensor, st, seed)
         cells = []
         for stream in ("readme", "true"):
@@ -296,14 +297,16 @@ def main() -> None:
     parser.add_argument("--shipped-only", action="store_true")
     parser.add_argument("--colour", action="store_true", help="the colour streams' table instead")
     parser.add_argument("--moving", action="store_true", help="with --colour: a disc crossing each scene")
+    parser.add_argument("--stops", type=lambda t: tuple(float(x) for x in t.split(",")), default=STOPS,
+                        help="stops under full scale, comma-separated (default 4,5)")
     args = parser.parse_args()
     size = 256 if args.quick else args.crop
     if args.colour:
         (colour_moving_main if args.moving else colour_main)(args.quick, 128 if args.quick else 192,
-                                                             not args.shipped_only)
+                                                             not args.shipped_only, args.stops)
         return
     sensors = SENSORS[:2] if args.quick else SENSORS
-    stops = STOPS[:1] if args.quick else STOPS
+    stops = args.stops[:1] if args.quick else args.stops
     scenes = scene_images(size, not args.shared_only, not args.shipped_only)
     names = ("defaults", "readme", "true")
     print(f"# pattern {PATTERN}, 12-bit, black {BLACK}, crops {size} px; stream minus single-frame default, dB, "

@@ -267,6 +267,7 @@ class Reconstructor:
         self._method = self._checked(method)
         self._history: TemporalState | None = None
         self._chroma: np.ndarray | None = None  # a colour stream's fused chroma cells (5, Hc, Wc), fuse_chroma
+        self._spread: np.ndarray | None = None  # a colour stream's evidence of its luminance's noise, luminance_spread
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
@@ -302,7 +303,7 @@ class Reconstructor:
         with self._lock:
             if name != self._method:
                 self._method = name
-                self._history = self._chroma = None
+                self._history = self._chroma = self._spread = None
                 self._generation += 1
 
     def close(self) -> None:
@@ -376,7 +377,7 @@ class Reconstructor:
     def reset(self) -> None:
         """Forget the history: the next frame is processed as the first of a stream."""
         with self._lock:
-            self._history = self._chroma = None
+            self._history = self._chroma = self._spread = None
             self._generation += 1
             self._frames = 0
             self._band_motion = []
@@ -713,6 +714,8 @@ class Reconstructor:
             current = estimated.generation == self._generation
             history, index = (self._history, self._frames) if current else (None, 0)
             chroma_history = self._chroma if current else None
+            spread = self._spread if current else None
+        previous = history
         image, variance = est.image, est.variance
         held = self.temporal and not estimated.trusted
         reset, method_rows = None, 1.0
@@ -771,7 +774,11 @@ class Reconstructor:
             if self.temporal:
                 chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
-                luminance, variance_of, image = _refined(image, variance, weight, variance_of,
+                # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
+                # luminance is noisier than its model says, and a history averages what the model never held
+                spread = luminance_spread(spread, previous, est.image, fused.history, ratio)
+                measured = measured_variance(variance, spread, weight, parts.chroma.layout.cell)
+                luminance, variance_of, image = _refined(image, measured, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
             else:
@@ -792,6 +799,7 @@ class Reconstructor:
             if self._generation == estimated.generation:
                 self._history = history if self.temporal else None
                 self._chroma = chroma_history if self.temporal and parts is not None else None
+                self._spread = spread if self.temporal and parts is not None else None
                 self._frames = index + 1
             self._last_moving = moving_fraction
         return SequenceResult(image, motion, variance_of, est.lower_bound, weight, moving_fraction, ratio,
@@ -970,6 +978,97 @@ def _share_gather(cells, channels, out):
             plane = cells[phase[t], i]
             for j in range(start, (w - t + cx - 1) // cx):
                 row[j * cx + t] = plane[j]
+
+
+def luminance_spread(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
+                     weight: np.ndarray, ratio: float = 1.0) -> np.ndarray:
+    """A colour stream's evidence of one frame's luminance noise after this frame, float32 (H, W), DN^2:
+    per pixel, the mean over its frames since its last reset (the history's weights: 1 / (n - 1) for
+    the n-th) of (x - m)^2 / (1 + w'), x this frame's estimate (``image``, DN), m the history's mean
+    before it (times the brightness ratio, as the fusion takes it) and w' its weight; 0 where
+    ``weight`` (this frame's, after fusion) is 1: no evidence yet. ``spread``: the last frame's (None:
+    none, or another size).
+
+    For a still pixel whose frames' errors are independent with variance v, x - m has variance
+    v (1 + w'), so each term has mean v. A colour frame's luminance is the method run on readings
+    folded by that frame's shares, whose noise (in dark cells) and the outliers it makes are in no
+    model variance and differ from frame to frame (docs/motion.md).
+    """
+    out = np.zeros(image.shape, np.float32)
+    if history is None or history.mean.shape != image.shape:
+        return out
+    scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
+    old = out if spread is None or spread.shape != image.shape else spread
+    _spread_pass(*flat(image, history.mean, history.weight, weight, old, out), scale)
+    return out
+
+
+@kernel
+def _spread_pass(image, mean, old_weight, weight, old, out, scale):
+    """out = :func:`luminance_spread`'s running mean, flat arrays (``old`` may be ``out``, zeros)."""
+    one, zero = np.float32(1), np.float32(0)
+    for k in range(out.size):
+        w = weight[k]
+        d = image[k] - scale * mean[k]
+        term = d * d / (one + old_weight[k])
+        # the n-th frame's deviation is the pixel's (n - 1)-th: weight 1 / (n - 1) = w / (1 - w), 1 at most
+        step = min(w / max(one - w, np.float32(1e-6)), one)
+        out[k] = old[k] + step * (term - old[k]) if w < one else zero
+
+
+def measured_variance(variance: np.ndarray, spread: np.ndarray, weight: np.ndarray,
+                      cell: tuple[int, int]) -> np.ndarray:
+    """float32 (H, W), DN^2: one frame's luminance variance for a colour stream's refinement, the larger of
+    the model's (``variance``) and the frames' (:func:`luminance_spread`'s mean over the pixels of the
+    pixel's cell that have evidence: ``cell`` rows x cols, the cells over which the refinement takes its
+    evidence of detail); the model's where this output's ``weight`` is 1 (a reset pixel, or an output
+    that is the frame's own: no history to judge)."""
+    cy, cx = cell
+    h, w = variance.shape
+    cells = np.empty((-(-h // cy), -(-w // cx)), np.float32)
+    _cell_means(spread, weight, cy, cx, cells)
+    out = np.empty((h, w), np.float32)
+    _larger_rows(variance, cells, weight, cy, cx, out)
+    return out
+
+
+@kernel
+def _cell_means(spread, weight, cy, cx, cells):
+    """cells (Hc, Wc) = per cell of cy x cx pixels, the mean of ``spread`` (0 without evidence) over its
+    pixels with evidence (``weight`` < 1; 0 where none has)."""
+    one, zero = np.float32(1), np.float32(0)
+    h, w = spread.shape
+    total, count = np.zeros(w, np.float32), np.zeros(w, np.float32)
+    for i in range(cells.shape[0]):
+        total[:] = zero
+        count[:] = zero
+        for r in range(i * cy, min(i * cy + cy, h)):
+            s, wt = spread[r], weight[r]
+            for x in range(w):
+                total[x] += s[x]
+                count[x] += one if wt[x] < one else zero
+        for j in range(cells.shape[1]):
+            t, n = zero, zero
+            for x in range(j * cx, min(j * cx + cx, w)):
+                t += total[x]
+                n += count[x]
+            cells[i, j] = t / max(n, one)
+
+
+@kernel
+def _larger_rows(variance, cells, weight, cy, cx, out):
+    """out = max(variance, the cell's mean spread) where ``weight`` < 1, else variance (:func:`measured_variance`):
+    each cell row's means spread over a row of pixels once, then a loop per pixel row that vectorises."""
+    one = np.float32(1)
+    h, w = out.shape
+    mean = np.empty(w, np.float32)
+    for i in range(cells.shape[0]):
+        for x in range(w):
+            mean[x] = cells[i, x // cx]
+        for r in range(i * cy, min(i * cy + cy, h)):
+            v, wt, o = variance[r], weight[r], out[r]
+            for x in range(w):
+                o[x] = max(v[x], mean[x]) if wt[x] < one else v[x]
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
