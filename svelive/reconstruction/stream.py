@@ -54,7 +54,7 @@ from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
-from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, support_size
+from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, map_on, support_size
 from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 
@@ -614,7 +614,10 @@ class Reconstructor:
         selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
                     else np.zeros(len(spans), bool))
         floor = np.float32(1.0 / self.motion_config.max_history)
-        selected |= np.array([np.count_nonzero(history.weight[b.start:b.stop:4] > floor)
+        # every 4th row compared at once (one strided pass), counted by band on the contiguous result
+        unsettled = history.weight[::4] > floor
+        q = settle.BAND_ROWS // 4
+        selected |= np.array([np.count_nonzero(unsettled[b.start // 4:b.start // 4 + q])
                               > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
         selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
@@ -652,10 +655,10 @@ class Reconstructor:
         # tests pass over such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
         if skipped:
             settle.window_rows(inp, hint.mean, _infinite((h, w)), skipped, window[0], window[1],
-                               self._window_tables)
+                               self._window_tables, self._threads)
         if not _shares_window(inp):
             settle.window_rows(inp, image, variance, settle.band_rows(selected, h), window[0], window[1],
-                               self._window_tables)
+                               self._window_tables, self._threads)
         for a, b in settle.band_rows(selected, h):  # (the window rows made here hold no infinite variance)
             completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
@@ -683,14 +686,19 @@ class Reconstructor:
                 completed_window((level[a:b], noise[a:b]), frame.image[a:b], frame.variance[a:b])
         if extra.any():
             settle.window_rows(partial.inp, history.mean, _infinite((h, w)), settle.band_rows(extra, h), level,
-                               noise, self._window_tables)
+                               noise, self._window_tables, self._threads)
         if partial.hint is None or partial.hint() is not history:  # (a hint gone is not this history)
             for a, b in settle.band_rows(~selected & ~hinted, h):
                 lost = np.isinf(noise[a:b])
                 if lost.any():
                     level[a:b][lost] = history.mean[a:b][lost]
-        for a, b in settle.band_rows(~selected, h):
-            frame.variance[a:b] = self._last_variance[a:b]
+        last = self._last_variance
+
+        def placeholder(span: tuple[int, int]) -> None:
+            frame.variance[span[0]:span[1]] = last[span[0]:span[1]]
+
+        map_on(self._threads, placeholder, settle.pieces(settle.band_rows(~selected, h),
+                                                         settle.thread_count(self._threads)))
         partial.computed[:] = selected
         partial.rows[:] = settle.band_mask(selected, h)
         partial.hint = None if selected.all() else weakref.ref(history)
