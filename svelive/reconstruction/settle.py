@@ -111,6 +111,14 @@ def band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
     return [(a * BAND_ROWS, min(b * BAND_ROWS, h)) for a, b in runs(flags)]
 
 
+def band_counts(sampled: np.ndarray) -> np.ndarray:
+    """int (bands,): the True values per band of ``sampled``, bool (ceil(H / 4), W), a frame's every 4th row
+    (rows 0, 4, 8, ...: :data:`BAND_ROWS` / 4 of them a band), counted on a contiguous copy."""
+    sampled = np.ascontiguousarray(sampled)
+    q = BAND_ROWS // 4
+    return np.array([np.count_nonzero(sampled[k:k + q]) for k in range(0, sampled.shape[0], q)])
+
+
 def band_mask(flags: np.ndarray, h: int) -> np.ndarray:
     """bool (h,): ``flags`` (bool (bands,)) by frame row."""
     return np.repeat(flags, BAND_ROWS)[:h]

@@ -614,11 +614,9 @@ class Reconstructor:
         selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
                     else np.zeros(len(spans), bool))
         floor = np.float32(1.0 / self.motion_config.max_history)
-        # every 4th row compared at once (one strided pass), counted by band on the contiguous result
-        unsettled = history.weight[::4] > floor
-        q = settle.BAND_ROWS // 4
-        selected |= np.array([np.count_nonzero(unsettled[b.start // 4:b.start // 4 + q])
-                              > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
+        # (every 4th row compared at once, counted by band on the contiguous result)
+        unsettled = settle.band_counts(history.weight[::4] > floor)
+        selected |= unsettled > settle.UNSETTLED_SHARE * np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
         selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
         return selected
@@ -634,7 +632,7 @@ class Reconstructor:
         asks for, the window mean everywhere. The selection is a hint: the frame may be fused into a later
         history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
 
-        inp = prepare(getattr(raw, "raw", raw), camera)
+        inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
         noise = noise_model(inp)
         h, w = inp.shape
         with self._lock:
@@ -749,8 +747,7 @@ class Reconstructor:
             if partial is not None:
                 if not partial.rows.all():
                     fused = self._on_demand(partial, fused, frame, predicted, history)
-                band_motion = np.add.reduceat(fused.motion[::4].sum(axis=1),
-                                              np.arange(0, -(-fused.motion.shape[0] // 4), 16))
+                band_motion = settle.band_counts(fused.motion[::4])
                 with self._lock:  # (what the next frames' selection reads, estimate's hints too)
                     self._band_motion = [*self._band_motion, band_motion][-self.motion_config.max_history:]
                     self._last_ratio = fused.illumination_ratio
