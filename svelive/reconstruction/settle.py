@@ -193,13 +193,13 @@ def thread_count(workers: int | Executor) -> int:
 
 
 def pieces(rows: list[tuple[int, int]], threads: int, least: int = BAND_ROWS) -> list[tuple[int, int]]:
-    """``rows`` ([start, stop) pairs) cut into about 2 ``threads`` pieces (the threads take them as they come free)
-    of at least ``least`` rows (a piece makes the row sums of its window's rows beyond it again), a run shorter
-    than that whole; one thread: ``rows``."""
+    """``rows`` ([start, stop) pairs) cut into about 4 ``threads`` pieces (the threads take them as they come free,
+    so runs of unequal lengths still end about together) of at least ``least`` rows (a piece makes the row sums of
+    its window's rows beyond it again), a run shorter than that whole; one thread: ``rows``."""
     total = sum(b - a for a, b in rows)
     if threads <= 1 or total < 2 * least:
         return list(rows)
-    size = max(least, -(-total // (2 * threads)))
+    size = max(least, -(-total // (4 * threads)))
     out = []
     for a, b in rows:
         n = max(1, (b - a) // size)
