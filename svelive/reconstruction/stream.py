@@ -257,6 +257,7 @@ class Reconstructor:
         self._hint_changes = [0, 0]  # bands fuse computed beyond the estimates' hints, and dropped from them
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
+        self._unsettled: tuple | None = None  # (weakref.ref of a history, its unsettled pixels by band): _selection
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._last_ratio = 1.0  # the last fused frame's brightness ratio
@@ -613,9 +614,13 @@ class Reconstructor:
         # not the isolated false alarms, nor the pixels reset where a reading crossed the censor level
         selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
                     else np.zeros(len(spans), bool))
-        floor = np.float32(1.0 / self.motion_config.max_history)
-        # (every 4th row compared at once, counted by band on the contiguous result)
-        unsettled = settle.band_counts(history.weight[::4] > floor)
+        # (a frame's hint and its fuse read the same history: counted once)
+        cached = self._unsettled
+        if cached is not None and cached[0]() is history:
+            unsettled = cached[1]
+        else:
+            unsettled = settle.band_counts(history.weight[::4] > np.float32(1.0 / self.motion_config.max_history))
+            self._unsettled = weakref.ref(history), unsettled
         selected |= unsettled > settle.UNSETTLED_SHARE * np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
         selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
