@@ -5,6 +5,8 @@ Scenes are the shipped 256x256 crops (cropped further for speed) or synthetic.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 import pytest
@@ -16,7 +18,8 @@ from svelive.exr import read_exr
 from svelive.metrics import PU21_PEAK, display_scale, pu21_encode, pu21_psnr
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import exposure_consistency
-from svelive.reconstruction.fusion import FrameEstimate, TemporalState, camera_moved, detail_threshold, fuse, sharpen
+from svelive.reconstruction.fusion import (FrameEstimate, TemporalState, camera_moved, detail_threshold, fuse,
+                                          illumination_ratio, sharpen)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD
 from svelive.reconstruction.methods.base import binomial_kernel, smooth, support_size
@@ -263,6 +266,35 @@ def test_camera_moved_finds_a_change_below_the_pixel_threshold_everywhere():
     assert not camera_moved(state, FrameEstimate(mean + shift, variance, no, no, mean,
                                                  *np.ones((3, 1, shape[1]), np.float32)), 1.0,
                             MotionConfig(global_sigmas=3.0))
+
+
+def test_the_global_tests_on_threads_count_and_take_the_ratio_as_on_one():
+    rng = np.random.default_rng(9)
+    shape, decisions = (203, 96), set()
+    mean = rng.uniform(100, 200, shape).astype(np.float32)
+    variance = np.full(shape, 4.0, np.float32)
+    no = np.zeros(shape, bool)
+    bound = rng.uniform(size=shape) < 0.05
+    state = TemporalState(mean, mean, np.ones(shape, np.float32), bound, no)
+    with ThreadPoolExecutor(2) as pool:
+        for seed in range(6):
+            noise = np.random.default_rng(seed).normal(0, np.sqrt(8) * (1 + seed / 2), shape)
+            # (a brightness change on 40 % of the pixels: ratios of two levels, whose median a lost piece would move)
+            image = ((mean + noise) * np.where(rng.uniform(size=shape) < 0.4, 1.3, 1.0)).astype(np.float32)
+            frame = FrameEstimate(image, variance, no, rng.uniform(size=shape) < 0.1, image,
+                                  *np.ones((3, 1, shape[1]), np.float32))
+            ratios = [illumination_ratio(state, image, variance, no, step=s, workers=w)
+                      for s in (3, 8) for w in (1, 3, pool)]
+            assert ratios[:3] == [ratios[0]] * 3 and ratios[3:] == [ratios[3]] * 3 and ratios[0] != 1.0
+            # (thresholds across the decision: a subsample of other pixels would decide otherwise at some)
+            for sigmas in np.linspace(0.5, 4.0, 15):
+                config = MotionConfig(global_sigmas=float(sigmas))
+                for scale in (1.0, ratios[0]):
+                    one = camera_moved(state, frame, scale, config)
+                    assert all(camera_moved(state, frame, scale, config, step=s, workers=w) ==
+                               camera_moved(state, frame, scale, config, step=s) for s in (3, 4) for w in (3, pool))
+                    decisions.add(one)
+    assert decisions == {True, False}
 
 
 def test_detail_threshold_is_the_window_mean_of_chi_square_at_k_sigmas():

@@ -1,6 +1,8 @@
 """The band refresh of issue 25 (svelive.reconstruction.settle): ``adaptive`` on bands, cells and edge stacks gives the
 full frame's results bit for bit; ``refresh=K`` streams skip bands and stay close to the stream without it."""
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from svelive.capture.demo import DemoSource
@@ -35,11 +37,13 @@ def test_bands_cells_and_edges_give_the_full_frames_results():
         for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
             need[y, x] = True
         part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
-        ys, xs, (i2, l2, v2), _ = settle.on_demand(part, *np.nonzero(need))
-        assert ys.size == np.count_nonzero(need)
-        np.testing.assert_array_equal(i2, image[ys, xs])
-        np.testing.assert_array_equal(l2, lower[ys, xs])
-        np.testing.assert_array_equal(v2, variance[ys, xs])
+        with ThreadPoolExecutor(2) as pool:  # (the atlases and stacks as jobs over threads, or on the caller's)
+            for workers in (1, 3, pool):
+                ys, xs, (i2, l2, v2), _ = settle.on_demand(part, *np.nonzero(need), workers)
+                assert ys.size == np.count_nonzero(need)
+                np.testing.assert_array_equal(i2, image[ys, xs])
+                np.testing.assert_array_equal(l2, lower[ys, xs])
+                np.testing.assert_array_equal(v2, variance[ys, xs])
         selected = np.arange(bands) % 2 == 0
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
@@ -51,6 +55,13 @@ def test_bands_cells_and_edges_give_the_full_frames_results():
         skipped = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(~selected)]
         settle.window_rows(inp, image, variance, skipped, out[3][0], out[3][1])
         np.testing.assert_array_equal(out[3], window)
+        # the rows below the first band, in pieces over threads (the run is long enough to be cut)
+        assert len(settle.pieces([(settle.BAND_ROWS, h)], 2)) > 1
+        with ThreadPoolExecutor(2) as pool:
+            for workers in (2, pool):
+                level = np.zeros((2, h, w), np.float32)
+                settle.window_rows(inp, image, variance, [(settle.BAND_ROWS, h)], level[0], level[1], None, workers)
+                np.testing.assert_array_equal(level[:, settle.BAND_ROWS:], window[:, settle.BAND_ROWS:])
 
 
 def test_a_refresh_stream_skips_bands_of_a_still_view_and_stays_close():

@@ -215,22 +215,40 @@ class Fused:
 
 
 def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.ndarray, bound: np.ndarray,
-                       step: int = 8) -> float:
+                       step: int = 8, workers: int | Executor = 1) -> float:
     """Robust global brightness ratio frame / history: the median of image / the history's tested
     estimate (:attr:`TemporalState.tested`) over well-measured pixels; ``image`` and ``variance``
     are the frame's tested estimate (:attr:`FrameEstimate.tested`).
 
     Subsampled every ``step`` pixels; pixels count when both values are at least
     3 noise standard deviations (the frame's) above 0 and neither is a lower bound. Returns 1
-    when fewer than 64 pixels qualify.
+    when fewer than 64 pixels qualify. ``workers``: pieces of rows spread over threads (map_on); the
+    ratios are gathered in row order, so the result does not depend on it.
     """
     h, w = image.shape
-    ratios = np.empty(-(-h // step) * -(-w // step), np.float32)
-    count = _subsampled_ratios(image, state.tested, variance, bound, state.bound, step, ratios)
-    if count < 64:
+    across = -(-w // step)
+    ratios = np.empty(-(-h // step) * across, np.float32)
+
+    def piece(rows: slice) -> np.ndarray:
+        out = ratios[rows.start // step * across:]
+        count = _subsampled_ratios(image[rows], state.tested[rows], variance[rows], bound[rows], state.bound[rows],
+                                   step, out)
+        return out[:count]
+
+    found = map_on(workers, piece, _subsample_pieces(h, step, workers))
+    if sum(p.size for p in found) < 64:
         return 1.0
-    ratio = float(np.median(ratios[:count]))
+    ratio = float(np.median(np.concatenate(found)))
     return ratio if np.isfinite(ratio) and ratio > 0 else 1.0
+
+
+def _subsample_pieces(h: int, step: int, workers: int | Executor) -> list[slice]:
+    """The rows 0..h cut into a piece per thread of ``workers`` (map_on's), each starting on a row of every
+    ``step``-th (the subsample's rows are the frame's)."""
+    threads = getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else int(workers)
+    sampled = -(-h // step)
+    cuts = [sampled * k // threads * step for k in range(threads)] + [h]
+    return [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
 
 @kernel
@@ -249,7 +267,7 @@ def _subsampled_ratios(image, mean, variance, bound, old_bound, step, out):
 
 
 def camera_moved(state: TemporalState, frame: FrameEstimate, scale: float, config: MotionConfig,
-                 step: int = 4) -> bool:
+                 step: int = 4, workers: int | Executor = 1) -> bool:
     """Did most of the frame change, each pixel perhaps below the per-pixel test's threshold?
 
     True when more than ``config.global_motion`` of the measured pixels of a subsample (every
@@ -259,13 +277,20 @@ def camera_moved(state: TemporalState, frame: FrameEstimate, scale: float, confi
     deviations, ``(x - mean)^2 > s^2 v (1 + w)`` on the tested estimates. A pan over smooth
     texture changes every pixel a little: the per-pixel test at k = 4 flags only part of
     it, and the rest would average with history from another place. False when fewer than
-    64 pixels are measured.
+    64 pixels are measured. ``workers``: pieces of rows spread over threads (map_on), their counts summed.
     """
     tested, variance = frame.tested
-    counts = np.zeros(2, np.int64)
-    _subsampled_exceeding(tested, state.tested, state.weight, variance, frame.bound, state.bound, frame.censored,
-                          state.censored, np.float32(scale), np.float32(1.0 / config.global_sigmas ** 2), step, counts)
-    measured, exceeding = int(counts[0]), int(counts[1])
+    scale, inv_s2 = np.float32(scale), np.float32(1.0 / config.global_sigmas ** 2)
+
+    def piece(rows: slice) -> np.ndarray:
+        counts = np.zeros(2, np.int64)
+        _subsampled_exceeding(tested[rows], state.tested[rows], state.weight[rows], variance[rows], frame.bound[rows],
+                              state.bound[rows], frame.censored[rows], state.censored[rows], scale, inv_s2, step,
+                              counts)
+        return counts
+
+    measured, exceeding = (int(n) for n in np.sum(map_on(workers, piece, _subsample_pieces(tested.shape[0], step,
+                                                                                           workers)), axis=0))
     return measured >= 64 and exceeding > config.global_motion * measured
 
 
@@ -405,11 +430,12 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             bound[a:b] = state.bound[a:b]
     tested, tested_variance = frame.tested
     history = state.tested
-    ratio = (illumination_ratio(state, tested, tested_variance, bound) if config.compensate_illumination
-             else 1.0)
+    threads = executor if executor is not None else workers
+    ratio = (illumination_ratio(state, tested, tested_variance, bound, workers=threads)
+             if config.compensate_illumination else 1.0)
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
-    if camera_moved(state, frame, scale, config):
+    if camera_moved(state, frame, scale, config, workers=threads):
         if predicted:
             frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))

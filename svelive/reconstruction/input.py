@@ -9,6 +9,7 @@ pixel its channel.
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import replace
 from functools import lru_cache
 
@@ -23,7 +24,7 @@ from svelive.core.response import linearise
 from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
 from svelive.noise import NoiseEstimate, estimate_from_frame
-from svelive.reconstruction.methods.base import SveInput, exposure_maps
+from svelive.reconstruction.methods.base import SveInput, exposure_maps, map_on
 
 
 @lru_cache(maxsize=8)
@@ -44,7 +45,7 @@ def as_camera(camera: Camera | Pattern | str, sensor: Sensor | None = None) -> C
 
 
 def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = None,
-            sensor: Sensor | None = None) -> SveInput:
+            sensor: Sensor | None = None, workers: int | Executor = 1) -> SveInput:
     """Check a raw frame and turn it into the SveInput every method takes.
 
     Args:
@@ -52,6 +53,8 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
             linear), or a Frame, whose own camera is used when ``camera`` is None.
         camera: the camera description; a pattern (with ``sensor``) stands for a
             monochrome camera with that pattern.
+        workers: threads (methods.base.map_on) over which a uint16 frame's signal and censoring are made, in
+            pieces of rows (each pixel's values are its own: the result does not depend on it).
     """
     if isinstance(raw, Frame):
         camera = raw.camera if camera is None else camera
@@ -67,7 +70,12 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
     exposure, _ = exposure_maps(pattern, raw.shape)
     if raw.dtype == np.uint16:  # the cameras' type: numpy's arithmetic (below) in one compiled pass
         signal, censored = np.empty(raw.shape, np.float32), np.empty(raw.shape, bool)
-        _signal(*flat(raw, signal, censored), np.float32(sensor.black_level), np.float32(sensor.censor_level))
+        raw = np.ascontiguousarray(raw)
+        black, censor = np.float32(sensor.black_level), np.float32(sensor.censor_level)
+        pieces = 2 * getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else workers
+        cuts = [raw.shape[0] * k // pieces for k in range(pieces + 1)]
+        map_on(workers, lambda rows: _signal(*flat(raw[rows], signal[rows], censored[rows]), black, censor),
+               [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a])
     else:  # (one kernel type only: the warm-up compiles it, and no other raw type waits for a compile)
         signal = raw.astype(np.float32)
         signal -= np.float32(sensor.black_level)

@@ -37,7 +37,8 @@ from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
-from svelive.reconstruction.methods.base import SveInput, reflect_101, tile_rows, window_kernels, window_level_row
+from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, tile_rows, window_kernels,
+                                                 window_level_row)
 from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
                                              _window_layout)
 
@@ -110,6 +111,14 @@ def band_rows(flags: np.ndarray, h: int) -> list[tuple[int, int]]:
     return [(a * BAND_ROWS, min(b * BAND_ROWS, h)) for a, b in runs(flags)]
 
 
+def band_counts(sampled: np.ndarray) -> np.ndarray:
+    """int (bands,): the True values per band of ``sampled``, bool (ceil(H / 4), W), a frame's every 4th row
+    (rows 0, 4, 8, ...: :data:`BAND_ROWS` / 4 of them a band), counted on a contiguous copy."""
+    sampled = np.ascontiguousarray(sampled)
+    q = BAND_ROWS // 4
+    return np.array([np.count_nonzero(sampled[k:k + q]) for k in range(0, sampled.shape[0], q)])
+
+
 def band_mask(flags: np.ndarray, h: int) -> np.ndarray:
     """bool (h,): ``flags`` (bool (bands,)) by frame row."""
     return np.repeat(flags, BAND_ROWS)[:h]
@@ -150,12 +159,15 @@ def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.
 
 
 def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: list[tuple[int, int]],
-                level: np.ndarray, noise: np.ndarray, cache: dict | None = None) -> None:
+                level: np.ndarray, noise: np.ndarray, cache: dict | None = None,
+                workers: int | Executor = 1) -> None:
     """The motion tests' window mean (numerics.window_estimate, bit-identical) of the frame rows ``rows``
     ([start, stop) pairs) into ``level`` and ``noise`` (float32 (H, W), DN and DN^2); ``image`` and ``variance``
     (float32 (H, W)) where the window holds no uncensored reading. Nominal tiles with inline windows only.
     ``cache``: a dict the caller keeps across a stream's frames for the tables of :func:`_clean_tables` (one
-    entry), or None (made for this call)."""
+    entry), or None (made for this call). ``workers``: the rows are cut into pieces (:func:`pieces`) spread
+    over these threads (methods.base.map_on); each row's result is made from its window's rows alone, so the
+    results do not depend on it."""
     layout = _window_layout(inp.pattern, inp.period, inp.shape)
     kernels = layout.kernels
     if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
@@ -167,9 +179,33 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     exposure = inp.exposure[:period]
     row_tables, tables, row_of = _clean_tables(exposure, kernels, inp.pattern.shape[0], inp.period[0], h,
                                                {} if cache is None else cache)
-    for start, stop in rows:
-        _window_strip_clean(inp.signal, exposure, inp.censored, start, stop, *kernels, inv_gain, floor,
+
+    def strip(span: tuple[int, int]) -> None:
+        _window_strip_clean(inp.signal, exposure, inp.censored, *span, *kernels, inv_gain, floor,
                             image, variance, level, noise, row_tables, tables, row_of)
+
+    map_on(workers, strip, pieces(rows, thread_count(workers)))
+
+
+def thread_count(workers: int | Executor) -> int:
+    """The threads ``workers`` (methods.base.map_on's) spreads items over."""
+    return getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else int(workers)
+
+
+def pieces(rows: list[tuple[int, int]], threads: int, least: int = BAND_ROWS) -> list[tuple[int, int]]:
+    """``rows`` ([start, stop) pairs) cut into about 4 ``threads`` pieces (the threads take them as they come free,
+    so runs of unequal lengths still end about together) of at least ``least`` rows (a piece makes the row sums of
+    its window's rows beyond it again), a run shorter than that whole; one thread: ``rows``."""
+    total = sum(b - a for a, b in rows)
+    if threads <= 1 or total < 2 * least:
+        return list(rows)
+    size = max(least, -(-total // (4 * threads)))
+    out = []
+    for a, b in rows:
+        n = max(1, (b - a) // size)
+        cuts = [a + (b - a) * k // n for k in range(n + 1)]
+        out += list(zip(cuts[:-1], cuts[1:]))
+    return out
 
 
 def _clean_tables(exposure: np.ndarray, kernels, pattern_rows: int, window_rows: int, h: int, cache: dict):
@@ -323,8 +359,10 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     """This frame's estimate at the pixels (``ys``, ``xs``, intp), in rows the method skipped: (ys, xs), their
     (image, lower, variance), and counts (pixels, bands computed whole, cells).
 
-    Cells of CELL px holding such pixels go into one atlas (their patches with their halos side by side) unless a
-    band holds so many that the band costs less whole; cells at the frame's edges into a stack per side."""
+    Cells of CELL px holding such pixels go into atlases (their patches with their halos side by side) unless a
+    band holds so many that the band costs less whole; cells at the frame's edges into a stack per side. The
+    atlases and stacks are spread over ``workers`` (methods.base.map_on), the method on one thread each; the
+    bands computed whole run the method on ``workers``."""
     inp, noise = part.inp, part.noise
     h, w = inp.shape
     n = ys.size
@@ -360,71 +398,82 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
                                   outside_heap((h, w), np.float32))
         method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
         take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
+    # the atlas's patches (in atlases of a row of patches each, fewer where few cells are asked for) and the edge
+    # stacks, each one call of the method on one thread, spread over the threads (a patch's results do not depend
+    # on its neighbours in an atlas: its halo is the method's reach)
     atlas_cells = np.nonzero(~in_whole & inside)[0]
-    if atlas_cells.size:
-        columns = max(1, min(atlas_cells.size, 2048 // (CELL + 2 * HALO)))
-        atlas, oy, ox = _atlas(inp, np.stack([ci[atlas_cells], cj[atlas_cells]], axis=1), columns)
-        arrays = _estimate(atlas, noise, workers, want_variance=True)[:3]
+    columns = min(2048 // (CELL + 2 * HALO), max(-(-atlas_cells.size // (2 * thread_count(workers))), 8))
+    jobs = [(members, lambda m: _atlas(inp, np.stack([ci[m], cj[m]], axis=1), columns))
+            for members in np.split(atlas_cells, range(columns, atlas_cells.size, columns)) if members.size]
+    edge_cells = np.nonzero(~in_whole & ~inside)[0]
+    for members in _edge_groups(inp.shape, [(int(ci[c]), int(cj[c])) for c in edge_cells]):
+        jobs.append((edge_cells[members], lambda m: _edge_stack(inp, [(int(ci[c]), int(cj[c])) for c in m])))
+
+    def solve(job) -> tuple:
+        members, build = job
+        box, oy, ox = build(members)
+        return _estimate(box, noise, 1, want_variance=True)[:3], oy, ox
+
+    for (members, _), (arrays, oy, ox) in zip(jobs, map_on(workers, solve, jobs)):
         slot = np.full(cells.size, -1, np.intp)
-        slot[atlas_cells] = np.arange(atlas_cells.size)
+        slot[members] = np.arange(members.size)
         pixels = np.nonzero(slot[inverse] >= 0)[0]
         s = slot[inverse[pixels]]
         take(pixels, arrays, oy[s], ox[s])
-    edge_cells = np.nonzero(~in_whole & ~inside)[0]
-    if edge_cells.size:
-        for members, arrays, oy, ox in _edge_stacks(inp, noise, [(int(ci[c]), int(cj[c])) for c in edge_cells],
-                                                   workers):
-            slot = np.full(cells.size, -1, np.intp)
-            slot[edge_cells[members]] = np.arange(len(members))
-            pixels = np.nonzero(slot[inverse] >= 0)[0]
-            s = slot[inverse[pixels]]
-            take(pixels, arrays, oy[s], ox[s])
     return ys, xs, values, stats
 
 
-def _edge_stacks(inp: SveInput, noise: tuple[float, float], cells: list[tuple[int, int]],
-                 workers: int | Executor) -> list:
-    """:func:`on_demand`'s results of cells whose halo crosses the frame's edge: each cell the box of its halo
-    clipped to the frame, the boxes of one side of the frame stacked along it into one call (top and bottom rows
-    side by side in column order, left and right columns one under the other), each box's clipped side on the
-    stack's edge (mirrored as the frame's), boxes that abut meeting at their halos. Per side: (indices of its
-    cells in ``cells``, (image, lower, variance) of the stack, offsets (stack minus frame coordinates) per cell)."""
-    h, w = inp.shape
+def _edge_groups(shape: tuple[int, int], cells: list[tuple[int, int]]) -> list[np.ndarray]:
+    """:func:`on_demand`'s cells whose halo crosses the frame's edge (``cells``: (row, col) of cells), grouped by
+    the side they cross (top, bottom, left, right, in that order of precedence): per side the indices of its cells
+    in ``cells`` in column order (then row order), one :func:`_edge_stack` each."""
     groups: dict[str, list[int]] = {}
     for k in sorted(range(len(cells)), key=lambda k: (cells[k][1], cells[k][0])):
-        i, j = cells[k]
-        side = ("top" if i * CELL - HALO < 0 else "bottom" if (i + 1) * CELL + HALO > h
-                else "left" if j * CELL - HALO < 0 else "right")
-        groups.setdefault(side, []).append(k)
-    out = []
-    for side, members in groups.items():
-        along = side in ("top", "bottom")  # side by side along the rows, else one under the other
-        boxes = [(max(i * CELL - HALO, 0), min((i + 1) * CELL + HALO, h), max(j * CELL - HALO, 0),
-                  min((j + 1) * CELL + HALO, w)) for i, j in (cells[k] for k in members)]
-        across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in boxes)
-        total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in boxes)
-        shape = (across, total) if along else (total, across)
-        # a bottom (right) box shorter across than the others sits at the stack's far edge; above (left of) it
-        # zero readings with the pattern's exposures, beyond its halo
-        signal, censored = np.zeros(shape, np.float32), np.zeros(shape, bool)
-        exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
-        oy, ox, offset = [], [], 0
-        for r0, r1, c0, c1 in boxes:
-            if along:
-                y, x = (0 if side == "top" else across - (r1 - r0)), offset
-                offset += c1 - c0
-            else:
-                y, x = offset, (0 if side == "left" else across - (c1 - c0))
-                offset += r1 - r0
-            signal[y:y + r1 - r0, x:x + c1 - c0] = inp.signal[r0:r1, c0:c1]
-            censored[y:y + r1 - r0, x:x + c1 - c0] = inp.censored[r0:r1, c0:c1]
-            exposure[y:y + r1 - r0, x:x + c1 - c0] = inp.exposure[r0:r1, c0:c1]
-            oy.append(y - r0)
-            ox.append(x - c0)
-        stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
-        arrays = _estimate(stack, noise, workers, want_variance=True)[:3]
-        out.append((np.array(members, np.intp), arrays, np.array(oy, np.intp), np.array(ox, np.intp)))
-    return out
+        groups.setdefault(_side(shape, *cells[k]), []).append(k)
+    return [np.array(members, np.intp) for members in groups.values()]
+
+
+def _side(shape: tuple[int, int], i: int, j: int) -> str:
+    """The side of a frame of ``shape`` that the halo of cell (``i``, ``j``) crosses first (top, bottom, left,
+    right), or "right" for a cell whose halo crosses none."""
+    h, w = shape
+    return ("top" if i * CELL - HALO < 0 else "bottom" if (i + 1) * CELL + HALO > h
+            else "left" if j * CELL - HALO < 0 else "right")
+
+
+def _edge_stack(inp: SveInput, cells: list[tuple[int, int]]) -> tuple[SveInput, np.ndarray, np.ndarray]:
+    """The cells of one side of :func:`_edge_groups` (``cells``: (row, col)), each the box of its halo clipped to
+    the frame, stacked along that side into one input (top and bottom rows side by side in the given order, left
+    and right columns one under the other), each box's clipped side on the stack's edge (mirrored as the frame's),
+    boxes that abut meeting at their halos. Returns the stack and each cell's offsets (stack minus frame
+    coordinates), intp (n,) each."""
+    h, w = inp.shape
+    side = _side(inp.shape, *cells[0])
+    along = side in ("top", "bottom")  # side by side along the rows, else one under the other
+    boxes = [(max(i * CELL - HALO, 0), min((i + 1) * CELL + HALO, h), max(j * CELL - HALO, 0),
+              min((j + 1) * CELL + HALO, w)) for i, j in cells]
+    across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in boxes)
+    total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in boxes)
+    shape = (across, total) if along else (total, across)
+    # a bottom (right) box shorter across than the others sits at the stack's far edge; above (left of) it
+    # zero readings with the pattern's exposures, beyond its halo
+    signal, censored = np.zeros(shape, np.float32), np.zeros(shape, bool)
+    exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
+    oy, ox, offset = [], [], 0
+    for r0, r1, c0, c1 in boxes:
+        if along:
+            y, x = (0 if side == "top" else across - (r1 - r0)), offset
+            offset += c1 - c0
+        else:
+            y, x = offset, (0 if side == "left" else across - (c1 - c0))
+            offset += r1 - r0
+        signal[y:y + r1 - r0, x:x + c1 - c0] = inp.signal[r0:r1, c0:c1]
+        censored[y:y + r1 - r0, x:x + c1 - c0] = inp.censored[r0:r1, c0:c1]
+        exposure[y:y + r1 - r0, x:x + c1 - c0] = inp.exposure[r0:r1, c0:c1]
+        oy.append(y - r0)
+        ox.append(x - c0)
+    stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+    return stack, np.array(oy, np.intp), np.array(ox, np.intp)
 
 
 @kernel

@@ -54,7 +54,7 @@ from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
-from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, support_size
+from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, map_on, support_size
 from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 
@@ -260,6 +260,7 @@ class Reconstructor:
         self._hint_changes = [0, 0]  # bands fuse computed beyond the estimates' hints, and dropped from them
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
+        self._unsettled: tuple | None = None  # (weakref.ref of a history, its unsettled pixels by band): _selection
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._last_ratio = 1.0  # the last fused frame's brightness ratio
@@ -617,9 +618,14 @@ class Reconstructor:
         # not the isolated false alarms, nor the pixels reset where a reading crossed the censor level
         selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
                     else np.zeros(len(spans), bool))
-        floor = np.float32(1.0 / self.motion_config.max_history)
-        selected |= np.array([np.count_nonzero(history.weight[b.start:b.stop:4] > floor)
-                              > settle.UNSETTLED_SHARE * -(-(b.stop - b.start) // 4) * w for b in spans])
+        # (a frame's hint and its fuse read the same history: counted once)
+        cached = self._unsettled
+        if cached is not None and cached[0]() is history:
+            unsettled = cached[1]
+        else:
+            unsettled = settle.band_counts(history.weight[::4] > np.float32(1.0 / self.motion_config.max_history))
+            self._unsettled = weakref.ref(history), unsettled
+        selected |= unsettled > settle.UNSETTLED_SHARE * np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
         selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
         return selected
@@ -635,7 +641,7 @@ class Reconstructor:
         asks for, the window mean everywhere. The selection is a hint: the frame may be fused into a later
         history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
 
-        inp = prepare(getattr(raw, "raw", raw), camera)
+        inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
         noise = noise_model(inp)
         h, w = inp.shape
         with self._lock:
@@ -656,10 +662,10 @@ class Reconstructor:
         # tests pass over such a pixel, and it takes this frame's estimate on demand once the fusion resets it)
         if skipped:
             settle.window_rows(inp, hint.mean, _infinite((h, w)), skipped, window[0], window[1],
-                               self._window_tables)
+                               self._window_tables, self._threads)
         if not _shares_window(inp):
             settle.window_rows(inp, image, variance, settle.band_rows(selected, h), window[0], window[1],
-                               self._window_tables)
+                               self._window_tables, self._threads)
         for a, b in settle.band_rows(selected, h):  # (the window rows made here hold no infinite variance)
             completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
@@ -687,14 +693,19 @@ class Reconstructor:
                 completed_window((level[a:b], noise[a:b]), frame.image[a:b], frame.variance[a:b])
         if extra.any():
             settle.window_rows(partial.inp, history.mean, _infinite((h, w)), settle.band_rows(extra, h), level,
-                               noise, self._window_tables)
+                               noise, self._window_tables, self._threads)
         if partial.hint is None or partial.hint() is not history:  # (a hint gone is not this history)
             for a, b in settle.band_rows(~selected & ~hinted, h):
                 lost = np.isinf(noise[a:b])
                 if lost.any():
                     level[a:b][lost] = history.mean[a:b][lost]
-        for a, b in settle.band_rows(~selected, h):
-            frame.variance[a:b] = self._last_variance[a:b]
+        last = self._last_variance
+
+        def placeholder(span: tuple[int, int]) -> None:
+            frame.variance[span[0]:span[1]] = last[span[0]:span[1]]
+
+        map_on(self._threads, placeholder, settle.pieces(settle.band_rows(~selected, h),
+                                                         settle.thread_count(self._threads)))
         partial.computed[:] = selected
         partial.rows[:] = settle.band_mask(selected, h)
         partial.hint = None if selected.all() else weakref.ref(history)
@@ -747,8 +758,7 @@ class Reconstructor:
             if partial is not None:
                 if not partial.rows.all():
                     fused = self._on_demand(partial, fused, frame, predicted, history)
-                band_motion = np.add.reduceat(fused.motion[::4].sum(axis=1),
-                                              np.arange(0, -(-fused.motion.shape[0] // 4), 16))
+                band_motion = settle.band_counts(fused.motion[::4])
                 with self._lock:  # (what the next frames' selection reads, estimate's hints too)
                     self._band_motion = [*self._band_motion, band_motion][-self.motion_config.max_history:]
                     self._last_ratio = fused.illumination_ratio
