@@ -183,7 +183,8 @@ def warm_up_kernels(prefix: str) -> None:
     The compiling is left to the child because a process that compiles keeps LLVM's memory for the rest of its
     life (svelive.jit.compile_elsewhere); where no child can do it, this process compiles, and says so. Each kernel
     is loaded when a frame first needs it (about a second more for the first frame): loading every kernel here,
-    the colour ones for a monochrome camera too, kept about 40-50 MB more (benchmarks/service.py, mono)."""
+    the colour ones for a monochrome camera too, kept more (benchmarks/service.py, mono, loaded: 553 MB against
+    504-515)."""
     from svelive.jit import compile_elsewhere
 
     with Ticker(prefix, "preparing the reconstruction kernels (loaded from numba's cache; a first start on this "

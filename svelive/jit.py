@@ -18,9 +18,10 @@ Rules for a kernel (what makes LLVM vectorise it, and keeps it thread-safe):
 The first call of a kernel compiles it (about a second); ``cache=True`` keeps the
 machine code on disk (``__pycache__`` or ``$NUMBA_CACHE_DIR``), so later
 processes load it in milliseconds. Compiling leaves the process holding LLVM's
-memory for good (about 130 MB more resident in the live service than the same
-kernels loaded from the cache), so a long-running process compiles in a child
-first (:func:`compile_elsewhere`) and only loads.
+memory for good (the live service's monochrome server: about 130 MB more
+resident after one source file's kernels compiled in it, about 500 MB after it
+compiled every kernel), so a long-running process compiles in a child first
+(:func:`compile_elsewhere`) and only loads.
 """
 
 from __future__ import annotations
