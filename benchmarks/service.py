@@ -6,7 +6,9 @@
                                  [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held]
                                  [--refresh K]
 
-Runs ``svelive serve``'s app (real uvicorn) in a child process over a source
+Runs ``svelive serve``'s app (real uvicorn) in a child process, its kernels prepared as
+``svelive serve`` prepares them (``warm_up_kernels``: compiled into numba's cache by a process
+of their own, loaded by the server; the wait for the first frames starts after it), over a source
 that replays pre-rendered demo frames (1920x1200, 12-bit; ``--cfa none``, the
 default: monochrome, pattern 1,4/16,64; ``--cfa RGGB``: the colour demo camera,
 a Bayer mosaic with its dual-ISO exposures, labelled BayerRG12) at the target rate (``--scene pan``: the demo's camera pans, so every frame moves
@@ -210,7 +212,11 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
                                        parallel_frames=parallel_frames, live_quality=live_quality, **extra), factory)
     settings = ServerSettings(port=port, log_level="warning")
     sock = listen_socket(settings)
-    app = create_app(pipeline, settings)
+    try:  # the kernels as svelive serve prepares them (compiled in a child process where the checkout does)
+        from service.commands import warm_up_kernels
+        app = create_app(pipeline, settings, warm_up=lambda: warm_up_kernels("bench server"))
+    except ImportError:
+        app = create_app(pipeline, settings)
     publisher = None
     if rtsp_port:
         from service.publishers.rtsp import H264Settings, RtspPublisher
@@ -566,8 +572,11 @@ def main() -> None:
         deadline = time.monotonic() + 60
         while True:
             try:
-                if get_state(port)["frames"]["reconstructed"] > 10:
+                state = get_state(port)
+                if state["frames"]["reconstructed"] > 10:
                     break
+                if state.get("warming_up"):  # minutes where the kernels compile: the minute counts from the end
+                    deadline = time.monotonic() + 60
             except OSError:
                 pass
             if time.monotonic() > deadline:

@@ -176,15 +176,35 @@ class Ticker:
 
 
 def warm_up_kernels(prefix: str) -> None:
-    """Compile, or load from numba's disk cache, every kernel the service runs (reconstruction and preview),
-    saying so on stderr (a first start on a machine compiles for minutes)."""
+    """Compile every kernel the service runs (reconstruction and preview) into numba's disk cache in a child
+    process, for this one to load as frames need them, saying so on stderr (a first start on a machine compiles
+    for minutes).
+
+    The compiling is left to the child because a process that compiles keeps LLVM's memory for the rest of its
+    life (svelive.jit.compile_elsewhere); where no child can do it, this process compiles, and says so. Each kernel
+    is loaded when a frame first needs it (about a second more for the first frame): loading every kernel here,
+    the colour ones for a monochrome camera too, kept more (benchmarks/service.py, mono, loaded: 553 MB against
+    504-515)."""
+    from svelive.jit import compile_elsewhere
+
+    with Ticker(prefix, "preparing the reconstruction kernels (loaded from numba's cache; a first start on this "
+                        "machine compiles them, 1-5 minutes)") as ticker:
+        why = compile_elsewhere(compile_service_kernels)
+        if why is not None:
+            ticker.say(f"{why}: compiling the kernels in this process instead, which keeps the compiler's memory")
+            compile_service_kernels()
+
+
+def compile_service_kernels() -> None:
+    """Compile, or load from numba's disk cache, every kernel the service runs (reconstruction and preview) and
+    the demo camera's render pass (the default source's, compiled when it opens)."""
+    from svelive.capture import open_source
     from svelive.reconstruction.warmup import warm_up
     from svelive.tonemap import warm_up as warm_up_preview
 
-    with Ticker(prefix, "preparing the reconstruction kernels (loaded from numba's cache; a first start on this "
-                        "machine compiles them, 1-5 minutes)"):
-        warm_up()
-        warm_up_preview()
+    warm_up()
+    warm_up_preview()
+    open_source("demo").open().close()
 
 
 class TokenRedactor(logging.Filter):

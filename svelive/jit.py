@@ -17,11 +17,22 @@ Rules for a kernel (what makes LLVM vectorise it, and keeps it thread-safe):
 
 The first call of a kernel compiles it (about a second); ``cache=True`` keeps the
 machine code on disk (``__pycache__`` or ``$NUMBA_CACHE_DIR``), so later
-processes load it in milliseconds.
+processes load it in milliseconds. Compiling leaves the process holding LLVM's
+memory for good (the live service's monochrome server: about 130 MB more
+resident after one source file's kernels compiled in it, about 500 MB after it
+compiled every kernel), so a long-running process compiles in a child first
+(:func:`compile_elsewhere`) and only loads.
 """
 
 from __future__ import annotations
 
+import importlib
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
 from functools import partial
 
 import numba
@@ -31,6 +42,37 @@ from numba.extending import intrinsic
 
 #: Decorator of every compiled kernel: no GIL, cached on disk, numpy's division semantics.
 kernel = partial(numba.njit, nogil=True, cache=True, error_model="numpy")
+
+
+def compile_elsewhere(warm: Callable[[], None]) -> str | None:
+    """Run ``warm`` (a module-level function that calls kernels) in a short-lived child process, which compiles
+    into numba's disk cache what is not there yet, so that this process then loads the kernels instead of
+    compiling them. None when the child finished; else why it did not (the caller may warm up here instead).
+
+    The child is this interpreter on this ``sys.path`` and environment, so it reads the same sources and numba
+    picks the same cache directory (the first writable one of ``$NUMBA_CACHE_DIR``, ``__pycache__``, the user's);
+    it stops when this process goes (:func:`_compile_child`).
+    """
+    call = f"_compile_child({warm.__module__!r}, {warm.__qualname__!r}, {os.getpid()})"
+    code = f"from svelive.jit import _compile_child; {call}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(path for path in sys.path if path)}
+    try:
+        done = subprocess.run([sys.executable, "-c", code], env=env, check=False)
+    except OSError as exc:  # no process to be had here (a sandbox, a frozen program)
+        return f"no process to compile in ({exc})"
+    return None if done.returncode == 0 else f"the compiling process failed (exit code {done.returncode})"
+
+
+def _compile_child(module: str, name: str, parent: int) -> None:
+    """:func:`compile_elsewhere`'s child: runs ``module.name()``, and exits at once when ``parent`` has gone (a
+    server stopped or killed while the kernels compile, minutes on a first start, leaves no compiler behind)."""
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="svelive-compile-watch", daemon=True).start()
+    getattr(importlib.import_module(module), name)()
 
 
 def flat(*arrays: np.ndarray) -> list[np.ndarray]:

@@ -65,5 +65,17 @@ def test_warm_up_compiles_what_a_stream_runs():
                 result = reconstructor.fuse(estimated)
             assert reconstructor.last_partial["bands"] == 3
             result.variance  # noqa: B018
+    # a small change in a settled band, no pixel saturated, as on the live demo's still view: its pixels take their
+    # estimate on demand in cells (an atlas of patches: writable exposures beside the pattern's cached window sums)
+    tall = rng.uniform(0, 1500, (200, 128))
+    reconstructor = Reconstructor("1,4/16,64", white_level=4095, gain=1.0, read_noise=20.0, refresh=3)
+    cells = 0
+    for level in (0,) * 11 + (500, -500, 500):
+        scene = tall.copy()
+        scene[100:102, 60:62] += level
+        scene[30:32, 90:92] += level
+        reconstructor.process(np.clip(rng.normal(scene, 20), 0, 4095).astype(np.uint16))
+        cells += reconstructor.last_partial.get("demand_cells", 0)
+    assert cells > 0
     after = {name: len(k.signatures) for name, k in found.items()}
     assert after == before

@@ -69,8 +69,10 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
 def _warm_up_refresh(rng: np.random.Generator) -> None:
     """The band refresh of monochrome live streams (``Reconstructor(refresh=K)``, svelive.reconstruction.settle;
     the service's default): still frames of four bands (the noise model given, so trusted at once) until the
-    histories settle and bands are skipped, then frames that move a little and a lot (pixels reset in skipped
-    bands take their estimate on demand, in cells and at the frame's edges), with and without saturated pixels,
+    histories settle and bands are skipped, then frames in which small patches change and frames that move a
+    little and a lot (pixels reset in skipped bands take their estimate on demand: in cells, whose atlas of
+    patches has writable exposures and, without a saturated pixel, the pattern's cached window sums, at the
+    frame's edges and in whole bands), with and without saturated pixels,
     and a frame estimated ahead of the one before it (the fusion completes the bands its hint missed). The
     frames are wide and noisy enough for ``adaptive``'s floor evidence to find its pairs of readings dominated by
     the noise floor (``evidence._read_variance``, which every full-size live frame runs and the small frames
@@ -81,8 +83,13 @@ def _warm_up_refresh(rng: np.random.Generator) -> None:
     for pattern, saturate in product(("1,4/16,64", "1/1/8/8"), (False, True)):
         stream = Reconstructor(pattern, white_level=4095, gain=1.0, read_noise=20.0, refresh=2)
         frames = []
-        for moved in (0,) * 11 + (1, 30, 30, 0):
-            frame = np.clip(rng.normal(np.roll(scene, moved, axis=1), 20), 0, 4095).astype(np.uint16)
+        # the still view, then with a small patch 600 DN brighter, then darker, in the middle of one band and at
+        # the edge of the next (bands the refresh skips in one of the two frames), then moves
+        for moved, patch in [(0, 0)] * 11 + [(0, 600), (0, -600), (1, 0), (30, 0), (30, 0), (0, 0)]:
+            view = np.roll(scene, moved, axis=1)
+            view[BAND_ROWS + 8:BAND_ROWS + 10, 56:58] += patch
+            view[2 * BAND_ROWS + 8:2 * BAND_ROWS + 10, -2:] += patch
+            frame = np.clip(rng.normal(view, 20), 0, 4095).astype(np.uint16)
             if saturate:
                 frame[BAND_ROWS:BAND_ROWS + 2, :6] = 4095
             frames.append(frame)
