@@ -914,14 +914,14 @@ def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int,
     """
     planes = np.ascontiguousarray(shares, np.float32)
     cells = np.empty_like(planes)
-    map_on(workers, lambda rows: _share_spread(planes, cells, *rows), colour.cell_strips(planes.shape[1]))
     out = np.empty(shape, np.float32)
     cy = layout.cell[0]
 
-    def gather(rows: tuple[int, int]) -> None:  # (the frame rows of cell rows first to stop)
+    def strip(rows: tuple[int, int]) -> None:  # (the gather reads the strip's own cell rows alone)
+        _share_spread(planes, cells, *rows)
         _share_gather(cells, layout.channels, out, rows[0] * cy, min(rows[1] * cy, shape[0]))
 
-    map_on(workers, gather, colour.cell_strips(-(-shape[0] // cy)))
+    map_on(workers, strip, colour.cell_strips(planes.shape[1]))
     return out
 
 
