@@ -278,16 +278,35 @@ def test_the_frames_spread_measures_the_luminance_noise_the_model_misses():
     for n in range(1, 9):
         x = (1 + rng.normal(0, 3 * np.sqrt(v), shape)).astype(np.float32)
         weight = np.full(shape, 1 / n, np.float32)
-        spread = stream_module.luminance_spread(spread, state, x, weight)
+        output_weight = weight.copy()
+        if n == 8:
+            output_weight[:4] = 1
+        spread, measured = stream_module.luminance_noise(spread, state, x, weight, variance, output_weight, cell)
         mean = x if state is None else state.mean + (x - state.mean) / n
         state = TemporalState(mean.astype(np.float32), x, weight, np.zeros(shape, bool), np.zeros(shape, bool))
-    weight[:4] = 1
-    measured = stream_module.measured_variance(variance, spread, weight, cell)
     assert np.all(measured[:4] == v)
     ratio = measured[4:] / (9 * v)
     assert abs(float(np.median(ratio)) - 1) < 0.05
     assert np.mean(np.abs(ratio - 1) < 0.2) > 0.8
     assert np.all(measured >= v)
+
+
+def test_the_frames_spread_does_not_depend_on_the_threads():
+    # strips of whole cell rows (301 rows: three strips of 128, 128 and 45 rows, the last cell row of one)
+    rng = np.random.default_rng(6)
+    shape = (301, 45)
+
+    def f() -> np.ndarray:
+        return rng.uniform(0, 1, shape).astype(np.float32)
+
+    weight = f()
+    weight[:, ::7] = 1
+    state = TemporalState(f(), f(), f(), np.zeros(shape, bool), np.zeros(shape, bool))
+    args = (f(), state, f(), weight, f(), weight, (4, 2), 1.2)
+    one, three = stream_module.luminance_noise(*args), stream_module.luminance_noise(*args, workers=3)
+    for a, b in zip(one, three):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(one[0][:, ::7] == 0)
 
 
 @pytest.mark.parametrize("layout, gain", [("dual-iso", 3.0), ("quad-bayer", 3.0), (LAYOUT, 1.5)])

@@ -47,6 +47,7 @@ from svelive.jit import flat, kernel
 from svelive.memory import outside_heap
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour, settle
+from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
 from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, TemporalState,
@@ -268,7 +269,7 @@ class Reconstructor:
         self._method = self._checked(method)
         self._history: TemporalState | None = None
         self._chroma: np.ndarray | None = None  # a colour stream's fused chroma cells (5, Hc, Wc), fuse_chroma
-        self._spread: np.ndarray | None = None  # a colour stream's evidence of its luminance's noise, luminance_spread
+        self._spread: np.ndarray | None = None  # a colour stream's evidence of its luminance's noise, luminance_noise
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
@@ -787,8 +788,8 @@ class Reconstructor:
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
-                spread = luminance_spread(spread, previous, est.image, fused.history, ratio)
-                measured = measured_variance(variance, spread, weight, parts.chroma.layout.cell)
+                spread, measured = luminance_noise(spread, previous, est.image, fused.history, variance, weight,
+                                                   parts.chroma.layout.cell, ratio, self._threads)
                 luminance, variance_of, image = _refined(image, measured, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
@@ -999,95 +1000,92 @@ def _share_gather(cells, channels, out, first, stop):
                 row[j * cx + t] = plane[j]
 
 
-def luminance_spread(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
-                     weight: np.ndarray, ratio: float = 1.0) -> np.ndarray:
-    """A colour stream's evidence of one frame's luminance noise after this frame, float32 (H, W), DN^2:
-    per pixel, the mean over its frames since its last reset (the history's weights: 1 / (n - 1) for
-    the n-th) of (x - m)^2 / (1 + w'), x this frame's estimate (``image``, DN), m the history's mean
-    before it (times the brightness ratio, as the fusion takes it) and w' its weight; 0 where
-    ``weight`` (this frame's, after fusion) is 1: no evidence yet. ``spread``: the last frame's (None:
-    none, or another size).
+def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
+                    weight: np.ndarray, variance: np.ndarray, output_weight: np.ndarray, cell: tuple[int, int],
+                    ratio: float = 1.0, workers: int | Executor = 1) -> tuple[np.ndarray, np.ndarray]:
+    """A colour stream's evidence of its luminance noise after this frame and the variance its refinement takes,
+    both float32 (H, W), DN^2, made in one pass over the frame (pieces of whole cell rows, base.map_on over
+    ``workers``; the result does not depend on it).
 
-    For a still pixel whose frames' errors are independent with variance v, x - m has variance
-    v (1 + w'), so each term has mean v. A colour frame's luminance is the method run on readings
-    folded by that frame's shares, whose noise (in dark cells) and the outliers it makes are in no
-    model variance and differ from frame to frame (docs/motion.md).
+    The evidence (the stream keeps it for its next frame as ``spread``: the last frame's, None: none, or
+    another size): per pixel, the mean over its frames since its last reset (the history's weights: 1 / (n - 1)
+    for the n-th) of (x - m)^2 / (1 + w'), x this frame's estimate (``image``, DN), m the history's mean before
+    it (times the brightness ratio, as the fusion takes it) and w' its weight; 0 where ``weight`` (this frame's,
+    after fusion) is 1, or without a history of that size: no evidence yet. For a still pixel whose frames'
+    errors are independent with variance v, x - m has variance v (1 + w'), so each term has mean v. A colour
+    frame's luminance is the method run on readings folded by that frame's shares, whose noise (in dark cells)
+    and the outliers it makes are in no model variance and differ from frame to frame (docs/motion.md).
+
+    The variance: the larger of the model's (``variance``) and the evidence's mean over the pixels of the
+    pixel's cell (``cell`` rows x cols, the cells over which the refinement takes its evidence of detail) that
+    have evidence (``output_weight`` < 1); the model's where ``output_weight`` is 1 (a reset pixel, or an
+    output that is the frame's own: no history to judge).
     """
-    out = np.zeros(image.shape, np.float32)
-    if history is None or history.mean.shape != image.shape:
-        return out
+    evidence = history is not None and history.mean.shape == image.shape
+    out = np.empty(image.shape, np.float32)
+    if not evidence:
+        mean = old_weight = old = image  # (not read)
+    else:
+        mean, old_weight = history.mean, history.weight
+        old = spread if spread is not None and spread.shape == image.shape else out
+        if old is out:  # the first frame with a history: none before it, zeros updated in place
+            out[:] = 0
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
-    old = out if spread is None or spread.shape != image.shape else spread
-    _spread_pass(*flat(image, history.mean, history.weight, weight, old, out), scale)
-    return out
-
-
-@kernel
-def _spread_pass(image, mean, old_weight, weight, old, out, scale):
-    """out = :func:`luminance_spread`'s running mean, flat arrays (``old`` may be ``out``, zeros)."""
-    one, zero = np.float32(1), np.float32(0)
-    for k in range(out.size):
-        w = weight[k]
-        d = image[k] - scale * mean[k]
-        term = d * d / (one + old_weight[k])
-        # the n-th frame's deviation is the pixel's (n - 1)-th: weight 1 / (n - 1) = w / (1 - w), 1 at most
-        step = min(w / max(one - w, np.float32(1e-6)), one)
-        out[k] = old[k] + step * (term - old[k]) if w < one else zero
-
-
-def measured_variance(variance: np.ndarray, spread: np.ndarray, weight: np.ndarray,
-                      cell: tuple[int, int]) -> np.ndarray:
-    """float32 (H, W), DN^2: one frame's luminance variance for a colour stream's refinement, the larger of
-    the model's (``variance``) and the frames' (:func:`luminance_spread`'s mean over the pixels of the
-    pixel's cell that have evidence: ``cell`` rows x cols, the cells over which the refinement takes its
-    evidence of detail); the model's where this output's ``weight`` is 1 (a reset pixel, or an output
-    that is the frame's own: no history to judge)."""
+    measured = np.empty(image.shape, np.float32)
     cy, cx = cell
-    h, w = variance.shape
-    cells = np.empty((-(-h // cy), -(-w // cx)), np.float32)
-    _cell_means(spread, weight, cy, cx, cells)
-    out = np.empty((h, w), np.float32)
-    _larger_rows(variance, cells, weight, cy, cx, out)
-    return out
+    arrays = [np.ascontiguousarray(a) for a in (image, mean, old_weight, weight, old, variance, output_weight)]
+
+    def piece(rows: slice) -> None:
+        _noise_rows(*(a[rows] for a in arrays), scale, evidence, cy, cx, out[rows], measured[rows])
+
+    map_on(workers, piece, _pieces(image.shape[0], cy))
+    return out, measured
 
 
 @kernel
-def _cell_means(spread, weight, cy, cx, cells):
-    """cells (Hc, Wc) = per cell of cy x cx pixels, the mean of ``spread`` (0 without evidence) over its
-    pixels with evidence (``weight`` < 1; 0 where none has)."""
+def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, scale, evidence, cy, cx, spread,
+                measured):
+    """spread, measured = :func:`luminance_noise`'s of whole cell rows (row 0 a cell row's first; ``old`` may
+    be ``spread``), each cell row's spread summed per column while its rows are in cache, then its cells'
+    means spread over a row of pixels for the cell row's variances (loops that vectorise)."""
     one, zero = np.float32(1), np.float32(0)
     h, w = spread.shape
-    total, count = np.zeros(w, np.float32), np.zeros(w, np.float32)
-    for i in range(cells.shape[0]):
+    total, count, cell_mean = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    for r0 in range(0, h, cy):
+        r1 = min(r0 + cy, h)
         total[:] = zero
         count[:] = zero
-        for r in range(i * cy, min(i * cy + cy, h)):
-            s, wt = spread[r], weight[r]
-            for x in range(w):
-                total[x] += s[x]
-                count[x] += one if wt[x] < one else zero
-        for j in range(cells.shape[1]):
+        for r in range(r0, r1):
+            s, wo = spread[r], output_weight[r]
+            if evidence:
+                x_, m, ow, wt, o = image[r], mean[r], old_weight[r], weight[r], old[r]
+                for x in range(w):
+                    w1 = wt[x]
+                    d = x_[x] - scale * m[x]
+                    term = d * d / (one + ow[x])
+                    # the n-th frame's deviation is the pixel's (n - 1)-th: weight 1 / (n - 1) = w / (1 - w),
+                    # 1 at most
+                    step = min(w1 / max(one - w1, np.float32(1e-6)), one)
+                    value = o[x] + step * (term - o[x]) if w1 < one else zero
+                    s[x] = value
+                    total[x] += value
+                    count[x] += one if wo[x] < one else zero
+            else:
+                for x in range(w):
+                    s[x] = zero
+                    count[x] += one if wo[x] < one else zero
+        for j in range(-(-w // cx)):
             t, n = zero, zero
             for x in range(j * cx, min(j * cx + cx, w)):
                 t += total[x]
                 n += count[x]
-            cells[i, j] = t / max(n, one)
-
-
-@kernel
-def _larger_rows(variance, cells, weight, cy, cx, out):
-    """out = max(variance, the cell's mean spread) where ``weight`` < 1, else variance (:func:`measured_variance`):
-    each cell row's means spread over a row of pixels once, then a loop per pixel row that vectorises."""
-    one = np.float32(1)
-    h, w = out.shape
-    mean = np.empty(w, np.float32)
-    for i in range(cells.shape[0]):
-        for x in range(w):
-            mean[x] = cells[i, x // cx]
-        for r in range(i * cy, min(i * cy + cy, h)):
-            v, wt, o = variance[r], weight[r], out[r]
+            t = t / max(n, one)
+            for x in range(j * cx, min(j * cx + cx, w)):
+                cell_mean[x] = t
+        for r in range(r0, r1):
+            v, wo, o = variance[r], output_weight[r], measured[r]
             for x in range(w):
-                o[x] = max(v[x], mean[x]) if wt[x] < one else v[x]
+                o[x] = max(v[x], cell_mean[x]) if wo[x] < one else v[x]
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
