@@ -1,6 +1,6 @@
 """Where a colour frame's time goes, stage by stage: the live path on the demo camera's colour frame, one thread.
 
-    python benchmarks/colour_stages.py [--size 1920x1200] [--frames 12] [--cfa RGGB] [--baseline REV] [--workers N]
+    python benchmarks/colour_stages.py [--size 1920x1200] [--frames 12] [--cfa RGGB] [--baseline REV]
 
 Renders ``--frames`` frames of the demo scene (a still view, new noise in each; dual-ISO 1/1/8/8 on
 the colour filter) and runs ``svelive.Reconstructor`` (the default method, ``workers=1``) on them, single
@@ -11,16 +11,10 @@ under it (``method`` is the monochrome method on the folded luminance; ``other``
 listed do not cover). The wrappers add about a microsecond a call.
 
 ``--baseline REV``: also the same stages of git revision REV of this repository (its ``svelive`` package
-extracted to a temporary directory; or of another checkout, REV its directory, whose kernel cache it
-keeps), ``--rounds`` processes of each version alternated on the same saved frames, each frame's times
-pooled; then the ratio of each stage's medians (this checkout / baseline).
+extracted to a temporary directory), ``--rounds`` processes of each version alternated on the same saved
+frames, each frame's times pooled; then the ratio of each stage's medians (this checkout / baseline).
 Each version runs in processes of its own: two copies of one version in one process differed by up to
 1.35x on the fusion's stage, whichever came second (where their frame-sized arrays landed in the heap).
-
-``--workers N``: the stream spreads its passes over a pool of N threads (the live service's N is the cores);
-the stages' times are then the caller's share of their CPU time, and three more lines give each frame's
-wall time, the CPU time of every thread (``cpu, all threads``) and the caller's (``total``, as always): the
-caller's is what the frame waits for however busy the other cores are.
 """
 
 from __future__ import annotations
@@ -97,14 +91,11 @@ class Timers:
         timed.__wrapped__ = function
         return timed
 
-    def end_frame(self, total_ms: float, wall_ms: float = 0.0, cpu_ms: float = 0.0) -> None:
-        """Close a frame: every label's time in it (0 where it did not run), its total (the caller's CPU time),
-        its wall time and the CPU time of all the process's threads."""
+    def end_frame(self, total_ms: float) -> None:
+        """Close a frame: every label's time in it (0 where it did not run) and its total."""
         for label, *_ in STAGES:
             self.frames[label].append(self.frame.get(label, 0.0))
         self.frames["total"].append(total_ms)
-        self.frames["wall"].append(wall_ms)
-        self.frames["cpu"].append(cpu_ms)
         self.frame.clear()
 
 
@@ -168,13 +159,10 @@ def table(rows: dict[str, dict[str, list[float]]], skip: int) -> list[str]:
                              - np.sum([rows[name][c][skip:] for c in top], axis=0))) for name in names]
     lines.append(line("other", other))
     lines.append(line("**total**", totals))
-    if any(rows[name]["cpu"] and max(rows[name]["cpu"]) > 0 for name in names):
-        lines.append(line("cpu, all threads", [median(name, "cpu") for name in names]))
-        lines.append(line("wall", [median(name, "wall") for name in names]))
     return lines
 
 
-def measure(root: str, data: str, temporal: bool, workers: int = 1) -> dict[str, list[float]]:
+def measure(root: str, data: str, temporal: bool) -> dict[str, list[float]]:
     """Per-frame stage times (ms) of the checkout at ``root`` on the frames saved in ``data`` (run in a
     process of its own: ``--worker``)."""
     sys.path.insert(0, root)
@@ -186,12 +174,11 @@ def measure(root: str, data: str, temporal: bool, workers: int = 1) -> dict[str,
     with open(os.path.join(data, "camera.pickle"), "rb") as f:
         camera = pickle.load(f)
     raws = np.load(os.path.join(data, "frames.npy"))
-    with Reconstructor(camera, temporal=temporal, workers=workers) as stream:
+    with Reconstructor(camera, temporal=temporal, workers=1) as stream:
         for raw in raws:
-            start, wall, cpu = time.thread_time(), time.perf_counter(), time.process_time()
+            start = time.thread_time()
             stream.process(raw)
-            timers.end_frame((time.thread_time() - start) * 1e3, (time.perf_counter() - wall) * 1e3,
-                             (time.process_time() - cpu) * 1e3 if workers > 1 else 0.0)
+            timers.end_frame((time.thread_time() - start) * 1e3)
     return dict(timers.frames)
 
 
@@ -200,14 +187,13 @@ def main() -> int:
     ap.add_argument("--size", default="1920x1200")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--cfa", default="RGGB")
-    ap.add_argument("--baseline", default=None, help="a git revision to compare with, or another checkout's directory")
+    ap.add_argument("--baseline", default=None, help="a git revision to compare with")
     ap.add_argument("--rounds", type=int, default=3, help="processes of each version, alternated")
-    ap.add_argument("--workers", type=int, default=1, help="the stream's threads (default 1)")
-    ap.add_argument("--worker", nargs=4, metavar=("ROOT", "DATA", "TEMPORAL", "WORKERS"), help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=3, metavar=("ROOT", "DATA", "TEMPORAL"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        root, data, temporal, workers = args.worker
-        print(json.dumps(measure(root, data, temporal == "1", int(workers))))
+        root, data, temporal = args.worker
+        print(json.dumps(measure(root, data, temporal == "1")))
         return 0
     import platform
     size = tuple(int(v) for v in args.size.lower().split("x"))
@@ -218,9 +204,7 @@ def main() -> int:
         with open(os.path.join(where, "camera.pickle"), "wb") as f:
             pickle.dump(camera, f)
         roots = {"this checkout": _ROOT}
-        if args.baseline and os.path.isdir(args.baseline):  # another checkout (its kernel cache kept)
-            roots = {f"baseline {args.baseline}": os.path.abspath(args.baseline), **roots}
-        elif args.baseline:
+        if args.baseline:
             base = os.path.join(where, "baseline")
             os.mkdir(base)
             archive = subprocess.run(["git", "-C", _ROOT, "archive", args.baseline, "svelive"], check=True,
@@ -229,8 +213,7 @@ def main() -> int:
             roots = {f"baseline {args.baseline}": base, **roots}
         rounds = args.rounds if args.baseline else 1
         print(f"# {platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}; demo {args.size} "
-              f"cfa {args.cfa}, {args.workers} thread(s), the caller's CPU ms a frame, median of frames 3-{count} of "
-              f"{rounds} "
+              f"cfa {args.cfa}, one thread, thread CPU ms a frame, median of frames 3-{count} of {rounds} "
               f"process(es) each" + (", the versions' processes alternated" if args.baseline else ""), flush=True)
         for temporal in (False, True):
             pooled: dict[str, dict[str, list[float]]] = {name: defaultdict(list) for name in roots}
@@ -238,8 +221,8 @@ def main() -> int:
                 for name in (list(roots) if index % 2 == 0 else list(roots)[::-1]):
                     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
                     out = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker", roots[name], where,
-                                          "1" if temporal else "0", str(args.workers)], check=True,
-                                         capture_output=True, text=True, env=env).stdout
+                                          "1" if temporal else "0"], check=True, capture_output=True, text=True,
+                                         env=env).stdout
                     for label, values in json.loads(out.splitlines()[-1]).items():
                         pooled[name][label].extend(values[2:])  # after kernel loading
             print(f"\n## {'with temporal fusion' if temporal else 'single frame'}\n")

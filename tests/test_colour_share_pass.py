@@ -36,7 +36,7 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     _cell_stats(inp.signal, inp.censored, layout.channels, layout.levels, layout.exposures, False,
                 f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
                 mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
-                np.empty((6, wc), f32), 0, hc)
+                np.empty((6, wc), f32))
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)
     common = kept.min(axis=0)
@@ -55,8 +55,8 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
     brightest = np.empty(wc, f32)
     for i in range(hc):
-        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i, i)
-        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i, i)
+        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i)
 
     def centred(planes: np.ndarray) -> np.ndarray:
         out = np.empty_like(planes)
@@ -70,9 +70,9 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
     for i in range(hc):
         S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse,
-                      noise, i, i)
+                      noise, i)
         S._own_shares_row(own_shares, info, layout.share, neutral, f32(S.SHARE_FLOOR), shares, own_noise, residual,
-                          brightest, i, i)
+                          brightest, i)
     for c in range(3):
         cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
     for i in range(hc):
@@ -105,31 +105,6 @@ def test_one_pass_is_the_whole_plane_chain_bit_for_bit(layout, stops, shape):
     np.testing.assert_array_equal(got.shares, shares)
     if stops == 0.0 and min(shape) > 8:
         assert np.count_nonzero(inp.censored) > 0  # the clipped case is the one tested
-
-
-@pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer"])
-@pytest.mark.parametrize("stops", [0.0, 5.0])
-@pytest.mark.parametrize("strip", [1, 2, 3, 5, 32])
-def test_strips_over_threads_are_the_whole_plane_chain_bit_for_bit(monkeypatch, layout, stops, strip):
-    """``chroma`` in strips of cell rows (each pass's strips recompute the rows around them that its stages
-    read), on the caller's thread and over two threads, is the whole frame's chain, bit for bit."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from svelive.reconstruction.colour import cells
-
-    monkeypatch.setattr(cells, "STRIP_CELL_ROWS", strip)
-    pattern, cfa = COLOUR_LAYOUTS[layout]
-    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:152, 40:136]
-    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops - 2))
-    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=3).raw, Camera.build(pattern, cfa, SENSOR))
-    shares, coarse, white = _whole_planes(inp)
-    assert len(cells.cell_strips(shares.shape[1])) == -(-shares.shape[1] // strip)
-    with ThreadPoolExecutor(2) as pool:
-        for workers in (1, pool):
-            got = chroma(inp, workers)
-            np.testing.assert_array_equal(got.white, white)
-            np.testing.assert_array_equal(got.coarse, coarse)
-            np.testing.assert_array_equal(got.shares, shares)
 
 
 def test_the_pass_filters_match_opencv_on_random_planes():

@@ -736,8 +736,7 @@ class Reconstructor:
             if parts is not None and self.detail:
                 planes = (chroma_history[:3] if chroma_history is not None
                           and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
-                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape,
-                                                               self._threads))
+                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
             partial = estimated.partial
             predicted = complete = None
             if partial is not None:
@@ -784,7 +783,7 @@ class Reconstructor:
         luminance = None
         if parts is not None:
             if self.temporal:
-                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio, self._threads)
+                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
@@ -923,8 +922,7 @@ def _own_reading_pass(exposure, inverse, slope, floor, slope_scale, floor_scale)
         floor[k] = i * i * floor_scale
 
 
-def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int],
-                workers: int | Executor = 1) -> np.ndarray:
+def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
     """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error).
 
     A colour pixel's own reading is s / (e k), k its channel's share interpolated from the cells'
@@ -932,30 +930,24 @@ def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int,
     changes within the cells makes it k_true / k times the luminance, an error that does not average
     over frames. Its relative variance is taken as the spread of the channel's share over the 3x3
     cells around the pixel's cell: the mean of (k_j / k_0 - 1)^2 over them with the chroma's
-    [1, 2, 1] / 4 weights each way, 0 where the colour is the same over the cells. ``workers``: threads
-    for strips of rows (base.map_on); the result does not depend on it.
+    [1, 2, 1] / 4 weights each way, 0 where the colour is the same over the cells.
     """
     planes = np.ascontiguousarray(shares, np.float32)
     cells = np.empty_like(planes)
+    _share_spread(planes, cells)
     out = np.empty(shape, np.float32)
-    cy = layout.cell[0]
-
-    def strip(rows: tuple[int, int]) -> None:  # (the gather reads the strip's own cell rows alone)
-        _share_spread(planes, cells, *rows)
-        _share_gather(cells, layout.channels, out, rows[0] * cy, min(rows[1] * cy, shape[0]))
-
-    map_on(workers, strip, colour.cell_strips(planes.shape[1]))
+    _share_gather(cells, layout.channels, out)
     return out
 
 
 @kernel
-def _share_spread(shares, out, first, stop):
+def _share_spread(shares, out):
     """out[c, i, j] = sum over the 3x3 cells around (i, j) (mirrored at the edges) of [1, 2, 1] / 4
-    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2, for cell rows i from ``first`` to ``stop``."""
+    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2."""
     n, hc, wc = shares.shape
     for c in range(n):
         k = shares[c]
-        for i in range(first, stop):
+        for i in range(hc):
             up, down = (abs(i - 1), i + 1 if i + 1 < hc else 2 * hc - 3 - i) if hc > 1 else (0, 0)
             above, middle, below, o = k[up], k[i], k[down], out[c, i]
             for j in range(1, wc - 1):  # a loop without branches, that vectorises
@@ -981,12 +973,11 @@ def _spread_of(above, middle, below, left, j, right):
 
 
 @kernel
-def _share_gather(cells, channels, out, first, stop):
-    """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell, for
-    frame rows ``first`` to ``stop``."""
+def _share_gather(cells, channels, out):
+    """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell."""
     cy, cx = channels.shape
     w = out.shape[1]
-    for r in range(first, stop):
+    for r in range(out.shape[0]):
         i, phase, row = r // cy, channels[r % cy], out[r]
         start = 0
         if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
@@ -1089,7 +1080,7 @@ def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, s
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
-                ratio: float = 1.0, workers: int | Executor = 1) -> np.ndarray:
+                ratio: float = 1.0) -> np.ndarray:
     """A colour stream's chroma after this frame, float32 (5, Hc, Wc): the shares k_R, k_G, k_B,
     the coarse luminance and its variance (svelive.reconstruction.colour.Chroma).
 
@@ -1097,23 +1088,16 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     3x3 cells, whose readings its chroma comes from: the shares and the coarse luminance (its
     history times ``ratio``, the brightness ratio the luminance's fusion divided out) take the
     running mean with it, the variance is this frame's times it (as the luminance's). This frame's
-    alone without a history of that shape. ``workers``: threads for strips of cell rows (base.map_on); the
-    result does not depend on it.
+    alone without a history of that shape.
     """
     (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
-    largest = np.empty((hc, wc), np.float32)
-    strips = colour.cell_strips(hc)
-
-    def maximum(rows: tuple[int, int]) -> None:
-        _cell_maximum(weight[rows[0] * cy:rows[1] * cy], cy, cx, largest[rows[0]:rows[1]])
-
-    map_on(workers, maximum, strips)
-    cells = cv2.dilate(largest, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    cells = np.empty((hc, wc), np.float32)
+    _cell_maximum(weight, cy, cx, cells)
+    cells = cv2.dilate(cells, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
     out = np.empty_like(history)
-    map_on(workers, lambda rows: _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio), out,
-                                                 *rows), strips)
+    _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio), out)
     return out
 
 
@@ -1124,7 +1108,7 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, va
     with v_Y the frame's variance times the history weight), the variance of that on demand, and
     that luminance coloured with the fused shares, float32 (H, W, 3) (colour.colourise's, made in the
     refinement's pass)."""
-    inter = colour.interpolation(fused, coarse=True, workers=workers)
+    inter = colour.interpolation(fused, coarse=True)
     cell = fused.layout.cell
     rgb = np.empty((*luminance.shape, 3), np.float32)
     refined = colour.refine(luminance, variance, inter, cell, weight=weight, rgb=rgb, workers=workers)
@@ -1167,13 +1151,13 @@ def _cell_maximum(weight, cy, cx, out):
 
 
 @kernel
-def _running_chroma(history, shares, coarse, weight, ratio, out, first, stop):
+def _running_chroma(history, shares, coarse, weight, ratio, out):
     """out = history + weight (new - history) per cell for the shares (planes 0-2), the same with
     the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4);
-    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc); cell rows ``first`` to ``stop``."""
+    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc)."""
     for c in range(5):
         scale = ratio if c == 3 else np.float32(1.0)
-        for i in range(first, stop):
+        for i in range(weight.shape[0]):
             a, b, w, o = history[c, i], shares[c, i] if c < 3 else coarse[c - 3, i], weight[i], out[c, i]
             if c == 4:
                 for j in range(o.size):

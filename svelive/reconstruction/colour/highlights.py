@@ -46,16 +46,16 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
 
 
 @kernel
-def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i, g):
-    """Each cell's C_c of cell row ``g`` into row ``i`` of ``out`` (3, R, Wc), from the smoothed sums
-    ``numerator`` / ``denominator`` (or, for each cell's own readings alone, ``weighted`` / ``kept``) and the
-    cells' statistics (:func:`_cell_stats`), (3, Hc, Wc) each: the censoring and highlight rules (package
-    docstring). ``brightest``: (Wc,) scratch. Loops over the cells of the row (which vectorise)."""
+def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i):
+    """Each cell's C_c (3, Hc, Wc) of cell row ``i`` into ``out``, from the smoothed sums ``numerator`` /
+    ``denominator`` (or, for each cell's own readings alone, ``weighted`` / ``kept``) and the cells'
+    statistics (:func:`_cell_stats`): the censoring and highlight rules (package docstring).
+    ``brightest``: (Wc,) scratch. Loops over the cells of the row (which vectorise)."""
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
     # brightest: max over the measured channels of C / white (-1: none measured)
     brightest[:] = none
     for c in range(3):
-        num, den, m, n, b, o = numerator[c, g], denominator[c, g], mean[c, g], info[c, g], bound[c, g], out[c, i]
+        num, den, m, n, b, o = numerator[c, i], denominator[c, i], mean[c, i], info[c, i], bound[c, i], out[c, i]
         inverse = one / white[c]
         for j in range(o.size):
             smoothed = num[j] / den[j] if den[j] > zero else zero
@@ -68,7 +68,7 @@ def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brig
             measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
             brightest[j] = max(brightest[j], o[j] * inverse if measured else none)
     for c in range(3):  # clipped channels at least the white-balanced level of the measured ones
-        n, b, den, o, level = info[c, g], bound[c, g], denominator[c, g], out[c, i], white[c]
+        n, b, den, o, level = info[c, i], bound[c, i], denominator[c, i], out[c, i], white[c]
         for j in range(o.size):
             measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
             o[j] = o[j] if measured else max(o[j], level * brightest[j])

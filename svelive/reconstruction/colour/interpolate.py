@@ -4,16 +4,13 @@ every column (bit for bit OpenCV's linear resize) and, per frame row, between th
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
 import numpy as np
-
 from svelive.jit import fma32, kernel
 from svelive.reconstruction.colour.shares import Chroma
-from svelive.reconstruction.methods.base import map_on
 
 
 @dataclass(frozen=True)
@@ -33,15 +30,14 @@ class Interpolation:
     frac: np.ndarray
 
 
-def interpolation(ch: Chroma, coarse: bool = False, workers: int | Executor = 1) -> Interpolation:
-    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance.
-    ``workers``: threads for pieces of its rows (base.map_on); the result does not depend on it."""
+def interpolation(ch: Chroma, coarse: bool = False) -> Interpolation:
+    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance."""
     planes = (ch.shares, ch.coarse) if coarse else (ch.shares,)
-    return Interpolation(_full_width(planes, ch.layout.cell[1], ch.shape[1], workers),
+    return Interpolation(_full_width(planes, ch.layout.cell[1], ch.shape[1]),
                          *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
 
 
-def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int, workers: int | Executor = 1) -> np.ndarray:
+def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int) -> np.ndarray:
     """Cell planes (P, Hc, Wc), given as stacks of them that add up to P, interpolated bilinearly
     along rows from the cells' centres to every column, float32 (P, Hc, W): as OpenCV's linear
     resize (which puts cell j at column j cx + (cx - 1) / 2)."""
@@ -49,17 +45,11 @@ def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int, workers: int | 
     p = sum(stack.shape[0] for stack in planes)
     if cx in (2, 4):  # OpenCV's own arithmetic, in one pass without its row buffers, and no stacking copy
         rows = np.empty((p, hc, wc * cx), np.float32)
-        pairs, first = [], 0
+        first = 0
         for stack in planes:
             last = first + stack.shape[0]
-            pairs.append((np.ascontiguousarray(stack).reshape(-1, wc), rows[first:last].reshape(-1, wc * cx)))
+            _widen(np.ascontiguousarray(stack).reshape(-1, wc), cx, rows[first:last].reshape(-1, wc * cx))
             first = last
-
-        def piece(job: tuple[int, slice]) -> None:
-            source, target = pairs[job[0]]
-            _widen(source[job[1]], cx, target[job[1]])
-
-        map_on(workers, piece, [(k, part) for k, (source, _) in enumerate(pairs) for part in _pieces(len(source))])
     else:
         stacked = np.ascontiguousarray(np.concatenate(planes) if len(planes) > 1 else planes[0])
         rows = cv2.resize(stacked.reshape(p * hc, wc), (wc * cx, p * hc),

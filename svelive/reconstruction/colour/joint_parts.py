@@ -60,8 +60,8 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     and the readings are above their noise (svelive.reconstruction.colour.directional; 2x2 Bayer CFAs).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
-    ch = chroma(inp, workers)
-    inter = interpolation(ch, coarse=spec.variance and refined, workers=workers)
+    ch = chroma(inp)
+    inter = interpolation(ch, coarse=spec.variance and refined)
     inverse = np.empty(inp.shape, np.float32) if inverse_exposure and spec.exposures else None
     lum = luminance_input(inp, inter, spec.exposures, workers, inverse)
     if spec.variance:

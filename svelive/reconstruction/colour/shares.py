@@ -5,7 +5,6 @@ luminance, the blend towards each cell's own shares and the garrote towards the 
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -13,9 +12,9 @@ import cv2
 import numpy as np
 
 from svelive.jit import fma32, kernel
-from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, cell_layout, cell_strips
+from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, cell_layout
 from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
-from svelive.reconstruction.methods.base import SveInput, binomial_kernel, map_on
+from svelive.reconstruction.methods.base import SveInput, binomial_kernel
 
 #: A channel's share of luminance is at least this (a zero would make its pixels' exposure 0).
 SHARE_FLOOR = 1e-3
@@ -49,7 +48,7 @@ class Chroma:
         return Chroma(planes[:3], planes[3:5], self.layout, self.white, self.shape)
 
 
-def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
+def chroma(inp: SveInput) -> Chroma:
     """The chroma of a colour frame (package docstring, step a), at cell resolution.
 
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
@@ -61,7 +60,6 @@ def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
     garrote towards the neutral follows (:func:`_shrink_row`), then each channel's median over 3x3
     cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1: all of
     it after the white balance in one pass over the cell rows (:func:`_share_pass`).
-    ``workers``: threads for strips of cell rows (base.map_on); the result does not depend on it.
     """
     layout = cell_layout(inp.pattern, inp.cfa)
     (cy, cx), (h, w) = layout.cell, inp.shape
@@ -72,24 +70,14 @@ def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
     sensor = inp.sensor
     per_pixel = inp.pattern.pixel_map is not None
     values = inp.signal / inp.exposure if per_pixel else inp.signal
-    strips = cell_strips(hc)
-
-    def statistics(rows: tuple[int, int]) -> None:
-        _cell_stats(values, inp.censored, layout.channels, layout.levels, layout.exposures,
-                    per_pixel, f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
-                    mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
-                    np.empty((6, wc), f32), *rows)
-
-    map_on(workers, statistics, strips)
+    _cell_stats(values, inp.censored, layout.channels, layout.levels, layout.exposures,
+                per_pixel, f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
+                mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
+                np.empty((6, wc), f32))
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)  # the sum of the squared weights of the cells' smoothing
     numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-
-    def smoothing(rows: tuple[int, int]) -> None:
-        _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32),
-                      *rows)
-
-    map_on(workers, smoothing, strips)
+    _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32))
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
@@ -97,26 +85,17 @@ def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
     # the next reads them, instead of a dozen passes over whole (3, Hc, Wc) planes
     neutral = (white / f32(layout.share @ white)).astype(f32)
     shares, coarse = np.empty((3, hc, wc), f32), np.empty((2, hc, wc), f32)
-    taps = _centring_taps(layout)
-
-    def rest(rows: tuple[int, int]) -> None:
-        first, stop = rows
-        origin, end = max(first - 4, 0), min(stop + 4, hc)  # the rows the pass's first stage runs on
-        whole = origin == 0 and end == hc
-        local = coarse if whole else np.empty((2, end - origin, wc), f32)
-        _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share,
-                    neutral, f32(SHARE_FLOOR), spread, taps, k, first, stop,
-                    *(np.empty((3, end - origin, wc), f32) for _ in range(8)), local, shares,
-                    np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32), np.empty(wc, f32), np.empty(wc, f32))
-        if not whole:
-            coarse[:, first:stop] = local[:, first - origin:stop - origin]
-
-    map_on(workers, rest, strips)
+    values, own, smoothed, own_shares, noise, own_noise, residual, deviation = (
+        np.empty((3, hc, wc), f32) for _ in range(8))
+    _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share, neutral,
+                f32(SHARE_FLOOR), spread, _centring_taps(layout), k, values, own, smoothed, own_shares, noise,
+                own_noise, residual, deviation, coarse, shares, np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32),
+                np.empty(wc, f32), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
 
 
 @kernel
-def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row, first, stop):
+def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
     """The sums of the cells' 3x3 smoothing (3, Hc, Wc), in place: every channel of a cell weighted
     alike, by the smallest share of a channel's information its uncensored readings hold in it.
 
@@ -134,11 +113,9 @@ def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row, f
     same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. One pass over the cell
     rows, the smoothing across rows one row behind the one along them. ``rings`` (4, 3, Wc): the
     last three rows of the pass along rows (numerators, then the weight); ``row`` (Wc,): scratch.
-    Only cell rows ``first`` to ``stop`` (exclusive) are written (their neighbours are read): strips
-    of rows with scratch of their own may run on several threads at once.
     """
     hc, wc = kept.shape[1], kept.shape[2]
-    for t in range(max(first - 1, 0), stop + 1):
+    for t in range(hc + 1):
         if t < hc:
             common = rings[3, t % 3]  # the weight's row first, smoothed along the row below
             for j in range(wc):
@@ -150,7 +127,7 @@ def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row, f
                 _binomial_along(products, k, rings[c, t % 3])
             _binomial_along(row, k, common)
         u = t - 1
-        if first <= u < stop:
+        if 0 <= u < hc:
             up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
             for c in range(4):
                 _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
@@ -193,8 +170,8 @@ def _centring_taps(layout: CellLayout) -> np.ndarray:
 
 @kernel
 def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
-                spread, taps, k, first, stop, values, own, smoothed, own_shares, noise, own_noise, residual, deviation,
-                coarse, out, rings, columns, brightest, lum):
+                spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
+                out, rings, columns, brightest, lum):
     """Step (a) after the cells' smoothing and the white balance, in one pass over the cell rows: each
     row's values (:func:`_cell_values_row`, smoothed and own), moved to the cells' centres (``taps``,
     :func:`_centring_taps`), their shares and coarse luminance (:func:`_shares_row`,
@@ -206,66 +183,54 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
     taps and the edge's value repeated, ``medianBlur`` of 3): each stage runs on a row a few rows
     behind the one before, whose rows it reads are then done and still in cache.
 
-    The shares of cell rows ``first`` to ``stop`` (exclusive) are made: each stage runs on those rows
-    and on as many rows beyond them as the stages after it read (4 for the first, none for the last,
-    within the frame), so strips of rows may run on several threads at once, each with scratch of its
-    own, and give the whole frame's values.
-
     In: the cells' statistics and sums (3, Hc, Wc) (:func:`chroma`), ``censored`` uint8 (Hc, Wc),
     ``white``, ``share``, ``neutral`` float32 (3,), ``floor`` and ``spread`` float32, ``taps``
-    float32 (3, 2, 3), ``k`` float32 (3,). Out: ``out`` (3, Hc, Wc), the shares, rows ``first`` to
-    ``stop``. Scratch, whose row i is cell row max(first - 4, 0) + i: ``values``, ``own``,
-    ``smoothed``, ``own_shares``, ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, R, Wc) and
-    ``coarse`` (2, R, Wc) (:func:`_shares_row`: the coarse luminance, final once a row is made), R the
-    rows the first stage runs on; ``rings`` (4, 3, 3, Wc), the last three rows of each filter's pass
-    along rows; ``columns`` (3, Wc) (:func:`_median_row`); ``brightest`` and ``lum`` (Wc,).
+    float32 (3, 2, 3), ``k`` float32 (3,). Out: ``out`` (3, Hc, Wc), the shares; ``coarse`` (2, Hc,
+    Wc) (:func:`_shares_row`). Scratch: ``values``, ``own``, ``smoothed``, ``own_shares``,
+    ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, Hc, Wc); ``rings`` (4, 3, 3, Wc), the
+    last three rows of each filter's pass along rows; ``columns`` (3, Wc) (:func:`_median_row`);
+    ``brightest`` and ``lum`` (Wc,).
     """
-    hc = out.shape[1]
-    origin = max(first - 4, 0)  # the first row of the first stage, row 0 of the scratch
-    for t in range(origin, stop + 4):
-        if t < min(stop + 4, hc):  # the cells' values of row t, and the centring along the row
-            i = t - origin
-            _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i, t)
-            _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i, t)
+    hc = values.shape[1]
+    for t in range(hc + 4):
+        if t < hc:  # the cells' values of row t, and the centring along the row
+            _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t)
+            _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t)
             for c in range(3):
-                _taps_along(values[c, i], taps[c, 1], rings[0, t % 3, c])
-                _taps_along(own[c, i], taps[c, 1], rings[1, t % 3, c])
+                _taps_along(values[c, t], taps[c, 1], rings[0, t % 3, c])
+                _taps_along(own[c, t], taps[c, 1], rings[1, t % 3, c])
         u = t - 1
-        if max(first - 3, 0) <= u < min(stop + 3, hc):  # centred, the shares of row u, its residual along the row
-            i = u - origin
+        if 0 <= u < hc:  # centred, the shares of row u, and its residual along the row
             up, down = max(u - 1, 0), min(u + 1, hc - 1)
             for c in range(3):
                 _taps_across(rings[0, up % 3, c], rings[0, u % 3, c], rings[0, down % 3, c], taps[c, 0],
-                             smoothed[c, i])
+                             smoothed[c, u])
                 _taps_across(rings[1, up % 3, c], rings[1, u % 3, c], rings[1, down % 3, c], taps[c, 0],
-                             own_shares[c, i])
-            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, i, u)
-            _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, i, u)
+                             own_shares[c, u])
+            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u)
+            _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u)
             for c in range(3):
-                _binomial_along(residual[c, i], k, rings[2, u % 3, c])
+                _binomial_along(residual[c, u], k, rings[2, u % 3, c])
         u = t - 2
-        if max(first - 2, 0) <= u < min(stop + 2, hc):  # the residual's 3x3 mean, the blend, the deviation along
-            i = u - origin
+        if 0 <= u < hc:  # the residual's 3x3 mean, the blend, and the deviation along the row
             up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
             for c in range(3):
-                _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, i])
-            _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, i)
+                _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, u])
+            _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, u)
             for c in range(3):
-                _binomial_along(deviation[c, i], k, rings[3, u % 3, c])
+                _binomial_along(deviation[c, u], k, rings[3, u % 3, c])
         u = t - 3
-        if max(first - 1, 0) <= u < min(stop + 1, hc):  # the deviation's 3x3 mean and the garrote
-            i = u - origin
+        if 0 <= u < hc:  # the deviation's 3x3 mean and the garrote
             up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
             for c in range(3):
                 _binomial_across(rings[3, up % 3, c], rings[3, u % 3, c], rings[3, down % 3, c], k,
-                                 deviation[c, i])
-            _shrink_row(smoothed, neutral, noise, deviation, i)
+                                 deviation[c, u])
+            _shrink_row(smoothed, neutral, noise, deviation, u)
         u = t - 4
-        if first <= u < stop:  # the median and the normalisation
-            i = u - origin
-            up, down = max(u - 1, 0) - origin, min(u + 1, hc - 1) - origin
+        if 0 <= u < hc:  # the median and the normalisation
+            up, down = max(u - 1, 0), min(u + 1, hc - 1)
             for c in range(3):
-                _median_row(smoothed[c, up], smoothed[c, i], smoothed[c, down], out[c, u], columns)
+                _median_row(smoothed[c, up], smoothed[c, u], smoothed[c, down], out[c, u], columns)
             _normalise_row(out, share, floor, lum, u)
 
 
@@ -353,26 +318,26 @@ def _sorted3(x, y, z):
 
 
 @kernel
-def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i, g):
-    """values (3, R, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
-    row ``i`` of it, which is cell row ``g`` of the frame's ``info``, ``bound`` and ``censored``.
+def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i):
+    """values (3, Hc, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
+    cell row ``i``.
 
-    ``coarse`` (2, R, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
+    ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
     censored readings, ``bound`` > 0, which keeps its own), COARSE_NONE where ``censored`` (Hc, Wc)
-    is set. ``noise`` (3, R, Wc): v_c / L^2, the variance of k_c from C_c's noise. Loops over the
+    is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's noise. Loops over the
     cells of the row (which vectorise).
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
     tiny = np.float32(1e-30)
     lum_row, var = coarse[0, i], coarse[1, i]
-    red, green, blue = values[0, i], values[1, i], values[2, i]
+    r, g, b = values[0, i], values[1, i], values[2, i]
     for j in range(lum_row.size):
-        lum_row[j] = share[0] * red[j] + share[1] * green[j] + share[2] * blue[j]
+        lum_row[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
         var[j] = zero
     for c in range(3):
-        k, n, inf, level, weight = values[c, i], noise[c, i], info[c, g], neutral[c], share[c]
-        b = bound[c, g]
+        k, n, inf, level, weight = values[c, i], noise[c, i], info[c, i], neutral[c], share[c]
+        b = bound[c, i]
         for j in range(lum_row.size):
             ok = lum_row[j] > zero
             inverse = one / lum_row[j] if ok else zero
@@ -381,23 +346,23 @@ def _shares_row(values, info, bound, censored, share, neutral, floor, spread, co
             k[j] = kc
             n[j] = min(v * inverse * inverse, none) if ok else none
             var[j] += weight * weight * v
-    lost = censored[g]
+    lost = censored[i]
     for j in range(lum_row.size):
         var[j] = none if lost[j] else min(var[j], none)
 
 
 @kernel
-def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i, g):
-    """values (3, R, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
-    neutral's where L <= 0), in place, for row ``i`` (cell row ``g`` of ``info``), as :func:`_shares_row`
-    with the cell's own readings alone (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE).
+def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i):
+    """values (3, Hc, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
+    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares_row` with the cell's own
+    readings alone (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE).
     ``residual`` (out): (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
     zero, one, none, tiny = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE), np.float32(1e-30)
-    red, green, blue = values[0, i], values[1, i], values[2, i]
+    r, g, b = values[0, i], values[1, i], values[2, i]
     for j in range(lum.size):
-        lum[j] = share[0] * red[j] + share[1] * green[j] + share[2] * blue[j]
+        lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
     for c in range(3):
-        k, n, e, inf, ks, level = values[c, i], noise[c, i], residual[c, i], info[c, g], smoothed[c, i], neutral[c]
+        k, n, e, inf, ks, level = values[c, i], noise[c, i], residual[c, i], info[c, i], smoothed[c, i], neutral[c]
         for j in range(lum.size):
             ok = lum[j] > zero
             inverse = one / lum[j] if ok else zero
