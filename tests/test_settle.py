@@ -199,3 +199,52 @@ def test_a_frame_estimated_and_never_fused_leaves_the_hints_aligned():
     state = dropping.refresh_state()
     assert state["hint_added"] == state["hint_dropped"] == 0, state
     assert plain.last_partial["computed"] < plain.last_partial["bands"]
+
+
+def test_a_four_row_pattern_s_bands_cells_and_edges_give_the_full_frames_results():
+    """1/1/8/8 (5-row windows, whose wide fallback reaches 22 rows: settle.halo_for gives 32 rows): the method on
+    its bands, on demand in atlases (every cell of the frame) and edge stacks give the full frame's results bit for
+    bit, bright and 8 stops dim (with a halo of 16 rows the dim frame's differed)."""
+    demo = DemoSource("demo", width=328, height=200, fps=0, period_s=1e9, cfa="none", pattern="1/1/8/8")
+    try:
+        frame = next(iter(demo.frames(limit=1)))
+    finally:
+        demo.close()
+    assert settle.halo_for(frame.camera.pattern) == (32, 16)
+    for dim in (1.0, 2.0 ** -8):
+        raw = frame.raw
+        if dim != 1.0:
+            black = frame.camera.sensor.black_level
+            raw = (np.round((raw.astype(np.float32) - black) * dim) + black).astype(raw.dtype)
+        inp = prepare(raw, frame.camera)
+        noise = noise_model(inp)
+        image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
+        h, w = inp.shape
+        hy, hx = settle.halo_for(inp.pattern)
+        c = settle.CELL
+        cells = np.array([(i, j) for i in range(h // c) for j in range(w // c)
+                          if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
+        atlas, oy, ox = settle._atlas(inp, cells, 8)
+        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
+        for (i, j), y, x in zip(cells, oy, ox):
+            rows, cols = slice(i * c, i * c + c), slice(j * c, j * c + c)
+            for g, want in zip(got, (image, lower, variance)):
+                np.testing.assert_array_equal(g[i * c + y:i * c + c + y, j * c + x:j * c + c + x], want[rows, cols])
+        rng = np.random.default_rng(4)
+        need = np.zeros((h, w), bool)
+        need[rng.integers(0, h, 40), rng.integers(0, w, 40)] = True
+        for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
+            need[y, x] = True
+        bands = len(settle.bands(h))
+        part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
+        ys, xs, (i2, l2, v2), _ = settle.on_demand(part, *np.nonzero(need))
+        np.testing.assert_array_equal(i2, image[ys, xs])
+        np.testing.assert_array_equal(l2, lower[ys, xs])
+        np.testing.assert_array_equal(v2, variance[ys, xs])
+        selected = np.arange(bands) % 2 == 1
+        out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
+               np.zeros((2, h, w), np.float32))
+        settle.method_on_bands(inp, noise, selected, *out)
+        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
+        for got_band, want in zip(out, (image, lower, variance)):
+            np.testing.assert_array_equal(got_band[rows], want[rows])

@@ -15,7 +15,7 @@ the test's window mean (made for every pixel, every frame: :func:`window_rows`) 
 the test resets there gets this frame's estimate on demand (:func:`on_demand`: whole bands where they hold
 many, else a patch atlas of :data:`CELL` px cells with their halos).
 
-The method on a crop with a halo of :data:`HALO` rows and columns (a multiple of the tile) gives the full
+The method on a crop with a halo of :func:`halo_for` rows and columns (a multiple of the tile) gives the full
 frame's results in the crop's interior, bit for bit, given the full frame's noise model (computed once per
 frame): so do the bands and the atlas here.
 
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -37,6 +38,8 @@ from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
+from svelive.reconstruction.methods.adaptive.fallback import _wide_reach
+from svelive.reconstruction.methods.adaptive.parameters import kernels as method_kernels
 from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, tile_rows, window_kernels,
                                                  window_level_row)
 from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
@@ -46,7 +49,7 @@ from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symme
 BAND_ROWS = 64
 #: Rows and columns around a computed region that the method reads (its window, three deep, and the wide
 #: fallback's blocks reach 13); a multiple of every tile's rows used here.
-HALO = 16
+HALO = 16  # (for 3-tap windows, 2x2 tiles; longer windows take a multiple of it: halo_for)
 #: A band whose share of moving pixels exceeded this in one of the last max_history frames runs the method every
 #: frame (the test's isolated false alarms, widened, are about 2e-4 of the frame).
 MOVING_SHARE = 0.002
@@ -95,6 +98,18 @@ class Partial:
     stats: dict = field(default_factory=dict)
 
 
+@lru_cache(maxsize=16)
+def halo_for(pattern: Pattern) -> tuple[int, int]:
+    """(rows, columns), each a multiple of :data:`HALO`, around a computed region that ``adaptive`` reads for this
+    pattern's windows: its pass, three windows deep, then the wide fallback's widest blocks (fallback._wide_reach).
+    (16, 16) for 3-tap windows (2x2 tiles); (32, 16) for the 5-row windows of 4-row tiles (1/1/8/8: 6 + 22 rows,
+    3 + 13 columns), whose bands and cells with a halo of 16 rows differed from the full frame's in dim regions."""
+    ky, kx = method_kernels(pattern.shape)
+    reach = _wide_reach(ky, kx)
+    need = 3 * (len(ky) // 2) + reach[0], 3 * (len(kx) // 2) + reach[1]
+    return tuple(HALO * max(1, -(-n // HALO)) for n in need)
+
+
 def bands(h: int) -> list[slice]:
     return [slice(top, min(top + BAND_ROWS, h)) for top in range(0, h, BAND_ROWS)]
 
@@ -129,13 +144,14 @@ def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndar
                     workers: int | Executor = 1) -> None:
     """The method on the selected bands (bool per band), each run of them one crop with its halo, written into
     ``image``, ``lower``, ``variance`` and (with ``window``, (2, H, W)) the window mean: the rows of the selected
-    bands hold their results; the halo rows of each crop, within HALO rows of them, are overwritten too (with
-    what the crop gives there), the other rows are left. A band between two runs is at least HALO rows: runs do
-    not overwrite each other's results."""
+    bands hold their results; the halo rows of each crop (:func:`halo_for`), are overwritten too (with what the
+    crop gives there), the other rows are left. A band between two runs is at least two halos (64 rows, halos of
+    16 or 32): runs do not overwrite each other's results."""
     h = inp.shape[0]
     in_pass = window is not None and _shares_window(inp)
+    halo = halo_for(inp.pattern)[0]
     for top, stop in band_rows(selected, h):
-        rows = slice(max(top - HALO, 0), min(stop + HALO, h))
+        rows = slice(max(top - halo, 0), min(stop + halo, h))
         _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
                   out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
 
@@ -148,8 +164,9 @@ def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.
     was (a band computed beside one the frame holds already: :meth:`Reconstructor.fuse` completing an estimate
     whose selection was a hint)."""
     h, w = inp.shape
+    halo = halo_for(inp.pattern)[0]
     for top, stop in band_rows(selected, h):
-        rows = slice(max(top - HALO, 0), min(stop + HALO, h))
+        rows = slice(max(top - halo, 0), min(stop + halo, h))
         n = rows.stop - rows.start
         out = np.empty((n, w), np.float32), np.empty((n, w), bool), np.empty((n, w), np.float32)
         _estimate(inp.crop(rows), noise, workers, want_variance=True, out=(*out, None))
@@ -334,22 +351,24 @@ def _window_strip_clean(signal, exposure, censored, first, stop, ky, kx, ky2, kx
 
 
 def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np.ndarray, np.ndarray]:
-    """The patches of ``cells`` ((n, 2) (row, col) of cells inside the frame by HALO) with their halos, stacked in a
+    """The patches of ``cells`` ((n, 2) (row, col) of cells inside the frame by :func:`halo_for`'s halo) with their
+    halos, stacked in a
     grid of ``columns`` patches a row; returns the atlas and each cell's offset (atlas minus frame coordinates),
     rows and columns."""
-    p = CELL + 2 * HALO
+    hy, hx = halo_for(inp.pattern)
+    py, px = CELL + 2 * hy, CELL + 2 * hx
     n = len(cells)
-    shape = (-(-n // columns) * p, min(n, columns) * p)
+    shape = (-(-n // columns) * py, min(n, columns) * px)
     signal = np.zeros(shape, np.float32)
     censored = np.zeros(shape, bool)
     # every patch starts on whole tiles: the atlas's exposures are the pattern's
     exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
     k = np.arange(n)
-    ys, xs = (k // columns) * p, (k % columns) * p
-    fys, fxs = cells[:, 0] * CELL - HALO, cells[:, 1] * CELL - HALO
+    ys, xs = (k // columns) * py, (k % columns) * px
+    fys, fxs = cells[:, 0] * CELL - hy, cells[:, 1] * CELL - hx
     for y, x, fy, fx in zip(ys.tolist(), xs.tolist(), fys.tolist(), fxs.tolist()):
-        signal[y:y + p, x:x + p] = inp.signal[fy:fy + p, fx:fx + p]
-        censored[y:y + p, x:x + p] = inp.censored[fy:fy + p, fx:fx + p]
+        signal[y:y + py, x:x + px] = inp.signal[fy:fy + py, fx:fx + px]
+        censored[y:y + py, x:x + px] = inp.censored[fy:fy + py, fx:fx + px]
     atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
     return atlas, ys - fys, xs - fxs
 
@@ -375,13 +394,14 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     cells, inverse = np.unique(cell_of, return_inverse=True)
     ci, cj = cells // cw, cells % cw
     band_of_cell = (ci * CELL) // BAND_ROWS
-    limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * HALO) * w / (CELL + 2 * HALO) ** 2
+    hy, hx = halo_for(inp.pattern)
+    limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * hy) * w / ((CELL + 2 * hy) * (CELL + 2 * hx))
     whole = np.zeros(len(part.computed), bool)
     counts = np.bincount(band_of_cell, minlength=len(whole))
     whole[:] = counts >= limit
     in_whole = whole[band_of_cell]
-    inside = (ci * CELL - HALO >= 0) & ((ci + 1) * CELL + HALO <= h) & (cj * CELL - HALO >= 0) & \
-        ((cj + 1) * CELL + HALO <= w)
+    inside = (ci * CELL - hy >= 0) & ((ci + 1) * CELL + hy <= h) & (cj * CELL - hx >= 0) & \
+        ((cj + 1) * CELL + hx <= w)
     stats["demand_bands"] = int(np.count_nonzero(whole))
     stats["demand_cells"] = int(np.count_nonzero(~in_whole))
 
@@ -402,11 +422,11 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     # stacks, each one call of the method on one thread, spread over the threads (a patch's results do not depend
     # on its neighbours in an atlas: its halo is the method's reach)
     atlas_cells = np.nonzero(~in_whole & inside)[0]
-    columns = min(2048 // (CELL + 2 * HALO), max(-(-atlas_cells.size // (2 * thread_count(workers))), 8))
+    columns = min(2048 // (CELL + 2 * hx), max(-(-atlas_cells.size // (2 * thread_count(workers))), 8))
     jobs = [(members, lambda m: _atlas(inp, np.stack([ci[m], cj[m]], axis=1), columns))
             for members in np.split(atlas_cells, range(columns, atlas_cells.size, columns)) if members.size]
     edge_cells = np.nonzero(~in_whole & ~inside)[0]
-    for members in _edge_groups(inp.shape, [(int(ci[c]), int(cj[c])) for c in edge_cells]):
+    for members in _edge_groups(inp.shape, [(int(ci[c]), int(cj[c])) for c in edge_cells], (hy, hx)):
         jobs.append((edge_cells[members], lambda m: _edge_stack(inp, [(int(ci[c]), int(cj[c])) for c in m])))
 
     def solve(job) -> tuple:
@@ -423,22 +443,24 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     return ys, xs, values, stats
 
 
-def _edge_groups(shape: tuple[int, int], cells: list[tuple[int, int]]) -> list[np.ndarray]:
+def _edge_groups(shape: tuple[int, int], cells: list[tuple[int, int]],
+                 halo: tuple[int, int] = (HALO, HALO)) -> list[np.ndarray]:
     """:func:`on_demand`'s cells whose halo crosses the frame's edge (``cells``: (row, col) of cells), grouped by
     the side they cross (top, bottom, left, right, in that order of precedence): per side the indices of its cells
     in ``cells`` in column order (then row order), one :func:`_edge_stack` each."""
     groups: dict[str, list[int]] = {}
     for k in sorted(range(len(cells)), key=lambda k: (cells[k][1], cells[k][0])):
-        groups.setdefault(_side(shape, *cells[k]), []).append(k)
+        groups.setdefault(_side(shape, *cells[k], halo), []).append(k)
     return [np.array(members, np.intp) for members in groups.values()]
 
 
-def _side(shape: tuple[int, int], i: int, j: int) -> str:
+def _side(shape: tuple[int, int], i: int, j: int, halo: tuple[int, int] = (HALO, HALO)) -> str:
     """The side of a frame of ``shape`` that the halo of cell (``i``, ``j``) crosses first (top, bottom, left,
     right), or "right" for a cell whose halo crosses none."""
     h, w = shape
-    return ("top" if i * CELL - HALO < 0 else "bottom" if (i + 1) * CELL + HALO > h
-            else "left" if j * CELL - HALO < 0 else "right")
+    hy, hx = halo
+    return ("top" if i * CELL - hy < 0 else "bottom" if (i + 1) * CELL + hy > h
+            else "left" if j * CELL - hx < 0 else "right")
 
 
 def _edge_stack(inp: SveInput, cells: list[tuple[int, int]]) -> tuple[SveInput, np.ndarray, np.ndarray]:
@@ -448,10 +470,12 @@ def _edge_stack(inp: SveInput, cells: list[tuple[int, int]]) -> tuple[SveInput, 
     boxes that abut meeting at their halos. Returns the stack and each cell's offsets (stack minus frame
     coordinates), intp (n,) each."""
     h, w = inp.shape
-    side = _side(inp.shape, *cells[0])
+    halo = halo_for(inp.pattern)
+    hy, hx = halo
+    side = _side(inp.shape, *cells[0], halo)
     along = side in ("top", "bottom")  # side by side along the rows, else one under the other
-    boxes = [(max(i * CELL - HALO, 0), min((i + 1) * CELL + HALO, h), max(j * CELL - HALO, 0),
-              min((j + 1) * CELL + HALO, w)) for i, j in cells]
+    boxes = [(max(i * CELL - hy, 0), min((i + 1) * CELL + hy, h), max(j * CELL - hx, 0),
+              min((j + 1) * CELL + hx, w)) for i, j in cells]
     across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in boxes)
     total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in boxes)
     shape = (across, total) if along else (total, across)
