@@ -38,7 +38,8 @@ import numpy as np
 
 from svelive.jit import flat, kernel
 from svelive.memory import outside_heap
-from svelive.reconstruction.methods.base import binomial_kernel, map_on, reflect_101, smooth, support_size
+from svelive.reconstruction.methods.base import (binomial_kernel, map_on, reflect_101, smooth, support_size,
+                                                 thread_count)
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency
 from svelive.reconstruction.numerics import INLINE_TAPS, _maximum, _strips, _symmetric_row
@@ -245,7 +246,7 @@ def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.nda
 def _subsample_pieces(h: int, step: int, workers: int | Executor) -> list[slice]:
     """The rows 0..h cut into a piece per thread of ``workers`` (map_on's), each starting on a row of every
     ``step``-th (the subsample's rows are the frame's)."""
-    threads = getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else int(workers)
+    threads = thread_count(workers)
     sampled = -(-h // step)
     cuts = [sampled * k // threads * step for k in range(threads)] + [h]
     return [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]

@@ -24,7 +24,7 @@ from svelive.core.response import linearise
 from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
 from svelive.noise import NoiseEstimate, estimate_from_frame
-from svelive.reconstruction.methods.base import SveInput, exposure_maps, map_on
+from svelive.reconstruction.methods.base import SveInput, exposure_maps, map_on, thread_count
 
 
 @lru_cache(maxsize=8)
@@ -72,7 +72,7 @@ def prepare(raw: np.ndarray | Frame, camera: Camera | Pattern | str | None = Non
         signal, censored = np.empty(raw.shape, np.float32), np.empty(raw.shape, bool)
         raw = np.ascontiguousarray(raw)
         black, censor = np.float32(sensor.black_level), np.float32(sensor.censor_level)
-        pieces = 2 * getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else workers
+        pieces = 2 * thread_count(workers) if isinstance(workers, Executor) else workers
         cuts = [raw.shape[0] * k // pieces for k in range(pieces + 1)]
         map_on(workers, lambda rows: _signal(*flat(raw[rows], signal[rows], censored[rows]), black, censor),
                [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a])

@@ -40,8 +40,8 @@ from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
 from svelive.reconstruction.methods.adaptive.fallback import _wide_reach
 from svelive.reconstruction.methods.adaptive.parameters import kernels as method_kernels
-from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, tile_rows, window_kernels,
-                                                 window_level_row)
+from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, thread_count, tile_rows,
+                                                 window_kernels, window_level_row)
 from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
                                              _window_layout)
 
@@ -204,11 +204,6 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     map_on(workers, strip, pieces(rows, thread_count(workers)))
 
 
-def thread_count(workers: int | Executor) -> int:
-    """The threads ``workers`` (methods.base.map_on's) spreads items over."""
-    return getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else int(workers)
-
-
 def pieces(rows: list[tuple[int, int]], threads: int, least: int = BAND_ROWS) -> list[tuple[int, int]]:
     """``rows`` ([start, stop) pairs) cut into about 4 ``threads`` pieces (the threads take them as they come free,
     so runs of unequal lengths still end about together) of at least ``least`` rows (a piece makes the row sums of
@@ -352,9 +347,8 @@ def _window_strip_clean(signal, exposure, censored, first, stop, ky, kx, ky2, kx
 
 def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np.ndarray, np.ndarray]:
     """The patches of ``cells`` ((n, 2) (row, col) of cells inside the frame by :func:`halo_for`'s halo) with their
-    halos, stacked in a
-    grid of ``columns`` patches a row; returns the atlas and each cell's offset (atlas minus frame coordinates),
-    rows and columns."""
+    halos, stacked in a grid of ``columns`` patches a row; returns the atlas and each cell's offset (atlas minus
+    frame coordinates), rows and columns."""
     hy, hx = halo_for(inp.pattern)
     py, px = CELL + 2 * hy, CELL + 2 * hx
     n = len(cells)

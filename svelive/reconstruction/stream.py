@@ -55,7 +55,8 @@ from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
-from svelive.reconstruction.methods.base import Estimate, SveInput, exposure_maps, map_on, support_size
+from svelive.reconstruction.methods.base import (Estimate, SveInput, exposure_maps, map_on, support_size,
+                                                 thread_count)
 from svelive.reconstruction.numerics import completed_window, window_estimate
 from svelive.reconstruction.single import confidence_from_variance, estimate_variance, method_spec, run_method
 
@@ -706,7 +707,7 @@ class Reconstructor:
             frame.variance[span[0]:span[1]] = last[span[0]:span[1]]
 
         map_on(self._threads, placeholder, settle.pieces(settle.band_rows(~selected, h),
-                                                         settle.thread_count(self._threads)))
+                                                         thread_count(self._threads)))
         partial.computed[:] = selected
         partial.rows[:] = settle.band_mask(selected, h)
         partial.hint = None if selected.all() else weakref.ref(history)

@@ -357,7 +357,7 @@ def map_on(workers: int | Executor, function, items) -> list:
         results: list = [None] * len(items)
         order = iter(range(len(items)))  # shared: next() on it is atomic under the GIL
         helpers = [workers.submit(_take_items, function, items, order, results)
-                   for _ in range(min(getattr(workers, "_max_workers", 2) - 1, len(items) - 1))]
+                   for _ in range(min(thread_count(workers) - 1, len(items) - 1))]
         try:
             _take_items(function, items, order, results)
         finally:
@@ -370,6 +370,12 @@ def map_on(workers: int | Executor, function, items) -> list:
         with ThreadPoolExecutor(max_workers=workers) as pool:
             return map_on(pool, function, items)
     return [function(i) for i in items]
+
+
+def thread_count(workers: int | Executor) -> int:
+    """The threads :func:`map_on` spreads items over for ``workers`` (an Executor's ``_max_workers``, 2 when it
+    does not say)."""
+    return getattr(workers, "_max_workers", 2) if isinstance(workers, Executor) else int(workers)
 
 
 def _take_items(function, items: list, order, results: list) -> None:
