@@ -19,31 +19,46 @@ def _frames(n, width=328, height=200):
         demo.close()
 
 
+def _dimmed_input(frame, dim):
+    """The frame's SveInput with its readings above black times ``dim`` (1: as it is)."""
+    raw = frame.raw
+    if dim != 1.0:
+        black = frame.camera.sensor.black_level
+        raw = (np.round((raw.astype(np.float32) - black) * dim) + black).astype(raw.dtype)
+    return prepare(raw, frame.camera)
+
+
+def _needed(h, w, seed):
+    """bool (h, w): 40 random pixels, the corners and pixels by every edge: where an on-demand estimate is asked."""
+    rng = np.random.default_rng(seed)
+    need = np.zeros((h, w), bool)
+    need[rng.integers(0, h, 40), rng.integers(0, w, 40)] = True
+    for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
+        need[y, x] = True
+    return need
+
+
+def _assert_on_demand_is_the_full_frames(part, need, full, workers=1):
+    """settle.on_demand at ``need``'s pixels gives the full frame's (image, lower, variance) there, bit for bit."""
+    ys, xs, values, _ = settle.on_demand(part, *np.nonzero(need), workers)
+    assert ys.size == np.count_nonzero(need)
+    for got, want in zip(values, full):
+        np.testing.assert_array_equal(got, want[ys, xs])
+
+
 def test_bands_cells_and_edges_give_the_full_frames_results():
     frame = _frames(1)[0]
     for dim in (1.0, 2.0 ** -8):  # bright (censored readings), and dim (the wide fallback)
-        raw = frame.raw
-        if dim != 1.0:
-            black = frame.camera.sensor.black_level
-            raw = (np.round((raw.astype(np.float32) - black) * dim) + black).astype(raw.dtype)
-        inp = prepare(raw, frame.camera)
+        inp = _dimmed_input(frame, dim)
         noise = noise_model(inp)
         image, lower, variance, _, _, window = _estimate(inp, noise, 1, want_variance=True, want_window=True)
         h, w = inp.shape
         bands = len(settle.bands(h))
-        rng = np.random.default_rng(3)
-        need = np.zeros((h, w), bool)
-        need[rng.integers(0, h, 40), rng.integers(0, w, 40)] = True
-        for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
-            need[y, x] = True
+        need = _needed(h, w, 3)
         part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
         with ThreadPoolExecutor(2) as pool:  # (the atlases and stacks as jobs over threads, or on the caller's)
             for workers in (1, 3, pool):
-                ys, xs, (i2, l2, v2), _ = settle.on_demand(part, *np.nonzero(need), workers)
-                assert ys.size == np.count_nonzero(need)
-                np.testing.assert_array_equal(i2, image[ys, xs])
-                np.testing.assert_array_equal(l2, lower[ys, xs])
-                np.testing.assert_array_equal(v2, variance[ys, xs])
+                _assert_on_demand_is_the_full_frames(part, need, (image, lower, variance), workers)
         selected = np.arange(bands) % 2 == 0
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
@@ -212,11 +227,7 @@ def test_a_four_row_pattern_s_bands_cells_and_edges_give_the_full_frames_results
         demo.close()
     assert settle.halo_for(frame.camera.pattern) == (32, 16)
     for dim in (1.0, 2.0 ** -8):
-        raw = frame.raw
-        if dim != 1.0:
-            black = frame.camera.sensor.black_level
-            raw = (np.round((raw.astype(np.float32) - black) * dim) + black).astype(raw.dtype)
-        inp = prepare(raw, frame.camera)
+        inp = _dimmed_input(frame, dim)
         noise = noise_model(inp)
         image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
         h, w = inp.shape
@@ -230,17 +241,9 @@ def test_a_four_row_pattern_s_bands_cells_and_edges_give_the_full_frames_results
             rows, cols = slice(i * c, i * c + c), slice(j * c, j * c + c)
             for g, want in zip(got, (image, lower, variance)):
                 np.testing.assert_array_equal(g[i * c + y:i * c + c + y, j * c + x:j * c + c + x], want[rows, cols])
-        rng = np.random.default_rng(4)
-        need = np.zeros((h, w), bool)
-        need[rng.integers(0, h, 40), rng.integers(0, w, 40)] = True
-        for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
-            need[y, x] = True
         bands = len(settle.bands(h))
         part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
-        ys, xs, (i2, l2, v2), _ = settle.on_demand(part, *np.nonzero(need))
-        np.testing.assert_array_equal(i2, image[ys, xs])
-        np.testing.assert_array_equal(l2, lower[ys, xs])
-        np.testing.assert_array_equal(v2, variance[ys, xs])
+        _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4), (image, lower, variance))
         selected = np.arange(bands) % 2 == 1
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
