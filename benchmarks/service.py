@@ -49,6 +49,7 @@ import fcntl
 import json
 import os
 import pickle
+import re
 import platform
 import socket
 import subprocess
@@ -224,12 +225,44 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
         publisher = RtspPublisher(pipeline, host="127.0.0.1", port=rtsp_port, settings=H264Settings(fps=fps),
                                   timecode=True).start()
         app.add_api_route("/bench/rtsp", publisher.state)
+    app.add_api_route("/bench/threads", thread_names)
     print("ready", flush=True)
     try:
         uvicorn.Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=1)).run(sockets=[sock])
     finally:
         if publisher is not None:
             publisher.stop()
+
+
+def thread_names() -> dict[str, str]:
+    """The bench server's Python threads by native id (for :func:`thread_cpu_seconds`)."""
+    return {str(t.native_id): t.name for t in threading.enumerate()}
+
+
+def thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """CPU seconds of each thread (task) of process ``pid`` so far, by native id."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended
+            continue
+        out[tid] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return out
+
+
+def cpu_by_role(start: dict[str, float], end: dict[str, float], names: dict[str, str], frames: int) -> dict:
+    """CPU ms per reconstructed frame of each role of the server's threads between two
+    :func:`thread_cpu_seconds` readings: threads named alike (a pool's ``svelive-strip_0``, ``_1``) summed,
+    threads Python does not know (native libraries' own) as ``native``."""
+    roles: dict[str, float] = {}
+    for tid, seconds in end.items():
+        name = names.get(tid, "native")
+        role = re.sub(r"(_\d+)+$", "", name)
+        roles[role] = roles.get(role, 0.0) + seconds - start.get(tid, 0.0)
+    return {role: round(1e3 * seconds / max(frames, 1), 1)
+            for role, seconds in sorted(roles.items(), key=lambda kv: -kv[1]) if seconds > 0}
 
 
 def free_port() -> int:
@@ -376,6 +409,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
     t0 = time.monotonic()
     await asyncio.sleep(5)  # warm-up
     start_state, start_cpu, start_t = get_state(port), cpu_seconds(pid), time.monotonic()
+    start_threads = thread_cpu_seconds(pid)
     start_own, start_rtsp = sum(os.times()[:2]), get_json(port, "/bench/rtsp") if rtsp_url else None
     start_counts, start_rtsp_frames = list(counts), reader.frames if reader else 0
     latencies.clear()
@@ -388,6 +422,11 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
     if not rss:
         rss.append((time.monotonic() - t0, get_state(port)["server"]["rss_mb"]))
     end_state, end_cpu, end_t = get_state(port), cpu_seconds(pid), time.monotonic()
+    end_threads = thread_cpu_seconds(pid)
+    try:  # (absent from checkouts before it)
+        names = get_json(port, "/bench/threads")
+    except OSError:
+        names = {}
     peak = peak_rss_mb(pid) if peak_from else None
     end_own, end_rtsp = sum(os.times()[:2]), get_json(port, "/bench/rtsp") if rtsp_url else None
     end_counts, end_rtsp_frames = list(counts), reader.frames if reader else 0
@@ -412,6 +451,8 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
         "refresh": end_state.get("refresh"),
         "cpu_percent": round(100 * (end_cpu - start_cpu) / span, 1),
         "clients_cpu_percent": round(100 * (end_own - start_own) / span, 1),
+        "cpu_ms_per_frame": cpu_by_role(start_threads, end_threads, names,
+                                        end_state["frames"]["reconstructed"] - start_state["frames"]["reconstructed"]),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
                    "growth_percent": round(100 * (rss[-1][1] - first_minute[-1]) / first_minute[-1], 2),
                    "samples": rss, "peak": peak},
@@ -494,6 +535,7 @@ def report(name: str, load: dict) -> None:
               f"{r['latency_client_ms']['p50']} ms, p95 {r['latency_client_ms']['p95']} ms "
               f"(n={r['latency_client_ms']['n']}); arrival -> appsrc {json.dumps(r['arrival_to_push'])}"
               f"{'; client error: ' + r['error'] if r['error'] else ''}")
+    print(f"  server CPU ms a reconstructed frame, by thread: {json.dumps(load['cpu_ms_per_frame'])}")
     print(f"  server stages: {json.dumps(load['latency_server_ms'])}")
     print(f"  drops: {json.dumps(load['drops'])}")
     if load.get("refresh"):
