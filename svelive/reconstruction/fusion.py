@@ -36,6 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from svelive.core.order import median
 from svelive.jit import flat, kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.base import (binomial_kernel, map_on, reflect_101, smooth, support_size,
@@ -239,7 +240,7 @@ def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.nda
     found = map_on(workers, piece, _subsample_pieces(h, step, workers))
     if sum(p.size for p in found) < 64:
         return 1.0
-    ratio = float(np.median(np.concatenate(found)))
+    ratio = float(median(np.concatenate(found)))
     return ratio if np.isfinite(ratio) and ratio > 0 else 1.0
 
 
