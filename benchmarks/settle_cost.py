@@ -7,7 +7,8 @@ refresh off against ``refresh=K``.
 The streams take the same frames in turn, frame by frame, in one process (the machine's load then weighs on
 both alike); each frame's thread CPU time (one thread). Prints the median over frames 9..N, the share of bands
 the method ran on, the frames that ran every band, the on-demand bands / cells / pixels per frame, and the
-outputs' RMS relative difference against the stream with refresh off.
+outputs' RMS relative difference against the stream with refresh off, and a SHA-256 of each stream's output
+images, motion masks and history weights over every frame (two checkouts' streams compared bit for bit).
 
 ``--bench NOISE``: ``svelive bench --live``'s timed frames instead of the demo's: ``--image`` (an HDR image; by
 default ../shared/data/hdr/Bonita.exr, else svelive's shipped cannon crop) resized to ``--size`` under the
@@ -18,6 +19,7 @@ each frame; then also the mean PU21-PSNR (dB) of frames 9..N against the simulat
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import sys
 import time
@@ -68,6 +70,7 @@ def main() -> int:
     stats = {k: [] for k in ks}
     diff = {k: [] for k in ks}
     pu21 = {k: [] for k in ks}
+    digests = {k: hashlib.sha256() for k in ks}
     for i, frame in enumerate(frames):
         outs = {}
         for k in ks:
@@ -75,6 +78,8 @@ def main() -> int:
             r = streams[k].process(frame)
             cpu[k].append(time.thread_time() - t)
             outs[k] = r.image
+            for array in (r.image, r.motion, r.weight):
+                digests[k].update(np.ascontiguousarray(array).tobytes())
             if truth is not None and i >= 8:
                 pu21[k].append(pu21_psnr(r.image, truth))
             stats[k].append(streams[k].last_partial or {})
@@ -97,7 +102,7 @@ def main() -> int:
                      f" cells {np.mean([s.get('demand_cells', 0) for s in st]):.1f} px {np.mean([s.get('demand_px', 0) for s in st]):.1f}"
                      f" kept {np.mean([s.get('kept_px', 0) for s in st]):.0f} /frame, completed {sum(bool(s.get('completed')) for s in st)}; rel. RMS diff vs off "
                      f"{np.median(diff[k][8:]):.4f}")
-        print(line, flush=True)
+        print(line + f"; sha256 {digests[k].hexdigest()[:16]}", flush=True)
     print("per-frame CPU ms:", {k: [round(c * 1e3, 1) for c in cpu[k]] for k in ks})
     print("per-frame bands computed:", {k: [s.get("computed") for s in stats[k]] for k in ks if k})
     return 0
