@@ -4,10 +4,16 @@ In a still view almost every pixel's history is settled (n = max_history: a new 
 estimate). :class:`svelive.reconstruction.stream.Reconstructor` with ``refresh=K`` (monochrome frames, method
 ``adaptive``, temporal fusion, no within-frame test) then runs the method per frame on
 
-- the bands (:data:`BAND_ROWS` rows) whose history is not settled (more than :data:`UNSETTLED_SHARE` of
-  their pixels with n < max_history: moving regions, not the isolated false alarms of the test),
+- the bands (:data:`BAND_ROWS` rows) where something moved within the last max_history frames: more moving
+  pixels in a frame than the false alarms of the test this stream shows make likely (:func:`moving_bands`: a
+  quasi-Poisson test of the band's count against the median band's rate and the counts' spread, so a stream
+  whose test flags many clustered false alarms, dim 1/1/8/8, settles as a quieter one does),
+- the bands whose history is not settled (more than :data:`UNSETTLED_SHARE` of their pixels with
+  n < max_history: a stream's start, a restart),
 - a round-robin 1 / K of the settled bands (the history keeps refreshing and follows slow changes),
-- every band when there is no history (a stream's first frame, after a reset or a restart);
+- every band when there is no history (a stream's first frame, after a reset or a restart) or the frame before
+  measured a brightness ratio beyond fusion.RATIO_TOLERANCE (a still view's dim 1/1/8/8 frames measure one in
+  about half the frames: their ratio is biased and spread by about that much);
 
 a pixel of a skipped band takes its history's mean (times the brightness ratio) as this frame's estimate
 (:func:`svelive.reconstruction.fusion.fuse`'s ``predicted`` rows): its mean stays as it is, its own readings,
@@ -53,9 +59,10 @@ HALO = 16  # (for 3-tap windows, 2x2 tiles; longer windows take a multiple of it
 #: The chance that a still band runs the method for the motion test's false alarms alone, per frame's selection
 #: (:func:`moving_bands`; against the round-robin's 1 / K of the bands, K up to 64).
 FALSE_SELECTION = 1e-3
-#: The largest share of a band's pixels that :func:`moving_bands` takes as the stream's false alarms (5 to 10 times
-#: what still streams show: 0.1 % on dim 1/1/8/8, 0.02-0.06 % on the other patterns): a view whose median band
-#: moves more than this is mostly moving, and its bands are judged against this share with the least dispersion.
+#: The largest share of a band's pixels that :func:`moving_bands` takes as the stream's false alarms (the constant
+#: share the selection used alone before; 2 to 10 times what still views show: 0.1 % on dim 1/1/8/8, 0.02-0.06 %
+#: on the other patterns and levels): a view whose median band moves more than this is mostly moving, and its bands
+#: are judged against this share with the least dispersion.
 FALSE_ALARM_LIMIT = 0.002
 #: A band more than this share of whose pixels are unsettled (n < max_history: a stream's start, a restart) runs
 #: the method every frame.
