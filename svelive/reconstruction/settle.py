@@ -184,13 +184,14 @@ def moving_bands(band_motion: list[np.ndarray], band_pixels: np.ndarray, cluster
 def poisson_quantile(mean: np.ndarray, p: float) -> np.ndarray:
     """int (n,): per element of ``mean`` (float (n,), >= 0), the least k with P(N > k) <= ``p`` for N Poisson of
     that mean (its pmf summed in logs, exact to float64)."""
-    mean = np.maximum(np.asarray(mean, np.float64), 1e-300)
-    top = int(np.max(mean + 12.0 * np.sqrt(mean) + 40.0))  # (beyond: a tail far below any p asked)
+    # (a frame's bands but its last have the same pixels: their means are one)
+    values, inverse = np.unique(np.maximum(np.asarray(mean, np.float64), 1e-300), return_inverse=True)
+    top = int(np.max(values + 12.0 * np.sqrt(values) + 40.0))  # (beyond: a tail far below any p asked)
     k = np.arange(top + 1)
     log_factorial = np.concatenate(([0.0], np.cumsum(np.log(np.arange(1, top + 1)))))
-    pmf = np.exp(k * np.log(mean)[:, None] - mean[:, None] - log_factorial)
+    pmf = np.exp(k * np.log(values)[:, None] - values[:, None] - log_factorial)
     within = 1.0 - np.cumsum(pmf, axis=1) <= p  # P(N > k) <= p
-    return np.where(within.any(axis=1), np.argmax(within, axis=1), top)
+    return np.where(within.any(axis=1), np.argmax(within, axis=1), top)[inverse.ravel()]
 
 
 def band_mask(flags: np.ndarray, h: int) -> np.ndarray:
