@@ -159,12 +159,14 @@ def moving_bands(band_motion: list[np.ndarray], band_pixels: np.ndarray, cluster
     quasi-Poisson count D Poisson(mu / D). The stream's own evidence gives mu and D, robust while fewer than half
     of the bands move: the false-alarm rate a pixel is the median over bands of their mean rate over the frames
     (most bands of a view are still; the mean over frames keeps it off 0 on streams with a cluster a band every
-    few frames); D is the variance a normal spread would give the median absolute deviation of every band's and
-    frame's counts (scaled to a mean band), over mu, at least ``cluster``: it holds the clusters' sizes and the
-    bands' different rates (a dim region makes more false alarms). A band moves when its largest count exceeds
-    the quantile at 1 - ``false_selection`` / F of its quasi-Poisson count (one test a frame), or the one a rate of
-    ``limit`` with D = ``cluster`` gives, if lower: when more than half of the bands move, the median is a moving
-    band's and the stream's own rate is not the false alarms'; the limit still runs those bands.
+    few frames); D = (1.4826 MAD)^2 / mu, at least ``cluster``, with MAD the median absolute deviation of every
+    band's and frame's count (scaled to a mean band): the variance it gives a normal spread, so D holds the
+    clusters' sizes and the bands' different rates (a dim region makes more false alarms). A band moves when its
+    largest count exceeds the quantile at 1 - ``false_selection`` / F of its quasi-Poisson count (one test a
+    frame), or the one a rate of ``limit`` with D = ``cluster`` gives, if lower: when more than half of the bands
+    move, the median is a moving band's and the stream's own rate is not the false alarms'; the limit still runs
+    those bands. (A D thousands of times mu, a view split about evenly between still and moving bands, puts the
+    quantile at 0: every band with a count runs.)
     """
     if not band_motion:
         return np.zeros(len(band_pixels), bool)
