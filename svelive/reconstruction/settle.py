@@ -177,10 +177,9 @@ def moving_bands(band_motion: list[np.ndarray], band_pixels: np.ndarray, cluster
     typical = float(pixels.mean())
     spread = 1.4826 * float(np.median(np.abs(rates - np.median(rates)))) * typical
     dispersion = max(spread * spread / (rate * typical) if rate > 0 else 0.0, float(cluster))
-    p = false_selection / counts.shape[0]
-    own = dispersion * poisson_quantile(rate * pixels / dispersion, p)
-    floor = cluster * poisson_quantile(limit * pixels / cluster, p)
-    return counts.max(axis=0) > np.minimum(own, floor)
+    own, floor = poisson_quantile(np.concatenate((rate * pixels / dispersion, limit * pixels / cluster)),
+                                  false_selection / counts.shape[0]).reshape(2, -1)
+    return counts.max(axis=0) > np.minimum(dispersion * own, cluster * floor)
 
 
 def poisson_quantile(mean: np.ndarray, p: float) -> np.ndarray:
