@@ -4,10 +4,16 @@ In a still view almost every pixel's history is settled (n = max_history: a new 
 estimate). :class:`svelive.reconstruction.stream.Reconstructor` with ``refresh=K`` (monochrome frames, method
 ``adaptive``, temporal fusion, no within-frame test) then runs the method per frame on
 
-- the bands (:data:`BAND_ROWS` rows) whose history is not settled (more than :data:`UNSETTLED_SHARE` of
-  their pixels with n < max_history: moving regions, not the isolated false alarms of the test),
+- the bands (:data:`BAND_ROWS` rows) where something moved within the last max_history frames: more moving
+  pixels in a frame than the false alarms of the test this stream shows make likely (:func:`moving_bands`: a
+  quasi-Poisson test of the band's count against the median band's rate and the counts' spread, so a stream
+  whose test flags many clustered false alarms, dim 1/1/8/8, settles as a quieter one does),
+- the bands whose history is not settled (more than :data:`UNSETTLED_SHARE` of their pixels with
+  n < max_history: a stream's start, a restart),
 - a round-robin 1 / K of the settled bands (the history keeps refreshing and follows slow changes),
-- every band when there is no history (a stream's first frame, after a reset or a restart);
+- every band when there is no history (a stream's first frame, after a reset or a restart) or the frame before
+  measured a brightness ratio beyond fusion.RATIO_TOLERANCE (a still view's dim 1/1/8/8 frames measure one in
+  about half the frames: their ratio is biased and spread by about that much);
 
 a pixel of a skipped band takes its history's mean (times the brightness ratio) as this frame's estimate
 (:func:`svelive.reconstruction.fusion.fuse`'s ``predicted`` rows): its mean stays as it is, its own readings,
@@ -50,9 +56,14 @@ BAND_ROWS = 64
 #: Rows and columns around a computed region that the method reads (its window, three deep, and the wide
 #: fallback's blocks reach 13); a multiple of every tile's rows used here.
 HALO = 16  # (for 3-tap windows, 2x2 tiles; longer windows take a multiple of it: halo_for)
-#: A band whose share of moving pixels exceeded this in one of the last max_history frames runs the method every
-#: frame (the test's isolated false alarms, widened, are about 2e-4 of the frame).
-MOVING_SHARE = 0.002
+#: The chance that a still band runs the method for the motion test's false alarms alone, per frame's selection
+#: (:func:`moving_bands`; against the round-robin's 1 / K of the bands, K up to 64).
+FALSE_SELECTION = 1e-3
+#: The largest share of a band's pixels that :func:`moving_bands` takes as the stream's false alarms (the constant
+#: share the selection used alone before; 2 to 10 times what still views show: 0.1 % on dim 1/1/8/8, 0.02-0.06 %
+#: on the other patterns and levels): a view whose median band moves more than this is mostly moving, and its bands
+#: are judged against this share with the least dispersion.
+FALSE_ALARM_LIMIT = 0.002
 #: A band more than this share of whose pixels are unsettled (n < max_history: a stream's start, a restart) runs
 #: the method every frame.
 UNSETTLED_SHARE = 0.3
@@ -132,6 +143,56 @@ def band_counts(sampled: np.ndarray) -> np.ndarray:
     sampled = np.ascontiguousarray(sampled)
     q = BAND_ROWS // 4
     return np.array([np.count_nonzero(sampled[k:k + q]) for k in range(0, sampled.shape[0], q)])
+
+
+def moving_bands(band_motion: list[np.ndarray], band_pixels: np.ndarray, cluster: int = 1,
+                 false_selection: float = FALSE_SELECTION, limit: float = FALSE_ALARM_LIMIT) -> np.ndarray:
+    """bool (bands,): the bands where something moved within the frames of ``band_motion`` (a list of F int
+    (bands,) arrays: each frame's moving pixels per band on every 4th row, :func:`band_counts`) beyond the false
+    alarms this stream's motion test shows. ``band_pixels``: int (bands,), the pixels each band's counts are of
+    (its every 4th row). ``cluster``: the fewest sampled pixels one false alarm adds (2 widen + 1: a flag needs a
+    flagged neighbour and is widened by ``widen``, so it covers at least that much of a sampled row).
+
+    A still band's count is the pixels of false-alarm clusters: a Poisson number of clusters, each several pixels
+    (adjacent pixels share the test's window readings, then the widening), so a compound Poisson count, of mean
+    mu and variance D mu with D = E[S^2] / E[S] >= ``cluster`` (S: a cluster's pixels). It is tested as the
+    quasi-Poisson count D Poisson(mu / D). The stream's own evidence gives mu and D, robust while fewer than half
+    of the bands move: the false-alarm rate a pixel is the median over bands of their mean rate over the frames
+    (most bands of a view are still; the mean over frames keeps it off 0 on streams with a cluster a band every
+    few frames); D = (1.4826 MAD)^2 / mu, at least ``cluster``, with MAD the median absolute deviation of every
+    band's and frame's count (scaled to a mean band): the variance it gives a normal spread, so D holds the
+    clusters' sizes and the bands' different rates (a dim region makes more false alarms). A band moves when its
+    largest count exceeds the quantile at 1 - ``false_selection`` / F of its quasi-Poisson count (one test a
+    frame), or the one a rate of ``limit`` with D = ``cluster`` gives, if lower: when more than half of the bands
+    move, the median is a moving band's and the stream's own rate is not the false alarms'; the limit still runs
+    those bands. (A D thousands of times mu, a view split about evenly between still and moving bands, puts the
+    quantile at 0: every band with a count runs.)
+    """
+    if not band_motion:
+        return np.zeros(len(band_pixels), bool)
+    counts = np.asarray(band_motion, np.float64)  # (F, bands)
+    pixels = np.asarray(band_pixels, np.float64)
+    rates = counts / pixels
+    rate = float(np.median(rates.mean(axis=0)))
+    typical = float(pixels.mean())
+    spread = 1.4826 * float(np.median(np.abs(rates - np.median(rates)))) * typical
+    dispersion = max(spread * spread / (rate * typical) if rate > 0 else 0.0, float(cluster))
+    own, floor = poisson_quantile(np.concatenate((rate * pixels / dispersion, limit * pixels / cluster)),
+                                  false_selection / counts.shape[0]).reshape(2, -1)
+    return counts.max(axis=0) > np.minimum(dispersion * own, cluster * floor)
+
+
+def poisson_quantile(mean: np.ndarray, p: float) -> np.ndarray:
+    """int (n,): per element of ``mean`` (float (n,), >= 0), the least k with P(N > k) <= ``p`` for N Poisson of
+    that mean (its pmf summed in logs, exact to float64)."""
+    # (a frame's bands but its last have the same pixels: their means are one)
+    values, inverse = np.unique(np.maximum(np.asarray(mean, np.float64), 1e-300), return_inverse=True)
+    top = int(np.max(values + 12.0 * np.sqrt(values) + 40.0))  # (beyond: a tail far below any p asked)
+    k = np.arange(top + 1)
+    log_factorial = np.concatenate(([0.0], np.cumsum(np.log(np.arange(1, top + 1)))))
+    pmf = np.exp(k * np.log(values)[:, None] - values[:, None] - log_factorial)
+    within = 1.0 - np.cumsum(pmf, axis=1) <= p  # P(N > k) <= p
+    return np.where(within.any(axis=1), np.argmax(within, axis=1), top)[inverse.ravel()]
 
 
 def band_mask(flags: np.ndarray, h: int) -> np.ndarray:

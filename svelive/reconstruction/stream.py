@@ -609,7 +609,8 @@ class Reconstructor:
         into (svelive.reconstruction.settle): every band without a history of this shape (or before a partial
         frame was fused: ``last_variance``, its variance), or after a frame whose brightness ratio
         (``last_ratio``) moved; else those where something moved within the last max_history frames
-        (``band_motion``: moving pixels per band on every 4th row, of the last fused frames), those whose
+        beyond the false alarms the stream shows (``band_motion``: moving pixels per band on every 4th row, of
+        the last fused frames; settle.moving_bands), those whose
         history is mostly unsettled (a stream's start, a restart) and the round-robin's ``tick``-th 1 / K."""
 
         h, w = shape
@@ -617,9 +618,9 @@ class Reconstructor:
         if (history is None or history.mean.shape != shape or last_variance is None
                 or last_variance.shape != shape or abs(last_ratio - 1.0) > RATIO_TOLERANCE):
             return np.ones(len(spans), bool)
-        # not the isolated false alarms, nor the pixels reset where a reading crossed the censor level
-        selected = (np.max(band_motion, axis=0) > settle.MOVING_SHARE * (settle.BAND_ROWS // 4) * w if band_motion
-                    else np.zeros(len(spans), bool))
+        # not the false alarms this stream's test shows, nor the pixels reset where a reading crossed the censor level
+        sampled = np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w  # (the counts' pixels: every 4th row)
+        selected = settle.moving_bands(band_motion, sampled, 2 * int(self.motion_config.widen) + 1)
         # (a frame's hint and its fuse read the same history: counted once)
         cached = self._unsettled
         if cached is not None and cached[0]() is history:
@@ -627,7 +628,7 @@ class Reconstructor:
         else:
             unsettled = settle.band_counts(history.weight[::4] > np.float32(1.0 / self.motion_config.max_history))
             self._unsettled = weakref.ref(history), unsettled
-        selected |= unsettled > settle.UNSETTLED_SHARE * np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w
+        selected |= unsettled > settle.UNSETTLED_SHARE * sampled
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
         selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
         return selected
