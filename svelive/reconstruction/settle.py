@@ -584,7 +584,7 @@ def skipped_resets(skipped: np.ndarray, reset: np.ndarray, motion: np.ndarray, n
     h, w = reset.shape
     words = reset_words(reset)
     censored = np.empty_like(new_censored)
-    mark = np.zeros((h, w), np.int8)
+    mark = np.empty((h, w), np.int8)  # (zeroed by the pieces, each its rows)
     # (touched lazily: pages of their own, never malloc's heap; a piece's rows own its stretch of each)
     ys, xs = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
     stack_y, stack_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
@@ -617,15 +617,17 @@ def skipped_resets(skipped: np.ndarray, reset: np.ndarray, motion: np.ndarray, n
 @kernel
 def _listed_resets(r0, r1, skipped, reset, words, motion, new_censored, old_bound, old_weight, old_test, scale,
                    tested, tested_variance, inv_k2, keep, censored, mark, ys, xs, takes_y, takes_x):
-    """:func:`skipped_resets` on rows [r0, r1): ``censored``'s rows copied from ``new_censored``; the reset pixels
-    of skipped rows listed into ``ys``, ``xs`` in reverse raster order, each marked in ``mark`` 2 where it takes
-    this frame's estimate by the test (also listed into ``takes_y``, ``takes_x``), else 1. ``words``: ``reset``'s
-    rows as uint64 words (:func:`reset_words`), which the listing skips where 0. Returns (listed, taking)."""
+    """:func:`skipped_resets` on rows [r0, r1): ``censored``'s rows copied from ``new_censored`` and ``mark``'s
+    zeroed; the reset pixels of skipped rows listed into ``ys``, ``xs`` in reverse raster order, each marked in
+    ``mark`` 2 where it takes this frame's estimate by the test (also listed into ``takes_y``, ``takes_x``), else 1.
+    ``words``: ``reset``'s rows as uint64 words (:func:`reset_words`), which the listing skips where 0. Returns
+    (listed, taking)."""
     w = reset.shape[1]
     one = np.float32(1)
     for r in range(r0, r1):
         for c in range(w):
             censored[r, c] = new_censored[r, c]
+            mark[r, c] = 0
     count, top = 0, 0
     nw = words.shape[1]
     for r in range(r1 - 1, r0 - 1, -1):
