@@ -638,11 +638,15 @@ class Reconstructor:
         history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
 
         inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
-        noise = noise_model(inp)
+        # (the method's noise model, from the frame alone, on the pool while this thread makes the selection)
+        pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
+        noise = noise_model(inp) if pending is None else None
         h, w = inp.shape
         with self._lock:
             hint, tick = self._history, self._fused_partials + len(self._in_flight)
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
+            if pending is not None:
+                noise = pending.result()
             partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
                                      None if selected.all() else weakref.ref(hint), tick,
                                      dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
