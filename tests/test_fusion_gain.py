@@ -180,6 +180,10 @@ def test_a_trusted_model_whose_fits_agree_is_refitted_ever_later_and_on_the_sche
     # runs 1-3 (fits after 2, 3), 9-11, 25-27, 57-59, 89-91 (stray), 92-94, 100-102
     assert _fitted_at(noise, 105) == [2, 3, 11, 27, 59, 91, 94, 102]
     assert noise.trusted and noise.estimate is sharp
+    from svelive.core.errors import SveliveError
+
+    with pytest.raises(SveliveError, match="refit_max"):  # a bound below the schedule's own gap
+        NoiseSchedule(refit_every=64, refit_max=32)
 
 
 def test_on_a_noise_thread_a_disagreeing_fit_cuts_a_backed_off_gap_to_the_schedules():
