@@ -66,7 +66,7 @@ def outside_heap(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     array goes, never kept in malloc's heap.
 
     For whole-frame buffers a stream makes seldom, which :func:`keep_freed_memory` would otherwise keep: a
-    noise tracker reads three frames in every 64 (``svelive.noise.NoiseTracker``); from the heap, its frames
+    noise tracker reads three frames in every 64 to 512 (``svelive.noise.NoiseTracker``); from the heap, its frames
     and their temporaries added to the heap's peak, which a process then keeps resident for good. Pages are
     zero-filled when first written (a fault each), which is why a stream's every-frame buffers stay in the heap.
     """

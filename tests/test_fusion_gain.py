@@ -151,3 +151,55 @@ def test_an_untrusted_model_is_refitted_sooner_with_gaps_doubling_then_on_the_sc
     # runs 1-3 (fits after 2, 3), 4-6, 10-12, 22-24 (trusted), then none before frame 22 + 64
     assert fitted_at == [2, 3, 6, 12, 24], fitted_at
     assert noise.trusted
+
+
+def _fitted_at(noise, frames: int, settle=lambda: None) -> list[int]:
+    """The frames (1-based) after which ``noise`` took a fit, feeding it ``frames`` still frames; ``settle`` waits
+    for its executor's work before the next frame."""
+    frame, still = np.zeros((4, 4), np.uint16), np.ones((4, 4), bool)
+    fitted_at = []
+    for k in range(1, frames + 1):
+        fits = noise.fits
+        noise.observe(frame, None, still if noise.needs_static() else None)
+        settle()
+        if noise.fits > fits:
+            fitted_at.append(k)
+    return fitted_at
+
+
+def test_a_trusted_model_whose_fits_agree_is_refitted_ever_later_and_on_the_schedule_again_after_a_disagreement():
+    """Each later run's fit that agrees with the trusted model doubles the gap between runs (run start to run start:
+    8, 16, 32, then refit_max = 32); a fit that disagrees distrusts the model (the next run at once), and the fit
+    that agrees again brings the schedule's gap back, not the backed-off one."""
+    from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
+
+    sharp = NoiseEstimate(1.0, 1.0, 0.01, 0.01, 0, "estimated")
+    stray = NoiseEstimate(3.0, 1.0, 0.01, 0.01, 0, "estimated")
+    fits = [sharp] * 5 + [stray] + [sharp] * 4
+    noise = StreamNoise(NoiseSchedule(run_frames=3, refit_every=8, refit_max=32), tracker=_FittedTracker(fits))
+    # runs 1-3 (fits after 2, 3), 9-11, 25-27, 57-59, 89-91 (stray), 92-94, 100-102
+    assert _fitted_at(noise, 105) == [2, 3, 11, 27, 59, 91, 94, 102]
+    assert noise.trusted and noise.estimate is sharp
+    from svelive.core.errors import SveliveError
+
+    with pytest.raises(SveliveError, match="refit_max"):  # a bound below the schedule's own gap
+        NoiseSchedule(refit_every=64, refit_max=32)
+
+
+def test_on_a_noise_thread_a_disagreeing_fit_cuts_a_backed_off_gap_to_the_schedules():
+    """With an executor the gap after a run is chosen before that run's fit is done (from the fits before it); a
+    fit that then disagrees leaves at most the schedule's gap from the run's end, not the backed-off one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
+
+    sharp = NoiseEstimate(1.0, 1.0, 0.01, 0.01, 0, "estimated")
+    stray = NoiseEstimate(3.0, 1.0, 0.01, 0.01, 0, "estimated")
+    fits = [sharp] * 5 + [stray] + [sharp] * 4
+    with ThreadPoolExecutor(1) as pool:
+        noise = StreamNoise(NoiseSchedule(run_frames=3, refit_every=8, refit_max=32), tracker=_FittedTracker(fits),
+                            executor=pool)
+        fitted_at = _fitted_at(noise, 90, settle=lambda: pool.submit(lambda: None).result())
+    # gaps chosen one fit late: runs 1-3, 9-11, 17-19, 33-35, 65-67 (stray, its gap of 29 cut to 5), 73-75, 76-78
+    assert fitted_at == [2, 3, 11, 19, 35, 67, 75, 78, 86]
+    assert noise.error is None and noise.trusted

@@ -348,3 +348,42 @@ def test_a_dim_four_row_still_stream_settles():
         computed.append(None if p is None else p["computed"] / p["bands"])
     assert None not in computed[8:]
     assert np.mean(computed[8:]) <= 1 / k + 0.5 / 8
+
+
+def test_the_skipped_rows_resets_on_threads_are_one_threads(monkeypatch):
+    """settle.skipped_resets in pieces of rows (3 threads, a pool) gives what it gives on one thread, where the
+    frame is one piece: the on-demand pixels in the same order, the kept count, the kept pixels' history and the
+    new censoring, bit for bit, on the arguments of a stream's frames as the moving disc starts and crosses
+    bands (where the pixels taking this frame spread through crossed readings across pieces' rows)."""
+    raws, sensor = _moving_disc_raws(20)
+    calls = []
+    original = settle.skipped_resets
+
+    def record(*args):
+        calls.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        return original(*args)
+
+    kw = dict(black_level=64, white_level=4095, gain=sensor.gain, read_noise=sensor.read_noise, refresh=4)
+    with monkeypatch.context() as patch:
+        patch.setattr(settle, "skipped_resets", record)
+        stream = Reconstructor("1,4/16,64", **kw)
+        for raw in raws:
+            stream.process(raw)
+    assert len(calls) >= 5
+    taken = kept = 0
+    with ThreadPoolExecutor(2) as pool:
+        for args in calls:
+            fresh = lambda: [a.copy() if isinstance(a, np.ndarray) else a for a in args[:-1]]  # noqa: E731
+            one = fresh()
+            want = settle.skipped_resets(*one, 1)
+            assert len(settle.pieces([(0, args[1].shape[0])], 3)) > 1
+            for workers in (3, pool):
+                got_args = fresh()
+                got = settle.skipped_resets(*got_args, workers)
+                for g, w in zip(got, want):
+                    np.testing.assert_array_equal(g, w)
+                for k in (16, 17, 18):  # weight, own, test: the kept pixels' history
+                    np.testing.assert_array_equal(got_args[k], one[k])
+            taken += want[0].size
+            kept += want[2]
+    assert taken > 0 and kept > 0

@@ -37,17 +37,31 @@ class NoiseSchedule:
             low leaves the fusion's 3-sigma detail test at 3 sqrt(0.85) = 2.77 sigma and its 4-sigma
             motion test at 3.7 sigma: the share of noise taken for detail or motion at most doubles
             (0.27 % -> 0.56 %, 6e-5 -> 2e-4), where the fixed defaults can be several times off.
+        refit_max: the longest gap, in frames from run start to run start, that the schedule backs off to
+            while the model is trusted and each later run's fit agrees with it (:func:`agree`): the gap doubles
+            from ``refit_every`` with each agreeing fit, and is ``refit_every`` again after a fit that
+            disagrees (or leaves the model untrusted), and for a new model (a camera change makes a new
+            :class:`StreamNoise`). What the service changes itself does not need a refit to be seen: the
+            gain is set only when the camera is opened, an exposure time change does not change the model
+            (gain and read noise in DN), and a new calibration or pixel format is a new camera, hence a new
+            model (``Reconstructor._with_noise``). What is left changes slowly: the sensor's temperature
+            (read noise, dark signal) over a warm-up of minutes. 512 frames is 17 s at 30 fps and 26 s at the
+            service's 20 fps, well within that; a fit costs about 250 ms CPU at 1920x1200, so the noise thread
+            goes from about 4 ms a frame at 64 to 0.5 ms. ``refit_max`` = ``refit_every`` keeps the fixed gap.
     """
 
     run_frames: int = 3
     refit_every: int = 64
     trusted_below: float = 0.15
+    refit_max: int = 512
 
     def __post_init__(self) -> None:
         if int(self.run_frames) < 2:
             raise SveliveError(f"noise schedule: run_frames must be >= 2, got {self.run_frames}")
         if int(self.refit_every) != 0 and int(self.refit_every) < int(self.run_frames):
             raise SveliveError(f"noise schedule: refit_every must be 0 or >= run_frames, got {self.refit_every}")
+        if int(self.refit_every) != 0 and int(self.refit_max) < int(self.refit_every):
+            raise SveliveError(f"noise schedule: refit_max must be >= refit_every, got {self.refit_max}")
         if not self.trusted_below > 0:
             raise SveliveError(f"noise schedule: trusted_below must be > 0, got {self.trusted_below}")
 
@@ -63,13 +77,16 @@ class StreamNoise:
     reset, a cut) is dropped; before the first complete run the next frame starts another. The first
     run's last fit replaces the fit after its second frame whatever it says (it holds that fit's samples
     and the three frames'); a later run's fit that disagrees with the model (:func:`agree`) keeps the
-    model but distrusts it until a fit agrees. A given gain or read noise is kept. One caller of
+    model but distrusts it until a fit agrees. While the model is trusted and each later run's fit agrees with
+    it, the gap between runs doubles up to ``schedule.refit_max`` (:meth:`_next_wait`); a fit that disagrees
+    brings it back. A given gain or read noise is kept. One caller of
     :meth:`first` and :meth:`observe` at a time, frames in order; :attr:`estimate` and :attr:`trusted`
     may be read from any thread.
 
     With an ``executor`` (one thread: the live service, where a fit's 250 ms at 1920x1200 would stall the
     stream) the tracker reads a run's frames and fits there, in order, and a fit's model is taken when it
-    is done; the gap to the next run is then chosen from the trust before that fit. A failure there is
+    is done; the gap to the next run is then chosen from the trust and agreement before that fit, and cut back
+    to the schedule's ``refit_every`` when that fit disagrees. A failure there is
     kept in :attr:`error` (the model in use stays); without one it is raised to the caller.
     """
 
@@ -91,6 +108,9 @@ class StreamNoise:
         self._wait = 0  # frames before the next run starts
         self._untrusted_runs = 0  # complete runs in a row after which the model was not trusted
         self._conflict = False  # whether the tracker's last fit contradicted the model in use
+        self._agreed = 0  # later runs' fits in a row that agreed with a trusted model (the back-off's doublings)
+        self._disagreed = False  # a fit disagreed since the current gap was chosen (set with the model's lock)
+        self._gap = 0  # frames of the current gap between runs, as chosen
 
     @property
     def estimate(self) -> NoiseEstimate | None:
@@ -140,6 +160,11 @@ class StreamNoise:
         if self._position is not None and static is None:  # the run is broken: drop it
             self._position = None
         if self._position is None:
+            if self._disagreed:  # a fit done on the executor during a backed-off gap: the schedule's gap at most
+                with self._lock:
+                    self._disagreed = False
+                elapsed = self._gap - self._wait
+                self._wait = min(self._wait, max(schedule.refit_every - schedule.run_frames, 0) - elapsed)
             if self._runs > 0 and (self._wait > 0 or schedule.refit_every <= 0):
                 self._wait -= 1
                 return None
@@ -187,17 +212,24 @@ class StreamNoise:
             return self._take(model, runs)
 
     def _next_wait(self) -> int:
-        """Frames between the run just complete and the next: the schedule's once the model is trusted; while it
-        is not (the stream's output is then its single frames), 0, 3, 9, 21, 45, ... frames (the gaps doubling
-        up to the schedule's), so that a model the first run could not state well enough (a small or busy frame)
-        is refined within a few runs at a bounded cost: about log2(refit_every / run_frames) runs more."""
+        """Frames between the run just complete and the next: the schedule's once the model is trusted, doubled
+        for each later run's fit in a row that agreed with the trusted model, up to ``refit_max`` (run start to
+        run start: 64, 128, 256, 512, 512, ...); while it is not trusted (the stream's output is then its single
+        frames), 0, 3, 9, 21, 45, ... frames (the gaps doubling up to the schedule's), so that a model the first
+        run could not state well enough (a small or busy frame) is refined within a few runs at a bounded cost:
+        about log2(refit_every / run_frames) runs more."""
         schedule = self.schedule
         full = max(schedule.refit_every - schedule.run_frames, 0)
         if self.trusted:
             self._untrusted_runs = 0
-            return full
-        self._untrusted_runs += 1
-        return min(full, schedule.run_frames * (2 ** (self._untrusted_runs - 1) - 1))
+            with self._lock:
+                doublings = min(self._agreed, 32)
+            interval = min(schedule.refit_max, schedule.refit_every * 2 ** doublings)
+            self._gap = max(interval - schedule.run_frames, 0) if schedule.refit_every > 0 else full
+        else:
+            self._untrusted_runs += 1
+            self._gap = min(full, schedule.run_frames * (2 ** (self._untrusted_runs - 1) - 1))
+        return self._gap
 
     def _take(self, fit: NoiseEstimate, runs: int) -> NoiseEstimate | None:
         """The model after a tracker's fit (see the class): the fit, or None where the model in use is kept."""
@@ -209,7 +241,11 @@ class StreamNoise:
             # Not within the first run: its last fit holds every sample of the one before and the three frames'
             # (unbiased) samples, where the fit after two frames has only a pair's, which can be confidently
             # wrong (BrightRings 3 000 e- / 2 e-, 4 stops under: gain 2.2x stated 14 %, then 1.0x from three)
-            self._conflict = True
+            self._conflict, self._agreed, self._disagreed = True, 0, True
             return None
+        later = self._fitted and runs > 1
+        self._agreed = self._agreed + 1 if later and self.trusted else 0
         self._estimate, self._fitted, self._conflict = fit, True, False
+        if not self.trusted:
+            self._agreed, self._disagreed = 0, True
         return self._estimate

@@ -159,7 +159,7 @@ class NoiseTracker:
 
     def rest(self) -> None:
         """Drop the frames kept for the next frame's samples, keeping a digest of the last one: for a pause in
-        the frames added (a stream's tracker reads runs of three frames every 64, ``svelive.noise.StreamNoise``),
+        the frames added (a stream's tracker reads runs of three frames every 64 to 512, ``svelive.noise.StreamNoise``),
         after which the next frame comes without a static mask. Such a frame reads no frame before it but to
         tell whether it is the last one again (then it adds nothing, as without the pause); with a static mask
         it would have given temporal samples from the frame before, which are now not taken."""

@@ -44,7 +44,6 @@ from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
 from svelive.jit import flat, kernel
-from svelive.memory import outside_heap
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour, settle
 from svelive.reconstruction.colour.interpolate import _pieces
@@ -568,18 +567,12 @@ class Reconstructor:
         inv_k2 = np.float32(1.0 / settle.UNSTABLE_SIGMAS ** 2)
         # a kept pixel's history keeps the censoring it was made of (else the next frame, whose readings keep
         # this one's censoring, would test a window mean of another kind against it)
-        censored = frame.censored.copy()
-        h, w = censored.shape
-        # (touched lazily, a few pages of 74 MB: pages of their own, never malloc's heap whatever the frame's size)
-        ys, xs = outside_heap(2 * h * w, np.intp), outside_heap(2 * h * w, np.intp)
         no_rows = np.empty((0, 0), np.float32)
         wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
-        n, kept = settle.skipped_resets(~partial.rows, fused.reset, settle.reset_words(fused.reset), fused.motion,
-                                        frame.censored, history.bound, history.weight, history.own, history.tested,
-                                        history.censored, scale, tested, tested_variance, inv_k2, scale == 1, wy, wx,
-                                        state.weight, state.own, no_rows if state.test is None else state.test,
-                                        censored, np.zeros((h, w), np.int8), ys, xs)
-        ys, xs = ys[:n], xs[:n]
+        ys, xs, kept, censored = settle.skipped_resets(
+            ~partial.rows, fused.reset, fused.motion, frame.censored, history.bound, history.weight, history.own,
+            history.tested, history.censored, scale, tested, tested_variance, inv_k2, scale == 1, wy, wx,
+            state.weight, state.own, no_rows if state.test is None else state.test, self._threads)
         ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads)
         partial.stats.update(stats, kept_px=kept)
         fused = replace(fused, state=replace(state, censored=censored))
@@ -645,11 +638,15 @@ class Reconstructor:
         history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
 
         inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
-        noise = noise_model(inp)
+        # (the method's noise model, from the frame alone, on the pool while this thread makes the selection)
+        pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
+        noise = noise_model(inp) if pending is None else None
         h, w = inp.shape
         with self._lock:
             hint, tick = self._history, self._fused_partials + len(self._in_flight)
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
+            if pending is not None:
+                noise = pending.result()
             partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
                                      None if selected.all() else weakref.ref(hint), tick,
                                      dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
