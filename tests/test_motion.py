@@ -297,6 +297,36 @@ def test_the_global_tests_on_threads_count_and_take_the_ratio_as_on_one():
     assert decisions == {True, False}
 
 
+def _dim_pair(seed: int, change: float) -> tuple[TemporalState, np.ndarray, np.ndarray, np.ndarray]:
+    """A fused history of a dim scene (levels 0.5-6 noise deviations, the history's own noise an eighth of the
+    frame's) and a new frame of it whose light is ``change`` times the history's, with fresh noise."""
+    rng = np.random.default_rng(seed)
+    shape = (600, 960)
+    truth = rng.uniform(0.5, 6.0, shape).astype(np.float32)
+    variance = np.ones(shape, np.float32)
+    no = np.zeros(shape, bool)
+    mean = (truth + rng.normal(0, np.sqrt(1 / 8), shape)).astype(np.float32)
+    image = (change * truth + rng.normal(0, 1, shape)).astype(np.float32)
+    return TemporalState(mean, mean, np.full(shape, 1 / 8, np.float32), no, no), image, variance, no
+
+
+def test_a_still_dim_frame_has_no_brightness_change():
+    # the median ratio of pixels chosen because they read 3 deviations above 0 leans towards those whose noise was
+    # positive: about +3 % on these frames, beyond RATIO_TOLERANCE in every one, which then scaled the history
+    for seed in range(8):
+        state, image, variance, no = _dim_pair(seed, 1.0)
+        assert illumination_ratio(state, image, variance, no) == 1.0
+
+
+@pytest.mark.parametrize("change", [0.9, 1.1])
+def test_a_change_of_light_is_found_in_a_dim_frame(change):
+    # (found, not measured: the ratio's level is the median of the chosen pixels' ratios, which still leans up by
+    # a few % this dim)
+    for seed in range(4):
+        state, image, variance, no = _dim_pair(seed, change)
+        assert (illumination_ratio(state, image, variance, no) - 1.0) * (change - 1.0) > 0
+
+
 def test_detail_threshold_is_the_window_mean_of_chi_square_at_k_sigmas():
     k3 = binomial_kernel(3)
     expected = 1 + 3 * np.sqrt(2 * (np.outer(k3, k3) ** 2).sum())
