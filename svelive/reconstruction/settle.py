@@ -11,9 +11,9 @@ estimate). :class:`svelive.reconstruction.stream.Reconstructor` with ``refresh=K
 - the bands whose history is not settled (more than :data:`UNSETTLED_SHARE` of their pixels with
   n < max_history: a stream's start, a restart),
 - a round-robin 1 / K of the settled bands (the history keeps refreshing and follows slow changes),
-- every band when there is no history (a stream's first frame, after a reset or a restart) or the frame before
-  measured a brightness ratio beyond fusion.RATIO_TOLERANCE (a still view's dim 1/1/8/8 frames measure one in
-  about half the frames: their ratio is biased and spread by about that much);
+- every band when there is no history (a stream's first frame, after a reset or a restart) or the light changed
+  in the frame before (fusion.illumination_ratio measured a ratio beyond fusion.RATIO_TOLERANCE, which it does
+  only where the frame's differences from the history say so beyond their noise);
 
 a pixel of a skipped band takes its history's mean (times the brightness ratio) as this frame's estimate
 (:func:`svelive.reconstruction.fusion.fuse`'s ``predicted`` rows): its mean stays as it is, its own readings,
