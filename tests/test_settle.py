@@ -387,3 +387,114 @@ def test_the_skipped_rows_resets_on_threads_are_one_threads(monkeypatch):
             taken += want[0].size
             kept += want[2]
     assert taken > 0 and kept > 0
+
+
+def _colour_frames(n, width=328, height=200):
+    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9, cfa="RGGB")
+    try:
+        return list(demo.frames(limit=n))
+    finally:
+        demo.close()
+
+
+def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frames_results():
+    """A colour frame's folded luminance (per-pixel exposures e' = e k_c, SveInput.folded; dual-ISO 1/1/8/8 on
+    RGGB): the method on its bands, on demand in atlases (every cell of the frame) and edge stacks, and the window
+    mean of skipped rows (the generic per-pixel pass) give the full frame's results bit for bit, bright and 8 stops
+    dim (the colour band refresh, issue 25)."""
+    from svelive.reconstruction import colour
+    from svelive.reconstruction.numerics import window_estimate
+
+    frame = _colour_frames(1)[0]
+    for dim in (1.0, 2.0 ** -8):
+        inp = _dimmed_input(frame, dim)
+        inter = colour.interpolation(colour.chroma(inp), coarse=False)
+        inp = colour.luminance_input(inp, inter, True)
+        assert inp.folded
+        noise = noise_model(inp)
+        image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
+        window = np.stack(window_estimate(inp, image, variance))  # (what a colour stream's motion tests read)
+        h, w = inp.shape
+        hy, hx = settle.halo_for(inp.pattern)
+        c = settle.CELL
+        cells = np.array([(i, j) for i in range(h // c) for j in range(w // c)
+                          if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
+        atlas, oy, ox = settle._atlas(inp, cells, 8)
+        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
+        for (i, j), y, x in zip(cells, oy, ox):
+            rows, cols = slice(i * c, i * c + c), slice(j * c, j * c + c)
+            for g, want in zip(got, (image, lower, variance)):
+                np.testing.assert_array_equal(g[i * c + y:i * c + c + y, j * c + x:j * c + c + x], want[rows, cols])
+        bands = len(settle.bands(h))
+        part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
+        for workers in (1, 3):
+            _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4), (image, lower, variance), workers)
+        selected = np.arange(bands) % 2 == 1
+        out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
+               np.zeros((2, h, w), np.float32))
+        settle.method_on_bands(inp, noise, selected, *out)
+        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
+        for got_band, want in zip(out, (image, lower, variance)):
+            np.testing.assert_array_equal(got_band[rows], want[rows])
+        # (dual-ISO's window mean is not the method's window: the stream makes every row of it with window_rows)
+        for workers in (1, 2):
+            level = np.zeros((2, h, w), np.float32)
+            settle.window_rows(inp, image, variance, [(0, h)], level[0], level[1], None, workers)
+            np.testing.assert_array_equal(level, window)
+            level = np.zeros((2, h, w), np.float32)
+            settle.window_rows(inp, image, variance, settle.band_rows(selected, h), level[0], level[1], None, workers)
+            np.testing.assert_array_equal(level[:, rows], window[:, rows])
+
+
+def test_a_colour_refresh_stream_skips_luminance_bands_and_stays_close():
+    """``colour_refresh``: a still colour view's stream runs the method on part of its luminance's bands and its
+    output stays close to refresh 0's; with K = 1 (every band every frame) it is refresh 0's, bit for bit; without
+    ``colour_refresh`` a colour stream ignores ``refresh``."""
+    frames = _colour_frames(13, 328, 400)
+    camera = frames[0].camera
+    off = Reconstructor(camera)
+    every = Reconstructor(camera, refresh=1, colour_refresh=True)
+    on = Reconstructor(camera, refresh=4, colour_refresh=True)
+    ignored = Reconstructor(camera, refresh=4)
+    computed = []
+    for f in frames:
+        a, b, c, d = off.process(f), every.process(f), on.process(f), ignored.process(f)
+        np.testing.assert_array_equal(b.image, a.image)
+        np.testing.assert_array_equal(d.image, a.image)
+        p = on.last_partial
+        computed.append(1.0 if p is None else p["computed"] / p["bands"])
+        assert c.method_rows == computed[-1]
+        assert np.isfinite(c.image).all() and (c.image >= 0).all()
+    assert ignored.last_partial is None and every.last_partial is not None
+    assert min(computed[9:]) < 0.75
+    rel = np.abs(c.image - a.image) / np.maximum(a.image, 1.0)
+    assert float(np.sqrt(np.mean(rel ** 2))) < 0.03
+
+
+def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
+    """``colour_refresh``: colour frames (a still dual-ISO scene, the sensor given) estimated one and two frames
+    ahead of their fusion give the sequential stream's output, motion and weights bit for bit, ``fuse`` computing
+    bands of the folded luminance that the hints skipped and dropping others."""
+    from collections import deque
+
+    from svelive.bench.live import case_camera, case_radiance, resized, static_frames
+    from svelive.simulation import load_sample_scene
+
+    camera = case_camera("dual-iso")
+    scene = resized(load_sample_scene("mttamwest", rgb=True), (400, 328))
+    raws, _ = static_frames(case_radiance("dual-iso", "bright", scene), camera, 16, 1)
+    for lag in (1, 2):
+        sequential = Reconstructor(camera, refresh=4, colour_refresh=True)
+        ahead = Reconstructor(camera, refresh=4, colour_refresh=True)
+        pending, fused = deque(), 0
+        for raw in raws + [None] * lag:
+            if raw is not None:
+                pending.append(ahead.estimate(raw))
+            if len(pending) > lag or raw is None:
+                got, want = ahead.fuse(pending.popleft()), sequential.process(raws[fused])
+                for name in ("image", "motion", "weight", "luminance"):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name),
+                                                  err_msg=f"lag {lag}, frame {fused}: {name}")
+                fused += 1
+        state = ahead.refresh_state()
+        assert state["applies"] and state["hint_added"] > 0 and state["hint_dropped"] > 0, state

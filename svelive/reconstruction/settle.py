@@ -49,7 +49,7 @@ from svelive.reconstruction.methods.adaptive.parameters import kernels as method
 from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, thread_count, tile_rows,
                                                  window_kernels, window_level_row)
 from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
-                                             _window_layout)
+                                             _window_layout, _window_strip)
 
 #: Rows of a band, the unit of the selection (adaptive's strips: 64 rows).
 BAND_ROWS = 64
@@ -245,7 +245,11 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     ``cache``: a dict the caller keeps across a stream's frames for the tables of :func:`_clean_tables` (one
     entry), or None (made for this call). ``workers``: the rows are cut into pieces (:func:`pieces`) spread
     over these threads (methods.base.map_on); each row's result is made from its window's rows alone, so the
-    results do not depend on it."""
+    results do not depend on it. A folded input (a colour frame's luminance: per-pixel exposures, which no
+    table by row phase holds) takes numerics._window_strip, the generic pass of numerics.window_estimate."""
+    if inp.folded or inp.pattern.pixel_map is not None:
+        _window_rows_per_pixel(inp, image, variance, rows, level, noise, workers)
+        return
     layout = _window_layout(inp.pattern, inp.period, inp.shape)
     kernels = layout.kernels
     if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
@@ -261,6 +265,26 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     def strip(span: tuple[int, int]) -> None:
         _window_strip_clean(inp.signal, exposure, inp.censored, *span, *kernels, inv_gain, floor,
                             image, variance, level, noise, row_tables, tables, row_of)
+
+    map_on(workers, strip, pieces(rows, thread_count(workers)))
+
+
+def _window_rows_per_pixel(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: list[tuple[int, int]],
+                           level: np.ndarray, noise: np.ndarray, workers: int | Executor = 1) -> None:
+    """:func:`window_rows` of an input whose exposures are per pixel (float32 (H, W), a folded colour luminance):
+    numerics._window_strip over each piece of ``rows``, the pass numerics.window_estimate runs on such an input
+    (same kernels, same order of sums: bit-identical to its rows), with no tables (every window row's sums of e,
+    G^2 e and G^2 are made again: they vary from pixel to pixel)."""
+    kernels = window_kernels(inp.period)
+    if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
+        raise NotImplementedError("window_rows: windows longer than the inline taps")
+    sensor = inp.sensor
+    inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
+    no_rows = np.empty((4, 0, inp.shape[1]), np.float32)
+
+    def strip(span: tuple[int, int]) -> None:
+        _window_strip(inp.signal, inp.exposure, inp.censored, *span, *kernels, inv_gain, floor, image, variance,
+                      level, noise, no_rows)
 
     map_on(workers, strip, pieces(rows, thread_count(workers)))
 
@@ -416,15 +440,19 @@ def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np
     shape = (-(-n // columns) * py, min(n, columns) * px)
     signal = np.zeros(shape, np.float32)
     censored = np.zeros(shape, bool)
-    # every patch starts on whole tiles: the atlas's exposures are the pattern's
+    # every patch starts on whole tiles: the atlas's exposures are the pattern's, or a folded input's own per
+    # pixel (copied with the patch; the pattern's in the atlas's empty slots)
     exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
+    per_pixel = inp.folded or inp.pattern.pixel_map is not None
     k = np.arange(n)
     ys, xs = (k // columns) * py, (k % columns) * px
     fys, fxs = cells[:, 0] * CELL - hy, cells[:, 1] * CELL - hx
     for y, x, fy, fx in zip(ys.tolist(), xs.tolist(), fys.tolist(), fxs.tolist()):
         signal[y:y + py, x:x + px] = inp.signal[fy:fy + py, fx:fx + px]
         censored[y:y + py, x:x + px] = inp.censored[fy:fy + py, fx:fx + px]
-    atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+        if per_pixel:
+            exposure[y:y + py, x:x + px] = inp.exposure[fy:fy + py, fx:fx + px]
+    atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral, folded=inp.folded)
     return atlas, ys - fys, xs - fxs
 
 
@@ -551,7 +579,7 @@ def _edge_stack(inp: SveInput, cells: list[tuple[int, int]]) -> tuple[SveInput, 
         exposure[y:y + r1 - r0, x:x + c1 - c0] = inp.exposure[r0:r1, c0:c1]
         oy.append(y - r0)
         ox.append(x - c0)
-    stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+    stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral, folded=inp.folded)
     return stack, np.array(oy, np.intp), np.array(ox, np.intp)
 
 
@@ -723,6 +751,15 @@ def reset_words(reset: np.ndarray) -> np.ndarray:
     if reset.flags.c_contiguous and w % 8 == 0:
         return reset.view(np.uint64)
     return np.empty((h, 0), np.uint64)
+
+
+def supports_colour(pattern: Pattern, cfa_shape: tuple[int, int], cell: tuple[int, int]) -> bool:
+    """Whether a colour stream (joint, the luminance folded with the cells' shares) can skip bands of its luminance
+    (prototype, issue 25): :func:`supports` of its exposure pattern, a colour filter tile and chroma cells
+    (``cell``, rows x cols) whose sides divide :data:`CELL`, :data:`HALO` and :data:`BAND_ROWS` (a band, crop or
+    patch starts on whole joint tiles and whole cell rows)."""
+    sides = all(CELL % n == 0 and HALO % n == 0 and BAND_ROWS % n == 0 for n in (*cfa_shape, *cell))
+    return sides and supports(pattern)
 
 
 def supports(pattern: Pattern) -> bool:
