@@ -3,6 +3,7 @@ of a still colour stream, refresh 0 against K, and how far its output moves.
 
     python benchmarks/settle_colour.py demo [--size 1920x1200] [--frames 24] [--refresh 8]
     python benchmarks/settle_colour.py sim [--image DIR/Desk.exr ...] [--size 640x400] [--noise bright,dim]
+    ... [--moving-share 1]   # a diagnostic: no band kept for its motion (the floor of the round-robin alone)
 
 ``demo``: the demo's colour camera (dual-ISO 1/1/8/8 on RGGB, a still view). The streams take the same frames in
 turn, frame by frame in one process, the order alternated every frame; each frame's thread CPU time (one thread).
@@ -81,7 +82,12 @@ def main() -> int:
     ap.add_argument("--refresh", default="8")
     ap.add_argument("--image", nargs="*", default=["/work/shared/data/hdr/Desk.exr"])
     ap.add_argument("--noise", default="bright,dim")
+    ap.add_argument("--moving-share", type=float, default=None,
+                    help="settle.MOVING_SHARE (a diagnostic: 1 keeps no band for its motion, the round-robin's floor)")
     args = ap.parse_args()
+    if args.moving_share is not None:
+        from svelive.reconstruction import settle
+        settle.MOVING_SHARE = args.moving_share
     from svelive.memory import keep_freed_memory
     keep_freed_memory()
     ks = [0] + [int(k) for k in args.refresh.split(",")]
