@@ -1,7 +1,7 @@
 """The colour band refresh's prototype (issue 25, ``Reconstructor(refresh=K, colour_refresh=True)``): CPU per frame
 of a still colour stream, refresh 0 against K, and how far its output moves.
 
-    python benchmarks/settle_colour.py demo [--size 1920x1200] [--frames 24] [--refresh 8]
+    python benchmarks/settle_colour.py demo [--size 1920x1200] [--frames 24] [--refresh 8] [--workers 1]
     python benchmarks/settle_colour.py sim [--image DIR/Desk.exr ...] [--size 640x400] [--noise bright,dim]
     ... [--moving-share 1]   # a diagnostic: no band kept for its motion (the floor of the round-robin alone)
 
@@ -27,20 +27,22 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-def run_streams(camera, frames, ks: list[int], truth=None) -> dict:
+def run_streams(camera, frames, ks: list[int], truth=None, workers: int = 1) -> dict:
     """Each stream of ``ks`` (0: off) over ``frames`` in turn, frame by frame, the order alternated; per stream the
-    thread CPU (s) a frame, its last_partial, its relative RMS difference from off and (with ``truth``) PU21."""
+    CPU (s) a frame (the calling thread's with one worker, else the process's: the streams' pools), its
+    last_partial, its relative RMS difference from off and (with ``truth``) PU21."""
     from svelive.metrics import pu21_psnr_colour
     from svelive.reconstruction import Reconstructor
 
-    streams = {k: Reconstructor(camera, workers=1, refresh=k, colour_refresh=k > 0) for k in ks}
+    streams = {k: Reconstructor(camera, workers=workers, refresh=k, colour_refresh=k > 0) for k in ks}
+    clock = time.thread_time if workers == 1 else time.process_time
     out = {k: dict(cpu=[], stats=[], diff=[], pu21=[]) for k in ks}
     for i, frame in enumerate(frames):
         images = {}
         for k in (ks if i % 2 == 0 else ks[::-1]):
-            t = time.thread_time()
+            t = clock()
             r = streams[k].process(frame)
-            out[k]["cpu"].append(time.thread_time() - t)
+            out[k]["cpu"].append(clock() - t)
             images[k] = r.image
             out[k]["stats"].append(streams[k].last_partial or {})
         for k in ks:
@@ -82,6 +84,7 @@ def main() -> int:
     ap.add_argument("--refresh", default="8")
     ap.add_argument("--image", nargs="*", default=["/work/shared/data/hdr/Desk.exr"])
     ap.add_argument("--noise", default="bright,dim")
+    ap.add_argument("--workers", type=int, default=1, help="each stream's threads (CPU then the process's)")
     ap.add_argument("--moving-share", type=float, default=None,
                     help="settle.MOVING_SHARE (a diagnostic: 1 keeps no band for its motion, the round-robin's floor)")
     args = ap.parse_args()
@@ -98,8 +101,9 @@ def main() -> int:
         frames = list(demo.frames(limit=args.frames))
         demo.close()
         print(f"# demo {width}x{height} colour ({frames[0].camera.pattern}, {frames[0].camera.cfa}), "
-              f"{args.frames} frames, load {os.getloadavg()[0]:.2f}; thread CPU ms a frame, median of frames 9..N")
-        report(run_streams(frames[0].camera, frames, ks), ks)
+              f"{args.frames} frames, {args.workers} worker(s), load {os.getloadavg()[0]:.2f}; "
+              f"{'thread' if args.workers == 1 else 'process'} CPU ms a frame, median of frames 9..N")
+        report(run_streams(frames[0].camera, frames, ks, workers=args.workers), ks)
         return 0
     from svelive.bench.live import case_camera, case_radiance, resized, static_frames
     from svelive.exr import read_exr
@@ -112,7 +116,7 @@ def main() -> int:
             raws, truth = static_frames(case_radiance("dual-iso", noise, scene), camera, args.frames, 1)
             print(f"# {os.path.basename(path)} {width}x{height} dual-iso {noise}, {args.frames} frames, load "
                   f"{os.getloadavg()[0]:.2f}", flush=True)
-            report(run_streams(camera, raws, ks, truth), ks)
+            report(run_streams(camera, raws, ks, truth, args.workers), ks)
     return 0
 
 
