@@ -28,14 +28,35 @@ def _dimmed_input(frame, dim):
     return prepare(raw, frame.camera)
 
 
-def _needed(h, w, seed):
-    """bool (h, w): 40 random pixels, the corners and pixels by every edge: where an on-demand estimate is asked."""
+def _needed(h, w, seed, scattered=40):
+    """bool (h, w): ``scattered`` random pixels, the corners and pixels by every edge: where an on-demand estimate is
+    asked (with few pixels no band is computed whole: every edge pixel then takes a stack)."""
     rng = np.random.default_rng(seed)
     need = np.zeros((h, w), bool)
-    need[rng.integers(0, h, 40), rng.integers(0, w, 40)] = True
-    for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
+    need[rng.integers(0, h, scattered), rng.integers(0, w, scattered)] = True
+    for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1),
+                 (20, 2), (1, w - 20), (h - 20, w - 3), (h - 1, w - 40)]:  # (two boxes clipped at one corner)
         need[y, x] = True
     return need
+
+
+def _assert_atlases_give_the_full_frames(inp, noise, full):
+    """Every cell of CELL px of the frame inside it by the halo, as a box of settle._atlas (8 a row), and boxes of
+    other sizes (1 to 3 cells, then a grain's), give the full frame's (image, lower, variance) bit for bit."""
+    h, w = inp.shape
+    hy, hx = settle.halo_for(inp.pattern)
+    c = settle.CELL
+    boxes = np.array([(i * c, i * c + c, j * c, j * c + c) for i in range(h // c) for j in range(w // c)
+                      if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
+    gy, gx = settle.box_grain(inp.pattern)
+    odd = np.array([(hy, hy + gy, hx, hx + 3 * c), (hy + c, hy + 3 * c, hx + gx, hx + 2 * gx),
+                    (h - hy - 2 * gy, h - hy, w - hx - c, w - hx)])
+    for row in [*np.split(boxes, range(8, len(boxes), 8)), odd]:
+        atlas, oy, ox = settle._atlas(inp, row)
+        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
+        for (r0, r1, c0, c1), y, x in zip(row, oy, ox):
+            for g, want in zip(got, full):
+                np.testing.assert_array_equal(g[r0 + y:r1 + y, c0 + x:c1 + x], want[r0:r1, c0:c1])
 
 
 def _assert_on_demand_is_the_full_frames(part, need, full, workers=1):
@@ -59,6 +80,7 @@ def test_bands_cells_and_edges_give_the_full_frames_results():
         with ThreadPoolExecutor(2) as pool:  # (the atlases and stacks as jobs over threads, or on the caller's)
             for workers in (1, 3, pool):
                 _assert_on_demand_is_the_full_frames(part, need, (image, lower, variance), workers)
+        _assert_on_demand_is_the_full_frames(part, _needed(h, w, 3, 0), (image, lower, variance))
         selected = np.arange(bands) % 2 == 0
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
@@ -231,19 +253,11 @@ def test_a_four_row_pattern_s_bands_cells_and_edges_give_the_full_frames_results
         noise = noise_model(inp)
         image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
         h, w = inp.shape
-        hy, hx = settle.halo_for(inp.pattern)
-        c = settle.CELL
-        cells = np.array([(i, j) for i in range(h // c) for j in range(w // c)
-                          if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
-        atlas, oy, ox = settle._atlas(inp, cells, 8)
-        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
-        for (i, j), y, x in zip(cells, oy, ox):
-            rows, cols = slice(i * c, i * c + c), slice(j * c, j * c + c)
-            for g, want in zip(got, (image, lower, variance)):
-                np.testing.assert_array_equal(g[i * c + y:i * c + c + y, j * c + x:j * c + c + x], want[rows, cols])
+        _assert_atlases_give_the_full_frames(inp, noise, (image, lower, variance))
         bands = len(settle.bands(h))
         part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
-        _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4), (image, lower, variance))
+        for scattered in (40, 0):
+            _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4, scattered), (image, lower, variance))
         selected = np.arange(bands) % 2 == 1
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
@@ -415,20 +429,11 @@ def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frame
         image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
         window = np.stack(window_estimate(inp, image, variance))  # (what a colour stream's motion tests read)
         h, w = inp.shape
-        hy, hx = settle.halo_for(inp.pattern)
-        c = settle.CELL
-        cells = np.array([(i, j) for i in range(h // c) for j in range(w // c)
-                          if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
-        atlas, oy, ox = settle._atlas(inp, cells, 8)
-        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
-        for (i, j), y, x in zip(cells, oy, ox):
-            rows, cols = slice(i * c, i * c + c), slice(j * c, j * c + c)
-            for g, want in zip(got, (image, lower, variance)):
-                np.testing.assert_array_equal(g[i * c + y:i * c + c + y, j * c + x:j * c + c + x], want[rows, cols])
+        _assert_atlases_give_the_full_frames(inp, noise, (image, lower, variance))
         bands = len(settle.bands(h))
         part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
-        for workers in (1, 3):
-            _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4), (image, lower, variance), workers)
+        for workers, scattered in ((1, 40), (3, 40), (1, 0)):
+            _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4, scattered), (image, lower, variance), workers)
         selected = np.arange(bands) % 2 == 1
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
