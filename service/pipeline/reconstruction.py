@@ -95,7 +95,8 @@ class ReconstructionStage:
                 return self._current[1]
             previous = self._current[1]
         stream = Reconstructor(camera, method=step.method, temporal=step.temporal,
-                               workers=max(1, self.workers // self.frames), noise_thread=True, refresh=self.refresh)
+                               workers=max(1, self.workers // self.frames), noise_thread=True, refresh=self.refresh,
+                               colour_refresh=True)
         if previous is not None:
             if self._current[0][0] == camera:
                 stream.continue_noise(previous)
