@@ -503,3 +503,24 @@ def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
                 fused += 1
         state = ahead.refresh_state()
         assert state["applies"] and state["hint_added"] > 0 and state["hint_dropped"] > 0, state
+
+
+def test_demand_boxes_gather_pixels_that_lie_together_and_split_long_thin_groups():
+    """settle.demand_boxes: pixels within touching grid cells share one box; a group whose box with its halo would
+    cost more than its cells each with theirs (a diagonal line across the frame) is split into its cells; every
+    pixel lies in its box, every box starts on the grid."""
+    shape, grain, halo = (400, 640), (8, 8), (32, 16)
+    blob_y, blob_x = np.meshgrid(np.arange(100, 105), np.arange(200, 206), indexing="ij")  # a false alarm, widened
+    line = np.arange(0, 380, 3)  # a thin diagonal: its bounding box with halos is most of the frame
+    ys = np.concatenate((blob_y.ravel(), line)).astype(np.intp)
+    xs = np.concatenate((blob_x.ravel(), line + 200)).astype(np.intp)
+    boxes, box_of = settle.demand_boxes(shape, ys, xs, grain, halo)
+    b = boxes[box_of]
+    assert ((b[:, 0] <= ys) & (ys < b[:, 1]) & (b[:, 2] <= xs) & (xs < b[:, 3])).all()
+    assert (boxes[:, [0, 2]] % 8 == 0).all()
+    assert len(np.unique(box_of[:blob_y.size])) == 1  # the blob: one box
+    blob = boxes[box_of[0]]
+    assert blob[1] - blob[0] <= 16 and blob[3] - blob[2] <= 16
+    cost = np.prod(boxes[:, [1, 3]] - boxes[:, [0, 2]] + 2 * np.array(halo), axis=1).sum()
+    assert cost < (shape[0] + 2 * halo[0]) * (shape[1] + 2 * halo[1]) / 2  # the line: small boxes, not one large
+    assert len(boxes) > len(line) // 3

@@ -28,8 +28,9 @@ frame): so do the bands and the atlas here.
 Which bands run is decided by the history a frame is fused into: ``Reconstructor.estimate`` takes a hint from
 the history the stream holds then, and ``Reconstructor.fuse`` computes the bands the hint missed
 (:func:`method_on_band_rows`) and treats those it took beyond the selection as skipped, so frames estimated
-ahead fuse as the sequential stream's, bit for bit. The live service runs it for monochrome streams
-(svelive.reconstruction.live.LIVE_REFRESH); the library's default is off.
+ahead fuse as the sequential stream's, bit for bit. A colour stream (``colour_refresh``) runs it on its folded
+luminance (a monochrome input of per-pixel exposures; its chroma and fold on every pixel). The live service runs
+it for monochrome and colour streams (svelive.reconstruction.live.LIVE_REFRESH); the library's default is off.
 """
 
 from __future__ import annotations
@@ -433,23 +434,37 @@ def _window_strip_clean(signal, exposure, censored, first, stop, ky, kx, ky2, kx
                 level_row[c], noise_row[c] = image[r, c], variance[r, c]
 
 
-def demand_boxes(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray, grain: tuple[int, int]
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def demand_boxes(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray, grain: tuple[int, int],
+                 halo: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """The boxes :func:`on_demand` computes for the pixels (``ys``, ``xs``, intp (n,)) of a frame of ``shape``:
     the pixels marked on a grid of ``grain`` (rows, cols) px, each group of grid cells that touch (8-connected)
-    one box, its bounding rectangle. Returns (boxes, box_of): int (m, 4) [r0, r1, c0, c1) frame rows and columns
-    (starting on whole grid cells, clipped to the frame), and each pixel's box, intp (n,)."""
+    one box, its bounding rectangle, unless that rectangle with its ``halo`` (rows, cols) costs more pixels than
+    its grid cells would each with theirs (a long thin group, a ring): then each of its grid cells is a box.
+    Returns (boxes, box_of): int (m, 4) [r0, r1, c0, c1) frame rows and columns (starting on whole grid cells,
+    clipped to the frame), and each pixel's box, intp (n,)."""
     import cv2
 
     h, w = shape
     gy, gx = grain
+    hy, hx = halo
     grid = np.zeros((-(-h // gy), -(-w // gx)), np.uint8)
     cy, cx = ys // gy, xs // gx
     grid[cy, cx] = 1
-    _, labels, found, _ = cv2.connectedComponentsWithStats(grid, connectivity=8)
-    x, y, bw, bh = (found[1:, k].astype(np.intp) for k in range(4))  # (label 0: the grid's empty cells)
+    n, labels, found, _ = cv2.connectedComponentsWithStats(grid, connectivity=8)
+    x, y, bw, bh, cells = (found[1:, k].astype(np.intp) for k in range(5))  # (label 0: the grid's empty cells)
+    whole = (bh * gy + 2 * hy) * (bw * gx + 2 * hx) <= cells * (gy + 2 * hy) * (gx + 2 * hx)
+    label_of = labels[cy, cx].astype(np.intp) - 1
+    if not whole.all():  # the grid cells of the groups split, each a box of its own after the whole groups'
+        split = ~whole[label_of]
+        marked, cell_of = np.unique(cy[split] * grid.shape[1] + cx[split], return_inverse=True)
+        label_of[split] = np.count_nonzero(whole) + cell_of
+        y, x = np.concatenate((y[whole], marked // grid.shape[1])), np.concatenate((x[whole], marked % grid.shape[1]))
+        bh = np.concatenate((bh[whole], np.ones(marked.size, np.intp)))
+        bw = np.concatenate((bw[whole], np.ones(marked.size, np.intp)))
+        renumber = np.cumsum(whole) - 1
+        label_of[~split] = renumber[label_of[~split]]
     boxes = np.stack([y * gy, np.minimum((y + bh) * gy, h), x * gx, np.minimum((x + bw) * gx, w)], axis=1)
-    return boxes, labels[cy, cx].astype(np.intp) - 1
+    return boxes, label_of
 
 
 def box_grain(pattern: Pattern) -> tuple[int, int]:
@@ -550,7 +565,7 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     rest = np.nonzero(~in_whole[inverse])[0]
     if not rest.size:
         return ys, xs, values, stats
-    boxes, box_of = demand_boxes((h, w), ys[rest], xs[rest], box_grain(inp.pattern))
+    boxes, box_of = demand_boxes((h, w), ys[rest], xs[rest], box_grain(inp.pattern), (hy, hx))
     stats["demand_boxes"] = len(boxes)
     # the atlases (a row of patches each) and the edge stacks, each one call of the method on one thread, spread
     # over the threads (a patch's results do not depend on its neighbours in an atlas: its halo is the method's
