@@ -209,10 +209,10 @@ class Reconstructor:
             estimate on demand. Which bands run is decided by the history a frame is fused into, so frames
             estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it. The live
             service's default for monochrome streams (svelive.reconstruction.live.LIVE_REFRESH).
-        colour_refresh: a prototype (issue 25, off by default): ``refresh`` for a colour stream too, on the bands
-            of its folded luminance (the chroma, its fusion and the refinement still run on every cell); its
-            output differs from refresh 0's as a monochrome stream's does, and has not been judged for accuracy
-            beyond docs/benchmarks.md ("A colour band refresh, prototyped").
+        colour_refresh: ``refresh`` for a colour stream too (issue 25; off by default in the library, on in the
+            live service), on the bands of its folded luminance (the chroma, its fusion and the refinement still
+            run on every cell); its output differs from refresh 0's as a monochrome stream's does
+            (docs/benchmarks.md, "A colour band refresh").
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
@@ -357,7 +357,7 @@ class Reconstructor:
 
     def refresh_state(self) -> dict[str, object] | None:
         """JSON-ready, None with ``refresh`` off: ``refresh`` (K), ``applies`` (this stream skips bands once its
-        model is trusted: monochrome, ``adaptive``, fusion, a supported tile), and of the last fused frame that
+        model is trusted: ``adaptive``, fusion, a supported tile, monochrome or with ``colour_refresh``), and of the last fused frame that
         took the partial path ``bands`` and ``computed`` (bands the method ran on) and ``on_demand_px``, or None
         before one; ``hint_added`` and ``hint_dropped``: bands :meth:`fuse` computed beyond its frames' estimates
         and dropped from them, over the stream's life (frames estimated ahead of the history they are fused into).
