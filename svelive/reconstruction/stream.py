@@ -207,8 +207,8 @@ class Reconstructor:
             rows whose history is not settled (recent motion, a start or restart) and a round-robin 1 / K of
             the others; skipped pixels keep their history's mean, pixels the test resets there get their
             estimate on demand. Which bands run is decided by the history a frame is fused into, so frames
-            estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it. The live
-            service's default for monochrome streams (svelive.reconstruction.live.LIVE_REFRESH).
+            estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it (colour ones
+            unless ``colour_refresh``). The live service's default (svelive.reconstruction.live.LIVE_REFRESH).
         colour_refresh: ``refresh`` for a colour stream too (issue 25; off by default in the library, on in the
             live service), on the bands of its folded luminance (the chroma, its fusion and the refinement still
             run on every cell); its output differs from refresh 0's as a monochrome stream's does
