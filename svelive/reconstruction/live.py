@@ -19,7 +19,8 @@ from svelive.core.errors import SveliveError
 #: frames), moving and unsettled bands every frame. Chosen on ``benchmarks/settle_cost.py`` and
 #: ``benchmarks/settle_accuracy.py`` (docs/benchmarks.md): on the still 1920x1200 demo K = 8 costs x0.70 of the
 #: stream without it, K = 4 x0.76; on issue 26's cases both within 0.04 dB PU21 of off. Colour streams take it on
-#: their folded luminance (``colour_refresh``; the service's colour CPU a frame x0.80-0.85, docs/benchmarks.md).
+#: their folded luminance (``colour_refresh``; the service's colour reconstruction CPU a frame x0.81-0.88,
+#: docs/benchmarks.md).
 LIVE_REFRESH = 8
 
 #: The method's share of the top step's CPU per frame, the part the band refresh saves on the bands it keeps:
