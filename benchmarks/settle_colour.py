@@ -3,7 +3,7 @@ of a still colour stream, refresh 0 against K, and how far its output moves.
 
     python benchmarks/settle_colour.py demo [--size 1920x1200] [--frames 24] [--refresh 8] [--workers 1]
     python benchmarks/settle_colour.py sim [--image DIR/Desk.exr ...] [--size 640x400] [--noise bright,dim]
-    ... [--moving-share 1]   # a diagnostic: no band kept for its motion (the floor of the round-robin alone)
+    ... [--round-robin-only]   # a diagnostic: no band kept for its motion (the floor of the round-robin alone)
 
 ``demo``: the demo's colour camera (dual-ISO 1/1/8/8 on RGGB, a still view). The streams take the same frames in
 turn, frame by frame in one process, the order alternated every frame; each frame's thread CPU time (one thread).
@@ -85,12 +85,13 @@ def main() -> int:
     ap.add_argument("--image", nargs="*", default=["/work/shared/data/hdr/Desk.exr"])
     ap.add_argument("--noise", default="bright,dim")
     ap.add_argument("--workers", type=int, default=1, help="each stream's threads (CPU then the process's)")
-    ap.add_argument("--moving-share", type=float, default=None,
-                    help="settle.MOVING_SHARE (a diagnostic: 1 keeps no band for its motion, the round-robin's floor)")
+    ap.add_argument("--round-robin-only", action="store_true",
+                    help="a diagnostic: no band kept for its motion (settle.moving_bands says none), the round-robin's "
+                         "floor")
     args = ap.parse_args()
-    if args.moving_share is not None:
+    if args.round_robin_only:
         from svelive.reconstruction import settle
-        settle.MOVING_SHARE = args.moving_share
+        settle.moving_bands = lambda band_motion, band_pixels, *a, **k: np.zeros(len(band_pixels), bool)
     from svelive.memory import keep_freed_memory
     keep_freed_memory()
     ks = [0] + [int(k) for k in args.refresh.split(",")]
