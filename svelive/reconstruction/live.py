@@ -19,7 +19,7 @@ from svelive.core.errors import SveliveError
 #: frames), moving and unsettled bands every frame. Chosen on ``benchmarks/settle_cost.py`` and
 #: ``benchmarks/settle_accuracy.py`` (docs/benchmarks.md): on the still 1920x1200 demo K = 8 costs x0.70 of the
 #: stream without it, K = 4 x0.76; on issue 26's cases both within 0.04 dB PU21 of off. Colour streams take it on
-#: their folded luminance (``colour_refresh``; the service's colour reconstruction CPU a frame x0.81-0.88,
+#: their folded luminance (``colour_refresh``; the service's colour reconstruction CPU a frame x0.78-0.88,
 #: docs/benchmarks.md).
 LIVE_REFRESH = 8
 
