@@ -45,8 +45,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="frames reconstructed at once, the threads shared among them (default 1: each frame over "
                         "every thread, the lowest latency; 2: more frames per second at a higher latency)")
     p.add_argument("--refresh", type=int, metavar="K",
-                   help="monochrome streams with fusion: run the method per frame only on the bands whose history "
-                        "needs it and a round-robin 1/K of the settled ones (default 8; 0: every band every frame)")
+                   help="streams with fusion, monochrome and colour: run the method per frame only on the bands whose "
+                        "history needs it and a round-robin 1/K of the settled ones (default 8; 0: every band every "
+                        "frame)")
     p.add_argument("--host", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (default 8000)")
     p.add_argument("--token", help="require Authorization: Bearer TOKEN (or ?token=) on every endpoint but /healthz; "

@@ -8,7 +8,7 @@ import numba
 import numpy as np
 
 import svelive
-from svelive import Pattern
+from svelive import Camera, Pattern, Sensor
 from svelive.reconstruction.stream import Reconstructor
 from svelive.reconstruction.warmup import warm_up
 from svelive.tonemap import ToneMapper
@@ -77,5 +77,30 @@ def test_warm_up_compiles_what_a_stream_runs():
         reconstructor.process(np.clip(rng.normal(scene, 20), 0, 4095).astype(np.uint16))
         cells += reconstructor.last_partial.get("demand_cells", 0)
     assert cells > 0
+    # the colour band refresh (``colour_refresh``, the service's colour streams): bands of the folded luminance, the
+    # skipped rows' window mean by the per-pixel pass, pixels reset in skipped bands on demand (a small change, then
+    # moves), a frame estimated ahead of the one before it; dual-ISO's 4-row tiles and 2x2 ones
+    glare = tall.copy()
+    glare[40:44, :8] = 8000  # saturated in every frame (a frame saturated all over never settles)
+    for pattern, scene, (dtype, white) in product(("1/1/8/8", "1,4/16,64"), (tall, glare),
+                                                  ((np.uint16, 4095), (np.uint8, 255))):
+        camera = Camera.build(pattern, "RGGB", Sensor(8 if dtype == np.uint8 else 12, gain=1.0, read_noise=20.0))
+        reconstructor = Reconstructor(camera, refresh=3, colour_refresh=True)
+        raws = []
+        for level, moved in [(0, 0)] * 11 + [(500, 0), (-500, 0), (0, 1), (0, 40), (0, 40)]:
+            view = np.roll(scene, moved, axis=1)
+            view[100:102, 60:62] += level
+            raws.append(np.clip(rng.normal(view, 20) * white / 4095, 0, white).astype(dtype))
+        skipped = demand = 0
+        for raw in raws[:-2]:
+            result = reconstructor.process(raw)
+            last = reconstructor.last_partial or {}
+            skipped += last.get("computed", 0) < last.get("bands", 0)
+            demand += last.get("demand_px", 0)
+        ahead = [reconstructor.estimate(raw) for raw in raws[-2:]]
+        for estimated in ahead:
+            result = reconstructor.fuse(estimated)
+        assert skipped and demand, (pattern, skipped, demand)
+        result.variance  # noqa: B018
     after = {name: len(k.signatures) for name, k in found.items()}
     assert after == before

@@ -150,10 +150,10 @@ def test_frames_nobody_watched_are_not_drops():
         h.close()
 
 
-def run_stage(raws, workers: int, frames: int, refresh: int = 0):
+def run_stage(raws, workers: int, frames: int, refresh: int = 0, camera=None):
     """The real live stage (ReconstructionStage) over ``raws`` all waiting at once (every thread has a frame to
     take), until it has published each: (its frames as published, in publishing order; its ``refresh_state()``
-    after each; the stage)."""
+    after each; the stage). ``camera``: the frames' (default PATTERN and SENSOR, monochrome)."""
     from service.pipeline.calibration import Calibration
     from service.pipeline.handoff import Newest, NewestSlot
     from service.pipeline.meters import DropCounter, RateMeter
@@ -162,10 +162,12 @@ def run_stage(raws, workers: int, frames: int, refresh: int = 0):
     from svelive.core.camera import Camera
     from svelive.core.frame import Frame
 
-    camera = Camera.build(PATTERN, sensor=SENSOR)
+    camera = camera if camera is not None else Camera.build(PATTERN, sensor=SENSOR)
+    pixel_format = "Mono12" if camera.cfa is None else "BayerRG12"
     slot, stop, port = NewestSlot(len(raws)), threading.Event(), Newest()
     for i, raw in enumerate(raws):
-        slot.put(Frame(raw=raw, frame_id=i, host_time_ns=time.monotonic_ns(), pixel_format="Mono12", camera=camera))
+        slot.put(Frame(raw=raw, frame_id=i, host_time_ns=time.monotonic_ns(), pixel_format=pixel_format,
+                       camera=camera))
     published, states = [], []
 
     class Recorded(ReconstructionStage):
@@ -218,6 +220,22 @@ def test_stage_with_band_refresh_publishes_the_sequential_streams_frames(workers
     for p, want in zip(published, expected):
         np.testing.assert_array_equal(p.hdr.image, want)
     assert min(state["computed"] for state in states[10:]) < 4  # bands skipped (4 bands of 64 rows)
+
+
+def test_stage_runs_the_band_refresh_on_colour_streams_too():
+    """``refresh`` applies to the live stage's colour streams as to monochrome ones (``colour_refresh``): a still
+    dual-ISO view (the sensor given) publishes the sequential colour refresh stream's frames, bands skipped."""
+    from svelive.bench.live import case_camera, case_radiance, resized, static_frames
+
+    camera = case_camera("dual-iso")
+    view = resized(load_sample_scene("mttamwest", rgb=True), (256, 192))
+    raws, _ = static_frames(case_radiance("dual-iso", "bright", view), camera, 14, 1)
+    sequential = Reconstructor(camera, refresh=8, colour_refresh=True)
+    expected = [sequential.process(raw).image for raw in raws]
+    published, states, _ = run_stage(raws, 2, 1, refresh=8, camera=camera)
+    for p, want in zip(published, expected):
+        np.testing.assert_array_equal(p.hdr.image, want)
+    assert states[-1]["applies"] and min(state["computed"] for state in states[9:]) < 4, states[-1]
 
 
 def run_plain(raws) -> list:

@@ -28,14 +28,35 @@ def _dimmed_input(frame, dim):
     return prepare(raw, frame.camera)
 
 
-def _needed(h, w, seed):
-    """bool (h, w): 40 random pixels, the corners and pixels by every edge: where an on-demand estimate is asked."""
+def _needed(h, w, seed, scattered=40):
+    """bool (h, w): ``scattered`` random pixels, the corners and pixels by every edge: where an on-demand estimate is
+    asked (with few pixels no band is computed whole: every edge pixel then takes a stack)."""
     rng = np.random.default_rng(seed)
     need = np.zeros((h, w), bool)
-    need[rng.integers(0, h, 40), rng.integers(0, w, 40)] = True
-    for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1)]:
+    need[rng.integers(0, h, scattered), rng.integers(0, w, scattered)] = True
+    for y, x in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (3, 100), (h - 2, 50), (90, 1), (91, w - 1),
+                 (20, 2), (1, w - 20), (h - 20, w - 3), (h - 1, w - 40)]:  # (two boxes clipped at one corner)
         need[y, x] = True
     return need
+
+
+def _assert_atlases_give_the_full_frames(inp, noise, full):
+    """Every cell of CELL px of the frame inside it by the halo, as a box of settle._atlas (8 a row), and boxes of
+    other sizes (1 to 3 cells, then a grain's), give the full frame's (image, lower, variance) bit for bit."""
+    h, w = inp.shape
+    hy, hx = settle.halo_for(inp.pattern)
+    c = settle.CELL
+    boxes = np.array([(i * c, i * c + c, j * c, j * c + c) for i in range(h // c) for j in range(w // c)
+                      if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
+    gy, gx = settle.box_grain(inp.pattern)
+    odd = np.array([(hy, hy + gy, hx, hx + 3 * c), (hy + c, hy + 3 * c, hx + gx, hx + 2 * gx),
+                    (h - hy - 2 * gy, h - hy, w - hx - c, w - hx)])
+    for row in [*np.split(boxes, range(8, len(boxes), 8)), odd]:
+        atlas, oy, ox = settle._atlas(inp, row)
+        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
+        for (r0, r1, c0, c1), y, x in zip(row, oy, ox):
+            for g, want in zip(got, full):
+                np.testing.assert_array_equal(g[r0 + y:r1 + y, c0 + x:c1 + x], want[r0:r1, c0:c1])
 
 
 def _assert_on_demand_is_the_full_frames(part, need, full, workers=1):
@@ -59,6 +80,7 @@ def test_bands_cells_and_edges_give_the_full_frames_results():
         with ThreadPoolExecutor(2) as pool:  # (the atlases and stacks as jobs over threads, or on the caller's)
             for workers in (1, 3, pool):
                 _assert_on_demand_is_the_full_frames(part, need, (image, lower, variance), workers)
+        _assert_on_demand_is_the_full_frames(part, _needed(h, w, 3, 0), (image, lower, variance))
         selected = np.arange(bands) % 2 == 0
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
@@ -231,19 +253,11 @@ def test_a_four_row_pattern_s_bands_cells_and_edges_give_the_full_frames_results
         noise = noise_model(inp)
         image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
         h, w = inp.shape
-        hy, hx = settle.halo_for(inp.pattern)
-        c = settle.CELL
-        cells = np.array([(i, j) for i in range(h // c) for j in range(w // c)
-                          if i * c >= hy and (i + 1) * c + hy <= h and j * c >= hx and (j + 1) * c + hx <= w])
-        atlas, oy, ox = settle._atlas(inp, cells, 8)
-        got = _estimate(atlas, noise, 1, want_variance=True)[:3]
-        for (i, j), y, x in zip(cells, oy, ox):
-            rows, cols = slice(i * c, i * c + c), slice(j * c, j * c + c)
-            for g, want in zip(got, (image, lower, variance)):
-                np.testing.assert_array_equal(g[i * c + y:i * c + c + y, j * c + x:j * c + c + x], want[rows, cols])
+        _assert_atlases_give_the_full_frames(inp, noise, (image, lower, variance))
         bands = len(settle.bands(h))
         part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
-        _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4), (image, lower, variance))
+        for scattered in (40, 0):
+            _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4, scattered), (image, lower, variance))
         selected = np.arange(bands) % 2 == 1
         out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
                np.zeros((2, h, w), np.float32))
@@ -387,3 +401,126 @@ def test_the_skipped_rows_resets_on_threads_are_one_threads(monkeypatch):
             taken += want[0].size
             kept += want[2]
     assert taken > 0 and kept > 0
+
+
+def _colour_frames(n, width=328, height=200):
+    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9, cfa="RGGB")
+    try:
+        return list(demo.frames(limit=n))
+    finally:
+        demo.close()
+
+
+def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frames_results():
+    """A colour frame's folded luminance (per-pixel exposures e' = e k_c, SveInput.folded; dual-ISO 1/1/8/8 on
+    RGGB): the method on its bands, on demand in atlases (every cell of the frame) and edge stacks, and the window
+    mean of skipped rows (the generic per-pixel pass) give the full frame's results bit for bit, bright and 8 stops
+    dim (the colour band refresh, issue 25)."""
+    from svelive.reconstruction import colour
+    from svelive.reconstruction.numerics import window_estimate
+
+    frame = _colour_frames(1)[0]
+    for dim in (1.0, 2.0 ** -8):
+        inp = _dimmed_input(frame, dim)
+        inter = colour.interpolation(colour.chroma(inp), coarse=False)
+        inp = colour.luminance_input(inp, inter, True)
+        assert inp.folded
+        noise = noise_model(inp)
+        image, lower, variance, _, _, _ = _estimate(inp, noise, 1, want_variance=True)
+        window = np.stack(window_estimate(inp, image, variance))  # (what a colour stream's motion tests read)
+        h, w = inp.shape
+        _assert_atlases_give_the_full_frames(inp, noise, (image, lower, variance))
+        bands = len(settle.bands(h))
+        part = settle.Partial(inp, noise, np.zeros(bands, bool), np.zeros(h, bool))
+        for workers, scattered in ((1, 40), (3, 40), (1, 0)):
+            _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4, scattered), (image, lower, variance), workers)
+        selected = np.arange(bands) % 2 == 1
+        out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
+               np.zeros((2, h, w), np.float32))
+        settle.method_on_bands(inp, noise, selected, *out)
+        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
+        for got_band, want in zip(out, (image, lower, variance)):
+            np.testing.assert_array_equal(got_band[rows], want[rows])
+        # (dual-ISO's window mean is not the method's window: the stream makes every row of it with window_rows)
+        for workers in (1, 2):
+            level = np.zeros((2, h, w), np.float32)
+            settle.window_rows(inp, image, variance, [(0, h)], level[0], level[1], None, workers)
+            np.testing.assert_array_equal(level, window)
+            level = np.zeros((2, h, w), np.float32)
+            settle.window_rows(inp, image, variance, settle.band_rows(selected, h), level[0], level[1], None, workers)
+            np.testing.assert_array_equal(level[:, rows], window[:, rows])
+
+
+def test_a_colour_refresh_stream_skips_luminance_bands_and_stays_close():
+    """``colour_refresh``: a still colour view's stream runs the method on part of its luminance's bands and its
+    output stays close to refresh 0's; with K = 1 (every band every frame) it is refresh 0's, bit for bit; without
+    ``colour_refresh`` a colour stream ignores ``refresh``."""
+    frames = _colour_frames(13, 328, 400)
+    camera = frames[0].camera
+    off = Reconstructor(camera)
+    every = Reconstructor(camera, refresh=1, colour_refresh=True)
+    on = Reconstructor(camera, refresh=4, colour_refresh=True)
+    ignored = Reconstructor(camera, refresh=4)
+    computed = []
+    for f in frames:
+        a, b, c, d = off.process(f), every.process(f), on.process(f), ignored.process(f)
+        np.testing.assert_array_equal(b.image, a.image)
+        np.testing.assert_array_equal(d.image, a.image)
+        p = on.last_partial
+        computed.append(1.0 if p is None else p["computed"] / p["bands"])
+        assert c.method_rows == computed[-1]
+        assert np.isfinite(c.image).all() and (c.image >= 0).all()
+    assert ignored.last_partial is None and every.last_partial is not None
+    assert min(computed[9:]) < 0.75
+    rel = np.abs(c.image - a.image) / np.maximum(a.image, 1.0)
+    assert float(np.sqrt(np.mean(rel ** 2))) < 0.03
+
+
+def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
+    """``colour_refresh``: colour frames (a still dual-ISO scene, the sensor given) estimated one and two frames
+    ahead of their fusion give the sequential stream's output, motion and weights bit for bit, ``fuse`` computing
+    bands of the folded luminance that the hints skipped and dropping others."""
+    from collections import deque
+
+    from svelive.bench.live import case_camera, case_radiance, resized, static_frames
+    from svelive.simulation import load_sample_scene
+
+    camera = case_camera("dual-iso")
+    scene = resized(load_sample_scene("mttamwest", rgb=True), (400, 328))
+    raws, _ = static_frames(case_radiance("dual-iso", "bright", scene), camera, 16, 1)
+    for lag in (1, 2):
+        sequential = Reconstructor(camera, refresh=4, colour_refresh=True)
+        ahead = Reconstructor(camera, refresh=4, colour_refresh=True)
+        pending, fused = deque(), 0
+        for raw in raws + [None] * lag:
+            if raw is not None:
+                pending.append(ahead.estimate(raw))
+            if len(pending) > lag or raw is None:
+                got, want = ahead.fuse(pending.popleft()), sequential.process(raws[fused])
+                for name in ("image", "motion", "weight", "luminance"):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name),
+                                                  err_msg=f"lag {lag}, frame {fused}: {name}")
+                fused += 1
+        state = ahead.refresh_state()
+        assert state["applies"] and state["hint_added"] > 0 and state["hint_dropped"] > 0, state
+
+
+def test_demand_boxes_gather_pixels_that_lie_together_and_split_long_thin_groups():
+    """settle.demand_boxes: pixels within touching grid cells share one box; a group whose box with its halo would
+    cost more than its cells each with theirs (a diagonal line across the frame) is split into its cells; every
+    pixel lies in its box, every box starts on the grid."""
+    shape, grain, halo = (400, 640), (8, 8), (32, 16)
+    blob_y, blob_x = np.meshgrid(np.arange(100, 105), np.arange(200, 206), indexing="ij")  # a false alarm, widened
+    line = np.arange(0, 380, 3)  # a thin diagonal: its bounding box with halos is most of the frame
+    ys = np.concatenate((blob_y.ravel(), line)).astype(np.intp)
+    xs = np.concatenate((blob_x.ravel(), line + 200)).astype(np.intp)
+    boxes, box_of = settle.demand_boxes(shape, ys, xs, grain, halo)
+    b = boxes[box_of]
+    assert ((b[:, 0] <= ys) & (ys < b[:, 1]) & (b[:, 2] <= xs) & (xs < b[:, 3])).all()
+    assert (boxes[:, [0, 2]] % 8 == 0).all()
+    assert len(np.unique(box_of[:blob_y.size])) == 1  # the blob: one box
+    blob = boxes[box_of[0]]
+    assert blob[1] - blob[0] <= 16 and blob[3] - blob[2] <= 16
+    cost = np.prod(boxes[:, [1, 3]] - boxes[:, [0, 2]] + 2 * np.array(halo), axis=1).sum()
+    assert cost < (shape[0] + 2 * halo[0]) * (shape[1] + 2 * halo[1]) / 2  # the line: small boxes, not one large
+    assert len(boxes) > len(line) // 3

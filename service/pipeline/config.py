@@ -47,9 +47,10 @@ class PipelineConfig:
             and published in arrival order. 1: each frame spread over every thread (the lowest
             latency); 2: more frames per second when the cores are otherwise free, at the latency of
             a frame on fewer threads (measured in docs/service.md).
-        refresh: monochrome streams with fusion and ``adaptive``: run the method per frame only on the bands
-            whose history needs it and a round-robin 1 / ``refresh`` of the settled ones (``Reconstructor(refresh=
-            ...)``, once the noise model is trusted); 0: every band every frame. Colour streams ignore it.
+        refresh: streams with fusion and ``adaptive``, monochrome and colour: run the method per frame only on the
+            bands whose history needs it and a round-robin 1 / ``refresh`` of the settled ones (``Reconstructor(
+            refresh=..., colour_refresh=True)``, once the noise model is trusted; a colour stream's bands are its
+            folded luminance's); 0: every band every frame.
         queue: frames the capture -> reconstruction hand-off holds (1..8).
         tone: preview tone-mapping parameters.
         colour: colour output of a colour camera (svelive.whitebalance.ColourSettings: white

@@ -33,10 +33,11 @@ class ReconstructionStage:
     with the camera's arrivals (``captured``) and the frames dropped while it was busy;
     ``LiveQuality.configure`` changes the configured method at run time.
 
-    ``refresh`` (K, ``PipelineConfig.refresh``) is every stream's ``Reconstructor(refresh=K)``: a monochrome
-    stream with fusion and ``adaptive`` runs the method per frame only on the bands whose history needs it and a
-    round-robin 1 / K of the settled ones, once its noise model is trusted (other streams, colour among them,
-    ignore it); which bands run is decided when a frame is fused, so ``frames`` > 1 gives the same frames.
+    ``refresh`` (K, ``PipelineConfig.refresh``) is every stream's ``Reconstructor(refresh=K, colour_refresh=True)``:
+    a stream with fusion and ``adaptive``, monochrome or colour (the bands of its folded luminance), runs the
+    method per frame only on the bands whose history needs it and a round-robin 1 / K of the settled ones, once its
+    noise model is trusted (other streams ignore it); which bands run is decided when a frame is fused, so
+    ``frames`` > 1 gives the same frames.
 
     ``frames`` threads each take the next frame and make its history-free part
     (``Reconstructor.estimate``, spread over ``workers // frames`` strip threads), then
@@ -66,7 +67,7 @@ class ReconstructionStage:
         self._captured = captured
         self.workers = workers
         self.frames = frames
-        self.refresh = refresh  # Reconstructor(refresh=...): monochrome streams with fusion skip settled bands
+        self.refresh = refresh  # Reconstructor(refresh=...): streams with fusion skip settled bands
         #: the newest reconstructed frame; its sequence number is the frame's ``Published.seq``
         self.hdr_port = hdr_port
         self._drops = drops
@@ -95,7 +96,8 @@ class ReconstructionStage:
                 return self._current[1]
             previous = self._current[1]
         stream = Reconstructor(camera, method=step.method, temporal=step.temporal,
-                               workers=max(1, self.workers // self.frames), noise_thread=True, refresh=self.refresh)
+                               workers=max(1, self.workers // self.frames), noise_thread=True, refresh=self.refresh,
+                               colour_refresh=True)
         if previous is not None:
             if self._current[0][0] == camera:
                 stream.continue_noise(previous)

@@ -13,12 +13,14 @@ from dataclasses import dataclass
 
 from svelive.core.errors import SveliveError
 
-#: The live service's ``Reconstructor(refresh=...)`` for monochrome streams with fusion and ``adaptive`` (the top
+#: The live service's ``Reconstructor(refresh=...)`` for streams with fusion and ``adaptive`` (the top
 #: step of :data:`LADDER`; svelive.reconstruction.settle): a settled band of a still view runs the method every 8th
 #: frame, once per ``max_history`` frames (so its history's mean takes a fresh estimate as often as it holds
 #: frames), moving and unsettled bands every frame. Chosen on ``benchmarks/settle_cost.py`` and
 #: ``benchmarks/settle_accuracy.py`` (docs/benchmarks.md): on the still 1920x1200 demo K = 8 costs x0.70 of the
-#: stream without it, K = 4 x0.76; on issue 26's cases both within 0.04 dB PU21 of off. Colour streams ignore it.
+#: stream without it, K = 4 x0.76; on issue 26's cases both within 0.04 dB PU21 of off. Colour streams take it on
+#: their folded luminance (``colour_refresh``; the service's colour reconstruction CPU a frame x0.78-0.88,
+#: docs/benchmarks.md).
 LIVE_REFRESH = 8
 
 #: The method's share of the top step's CPU per frame, the part the band refresh saves on the bands it keeps:

@@ -28,8 +28,9 @@ frame): so do the bands and the atlas here.
 Which bands run is decided by the history a frame is fused into: ``Reconstructor.estimate`` takes a hint from
 the history the stream holds then, and ``Reconstructor.fuse`` computes the bands the hint missed
 (:func:`method_on_band_rows`) and treats those it took beyond the selection as skipped, so frames estimated
-ahead fuse as the sequential stream's, bit for bit. The live service runs it for monochrome streams
-(svelive.reconstruction.live.LIVE_REFRESH); the library's default is off.
+ahead fuse as the sequential stream's, bit for bit. A colour stream (``colour_refresh``) runs it on its folded
+luminance (a monochrome input of per-pixel exposures; its chroma and fold on every pixel). The live service runs
+it for monochrome and colour streams (svelive.reconstruction.live.LIVE_REFRESH); the library's default is off.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from svelive.reconstruction.methods.adaptive.parameters import kernels as method
 from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, thread_count, tile_rows,
                                                  window_kernels, window_level_row)
 from svelive.reconstruction.numerics import (INLINE_TAPS, _kept_row_sums, _symmetric_column, _symmetric_row,
-                                             _window_layout)
+                                             _window_layout, _window_strip)
 
 #: Rows of a band, the unit of the selection (adaptive's strips: 64 rows).
 BAND_ROWS = 64
@@ -74,8 +75,11 @@ UNSETTLED_SHARE = 0.3
 #: (:func:`skipped_resets`) takes the rest (8, 16 and 32 pass the motion tests alike with bands skipped from
 #: the second frame; the demo's demand: 1800, 1100, 800 pixels a frame).
 UNSTABLE_SIGMAS = 16.0
-#: Cells of the on-demand atlas (px, square), aligned to the frame's grid.
+#: Cells (px, square, aligned to the frame's grid) by which :func:`on_demand` counts a band's demand.
 CELL = 16
+#: The grid (px) on which :func:`on_demand` gathers the pixels it is asked for into boxes (8: a false alarm of the
+#: motion test, widened, spans one or two such cells; a 16 px cell with 32-row halos cost 15 times its pixels).
+GRAIN = 8
 #: A band with at least this many on-demand cells is computed whole instead (a band with its halos costs
 #: (BAND_ROWS + 2 HALO) W pixels, a cell (CELL + 2 HALO)^2).
 CELL_LIMIT_SHARE = 0.6
@@ -245,7 +249,11 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     ``cache``: a dict the caller keeps across a stream's frames for the tables of :func:`_clean_tables` (one
     entry), or None (made for this call). ``workers``: the rows are cut into pieces (:func:`pieces`) spread
     over these threads (methods.base.map_on); each row's result is made from its window's rows alone, so the
-    results do not depend on it."""
+    results do not depend on it. A folded input (a colour frame's luminance: per-pixel exposures, which no
+    table by row phase holds) takes numerics._window_strip, the generic pass of numerics.window_estimate."""
+    if inp.folded or inp.pattern.pixel_map is not None:
+        _window_rows_per_pixel(inp, image, variance, rows, level, noise, workers)
+        return
     layout = _window_layout(inp.pattern, inp.period, inp.shape)
     kernels = layout.kernels
     if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
@@ -261,6 +269,26 @@ def window_rows(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: li
     def strip(span: tuple[int, int]) -> None:
         _window_strip_clean(inp.signal, exposure, inp.censored, *span, *kernels, inv_gain, floor,
                             image, variance, level, noise, row_tables, tables, row_of)
+
+    map_on(workers, strip, pieces(rows, thread_count(workers)))
+
+
+def _window_rows_per_pixel(inp: SveInput, image: np.ndarray, variance: np.ndarray, rows: list[tuple[int, int]],
+                           level: np.ndarray, noise: np.ndarray, workers: int | Executor = 1) -> None:
+    """:func:`window_rows` of an input whose exposures are per pixel (float32 (H, W), a folded colour luminance):
+    numerics._window_strip over each piece of ``rows``, the pass numerics.window_estimate runs on such an input
+    (same kernels, same order of sums: bit-identical to its rows), with no tables (every window row's sums of e,
+    G^2 e and G^2 are made again: they vary from pixel to pixel)."""
+    kernels = window_kernels(inp.period)
+    if kernels[0].size > INLINE_TAPS[0] or kernels[1].size > INLINE_TAPS[1]:
+        raise NotImplementedError("window_rows: windows longer than the inline taps")
+    sensor = inp.sensor
+    inv_gain, floor = np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
+    no_rows = np.empty((4, 0, inp.shape[1]), np.float32)
+
+    def strip(span: tuple[int, int]) -> None:
+        _window_strip(inp.signal, inp.exposure, inp.censored, *span, *kernels, inv_gain, floor, image, variance,
+                      level, noise, no_rows)
 
     map_on(workers, strip, pieces(rows, thread_count(workers)))
 
@@ -406,57 +434,118 @@ def _window_strip_clean(signal, exposure, censored, first, stop, ky, kx, ky2, kx
                 level_row[c], noise_row[c] = image[r, c], variance[r, c]
 
 
-def _atlas(inp: SveInput, cells: np.ndarray, columns: int) -> tuple[SveInput, np.ndarray, np.ndarray]:
-    """The patches of ``cells`` ((n, 2) (row, col) of cells inside the frame by :func:`halo_for`'s halo) with their
-    halos, stacked in a grid of ``columns`` patches a row; returns the atlas and each cell's offset (atlas minus
-    frame coordinates), rows and columns."""
+def demand_boxes(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray, grain: tuple[int, int],
+                 halo: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The boxes :func:`on_demand` computes for the pixels (``ys``, ``xs``, intp (n,)) of a frame of ``shape``:
+    the pixels marked on a grid of ``grain`` (rows, cols) px, each group of grid cells that touch (8-connected)
+    one box, its bounding rectangle, unless that rectangle with its ``halo`` (rows, cols) costs more pixels than
+    its grid cells would each with theirs (a long thin group, a ring): then each of its grid cells is a box.
+    Returns (boxes, box_of): int (m, 4) [r0, r1, c0, c1) frame rows and columns (starting on whole grid cells,
+    clipped to the frame), and each pixel's box, intp (n,)."""
+    import cv2
+
+    h, w = shape
+    gy, gx = grain
+    hy, hx = halo
+    grid = np.zeros((-(-h // gy), -(-w // gx)), np.uint8)
+    cy, cx = ys // gy, xs // gx
+    grid[cy, cx] = 1
+    n, labels, found, _ = cv2.connectedComponentsWithStats(grid, connectivity=8)
+    x, y, bw, bh, cells = (found[1:, k].astype(np.intp) for k in range(5))  # (label 0: the grid's empty cells)
+    whole = (bh * gy + 2 * hy) * (bw * gx + 2 * hx) <= cells * (gy + 2 * hy) * (gx + 2 * hx)
+    label_of = labels[cy, cx].astype(np.intp) - 1
+    if not whole.all():  # the grid cells of the groups split, each a box of its own after the whole groups'
+        split = ~whole[label_of]
+        marked, cell_of = np.unique(cy[split] * grid.shape[1] + cx[split], return_inverse=True)
+        label_of[split] = np.count_nonzero(whole) + cell_of
+        y, x = np.concatenate((y[whole], marked // grid.shape[1])), np.concatenate((x[whole], marked % grid.shape[1]))
+        bh = np.concatenate((bh[whole], np.ones(marked.size, np.intp)))
+        bw = np.concatenate((bw[whole], np.ones(marked.size, np.intp)))
+        renumber = np.cumsum(whole) - 1
+        label_of[~split] = renumber[label_of[~split]]
+    boxes = np.stack([y * gy, np.minimum((y + bh) * gy, h), x * gx, np.minimum((x + bw) * gx, w)], axis=1)
+    return boxes, label_of
+
+
+def box_grain(pattern: Pattern) -> tuple[int, int]:
+    """(rows, cols) px of :func:`demand_boxes`' grid for this pattern: :data:`GRAIN`, or the least multiple of it
+    that holds whole tiles (a box then starts on whole tiles, as a crop must)."""
+    return tuple(int(np.lcm(GRAIN, n)) for n in pattern.shape)
+
+
+def _atlas(inp: SveInput, boxes: np.ndarray) -> tuple[SveInput, np.ndarray, np.ndarray]:
+    """The patches of ``boxes`` (int (n, 4) [r0, r1, c0, c1) of the frame, each inside the frame by
+    :func:`halo_for`'s halo, starting on whole tiles) with their halos, side by side in one row (a patch shorter
+    than the row over zero readings); returns the atlas and each box's offset (atlas minus frame coordinates),
+    rows and columns, intp (n,) each."""
     hy, hx = halo_for(inp.pattern)
-    py, px = CELL + 2 * hy, CELL + 2 * hx
-    n = len(cells)
-    shape = (-(-n // columns) * py, min(n, columns) * px)
+    heights, widths = boxes[:, 1] - boxes[:, 0] + 2 * hy, boxes[:, 3] - boxes[:, 2] + 2 * hx
+    shape = (int(heights.max()), int(widths.sum()))
     signal = np.zeros(shape, np.float32)
     censored = np.zeros(shape, bool)
-    # every patch starts on whole tiles: the atlas's exposures are the pattern's
+    # every patch starts on whole tiles: the atlas's exposures are the pattern's, or a folded input's own per
+    # pixel (copied with the patch; the pattern's in the atlas's empty slots)
     exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
-    k = np.arange(n)
-    ys, xs = (k // columns) * py, (k % columns) * px
-    fys, fxs = cells[:, 0] * CELL - hy, cells[:, 1] * CELL - hx
-    for y, x, fy, fx in zip(ys.tolist(), xs.tolist(), fys.tolist(), fxs.tolist()):
-        signal[y:y + py, x:x + px] = inp.signal[fy:fy + py, fx:fx + px]
-        censored[y:y + py, x:x + px] = inp.censored[fy:fy + py, fx:fx + px]
-    atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
-    return atlas, ys - fys, xs - fxs
+    per_pixel = inp.folded or inp.pattern.pixel_map is not None
+    xs = np.concatenate(([0], np.cumsum(widths)[:-1]))
+    fys, fxs = boxes[:, 0] - hy, boxes[:, 2] - hx
+    for x, fy, fx, py, px in zip(xs.tolist(), fys.tolist(), fxs.tolist(), heights.tolist(), widths.tolist()):
+        signal[:py, x:x + px] = inp.signal[fy:fy + py, fx:fx + px]
+        censored[:py, x:x + px] = inp.censored[fy:fy + py, fx:fx + px]
+        if per_pixel:
+            exposure[:py, x:x + px] = inp.exposure[fy:fy + py, fx:fx + px]
+    atlas = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral, folded=inp.folded)
+    return atlas, -fys, xs - fxs
+
+
+def _shelves(boxes: np.ndarray, halo: tuple[int, int], threads: int) -> list[np.ndarray]:
+    """The atlases :func:`on_demand` makes of the interior ``boxes`` (int (n, 4)): indices into them, one
+    :func:`_atlas` each, boxes of about the same height side by side, rows up to 2048 px, about two a thread
+    where there are enough boxes (each row at least 8 of the mean box)."""
+    hy, hx = halo
+    widths = boxes[:, 3] - boxes[:, 2] + 2 * hx
+    order = np.argsort(boxes[:, 1] - boxes[:, 0], kind="stable")
+    budget = min(2048, max(int(widths.sum()) // (2 * threads), 8 * int(widths.mean())))
+    shelves, current, used = [], [], 0
+    for k in order.tolist():
+        if current and used + widths[k] > budget:
+            shelves.append(np.array(current, np.intp))
+            current, used = [], 0
+        current.append(k)
+        used += int(widths[k])
+    shelves.append(np.array(current, np.intp))
+    return shelves
 
 
 def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1
               ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
     """This frame's estimate at the pixels (``ys``, ``xs``, intp), in rows the method skipped: (ys, xs), their
-    (image, lower, variance), and counts (pixels, bands computed whole, cells).
+    (image, lower, variance), and counts (pixels, bands computed whole, cells of CELL px, boxes, and the pixels
+    the method ran on for the boxes, halos included).
 
-    Cells of CELL px holding such pixels go into atlases (their patches with their halos side by side) unless a
-    band holds so many that the band costs less whole; cells at the frame's edges into a stack per side. The
-    atlases and stacks are spread over ``workers`` (methods.base.map_on), the method on one thread each; the
-    bands computed whole run the method on ``workers``."""
+    A band holding so many such pixels' cells (CELL px) that the band costs less whole is computed whole; the
+    other pixels are gathered into boxes (:func:`demand_boxes`: the pixels that lie together, on a grid of
+    :func:`box_grain`), each computed with its halo: interior boxes in atlases (their patches side by side, one
+    row each), boxes at the frame's edges in a stack per side. The atlases and stacks are spread over ``workers``
+    (methods.base.map_on), the method on one thread each; the bands computed whole run the method on
+    ``workers``."""
     inp, noise = part.inp, part.noise
     h, w = inp.shape
     n = ys.size
-    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0)
+    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0, demand_boxes=0, demand_area=0)
     values = (np.empty(n, np.float32), np.empty(n, bool), np.empty(n, np.float32))
     if not n:
         return ys, xs, values, stats
     cw = -(-w // CELL)
     cell_of = (ys // CELL) * cw + xs // CELL
     cells, inverse = np.unique(cell_of, return_inverse=True)
-    ci, cj = cells // cw, cells % cw
-    band_of_cell = (ci * CELL) // BAND_ROWS
+    band_of_cell = ((cells // cw) * CELL) // BAND_ROWS
     hy, hx = halo_for(inp.pattern)
     limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * hy) * w / ((CELL + 2 * hy) * (CELL + 2 * hx))
     whole = np.zeros(len(part.computed), bool)
     counts = np.bincount(band_of_cell, minlength=len(whole))
     whole[:] = counts >= limit
     in_whole = whole[band_of_cell]
-    inside = (ci * CELL - hy >= 0) & ((ci + 1) * CELL + hy <= h) & (cj * CELL - hx >= 0) & \
-        ((cj + 1) * CELL + hx <= w)
     stats["demand_bands"] = int(np.count_nonzero(whole))
     stats["demand_cells"] = int(np.count_nonzero(~in_whole))
 
@@ -473,85 +562,107 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
                                   outside_heap((h, w), np.float32))
         method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
         take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
-    # the atlas's patches (in atlases of a row of patches each, fewer where few cells are asked for) and the edge
-    # stacks, each one call of the method on one thread, spread over the threads (a patch's results do not depend
-    # on its neighbours in an atlas: its halo is the method's reach)
-    atlas_cells = np.nonzero(~in_whole & inside)[0]
-    columns = min(2048 // (CELL + 2 * hx), max(-(-atlas_cells.size // (2 * thread_count(workers))), 8))
-    jobs = [(members, lambda m: _atlas(inp, np.stack([ci[m], cj[m]], axis=1), columns))
-            for members in np.split(atlas_cells, range(columns, atlas_cells.size, columns)) if members.size]
-    edge_cells = np.nonzero(~in_whole & ~inside)[0]
-    for members in _edge_groups(inp.shape, [(int(ci[c]), int(cj[c])) for c in edge_cells], (hy, hx)):
-        jobs.append((edge_cells[members], lambda m: _edge_stack(inp, [(int(ci[c]), int(cj[c])) for c in m])))
+    rest = np.nonzero(~in_whole[inverse])[0]
+    if not rest.size:
+        return ys, xs, values, stats
+    boxes, box_of = demand_boxes((h, w), ys[rest], xs[rest], box_grain(inp.pattern), (hy, hx))
+    stats["demand_boxes"] = len(boxes)
+    # the atlases (a row of patches each) and the edge stacks, each one call of the method on one thread, spread
+    # over the threads (a patch's results do not depend on its neighbours in an atlas: its halo is the method's
+    # reach)
+    inside = (boxes[:, 0] - hy >= 0) & (boxes[:, 1] + hy <= h) & (boxes[:, 2] - hx >= 0) & (boxes[:, 3] + hx <= w)
+    interior = np.nonzero(inside)[0]
+    jobs = []
+    if interior.size:
+        jobs = [(interior[m], lambda m: _atlas(inp, boxes[m]))
+                for m in _shelves(boxes[interior], (hy, hx), thread_count(workers))]
+    edge = np.nonzero(~inside)[0]
+    for members in _edge_groups(inp.shape, boxes[edge], (hy, hx)):
+        jobs.append((edge[members], lambda m: _edge_stack(inp, boxes[m])))
 
     def solve(job) -> tuple:
         members, build = job
         box, oy, ox = build(members)
-        return _estimate(box, noise, 1, want_variance=True)[:3], oy, ox
+        return _estimate(box, noise, 1, want_variance=True)[:3], oy, ox, box.shape[0] * box.shape[1]
 
-    for (members, _), (arrays, oy, ox) in zip(jobs, map_on(workers, solve, jobs)):
-        slot = np.full(cells.size, -1, np.intp)
+    slot = np.empty(len(boxes), np.intp)
+    for (members, _), (arrays, oy, ox, area) in zip(jobs, map_on(workers, solve, jobs)):
+        slot[:] = -1
         slot[members] = np.arange(members.size)
-        pixels = np.nonzero(slot[inverse] >= 0)[0]
-        s = slot[inverse[pixels]]
-        take(pixels, arrays, oy[s], ox[s])
+        s = slot[box_of]
+        mine = np.nonzero(s >= 0)[0]
+        take(rest[mine], arrays, oy[s[mine]], ox[s[mine]])
+        stats["demand_area"] += area
     return ys, xs, values, stats
 
 
-def _edge_groups(shape: tuple[int, int], cells: list[tuple[int, int]],
-                 halo: tuple[int, int] = (HALO, HALO)) -> list[np.ndarray]:
-    """:func:`on_demand`'s cells whose halo crosses the frame's edge (``cells``: (row, col) of cells), grouped by
-    the side they cross (top, bottom, left, right, in that order of precedence): per side the indices of its cells
-    in ``cells`` in column order (then row order), one :func:`_edge_stack` each."""
-    groups: dict[str, list[int]] = {}
-    for k in sorted(range(len(cells)), key=lambda k: (cells[k][1], cells[k][0])):
-        groups.setdefault(_side(shape, *cells[k], halo), []).append(k)
-    return [np.array(members, np.intp) for members in groups.values()]
-
-
-def _side(shape: tuple[int, int], i: int, j: int, halo: tuple[int, int] = (HALO, HALO)) -> str:
-    """The side of a frame of ``shape`` that the halo of cell (``i``, ``j``) crosses first (top, bottom, left,
-    right), or "right" for a cell whose halo crosses none."""
+def _edge_groups(shape: tuple[int, int], boxes: np.ndarray, halo: tuple[int, int] = (HALO, HALO)
+                 ) -> list[np.ndarray]:
+    """:func:`on_demand`'s boxes whose halo crosses the frame's edge (``boxes``: int (n, 4) [r0, r1, c0, c1)),
+    grouped by the side they cross (top, bottom, left, right, in that order of precedence), along it in order,
+    each group one :func:`_edge_stack`: indices into ``boxes``. A box clipped at the start (end) of its side
+    (the left or top end) opens (closes) a group, so that its clipped edge is the stack's, mirrored as the
+    frame's; a box clipped on both sides across its own (a frame shorter than it with its halos) is a group of
+    its own."""
     h, w = shape
     hy, hx = halo
-    return ("top" if i * CELL - hy < 0 else "bottom" if (i + 1) * CELL + hy > h
-            else "left" if j * CELL - hx < 0 else "right")
+    clipped = np.stack([boxes[:, 0] - hy < 0, boxes[:, 1] + hy > h, boxes[:, 2] - hx < 0, boxes[:, 3] + hx > w], 1)
+    side = np.where(clipped[:, 0], 0, np.where(clipped[:, 1], 1, np.where(clipped[:, 2], 2, 3)))
+    groups = []
+    for s in range(4):
+        along = s < 2  # top and bottom boxes side by side along the rows, left and right ones one under the other
+        members = np.nonzero(side == s)[0]
+        members = members[np.lexsort((boxes[members, 0], boxes[members, 2]) if along
+                                     else (boxes[members, 2], boxes[members, 0]))]
+        start, end = (2, 3) if along else (0, 1)
+        across = (0, 1) if along else (2, 3)
+        current: list[int] = []
+        for k in members.tolist():
+            if clipped[k, across[0]] and clipped[k, across[1]]:
+                groups.append(np.array([k], np.intp))
+                continue
+            if current and (clipped[k, start] or clipped[current[-1], end]):
+                groups.append(np.array(current, np.intp))
+                current = []
+            current.append(k)
+        if current:
+            groups.append(np.array(current, np.intp))
+    return groups
 
 
-def _edge_stack(inp: SveInput, cells: list[tuple[int, int]]) -> tuple[SveInput, np.ndarray, np.ndarray]:
-    """The cells of one side of :func:`_edge_groups` (``cells``: (row, col)), each the box of its halo clipped to
-    the frame, stacked along that side into one input (top and bottom rows side by side in the given order, left
-    and right columns one under the other), each box's clipped side on the stack's edge (mirrored as the frame's),
-    boxes that abut meeting at their halos. Returns the stack and each cell's offsets (stack minus frame
+def _edge_stack(inp: SveInput, boxes: np.ndarray) -> tuple[SveInput, np.ndarray, np.ndarray]:
+    """The boxes of one group of :func:`_edge_groups` (``boxes``: int (n, 4) [r0, r1, c0, c1)), each with its halo
+    clipped to the frame, stacked along their side into one input (top and bottom ones side by side in the given
+    order, left and right ones one under the other), each box's clipped side on the stack's edge (mirrored as the
+    frame's), boxes that abut meeting at their halos. Returns the stack and each box's offsets (stack minus frame
     coordinates), intp (n,) each."""
     h, w = inp.shape
-    halo = halo_for(inp.pattern)
-    hy, hx = halo
-    side = _side(inp.shape, *cells[0], halo)
-    along = side in ("top", "bottom")  # side by side along the rows, else one under the other
-    boxes = [(max(i * CELL - hy, 0), min((i + 1) * CELL + hy, h), max(j * CELL - hx, 0),
-              min((j + 1) * CELL + hx, w)) for i, j in cells]
-    across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in boxes)
-    total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in boxes)
+    hy, hx = halo_for(inp.pattern)
+    first = boxes[0]
+    top, bottom, left = first[0] - hy < 0, first[1] + hy > h, first[2] - hx < 0
+    along = top or bottom  # side by side along the rows, else one under the other
+    spans = [(max(r0 - hy, 0), min(r1 + hy, h), max(c0 - hx, 0), min(c1 + hx, w)) for r0, r1, c0, c1 in boxes.tolist()]
+    across = max((b[1] - b[0]) if along else (b[3] - b[2]) for b in spans)
+    total = sum((b[3] - b[2]) if along else (b[1] - b[0]) for b in spans)
     shape = (across, total) if along else (total, across)
     # a bottom (right) box shorter across than the others sits at the stack's far edge; above (left of) it
     # zero readings with the pattern's exposures, beyond its halo
     signal, censored = np.zeros(shape, np.float32), np.zeros(shape, bool)
     exposure = np.array(inp.pattern.exposure_map(shape), np.float32)
     oy, ox, offset = [], [], 0
-    for r0, r1, c0, c1 in boxes:
+    for r0, r1, c0, c1 in spans:
         if along:
-            y, x = (0 if side == "top" else across - (r1 - r0)), offset
+            y, x = (0 if top else across - (r1 - r0)), offset
             offset += c1 - c0
         else:
-            y, x = offset, (0 if side == "left" else across - (c1 - c0))
+            y, x = offset, (0 if left else across - (c1 - c0))
             offset += r1 - r0
         signal[y:y + r1 - r0, x:x + c1 - c0] = inp.signal[r0:r1, c0:c1]
         censored[y:y + r1 - r0, x:x + c1 - c0] = inp.censored[r0:r1, c0:c1]
         exposure[y:y + r1 - r0, x:x + c1 - c0] = inp.exposure[r0:r1, c0:c1]
         oy.append(y - r0)
         ox.append(x - c0)
-    stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral)
+    stack = SveInput(signal, exposure, censored, inp.pattern, inp.sensor, inp.integral, folded=inp.folded)
     return stack, np.array(oy, np.intp), np.array(ox, np.intp)
 
 
@@ -723,6 +834,15 @@ def reset_words(reset: np.ndarray) -> np.ndarray:
     if reset.flags.c_contiguous and w % 8 == 0:
         return reset.view(np.uint64)
     return np.empty((h, 0), np.uint64)
+
+
+def supports_colour(pattern: Pattern, cfa_shape: tuple[int, int], cell: tuple[int, int]) -> bool:
+    """Whether a colour stream (joint, the luminance folded with the cells' shares) can skip bands of its luminance
+    (prototype, issue 25): :func:`supports` of its exposure pattern, a colour filter tile and chroma cells
+    (``cell``, rows x cols) whose sides divide :data:`CELL`, :data:`HALO` and :data:`BAND_ROWS` (a band, crop or
+    patch starts on whole joint tiles and whole cell rows)."""
+    sides = all(CELL % n == 0 and HALO % n == 0 and BAND_ROWS % n == 0 for n in (*cfa_shape, *cell))
+    return sides and supports(pattern)
 
 
 def supports(pattern: Pattern) -> bool:

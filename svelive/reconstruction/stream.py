@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from svelive.core.camera import Camera, camera_for_raw
-from svelive.core.cfa import ColourFilter
+from svelive.core.cfa import ColourFilter, joint_period
 from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
@@ -207,8 +207,12 @@ class Reconstructor:
             rows whose history is not settled (recent motion, a start or restart) and a round-robin 1 / K of
             the others; skipped pixels keep their history's mean, pixels the test resets there get their
             estimate on demand. Which bands run is decided by the history a frame is fused into, so frames
-            estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it. The live
-            service's default for monochrome streams (svelive.reconstruction.live.LIVE_REFRESH).
+            estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it (colour ones
+            unless ``colour_refresh``). The live service's default (svelive.reconstruction.live.LIVE_REFRESH).
+        colour_refresh: ``refresh`` for a colour stream too (issue 25; off by default in the library, on in the
+            live service), on the bands of its folded luminance (the chroma, its fusion and the refinement still
+            run on every cell); its output differs from refresh 0's as a monochrome stream's does
+            (docs/benchmarks.md, "A colour band refresh").
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
@@ -224,7 +228,7 @@ class Reconstructor:
                  white_level: float | None = None, gain: float | None = None, read_noise: float | None = None,
                  motion_config: MotionConfig | None = None, detail: bool = True, workers: int = 1,
                  noise_schedule: NoiseSchedule | None = None, noise_thread: bool = False, refresh: int = 0,
-                 **method_options) -> None:
+                 colour_refresh: bool = False, **method_options) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
             raise SveliveError(f"workers must be an integer 1..64, got {workers!r}")
         if exposure_timing not in EXPOSURE_TIMINGS:
@@ -254,6 +258,7 @@ class Reconstructor:
         if isinstance(refresh, bool) or not isinstance(refresh, (int, np.integer)) or not 0 <= refresh <= 64:
             raise SveliveError(f"refresh must be an integer 0..64 (0: off), got {refresh!r}")
         self.refresh = int(refresh)
+        self.colour_refresh = bool(colour_refresh)
         # partial frames estimated and not fused yet (weakly: one never fused leaves with its Estimated), whose
         # count ahead of the frames fused gives an estimate's hint its round-robin turn
         self._in_flight: weakref.WeakSet = weakref.WeakSet()
@@ -352,7 +357,7 @@ class Reconstructor:
 
     def refresh_state(self) -> dict[str, object] | None:
         """JSON-ready, None with ``refresh`` off: ``refresh`` (K), ``applies`` (this stream skips bands once its
-        model is trusted: monochrome, ``adaptive``, fusion, a supported tile), and of the last fused frame that
+        model is trusted: ``adaptive``, fusion, a supported tile, monochrome or with ``colour_refresh``), and of the last fused frame that
         took the partial path ``bands`` and ``computed`` (bands the method ran on) and ``on_demand_px``, or None
         before one; ``hint_added`` and ``hint_dropped``: bands :meth:`fuse` computed beyond its frames' estimates
         and dropped from them, over the stream's life (frames estimated ahead of the history they are fused into).
@@ -519,8 +524,7 @@ class Reconstructor:
         camera, trusted, model = self._with_noise(array, base, signal)
         partial = None
         if trusted and self._settles(method, camera):  # (an untrusted model's output is the frame's own estimate)
-            inp, est, partial = self._estimate_partial(raw, camera)
-            parts = None
+            inp, est, partial, parts = self._estimate_partial(raw, camera)
         else:
             inp, est, parts = self._estimate(raw, method, camera)
         t1 = time.perf_counter()
@@ -592,8 +596,12 @@ class Reconstructor:
 
     def _settles(self, method: str, camera: Camera) -> bool:
         """Whether this frame takes the partial path (``refresh``; svelive.reconstruction.settle)."""
-        return (self.refresh > 0 and self.temporal and not self.consistency and method == "adaptive"
-                and camera.cfa is None and settle.supports(camera.pattern))
+        if not (self.refresh > 0 and self.temporal and not self.consistency and method == "adaptive"):
+            return False
+        if camera.cfa is None:
+            return settle.supports(camera.pattern)
+        cell = joint_period(camera.pattern.shape, camera.cfa.shape)
+        return self.colour_refresh and settle.supports_colour(camera.pattern, camera.cfa.shape, cell)
 
     def _selection(self, history: TemporalState | None, tick: int, shape: tuple[int, int],
                    band_motion: list[np.ndarray], last_ratio: float,
@@ -633,11 +641,20 @@ class Reconstructor:
         return list(self._band_motion), self._last_ratio, self._last_variance
 
     def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
-        """(input, estimate with the window mean, settle.Partial): the method on the bands the latest history
-        asks for, the window mean everywhere. The selection is a hint: the frame may be fused into a later
-        history (frames estimated ahead), and :meth:`fuse` then makes it the selection of that history."""
+        """(input, estimate with the window mean, settle.Partial, a colour frame's joint parts or None): the
+        method on the bands the latest history asks for, the window mean everywhere. The selection is a hint: the
+        frame may be fused into a later history (frames estimated ahead), and :meth:`fuse` then makes it the
+        selection of that history. A colour frame (``colour_refresh``): its chroma and the folded luminance
+        (colour.joint's, every pixel) first, then the bands of that luminance, a monochrome input of per-pixel
+        exposures (``partial.inp``)."""
 
         inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
+        colour_input = None
+        if inp.cfa is not None:  # colour.joint's steps before its method, as a stream takes them
+            colour_input, ch = inp, colour.chroma(inp)
+            inter = colour.interpolation(ch, coarse=False)
+            inverse = np.empty(inp.shape, np.float32)
+            inp = colour.luminance_input(inp, inter, True, self._threads, inverse)
         # (the method's noise model, from the frame alone, on the pool while this thread makes the selection)
         pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
         noise = noise_model(inp) if pending is None else None
@@ -669,7 +686,9 @@ class Reconstructor:
         for a, b in settle.band_rows(selected, h):  # (the window rows made here hold no infinite variance)
             completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
-        return inp, est, partial
+        if colour_input is None:
+            return inp, est, partial, None
+        return colour_input, est, partial, colour.Joint(est, inp, ch, inter, inverse)
 
     def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
         """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
@@ -786,8 +805,11 @@ class Reconstructor:
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
+                # (rows the band refresh skipped hold no estimate of this frame: their evidence stays as it was)
+                skipped = (~partial.rows if partial is not None and not partial.rows.all()
+                           else np.empty(0, bool))
                 spread, measured = luminance_noise(spread, previous, est.image, fused.history, variance, weight,
-                                                   parts.chroma.layout.cell, ratio, self._threads)
+                                                   parts.chroma.layout.cell, ratio, self._threads, skipped)
                 luminance, variance_of, image = _refined(image, measured, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
@@ -992,7 +1014,8 @@ def _share_gather(cells, channels, out):
 
 def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
                     weight: np.ndarray, variance: np.ndarray, output_weight: np.ndarray, cell: tuple[int, int],
-                    ratio: float = 1.0, workers: int | Executor = 1) -> tuple[np.ndarray, np.ndarray]:
+                    ratio: float = 1.0, workers: int | Executor = 1,
+                    skipped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A colour stream's evidence of its luminance noise after this frame and the variance its refinement takes,
     both float32 (H, W), DN^2, made in one pass over the frame (pieces of whole cell rows, base.map_on over
     ``workers``; the result does not depend on it).
@@ -1010,6 +1033,9 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
     pixel's cell (``cell`` rows x cols, the cells over which the refinement takes its evidence of detail) that
     have evidence (``output_weight`` < 1); the model's where ``output_weight`` is 1 (a reset pixel, or an
     output that is the frame's own: no history to judge).
+
+    ``skipped``: bool (H,), rows whose ``image`` is not this frame's estimate (the band refresh kept the history's
+    mean there), or of no rows: there a pixel's evidence stays the last frame's (0 where ``weight`` is 1).
     """
     evidence = history is not None and history.mean.shape == image.shape
     out = np.empty(image.shape, np.float32)
@@ -1024,9 +1050,11 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
     measured = np.empty(image.shape, np.float32)
     cy, cx = cell
     arrays = [np.ascontiguousarray(a) for a in (image, mean, old_weight, weight, old, variance, output_weight)]
+    rows_skipped = np.zeros(image.shape[0], bool) if skipped is None or not skipped.size else skipped
 
     def piece(rows: slice) -> None:
-        _noise_rows(*(a[rows] for a in arrays), scale, evidence, cy, cx, out[rows], measured[rows])
+        _noise_rows(*(a[rows] for a in arrays), scale, evidence, cy, cx, out[rows], measured[rows],
+                    rows_skipped[rows])
 
     map_on(workers, piece, _pieces(image.shape[0], cy))
     return out, measured
@@ -1034,7 +1062,7 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
 
 @kernel
 def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, scale, evidence, cy, cx, spread,
-                measured):
+                measured, skipped):
     """spread, measured = :func:`luminance_noise`'s of whole cell rows (row 0 a cell row's first; ``old`` may
     be ``spread``), each cell row's spread summed per column while its rows are in cache, then its cells'
     means spread over a row of pixels for the cell row's variances (loops that vectorise)."""
@@ -1047,7 +1075,14 @@ def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, s
         count[:] = zero
         for r in range(r0, r1):
             s, wo = spread[r], output_weight[r]
-            if evidence:
+            if evidence and skipped[r]:  # (the band refresh's kept rows: no new evidence)
+                wt, o = weight[r], old[r]
+                for x in range(w):
+                    value = o[x] if wt[x] < one else zero
+                    s[x] = value
+                    total[x] += value
+                    count[x] += one if wo[x] < one else zero
+            elif evidence:
                 x_, m, ow, wt, o = image[r], mean[r], old_weight[r], weight[r], old[r]
                 for x in range(w):
                     w1 = wt[x]

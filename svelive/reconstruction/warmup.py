@@ -67,8 +67,8 @@ def warm_up(methods: Iterable[str] | None = None) -> None:
 
 
 def _warm_up_refresh(rng: np.random.Generator) -> None:
-    """The band refresh of monochrome live streams (``Reconstructor(refresh=K)``, svelive.reconstruction.settle;
-    the service's default): still frames of four bands (the noise model given, so trusted at once) until the
+    """The band refresh of live streams (``Reconstructor(refresh=K)``, svelive.reconstruction.settle; the service's
+    default), monochrome and colour (``colour_refresh``): still frames of four bands (the noise model given, so trusted at once) until the
     histories settle and bands are skipped, then frames in which small patches change and frames that move a
     little and a lot (pixels reset in skipped bands take their estimate on demand: in cells, whose atlas of
     patches has writable exposures and, without a saturated pixel, the pattern's cached window sums, at the
@@ -80,8 +80,11 @@ def _warm_up_refresh(rng: np.random.Generator) -> None:
     from svelive.reconstruction.settle import BAND_ROWS
 
     scene = rng.uniform(0, 1500, (3 * BAND_ROWS + 8, 128))
-    for pattern, saturate in product(("1,4/16,64", "1/1/8/8"), (False, True)):
-        stream = Reconstructor(pattern, white_level=4095, gain=1.0, read_noise=20.0, refresh=2)
+    sensor = Sensor(12, white_level=4095, gain=1.0, read_noise=20.0)
+    # monochrome, then the same frames as Bayer mosaics through a colour stream's band refresh (``colour_refresh``:
+    # the folded luminance's skipped rows take numerics' per-pixel window pass)
+    for pattern, saturate, cfa in product(("1,4/16,64", "1/1/8/8"), (False, True), (None, "RGGB")):
+        stream = Reconstructor(Camera.build(pattern, cfa, sensor), refresh=2, colour_refresh=True)
         frames = []
         # the still view, then with a small patch 600 DN brighter, then darker, in the middle of one band and at
         # the edge of the next (bands the refresh skips in one of the two frames), then moves
