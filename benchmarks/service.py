@@ -25,7 +25,8 @@ process holds the 24 frames itself, about 110 MB of its resident memory at
    client (X-Timestamp vs the receive time, same host clock) p50 / p95, the
    server's own arrival-to-sent latency, and its resident memory every 10 s (growth
    from the end of the first minute to the end; VmRSS, in MiB) and at its peak over the
-   measured part of the phase (VmHWM, whose record is restarted as that part starts).
+   measured part of the phase (VmHWM, whose record is restarted as that part starts), and the peak before
+   it (the start-up's: the kernels loaded, the first frames, the idle phase).
 
 The clients run in this process (asyncio, headers parsed, bodies skipped) and
 so share the machine's cores with the server; on a real deployment they are
@@ -415,6 +416,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
     latencies.clear()
     if reader:
         reader.latencies.clear()
+    before = peak_rss_mb(pid)  # the start-up's peak: the kernels loaded, the first frames, the phases before
     peak_from = reset_peak_rss(pid)  # the phase's own peak, not the start-up's
     while time.monotonic() - t0 < seconds:
         await asyncio.sleep(10)
@@ -455,7 +457,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
                                         end_state["frames"]["reconstructed"] - start_state["frames"]["reconstructed"]),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
                    "growth_percent": round(100 * (rss[-1][1] - first_minute[-1]) / first_minute[-1], 2),
-                   "samples": rss, "peak": peak},
+                   "samples": rss, "peak": peak, "peak_before": before},
     }
     if reader:
         out["rtsp"] = {"fps_server": round((end_rtsp["frames_encoded"] - start_rtsp["frames_encoded"]) / span, 2),
@@ -655,7 +657,8 @@ def main() -> None:
     print("RSS samples (s, MB): " + ", ".join(f"{t:.0f}: {m}" for t, m in load["rss_mb"]["samples"][5::6]))
     print(f"RSS after first minute {load['rss_mb']['after_first_minute']} MB, at end {load['rss_mb']['end']} MB, "
           f"growth {load['rss_mb']['growth_percent']} %; peak over the measured phase (VmHWM) "
-          f"{load['rss_mb']['peak']} MB")
+          f"{load['rss_mb']['peak']} MB, before it (start-up, first frames, idle phase) "
+          f"{load['rss_mb']['peak_before']} MB")
     if rtsp_port:
         base, both = loads[f"{args.clients} MJPEG clients"], loads[f"{args.clients} MJPEG clients + 1 RTSP client"]
         print(f"with / without RTSP (same run): server CPU {both['cpu_percent'] / base['cpu_percent']:.2f}, "
