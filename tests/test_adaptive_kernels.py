@@ -172,9 +172,9 @@ def test_posterior_against_numerical_integration():
 
 
 def test_posterior_table_in_chunks_is_the_whole_grid_at_once(monkeypatch):
-    """The table integrated POSTERIOR_CHUNK rows of z at a time is bit for bit the whole grid in one pass, and its
-    temporaries stay below one whole-grid array (a process's first frame computes it: five such arrays of 85 MB
-    set the service's peak resident memory)."""
+    """The table integrated POSTERIOR_CHUNK rows of z at a time is bit for bit the whole grid in one pass, and what
+    it allocates through numpy (malloc's heap, traced) stays below one whole-grid array (a process's first frame
+    computes it: five such arrays of 85 MB set the service's peak resident memory)."""
     import tracemalloc
 
     compute = posterior.posterior_table.__wrapped__  # not the cached table
