@@ -25,7 +25,10 @@ process holds the 24 frames itself, about 110 MB of its resident memory at
    client (X-Timestamp vs the receive time, same host clock) p50 / p95, the
    server's own arrival-to-sent latency, and its resident memory every 10 s (growth
    from the end of the first minute to the end; VmRSS, in MiB) and at its peak over the
-   measured part of the phase (VmHWM, whose record is restarted as that part starts).
+   measured part of the phase (VmHWM, whose record is restarted as that part starts), and the peak before
+   it (the start-up's: the kernels loaded, the first frames, the idle phase), and the kernels the server compiled
+   itself rather than loaded from numba's cache (a server that compiles keeps LLVM's memory: such a run's memory
+   is not comparable).
 
 The clients run in this process (asyncio, headers parsed, bodies skipped) and
 so share the machine's cores with the server; on a real deployment they are
@@ -226,12 +229,33 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
                                   timecode=True).start()
         app.add_api_route("/bench/rtsp", publisher.state)
     app.add_api_route("/bench/threads", thread_names)
+    compiled = record_compiles()
+    app.add_api_route("/bench/compiles", lambda: compiled)
     print("ready", flush=True)
     try:
         uvicorn.Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=1)).run(sockets=[sock])
     finally:
         if publisher is not None:
             publisher.stop()
+
+
+def record_compiles() -> list[str]:
+    """From now on, the qualified name of every kernel this process compiles (numba's ``numba:compile`` event: a
+    kernel loaded from numba's cache is not one) appended to the list returned. A server that compiles keeps
+    LLVM's memory (``svelive.jit.compile_elsewhere``): its resident memory is then not the others'."""
+    from numba.core import event
+
+    compiled: list[str] = []
+
+    class Compiles(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            pass
+
+        def on_end(self, ev: event.Event) -> None:
+            compiled.append(getattr(ev.data["dispatcher"].py_func, "__qualname__", "?"))
+
+    event.register("numba:compile", Compiles())
+    return compiled
 
 
 def thread_names() -> dict[str, str]:
@@ -415,6 +439,7 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
     latencies.clear()
     if reader:
         reader.latencies.clear()
+    before = peak_rss_mb(pid)  # the start-up's peak: the kernels loaded, the first frames, the phases before
     peak_from = reset_peak_rss(pid)  # the phase's own peak, not the start-up's
     while time.monotonic() - t0 < seconds:
         await asyncio.sleep(10)
@@ -427,6 +452,10 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
         names = get_json(port, "/bench/threads")
     except OSError:
         names = {}
+    try:
+        compiled = get_json(port, "/bench/compiles")
+    except OSError:
+        compiled = None
     peak = peak_rss_mb(pid) if peak_from else None
     end_own, end_rtsp = sum(os.times()[:2]), get_json(port, "/bench/rtsp") if rtsp_url else None
     end_counts, end_rtsp_frames = list(counts), reader.frames if reader else 0
@@ -449,13 +478,14 @@ async def load_phase(port: int, pid: int, n_clients: int, seconds: float, rtsp_u
         "drops": end_state["drops"],
         "live_quality": end_state.get("live_quality"),
         "refresh": end_state.get("refresh"),
+        "compiled_in_server": compiled,
         "cpu_percent": round(100 * (end_cpu - start_cpu) / span, 1),
         "clients_cpu_percent": round(100 * (end_own - start_own) / span, 1),
         "cpu_ms_per_frame": cpu_by_role(start_threads, end_threads, names,
                                         end_state["frames"]["reconstructed"] - start_state["frames"]["reconstructed"]),
         "rss_mb": {"after_first_minute": first_minute[-1], "end": rss[-1][1],
                    "growth_percent": round(100 * (rss[-1][1] - first_minute[-1]) / first_minute[-1], 2),
-                   "samples": rss, "peak": peak},
+                   "samples": rss, "peak": peak, "peak_before": before},
     }
     if reader:
         out["rtsp"] = {"fps_server": round((end_rtsp["frames_encoded"] - start_rtsp["frames_encoded"]) / span, 2),
@@ -655,7 +685,11 @@ def main() -> None:
     print("RSS samples (s, MB): " + ", ".join(f"{t:.0f}: {m}" for t, m in load["rss_mb"]["samples"][5::6]))
     print(f"RSS after first minute {load['rss_mb']['after_first_minute']} MB, at end {load['rss_mb']['end']} MB, "
           f"growth {load['rss_mb']['growth_percent']} %; peak over the measured phase (VmHWM) "
-          f"{load['rss_mb']['peak']} MB")
+          f"{load['rss_mb']['peak']} MB, before it (start-up, first frames, idle phase) "
+          f"{load['rss_mb']['peak_before']} MB")
+    if load.get("compiled_in_server") is not None:
+        print(f"kernels the server compiled (not loaded from numba's cache) by the phase's end: "
+              f"{len(load['compiled_in_server'])} {sorted(set(load['compiled_in_server']))}")
     if rtsp_port:
         base, both = loads[f"{args.clients} MJPEG clients"], loads[f"{args.clients} MJPEG clients + 1 RTSP client"]
         print(f"with / without RTSP (same run): server CPU {both['cpu_percent'] / base['cpu_percent']:.2f}, "

@@ -171,6 +171,27 @@ def test_posterior_against_numerical_integration():
     assert tail == pytest.approx(posterior.TAIL / 300, rel=1e-3)
 
 
+def test_posterior_table_in_chunks_is_the_whole_grid_at_once(monkeypatch):
+    """The table integrated POSTERIOR_CHUNK rows of z at a time is bit for bit the whole grid in one pass, and what
+    it allocates through numpy (malloc's heap, traced) stays below one whole-grid array (a process's first frame
+    computes it: five such arrays of 85 MB set the service's peak resident memory)."""
+    import tracemalloc
+
+    compute = posterior.posterior_table.__wrapped__  # not the cached table
+    tracemalloc.start()
+    try:
+        chunked = compute()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    whole_grid_array = chunked.size * 12000 * 8  # (rows of z, 12000 values of u) float64
+    assert peak < whole_grid_array
+    monkeypatch.setattr(posterior, "POSTERIOR_CHUNK", chunked.size)
+    whole = compute()
+    assert np.array_equal(chunked, whole)
+    assert np.array_equal(chunked, posterior.posterior_table())
+
+
 @pytest.mark.parametrize("share", [0.0, 0.01, 0.3, 0.49, 0.5, 0.8, 1.0])
 def test_posterior_at_is_the_posterior_of_the_whole_array_where_changed(share):
     """posterior_at (rows packed or taken whole, by the share of their pixels changed) gives, at the changed
