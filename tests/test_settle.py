@@ -483,11 +483,19 @@ def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
     from collections import deque
 
     from svelive.bench.live import case_camera, case_radiance, resized, static_frames
-    from svelive.simulation import load_sample_scene
+    from svelive.simulation import load_sample_scene, simulate
 
     camera = case_camera("dual-iso")
     scene = resized(load_sample_scene("mttamwest", rgb=True), (400, 328))
-    raws, _ = static_frames(case_radiance("dual-iso", "bright", scene), camera, 16, 1)
+    radiance = case_radiance("dual-iso", "bright", scene)
+    raws, _ = static_frames(radiance, camera, 16, 1)
+    # a bright square moving down 24 px a frame over frames 6-11, then still: hints made from a history a frame or
+    # two old miss the bands it enters and take bands the newer history no longer selects
+    for k in range(6, 16):
+        moved = radiance.copy()
+        top = 60 + 24 * min(k - 6, 5)
+        moved[top:top + 40, 120:160] = 4 * radiance.max()
+        raws[k] = simulate(moved, camera.require_pattern(), camera.sensor, cfa=camera.cfa, seed=100 + k).raw
     for lag in (1, 2):
         sequential = Reconstructor(camera, refresh=4, colour_refresh=True)
         ahead = Reconstructor(camera, refresh=4, colour_refresh=True)
