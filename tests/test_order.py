@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from svelive.core.order import median, percentile
+from svelive.core.order import median, percentile, quantile
 
 
 def _values(n: int, dtype) -> np.ndarray:
@@ -14,9 +14,10 @@ def _values(n: int, dtype) -> np.ndarray:
 
 @pytest.mark.parametrize("n", [1, 2, 7, 1000, 36_001, 144_000])
 @pytest.mark.parametrize("q", [0.0, 50.0, 99.5, 100.0])
-def test_percentile_is_numpys(n, q):
-    values = np.log2(_values(n, np.float32))
-    assert percentile(values, q) == pytest.approx(float(np.percentile(values.astype(np.float64), q)), rel=1e-12)
+def test_percentile_and_quantile_are_numpys_bit_for_bit(n, q):
+    values = np.log2(_values(n, np.float32)).astype(np.float64)
+    assert percentile(values, q) == float(np.percentile(values, q))
+    assert quantile(values, q / 100) == float(np.quantile(values, q / 100))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 1000, 1001, 36_000, 36_001])

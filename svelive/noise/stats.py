@@ -14,6 +14,7 @@ from statistics import NormalDist
 
 import numpy as np
 
+from svelive.core.order import median, quantile
 from svelive.noise.model import QUANTISATION_VARIANCE, EstimatorConfig, LineFit, NoiseSamples
 
 
@@ -80,17 +81,9 @@ def _clip_correction(k: float) -> float:
 
 
 def _median_and_quantile(u: np.ndarray, q: float) -> tuple[float, float]:
-    """``np.median(u)`` and ``np.quantile(u, q)`` (linear interpolation, numpy's formula) from one
-    partial sort of ``u`` (float64 (N,), N >= 1)."""
-    n = u.size
-    pos = q * (n - 1)
-    lo = int(math.floor(pos))
-    kth = sorted({(n - 1) // 2, n // 2, lo, min(lo + 1, n - 1)})
-    part = np.partition(u, kth)
-    median = float(part[n // 2]) if n % 2 else 0.5 * (float(part[n // 2 - 1]) + float(part[n // 2]))
-    a, b, frac = float(part[lo]), float(part[min(lo + 1, n - 1)]), pos - lo
-    top = b - (b - a) * (1.0 - frac) if frac >= 0.5 else a + (b - a) * frac
-    return median, top
+    """``np.median(u)`` and ``np.quantile(u, q)`` (linear interpolation, numpy's formula) of ``u`` (float64 (N,),
+    N >= 1), by one partition each (svelive.core.order)."""
+    return float(median(u)), quantile(u, q)
 
 
 def _robust_variance(u: np.ndarray, clip_sigma: float, table: tuple[np.ndarray, np.ndarray]) -> float:
