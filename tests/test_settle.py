@@ -59,6 +59,19 @@ def _assert_atlases_give_the_full_frames(inp, noise, full):
                 np.testing.assert_array_equal(g[r0 + y:r1 + y, c0 + x:c1 + x], want[r0:r1, c0:c1])
 
 
+def _assert_bands_are_the_full_frames(inp, noise, selected, full) -> tuple:
+    """settle.method_on_bands on the ``selected`` bands gives the full frame's estimate, bound and variance
+    (``full``) in their rows; returns its outputs (estimate, bound, variance, window mean and variance)."""
+    h, w = inp.shape
+    out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
+           np.zeros((2, h, w), np.float32))
+    settle.method_on_bands(inp, noise, selected, *out)
+    rows = settle.band_mask(selected, h)
+    for got, want in zip(out, full):
+        np.testing.assert_array_equal(got[rows], want[rows])
+    return out
+
+
 def _assert_on_demand_is_the_full_frames(part, need, full, workers=1):
     """settle.on_demand at ``need``'s pixels gives the full frame's (image, lower, variance) there, bit for bit."""
     ys, xs, values, _ = settle.on_demand(part, *np.nonzero(need), workers)
@@ -82,12 +95,8 @@ def test_bands_cells_and_edges_give_the_full_frames_results():
                 _assert_on_demand_is_the_full_frames(part, need, (image, lower, variance), workers)
         _assert_on_demand_is_the_full_frames(part, _needed(h, w, 3, 0), (image, lower, variance))
         selected = np.arange(bands) % 2 == 0
-        out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
-               np.zeros((2, h, w), np.float32))
-        settle.method_on_bands(inp, noise, selected, *out)
-        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
-        for got, want in zip(out, (image, lower, variance)):
-            np.testing.assert_array_equal(got[rows], want[rows])
+        out = _assert_bands_are_the_full_frames(inp, noise, selected, (image, lower, variance))
+        rows = settle.band_mask(selected, h)
         np.testing.assert_array_equal(out[3][:, rows], window[:, rows])
         skipped = [(a * settle.BAND_ROWS, min(b * settle.BAND_ROWS, h)) for a, b in settle.runs(~selected)]
         settle.window_rows(inp, image, variance, skipped, out[3][0], out[3][1])
@@ -259,12 +268,7 @@ def test_a_four_row_pattern_s_bands_cells_and_edges_give_the_full_frames_results
         for scattered in (40, 0):
             _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4, scattered), (image, lower, variance))
         selected = np.arange(bands) % 2 == 1
-        out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
-               np.zeros((2, h, w), np.float32))
-        settle.method_on_bands(inp, noise, selected, *out)
-        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
-        for got_band, want in zip(out, (image, lower, variance)):
-            np.testing.assert_array_equal(got_band[rows], want[rows])
+        _assert_bands_are_the_full_frames(inp, noise, selected, (image, lower, variance))
 
 
 def _still_counts(rng, frames, pixels, rates, sizes=(5, 10)):
@@ -435,12 +439,7 @@ def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frame
         for workers, scattered in ((1, 40), (3, 40), (1, 0)):
             _assert_on_demand_is_the_full_frames(part, _needed(h, w, 4, scattered), (image, lower, variance), workers)
         selected = np.arange(bands) % 2 == 1
-        out = (np.zeros((h, w), np.float32), np.zeros((h, w), bool), np.zeros((h, w), np.float32),
-               np.zeros((2, h, w), np.float32))
-        settle.method_on_bands(inp, noise, selected, *out)
-        rows = np.repeat(selected, settle.BAND_ROWS)[:h]
-        for got_band, want in zip(out, (image, lower, variance)):
-            np.testing.assert_array_equal(got_band[rows], want[rows])
+        _assert_bands_are_the_full_frames(inp, noise, selected, (image, lower, variance))
         # (dual-ISO's window mean is not the method's window: the stream makes every row of it with window_rows)
         for workers in (1, 2):
             level = np.zeros((2, h, w), np.float32)
@@ -448,6 +447,7 @@ def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frame
             np.testing.assert_array_equal(level, window)
             level = np.zeros((2, h, w), np.float32)
             settle.window_rows(inp, image, variance, settle.band_rows(selected, h), level[0], level[1], None, workers)
+            rows = settle.band_mask(selected, h)
             np.testing.assert_array_equal(level[:, rows], window[:, rows])
 
 
