@@ -651,10 +651,8 @@ class Reconstructor:
         inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
         colour_input = None
         if inp.cfa is not None:  # colour.joint's steps before its method, as a stream takes them
-            colour_input, ch = inp, colour.chroma(inp)
-            inter = colour.interpolation(ch, coarse=False)
-            inverse = np.empty(inp.shape, np.float32)
-            inp = colour.luminance_input(inp, inter, True, self._threads, inverse)
+            colour_input = inp
+            ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True)
         # (the method's noise model, from the frame alone, on the pool while this thread makes the selection)
         pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
         noise = noise_model(inp) if pending is None else None

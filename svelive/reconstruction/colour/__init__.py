@@ -148,7 +148,7 @@ from svelive.reconstruction.colour.cells import CellLayout, cell_layout
 from svelive.reconstruction.colour.folding import colourise, folded_exposure, luminance_input
 from svelive.reconstruction.colour.highlights import WHITE_CELLS, WHITE_MIN_CELLS, WHITE_SNR, white_balance
 from svelive.reconstruction.colour.interpolate import PIECE_ROWS, Interpolation, interpolation
-from svelive.reconstruction.colour.joint_parts import Joint, joint
+from svelive.reconstruction.colour.joint_parts import Joint, fold_luminance, joint
 from svelive.reconstruction.colour.lattice import lattice_channels
 from svelive.reconstruction.colour.refinement import refine
 from svelive.reconstruction.colour.run import MODES, run_colour
@@ -157,5 +157,5 @@ from svelive.reconstruction.colour.split_baseline import demosaic, split
 
 __all__ = ["COARSE_NONE", "MODES", "PIECE_ROWS", "SHARE_FLOOR", "WHITE_CELLS", "WHITE_MIN_CELLS", "WHITE_SNR",
            "CellLayout", "Chroma", "Interpolation", "Joint", "cell_layout", "chroma", "colourise", "demosaic",
-           "folded_exposure", "interpolation", "joint", "lattice_channels", "luminance_input", "refine", "run_colour", "split",
-           "white_balance"]
+           "fold_luminance", "folded_exposure", "interpolation", "joint", "lattice_channels", "luminance_input",
+           "refine", "run_colour", "split", "white_balance"]

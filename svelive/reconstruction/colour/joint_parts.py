@@ -41,6 +41,18 @@ class Joint:
     inverse_exposure: np.ndarray | None = None
 
 
+def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1, inverse_exposure: bool = False
+                   ) -> tuple[Chroma, Interpolation, SveInput, np.ndarray | None]:
+    """The steps before the mono method (:func:`joint`'s, and a stream's band refresh's): the frame's chroma, its
+    interpolation (with the coarse luminance where ``coarse``) and the monochrome input of the luminance
+    (folded exposures e' with ``exposures``, svelive.reconstruction.colour.folding.luminance_input), and
+    1 / e' (float32 (H, W)) where ``inverse_exposure`` asks for it, else None."""
+    ch = chroma(inp)
+    inter = interpolation(ch, coarse=coarse)
+    inverse = np.empty(inp.shape, np.float32) if inverse_exposure else None
+    return ch, inter, luminance_input(inp, inter, exposures, workers, inverse), inverse
+
+
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
           site_chroma: bool = False, lattice: bool = True, directional: bool = False, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
@@ -60,10 +72,8 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     and the readings are above their noise (svelive.reconstruction.colour.directional; 2x2 Bayer CFAs).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
-    ch = chroma(inp)
-    inter = interpolation(ch, coarse=spec.variance and refined)
-    inverse = np.empty(inp.shape, np.float32) if inverse_exposure and spec.exposures else None
-    lum = luminance_input(inp, inter, spec.exposures, workers, inverse)
+    ch, inter, lum, inverse = fold_luminance(inp, spec.variance and refined, spec.exposures, workers,
+                                             inverse_exposure and spec.exposures)
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
