@@ -186,8 +186,9 @@ def warm_up_kernels(prefix: str) -> None:
     is loaded when a frame first needs it (about a second more for the first frame): loading every kernel here,
     the colour ones for a monochrome camera too, kept more (benchmarks/service.py, mono, loaded: 553 MB against
     504-515)."""
-    from svelive.jit import compile_elsewhere
+    from svelive.jit import compile_elsewhere, unmap_libraries_after_loads
 
+    unmap_libraries_after_loads()
     with Ticker(prefix, "preparing the reconstruction kernels (loaded from numba's cache; a first start on this "
                         "machine compiles them, 1-5 minutes)") as ticker:
         why = compile_elsewhere(compile_service_kernels)
