@@ -185,9 +185,11 @@ def warm_up_kernels(prefix: str) -> None:
     life (svelive.jit.compile_elsewhere); where no child can do it, this process compiles, and says so. Each kernel
     is loaded when a frame first needs it (about a second more for the first frame): loading every kernel here,
     the colour ones for a monochrome camera too, kept more (benchmarks/service.py, mono, loaded: 553 MB against
-    504-515)."""
-    from svelive.jit import compile_elsewhere
+    504-515). After every load the libraries' pages are unmapped (svelive.jit.unmap_libraries_after_loads): LLVM's,
+    which only the loads use, leave this process's resident memory."""
+    from svelive.jit import compile_elsewhere, unmap_libraries_after_loads
 
+    unmap_libraries_after_loads()
     with Ticker(prefix, "preparing the reconstruction kernels (loaded from numba's cache; a first start on this "
                         "machine compiles them, 1-5 minutes)") as ticker:
         why = compile_elsewhere(compile_service_kernels)

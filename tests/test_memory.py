@@ -1,7 +1,10 @@
-"""The allocator policy: freed frame buffers are reused, not page-faulted in anew every frame."""
+"""The allocator policy: freed frame buffers are reused, not page-faulted in anew every frame; libraries' pages
+unmapped after numba's loads."""
 
 import subprocess
 import sys
+
+import pytest
 
 FRAMES = """
 import resource, sys
@@ -102,3 +105,67 @@ def test_a_buffer_outside_the_heap_goes_back_to_the_system_when_dropped():
     assert out["outside"][0] > 0.9 * frame_kb and out["heap"][0] > 0.9 * frame_kb
     assert out["outside"][1] < 0.1 * frame_kb
     assert out["heap"][1] > 0.9 * frame_kb
+
+
+LIBRARIES = """
+import sys
+import numpy as np
+import numba
+if sys.argv[1] == "unmap":
+    from svelive.jit import unmap_libraries_after_loads
+    unmap_libraries_after_loads()
+    unmap_libraries_after_loads()  # once a process: a second call registers nothing more
+def resident_kb(name):
+    total, mine = 0, False
+    for line in open("/proc/self/smaps"):
+        if line[0] in "0123456789abcdef" and "-" in line.split()[0]:
+            mine = name in line
+        elif mine and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+@numba.njit
+def dot(a, b):
+    s = 0.0
+    for i in range(a.size):
+        s += a[i] * b[i]
+    return s
+x = np.arange(1000, dtype=np.float64)
+assert dot(x, x) == float(x @ x)  # compiled in this process: LLVM runs, then (unmap) its pages are unmapped
+print(resident_kb("libllvmlite"), resident_kb("_multiarray_umath"))
+"""
+
+
+def _library_kb(policy: str) -> list[int]:
+    done = subprocess.run([sys.executable, "-c", LIBRARIES, policy], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return [int(v) for v in done.stdout.split()]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/smaps and madvise: Linux")
+def test_library_pages_unmapped_after_numba_compiles_and_come_back_on_use():
+    # in a child: LLVM's library keeps tens of MB resident after a compile, unless unmapped after it; numpy's
+    # pages, unmapped too, came back as the child used numpy after the compile (and its results are right)
+    kept_llvm, kept_numpy = _library_kb("keep")
+    unmapped_llvm, unmapped_numpy = _library_kb("unmap")
+    assert kept_llvm > 20 * 1024, kept_llvm
+    assert unmapped_llvm < kept_llvm / 5, (unmapped_llvm, kept_llvm)
+    assert unmapped_numpy > 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/smaps and madvise: Linux")
+def test_only_read_only_file_mappings_without_private_copies_are_listed():
+    from svelive.memory import read_only_file_mappings
+
+    writable, private = set(), set()
+    start = None
+    for line in open("/proc/self/smaps"):
+        fields = line.split()
+        if line[0] in "0123456789abcdef" and "-" in fields[0]:
+            start = int(fields[0].split("-")[0], 16)
+            if "w" in fields[1] or len(fields) < 6 or not fields[5].startswith("/"):
+                writable.add(start)
+        elif line.startswith("Anonymous:") and int(fields[1]) > 0:
+            private.add(start)
+    listed = {start for start, _ in read_only_file_mappings()}
+    assert listed  # the interpreter's and numpy's code at least
+    assert not listed & writable and not listed & private
