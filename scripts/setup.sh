@@ -12,8 +12,9 @@ packages=(python3 python3-venv python3-dev gcc pkg-config libgirepository1.0-dev
           gir1.2-gst-rtsp-server-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
           gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly)
 if [ "${1:-}" = test ]; then
-    # a browser for the viewer tests; H.264 decoders and ffmpeg as RTSP clients in the tests
-    packages+=(chromium chromium-driver gstreamer1.0-libav ffmpeg)
+    # a browser for the viewer tests; H.264 decoders and ffmpeg as RTSP clients in the tests; dcraw, the reader
+    # cr2hdr uses, for the test that it reads the DNGs benchmarks/peers.py writes
+    packages+=(chromium chromium-driver gstreamer1.0-libav ffmpeg dcraw)
 fi
 missing=()
 for p in "${packages[@]}"; do
