@@ -217,9 +217,11 @@ def estimate_white_balance(image: np.ndarray, valid: np.ndarray | None = None, *
         usable &= np.asarray(valid, bool)[::stride, ::stride].ravel()
     if np.count_nonzero(usable) < MIN_PIXELS:
         return None
-    # np.sort (vectorised) is several times faster than the partitions of np.percentile at this size
-    ranked = np.sort(luminance[usable])
-    low, high = (ranked[int(p / 100 * (ranked.size - 1))] for p in WELL_EXPOSED_PERCENTILES)
+    # the two order statistics by two partitions of one kth each (numpy's of two kth, and np.sort, take twice as long)
+    ranked = luminance[usable]
+    first, second = (int(p / 100 * (ranked.size - 1)) for p in WELL_EXPOSED_PERCENTILES)
+    ranked = np.partition(ranked, first)
+    low, high = ranked[first], np.partition(ranked[first:], second - first)[second - first]
     keep = usable & (luminance >= low) & (luminance <= high)
     n = np.count_nonzero(keep)
     if n < MIN_PIXELS:

@@ -55,8 +55,8 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
     brightest = np.empty(wc, f32)
     for i in range(hc):
-        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i)
-        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i)
+        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i, i)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i, i)
 
     def centred(planes: np.ndarray) -> np.ndarray:
         out = np.empty_like(planes)
@@ -70,9 +70,9 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
     for i in range(hc):
         S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse,
-                      noise, i)
+                      noise, i, i)
         S._own_shares_row(own_shares, info, layout.share, neutral, f32(S.SHARE_FLOOR), shares, own_noise, residual,
-                          brightest, i)
+                          brightest, i, i)
     for c in range(3):
         cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
     for i in range(hc):

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from svelive.core import order
 from svelive.core.order import median, percentile, quantile
 
 
@@ -27,3 +28,23 @@ def test_median_is_numpys_bit_for_bit(n, dtype):
     ours, theirs = median(values), np.median(values)
     assert ours.dtype == theirs.dtype and ours.tobytes() == theirs.tobytes()
     assert values.tobytes() == _values(n, dtype).tobytes()  # the input is left as it was
+
+
+@pytest.mark.parametrize("case", ["float32", "nans", "top ties", "top in the sample"])
+@pytest.mark.parametrize("q", [95.0, 99.0, 99.5, 99.99, 100.0])
+def test_a_high_quantile_of_a_long_array_from_its_top_values_is_the_whole_partitions(case, q, monkeypatch):
+    """A rank in the top few per cent of a long array is found among the values above a bound from every 16th
+    (order._upper_part): numpy's value in float64, and in float32 the one partition of the whole array's; NaNs
+    sort last, and where the bound leaves too few the whole array is partitioned."""
+    values = _values(144_000, np.float32)
+    if case == "nans":
+        values[::997] = np.nan
+    elif case == "top ties":
+        values[-5000:] = values.max()
+    elif case == "top in the sample":  # every 16th value is above the others: its bound leaves too few
+        values[::16] += 1
+    wide = values.astype(np.float64)
+    tail = percentile(values, q), percentile(wide, q)
+    np.testing.assert_array_equal(tail[1], np.percentile(wide, q))
+    monkeypatch.setattr(order, "TAIL_SIZE", values.size + 1)  # the whole array's partition
+    np.testing.assert_array_equal(tail, (percentile(values, q), percentile(wide, q)))

@@ -46,34 +46,34 @@ def white_balance(numerator: np.ndarray, denominator: np.ndarray, info: np.ndarr
 
 
 @kernel
-def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i):
-    """Each cell's C_c (3, Hc, Wc) of cell row ``i`` into ``out``, from the smoothed sums ``numerator`` /
-    ``denominator`` (or, for each cell's own readings alone, ``weighted`` / ``kept``) and the cells'
-    statistics (:func:`_cell_stats`): the censoring and highlight rules (package docstring).
+def _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i, o):
+    """Each cell's C_c of cell row ``i`` into row ``o`` of ``out`` (3, R, Wc), from the smoothed sums ``numerator``
+    / ``denominator`` (or, for each cell's own readings alone, ``weighted`` / ``kept``) and the cells'
+    statistics (:func:`_cell_stats`), (3, Hc, Wc) each: the censoring and highlight rules (package docstring).
     ``brightest``: (Wc,) scratch. Loops over the cells of the row (which vectorise)."""
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
     # brightest: max over the measured channels of C / white (-1: none measured)
     brightest[:] = none
     for c in range(3):
-        num, den, m, n, b, o = numerator[c, i], denominator[c, i], mean[c, i], info[c, i], bound[c, i], out[c, i]
+        num, den, m, n, b, row = numerator[c, i], denominator[c, i], mean[c, i], info[c, i], bound[c, i], out[c, o]
         inverse = one / white[c]
-        for j in range(o.size):
+        for j in range(row.size):
             smoothed = num[j] / den[j] if den[j] > zero else zero
             # censored readings: the uncensored neighbours are the darker ones (and those
             # consistent with the bound the brighter): the cell's own readings alone
             value = max(m[j], b[j]) if b[j] > zero else smoothed
-            o[j] = max(value, zero)
+            row[j] = max(value, zero)
             # measured: an uncensored reading in the cell, or (a cell at the frame's edge
             # without the channel's pixels) none censored and some around
             measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
-            brightest[j] = max(brightest[j], o[j] * inverse if measured else none)
+            brightest[j] = max(brightest[j], row[j] * inverse if measured else none)
     for c in range(3):  # clipped channels at least the white-balanced level of the measured ones
-        n, b, den, o, level = info[c, i], bound[c, i], denominator[c, i], out[c, i], white[c]
-        for j in range(o.size):
+        n, b, den, row, level = info[c, i], bound[c, i], denominator[c, i], out[c, o], white[c]
+        for j in range(row.size):
             measured = n[j] > zero or (b[j] <= zero and den[j] > zero)
-            o[j] = o[j] if measured else max(o[j], level * brightest[j])
+            row[j] = row[j] if measured else max(row[j], level * brightest[j])
     for j in range(out.shape[2]):
         if brightest[j] < zero:  # every channel only a bound: neutral white at the largest
-            top = max(out[0, i, j] / white[0], max(out[1, i, j] / white[1], out[2, i, j] / white[2]))
+            top = max(out[0, o, j] / white[0], max(out[1, o, j] / white[1], out[2, o, j] / white[2]))
             for c in range(3):
-                out[c, i, j] = white[c] * top
+                out[c, o, j] = white[c] * top

@@ -20,6 +20,9 @@ from svelive.reconstruction.methods.base import SveInput, binomial_kernel
 SHARE_FLOOR = 1e-3
 #: Variance standing for "no coarse luminance here" (finite, so that interpolating it stays large).
 COARSE_NONE = 1e30
+#: Cell rows of each scratch plane of :func:`_share_pass` (rings: a stage reads rows at most 5 behind the
+#: newest written).
+PASS_ROWS = 8
 
 
 @dataclass(frozen=True)
@@ -86,7 +89,7 @@ def chroma(inp: SveInput) -> Chroma:
     neutral = (white / f32(layout.share @ white)).astype(f32)
     shares, coarse = np.empty((3, hc, wc), f32), np.empty((2, hc, wc), f32)
     values, own, smoothed, own_shares, noise, own_noise, residual, deviation = (
-        np.empty((3, hc, wc), f32) for _ in range(8))
+        np.empty((3, PASS_ROWS, wc), f32) for _ in range(8))
     _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share, neutral,
                 f32(SHARE_FLOOR), spread, _centring_taps(layout), k, values, own, smoothed, own_shares, noise,
                 own_noise, residual, deviation, coarse, shares, np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32),
@@ -187,50 +190,52 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
     ``white``, ``share``, ``neutral`` float32 (3,), ``floor`` and ``spread`` float32, ``taps``
     float32 (3, 2, 3), ``k`` float32 (3,). Out: ``out`` (3, Hc, Wc), the shares; ``coarse`` (2, Hc,
     Wc) (:func:`_shares_row`). Scratch: ``values``, ``own``, ``smoothed``, ``own_shares``,
-    ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, Hc, Wc); ``rings`` (4, 3, 3, Wc), the
-    last three rows of each filter's pass along rows; ``columns`` (3, Wc) (:func:`_median_row`);
-    ``brightest`` and ``lum`` (Wc,).
+    ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, R, Wc), rings of the last R cell rows (cell
+    row u at u % R; R at least 6, :data:`PASS_ROWS`: whole planes of them were 28 MB written and read again at
+    1920x1200, 40 % of the pass); ``rings`` (4, 3, 3, Wc), the last three rows of each filter's pass along
+    rows; ``columns`` (3, Wc) (:func:`_median_row`); ``brightest`` and ``lum`` (Wc,).
     """
-    hc = values.shape[1]
+    hc, n = out.shape[1], values.shape[1]
     for t in range(hc + 4):
         if t < hc:  # the cells' values of row t, and the centring along the row
-            _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t)
-            _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t)
+            r = t % n
+            _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t, r)
+            _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t, r)
             for c in range(3):
-                _taps_along(values[c, t], taps[c, 1], rings[0, t % 3, c])
-                _taps_along(own[c, t], taps[c, 1], rings[1, t % 3, c])
+                _taps_along(values[c, r], taps[c, 1], rings[0, t % 3, c])
+                _taps_along(own[c, r], taps[c, 1], rings[1, t % 3, c])
         u = t - 1
         if 0 <= u < hc:  # centred, the shares of row u, and its residual along the row
-            up, down = max(u - 1, 0), min(u + 1, hc - 1)
+            up, down, r = max(u - 1, 0), min(u + 1, hc - 1), u % n
             for c in range(3):
                 _taps_across(rings[0, up % 3, c], rings[0, u % 3, c], rings[0, down % 3, c], taps[c, 0],
-                             smoothed[c, u])
+                             smoothed[c, r])
                 _taps_across(rings[1, up % 3, c], rings[1, u % 3, c], rings[1, down % 3, c], taps[c, 0],
-                             own_shares[c, u])
-            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u)
-            _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u)
+                             own_shares[c, r])
+            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u, r)
+            _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u, r)
             for c in range(3):
-                _binomial_along(residual[c, u], k, rings[2, u % 3, c])
+                _binomial_along(residual[c, r], k, rings[2, u % 3, c])
         u = t - 2
         if 0 <= u < hc:  # the residual's 3x3 mean, the blend, and the deviation along the row
-            up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
+            up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
             for c in range(3):
-                _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, u])
-            _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, u)
+                _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, r])
+            _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, r)
             for c in range(3):
-                _binomial_along(deviation[c, u], k, rings[3, u % 3, c])
+                _binomial_along(deviation[c, r], k, rings[3, u % 3, c])
         u = t - 3
         if 0 <= u < hc:  # the deviation's 3x3 mean and the garrote
-            up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
+            up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
             for c in range(3):
                 _binomial_across(rings[3, up % 3, c], rings[3, u % 3, c], rings[3, down % 3, c], k,
-                                 deviation[c, u])
-            _shrink_row(smoothed, neutral, noise, deviation, u)
+                                 deviation[c, r])
+            _shrink_row(smoothed, neutral, noise, deviation, r)
         u = t - 4
         if 0 <= u < hc:  # the median and the normalisation
             up, down = max(u - 1, 0), min(u + 1, hc - 1)
             for c in range(3):
-                _median_row(smoothed[c, up], smoothed[c, u], smoothed[c, down], out[c, u], columns)
+                _median_row(smoothed[c, up % n], smoothed[c, u % n], smoothed[c, down % n], out[c, u], columns)
             _normalise_row(out, share, floor, lum, u)
 
 
@@ -318,25 +323,26 @@ def _sorted3(x, y, z):
 
 
 @kernel
-def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i):
-    """values (3, Hc, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
-    cell row ``i``.
+def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i, r):
+    """values (3, R, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
+    cell row ``i``, which is row ``r`` of ``values`` and ``noise`` (rings of cell rows, or whole planes with
+    ``r`` = ``i``) and row ``i`` of the other planes.
 
     ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
     censored readings, ``bound`` > 0, which keeps its own), COARSE_NONE where ``censored`` (Hc, Wc)
-    is set. ``noise`` (3, Hc, Wc): v_c / L^2, the variance of k_c from C_c's noise. Loops over the
+    is set. ``noise`` (3, R, Wc): v_c / L^2, the variance of k_c from C_c's noise. Loops over the
     cells of the row (which vectorise).
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
     tiny = np.float32(1e-30)
     lum_row, var = coarse[0, i], coarse[1, i]
-    r, g, b = values[0, i], values[1, i], values[2, i]
+    red, green, blue = values[0, r], values[1, r], values[2, r]
     for j in range(lum_row.size):
-        lum_row[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+        lum_row[j] = share[0] * red[j] + share[1] * green[j] + share[2] * blue[j]
         var[j] = zero
     for c in range(3):
-        k, n, inf, level, weight = values[c, i], noise[c, i], info[c, i], neutral[c], share[c]
+        k, n, inf, level, weight = values[c, r], noise[c, r], info[c, i], neutral[c], share[c]
         b = bound[c, i]
         for j in range(lum_row.size):
             ok = lum_row[j] > zero
@@ -352,17 +358,18 @@ def _shares_row(values, info, bound, censored, share, neutral, floor, spread, co
 
 
 @kernel
-def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i):
-    """values (3, Hc, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
-    neutral's where L <= 0), in place, for cell row ``i``, as :func:`_shares_row` with the cell's own
-    readings alone (their variance 1 / info_c; ``noise``: v_c / L^2, at most COARSE_NONE).
-    ``residual`` (out): (k_c - ``smoothed``_c)^2. ``lum``: (Wc,) scratch."""
+def _own_shares_row(values, info, share, neutral, floor, smoothed, noise, residual, lum, i, r):
+    """values (3, R, Wc): each cell's own C_c in, its shares k_c = max(C_c / L, floor) out (a
+    neutral's where L <= 0), in place, for cell row ``i`` (row ``r`` of the (3, R, Wc) planes, row ``i``
+    of ``info``), as :func:`_shares_row` with the cell's own readings alone (their variance 1 / info_c;
+    ``noise``: v_c / L^2, at most COARSE_NONE). ``residual`` (out): (k_c - ``smoothed``_c)^2. ``lum``:
+    (Wc,) scratch."""
     zero, one, none, tiny = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE), np.float32(1e-30)
-    r, g, b = values[0, i], values[1, i], values[2, i]
+    red, green, blue = values[0, r], values[1, r], values[2, r]
     for j in range(lum.size):
-        lum[j] = share[0] * r[j] + share[1] * g[j] + share[2] * b[j]
+        lum[j] = share[0] * red[j] + share[1] * green[j] + share[2] * blue[j]
     for c in range(3):
-        k, n, e, inf, ks, level = values[c, i], noise[c, i], residual[c, i], info[c, i], smoothed[c, i], neutral[c]
+        k, n, e, inf, ks, level = values[c, r], noise[c, r], residual[c, r], info[c, i], smoothed[c, r], neutral[c]
         for j in range(lum.size):
             ok = lum[j] > zero
             inverse = one / lum[j] if ok else zero
@@ -378,8 +385,8 @@ def _blend_row(shares, noise, own, own_noise, residual, neutral, deviation, i):
     """The smoothed shares of cell row ``i`` moved towards each cell's own where they differ beyond noise,
     in place.
 
-    ``shares`` and ``noise`` (3, Hc, Wc): the shares of the 3x3 cells' smoothed values and their
-    variance v_s; ``own`` and ``own_noise``: those of each cell's own readings, v_o. The smoothed
+    ``shares`` and ``noise`` (3, R, Wc), every plane here rows of cell rows (rings, or whole planes): the
+    shares of the 3x3 cells' smoothed values and their variance v_s; ``own`` and ``own_noise``: those of each cell's own readings, v_o. The smoothed
     estimate holds the own readings, so own - smoothed has variance v_o - v_s (nested
     inverse-variance estimates, as :func:`refine`) plus the squared difference of what they
     estimate, which ``residual`` (the 3x3 cells' mean of (own - smoothed)^2) measures:
