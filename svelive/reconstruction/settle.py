@@ -530,24 +530,26 @@ def _shelves(boxes: np.ndarray, halo: tuple[int, int], threads: int) -> list[np.
     return shelves
 
 
-def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1
+def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1, narrow: bool = True
               ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
     """This frame's estimate at the pixels (``ys``, ``xs``, intp), in rows the method skipped: (ys, xs), their
-    (image, lower, variance), and counts (pixels, bands computed whole, cells of CELL px, boxes, and the pixels
-    the method ran on for the boxes, halos included).
+    (image, lower, variance), and counts (pixels, bands computed whole, cells of CELL px, boxes, the pixels
+    the method ran on for the boxes, halos included, and the boxes' pixels the wide fallback took).
 
     A band holding so many such pixels' cells (CELL px) that the band costs less whole is computed whole; the
     other pixels are gathered into boxes (:func:`demand_boxes`: the pixels that lie together, on a grid of
-    :func:`box_grain`), each computed with the halo of the method's pass (:func:`pass_halo`): interior boxes in
-    atlases (their patches side by side, one row each), boxes at the frame's edges in a stack per side. The pixels
-    among them that the wide fallback takes (the pass's candidates, whose result reads beyond that halo) are
-    computed again in boxes with :func:`halo_for`'s. The atlases and stacks are spread over ``workers``
+    :func:`box_grain`), each computed with its halo: interior boxes in atlases (their patches side by side, one row
+    each), boxes at the frame's edges in a stack per side. ``narrow``: the halo of the method's pass first
+    (:func:`pass_halo`), then the pixels among them that the wide fallback takes (the pass's candidates, whose result
+    reads beyond that halo) again in boxes with :func:`halo_for`'s (about a quarter of the pixels on the still demo;
+    where most pixels are candidates, a dim view, the first boxes are lost work); else :func:`halo_for`'s at once.
+    The results do not depend on it. The atlases and stacks are spread over ``workers``
     (methods.base.map_on), the method on one thread each; the bands computed whole run the method on
     ``workers``."""
     inp, noise = part.inp, part.noise
     h, w = inp.shape
     n = ys.size
-    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0, demand_boxes=0, demand_area=0)
+    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0, demand_boxes=0, demand_area=0, demand_wide=0)
     values = (np.empty(n, np.float32), np.empty(n, bool), np.empty(n, np.float32))
     if not n:
         return ys, xs, values, stats
@@ -556,7 +558,7 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     cells, inverse = np.unique(cell_of, return_inverse=True)
     band_of_cell = ((cells // cw) * CELL) // BAND_ROWS
     hy, hx = halo_for(inp.pattern)
-    py, px = pass_halo(inp.pattern, inp.period)
+    py, px = pass_halo(inp.pattern, inp.period) if narrow else (hy, hx)  # (a cell's cost)
     limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * hy) * w / ((CELL + 2 * py) * (CELL + 2 * px))
     whole = np.zeros(len(part.computed), bool)
     counts = np.bincount(band_of_cell, minlength=len(whole))
@@ -579,23 +581,23 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
         method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
         take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
     rest = np.nonzero(~in_whole[inverse])[0]
-    # the boxes with the pass's halo first; the pixels among them the wide fallback takes (it reads farther) again
-    # with the whole method's
-    again = _boxes_on_demand(inp, noise, ys, xs, rest, pass_halo(inp.pattern, inp.period), True, take, stats,
-                             workers)
-    if again.size:
-        _boxes_on_demand(inp, noise, ys, xs, again, (hy, hx), False, take, stats, workers)
+    if narrow:  # the boxes with the pass's halo; the pixels the wide fallback takes (it reads farther) again
+        wide = _boxes_on_demand(inp, noise, ys, xs, rest, pass_halo(inp.pattern, inp.period), take, stats, workers)
+        if wide.size:
+            _boxes_on_demand(inp, noise, ys, xs, wide, (hy, hx), take, stats, workers)
+    else:
+        wide = _boxes_on_demand(inp, noise, ys, xs, rest, (hy, hx), take, stats, workers)
+    stats["demand_wide"] = int(wide.size)
     return ys, xs, values, stats
 
 
 def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, xs: np.ndarray, pixels: np.ndarray,
-                     halo: tuple[int, int], first: bool, take, stats: dict, workers: int | Executor) -> np.ndarray:
+                     halo: tuple[int, int], take, stats: dict, workers: int | Executor) -> np.ndarray:
     """:func:`on_demand` of its pixels ``pixels`` (indices into ``ys``, ``xs``) by boxes (:func:`demand_boxes`), each
     with ``halo`` (rows, cols): interior boxes in atlases, boxes at the frame's edges in a stack per side, each one
     call of the method on one thread, spread over ``workers``; their values given to ``take(pixels, arrays, oy,
-    ox)``. ``first``: ``halo`` is :func:`pass_halo`'s, exact where the wide fallback leaves the pass's result (a
-    patch's own candidates say where it does not); returns the pixels among ``pixels`` that are candidates (intp,
-    given to ``take`` too, to be overwritten), which need :func:`halo_for`'s; else none."""
+    ox)``. Returns the pixels among ``pixels`` that the wide fallback takes (the pass's candidates, intp): with
+    :func:`pass_halo`'s halo, exact for the others alone (they need :func:`halo_for`'s)."""
     h, w = inp.shape
     hy, hx = halo
     if not pixels.size:
@@ -616,9 +618,8 @@ def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, 
     def solve(job) -> tuple:
         members, build = job
         box, oy, ox = build(members)
-        image, lower, variance, _, darks, _ = _estimate(box, noise, 1, want_variance=True, want_darks=first)
-        candidates = (np.concatenate([d.candidates for d in darks]) if first and any(d.count for d in darks)
-                      else None)
+        image, lower, variance, _, darks, _ = _estimate(box, noise, 1, want_variance=True, want_darks=True)
+        candidates = np.concatenate([d.candidates for d in darks]) if any(d.count for d in darks) else None
         return (image, lower, variance), candidates, oy, ox, box.shape[0] * box.shape[1]
 
     slot = np.empty(len(boxes), np.intp)
