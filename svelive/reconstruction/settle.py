@@ -45,7 +45,7 @@ from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
-from svelive.reconstruction.methods.adaptive.fallback import _wide_reach
+from svelive.reconstruction.methods.adaptive.fallback import Dark, _wide_reach
 from svelive.reconstruction.methods.adaptive.parameters import kernels as method_kernels
 from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, thread_count, tile_rows,
                                                  window_kernels, window_level_row)
@@ -239,12 +239,11 @@ def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndar
             rows = slice(max(top - reach, 0), min(stop + reach, h))
             inside = top - small > 0 or stop + small < h  # (a crop edge inside the frame)
             darks = _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
-                              want_darks=inside,
                               out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))[4]
             if not inside or not any(d.count for d in darks):
                 break
             # the band rows whose candidates read beyond the pass's crop (within halo_for's rows of its edges)
-            candidates = np.concatenate([d.candidates for d in darks]).any(axis=1)[top - rows.start:stop - rows.start]
+            candidates = _candidates(darks).any(axis=1)[top - rows.start:stop - rows.start]
             near = np.zeros(stop - top, bool)
             if top - small > 0:
                 near[:halo - small] = True
@@ -255,6 +254,12 @@ def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndar
             else:
                 break
     return fits
+
+
+def _candidates(darks: list[Dark]) -> np.ndarray:
+    """bool (rows, W): the wide fallback's candidates of adaptive's strips (``darks``, one below the other), where a
+    strip without any holds no array of them (its weights give its rows)."""
+    return np.concatenate([d.candidates if d.count else np.zeros(d.weights.shape, bool) for d in darks])
 
 
 def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
@@ -642,8 +647,8 @@ def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, 
     def solve(job) -> tuple:
         members, build = job
         box, oy, ox = build(members)
-        image, lower, variance, _, darks, _ = _estimate(box, noise, 1, want_variance=True, want_darks=True)
-        candidates = np.concatenate([d.candidates for d in darks]) if any(d.count for d in darks) else None
+        image, lower, variance, _, darks, _ = _estimate(box, noise, 1, want_variance=True)
+        candidates = _candidates(darks) if any(d.count for d in darks) else None
         return (image, lower, variance), candidates, oy, ox, box.shape[0] * box.shape[1]
 
     slot = np.empty(len(boxes), np.intp)
