@@ -218,42 +218,19 @@ def band_mask(flags: np.ndarray, h: int) -> np.ndarray:
 
 def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
                     lower: np.ndarray, variance: np.ndarray, window: np.ndarray | None,
-                    workers: int | Executor = 1, narrow: bool = False) -> bool:
+                    workers: int | Executor = 1) -> None:
     """The method on the selected bands (bool per band), each run of them one crop with its halo, written into
     ``image``, ``lower``, ``variance`` and (with ``window``, (2, H, W)) the window mean: the rows of the selected
-    bands hold their results; the halo rows of each crop (:func:`halo_for`'s) are overwritten too (with what the
+    bands hold their results; the halo rows of each crop (:func:`halo_for`), are overwritten too (with what the
     crop gives there), the other rows are left. A band between two runs is at least two halos (64 rows, halos of
-    16 or 32): runs do not overwrite each other's results.
-
-    ``narrow``: each run's crop with the pass's halo first (:func:`pass_halo`; its halo rows then overwritten), the
-    bands' rows the full frame's but where the wide fallback takes a pixel whose blocks read beyond the crop (a
-    candidate within :func:`halo_for`'s rows of a crop edge inside the frame): then the run again with
-    :func:`halo_for`'s. The results do not depend on it. Returns whether the pass's halo would have sufficed for
-    every run (none needed the second crop), which tells a stream whether to try it on its next frame."""
+    16 or 32): runs do not overwrite each other's results."""
     h = inp.shape[0]
     in_pass = window is not None and _shares_window(inp)
-    halo, small = halo_for(inp.pattern)[0], pass_halo(inp.pattern, inp.period)[0]
-    fits = True
+    halo = halo_for(inp.pattern)[0]
     for top, stop in band_rows(selected, h):
-        for reach in (small, halo) if narrow else (halo,):
-            rows = slice(max(top - reach, 0), min(stop + reach, h))
-            inside = top - small > 0 or stop + small < h  # (a crop edge inside the frame)
-            darks = _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
-                              out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))[4]
-            if not inside or not any(d.count for d in darks):
-                break
-            # the band rows whose candidates read beyond the pass's crop (within halo_for's rows of its edges)
-            candidates = _candidates(darks).any(axis=1)[top - rows.start:stop - rows.start]
-            near = np.zeros(stop - top, bool)
-            if top - small > 0:
-                near[:halo - small] = True
-            if stop + small < h:
-                near[max(stop - top - (halo - small), 0):] = True
-            if (candidates & near).any():
-                fits = False
-            else:
-                break
-    return fits
+        rows = slice(max(top - halo, 0), min(stop + halo, h))
+        _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
+                  out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
 
 
 def _candidates(darks: list[Dark]) -> np.ndarray:

@@ -268,7 +268,6 @@ class Reconstructor:
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self._unsettled: tuple | None = None  # (weakref.ref of a history, its unsettled pixels by band): _selection
         self._selected: tuple | None = None  # (weakref.ref of a history, the other inputs, the bands): _selection
-        self._narrow_bands = True  # settle.method_on_bands' narrow: whether the pass's halo sufficed last time
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._last_ratio = 1.0  # the last fused frame's brightness ratio
@@ -682,9 +681,7 @@ class Reconstructor:
         image, lower, variance = (np.empty((h, w), np.float32), np.empty((h, w), bool),
                                   np.empty((h, w), np.float32))
         window = np.empty((2, h, w), np.float32)  # (rows the pass does not make are made below)
-        # (the pass's halo first unless the last frame's bands had the wide fallback's pixels by their crops' edges)
-        self._narrow_bands = settle.method_on_bands(inp, noise, selected, image, lower, variance, window,
-                                                    self._threads, self._narrow_bands)
+        settle.method_on_bands(inp, noise, selected, image, lower, variance, window, self._threads)
         skipped = settle.band_rows(~selected, h)
         # the skipped rows' estimate and bound are the history's (fuse writes them, times its brightness ratio),
         # their variance the last fused frame's (fuse writes it too); the window mean where the method did not make
