@@ -267,7 +267,6 @@ class Reconstructor:
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self._unsettled: tuple | None = None  # (weakref.ref of a history, its unsettled pixels by band): _selection
-        self._selected: tuple | None = None  # (weakref.ref of a history, the other inputs, the bands): _selection
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._last_ratio = 1.0  # the last fused frame's brightness ratio
@@ -623,13 +622,6 @@ class Reconstructor:
         if (history is None or history.mean.shape != shape or last_variance is None
                 or last_variance.shape != shape or abs(last_ratio - 1.0) > RATIO_TOLERANCE):
             return np.ones(len(spans), bool)
-        # (a frame's hint and its fuse ask the same of a sequential stream: made once; the lists and arrays read are
-        # replaced, never changed, by fuse)
-        key = (tick, shape, last_ratio), (band_motion, last_variance)
-        cached = self._selected
-        if (cached is not None and cached[0]() is history and cached[1][0] == key[0]
-                and all(a is b for a, b in zip(cached[1][1], key[1]))):
-            return cached[2].copy()
         # not the false alarms this stream's test shows, nor the pixels reset where a reading crossed the censor level
         sampled = np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w  # (the counts' pixels: every 4th row)
         selected = settle.moving_bands(band_motion, sampled, 2 * int(self.motion_config.widen) + 1)
@@ -643,14 +635,13 @@ class Reconstructor:
         selected |= unsettled > settle.UNSETTLED_SHARE * sampled
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
         selected |= np.arange(len(spans)) * self.refresh // len(spans) == tick % self.refresh
-        self._selected = weakref.ref(history), key, selected.copy()
         return selected
 
     def _selection_state(self) -> tuple[list[np.ndarray], float, np.ndarray | None]:
         """(band motion, last brightness ratio, last partial frame's variance) as the last fused frame left
         them: what :meth:`_selection` reads besides the history. Called under ``_lock`` (:meth:`estimate`), or by
         :meth:`fuse`, their only writer."""
-        return self._band_motion, self._last_ratio, self._last_variance
+        return list(self._band_motion), self._last_ratio, self._last_variance
 
     def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
         """(input, estimate with the window mean, settle.Partial, a colour frame's joint parts or None): the
