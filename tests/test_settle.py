@@ -73,11 +73,13 @@ def _assert_bands_are_the_full_frames(inp, noise, selected, full) -> tuple:
 
 
 def _assert_on_demand_is_the_full_frames(part, need, full, workers=1):
-    """settle.on_demand at ``need``'s pixels gives the full frame's (image, lower, variance) there, bit for bit."""
-    ys, xs, values, _ = settle.on_demand(part, *np.nonzero(need), workers)
-    assert ys.size == np.count_nonzero(need)
-    for got, want in zip(values, full):
-        np.testing.assert_array_equal(got, want[ys, xs])
+    """settle.on_demand at ``need``'s pixels gives the full frame's (image, lower, variance) there, bit for bit, with
+    the pass's halo first (the wide fallback's pixels again) and with the whole method's at once."""
+    for narrow in (True, False):
+        ys, xs, values, _ = settle.on_demand(part, *np.nonzero(need), workers, narrow)
+        assert ys.size == np.count_nonzero(need)
+        for got, want in zip(values, full):
+            np.testing.assert_array_equal(got, want[ys, xs])
 
 
 def test_bands_cells_and_edges_give_the_full_frames_results():

@@ -45,7 +45,7 @@ from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
-from svelive.reconstruction.methods.adaptive.fallback import _wide_reach
+from svelive.reconstruction.methods.adaptive.fallback import Dark, _wide_reach
 from svelive.reconstruction.methods.adaptive.parameters import kernels as method_kernels
 from svelive.reconstruction.methods.base import (SveInput, map_on, reflect_101, thread_count, tile_rows,
                                                  window_kernels, window_level_row)
@@ -123,6 +123,18 @@ def halo_for(pattern: Pattern) -> tuple[int, int]:
     reach = _wide_reach(ky, kx)
     need = 3 * (len(ky) // 2) + reach[0], 3 * (len(kx) // 2) + reach[1]
     return tuple(HALO * max(1, -(-n // HALO)) for n in need)
+
+
+@lru_cache(maxsize=16)
+def pass_halo(pattern: Pattern, period: tuple[int, int]) -> tuple[int, int]:
+    """(rows, columns), each a multiple of the tile ``period``'s side (the input's: a crop starts on whole tiles),
+    around a computed region that ``adaptive``'s pass reads, three windows deep, without the wide fallback's reach
+    (:func:`halo_for`'s): enough for every pixel the fallback leaves as the pass made it, which :func:`on_demand`
+    tells by the pass's own candidates. (4, 4) for 3-tap windows (2x2 tiles), (8, 4) for the 5-row windows of
+    1/1/8/8."""
+    ky, kx = method_kernels(pattern.shape)
+    need = 3 * (len(ky) // 2), 3 * (len(kx) // 2)
+    return tuple(n * max(1, -(-r // n)) for r, n in zip(need, period))
 
 
 def bands(h: int) -> list[slice]:
@@ -219,6 +231,12 @@ def method_on_bands(inp: SveInput, noise: tuple[float, float], selected: np.ndar
         rows = slice(max(top - halo, 0), min(stop + halo, h))
         _estimate(inp.crop(rows), noise, workers, want_variance=True, want_window=in_pass,
                   out=(image[rows], lower[rows], variance[rows], window[:, rows] if in_pass else None))
+
+
+def _candidates(darks: list[Dark]) -> np.ndarray:
+    """bool (rows, W): the wide fallback's candidates of adaptive's strips (``darks``, one below the other), where a
+    strip without any holds no array of them (its weights give its rows)."""
+    return np.concatenate([d.candidates if d.count else np.zeros(d.weights.shape, bool) for d in darks])
 
 
 def method_on_band_rows(inp: SveInput, noise: tuple[float, float], selected: np.ndarray, image: np.ndarray,
@@ -473,12 +491,13 @@ def box_grain(pattern: Pattern) -> tuple[int, int]:
     return tuple(int(np.lcm(GRAIN, n)) for n in pattern.shape)
 
 
-def _atlas(inp: SveInput, boxes: np.ndarray) -> tuple[SveInput, np.ndarray, np.ndarray]:
-    """The patches of ``boxes`` (int (n, 4) [r0, r1, c0, c1) of the frame, each inside the frame by
-    :func:`halo_for`'s halo, starting on whole tiles) with their halos, side by side in one row (a patch shorter
+def _atlas(inp: SveInput, boxes: np.ndarray, halo: tuple[int, int] | None = None
+           ) -> tuple[SveInput, np.ndarray, np.ndarray]:
+    """The patches of ``boxes`` (int (n, 4) [r0, r1, c0, c1) of the frame, each inside the frame by ``halo``
+    ((rows, cols); None: :func:`halo_for`'s), starting on whole tiles) with their halos, side by side in one row (a patch shorter
     than the row over zero readings); returns the atlas and each box's offset (atlas minus frame coordinates),
     rows and columns, intp (n,) each."""
-    hy, hx = halo_for(inp.pattern)
+    hy, hx = halo_for(inp.pattern) if halo is None else halo
     heights, widths = boxes[:, 1] - boxes[:, 0] + 2 * hy, boxes[:, 3] - boxes[:, 2] + 2 * hx
     shape = (int(heights.max()), int(widths.sum()))
     signal = np.zeros(shape, np.float32)
@@ -517,22 +536,26 @@ def _shelves(boxes: np.ndarray, halo: tuple[int, int], threads: int) -> list[np.
     return shelves
 
 
-def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1
+def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Executor = 1, narrow: bool = True
               ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
     """This frame's estimate at the pixels (``ys``, ``xs``, intp), in rows the method skipped: (ys, xs), their
-    (image, lower, variance), and counts (pixels, bands computed whole, cells of CELL px, boxes, and the pixels
-    the method ran on for the boxes, halos included).
+    (image, lower, variance), and counts (pixels, bands computed whole, cells of CELL px, boxes, the pixels
+    the method ran on for the boxes, halos included, and the boxes' pixels the wide fallback took).
 
     A band holding so many such pixels' cells (CELL px) that the band costs less whole is computed whole; the
     other pixels are gathered into boxes (:func:`demand_boxes`: the pixels that lie together, on a grid of
-    :func:`box_grain`), each computed with its halo: interior boxes in atlases (their patches side by side, one
-    row each), boxes at the frame's edges in a stack per side. The atlases and stacks are spread over ``workers``
+    :func:`box_grain`), each computed with its halo: interior boxes in atlases (their patches side by side, one row
+    each), boxes at the frame's edges in a stack per side. ``narrow``: the halo of the method's pass first
+    (:func:`pass_halo`), then the pixels among them that the wide fallback takes (the pass's candidates, whose result
+    reads beyond that halo) again in boxes with :func:`halo_for`'s (about a quarter of the pixels on the still demo;
+    where most pixels are candidates, a dim view, the first boxes are lost work); else :func:`halo_for`'s at once.
+    The results do not depend on it. The atlases and stacks are spread over ``workers``
     (methods.base.map_on), the method on one thread each; the bands computed whole run the method on
     ``workers``."""
     inp, noise = part.inp, part.noise
     h, w = inp.shape
     n = ys.size
-    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0, demand_boxes=0, demand_area=0)
+    stats = dict(demand_px=int(n), demand_bands=0, demand_cells=0, demand_boxes=0, demand_area=0, demand_wide=0)
     values = (np.empty(n, np.float32), np.empty(n, bool), np.empty(n, np.float32))
     if not n:
         return ys, xs, values, stats
@@ -541,7 +564,8 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     cells, inverse = np.unique(cell_of, return_inverse=True)
     band_of_cell = ((cells // cw) * CELL) // BAND_ROWS
     hy, hx = halo_for(inp.pattern)
-    limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * hy) * w / ((CELL + 2 * hy) * (CELL + 2 * hx))
+    py, px = pass_halo(inp.pattern, inp.period) if narrow else (hy, hx)  # (a cell's cost)
+    limit = CELL_LIMIT_SHARE * (BAND_ROWS + 2 * hy) * w / ((CELL + 2 * py) * (CELL + 2 * px))
     whole = np.zeros(len(part.computed), bool)
     counts = np.bincount(band_of_cell, minlength=len(whole))
     whole[:] = counts >= limit
@@ -563,37 +587,60 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
         method_on_bands(inp, noise, whole, image, lower, variance, None, workers)
         take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
     rest = np.nonzero(~in_whole[inverse])[0]
-    if not rest.size:
-        return ys, xs, values, stats
-    boxes, box_of = demand_boxes((h, w), ys[rest], xs[rest], box_grain(inp.pattern), (hy, hx))
-    stats["demand_boxes"] = len(boxes)
-    # the atlases (a row of patches each) and the edge stacks, each one call of the method on one thread, spread
-    # over the threads (a patch's results do not depend on its neighbours in an atlas: its halo is the method's
-    # reach)
+    if narrow:  # the boxes with the pass's halo; the pixels the wide fallback takes (it reads farther) again
+        wide = _boxes_on_demand(inp, noise, ys, xs, rest, pass_halo(inp.pattern, inp.period), take, stats, workers)
+        if wide.size:
+            _boxes_on_demand(inp, noise, ys, xs, wide, (hy, hx), take, stats, workers)
+    else:
+        wide = _boxes_on_demand(inp, noise, ys, xs, rest, (hy, hx), take, stats, workers)
+    stats["demand_wide"] = int(wide.size)
+    return ys, xs, values, stats
+
+
+def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, xs: np.ndarray, pixels: np.ndarray,
+                     halo: tuple[int, int], take, stats: dict, workers: int | Executor) -> np.ndarray:
+    """:func:`on_demand` of its pixels ``pixels`` (indices into ``ys``, ``xs``) by boxes (:func:`demand_boxes`), each
+    with ``halo`` (rows, cols): interior boxes in atlases, boxes at the frame's edges in a stack per side, each one
+    call of the method on one thread, spread over ``workers``; their values given to ``take(pixels, arrays, oy,
+    ox)``. Returns the pixels among ``pixels`` that the wide fallback takes (the pass's candidates, intp): with
+    :func:`pass_halo`'s halo, exact for the others alone (they need :func:`halo_for`'s)."""
+    h, w = inp.shape
+    hy, hx = halo
+    if not pixels.size:
+        return pixels
+    boxes, box_of = demand_boxes((h, w), ys[pixels], xs[pixels], box_grain(inp.pattern), halo)
+    stats["demand_boxes"] += len(boxes)
+    # (a patch's results do not depend on its neighbours in an atlas: its halo is the method's reach)
     inside = (boxes[:, 0] - hy >= 0) & (boxes[:, 1] + hy <= h) & (boxes[:, 2] - hx >= 0) & (boxes[:, 3] + hx <= w)
     interior = np.nonzero(inside)[0]
     jobs = []
     if interior.size:
-        jobs = [(interior[m], lambda m: _atlas(inp, boxes[m]))
-                for m in _shelves(boxes[interior], (hy, hx), thread_count(workers))]
+        jobs = [(interior[m], lambda m: _atlas(inp, boxes[m], halo))
+                for m in _shelves(boxes[interior], halo, thread_count(workers))]
     edge = np.nonzero(~inside)[0]
-    for members in _edge_groups(inp.shape, boxes[edge], (hy, hx)):
-        jobs.append((edge[members], lambda m: _edge_stack(inp, boxes[m])))
+    for members in _edge_groups(inp.shape, boxes[edge], halo):
+        jobs.append((edge[members], lambda m: _edge_stack(inp, boxes[m], halo)))
 
     def solve(job) -> tuple:
         members, build = job
         box, oy, ox = build(members)
-        return _estimate(box, noise, 1, want_variance=True)[:3], oy, ox, box.shape[0] * box.shape[1]
+        image, lower, variance, _, darks, _ = _estimate(box, noise, 1, want_variance=True)
+        candidates = _candidates(darks) if any(d.count for d in darks) else None
+        return (image, lower, variance), candidates, oy, ox, box.shape[0] * box.shape[1]
 
     slot = np.empty(len(boxes), np.intp)
-    for (members, _), (arrays, oy, ox, area) in zip(jobs, map_on(workers, solve, jobs)):
+    again = []
+    for (members, _), (arrays, candidates, oy, ox, area) in zip(jobs, map_on(workers, solve, jobs)):
         slot[:] = -1
         slot[members] = np.arange(members.size)
         s = slot[box_of]
         mine = np.nonzero(s >= 0)[0]
-        take(rest[mine], arrays, oy[s[mine]], ox[s[mine]])
+        oy, ox = oy[s[mine]], ox[s[mine]]
+        take(pixels[mine], arrays, oy, ox)
+        if candidates is not None:
+            again.append(pixels[mine][candidates[ys[pixels[mine]] + oy, xs[pixels[mine]] + ox]])
         stats["demand_area"] += area
-    return ys, xs, values, stats
+    return np.concatenate(again) if again else pixels[:0]
 
 
 def _edge_groups(shape: tuple[int, int], boxes: np.ndarray, halo: tuple[int, int] = (HALO, HALO)
@@ -630,14 +677,15 @@ def _edge_groups(shape: tuple[int, int], boxes: np.ndarray, halo: tuple[int, int
     return groups
 
 
-def _edge_stack(inp: SveInput, boxes: np.ndarray) -> tuple[SveInput, np.ndarray, np.ndarray]:
+def _edge_stack(inp: SveInput, boxes: np.ndarray, halo: tuple[int, int] | None = None
+                ) -> tuple[SveInput, np.ndarray, np.ndarray]:
     """The boxes of one group of :func:`_edge_groups` (``boxes``: int (n, 4) [r0, r1, c0, c1)), each with its halo
-    clipped to the frame, stacked along their side into one input (top and bottom ones side by side in the given
+    (``halo``, (rows, cols); None: :func:`halo_for`'s) clipped to the frame, stacked along their side into one input (top and bottom ones side by side in the given
     order, left and right ones one under the other), each box's clipped side on the stack's edge (mirrored as the
     frame's), boxes that abut meeting at their halos. Returns the stack and each box's offsets (stack minus frame
     coordinates), intp (n,) each."""
     h, w = inp.shape
-    hy, hx = halo_for(inp.pattern)
+    hy, hx = halo_for(inp.pattern) if halo is None else halo
     first = boxes[0]
     top, bottom, left = first[0] - hy < 0, first[1] + hy > h, first[2] - hx < 0
     along = top or bottom  # side by side along the rows, else one under the other

@@ -577,7 +577,10 @@ class Reconstructor:
             ~partial.rows, fused.reset, fused.motion, frame.censored, history.bound, history.weight, history.own,
             history.tested, history.censored, scale, tested, tested_variance, inv_k2, scale == 1, wy, wx,
             state.weight, state.own, no_rows if state.test is None else state.test, self._threads)
-        ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads)
+        # (the pass's halo first unless most of the last frame's were the wide fallback's, which reads farther)
+        last = self.last_partial
+        narrow = last is None or 2 * last.get("demand_wide", 0) <= last.get("demand_px", 0)
+        ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads, narrow)
         partial.stats.update(stats, kept_px=kept)
         fused = replace(fused, state=replace(state, censored=censored))
         if not ys.size:
