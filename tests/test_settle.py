@@ -11,8 +11,9 @@ from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods.adaptive import _estimate, noise_model
 
 
-def _frames(n, width=328, height=200):
-    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9, cfa="none")
+def _frames(n, width=328, height=200, cfa="none"):
+    """The first ``n`` frames of the still demo camera (monochrome, or the colour filter ``cfa``)."""
+    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9, cfa=cfa)
     try:
         return list(demo.frames(limit=n))
     finally:
@@ -409,14 +410,6 @@ def test_the_skipped_rows_resets_on_threads_are_one_threads(monkeypatch):
     assert taken > 0 and kept > 0
 
 
-def _colour_frames(n, width=328, height=200):
-    demo = DemoSource("demo", width=width, height=height, fps=0, period_s=1e9, cfa="RGGB")
-    try:
-        return list(demo.frames(limit=n))
-    finally:
-        demo.close()
-
-
 def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frames_results():
     """A colour frame's folded luminance (per-pixel exposures e' = e k_c, SveInput.folded; dual-ISO 1/1/8/8 on
     RGGB): the method on its bands, on demand in atlases (every cell of the frame) and edge stacks, and the window
@@ -425,7 +418,7 @@ def test_the_folded_luminance_s_bands_cells_edges_and_window_give_the_full_frame
     from svelive.reconstruction import colour
     from svelive.reconstruction.numerics import window_estimate
 
-    frame = _colour_frames(1)[0]
+    frame = _frames(1, cfa="RGGB")[0]
     for dim in (1.0, 2.0 ** -8):
         inp = _dimmed_input(frame, dim)
         inter = colour.interpolation(colour.chroma(inp), coarse=False)
@@ -457,7 +450,7 @@ def test_a_colour_refresh_stream_skips_luminance_bands_and_stays_close():
     """``colour_refresh``: a still colour view's stream runs the method on part of its luminance's bands and its
     output stays close to refresh 0's; with K = 1 (every band every frame) it is refresh 0's, bit for bit; without
     ``colour_refresh`` a colour stream ignores ``refresh``."""
-    frames = _colour_frames(13, 328, 400)
+    frames = _frames(13, 328, 400, cfa="RGGB")
     camera = frames[0].camera
     off = Reconstructor(camera)
     every = Reconstructor(camera, refresh=1, colour_refresh=True)
