@@ -244,7 +244,7 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
             for c in range(3):
                 _binomial_along(residual[c, r], k, rings[2, u % 3, c])
         u = t - 2
-        if max(first - 2, 0) <= u < min(stop + 2, hc):  # the residual's 3x3 mean, the blend, and the deviation along the row
+        if max(first - 2, 0) <= u < min(stop + 2, hc):  # the residual's 3x3 mean, the blend, the deviation along
             up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
             for c in range(3):
                 _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, r])
