@@ -324,7 +324,7 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
     """
     a0, a1, a2, a3, a4, a5, a6, a7, a8 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8]
     w0, w1, w2 = luma[0], luma[1], luma[2]
-    one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-30)
+    one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
     span = one - knee
     n = pixels.size // 3
     buffer = np.empty(3 * BLOCK, np.float32)
@@ -352,17 +352,21 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
             hi = hi if hi > z else z
             lo = x if x < y else y
             lo = lo if lo < z else z
-            t = hi - knee
-            t = (t if t > zero else zero) / span
-            target = knee + span * t / (one + t)
-            target = target if target < hi else hi
-            target = target if target > grey else grey
+            # the shoulder's target, knee + span u / (span + u), u = max(hi - knee, 0), is a fraction whose
+            # denominator joins the others': s = min((target - grey) / spread, 1, grey / below), at least 0,
+            # with one division instead of four
+            u = hi - knee
+            u = u if u > zero else zero
+            d = span + u
+            above = (knee - grey) * d + span * u  # (target - grey) d, before the target is clamped to [grey, hi]
             spread = hi - grey
-            s = (target - grey) / (spread if spread > tiny else tiny)
-            s = s if s < one else one
+            spread = (spread if spread > tiny else tiny) * d
             below = grey - lo
-            s_low = grey / (below if below > tiny else tiny)
-            s = s if s < s_low else s_low
+            below = below if below > tiny else tiny
+            s = above * below
+            s = s if s < spread * below else spread * below
+            s = s if s < grey * spread else grey * spread
+            s = (s if s > zero else zero) / (spread * below)
             buffer[3 * j] = grey + s * (x - grey)
             buffer[3 * j + 1] = grey + s * (y - grey)
             buffer[3 * j + 2] = grey + s * (z - grey)
