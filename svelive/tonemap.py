@@ -46,7 +46,7 @@ import numpy as np
 from svelive.core.errors import SveliveError
 from svelive.core.order import percentile
 from svelive.exr import LUMA_WEIGHTS
-from svelive.jit import flat, kernel
+from svelive.jit import flat, fma32, kernel
 
 #: Sampling stride of the statistics: 1 pixel in 16 is plenty for two global numbers.
 STATS_STRIDE = 4
@@ -337,10 +337,10 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
             r = block[3 * j]
             g = block[3 * j + 1]
             b = block[3 * j + 2]
-            x = a0 * r + a1 * g + a2 * b
-            y = a3 * r + a4 * g + a5 * b
-            z = a6 * r + a7 * g + a8 * b
-            lum = w1 * y + (w0 * x + w2 * z)  # the same sum in BGR order, where x and z swap
+            x = fma32(a2, b, fma32(a1, g, a0 * r))
+            y = fma32(a5, b, fma32(a4, g, a3 * r))
+            z = fma32(a8, b, fma32(a7, g, a6 * r))
+            lum = fma32(w1, y, fma32(w2, z, w0 * x))  # the same sum in BGR order, where x and z swap
             lum = lum if lum > zero else zero
             yk = lum * scale
             gain = scale * (one + yk * inverse_white2) / (one + yk)
@@ -367,9 +367,9 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
             s = s if s < spread * below else spread * below
             s = s if s < grey * spread else grey * spread
             s = (s if s > zero else zero) / (spread * below)
-            buffer[3 * j] = grey + s * (x - grey)
-            buffer[3 * j + 1] = grey + s * (y - grey)
-            buffer[3 * j + 2] = grey + s * (z - grey)
+            buffer[3 * j] = fma32(s, x - grey, grey)
+            buffer[3 * j + 1] = fma32(s, y - grey, grey)
+            buffer[3 * j + 2] = fma32(s, z - grey, grey)
         for j in range(3 * m):
             out[j] = lut[bits[j] >> shift]
 
