@@ -181,19 +181,12 @@ def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_v
                                   residual[t0], residual[t1])
         y, vy, o = luminance[r], variance[r], out[r]
         wy = weight[r] if weighted else vy  # (not read without a weight)
-        if floored:
-            low = floor[(first + r) // cy]
-            for x in range(y.size):
-                v = max(vy[x], low[x]) if wy[x] < one else vy[x]
-                o[x], ov = _garrote(y[x], v * wy[x], l0[x], l1[x], v0[x], v1[x], e0[x], e1[x], f)
-                if with_variance:
-                    out_variance[r, x] = ov
-        else:
-            for x in range(y.size):
-                o[x], ov = _garrote(y[x], vy[x] * wy[x] if weighted else vy[x], l0[x], l1[x], v0[x], v1[x],
-                                    e0[x], e1[x], f)
-                if with_variance:
-                    out_variance[r, x] = ov
+        low = floor[(first + r) // cy] if floored else vy  # (max(v, v) is v: one loop for both)
+        for x in range(y.size):
+            v = max(vy[x], low[x]) if wy[x] < one else vy[x]
+            o[x], ov = _garrote(y[x], v * wy[x] if weighted else v, l0[x], l1[x], v0[x], v1[x], e0[x], e1[x], f)
+            if with_variance:
+                out_variance[r, x] = ov
         if rgb.size > 0:
             _colour_row(o, planes[0, t0], planes[0, t1], planes[1, t0], planes[1, t1], planes[2, t0], planes[2, t1],
                         f, rgb[r])
