@@ -65,6 +65,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("share_error", "reconstruction.stream", "share_error"),
     ("fuse", "reconstruction.stream", "fuse"),
     ("fuse_chroma", "reconstruction.stream", "fuse_chroma"),
+    ("luminance_noise", "reconstruction.stream", "luminance_noise"),
     ("refined", "reconstruction.stream", "_refined"),
     ("refined.interpolation", "reconstruction.colour", "interpolation"),
     ("refined.refine", "reconstruction.colour", "refine"),  # (and colourise, since they share a pass)

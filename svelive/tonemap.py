@@ -46,7 +46,7 @@ import numpy as np
 from svelive.core.errors import SveliveError
 from svelive.core.order import percentile
 from svelive.exr import LUMA_WEIGHTS
-from svelive.jit import flat, kernel
+from svelive.jit import flat, fma32, kernel
 
 #: Sampling stride of the statistics: 1 pixel in 16 is plenty for two global numbers.
 STATS_STRIDE = 4
@@ -324,7 +324,7 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
     """
     a0, a1, a2, a3, a4, a5, a6, a7, a8 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8]
     w0, w1, w2 = luma[0], luma[1], luma[2]
-    one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-30)
+    one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
     span = one - knee
     n = pixels.size // 3
     buffer = np.empty(3 * BLOCK, np.float32)
@@ -337,10 +337,10 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
             r = block[3 * j]
             g = block[3 * j + 1]
             b = block[3 * j + 2]
-            x = a0 * r + a1 * g + a2 * b
-            y = a3 * r + a4 * g + a5 * b
-            z = a6 * r + a7 * g + a8 * b
-            lum = w1 * y + (w0 * x + w2 * z)  # the same sum in BGR order, where x and z swap
+            x = fma32(a2, b, fma32(a1, g, a0 * r))
+            y = fma32(a5, b, fma32(a4, g, a3 * r))
+            z = fma32(a8, b, fma32(a7, g, a6 * r))
+            lum = fma32(w1, y, fma32(w2, z, w0 * x))  # the same sum in BGR order, where x and z swap
             lum = lum if lum > zero else zero
             yk = lum * scale
             gain = scale * (one + yk * inverse_white2) / (one + yk)
@@ -352,20 +352,24 @@ def _tone_colour(pixels: np.ndarray, display: np.ndarray, a: np.ndarray, luma: n
             hi = hi if hi > z else z
             lo = x if x < y else y
             lo = lo if lo < z else z
-            t = hi - knee
-            t = (t if t > zero else zero) / span
-            target = knee + span * t / (one + t)
-            target = target if target < hi else hi
-            target = target if target > grey else grey
+            # the shoulder's target, knee + span u / (span + u), u = max(hi - knee, 0), is a fraction whose
+            # denominator joins the others': s = min((target - grey) / spread, 1, grey / below), at least 0,
+            # with one division instead of four
+            u = hi - knee
+            u = u if u > zero else zero
+            d = span + u
+            above = (knee - grey) * d + span * u  # (target - grey) d, before the target is clamped to [grey, hi]
             spread = hi - grey
-            s = (target - grey) / (spread if spread > tiny else tiny)
-            s = s if s < one else one
+            spread = (spread if spread > tiny else tiny) * d
             below = grey - lo
-            s_low = grey / (below if below > tiny else tiny)
-            s = s if s < s_low else s_low
-            buffer[3 * j] = grey + s * (x - grey)
-            buffer[3 * j + 1] = grey + s * (y - grey)
-            buffer[3 * j + 2] = grey + s * (z - grey)
+            below = below if below > tiny else tiny
+            s = above * below
+            s = s if s < spread * below else spread * below
+            s = s if s < grey * spread else grey * spread
+            s = (s if s > zero else zero) / (spread * below)
+            buffer[3 * j] = fma32(s, x - grey, grey)
+            buffer[3 * j + 1] = fma32(s, y - grey, grey)
+            buffer[3 * j + 2] = fma32(s, z - grey, grey)
         for j in range(3 * m):
             out[j] = lut[bits[j] >> shift]
 

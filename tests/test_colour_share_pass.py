@@ -162,6 +162,37 @@ def test_refine_colours_its_result_as_colourise_does(layout):
         refine(luminance, variance, inter, ch.layout.cell, out=np.empty_like(luminance), rgb=out)
 
 
+def test_refine_takes_a_floor_under_the_variance_where_the_weight_is_below_one():
+    """``refine(..., floor=)`` (a stream's measured noise per cell row and column) is bit for bit ``refine`` of the
+    variance raised to the floor where the weight is below 1, over threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svelive.reconstruction.colour import interpolation, refine
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:150, :200]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=2).raw, Camera.build(pattern, cfa, SENSOR))
+    ch = chroma(inp)
+    inter, (cy, _) = interpolation(ch, coarse=True), ch.layout.cell
+    rng = np.random.default_rng(1)
+    luminance = (rgb @ np.array([0.25, 0.5, 0.25], np.float32) * scale).astype(np.float32)
+    variance = (luminance / 10 + 4 + rng.random(luminance.shape, np.float32)).astype(np.float32)
+    weight = rng.random(luminance.shape, np.float32)
+    weight[:, ::5] = 1
+    floor = (4 + 8 * rng.random((-(-luminance.shape[0] // cy), luminance.shape[1]), np.float32)).astype(np.float32)
+    raised = np.where(weight < 1, np.maximum(variance, np.repeat(floor, cy, axis=0)[:luminance.shape[0]]), variance)
+    assert np.any(raised != variance) and np.any((raised == variance) & (weight < 1))
+    expected = refine(luminance, raised, inter, ch.layout.cell, weight=weight)
+    with ThreadPoolExecutor(2) as pool:
+        for workers in (1, pool):
+            out = np.empty((*luminance.shape, 3), np.float32)
+            got = refine(luminance, variance, inter, ch.layout.cell, weight=weight, floor=floor, rgb=out,
+                         workers=workers)
+            np.testing.assert_array_equal(got, expected)
+    with pytest.raises(ValueError):
+        refine(luminance, variance, inter, ch.layout.cell, floor=floor)
+
+
 def test_colourise_copies_the_luminance_in_its_pass():
     from svelive.reconstruction.colour import colourise, interpolation
     pattern, cfa = COLOUR_LAYOUTS["dual-iso"]

@@ -810,9 +810,9 @@ class Reconstructor:
                 # (rows the band refresh skipped hold no estimate of this frame: their evidence stays as it was)
                 skipped = (~partial.rows if partial is not None and not partial.rows.all()
                            else np.empty(0, bool))
-                spread, measured = luminance_noise(spread, previous, est.image, fused.history, variance, weight,
-                                                   parts.chroma.layout.cell, ratio, self._threads, skipped)
-                luminance, variance_of, image = _refined(image, measured, weight, variance_of,
+                spread, floor = luminance_noise(spread, previous, est.image, fused.history, weight,
+                                                parts.chroma.layout.cell, ratio, self._threads, skipped)
+                luminance, variance_of, image = _refined(image, variance, floor, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
             else:
@@ -1024,12 +1024,11 @@ def _share_gather(cells, channels, out, first, stop):
 
 
 def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
-                    weight: np.ndarray, variance: np.ndarray, output_weight: np.ndarray, cell: tuple[int, int],
-                    ratio: float = 1.0, workers: int | Executor = 1,
-                    skipped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A colour stream's evidence of its luminance noise after this frame and the variance its refinement takes,
-    both float32 (H, W), DN^2, made in one pass over the frame (pieces of whole cell rows, base.map_on over
-    ``workers``; the result does not depend on it).
+                    weight: np.ndarray, output_weight: np.ndarray, cell: tuple[int, int], ratio: float = 1.0,
+                    workers: int | Executor = 1, skipped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A colour stream's evidence of its luminance noise after this frame, float32 (H, W), DN^2, and the floor
+    its refinement puts under the model's variance, float32 (Hc, W), made in one pass over the frame (pieces of
+    whole cell rows, base.map_on over ``workers``; the result does not depend on it).
 
     The evidence (the stream keeps it for its next frame as ``spread``: the last frame's, None: none, or
     another size): per pixel, the mean over its frames since its last reset (the history's weights: 1 / (n - 1)
@@ -1040,10 +1039,11 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
     frame's luminance is the method run on readings folded by that frame's shares, whose noise (in dark cells)
     and the outliers it makes are in no model variance and differ from frame to frame (docs/motion.md).
 
-    The variance: the larger of the model's (``variance``) and the evidence's mean over the pixels of the
-    pixel's cell (``cell`` rows x cols, the cells over which the refinement takes its evidence of detail) that
-    have evidence (``output_weight`` < 1); the model's where ``output_weight`` is 1 (a reset pixel, or an
-    output that is the frame's own: no history to judge).
+    The floor, per cell row (``cell`` rows x cols, the cells over which the refinement takes its evidence of
+    detail) and column: the evidence's mean over the pixels of the column's cell that have evidence
+    (``output_weight`` < 1). The refinement's variance (colour.refine's ``floor``) is the larger of the model's
+    and the floor where ``output_weight`` < 1, the model's where it is 1 (a reset pixel, or an output that is
+    the frame's own: no history to judge).
 
     ``skipped``: bool (H,), rows whose ``image`` is not this frame's estimate (the band refresh kept the history's
     mean there), or of no rows: there a pixel's evidence stays the last frame's (0 where ``weight`` is 1).
@@ -1058,28 +1058,28 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
         if old is out:  # the first frame with a history: none before it, zeros updated in place
             out[:] = 0
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
-    measured = np.empty(image.shape, np.float32)
     cy, cx = cell
-    arrays = [np.ascontiguousarray(a) for a in (image, mean, old_weight, weight, old, variance, output_weight)]
+    floor = np.empty((-(-image.shape[0] // cy), image.shape[1]), np.float32)
+    arrays = [np.ascontiguousarray(a) for a in (image, mean, old_weight, weight, old, output_weight)]
     rows_skipped = np.zeros(image.shape[0], bool) if skipped is None or not skipped.size else skipped
 
     def piece(rows: slice) -> None:
-        _noise_rows(*(a[rows] for a in arrays), scale, evidence, cy, cx, out[rows], measured[rows],
-                    rows_skipped[rows])
+        _noise_rows(*(a[rows] for a in arrays), scale, evidence, cy, cx, out[rows],
+                    floor[rows.start // cy:-(-rows.stop // cy)], rows_skipped[rows])
 
     map_on(workers, piece, _pieces(image.shape[0], cy))
-    return out, measured
+    return out, floor
 
 
 @kernel
-def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, scale, evidence, cy, cx, spread,
-                measured, skipped):
-    """spread, measured = :func:`luminance_noise`'s of whole cell rows (row 0 a cell row's first; ``old`` may
-    be ``spread``), each cell row's spread summed per column while its rows are in cache, then its cells'
-    means spread over a row of pixels for the cell row's variances (loops that vectorise)."""
+def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evidence, cy, cx, spread, floor,
+                skipped):
+    """spread, floor = :func:`luminance_noise`'s of whole cell rows (row 0 a cell row's first; ``old`` may be
+    ``spread``), each cell row's spread summed per column while its rows are in cache, then its cells' means
+    spread over the cell row's row of ``floor`` (loops that vectorise)."""
     one, zero = np.float32(1), np.float32(0)
     h, w = spread.shape
-    total, count, cell_mean = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    total, count = np.empty(w, np.float32), np.empty(w, np.float32)
     for r0 in range(0, h, cy):
         r1 = min(r0 + cy, h)
         total[:] = zero
@@ -1110,6 +1110,7 @@ def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, s
                 for x in range(w):
                     s[x] = zero
                     count[x] += one if wo[x] < one else zero
+        cell_mean = floor[r0 // cy]
         for j in range(-(-w // cx)):
             t, n = zero, zero
             for x in range(j * cx, min(j * cx + cx, w)):
@@ -1118,10 +1119,6 @@ def _noise_rows(image, mean, old_weight, weight, old, variance, output_weight, s
             t = t / max(n, one)
             for x in range(j * cx, min(j * cx + cx, w)):
                 cell_mean[x] = t
-        for r in range(r0, r1):
-            v, wo, o = variance[r], output_weight[r], measured[r]
-            for x in range(w):
-                o[x] = max(v[x], cell_mean[x]) if wo[x] < one else v[x]
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
@@ -1151,17 +1148,17 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     return out
 
 
-def _refined(luminance: np.ndarray, variance: np.ndarray, weight: np.ndarray, variance_of: OutputVariance,
-             fused: colour.Chroma,
+def _refined(luminance: np.ndarray, variance: np.ndarray, floor: np.ndarray, weight: np.ndarray,
+             variance_of: OutputVariance, fused: colour.Chroma,
              workers: int | Executor = 1) -> tuple[np.ndarray, Callable[[], np.ndarray], np.ndarray]:
     """A colour stream's output luminance (the fused one refined against the fused coarse luminance,
-    with v_Y the frame's variance times the history weight), the variance of that on demand, and
-    that luminance coloured with the fused shares, float32 (H, W, 3) (colour.colourise's, made in the
-    refinement's pass)."""
+    with v_Y the frame's ``variance`` at least ``floor`` (:func:`luminance_noise`'s) times the history
+    weight), the variance of that on demand, and that luminance coloured with the fused shares, float32
+    (H, W, 3) (colour.colourise's, made in the refinement's pass)."""
     inter = colour.interpolation(fused, coarse=True)
     cell = fused.layout.cell
     rgb = np.empty((*luminance.shape, 3), np.float32)
-    refined = colour.refine(luminance, variance, inter, cell, weight=weight, rgb=rgb, workers=workers)
+    refined = colour.refine(luminance, variance, inter, cell, weight=weight, floor=floor, rgb=rgb, workers=workers)
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)

@@ -15,7 +15,7 @@ from svelive.reconstruction.methods.base import map_on
 
 
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,
-           weight: np.ndarray | None = None, out: np.ndarray | None = None,
+           weight: np.ndarray | None = None, floor: np.ndarray | None = None, out: np.ndarray | None = None,
            out_variance: np.ndarray | None = None, new_variance: bool = False, rgb: np.ndarray | None = None,
            workers: int | Executor = 1) -> np.ndarray:
     """Move the luminance Y towards the coarse L where they differ by no more than noise.
@@ -38,6 +38,9 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
         inter: the chroma's interpolation with its coarse planes.
         cell: the cells' (rows, cols).
         weight: float32 (H, W) or None: v_Y is ``variance`` times it (a stream's history weight).
+        floor: float32 (Hc, W) or None: where ``weight`` < 1, ``variance`` is at least the floor of the
+            pixel's cell row at its column (a stream's measured noise, stream.luminance_noise); only with
+            ``weight``, ``out`` None and a new ``out_variance`` (or none).
         out, out_variance: where to write the result and its variance (a new array, and not
             computed, when None).
         new_variance: ``out_variance`` is none of the inputs (with ``out`` None, both are
@@ -62,15 +65,18 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
     residual_rows = _full_width((residual,), cx, w)[0]
     none = np.empty((0, 0), np.float32)
     fresh_out = out is None and (out_variance is None or new_variance)
-    if rgb is not None and not fresh_out:
-        raise ValueError("refine writes rgb only into a new out (and a new out_variance or none)")
+    if (rgb is not None or floor is not None) and not fresh_out:
+        raise ValueError("refine writes rgb and takes a floor only into a new out (and a new out_variance or none)")
+    if floor is not None and weight is None:
+        raise ValueError("refine's floor applies where the weight is below 1: give the weight")
     if fresh_out:  # written in the loop (no scratch row: 40 % faster)
         out = np.empty((h, w), np.float32)
         interleaved = none if rgb is None else rgb.reshape(h, 3 * w)  # (H, 3 W): flat rows, as colourise's
 
         def fresh(rows: slice) -> None:
-            _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
-                         inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows],
+            _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows],
+                         none if floor is None else floor, rows.start, cy, inter.rows[3], inter.rows[4],
+                         residual_rows, inter.top[rows], inter.frac[rows], out[rows],
                          none if out_variance is None else out_variance[rows], inter.rows,
                          none if rgb is None else interleaved[rows])
 
@@ -158,14 +164,16 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 
 
 @kernel
-def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual, top, frac, out, out_variance,
-                 planes, rgb):
+def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_variance, residual, top, frac, out,
+                 out_variance, planes, rgb):
     """:func:`_refine` into ``out`` and ``out_variance`` (may be empty) that are none of the inputs:
-    the same arithmetic per pixel, stored in the loop. ``rgb`` (R, 3 W), unless empty: each row's
-    result times the shares ``planes[0:3]`` (P, Hc, W) interpolated between its two cell rows, as
-    folding._colourise, from the row just written (in cache)."""
-    weighted, with_variance = weight.size > 0, out_variance.size > 0
+    the same arithmetic per pixel, stored in the loop; ``floor`` (Hc, W), unless empty: :func:`refine`'s,
+    for rows from frame row ``first`` on, cells of ``cy`` rows. ``rgb`` (R, 3 W), unless empty: each
+    row's result times the shares ``planes[0:3]`` (P, Hc, W) interpolated between its two cell rows,
+    as folding._colourise, from the row just written (in cache)."""
+    weighted, with_variance, floored = weight.size > 0, out_variance.size > 0, floor.size > 0
     last = coarse.shape[0] - 1
+    one = np.float32(1.0)
     for r in range(luminance.shape[0]):
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
@@ -173,9 +181,10 @@ def _refine_into(luminance, variance, weight, coarse, coarse_variance, residual,
                                   residual[t0], residual[t1])
         y, vy, o = luminance[r], variance[r], out[r]
         wy = weight[r] if weighted else vy  # (not read without a weight)
+        low = floor[(first + r) // cy] if floored else vy  # (max(v, v) is v: one loop for both)
         for x in range(y.size):
-            o[x], ov = _garrote(y[x], vy[x] * wy[x] if weighted else vy[x], l0[x], l1[x], v0[x], v1[x],
-                                e0[x], e1[x], f)
+            v = max(vy[x], low[x]) if wy[x] < one else vy[x]
+            o[x], ov = _garrote(y[x], v * wy[x] if weighted else v, l0[x], l1[x], v0[x], v1[x], e0[x], e1[x], f)
             if with_variance:
                 out_variance[r, x] = ov
         if rgb.size > 0:
