@@ -267,6 +267,7 @@ class Reconstructor:
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self._unsettled: tuple | None = None  # (weakref.ref of a history, its unsettled pixels by band): _selection
+        self._moving: tuple | None = None  # (shape, the band motion, its bands' pixels, its moving bands): _selection
         self.last_partial: dict | None = None  # the last fused partial frame's counts (benchmarks)
         self._band_motion: list[np.ndarray] = []  # moving pixels per band (every 4th row) of the last frames
         self._last_ratio = 1.0  # the last fused frame's brightness ratio
@@ -623,9 +624,15 @@ class Reconstructor:
                 or last_variance.shape != shape or abs(last_ratio - 1.0) > RATIO_TOLERANCE):
             return np.ones(len(spans), bool)
         # not the false alarms this stream's test shows, nor the pixels reset where a reading crossed the censor level
-        sampled = np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w  # (the counts' pixels: every 4th row)
-        selected = settle.moving_bands(band_motion, sampled, 2 * int(self.motion_config.widen) + 1)
-        # (a frame's hint and its fuse read the same history: counted once)
+        # (a frame's hint and its fuse read the same band motion and history: each judged once)
+        moving = self._moving
+        if (moving is None or moving[0] != shape or len(moving[1]) != len(band_motion)
+                or any(a is not b for a, b in zip(moving[1], band_motion))):
+            sampled = np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w  # (the counts' pixels: every 4th row)
+            moving = self._moving = (shape, band_motion, sampled,
+                                     settle.moving_bands(band_motion, sampled, 2 * int(self.motion_config.widen) + 1))
+        _, _, sampled, selected = moving
+        selected = selected.copy()
         cached = self._unsettled
         if cached is not None and cached[0]() is history:
             unsettled = cached[1]
