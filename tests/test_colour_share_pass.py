@@ -36,7 +36,7 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     _cell_stats(inp.signal, inp.censored, layout.channels, layout.levels, layout.exposures, False,
                 f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
                 mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
-                np.empty((6, wc), f32), 0, hc)
+                np.empty((6, wc), f32))
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)
     common = kept.min(axis=0)
@@ -69,8 +69,8 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     coarse = np.empty((2, hc, wc), f32)
     noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
     for i in range(hc):
-        S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse[0, i],
-                      coarse[1, i], noise, i, i)
+        S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse,
+                      noise, i, i)
         S._own_shares_row(own_shares, info, layout.share, neutral, f32(S.SHARE_FLOOR), shares, own_noise, residual,
                           brightest, i, i)
     for c in range(3):
@@ -204,28 +204,3 @@ def test_colourise_copies_the_luminance_in_its_pass():
     copy = np.full_like(luminance, np.nan)
     np.testing.assert_array_equal(colourise(luminance, inter, copy=copy), colourise(luminance, inter))
     np.testing.assert_array_equal(copy, luminance)
-
-
-@pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer", "assorted-4x4"])
-@pytest.mark.parametrize("stops", [0.0, 5.0])
-@pytest.mark.parametrize("strips_per_thread", [1, 2, 3, 1000])
-def test_strips_over_threads_are_the_whole_pass_bit_for_bit(layout, stops, strips_per_thread, monkeypatch):
-    """``chroma(inp, workers)``: its passes in strips of cell rows over threads (down to strips of one row, whose
-    every stage reads rows beyond it) give the one thread's chroma bit for bit."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from svelive.reconstruction.colour import cells
-    pattern, cfa = COLOUR_LAYOUTS[layout]
-    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[30:30 + 61, 50:50 + 90]
-    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops - 2))
-    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=4).raw, Camera.build(pattern, cfa, SENSOR))
-    whole = chroma(inp)
-    monkeypatch.setattr(cells, "STRIPS_PER_THREAD", strips_per_thread)
-    hc = whole.shares.shape[1]
-    assert len(cells.cell_strips(hc, 2)) == min(2 * strips_per_thread, hc)
-    with ThreadPoolExecutor(2) as pool:
-        for workers in (2, pool):
-            got = chroma(inp, workers)
-            np.testing.assert_array_equal(got.white, whole.white)
-            np.testing.assert_array_equal(got.coarse, whole.coarse)
-            np.testing.assert_array_equal(got.shares, whole.shares)

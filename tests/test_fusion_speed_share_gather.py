@@ -17,7 +17,7 @@ def test_gather_gives_each_pixel_its_channels_cell(channels: list[list[int]], wi
     height = 3 * cy + 1
     cells = np.random.default_rng(width).random((3, -(-height // cy), -(-width // cx)), dtype=np.float32)
     out = np.empty((height, width), np.float32)
-    _share_gather(cells, channels, out, 0, cells.shape[1])
+    _share_gather(cells, channels, out)
     rows, cols = np.indices((height, width))
     expected = cells[channels[rows % cy, cols % cx], rows // cy, cols // cx]
     np.testing.assert_array_equal(out, expected)

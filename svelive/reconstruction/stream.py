@@ -762,8 +762,7 @@ class Reconstructor:
             if parts is not None and self.detail:
                 planes = (chroma_history[:3] if chroma_history is not None
                           and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
-                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape,
-                                                               self._threads))
+                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
             partial = estimated.partial
             predicted = complete = None
             if partial is not None:
@@ -810,7 +809,7 @@ class Reconstructor:
         luminance = None
         if parts is not None:
             if self.temporal:
-                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio, self._threads)
+                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
@@ -952,8 +951,7 @@ def _own_reading_pass(exposure, inverse, slope, floor, slope_scale, floor_scale)
         floor[k] = i * i * floor_scale
 
 
-def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int],
-                workers: int | Executor = 1) -> np.ndarray:
+def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
     """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error).
 
     A colour pixel's own reading is s / (e k), k its channel's share interpolated from the cells'
@@ -962,30 +960,23 @@ def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int,
     over frames. Its relative variance is taken as the spread of the channel's share over the 3x3
     cells around the pixel's cell: the mean of (k_j / k_0 - 1)^2 over them with the chroma's
     [1, 2, 1] / 4 weights each way, 0 where the colour is the same over the cells.
-    ``workers``: strips of cell rows (colour.cell_strips) over its threads (base.map_on), each spread and
-    gathered in one hand-off; the result does not depend on it.
     """
     planes = np.ascontiguousarray(shares, np.float32)
     cells = np.empty_like(planes)
+    _share_spread(planes, cells)
     out = np.empty(shape, np.float32)
-
-    def strip(rows: tuple[int, int]) -> None:
-        _share_spread(planes, cells, *rows)
-        _share_gather(cells, layout.channels, out, *rows)  # (the strip's own cells alone)
-
-    map_on(workers, strip, colour.cell_strips(planes.shape[1], workers))
+    _share_gather(cells, layout.channels, out)
     return out
 
 
 @kernel
-def _share_spread(shares, out, first, stop):
+def _share_spread(shares, out):
     """out[c, i, j] = sum over the 3x3 cells around (i, j) (mirrored at the edges) of [1, 2, 1] / 4
-    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2, for cell rows i from ``first`` to ``stop``
-    (exclusive)."""
+    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2."""
     n, hc, wc = shares.shape
     for c in range(n):
         k = shares[c]
-        for i in range(first, stop):
+        for i in range(hc):
             up, down = (abs(i - 1), i + 1 if i + 1 < hc else 2 * hc - 3 - i) if hc > 1 else (0, 0)
             above, middle, below, o = k[up], k[i], k[down], out[c, i]
             for j in range(1, wc - 1):  # a loop without branches, that vectorises
@@ -1011,12 +1002,11 @@ def _spread_of(above, middle, below, left, j, right):
 
 
 @kernel
-def _share_gather(cells, channels, out, first, stop):
-    """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell, on
-    the pixel rows of cell rows ``first`` to ``stop`` (exclusive)."""
+def _share_gather(cells, channels, out):
+    """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell."""
     cy, cx = channels.shape
     w = out.shape[1]
-    for r in range(first * cy, min(stop * cy, out.shape[0])):
+    for r in range(out.shape[0]):
         i, phase, row = r // cy, channels[r % cy], out[r]
         start = 0
         if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
@@ -1129,7 +1119,7 @@ def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evid
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
-                ratio: float = 1.0, workers: int | Executor = 1) -> np.ndarray:
+                ratio: float = 1.0) -> np.ndarray:
     """A colour stream's chroma after this frame, float32 (5, Hc, Wc): the shares k_R, k_G, k_B,
     the coarse luminance and its variance (svelive.reconstruction.colour.Chroma).
 
@@ -1137,18 +1127,13 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     3x3 cells, whose readings its chroma comes from: the shares and the coarse luminance (its
     history times ``ratio``, the brightness ratio the luminance's fusion divided out) take the
     running mean with it, the variance is this frame's times it (as the luminance's). This frame's
-    alone without a history of that shape. ``workers``: the cells' largest weights in strips of cell rows
-    (colour.cell_strips) over its threads (base.map_on); the result does not depend on it.
+    alone without a history of that shape.
     """
     (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
     cells = np.empty((hc, wc), np.float32)
-
-    def strip(rows: tuple[int, int]) -> None:
-        _cell_maximum(weight[rows[0] * cy:rows[1] * cy], cy, cx, cells[rows[0]:rows[1]])
-
-    map_on(workers, strip, colour.cell_strips(hc, workers))
+    _cell_maximum(weight, cy, cx, cells)
     cells = cv2.dilate(cells, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
     out = np.empty_like(history)
     _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio), out)

@@ -144,7 +144,7 @@ censored and clipped channels), ``shares`` (step a), ``interpolate`` (from cells
 reconstruction and its parts).
 """
 
-from svelive.reconstruction.colour.cells import CellLayout, cell_layout, cell_strips
+from svelive.reconstruction.colour.cells import CellLayout, cell_layout
 from svelive.reconstruction.colour.folding import colourise, folded_exposure, luminance_input
 from svelive.reconstruction.colour.highlights import WHITE_CELLS, WHITE_MIN_CELLS, WHITE_SNR, white_balance
 from svelive.reconstruction.colour.interpolate import PIECE_ROWS, Interpolation, interpolation
@@ -156,6 +156,6 @@ from svelive.reconstruction.colour.shares import COARSE_NONE, SHARE_FLOOR, Chrom
 from svelive.reconstruction.colour.split_baseline import demosaic, split
 
 __all__ = ["COARSE_NONE", "MODES", "PIECE_ROWS", "SHARE_FLOOR", "WHITE_CELLS", "WHITE_MIN_CELLS", "WHITE_SNR",
-           "CellLayout", "Chroma", "Interpolation", "Joint", "cell_layout", "cell_strips", "chroma", "colourise",
-           "demosaic", "fold_luminance", "folded_exposure", "interpolation", "joint", "lattice_channels",
-           "luminance_input", "refine", "run_colour", "split", "white_balance"]
+           "CellLayout", "Chroma", "Interpolation", "Joint", "cell_layout", "chroma", "colourise", "demosaic",
+           "fold_luminance", "folded_exposure", "interpolation", "joint", "lattice_channels", "luminance_input",
+           "refine", "run_colour", "split", "white_balance"]

@@ -4,7 +4,6 @@ pass over the pixels (:func:`_cell_stats`)."""
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -13,11 +12,6 @@ import numpy as np
 from svelive.core.cfa import ColourFilter, joint_period
 from svelive.core.pattern import Pattern
 from svelive.jit import kernel
-from svelive.reconstruction.methods.base import thread_count
-
-#: Strips of cell rows a thread of the chroma's passes over several threads (base.map_on) gets: more than one,
-#: so that a thread that starts late (the other core busy) leaves the rest to the others.
-STRIPS_PER_THREAD = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,25 +61,16 @@ def cell_layout(pattern: Pattern, cfa: ColourFilter) -> CellLayout:
     return layout
 
 
-def cell_strips(hc: int, workers: int | Executor) -> list[tuple[int, int]]:
-    """(first, stop) cell rows of the strips the chroma's passes cut ``hc`` cell rows into for ``workers``
-    (base.map_on): one strip on one thread, else :data:`STRIPS_PER_THREAD` a thread of about equal rows."""
-    count = min(1 if thread_count(workers) <= 1 else STRIPS_PER_THREAD * thread_count(workers), max(hc, 1))
-    edges = [hc * k // count for k in range(count + 1)]
-    return [(a, b) for a, b in zip(edges[:-1], edges[1:])]
-
-
 @kernel
 def _cell_stats(values, censored, channels, levels, exposures, per_pixel, gain_inv, floor, censor,
-                mean, info, kept, weighted_mean, bound, flags, sums, scratch, first, stop):
+                mean, info, kept, weighted_mean, bound, flags, sums, scratch):
     """Per cell (cy, cx) = channels.shape and channel, (3, Hc, Wc) each: the inverse-variance mean
     of the uncensored readings x = s / e (``mean``), the sum of their weights (``info``, 0: none),
     the share of the cell's information they hold (``kept``: info over the weights of all its
     readings, 1 without censored ones), ``kept`` times ``mean`` (``weighted_mean``), and the
     largest bound censor / e_k the censored ones imply (``bound``, 0: none). ``flags`` (2, Hc, Wc)
     uint8: 1 where (0) a channel has only censored readings, (1) any reading is censored.
-    ``sums`` (3, 3, K, Wc) and ``scratch`` (6, Wc): scratch. Only cell rows ``first`` to ``stop``
-    (exclusive) are made: strips of rows, each with scratch of its own, may run on several threads at once.
+    ``sums`` (3, 3, K, Wc) and ``scratch`` (6, Wc): scratch.
 
     ``values``: the readings s (H, W), or x itself with ``per_pixel`` exposures (a calibrated
     map). Weights e_k^2 / (e_k L0 / g + sigma^2) of each reading's nominal level e_k, at the pilot
@@ -96,7 +81,7 @@ def _cell_stats(values, censored, channels, levels, exposures, per_pixel, gain_i
     cy, cx = channels.shape
     zero, one = np.float32(0.0), np.float32(1.0)
     x_sum, n_sum, all_sum = sums[0], sums[1], sums[2]
-    for i in range(first, stop):
+    for i in range(mean.shape[1]):
         r0, r1 = i * cy, min(i * cy + cy, h)
         sums[...] = zero
         for r in range(r0, r1):

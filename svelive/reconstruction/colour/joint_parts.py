@@ -4,7 +4,6 @@ a stream fuses (:class:`Joint`)."""
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,13 +41,13 @@ class Joint:
     inverse_exposure: np.ndarray | None = None
 
 
-def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int | Executor = 1,
-                   inverse_exposure: bool = False) -> tuple[Chroma, Interpolation, SveInput, np.ndarray | None]:
+def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1, inverse_exposure: bool = False
+                   ) -> tuple[Chroma, Interpolation, SveInput, np.ndarray | None]:
     """The steps before the mono method (:func:`joint`'s, and a stream's band refresh's): the frame's chroma, its
     interpolation (with the coarse luminance where ``coarse``) and the monochrome input of the luminance
     (folded exposures e' with ``exposures``, svelive.reconstruction.colour.folding.luminance_input), and
-    1 / e' (float32 (H, W)) where ``inverse_exposure`` asks for it, else None. ``workers``: base.map_on."""
-    ch = chroma(inp, workers)
+    1 / e' (float32 (H, W)) where ``inverse_exposure`` asks for it, else None."""
+    ch = chroma(inp)
     inter = interpolation(ch, coarse=coarse)
     inverse = np.empty(inp.shape, np.float32) if inverse_exposure else None
     return ch, inter, luminance_input(inp, inter, exposures, workers, inverse), inverse

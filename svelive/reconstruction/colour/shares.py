@@ -5,7 +5,6 @@ luminance, the blend towards each cell's own shares and the garrote towards the 
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -13,9 +12,9 @@ import cv2
 import numpy as np
 
 from svelive.jit import fma32, kernel
-from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, cell_layout, cell_strips
+from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, cell_layout
 from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
-from svelive.reconstruction.methods.base import SveInput, binomial_kernel, map_on
+from svelive.reconstruction.methods.base import SveInput, binomial_kernel
 
 #: A channel's share of luminance is at least this (a zero would make its pixels' exposure 0).
 SHARE_FLOOR = 1e-3
@@ -52,7 +51,7 @@ class Chroma:
         return Chroma(planes[:3], planes[3:5], self.layout, self.white, self.shape)
 
 
-def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
+def chroma(inp: SveInput) -> Chroma:
     """The chroma of a colour frame (package docstring, step a), at cell resolution.
 
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
@@ -64,9 +63,6 @@ def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
     garrote towards the neutral follows (:func:`_shrink_row`), then each channel's median over 3x3
     cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1: all of
     it after the white balance in one pass over the cell rows (:func:`_share_pass`).
-
-    ``workers``: the passes over cell rows run in strips of rows (svelive.reconstruction.colour.cells.cell_strips)
-    over its threads (base.map_on); the result does not depend on it.
     """
     layout = cell_layout(inp.pattern, inp.cfa)
     (cy, cx), (h, w) = layout.cell, inp.shape
@@ -77,23 +73,14 @@ def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
     sensor = inp.sensor
     per_pixel = inp.pattern.pixel_map is not None
     values = inp.signal / inp.exposure if per_pixel else inp.signal
-    strips = cell_strips(hc, workers)
+    _cell_stats(values, inp.censored, layout.channels, layout.levels, layout.exposures,
+                per_pixel, f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
+                mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
+                np.empty((6, wc), f32))
     k = binomial_kernel(3)
-    numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-
-    def statistics(rows: tuple[int, int]) -> None:
-        _cell_stats(values, inp.censored, layout.channels, layout.levels, layout.exposures, per_pixel,
-                    f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level), mean, info,
-                    kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
-                    np.empty((6, wc), f32), *rows)
-
-    def smoothing(rows: tuple[int, int]) -> None:
-        _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32),
-                      *rows)
-
-    map_on(workers, statistics, strips)
-    map_on(workers, smoothing, strips)  # (a strip's smoothing reads its neighbours' statistics)
     spread = f32(np.sum(k * k) ** 2)  # the sum of the squared weights of the cells' smoothing
+    numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
+    _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32))
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
@@ -101,21 +88,17 @@ def chroma(inp: SveInput, workers: int | Executor = 1) -> Chroma:
     # the next reads them, instead of a dozen passes over whole (3, Hc, Wc) planes
     neutral = (white / f32(layout.share @ white)).astype(f32)
     shares, coarse = np.empty((3, hc, wc), f32), np.empty((2, hc, wc), f32)
-    taps = _centring_taps(layout)
-
-    def rest(rows: tuple[int, int]) -> None:
-        _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share,
-                    neutral, f32(SHARE_FLOOR), spread, taps, k, *rows,
-                    *(np.empty((3, PASS_ROWS, wc), f32) for _ in range(8)), coarse, shares,
-                    np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32), np.empty(wc, f32), np.empty(wc, f32),
-                    np.empty((2, wc), f32))
-
-    map_on(workers, rest, strips)
+    values, own, smoothed, own_shares, noise, own_noise, residual, deviation = (
+        np.empty((3, PASS_ROWS, wc), f32) for _ in range(8))
+    _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share, neutral,
+                f32(SHARE_FLOOR), spread, _centring_taps(layout), k, values, own, smoothed, own_shares, noise,
+                own_noise, residual, deviation, coarse, shares, np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32),
+                np.empty(wc, f32), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
 
 
 @kernel
-def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row, first, stop):
+def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
     """The sums of the cells' 3x3 smoothing (3, Hc, Wc), in place: every channel of a cell weighted
     alike, by the smallest share of a channel's information its uncensored readings hold in it.
 
@@ -133,11 +116,9 @@ def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row, f
     same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. One pass over the cell
     rows, the smoothing across rows one row behind the one along them. ``rings`` (4, 3, Wc): the
     last three rows of the pass along rows (numerators, then the weight); ``row`` (Wc,): scratch.
-    Only cell rows ``first`` to ``stop`` (exclusive) are written (the pass along rows runs on one row more
-    each side, within the frame): strips of rows, each with scratch of its own, may run on several threads.
     """
     hc, wc = kept.shape[1], kept.shape[2]
-    for t in range(max(first - 1, 0), stop + 1):
+    for t in range(hc + 1):
         if t < hc:
             common = rings[3, t % 3]  # the weight's row first, smoothed along the row below
             for j in range(wc):
@@ -149,7 +130,7 @@ def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row, f
                 _binomial_along(products, k, rings[c, t % 3])
             _binomial_along(row, k, common)
         u = t - 1
-        if first <= u < stop:
+        if 0 <= u < hc:
             up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
             for c in range(4):
                 _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
@@ -192,8 +173,8 @@ def _centring_taps(layout: CellLayout) -> np.ndarray:
 
 @kernel
 def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
-                spread, taps, k, first, stop, values, own, smoothed, own_shares, noise, own_noise, residual,
-                deviation, coarse, out, rings, columns, brightest, lum, spare):
+                spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
+                out, rings, columns, brightest, lum):
     """Step (a) after the cells' smoothing and the white balance, in one pass over the cell rows: each
     row's values (:func:`_cell_values_row`, smoothed and own), moved to the cells' centres (``taps``,
     :func:`_centring_taps`), their shares and coarse luminance (:func:`_shares_row`,
@@ -205,11 +186,6 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
     taps and the edge's value repeated, ``medianBlur`` of 3): each stage runs on a row a few rows
     behind the one before, whose rows it reads are then done and still in cache.
 
-    The shares and coarse luminance of cell rows ``first`` to ``stop`` (exclusive) are made: each stage
-    runs on those rows and on as many beyond them (within the frame) as the stages after it read, 4
-    for the first stage, none for the last, so that strips of rows, each with scratch of its own, may
-    run on several threads at once and give the whole frame's values.
-
     In: the cells' statistics and sums (3, Hc, Wc) (:func:`chroma`), ``censored`` uint8 (Hc, Wc),
     ``white``, ``share``, ``neutral`` float32 (3,), ``floor`` and ``spread`` float32, ``taps``
     float32 (3, 2, 3), ``k`` float32 (3,). Out: ``out`` (3, Hc, Wc), the shares; ``coarse`` (2, Hc,
@@ -217,12 +193,11 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
     ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, R, Wc), rings of the last R cell rows (cell
     row u at u % R; R at least 6, :data:`PASS_ROWS`: whole planes of them were 28 MB written and read again at
     1920x1200, 40 % of the pass); ``rings`` (4, 3, 3, Wc), the last three rows of each filter's pass along
-    rows; ``columns`` (3, Wc) (:func:`_median_row`); ``brightest`` and ``lum`` (Wc,); ``spare`` (2, Wc): the
-    coarse luminance of the rows beyond the strip (theirs is another strip's to write).
+    rows; ``columns`` (3, Wc) (:func:`_median_row`); ``brightest`` and ``lum`` (Wc,).
     """
     hc, n = out.shape[1], values.shape[1]
-    for t in range(max(first - 4, 0), stop + 4):
-        if t < min(stop + 4, hc):  # the cells' values of row t, and the centring along the row
+    for t in range(hc + 4):
+        if t < hc:  # the cells' values of row t, and the centring along the row
             r = t % n
             _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t, r)
             _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t, r)
@@ -230,21 +205,19 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
                 _taps_along(values[c, r], taps[c, 1], rings[0, t % 3, c])
                 _taps_along(own[c, r], taps[c, 1], rings[1, t % 3, c])
         u = t - 1
-        if max(first - 3, 0) <= u < min(stop + 3, hc):  # centred, the shares of row u, its residual along the row
+        if 0 <= u < hc:  # centred, the shares of row u, and its residual along the row
             up, down, r = max(u - 1, 0), min(u + 1, hc - 1), u % n
             for c in range(3):
                 _taps_across(rings[0, up % 3, c], rings[0, u % 3, c], rings[0, down % 3, c], taps[c, 0],
                              smoothed[c, r])
                 _taps_across(rings[1, up % 3, c], rings[1, u % 3, c], rings[1, down % 3, c], taps[c, 0],
                              own_shares[c, r])
-            mine = first <= u < stop
-            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread,
-                        coarse[0, u] if mine else spare[0], coarse[1, u] if mine else spare[1], noise, u, r)
+            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u, r)
             _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u, r)
             for c in range(3):
                 _binomial_along(residual[c, r], k, rings[2, u % 3, c])
         u = t - 2
-        if max(first - 2, 0) <= u < min(stop + 2, hc):  # the residual's 3x3 mean, the blend, the deviation along
+        if 0 <= u < hc:  # the residual's 3x3 mean, the blend, and the deviation along the row
             up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
             for c in range(3):
                 _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, r])
@@ -252,14 +225,14 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
             for c in range(3):
                 _binomial_along(deviation[c, r], k, rings[3, u % 3, c])
         u = t - 3
-        if max(first - 1, 0) <= u < min(stop + 1, hc):  # the deviation's 3x3 mean and the garrote
+        if 0 <= u < hc:  # the deviation's 3x3 mean and the garrote
             up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
             for c in range(3):
                 _binomial_across(rings[3, up % 3, c], rings[3, u % 3, c], rings[3, down % 3, c], k,
                                  deviation[c, r])
             _shrink_row(smoothed, neutral, noise, deviation, r)
         u = t - 4
-        if first <= u < stop:  # the median and the normalisation
+        if 0 <= u < hc:  # the median and the normalisation
             up, down = max(u - 1, 0), min(u + 1, hc - 1)
             for c in range(3):
                 _median_row(smoothed[c, up % n], smoothed[c, u % n], smoothed[c, down % n], out[c, u], columns)
@@ -350,12 +323,12 @@ def _sorted3(x, y, z):
 
 
 @kernel
-def _shares_row(values, info, bound, censored, share, neutral, floor, spread, lum_row, var, noise, i, r):
+def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i, r):
     """values (3, R, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
     cell row ``i``, which is row ``r`` of ``values`` and ``noise`` (rings of cell rows, or whole planes with
     ``r`` = ``i``) and row ``i`` of the other planes.
 
-    ``lum_row`` and ``var`` (Wc,) (out): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
+    ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
     censored readings, ``bound`` > 0, which keeps its own), COARSE_NONE where ``censored`` (Hc, Wc)
     is set. ``noise`` (3, R, Wc): v_c / L^2, the variance of k_c from C_c's noise. Loops over the
@@ -363,6 +336,7 @@ def _shares_row(values, info, bound, censored, share, neutral, floor, spread, lu
     """
     zero, one, none = np.float32(0.0), np.float32(1.0), np.float32(COARSE_NONE)
     tiny = np.float32(1e-30)
+    lum_row, var = coarse[0, i], coarse[1, i]
     red, green, blue = values[0, r], values[1, r], values[2, r]
     for j in range(lum_row.size):
         lum_row[j] = share[0] * red[j] + share[1] * green[j] + share[2] * blue[j]
