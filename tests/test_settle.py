@@ -371,40 +371,61 @@ def test_a_dim_four_row_still_stream_settles():
     assert np.mean(computed[8:]) <= 1 / k + 0.5 / 8
 
 
-def test_the_skipped_rows_resets_on_threads_are_one_threads(monkeypatch):
-    """settle.skipped_resets in pieces of rows (3 threads, a pool) gives what it gives on one thread, where the
-    frame is one piece: the on-demand pixels in the same order, the kept count, the kept pixels' history and the
-    new censoring, bit for bit, on the arguments of a stream's frames as the moving disc starts and crosses
-    bands (where the pixels taking this frame spread through crossed readings across pieces' rows)."""
+def test_the_skipped_rows_resets_do_not_depend_on_the_fusion_s_strips_or_threads(monkeypatch):
+    """The skipped rows' resets, judged in the fusion's pass (fusion._skipped_row) then spread through crossed
+    readings (settle.skipped_resets), in strips of 16 rows on 3 threads and on a pool give what the stream's strips
+    on one thread give: the on-demand pixels in the same order, the kept count and the new history (weight, own
+    readings, test, censoring), bit for bit, on the arguments of a stream's frames as the moving disc starts and
+    crosses bands (where the pixels taking this frame spread through crossed readings across strips' rows)."""
+    from dataclasses import replace
+
+    from svelive.reconstruction import fusion, stream as stream_module
+    from svelive.reconstruction.methods.base import support_size
+
     raws, sensor = _moving_disc_raws(20)
     calls = []
-    original = settle.skipped_resets
+    original = fusion.fuse
 
-    def record(*args):
-        calls.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
-        return original(*args)
+    def copied(frame):
+        return replace(frame, **{k: getattr(frame, k).copy() for k in ("image", "bound", "test", "test_variance")})
+
+    def record(history, frame, *args, **kwargs):
+        if kwargs.get("predicted"):
+            calls.append((history, copied(frame), args, kwargs))
+        return original(history, frame, *args, **kwargs)
 
     kw = dict(black_level=64, white_level=4095, gain=sensor.gain, read_noise=sensor.read_noise, refresh=4)
     with monkeypatch.context() as patch:
-        patch.setattr(settle, "skipped_resets", record)
-        stream = Reconstructor("1,4/16,64", **kw)
+        patch.setattr(stream_module, "fuse", record)
+        stream = Reconstructor("1,4/16,64", workers=1, **kw)
         for raw in raws:
             stream.process(raw)
     assert len(calls) >= 5
+    wy, wx = (support_size(n) // 2 for n in stream.pattern.shape)
+
+    def judged(history, frame, args, kwargs, **strips):
+        frame = copied(frame)
+        fused = original(history, frame, *args, **{**kwargs, "workers": 1, **strips})
+        skipped = np.zeros(frame.image.shape[0], bool)
+        for a, b in kwargs["predicted"]:
+            skipped[a:b] = True
+        ratio = fused.illumination_ratio
+        scale = np.float32(ratio) if abs(ratio - 1.0) > fusion.RATIO_TOLERANCE else np.float32(1)
+        state = fused.state
+        got = settle.skipped_resets(fused.skipped, skipped, fused.reset, frame.censored, history.censored,
+                                    history.tested, frame.tested[0], scale, wy, wx, state.weight, state.test,
+                                    state.censored)
+        return got, (state.weight, state.own, state.test, state.censored)
+
     taken = kept = 0
     with ThreadPoolExecutor(2) as pool:
-        for args in calls:
-            fresh = lambda: [a.copy() if isinstance(a, np.ndarray) else a for a in args[:-1]]  # noqa: E731
-            one = fresh()
-            want = settle.skipped_resets(*one, 1)
-            assert len(settle.pieces([(0, args[1].shape[0])], 3)) > 1
-            for workers in (3, pool):
-                got_args = fresh()
-                got = settle.skipped_resets(*got_args, workers)
-                for g, w in zip(got, want):
+        for history, frame, args, kwargs in calls:
+            kwargs = {k: v for k, v in kwargs.items() if k not in ("workers", "executor")}
+            want, want_state = judged(history, frame, args, kwargs)
+            for strips in (dict(strip_rows=16, workers=3), dict(strip_rows=16, executor=pool)):
+                got, got_state = judged(history, frame, args, kwargs, **strips)
+                for g, w in zip((*got, *got_state), (*want, *want_state)):
                     np.testing.assert_array_equal(g, w)
-                for k in (16, 17, 18):  # weight, own, test: the kept pixels' history
-                    np.testing.assert_array_equal(got_args[k], one[k])
             taken += want[0].size
             kept += want[2]
     assert taken > 0 and kept > 0

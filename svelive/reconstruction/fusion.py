@@ -200,6 +200,8 @@ class Fused:
             and also where the test flagged a pixel alone, a reading crossed the censor level or
             either side is a lower bound; everywhere on a restart. Its complement holds the pixels
             the tests found still, the only ones whose frame differences are noise alone.
+        skipped: what the pass found of the pixels it reset in the rows the method skipped (:func:`fuse`'s
+            ``predicted``), or None (no such rows, or a restart).
     """
 
     image: np.ndarray
@@ -209,11 +211,36 @@ class Fused:
     state: TemporalState
     variance_of: OutputVariance
     reset: np.ndarray
+    skipped: SkippedResets | None = None
 
     @cached_property
     def variance(self) -> np.ndarray:
         """float32 (H, W), the output's variance (:class:`OutputVariance`)."""
         return self.variance_of()
+
+
+@dataclass(frozen=True)
+class SkippedResets:
+    """The pixels :func:`fuse` reset in the rows the method skipped (``predicted``), as its pass judged them
+    (:func:`_skipped_row`): those that keep their history hold it already in the new state (weight, own readings,
+    tested estimate, censoring); those that take this frame's estimate are listed, for the caller to compute
+    (svelive.reconstruction.settle.skipped_resets, which also spreads the taking through crossed readings).
+
+    Attributes:
+        mark: int8 (H, W), 1 where a reset pixel of a skipped row keeps its history, 2 where it takes this frame's
+            estimate, 0 elsewhere (every row written).
+        ys, xs: intp (H W,), frame coordinates of the pixels marked 2: strip k's ``counts[k, 0]`` of them from
+            ``starts[k]`` on, each strip's in raster order.
+        starts: intp (strips,); counts: int64 (strips, 2), the pixels each strip marked 2 and 1.
+        unstable_k2: float32, 1 / k^2 of the looser test that judged them.
+    """
+
+    mark: np.ndarray
+    ys: np.ndarray
+    xs: np.ndarray
+    starts: np.ndarray
+    counts: np.ndarray
+    unstable_k2: np.float32
 
 
 def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.ndarray, bound: np.ndarray,
@@ -402,7 +429,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
          inconsistency: Inconsistency | None = None, detail: bool = True, workers: int = 1,
          strip_rows: int = FUSE_ROWS, executor: Executor | None = None,
          predicted: list[tuple[int, int]] | None = None,
-         complete: Callable[[], FrameEstimate] | None = None) -> Fused:
+         complete: Callable[[], FrameEstimate] | None = None,
+         unstable_sigmas: float | None = None) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
@@ -425,9 +453,15 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             their estimate is taken as the history's mean times the brightness ratio (so the mean stays,
             exactly) and their lower bound as the history's, written into ``frame.image`` (not where the
             ratio is 1 and a whole strip is skipped: its rows are then left unwritten) and ``frame.bound``
-            here; the caller then gives the pixels this frame resets there their
-            estimate. Needs ``complete``: called before any restart (every pixel then takes the frame's
-            own estimate), it returns the frame with every row estimated.
+            here. With them, ``unstable_sigmas`` (svelive.reconstruction.settle.UNSTABLE_SIGMAS) is needed. A pixel
+            the test resets there keeps its history (weight, own readings, tested estimate and
+            the censoring it was made of, times the ratio) where it did not move, neither side is a lower
+            bound, its window holds an uncensored reading and the tested estimates differ by at most
+            ``unstable_sigmas`` noise deviations, with no brightness correction (:func:`_skipped_row`: reset
+            only because a reading in its window crossed the censor level); the others are listed
+            (:attr:`Fused.skipped`) for the caller to give their estimate
+            (svelive.reconstruction.settle.skipped_resets). Needs ``complete``: called before any restart
+            (every pixel then takes the frame's own estimate), it returns the frame with every row estimated.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it (x, v: the
@@ -490,6 +524,16 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if not same:
             np.multiply(state.mean[a:b], scale, out=image[a:b])
     strips = _strips(h, strip_rows)
+    # the skipped rows' resets, judged in the pass (the new history's censoring a copy then: kept pixels keep theirs)
+    if predicted:
+        found = SkippedResets(np.empty(image.shape, np.int8), outside_heap(image.size, np.intp),
+                              outside_heap(image.size, np.intp),
+                              np.array([s.start * image.shape[1] for s in strips], np.intp),
+                              np.zeros((len(strips), 2), np.int64), np.float32(1.0 / unstable_sigmas ** 2))
+        new_censored = np.empty_like(frame.censored)
+    else:
+        found, new_censored = None, frame.censored
+    strip_index = {s.start: k for k, s in enumerate(strips)}
     window = tuple(support_size(n) for n in pattern_shape)
     # rows a strip's motion mask depends on: censor changes grow by window // 2, then
     # confirmation looks 1 row further, widening ``widen`` more
@@ -546,6 +590,13 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         return [rows for rows in (slice(core.start, done.start), slice(done.stop, core.stop))
                 if rows.stop > rows.start]
 
+    def _skipped(core: slice, k: int) -> _Skipped:
+        """:class:`_Skipped` of a strip (``core``, the ``k``-th)."""
+        start = found.starts[k]
+        return _Skipped(kept, state.bound[core], tested_variance[core], state.censored[core], found.unstable_k2,
+                        bool(same), new_censored[core], found.mark[core], found.ys[start:], found.xs[start:],
+                        found.counts[k])
+
     def update(core: slice, short: np.ndarray | None) -> int:
         """Test, confirm, update and sharpen the strip's rows (:func:`_fuse_strip`), reading its
         halo's rows too; returns its count of moving pixels."""
@@ -570,7 +621,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
                                    _NO_TABLE if frame.share_error is None else frame.share_error[core]), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
                                      fused_test[core], evidence[core], out[core],
-                                     _NO_ROWS if own_var is None else own_var[core]), settings, step)
+                                     _NO_ROWS if own_var is None else own_var[core]), settings, step,
+                            _NO_SKIPPED if found is None else _skipped(core, strip_index[core.start]))
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
             _replace(*flat(reset[core], inconsistency._flagged[core], short, out[core], motion[core]))
@@ -631,9 +683,10 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         if predicted:
             frame = complete()
         return _restart(frame, inconsistency, ratio, np.ones(image.shape, bool))
-    state = TemporalState(fused, own, weight, bound, frame.censored, fused_test if separate else None, own_var)
+    state = TemporalState(fused, own, weight, bound, new_censored, fused_test if separate else None, own_var)
     # the update applied the within-frame test's finding to the output where it reset the history
-    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset), reset)
+    return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset), reset,
+                 found)
 
 
 def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: float, motion: np.ndarray) -> Fused:
@@ -875,6 +928,41 @@ class _FuseSettings(NamedTuple):
     noisier: np.float32
 
 
+class _Skipped(NamedTuple):
+    """The rows the method skipped (:func:`fuse`'s ``predicted``) as :func:`_skipped_row` judges their resets.
+
+    Attributes:
+        rows: bool (H,), the frame's skipped rows; of no rows: none (nothing below is read or written).
+        old_bound, old_censored: bool (R, W), the strip's rows of the history's lower bounds and censoring.
+        variance: float32 (R, W), the frame's tested estimate's variance.
+        inv_k2: float32, 1 / k^2 of the looser test; keep: bool, a reset pixel may keep its history (no
+            brightness correction).
+        censored: bool (R, W), written: the new history's censoring, the frame's but where a pixel keeps its
+            history's.
+        mark: int8 (R, W), written: :attr:`SkippedResets.mark`.
+        ys, xs: intp, written from 0 on: the strip's pixels marked 2 (frame coordinates), ``tally[0]`` of them.
+        tally: int64 (2,), counted: the strip's pixels marked 2 and 1.
+    """
+
+    rows: np.ndarray
+    old_bound: np.ndarray
+    variance: np.ndarray
+    old_censored: np.ndarray
+    inv_k2: np.float32
+    keep: bool
+    censored: np.ndarray
+    mark: np.ndarray
+    ys: np.ndarray
+    xs: np.ndarray
+    tally: np.ndarray
+
+
+#: :class:`_Skipped` of a frame without skipped rows.
+_NO_SKIPPED = _Skipped(np.empty(0, bool), np.empty((0, 0), bool), _NO_ROWS, np.empty((0, 0), bool), np.float32(0),
+                       False, np.empty((0, 0), bool), np.empty((0, 0), np.int8), np.empty(0, np.intp),
+                       np.empty(0, np.intp), np.zeros(2, np.int64))
+
+
 class _DetailStep(NamedTuple):
     """A frame's settings of the detail step (:func:`_update_row`, :func:`_sharpen_row`).
 
@@ -894,14 +982,15 @@ class _DetailStep(NamedTuple):
 
 
 @kernel
-def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step):
+def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, skipped):
     """One strip of :func:`fuse` in one pass down its rows: the noise test, confirmation and
     widening (``motion``, ``reset``), the running means (:func:`_update_row`) and the detail step.
     Returns the strip's count of moving pixels.
 
     ``strip``: :class:`_StripRows`; ``halo``: :class:`_Halo`, the rows the test reads; ``history``,
     ``frame``, ``tables``: what the update reads (:class:`_History`, :class:`_Frame`, :class:`_Tables`);
-    ``outputs``: :class:`_Outputs`; ``settings``: :class:`_FuseSettings`; ``step``: :class:`_DetailStep`.
+    ``outputs``: :class:`_Outputs`; ``settings``: :class:`_FuseSettings`; ``step``: :class:`_DetailStep`;
+    ``skipped``: :class:`_Skipped`, the skipped rows' resets judged as each row is updated.
     Flagged pixels count as moving where an 8-neighbour is flagged too (within the halo's rows),
     widened by ``widen``. Each row is updated once every row whose widening reaches it is tested, a
     few rows after its own test, and sharpened ``kernel_y``'s radius rows later (:func:`_detail_rows`
@@ -959,6 +1048,8 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step):
         while following < last:
             slot = ring[following % ring.shape[0]]
             _update_row(following, first_row, history, frame, tables, outputs, settings, step, slot, row)
+            if skipped.rows.size:  # (after the update's every read of the row's weight, own readings and test)
+                _skipped_row(following, first_row, history, frame, outputs, settings, skipped)
             g = first_row + following
             if detail and (sharp_stop <= sharp_first or g < sharp_first + a or g >= sharp_stop - a):
                 evidence[following] = slot  # read by the detail step of rows it does not sharpen
@@ -1036,6 +1127,51 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
                 row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
                                   * noisier)
         _symmetric_row(row, along, evidence)
+
+
+@kernel(inline="always")
+def _skipped_row(r, first_row, history, frame, outputs, settings, skipped):
+    """Row ``r`` (of a strip from frame row ``first_row``; updated) of the new history's censoring and of the skipped
+    rows' marks (:class:`_Skipped`). In a skipped row, a reset pixel takes this frame's estimate (marked 2, listed)
+    where it moved, the history is a lower bound, the window holds no uncensored reading (an infinite variance),
+    the tested estimates differ by more than 1 / sqrt(``skipped.inv_k2``) noise deviations (the fusion's test,
+    looser: it does not apply where a reading in the window crossed the censor level, whose window mean then shifts
+    beyond its noise alone) or there is no keeping (``skipped.keep``: the light changed); every other keeps its
+    history (marked 1): weight, own readings and tested estimate (times the ratio) and censoring as they were (its
+    mean is the history's already)."""
+    mark, censored, new = skipped.mark[r], skipped.censored[r], frame.censored[r]
+    for c in range(mark.size):
+        censored[c] = new[c]
+        mark[c] = 0
+    if not skipped.rows[first_row + r]:
+        return
+    reset, motion, weight, own = outputs.reset[r], outputs.motion[r], outputs.weight[r], outputs.own[r]
+    fused_test = outputs.fused_test[r]
+    old_weight, old_own, old_test = history.weight[r], history.own[r], history.test[r]
+    old_bound, variance, old_censored = skipped.old_bound[r], skipped.variance[r], skipped.old_censored[r]
+    tested = frame.tested[r]
+    scale, inv_k2, separate = settings.scale, skipped.inv_k2, settings.separate
+    one = np.float32(1)
+    tally = skipped.tally
+    for c in range(mark.size):
+        if not reset[c]:
+            continue
+        d = tested[c] - old_test[c] * scale
+        v = variance[c]
+        differs = d * d * inv_k2 > (old_weight[c] + one) * v or v == np.inf
+        if motion[c] or old_bound[c] or differs or not skipped.keep:
+            mark[c] = 2
+            n = tally[0]
+            skipped.ys[n], skipped.xs[n] = first_row + r, c
+            tally[0] = n + 1
+        else:
+            mark[c] = 1
+            tally[1] += 1
+            weight[c] = old_weight[c]
+            own[c] = old_own[c] * scale
+            if separate:
+                fused_test[c] = old_test[c] * scale
+            censored[c] = old_censored[c]
 
 
 @kernel

@@ -44,6 +44,7 @@ import numpy as np
 from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.memory import outside_heap
+from svelive.reconstruction.fusion import SkippedResets, _running_mean
 from svelive.reconstruction.methods.adaptive import _estimate, _shares_window
 from svelive.reconstruction.methods.adaptive.fallback import Dark, _wide_reach
 from svelive.reconstruction.methods.adaptive.parameters import kernels as method_kernels
@@ -715,116 +716,51 @@ def _edge_stack(inp: SveInput, boxes: np.ndarray, halo: tuple[int, int] | None =
     return stack, np.array(oy, np.intp), np.array(ox, np.intp)
 
 
-def skipped_resets(skipped: np.ndarray, reset: np.ndarray, motion: np.ndarray, new_censored: np.ndarray,
-                   old_bound: np.ndarray, old_weight: np.ndarray, old_own: np.ndarray, old_test: np.ndarray,
-                   old_censored: np.ndarray, scale: np.float32, tested: np.ndarray, tested_variance: np.ndarray,
-                   inv_k2: np.float32, keep: bool, wy: int, wx: int, weight: np.ndarray, own: np.ndarray,
-                   test: np.ndarray, workers: int | Executor = 1) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """The pixels the fusion reset in the frame rows the method skipped (``skipped``, bool (H,)): which take this
-    frame's estimate on demand and which keep their history as it was (weight, own readings, the test's estimate
-    and the censoring it was made of, times ``scale``, written into ``weight``, ``own``, ``test``; the mean is
-    the history's already). Returns (ys, xs, kept, censored): the on-demand pixels' coordinates, intp (n,), in
-    reverse raster order; how many kept their history; bool (H, W), ``new_censored`` with the kept pixels' old
-    censoring (the history's new censoring).
+def skipped_resets(found: SkippedResets, skipped: np.ndarray, reset: np.ndarray, new_censored: np.ndarray,
+                   old_censored: np.ndarray, old_test: np.ndarray, tested: np.ndarray, scale: np.float32, wy: int,
+                   wx: int, weight: np.ndarray, test: np.ndarray, censored: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The pixels the fusion reset in the frame rows the method skipped (``skipped``, bool (H,)) that take this
+    frame's estimate on demand, the others keeping their history as it was: the fusion's pass judged each by itself
+    (fusion._skipped_row: ``found``, and the kept pixels' history written into the new state), and here, since a
+    history is made of windows whose readings kept their censoring, where a reading that crossed the censor level
+    lies in the window (``wy``, ``wx`` either side) of a pixel taking this frame (on demand, or reset outside the
+    skipped rows), every pixel whose window holds it takes it too, and so on: such a pixel gets back what the
+    fusion gave a reset pixel (weight 1, the test's estimate its running mean with weight 1 of the history's
+    ``old_test`` and the frame's ``tested``, times ``scale``, the frame's censoring ``new_censored``) in
+    ``weight``, ``test`` (of no rows where the test has no history of its own) and ``censored`` (the new state's);
+    its own readings and mean are the on-demand estimate's, which the caller writes. ``reset``: bool (H, W), the
+    fusion's; ``old_censored``: bool (H, W), the history's censoring. Float arrays float32 (H, W).
 
-    On demand: where they moved (``motion``), the history is a lower bound, the window holds no uncensored reading
-    (infinite ``tested_variance``) or the frame's tested estimate differs from the history's by more than
-    1 / sqrt(inv_k2) noise deviations (the fusion's test, looser: it does not apply where a reading in the
-    window crossed the censor level, whose window mean then shifts beyond its noise alone); every one without
-    ``keep``. Then, since a history is made of windows whose readings kept their censoring: where a reading that
-    crossed the censor level lies in the window (``wy``, ``wx`` either side) of a pixel taking this frame (on
-    demand, or reset outside the skipped rows), every pixel whose window holds it takes it too, and so on.
-    ``old_test``, ``test``: the history's tested estimate and its new one, of no rows where the test has no
-    history of its own (``old_test`` is then the mean). Float arrays float32 (H, W), masks bool (H, W).
-
-    ``workers``: the listing and the test, then the kept pixels' writes and the censoring's copy, in pieces of
-    rows (:func:`pieces`) over these threads (methods.base.map_on); the spread through crossed readings, which
-    may run across pieces, on the calling thread in between. Each pixel's outcome is a closure that does not
-    depend on the order of the pixels, so the result is the same on any number of threads."""
+    Returns (ys, xs, kept): the on-demand pixels' coordinates, intp (n,), in reverse raster order; how many kept
+    their history. Each pixel's outcome is a closure that does not depend on the order of the pixels (nor on the
+    fusion's strips)."""
     h, w = reset.shape
-    words = reset_words(reset)
-    censored = np.empty_like(new_censored)
-    mark = np.empty((h, w), np.int8)  # (zeroed by the pieces, each its rows)
-    # (touched lazily: pages of their own, never malloc's heap; a piece's rows own its stretch of each)
-    ys, xs = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
-    stack_y, stack_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
-    spans = pieces([(0, h)], thread_count(workers))
-
-    def listed(span: tuple[int, int]) -> tuple[int, int]:
-        r0, r1 = span
-        return _listed_resets(r0, r1, skipped, reset, words, motion, new_censored, old_bound, old_weight, old_test,
-                              scale, tested, tested_variance, inv_k2, keep, censored, mark, ys[r0 * w:r1 * w],
-                              xs[r0 * w:r1 * w], stack_y[r0 * w:r1 * w], stack_x[r0 * w:r1 * w])
-
-    counts = map_on(workers, listed, spans)
-    starts = np.array([r0 * w for r0, _ in spans], np.intp)
-    _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, mark, stack_y, stack_x, starts,
-                      np.array([top for _, top in counts], np.intp))
-
-    def kept_or_taken(k: int) -> tuple[int, int]:
-        r0 = spans[k][0]
-        return _keep_history(counts[k][0], mark, old_weight, old_own, old_test, old_censored, scale, weight, own,
-                             test, censored, ys[r0 * w:], xs[r0 * w:])
-
-    done = map_on(workers, kept_or_taken, range(len(spans)))
-    order = range(len(spans) - 1, -1, -1)  # the last rows' first: reverse raster order
-    on_demand = [(spans[k][0] * w, n) for k, (n, _) in ((k, done[k]) for k in order)]
-    take_y = np.concatenate([ys[a:a + n] for a, n in on_demand])
-    take_x = np.concatenate([xs[a:a + n] for a, n in on_demand])
-    return take_y, take_x, sum(kept for _, kept in done), censored
+    stack_y, stack_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)  # (touched lazily)
+    taken_y, taken_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
+    spread = _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, found.mark, found.ys, found.xs,
+                               found.starts, found.counts, stack_y, stack_x, old_test, tested, scale, weight, test,
+                               censored, taken_y, taken_x)
+    listed = [found.ys[a:a + n] * w + found.xs[a:a + n] for a, n in zip(found.starts, found.counts[:, 0])]
+    flat = -np.sort(-np.concatenate([*listed, taken_y[:spread] * w + taken_x[:spread]]))  # reverse raster order
+    ys, xs = np.divmod(flat, w)
+    return ys, xs, int(found.counts[:, 1].sum()) - spread
 
 
 @kernel
-def _listed_resets(r0, r1, skipped, reset, words, motion, new_censored, old_bound, old_weight, old_test, scale,
-                   tested, tested_variance, inv_k2, keep, censored, mark, ys, xs, takes_y, takes_x):
-    """:func:`skipped_resets` on rows [r0, r1): ``censored``'s rows copied from ``new_censored`` and ``mark``'s
-    zeroed; the reset pixels of skipped rows listed into ``ys``, ``xs`` in reverse raster order, each marked in
-    ``mark`` 2 where it takes this frame's estimate by the test (also listed into ``takes_y``, ``takes_x``), else 1.
-    ``words``: ``reset``'s rows as uint64 words (:func:`reset_words`), which the listing skips where 0. Returns
-    (listed, taking)."""
-    w = reset.shape[1]
-    one = np.float32(1)
-    for r in range(r0, r1):
-        for c in range(w):
-            censored[r, c] = new_censored[r, c]
-            mark[r, c] = 0
-    count, top = 0, 0
-    nw = words.shape[1]
-    for r in range(r1 - 1, r0 - 1, -1):
-        if not skipped[r]:
-            continue
-        for k in range(nw, -1, -1):
-            if k < nw and words[r, k] == 0:
-                continue
-            for c in range((w if k == nw else 8 * k + 8) - 1, 8 * k - 1, -1):
-                if not reset[r, c]:
-                    continue
-                ys[count], xs[count] = r, c
-                count += 1
-                d = tested[r, c] - old_test[r, c] * scale
-                v = tested_variance[r, c]
-                differs = d * d * inv_k2 > (old_weight[r, c] + one) * v or v == np.inf
-                if motion[r, c] or old_bound[r, c] or differs or not keep:
-                    mark[r, c] = 2
-                    takes_y[top], takes_x[top] = r, c
-                    top += 1
-                else:
-                    mark[r, c] = 1
-    return count, top
-
-
-@kernel
-def _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, mark, ys, xs, starts, tops):
+def _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, mark, ys, xs, starts, counts, stack_y,
+                      stack_x, old_test, tested, scale, weight, test, censored, taken_y, taken_x):
     """:func:`skipped_resets`' spread through crossed readings, over the whole frame: from the pixels taking this
-    frame (each piece's ``tops[k]`` listed from ``ys[starts[k]]``, ``xs[...]``; gathered to the front, which is
-    the stack, and the pixels reset in rows that were not skipped but lie within 2 ``wy`` rows of one), every
-    pixel marked 1 whose window holds a reading that crossed the censor level in such a pixel's window is marked
-    2, and so on. A reading visited gets 8 added to its mark."""
+    frame (each strip's ``counts[k, 0]`` listed from ``ys[starts[k]]``, ``xs[...]``, and the pixels reset in rows
+    that were not skipped but lie within 2 ``wy`` rows of one; on the stack, ``stack_y``, ``stack_x``), every pixel
+    marked 1 whose window holds a reading that crossed the censor level in such a pixel's window is marked 2, given
+    back a reset pixel's weight, test and censoring, and listed into ``taken_y``, ``taken_x`` (returned: how many),
+    and so on. A reading visited gets 8 added to its mark."""
     h, w = mark.shape
     top = 0
     for k in range(starts.size):
-        for i in range(tops[k]):
-            ys[top], xs[top] = ys[starts[k] + i], xs[starts[k] + i]
+        for i in range(counts[k, 0]):
+            stack_y[top], stack_x[top] = ys[starts[k] + i], xs[starts[k] + i]
             top += 1
     for r in range(h):
         if skipped[r]:
@@ -836,11 +772,14 @@ def _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, mark, 
             continue
         for c in range(w):
             if reset[r, c]:
-                ys[top], xs[top] = r, c
+                stack_y[top], stack_x[top] = r, c
                 top += 1
+    separate = test.shape[0] > 0
+    one = np.float32(1)
+    taken = 0
     while top > 0:
         top -= 1
-        r, c = ys[top], xs[top]
+        r, c = stack_y[top], stack_x[top]
         for qr in range(max(r - wy, 0), min(r + wy + 1, h)):
             for qc in range(max(c - wx, 0), min(c + wx + 1, w)):
                 if new_censored[qr, qc] == old_censored[qr, qc] or mark[qr, qc] >= 8:
@@ -850,39 +789,15 @@ def _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, mark, 
                     for yc in range(max(qc - wx, 0), min(qc + wx + 1, w)):
                         if mark[yr, yc] % 8 == 1:
                             mark[yr, yc] += 1
-                            ys[top], xs[top] = yr, yc
+                            stack_y[top], stack_x[top] = yr, yc
                             top += 1
-
-
-@kernel
-def _keep_history(count, mark, old_weight, old_own, old_test, old_censored, scale, weight, own, test, censored,
-                  ys, xs):
-    """:func:`skipped_resets` on one piece's ``count`` listed pixels (``ys``, ``xs``) once marked: those marked 2
-    gathered to the front (returned: how many, and how many kept), the others keep their history."""
-    n, kept = 0, 0
-    separate = test.shape[0] > 0
-    for k in range(count):
-        r, c = ys[k], xs[k]
-        if mark[r, c] % 8 == 2:
-            ys[n], xs[n] = r, c
-            n += 1
-        else:
-            kept += 1
-            weight[r, c] = old_weight[r, c]
-            own[r, c] = old_own[r, c] * scale
-            if separate:
-                test[r, c] = old_test[r, c] * scale
-            censored[r, c] = old_censored[r, c]
-    return n, kept
-
-
-def reset_words(reset: np.ndarray) -> np.ndarray:
-    """:func:`skipped_resets`' ``words`` of a bool (H, W) array: its rows' first 8 * (W // 8) bytes as uint64 words
-    (a view where the rows allow it; else of no words, and every pixel is read)."""
-    h, w = reset.shape
-    if reset.flags.c_contiguous and w % 8 == 0:
-        return reset.view(np.uint64)
-    return np.empty((h, 0), np.uint64)
+                            taken_y[taken], taken_x[taken] = yr, yc
+                            taken += 1
+                            weight[yr, yc] = one
+                            if separate:
+                                test[yr, yc] = _running_mean(old_test[yr, yc], tested[yr, yc], one, scale)
+                            censored[yr, yc] = new_censored[yr, yc]
+    return taken
 
 
 def supports_colour(pattern: Pattern, cfa_shape: tuple[int, int], cell: tuple[int, int]) -> bool:

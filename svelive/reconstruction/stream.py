@@ -567,23 +567,17 @@ class Reconstructor:
         scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
         state = fused.state
         tested, tested_variance = frame.tested
-        # (where the light changed, every pixel reset takes this frame's estimate: a history kept with its old
-        # censoring, scaled, meets the next frame's readings at yet another level, and the test flags them)
-        inv_k2 = np.float32(1.0 / settle.UNSTABLE_SIGMAS ** 2)
-        # a kept pixel's history keeps the censoring it was made of (else the next frame, whose readings keep
-        # this one's censoring, would test a window mean of another kind against it)
-        no_rows = np.empty((0, 0), np.float32)
+        # (the pass judged each pixel: fusion._skipped_row; here the taking spreads through crossed readings)
         wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
-        ys, xs, kept, censored = settle.skipped_resets(
-            ~partial.rows, fused.reset, fused.motion, frame.censored, history.bound, history.weight, history.own,
-            history.tested, history.censored, scale, tested, tested_variance, inv_k2, scale == 1, wy, wx,
-            state.weight, state.own, no_rows if state.test is None else state.test, self._threads)
+        no_rows = np.empty((0, 0), np.float32)
+        ys, xs, kept = settle.skipped_resets(
+            fused.skipped, ~partial.rows, fused.reset, frame.censored, history.censored, history.tested, tested,
+            scale, wy, wx, state.weight, no_rows if state.test is None else state.test, state.censored)
         # (the pass's halo first unless most of the last frame's were the wide fallback's, which reads farther)
         last = self.last_partial
         narrow = last is None or 2 * last.get("demand_wide", 0) <= last.get("demand_px", 0)
         ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads, narrow)
         partial.stats.update(stats, kept_px=kept)
-        fused = replace(fused, state=replace(state, censored=censored))
         if not ys.size:
             return fused
         for target, value in ((frame.image, img), (frame.variance, var), (frame.bound, low), (state.mean, img),
@@ -781,7 +775,7 @@ class Reconstructor:
                 predicted = settle.band_rows(~partial.computed, frame.image.shape[0])
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency,
                          detail=self.detail, workers=self.workers, executor=self._pool,
-                         predicted=predicted, complete=complete)
+                         predicted=predicted, complete=complete, unstable_sigmas=settle.UNSTABLE_SIGMAS)
             if partial is not None:
                 if not partial.rows.all():
                     fused = self._on_demand(partial, fused, frame, predicted, history)
