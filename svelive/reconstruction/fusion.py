@@ -232,7 +232,6 @@ class SkippedResets:
         ys, xs: intp (H W,), frame coordinates of the pixels marked 2: strip k's ``counts[k, 0]`` of them from
             ``starts[k]`` on, each strip's in raster order.
         starts: intp (strips,); counts: int64 (strips, 2), the pixels each strip marked 2 and 1.
-        unstable_k2: float32, 1 / k^2 of the looser test that judged them.
     """
 
     mark: np.ndarray
@@ -240,7 +239,6 @@ class SkippedResets:
     xs: np.ndarray
     starts: np.ndarray
     counts: np.ndarray
-    unstable_k2: np.float32
 
 
 def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.ndarray, bound: np.ndarray,
@@ -529,10 +527,10 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
         found = SkippedResets(np.empty(image.shape, np.int8), outside_heap(image.size, np.intp),
                               outside_heap(image.size, np.intp),
                               np.array([s.start * image.shape[1] for s in strips], np.intp),
-                              np.zeros((len(strips), 2), np.int64), np.float32(1.0 / unstable_sigmas ** 2))
-        new_censored = np.empty_like(frame.censored)
+                              np.zeros((len(strips), 2), np.int64))
+        new_censored, unstable_k2 = np.empty_like(frame.censored), np.float32(1.0 / unstable_sigmas ** 2)
     else:
-        found, new_censored = None, frame.censored
+        found, new_censored, unstable_k2 = None, frame.censored, np.float32(0)
     strip_index = {s.start: k for k, s in enumerate(strips)}
     window = tuple(support_size(n) for n in pattern_shape)
     # rows a strip's motion mask depends on: censor changes grow by window // 2, then
@@ -593,7 +591,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     def _skipped(core: slice, k: int) -> _Skipped:
         """:class:`_Skipped` of a strip (``core``, the ``k``-th)."""
         start = found.starts[k]
-        return _Skipped(kept, state.bound[core], tested_variance[core], state.censored[core], found.unstable_k2,
+        return _Skipped(kept, state.bound[core], tested_variance[core], state.censored[core], unstable_k2,
                         bool(same), new_censored[core], found.mark[core], found.ys[start:], found.xs[start:],
                         found.counts[k])
 
