@@ -582,3 +582,30 @@ def test_a_still_colour_streams_chroma_is_made_on_the_selected_bands_cell_rows_o
         np.testing.assert_array_equal(stream._chroma[:, ~rows], before[:, ~rows])
         assert not np.array_equal(stream._chroma[:, rows], before[:, rows])
     assert partial >= 4
+
+
+def test_fuse_chroma_on_some_cell_rows_is_the_whole_fusion_there_and_keeps_the_history_elsewhere():
+    """stream.fuse_chroma with ``rows`` (a colour frame whose chroma was made on some cell rows): on those rows the
+    values of the fusion of every row, bit for bit (the cells' weights from crops of one more cell row each way);
+    on the others the history's shares and coarse variance and its coarse luminance times the brightness ratio."""
+    from svelive.core.cfa import ColourFilter
+    from svelive.core.pattern import Pattern
+    from svelive.reconstruction import colour
+    from svelive.reconstruction.stream import fuse_chroma
+
+    rng = np.random.default_rng(1)
+    layout = colour.cell_layout(Pattern.parse("1/1/8/8"), ColourFilter.parse("RGGB"))
+    (h, w), (cy, cx) = (203, 64), layout.cell
+    hc, wc = -(-h // cy), -(-w // cx)
+    chroma = colour.Chroma(rng.random((3, hc, wc), dtype=np.float32), rng.random((2, hc, wc), dtype=np.float32),
+                           layout, np.ones(3, np.float32), (h, w))
+    history, weight = rng.random((5, hc, wc), dtype=np.float32), rng.random((h, w), dtype=np.float32)
+    whole = fuse_chroma(history, chroma, weight, 1.1)
+    kept = np.concatenate([history[:3], history[3:4] * np.float32(1.1), history[4:]])
+    for runs in ([(0, 3)], [(5, 9), (20, hc)], [(hc - 1, hc)], [(0, hc)]):
+        rows = np.zeros(hc, bool)
+        for a, b in runs:
+            rows[a:b] = True
+        got = fuse_chroma(history, chroma, weight, 1.1, rows)
+        np.testing.assert_array_equal(got[:, rows], whole[:, rows])
+        np.testing.assert_array_equal(got[:, ~rows], kept[:, ~rows])

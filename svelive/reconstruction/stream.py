@@ -1213,9 +1213,18 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
-    cells = np.empty((hc, wc), np.float32)
-    _cell_maximum(weight, cy, cx, cells)
-    cells = cv2.dilate(cells, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    box = np.ones((3, 3), np.uint8)
+    if rows is None:
+        cells = np.empty((hc, wc), np.float32)
+        _cell_maximum(weight, cy, cx, cells)
+        cells = cv2.dilate(cells, box, borderType=cv2.BORDER_REFLECT_101)
+    else:  # the cell rows made, each run from a crop of one more cell row each way (the 3x3's reach)
+        cells = np.empty((hc, wc), np.float32)  # (rows not made: not read)
+        for a, b in settle.runs(rows):
+            lo, hi = max(a - 1, 0), min(b + 1, hc)
+            crop = np.empty((hi - lo, wc), np.float32)
+            _cell_maximum(weight[lo * cy:hi * cy], cy, cx, crop)
+            cells[a:b] = cv2.dilate(crop, box, borderType=cv2.BORDER_REFLECT_101)[a - lo:b - lo]
     out = np.empty_like(history)
     _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio),
                     np.ones(hc, bool) if rows is None else rows, out)
