@@ -210,8 +210,11 @@ class Reconstructor:
             estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it (colour ones
             unless ``colour_refresh``). The live service's default (svelive.reconstruction.live.LIVE_REFRESH).
         colour_refresh: ``refresh`` for a colour stream too (issue 25; off by default in the library, on in the
-            live service), on the bands of its folded luminance (the chroma, its fusion and the refinement still
-            run on every cell); its output differs from refresh 0's as a monochrome stream's does
+            live service), on the bands of its folded luminance; once its history holds a chroma, a frame's
+            chroma is made (and fused) only on the cell rows of the selected bands and the method's reach around
+            them, the history's cells kept elsewhere, with the last fused frame's white balance (the fold and the
+            refinement still run on every pixel); a colour frame estimated ahead of another history is estimated
+            again when fused. Its output differs from refresh 0's as a monochrome stream's does
             (docs/benchmarks.md, "A colour band refresh").
         **method_options: passed to the method.
 
