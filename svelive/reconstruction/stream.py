@@ -711,16 +711,13 @@ class Reconstructor:
             colour_input = inp
             cell = colour.cell_layout(inp.pattern, inp.cfa).cell
             source = self._chroma_source(hint, chroma_history, white, selected, (h, w), cell)
-            rows = None
-            if source is None:
-                ch = colour.chroma(inp)
-            else:
+            rows = ch = None
+            if source is not None:
                 rows = _chroma_rows(selected, h, cell[0], source.shape[1], settle.halo_for(inp.pattern)[0])
                 ch = colour.partial_chroma(inp, settle.runs(rows), source, white)
             chroma_of = source, selected.copy(), rows
-            inter = colour.interpolation(ch)
-            inverse = np.empty(inp.shape, np.float32)
-            inp = colour.luminance_input(inp, inter, True, self._threads, inverse)
+            ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True,
+                                                            ch=ch)
         # (the method's noise model, from the frame alone, on the pool while this thread makes the partial frame)
         pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
         noise = noise_model(inp) if pending is None else None
