@@ -496,7 +496,7 @@ def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
     """``colour_refresh``: colour frames (a still dual-ISO scene, the sensor given) estimated one and two frames
     ahead of their fusion give the sequential stream's output, motion and weights bit for bit, ``fuse`` estimating
     again the frames whose chroma kept the cells of an older history (or whose selection differs from the one of
-    the history they are fused into)."""
+    the history they are fused into), or estimating those that ``estimate`` left to it (behind frames in flight)."""
     from collections import deque
 
     from svelive.bench.live import case_camera, case_radiance, resized, static_frames
@@ -516,10 +516,11 @@ def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
     for lag in (1, 2):
         sequential = Reconstructor(camera, refresh=4, colour_refresh=True)
         ahead = Reconstructor(camera, refresh=4, colour_refresh=True)
-        pending, fused = deque(), 0
+        pending, fused, deferred = deque(), 0, 0
         for raw in raws + [None] * lag:
             if raw is not None:
                 pending.append(ahead.estimate(raw))
+                deferred += pending[-1].estimate is None
             if len(pending) > lag or raw is None:
                 got, want = ahead.fuse(pending.popleft()), sequential.process(raws[fused])
                 for name in ("image", "motion", "weight", "luminance"):
@@ -528,6 +529,7 @@ def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
                 fused += 1
         state = ahead.refresh_state()
         assert state["applies"] and state["reestimated"] > 0, state
+        assert deferred > 0  # (frames behind frames in flight, estimated only when fused)
 
 
 def test_demand_boxes_gather_pixels_that_lie_together_and_split_long_thin_groups():

@@ -534,6 +534,9 @@ class Reconstructor:
         partial = chroma_of = None
         if trusted and self._settles(method, camera):  # (an untrusted model's output is the frame's own estimate)
             inp, est, partial, parts, chroma_of = self._estimate_partial(raw, camera)
+            if est is None:  # a colour frame behind frames in flight: all of it when fused (_estimate_partial)
+                return Estimated(None, None, None, None, method, generation, (time.perf_counter() - t0) * 1e3, 0.0,
+                                 array, base, trusted, signal, camera, model, inp, partial, chroma_of)
         else:
             inp, est, parts = self._estimate(raw, method, camera)
         return self._estimated(inp, est, parts, partial, chroma_of, method, generation, t0, array, base, trusted,
@@ -589,7 +592,8 @@ class Reconstructor:
         self._reestimates += 1
         t0 = time.perf_counter()
         ahead = history, self._fused_partials, chroma_history, white
-        inp, est, partial, parts, chroma_of = self._estimate_partial(estimated.raw, estimated.camera, ahead)
+        inp, est, partial, parts, chroma_of = self._estimate_partial(estimated.raw, estimated.camera, ahead,
+                                                                     estimated.colour_input)
         return self._estimated(inp, est, parts, partial, chroma_of, estimated.method, estimated.generation, t0,
                                estimated.raw, estimated.base, estimated.trusted, estimated.signal, estimated.camera,
                                estimated.noise)
@@ -685,7 +689,8 @@ class Reconstructor:
         :meth:`fuse`, their only writer."""
         return list(self._band_motion), self._last_ratio, self._last_variance
 
-    def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera, ahead: tuple | None = None):
+    def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera, ahead: tuple | None = None,
+                          prepared: SveInput | None = None):
         """(input, estimate with the window mean, settle.Partial, a colour frame's joint parts or None, its
         Estimated.chroma_of or None): the method on the bands the latest history asks for, the window mean
         everywhere. The selection is a hint: the frame may be fused into a later history (frames estimated ahead),
@@ -695,9 +700,15 @@ class Reconstructor:
         with the last fused frame's white balance; else on every cell) and the folded luminance (colour.joint's,
         every pixel), then the bands of that luminance, a monochrome input of per-pixel exposures
         (``partial.inp``). ``ahead``: (history, round-robin turn, its chroma, its white balance) to take instead
-        of the stream's (:meth:`fuse`, a colour frame estimated ahead: :meth:`_reestimated`)."""
+        of the stream's (:meth:`fuse`, a colour frame estimated ahead: :meth:`_reestimated`), ``prepared`` the
+        frame's input prepared already.
 
-        inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
+        A colour frame estimated behind frames in flight (estimated, not fused yet) that would keep the history's
+        chroma is estimated when it is fused (each of those frames leaves another chroma, so :meth:`fuse` would
+        estimate it again): only its input is prepared, returned with no estimate (None), a marker of it in
+        flight as its Partial and that marker as its kept chroma."""
+
+        inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads) if prepared is None else prepared
         h, w = inp.shape
         with self._lock:
             if ahead is None:
@@ -706,11 +717,17 @@ class Reconstructor:
             else:
                 hint, tick, chroma_history, white = ahead
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
+            behind = ahead is None and len(self._in_flight) > 0
         colour_input = chroma_of = None
         if inp.cfa is not None:  # colour.joint's steps before its method, as a stream takes them
             colour_input = inp
             cell = colour.cell_layout(inp.pattern, inp.cfa).cell
             source = self._chroma_source(hint, chroma_history, white, selected, (h, w), cell)
+            if behind and source is not None:
+                marker = _Deferred()
+                with self._lock:
+                    self._in_flight.add(marker)
+                return inp, None, marker, None, (marker, None, None)
             rows = ch = None
             if source is not None:
                 rows = _chroma_rows(selected, h, cell[0], source.shape[1], settle.halo_for(inp.pattern)[0])
@@ -808,10 +825,11 @@ class Reconstructor:
             spread = self._spread if current else None
         if estimated.chroma_of is not None:  # (a colour frame of the band refresh)
             source, computed, _ = estimated.chroma_of
-            shape = estimated.estimate.image.shape
+            inp = estimated.colour_input
+            shape = inp.shape
             selected = self._selection(history, self._fused_partials, shape, *self._selection_state())
             if (source is not self._chroma_source(history, chroma_history, white, selected, shape,
-                                                  estimated.parts.chroma.layout.cell)
+                                                  colour.cell_layout(inp.pattern, inp.cfa).cell)
                     or (source is not None and not np.array_equal(computed, selected))):
                 estimated = self._reestimated(estimated, history, chroma_history, white)
                 est, parts = estimated.estimate, estimated.parts
@@ -916,7 +934,9 @@ class Estimated:
     """One frame's part of :meth:`Reconstructor.process` that needs no history (:meth:`Reconstructor.estimate`).
 
     Attributes:
-        estimate: the method's estimate with its variance (of the luminance for a colour frame).
+        estimate: the method's estimate with its variance (of the luminance for a colour frame); None (and
+            ``parts``, ``frame`` too) for a colour frame of the band refresh estimated behind frames in flight,
+            which :meth:`Reconstructor.fuse` estimates (``Reconstructor._estimate_partial``).
         parts: a colour frame's joint parts (svelive.reconstruction.colour.Joint), or None.
         frame: what the frame contributes to the temporal fusion, or None without it.
         inconsistency: the within-frame test's finding, or None without the test.
@@ -938,7 +958,7 @@ class Estimated:
             history's mean stands for it there, and the rows of wholly skipped strips stay unwritten).
     """
 
-    estimate: Estimate
+    estimate: Estimate | None
     parts: colour.Joint | None
     frame: FrameEstimate | None
     inconsistency: Inconsistency | None
@@ -964,6 +984,10 @@ def _infinite(shape: tuple[int, int]) -> np.ndarray:
     a skipped row's window holds no uncensored reading (a whole frame of it, kept by the stream, was 9 MB at
     1920x1200)."""
     return np.broadcast_to(np.float32(np.inf), shape)
+
+
+class _Deferred:
+    """A colour frame in flight whose estimate :meth:`Reconstructor.fuse` makes (``_estimate_partial``)."""
 
 
 def _chroma_rows(selected: np.ndarray, h: int, cy: int, hc: int, halo: int) -> np.ndarray:
