@@ -214,7 +214,7 @@ class Reconstructor:
             chroma is made (and fused) only on the cell rows of the selected bands and the method's reach around
             them, the history's cells kept elsewhere, with the last fused frame's white balance (the fold and the
             refinement still run on every pixel); a colour frame estimated ahead of another history is estimated
-            again when fused. Its output differs from refresh 0's as a monochrome stream's does
+            (again) when fused. Its output differs from refresh 0's as a monochrome stream's does
             (docs/benchmarks.md, "A colour band refresh").
         **method_options: passed to the method.
 
