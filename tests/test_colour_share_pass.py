@@ -107,6 +107,39 @@ def test_one_pass_is_the_whole_plane_chain_bit_for_bit(layout, stops, shape):
         assert np.count_nonzero(inp.censored) > 0  # the clipped case is the one tested
 
 
+@pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
+@pytest.mark.parametrize("stops", [0.0, 5.0])
+def test_partial_chroma_is_the_whole_frames_on_its_cell_rows_and_the_history_elsewhere(layout, stops):
+    """colour.partial_chroma (a still colour stream's band refresh): on the cell rows it makes, the whole frame's
+    chroma with the same white balance, bit for bit (its crops' CHROMA_HALO cell rows are what the passes read:
+    one fewer differs on a bright frame); elsewhere the history's planes, exactly; runs at the frame's edges, apart and of one row."""
+    pattern, cfa = COLOUR_LAYOUTS[layout]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:150, :120]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops - 2))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=11).raw, Camera.build(pattern, cfa, SENSOR))
+    whole = chroma(inp, np.array([0.9, 1.0, 1.2], np.float32))
+    assert not np.array_equal(whole.shares, chroma(inp).shares)  # (the white given is taken)
+    hc = whole.shares.shape[1]
+    history = np.random.default_rng(3).random((5, *whole.shares.shape[1:]), dtype=np.float32)
+    for runs in ([(0, 3)], [(2, 9), (hc - 12, hc - 5)], [(hc - 4, hc)], [(hc // 2, hc // 2 + 1)], [(0, hc)]):
+        got = S.partial_chroma(inp, runs, history, whole.white)
+        made = np.zeros(hc, bool)
+        for a, b in runs:
+            made[a:b] = True
+        np.testing.assert_array_equal(got.shares[:, made], whole.shares[:, made])
+        np.testing.assert_array_equal(got.coarse[:, made], whole.coarse[:, made])
+        np.testing.assert_array_equal(got.shares[:, ~made], history[:3, ~made])
+        np.testing.assert_array_equal(got.coarse[:, ~made], history[3:, ~made])
+        np.testing.assert_array_equal(got.white, whole.white)
+    if stops == 0.0:  # (the dim frame's shares are flat enough that a shorter reach may still agree)
+        halo, S.CHROMA_HALO = S.CHROMA_HALO, S.CHROMA_HALO - 1
+        try:
+            short = S.partial_chroma(inp, [(hc // 2, hc // 2 + 1)], history, whole.white)
+        finally:
+            S.CHROMA_HALO = halo
+        assert not np.array_equal(short.shares[:, hc // 2], whole.shares[:, hc // 2])
+
+
 def test_the_pass_filters_match_opencv_on_random_planes():
     """The pass's filters alone, on planes with every kind of value (their own drivers: rows of a plane)."""
     rng = np.random.default_rng(5)

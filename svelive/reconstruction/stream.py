@@ -210,8 +210,11 @@ class Reconstructor:
             estimated ahead fuse as the sequential stream's, bit for bit. Other streams ignore it (colour ones
             unless ``colour_refresh``). The live service's default (svelive.reconstruction.live.LIVE_REFRESH).
         colour_refresh: ``refresh`` for a colour stream too (issue 25; off by default in the library, on in the
-            live service), on the bands of its folded luminance (the chroma, its fusion and the refinement still
-            run on every cell); its output differs from refresh 0's as a monochrome stream's does
+            live service), on the bands of its folded luminance; once its history holds a chroma, a frame's
+            chroma is made (and fused) only on the cell rows of the selected bands and the method's reach around
+            them, the history's cells kept elsewhere, with the last fused frame's white balance (the fold and the
+            refinement still run on every pixel); a colour frame estimated ahead of another history is estimated
+            (again) when fused. Its output differs from refresh 0's as a monochrome stream's does
             (docs/benchmarks.md, "A colour band refresh").
         **method_options: passed to the method.
 
@@ -264,6 +267,7 @@ class Reconstructor:
         self._in_flight: weakref.WeakSet = weakref.WeakSet()
         self._fused_partials = 0  # partial frames fused: the round-robin's turn
         self._hint_changes = [0, 0]  # bands fuse computed beyond the estimates' hints, and dropped from them
+        self._reestimates = 0  # colour frames fuse estimated again (_reestimated)
         self._last_variance: np.ndarray | None = None  # the last fused partial frame's variance (placeholders)
         self._window_tables: dict = {}  # settle.window_rows' tables, kept across frames
         self._unsettled: tuple | None = None  # (weakref.ref of a history, its unsettled pixels by band): _selection
@@ -275,6 +279,7 @@ class Reconstructor:
         self._method = self._checked(method)
         self._history: TemporalState | None = None
         self._chroma: np.ndarray | None = None  # a colour stream's fused chroma cells (5, Hc, Wc), fuse_chroma
+        self._white: np.ndarray | None = None  # the white balance of the last fused colour frame (its chroma's)
         self._spread: np.ndarray | None = None  # a colour stream's evidence of its luminance's noise, luminance_noise
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
@@ -311,7 +316,7 @@ class Reconstructor:
         with self._lock:
             if name != self._method:
                 self._method = name
-                self._history = self._chroma = self._spread = None
+                self._history = self._chroma = self._spread = self._white = None
                 self._generation += 1
 
     def close(self) -> None:
@@ -361,7 +366,9 @@ class Reconstructor:
         model is trusted: ``adaptive``, fusion, a supported tile, monochrome or with ``colour_refresh``), and of the last fused frame that
         took the partial path ``bands`` and ``computed`` (bands the method ran on) and ``on_demand_px``, or None
         before one; ``hint_added`` and ``hint_dropped``: bands :meth:`fuse` computed beyond its frames' estimates
-        and dropped from them, over the stream's life (frames estimated ahead of the history they are fused into).
+        and dropped from them, over the stream's life (frames estimated ahead of the history they are fused into);
+        ``reestimated``: colour frames estimated ahead that :meth:`fuse` estimated again (their chroma kept the cells
+        of another history than the one they are fused into).
         """
         if not self.refresh:
             return None
@@ -374,7 +381,8 @@ class Reconstructor:
                 "bands": None if last is None else last.get("bands"),
                 "computed": None if last is None else last.get("computed"),
                 "on_demand_px": None if last is None else last.get("demand_px", 0),
-                "hint_added": self._hint_changes[0], "hint_dropped": self._hint_changes[1]}
+                "hint_added": self._hint_changes[0], "hint_dropped": self._hint_changes[1],
+                "reestimated": self._reestimates}
 
     def __enter__(self) -> Reconstructor:
         return self
@@ -385,7 +393,7 @@ class Reconstructor:
     def reset(self) -> None:
         """Forget the history: the next frame is processed as the first of a stream."""
         with self._lock:
-            self._history = self._chroma = self._spread = None
+            self._history = self._chroma = self._spread = self._white = None
             self._generation += 1
             self._frames = 0
             self._band_motion = []
@@ -523,11 +531,21 @@ class Reconstructor:
         if _needs_noise(base) and base.response is not None:
             signal = prepare(array, base).signal  # the tracker reads the linearised signal
         camera, trusted, model = self._with_noise(array, base, signal)
-        partial = None
+        partial = chroma_of = None
         if trusted and self._settles(method, camera):  # (an untrusted model's output is the frame's own estimate)
-            inp, est, partial, parts = self._estimate_partial(raw, camera)
+            inp, est, partial, parts, chroma_of = self._estimate_partial(raw, camera)
+            if est is None:  # a colour frame behind frames in flight: all of it when fused (_estimate_partial)
+                return Estimated(None, None, None, None, method, generation, (time.perf_counter() - t0) * 1e3, 0.0,
+                                 array, base, trusted, signal, camera, model, inp, partial, chroma_of)
         else:
             inp, est, parts = self._estimate(raw, method, camera)
+        return self._estimated(inp, est, parts, partial, chroma_of, method, generation, t0, array, base, trusted,
+                               signal, camera, model)
+
+    def _estimated(self, inp: SveInput, est: Estimate, parts: colour.Joint | None, partial, chroma_of,
+                   method: str, generation: int, t0: float, array: np.ndarray, base: Camera, trusted: bool,
+                   signal: np.ndarray | None, camera: Camera, model: NoiseEstimate) -> Estimated:
+        """:meth:`estimate`'s result from the method's estimate (started at ``t0``): the motion tests' inputs."""
         t1 = time.perf_counter()
         lum = inp if parts is None else parts.luminance_input  # the monochrome frame of ``image``
         inconsistency = window = None
@@ -551,7 +569,34 @@ class Reconstructor:
             frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model,
-                         None if parts is None else inp, partial)
+                         None if parts is None else inp, partial, chroma_of)
+
+    @staticmethod
+    def _chroma_source(history: TemporalState | None, chroma_history: np.ndarray | None, white: np.ndarray | None,
+                       selected: np.ndarray, shape: tuple[int, int], cell: tuple[int, int]) -> np.ndarray | None:
+        """The fused chroma (5, Hc, Wc) a colour frame with the band refresh keeps on the cell rows its selection
+        (``selected``, bool per band) skips, or None where it makes its chroma on every cell (every band
+        selected, no chroma history of its size or no white balance kept): :meth:`_estimate_partial`."""
+        hc, wc = (-(-n // c) for n, c in zip(shape, cell))
+        if (selected.all() or history is None or chroma_history is None or white is None
+                or chroma_history.shape != (5, hc, wc)):
+            return None
+        return chroma_history
+
+    def _reestimated(self, estimated: Estimated, history: TemporalState | None,
+                     chroma_history: np.ndarray | None, white: np.ndarray | None) -> Estimated:
+        """A colour frame estimated ahead (its chroma kept another history's cells, or its selection differs from
+        the one of the history it is fused into, ``history``): estimated again as the sequential stream would
+        have, from ``history``, its chroma ``chroma_history`` and ``white`` and the round-robin's turn now."""
+        self._in_flight.discard(estimated.partial)
+        self._reestimates += 1
+        t0 = time.perf_counter()
+        ahead = history, self._fused_partials, chroma_history, white
+        inp, est, partial, parts, chroma_of = self._estimate_partial(estimated.raw, estimated.camera, ahead,
+                                                                     estimated.colour_input)
+        return self._estimated(inp, est, parts, partial, chroma_of, estimated.method, estimated.generation, t0,
+                               estimated.raw, estimated.base, estimated.trusted, estimated.signal, estimated.camera,
+                               estimated.noise)
 
     def _on_demand(self, partial, fused, frame: FrameEstimate, predicted: list[tuple[int, int]],
                    history: TemporalState) -> Fused:
@@ -644,26 +689,56 @@ class Reconstructor:
         :meth:`fuse`, their only writer."""
         return list(self._band_motion), self._last_ratio, self._last_variance
 
-    def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera):
-        """(input, estimate with the window mean, settle.Partial, a colour frame's joint parts or None): the
-        method on the bands the latest history asks for, the window mean everywhere. The selection is a hint: the
-        frame may be fused into a later history (frames estimated ahead), and :meth:`fuse` then makes it the
-        selection of that history. A colour frame (``colour_refresh``): its chroma and the folded luminance
-        (colour.joint's, every pixel) first, then the bands of that luminance, a monochrome input of per-pixel
-        exposures (``partial.inp``)."""
+    def _estimate_partial(self, raw: np.ndarray | Frame, camera: Camera, ahead: tuple | None = None,
+                          prepared: SveInput | None = None):
+        """(input, estimate with the window mean, settle.Partial, a colour frame's joint parts or None, its
+        Estimated.chroma_of or None): the method on the bands the latest history asks for, the window mean
+        everywhere. The selection is a hint: the frame may be fused into a later history (frames estimated ahead),
+        and :meth:`fuse` then makes it the selection of that history. A colour frame (``colour_refresh``): the
+        selection first, then its chroma (on the cell rows of the selected bands and of the method's halo around
+        them where the history holds a chroma of its size: the history's fused cells elsewhere, colour.partial_chroma,
+        with the last fused frame's white balance; else on every cell) and the folded luminance (colour.joint's,
+        every pixel), then the bands of that luminance, a monochrome input of per-pixel exposures
+        (``partial.inp``). ``ahead``: (history, round-robin turn, its chroma, its white balance) to take instead
+        of the stream's (:meth:`fuse`, a colour frame estimated ahead: :meth:`_reestimated`), ``prepared`` the
+        frame's input prepared already.
 
-        inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads)
-        colour_input = None
-        if inp.cfa is not None:  # colour.joint's steps before its method, as a stream takes them
-            colour_input = inp
-            ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True)
-        # (the method's noise model, from the frame alone, on the pool while this thread makes the selection)
-        pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
-        noise = noise_model(inp) if pending is None else None
+        A colour frame estimated behind frames in flight (estimated, not fused yet) that would keep the history's
+        chroma is estimated when it is fused (each of those frames leaves another chroma, so :meth:`fuse` would
+        estimate it again): only its input is prepared, returned with no estimate (None), a marker of it in
+        flight as its Partial and that marker as its kept chroma."""
+
+        inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads) if prepared is None else prepared
         h, w = inp.shape
         with self._lock:
-            hint, tick = self._history, self._fused_partials + len(self._in_flight)
+            if ahead is None:
+                hint, tick = self._history, self._fused_partials + len(self._in_flight)
+                chroma_history, white = self._chroma, self._white
+            else:
+                hint, tick, chroma_history, white = ahead
             selected = self._selection(hint, tick, (h, w), *self._selection_state())
+            behind = ahead is None and len(self._in_flight) > 0
+        colour_input = chroma_of = None
+        if inp.cfa is not None:  # colour.joint's steps before its method, as a stream takes them
+            colour_input = inp
+            cell = colour.cell_layout(inp.pattern, inp.cfa).cell
+            source = self._chroma_source(hint, chroma_history, white, selected, (h, w), cell)
+            if behind and source is not None:
+                marker = _Deferred()
+                with self._lock:
+                    self._in_flight.add(marker)
+                return inp, None, marker, None, (marker, None, None)
+            rows = ch = None
+            if source is not None:
+                rows = _chroma_rows(selected, h, cell[0], source.shape[1], settle.halo_for(inp.pattern)[0])
+                ch = colour.partial_chroma(inp, settle.runs(rows), source, white)
+            chroma_of = source, selected.copy(), rows
+            ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True,
+                                                            ch=ch)
+        # (the method's noise model, from the frame alone, on the pool while this thread makes the partial frame)
+        pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
+        noise = noise_model(inp) if pending is None else None
+        with self._lock:
             if pending is not None:
                 noise = pending.result()
             partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
@@ -689,8 +764,8 @@ class Reconstructor:
             completed_window((window[0, a:b], window[1, a:b]), image[a:b], variance[a:b])
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
         if colour_input is None:
-            return inp, est, partial, None
-        return colour_input, est, partial, colour.Joint(est, inp, ch, inter, inverse)
+            return inp, est, partial, None, None
+        return colour_input, est, partial, colour.Joint(est, inp, ch, inter, inverse), chroma_of
 
     def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
         """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
@@ -746,7 +821,18 @@ class Reconstructor:
             current = estimated.generation == self._generation
             history, index = (self._history, self._frames) if current else (None, 0)
             chroma_history = self._chroma if current else None
+            white = self._white if current else None
             spread = self._spread if current else None
+        if estimated.chroma_of is not None:  # (a colour frame of the band refresh)
+            source, computed, _ = estimated.chroma_of
+            inp = estimated.colour_input
+            shape = inp.shape
+            selected = self._selection(history, self._fused_partials, shape, *self._selection_state())
+            if (source is not self._chroma_source(history, chroma_history, white, selected, shape,
+                                                  colour.cell_layout(inp.pattern, inp.cfa).cell)
+                    or (source is not None and not np.array_equal(computed, selected))):
+                estimated = self._reestimated(estimated, history, chroma_history, white)
+                est, parts = estimated.estimate, estimated.parts
         previous = history
         image, variance = est.image, est.variance
         held = self.temporal and not estimated.trusted
@@ -803,7 +889,8 @@ class Reconstructor:
         luminance = None
         if parts is not None:
             if self.temporal:
-                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio)
+                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio,
+                                             None if estimated.chroma_of is None else estimated.chroma_of[2])
                 chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
@@ -833,6 +920,7 @@ class Reconstructor:
             if self._generation == estimated.generation:
                 self._history = history if self.temporal else None
                 self._chroma = chroma_history if self.temporal and parts is not None else None
+                self._white = parts.chroma.white if self.temporal and parts is not None else None
                 self._spread = spread if self.temporal and parts is not None else None
                 self._frames = index + 1
             self._last_moving = moving_fraction
@@ -846,7 +934,9 @@ class Estimated:
     """One frame's part of :meth:`Reconstructor.process` that needs no history (:meth:`Reconstructor.estimate`).
 
     Attributes:
-        estimate: the method's estimate with its variance (of the luminance for a colour frame).
+        estimate: the method's estimate with its variance (of the luminance for a colour frame); None (and
+            ``parts``, ``frame`` too) for a colour frame of the band refresh estimated behind frames in flight,
+            which :meth:`Reconstructor.fuse` estimates (``Reconstructor._estimate_partial``).
         parts: a colour frame's joint parts (svelive.reconstruction.colour.Joint), or None.
         frame: what the frame contributes to the temporal fusion, or None without it.
         inconsistency: the within-frame test's finding, or None without the test.
@@ -868,7 +958,7 @@ class Estimated:
             history's mean stands for it there, and the rows of wholly skipped strips stay unwritten).
     """
 
-    estimate: Estimate
+    estimate: Estimate | None
     parts: colour.Joint | None
     frame: FrameEstimate | None
     inconsistency: Inconsistency | None
@@ -884,6 +974,9 @@ class Estimated:
     noise: NoiseEstimate | None = None
     colour_input: SveInput | None = None
     partial: object | None = None  # settle.Partial: the method ran on some bands only (``refresh``)
+    #: a colour frame of the band refresh: (the fused chroma it kept on the cell rows it skipped or None, its
+    #: selection at estimate (bool per band), bool (Hc,) the cell rows of its own chroma or None: every one)
+    chroma_of: tuple | None = None
 
 
 def _infinite(shape: tuple[int, int]) -> np.ndarray:
@@ -891,6 +984,21 @@ def _infinite(shape: tuple[int, int]) -> np.ndarray:
     a skipped row's window holds no uncensored reading (a whole frame of it, kept by the stream, was 9 MB at
     1920x1200)."""
     return np.broadcast_to(np.float32(np.inf), shape)
+
+
+class _Deferred:
+    """A colour frame in flight whose estimate :meth:`Reconstructor.fuse` makes (``_estimate_partial``)."""
+
+
+def _chroma_rows(selected: np.ndarray, h: int, cy: int, hc: int, halo: int) -> np.ndarray:
+    """bool (Hc,): the cell rows a colour frame's folded exposures read on the rows of the selected bands
+    (``selected``, bool per band of a frame of ``h`` rows) and ``halo`` rows around them (the method's reach):
+    the cells of cy rows those rows lie in and the one further each way (the shares' interpolation between
+    cell centres)."""
+    rows = np.zeros(hc, bool)
+    for a, b in settle.band_rows(selected, h):
+        rows[max((a - halo) // cy - 1, 0):min(-(-(b + halo) // cy) + 1, hc)] = True
+    return rows
 
 
 def _needs_noise(camera: Camera) -> bool:
@@ -1113,7 +1221,7 @@ def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evid
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
-                ratio: float = 1.0) -> np.ndarray:
+                ratio: float = 1.0, rows: np.ndarray | None = None) -> np.ndarray:
     """A colour stream's chroma after this frame, float32 (5, Hc, Wc): the shares k_R, k_G, k_B,
     the coarse luminance and its variance (svelive.reconstruction.colour.Chroma).
 
@@ -1122,15 +1230,28 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     history times ``ratio``, the brightness ratio the luminance's fusion divided out) take the
     running mean with it, the variance is this frame's times it (as the luminance's). This frame's
     alone without a history of that shape.
+
+    ``rows``: bool (Hc,), the cell rows of the frame's own chroma (colour.partial_chroma), or None: every one;
+    the others keep the history's cells (its coarse luminance times ``ratio``).
     """
     (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
-    cells = np.empty((hc, wc), np.float32)
-    _cell_maximum(weight, cy, cx, cells)
-    cells = cv2.dilate(cells, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REFLECT_101)
+    box = np.ones((3, 3), np.uint8)
+    if rows is None:
+        cells = np.empty((hc, wc), np.float32)
+        _cell_maximum(weight, cy, cx, cells)
+        cells = cv2.dilate(cells, box, borderType=cv2.BORDER_REFLECT_101)
+    else:  # the cell rows made, each run from a crop of one more cell row each way (the 3x3's reach)
+        cells = np.empty((hc, wc), np.float32)  # (rows not made: not read)
+        for a, b in settle.runs(rows):
+            lo, hi = max(a - 1, 0), min(b + 1, hc)
+            crop = np.empty((hi - lo, wc), np.float32)
+            _cell_maximum(weight[lo * cy:hi * cy], cy, cx, crop)
+            cells[a:b] = cv2.dilate(crop, box, borderType=cv2.BORDER_REFLECT_101)[a - lo:b - lo]
     out = np.empty_like(history)
-    _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio), out)
+    _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio),
+                    np.ones(hc, bool) if rows is None else rows, out)
     return out
 
 
@@ -1184,15 +1305,19 @@ def _cell_maximum(weight, cy, cx, out):
 
 
 @kernel
-def _running_chroma(history, shares, coarse, weight, ratio, out):
+def _running_chroma(history, shares, coarse, weight, ratio, rows, out):
     """out = history + weight (new - history) per cell for the shares (planes 0-2), the same with
     the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4);
-    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc)."""
+    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc). Cell rows not in ``rows``
+    (bool (Hc,)) keep the history (its coarse luminance times ``ratio``)."""
     for c in range(5):
         scale = ratio if c == 3 else np.float32(1.0)
         for i in range(weight.shape[0]):
             a, b, w, o = history[c, i], shares[c, i] if c < 3 else coarse[c - 3, i], weight[i], out[c, i]
-            if c == 4:
+            if not rows[i]:
+                for j in range(o.size):
+                    o[j] = a[j] * scale
+            elif c == 4:
                 for j in range(o.size):
                     o[j] = b[j] * w[j]
             else:

@@ -152,10 +152,10 @@ from svelive.reconstruction.colour.joint_parts import Joint, fold_luminance, joi
 from svelive.reconstruction.colour.lattice import lattice_channels
 from svelive.reconstruction.colour.refinement import refine
 from svelive.reconstruction.colour.run import MODES, run_colour
-from svelive.reconstruction.colour.shares import COARSE_NONE, SHARE_FLOOR, Chroma, chroma
+from svelive.reconstruction.colour.shares import COARSE_NONE, SHARE_FLOOR, Chroma, chroma, partial_chroma
 from svelive.reconstruction.colour.split_baseline import demosaic, split
 
 __all__ = ["COARSE_NONE", "MODES", "PIECE_ROWS", "SHARE_FLOOR", "WHITE_CELLS", "WHITE_MIN_CELLS", "WHITE_SNR",
            "CellLayout", "Chroma", "Interpolation", "Joint", "cell_layout", "chroma", "colourise", "demosaic",
            "fold_luminance", "folded_exposure", "interpolation", "joint", "lattice_channels", "luminance_input",
-           "refine", "run_colour", "split", "white_balance"]
+           "partial_chroma", "refine", "run_colour", "split", "white_balance"]

@@ -41,13 +41,14 @@ class Joint:
     inverse_exposure: np.ndarray | None = None
 
 
-def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1, inverse_exposure: bool = False
-                   ) -> tuple[Chroma, Interpolation, SveInput, np.ndarray | None]:
-    """The steps before the mono method (:func:`joint`'s, and a stream's band refresh's): the frame's chroma, its
-    interpolation (with the coarse luminance where ``coarse``) and the monochrome input of the luminance
-    (folded exposures e' with ``exposures``, svelive.reconstruction.colour.folding.luminance_input), and
-    1 / e' (float32 (H, W)) where ``inverse_exposure`` asks for it, else None."""
-    ch = chroma(inp)
+def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1, inverse_exposure: bool = False,
+                   ch: Chroma | None = None) -> tuple[Chroma, Interpolation, SveInput, np.ndarray | None]:
+    """The steps before the mono method (:func:`joint`'s, and a stream's band refresh's): the frame's chroma (``ch``
+    where given: a stream's, colour.partial_chroma), its interpolation (with the coarse luminance where ``coarse``)
+    and the monochrome input of the luminance (folded exposures e' with ``exposures``,
+    svelive.reconstruction.colour.folding.luminance_input), and 1 / e' (float32 (H, W)) where ``inverse_exposure``
+    asks for it, else None."""
+    ch = chroma(inp) if ch is None else ch
     inter = interpolation(ch, coarse=coarse)
     inverse = np.empty(inp.shape, np.float32) if inverse_exposure else None
     return ch, inter, luminance_input(inp, inter, exposures, workers, inverse), inverse

@@ -23,6 +23,9 @@ COARSE_NONE = 1e30
 #: Cell rows of each scratch plane of :func:`_share_pass` (rings: a stage reads rows at most 5 behind the
 #: newest written).
 PASS_ROWS = 8
+#: Cell rows around a cell row that its chroma reads (:func:`partial_chroma`): the smoothing, the centring, the two
+#: 3x3 means and the median read one more each.
+CHROMA_HALO = 5
 
 
 @dataclass(frozen=True)
@@ -51,8 +54,9 @@ class Chroma:
         return Chroma(planes[:3], planes[3:5], self.layout, self.white, self.shape)
 
 
-def chroma(inp: SveInput) -> Chroma:
-    """The chroma of a colour frame (package docstring, step a), at cell resolution.
+def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
+    """The chroma of a colour frame (package docstring, step a), at cell resolution; ``white`` (float32 (3,)):
+    the white balance to take instead of this frame's (:func:`partial_chroma`).
 
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
     the share of each cell's information its uncensored readings hold, the smallest over the
@@ -83,7 +87,8 @@ def chroma(inp: SveInput) -> Chroma:
     _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32))
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
-    white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
+    if white is None:
+        white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
     # the rest in one pass over the cell rows (:func:`_share_pass`): every stage's rows are still in cache when
     # the next reads them, instead of a dozen passes over whole (3, Hc, Wc) planes
     neutral = (white / f32(layout.share @ white)).astype(f32)
@@ -95,6 +100,25 @@ def chroma(inp: SveInput) -> Chroma:
                 own_noise, residual, deviation, coarse, shares, np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32),
                 np.empty(wc, f32), np.empty(wc, f32))
     return Chroma(shares, coarse, layout, white, (h, w))
+
+
+def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarray, white: np.ndarray) -> Chroma:
+    """A colour frame's chroma on some cell rows only, a stream's ``history`` elsewhere (the band refresh of a
+    still view, svelive.reconstruction.settle): :func:`chroma` with the white balance ``white`` (float32 (3,)) on
+    the cell rows of ``runs`` ([start, stop) cell rows, apart), each run made from a crop of the frame with CHROMA_HALO cell
+    rows around it (which its passes read; the same values as the whole frame's chroma with that white); the
+    shares and coarse luminance of the other cell rows are ``history``'s (float32 (5, Hc, Wc), a stream's fused
+    chroma: svelive.reconstruction.stream.fuse_chroma)."""
+    layout = cell_layout(inp.pattern, inp.cfa)
+    cy, h = layout.cell[0], inp.shape[0]
+    hc = history.shape[1]
+    shares, coarse = history[:3].copy(), history[3:5].copy()
+    for a, b in runs:
+        lo, hi = max(a - CHROMA_HALO, 0), min(b + CHROMA_HALO, hc)
+        part = chroma(inp.crop(slice(lo * cy, min(hi * cy, h))), white)
+        shares[:, a:b] = part.shares[:, a - lo:b - lo]
+        coarse[:, a:b] = part.coarse[:, a - lo:b - lo]
+    return Chroma(shares, coarse, layout, np.asarray(white, np.float32), (h, inp.shape[1]))
 
 
 @kernel
