@@ -611,3 +611,37 @@ def test_fuse_chroma_on_some_cell_rows_is_the_whole_fusion_there_and_keeps_the_h
         got = fuse_chroma(history, chroma, weight, 1.1, rows)
         np.testing.assert_array_equal(got[:, rows], whole[:, rows])
         np.testing.assert_array_equal(got[:, ~rows], kept[:, ~rows])
+
+
+def test_a_still_colour_stream_makes_its_whole_chroma_every_so_many_frames_and_follows_the_lights_colour(
+        monkeypatch):
+    """``colour_refresh``: a still view keeps the last whole frame's white balance between whole frames, and makes
+    its chroma on every cell (its white balance again) whenever the round-robin's turn is a multiple of
+    stream.WHOLE_CHROMA_FRAMES: a light turning slightly warmer once the view settled (no band selected for it) is
+    followed then, not before."""
+    from svelive.bench.live import case_camera, case_radiance, resized, static_frames
+    from svelive.reconstruction import stream as stream_module
+    from svelive.simulation import load_sample_scene
+
+    monkeypatch.setattr(stream_module, "WHOLE_CHROMA_FRAMES", 10)
+    camera = case_camera("dual-iso")
+    scene = resized(load_sample_scene("mttamwest", rgb=True), (200, 164))
+    radiance = case_radiance("dual-iso", "bright", scene)
+    # (red up 4 %, blue down as much in sum: the same brightness and no motion, so that no band is selected for it;
+    # a stronger change makes the motion test select every band, which makes the whole chroma at once)
+    blue = 1 - 0.04 * radiance[..., 0].sum() / radiance[..., 2].sum()
+    warmer = radiance * np.array([1.04, 1.0, blue], np.float32)
+    raws = static_frames(radiance, camera, 13, 1)[0] + static_frames(warmer, camera, 9, 20)[0]
+    stream = Reconstructor(camera, refresh=4, colour_refresh=True)
+    whole, whites = [], []
+    for raw in raws:
+        estimated = stream.estimate(raw)
+        stream.fuse(estimated)
+        whole.append(estimated.chroma_of[2] is None)
+        whites.append(stream._white.copy())
+    assert whole[10] and whole[20] and not any(whole[11:20]), whole
+    for k in range(11, 20):  # (the light changed at 13: the partial frames keep the white balance of frame 10)
+        np.testing.assert_array_equal(whites[k], whites[10])
+    before, after = whites[10], whites[20]
+    assert after[0] / after[1] > 1.02 * before[0] / before[1]  # red up against green
+    assert after[2] / after[1] < 0.98 * before[2] / before[1]  # blue down

@@ -67,6 +67,11 @@ def default_method(temporal: bool) -> str:
     return DEFAULT_METHOD
 
 EXPOSURE_TIMINGS = ("mask", "integration")
+#: A colour stream of the band refresh makes its chroma on every cell (and with it the white balance, a median over
+#: the whole frame's cells) at least once in this many partial frames: elsewhere a still view's chroma is made on the
+#: selected bands' cell rows only, with the last whole frame's white balance, and a change of the light's colour at
+#: constant brightness (which selects no band) is followed within this many frames (about 2 s at 30 fps).
+WHOLE_CHROMA_FRAMES = 64
 
 
 @dataclass(frozen=True)
@@ -212,10 +217,10 @@ class Reconstructor:
         colour_refresh: ``refresh`` for a colour stream too (issue 25; off by default in the library, on in the
             live service), on the bands of its folded luminance; once its history holds a chroma, a frame's
             chroma is made (and fused) only on the cell rows of the selected bands and the method's reach around
-            them, the history's cells kept elsewhere, with the last fused frame's white balance (the fold and the
-            refinement still run on every pixel); a colour frame estimated ahead of another history is estimated
-            (again) when fused. Its output differs from refresh 0's as a monochrome stream's does
-            (docs/benchmarks.md, "A colour band refresh").
+            them, the history's cells kept elsewhere, with the last whole frame's white balance (the whole chroma at
+            least every WHOLE_CHROMA_FRAMES partial frames; the fold and the refinement still run on every pixel);
+            a colour frame estimated ahead of another history is estimated (again) when fused. Its output differs
+            from refresh 0's as a monochrome stream's does (docs/benchmarks.md, "A colour band refresh").
         **method_options: passed to the method.
 
     ``process`` is meant for one worker thread, or split: ``estimate`` (no history; several
@@ -573,13 +578,15 @@ class Reconstructor:
 
     @staticmethod
     def _chroma_source(history: TemporalState | None, chroma_history: np.ndarray | None, white: np.ndarray | None,
-                       selected: np.ndarray, shape: tuple[int, int], cell: tuple[int, int]) -> np.ndarray | None:
+                       selected: np.ndarray, shape: tuple[int, int], cell: tuple[int, int],
+                       tick: int) -> np.ndarray | None:
         """The fused chroma (5, Hc, Wc) a colour frame with the band refresh keeps on the cell rows its selection
         (``selected``, bool per band) skips, or None where it makes its chroma on every cell (every band
-        selected, no chroma history of its size or no white balance kept): :meth:`_estimate_partial`."""
+        selected, no chroma history of its size or no white balance kept, or the round-robin's turn ``tick`` a
+        multiple of :data:`WHOLE_CHROMA_FRAMES`): :meth:`_estimate_partial`."""
         hc, wc = (-(-n // c) for n, c in zip(shape, cell))
         if (selected.all() or history is None or chroma_history is None or white is None
-                or chroma_history.shape != (5, hc, wc)):
+                or chroma_history.shape != (5, hc, wc) or tick % WHOLE_CHROMA_FRAMES == 0):
             return None
         return chroma_history
 
@@ -697,11 +704,11 @@ class Reconstructor:
         and :meth:`fuse` then makes it the selection of that history. A colour frame (``colour_refresh``): the
         selection first, then its chroma (on the cell rows of the selected bands and of the method's halo around
         them where the history holds a chroma of its size: the history's fused cells elsewhere, colour.partial_chroma,
-        with the last fused frame's white balance; else on every cell) and the folded luminance (colour.joint's,
-        every pixel), then the bands of that luminance, a monochrome input of per-pixel exposures
-        (``partial.inp``). ``ahead``: (history, round-robin turn, its chroma, its white balance) to take instead
-        of the stream's (:meth:`fuse`, a colour frame estimated ahead: :meth:`_reestimated`), ``prepared`` the
-        frame's input prepared already.
+        with the last whole frame's white balance; else, and every WHOLE_CHROMA_FRAMES partial frames, on every
+        cell) and the folded luminance (colour.joint's, every pixel), then the bands of that luminance, a monochrome
+        input of per-pixel exposures (``partial.inp``). ``ahead``: (history, round-robin turn, its chroma, its white
+        balance) to take instead of the stream's (:meth:`fuse`, a colour frame estimated ahead: :meth:`_reestimated`),
+        ``prepared`` the frame's input prepared already.
 
         A colour frame estimated behind frames in flight (estimated, not fused yet) that would keep the history's
         chroma is estimated when it is fused (each of those frames leaves another chroma, so :meth:`fuse` would
@@ -722,7 +729,7 @@ class Reconstructor:
         if inp.cfa is not None:  # colour.joint's steps before its method, as a stream takes them
             colour_input = inp
             cell = colour.cell_layout(inp.pattern, inp.cfa).cell
-            source = self._chroma_source(hint, chroma_history, white, selected, (h, w), cell)
+            source = self._chroma_source(hint, chroma_history, white, selected, (h, w), cell, tick)
             if behind and source is not None:
                 marker = _Deferred()
                 with self._lock:
@@ -829,7 +836,7 @@ class Reconstructor:
             shape = inp.shape
             selected = self._selection(history, self._fused_partials, shape, *self._selection_state())
             if (source is not self._chroma_source(history, chroma_history, white, selected, shape,
-                                                  colour.cell_layout(inp.pattern, inp.cfa).cell)
+                                                  colour.cell_layout(inp.pattern, inp.cfa).cell, self._fused_partials)
                     or (source is not None and not np.array_equal(computed, selected))):
                 estimated = self._reestimated(estimated, history, chroma_history, white)
                 est, parts = estimated.estimate, estimated.parts
