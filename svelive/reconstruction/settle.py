@@ -735,15 +735,22 @@ def skipped_resets(found: SkippedResets, skipped: np.ndarray, reset: np.ndarray,
     their history. Each pixel's outcome is a closure that does not depend on the order of the pixels (nor on the
     fusion's strips)."""
     h, w = reset.shape
-    stack_y, stack_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)  # (touched lazily)
-    taken_y, taken_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
+    # the stack starts with the listed pixels and the reset ones of the rows within 2 wy of a skipped row, and takes
+    # each kept pixel (marked 1) at most once more: arrays of that size, not of the frame's (four maps a frame)
+    kept = int(found.counts[:, 1].sum())
+    rows = np.arange(h)
+    skipped_before = np.concatenate(([0], np.cumsum(skipped)))
+    near = skipped_before[np.minimum(rows + 2 * wy + 1, h)] > skipped_before[np.maximum(rows - 2 * wy, 0)]
+    first = int(found.counts[:, 0].sum()) + int(np.count_nonzero(near & ~skipped)) * w
+    stack_y, stack_x = np.empty(first + kept, np.intp), np.empty(first + kept, np.intp)
+    taken_y, taken_x = np.empty(kept, np.intp), np.empty(kept, np.intp)
     spread = _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, found.mark, found.ys, found.xs,
                                found.starts, found.counts, stack_y, stack_x, old_test, tested, scale, weight, test,
                                censored, taken_y, taken_x)
     listed = [found.ys[a:a + n] * w + found.xs[a:a + n] for a, n in zip(found.starts, found.counts[:, 0])]
     flat = -np.sort(-np.concatenate([*listed, taken_y[:spread] * w + taken_x[:spread]]))  # reverse raster order
     ys, xs = np.divmod(flat, w)
-    return ys, xs, int(found.counts[:, 1].sum()) - spread
+    return ys, xs, kept - spread
 
 
 @kernel
