@@ -518,18 +518,16 @@ def _atlas(inp: SveInput, boxes: np.ndarray, halo: tuple[int, int] | None = None
     return atlas, -fys, xs - fxs
 
 
-def _shelves(boxes: np.ndarray, halo: tuple[int, int], threads: int) -> list[np.ndarray]:
+def _shelves(boxes: np.ndarray, halo: tuple[int, int]) -> list[np.ndarray]:
     """The atlases :func:`on_demand` makes of the interior ``boxes`` (int (n, 4)): indices into them, one
-    :func:`_atlas` each, boxes of about the same height side by side, rows up to 2048 px, about one a thread
-    (each method call on a few thousand pixels costs about as much again in its set-up: on the still demo,
-    two a thread took 0.3 ms more CPU a frame than one, the same values)."""
+    :func:`_atlas` each, boxes of about the same height side by side, rows up to 2048 px (each method call on a
+    few thousand pixels costs about as much again in its set-up)."""
     hy, hx = halo
     widths = boxes[:, 3] - boxes[:, 2] + 2 * hx
     order = np.argsort(boxes[:, 1] - boxes[:, 0], kind="stable")
-    budget = min(2048, max(-(-int(widths.sum()) // threads), int(widths.max())))
     shelves, current, used = [], [], 0
     for k in order.tolist():
-        if current and used + widths[k] > budget:
+        if current and used + widths[k] > 2048:
             shelves.append(np.array(current, np.intp))
             current, used = [], 0
         current.append(k)
@@ -551,8 +549,9 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
     (:func:`pass_halo`), then the pixels among them that the wide fallback takes (the pass's candidates, whose result
     reads beyond that halo) again in boxes with :func:`halo_for`'s (about a quarter of the pixels on the still demo;
     where most pixels are candidates, a dim view, the first boxes are lost work); else :func:`halo_for`'s at once.
-    The results do not depend on it. The atlases and stacks are spread over ``workers``
-    (methods.base.map_on), the method on one thread each; the bands computed whole run the method on
+    The results do not depend on it. The atlases and stacks run on the caller's thread (a few small calls of the
+    method, mostly Python and small numpy steps: spread over a pool, the two threads took turns at the GIL and
+    the call took more wall and CPU time than on one, still demo); the bands computed whole run the method on
     ``workers``."""
     inp, noise = part.inp, part.noise
     h, w = inp.shape
@@ -590,20 +589,20 @@ def on_demand(part: Partial, ys: np.ndarray, xs: np.ndarray, workers: int | Exec
         take(np.nonzero(in_whole[inverse])[0], (image, lower, variance), 0, 0)
     rest = np.nonzero(~in_whole[inverse])[0]
     if narrow:  # the boxes with the pass's halo; the pixels the wide fallback takes (it reads farther) again
-        wide = _boxes_on_demand(inp, noise, ys, xs, rest, pass_halo(inp.pattern, inp.period), take, stats, workers)
+        wide = _boxes_on_demand(inp, noise, ys, xs, rest, pass_halo(inp.pattern, inp.period), take, stats)
         if wide.size:
-            _boxes_on_demand(inp, noise, ys, xs, wide, (hy, hx), take, stats, workers)
+            _boxes_on_demand(inp, noise, ys, xs, wide, (hy, hx), take, stats)
     else:
-        wide = _boxes_on_demand(inp, noise, ys, xs, rest, (hy, hx), take, stats, workers)
+        wide = _boxes_on_demand(inp, noise, ys, xs, rest, (hy, hx), take, stats)
     stats["demand_wide"] = int(wide.size)
     return ys, xs, values, stats
 
 
 def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, xs: np.ndarray, pixels: np.ndarray,
-                     halo: tuple[int, int], take, stats: dict, workers: int | Executor) -> np.ndarray:
+                     halo: tuple[int, int], take, stats: dict) -> np.ndarray:
     """:func:`on_demand` of its pixels ``pixels`` (indices into ``ys``, ``xs``) by boxes (:func:`demand_boxes`), each
     with ``halo`` (rows, cols): interior boxes in atlases, boxes at the frame's edges in a stack per side, each one
-    call of the method on one thread, spread over ``workers``; their values given to ``take(pixels, arrays, oy,
+    call of the method on the caller's thread; their values given to ``take(pixels, arrays, oy,
     ox)``. Returns the pixels among ``pixels`` that the wide fallback takes (the pass's candidates, intp): with
     :func:`pass_halo`'s halo, exact for the others alone (they need :func:`halo_for`'s)."""
     h, w = inp.shape
@@ -618,7 +617,7 @@ def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, 
     jobs = []
     if interior.size:
         jobs = [(interior[m], lambda m: _atlas(inp, boxes[m], halo))
-                for m in _shelves(boxes[interior], halo, thread_count(workers))]
+                for m in _shelves(boxes[interior], halo)]
     edge = np.nonzero(~inside)[0]
     for members in _edge_groups(inp.shape, boxes[edge], halo):
         jobs.append((edge[members], lambda m: _edge_stack(inp, boxes[m], halo)))
@@ -632,7 +631,7 @@ def _boxes_on_demand(inp: SveInput, noise: tuple[float, float], ys: np.ndarray, 
 
     slot = np.empty(len(boxes), np.intp)
     again = []
-    for (members, _), (arrays, candidates, oy, ox, area) in zip(jobs, map_on(workers, solve, jobs)):
+    for (members, _), (arrays, candidates, oy, ox, area) in zip(jobs, map(solve, jobs)):
         slot[:] = -1
         slot[members] = np.arange(members.size)
         s = slot[box_of]
@@ -736,15 +735,22 @@ def skipped_resets(found: SkippedResets, skipped: np.ndarray, reset: np.ndarray,
     their history. Each pixel's outcome is a closure that does not depend on the order of the pixels (nor on the
     fusion's strips)."""
     h, w = reset.shape
-    stack_y, stack_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)  # (touched lazily)
-    taken_y, taken_x = outside_heap(h * w, np.intp), outside_heap(h * w, np.intp)
+    # the stack starts with the listed pixels and the reset ones of the rows within 2 wy of a skipped row, and takes
+    # each kept pixel (marked 1) at most once more: arrays of that size, not of the frame's (four maps a frame)
+    kept = int(found.counts[:, 1].sum())
+    rows = np.arange(h)
+    skipped_before = np.concatenate(([0], np.cumsum(skipped)))
+    near = skipped_before[np.minimum(rows + 2 * wy + 1, h)] > skipped_before[np.maximum(rows - 2 * wy, 0)]
+    first = int(found.counts[:, 0].sum()) + int(np.count_nonzero(near & ~skipped)) * w
+    stack_y, stack_x = np.empty(first + kept, np.intp), np.empty(first + kept, np.intp)
+    taken_y, taken_x = np.empty(kept, np.intp), np.empty(kept, np.intp)
     spread = _spread_censoring(skipped, reset, new_censored, old_censored, wy, wx, found.mark, found.ys, found.xs,
                                found.starts, found.counts, stack_y, stack_x, old_test, tested, scale, weight, test,
                                censored, taken_y, taken_x)
     listed = [found.ys[a:a + n] * w + found.xs[a:a + n] for a, n in zip(found.starts, found.counts[:, 0])]
     flat = -np.sort(-np.concatenate([*listed, taken_y[:spread] * w + taken_x[:spread]]))  # reverse raster order
     ys, xs = np.divmod(flat, w)
-    return ys, xs, int(found.counts[:, 1].sum()) - spread
+    return ys, xs, kept - spread
 
 
 @kernel
