@@ -172,24 +172,26 @@ def censored_lower_bound(inp: SveInput, window: tuple[int, int]) -> np.ndarray:
 
 
 def fill_lower_bounds(inp: SveInput, lower: np.ndarray, window: tuple[int, int], image: np.ndarray,
-                      variance: np.ndarray | None = None) -> None:
+                      variance: np.ndarray | None = None, rows: slice | None = None) -> None:
     """Set ``image`` to :func:`censored_lower_bound` at the ``lower`` pixels (bool (H, W)), in place.
 
     ``variance``, if given, becomes bound^2 there: a bound is known to within
     itself (relative error 1). The bound is taken only at the ``lower`` pixels,
     from the censored bounds of the rows their windows reach (:func:`_fill_bounds`),
     so the cost follows the rows holding them; the values are the whole frame's.
+    ``rows``: only the lower pixels of these rows (a strip's kept rows), default all.
     """
-    if not lower.any():
+    first, last, _ = (rows or slice(0, lower.shape[0])).indices(lower.shape[0])
+    if not lower[first:last].any():
         return
     _fill_bounds(inp.signal, inp.exposure, inp.censored, lower, window[0] // 2, window[1] // 2, image,
-                 np.empty((0, 0), np.float32) if variance is None else variance)
+                 np.empty((0, 0), np.float32) if variance is None else variance, first, last)
 
 
 @kernel
-def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance):
+def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance, first, last):
     """image = the largest censored bound s / e within (2 ry + 1, 2 rx + 1) around each ``lower`` pixel of (H, W)
-    arrays (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance = its square (unless
+    arrays in rows [first, last) (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance = its square (unless
     ``variance`` is empty). A row with many lower pixels (more than one in 8) takes the bounds of its window's rows
     (each row's once), their maximum over rows, then over columns, as whole-row loops; a row with few computes the
     bounds of its pixels' windows alone (the same expression, :func:`_bound`)."""
@@ -198,7 +200,7 @@ def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance):
     ready = np.zeros(h, np.bool_)
     rows = np.empty(2 * ry + 1, np.int64)
     column_max = np.empty(width, np.float32)
-    for r in range(h):
+    for r in range(first, last):
         n = count_true(lower[r])
         if n == 0:
             continue

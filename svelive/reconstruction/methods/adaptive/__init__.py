@@ -283,11 +283,11 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
         PassOutputs(w, wn, x, image, estimate, total, lower, candidates, variance),
         PassWindow(np.empty((2, 0, 0), f32) if window is None else window,
                    np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32)))
-    if flagged:
-        bound_only = censored_pixels(inp, image, w, x, ky, kx)
+    if flagged:  # the pixels of the rows kept alone: the strip's others are its neighbours' to compute
+        bound_only = censored_pixels(inp, image, w, x, ky, kx, keep)
         lowered = lowered or bool(bound_only.any())
         lower |= bound_only
     if lowered:
-        fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance if want_variance else None)
+        fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance if want_variance else None, keep)
     return (image, lower, variance if want_variance else None, w if want_share else None,
             Dark(wn, estimate, total, candidates, count))
