@@ -191,10 +191,10 @@ def fill_lower_bounds(inp: SveInput, lower: np.ndarray, window: tuple[int, int],
 @kernel
 def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance, first, last):
     """image = the largest censored bound s / e within (2 ry + 1, 2 rx + 1) around each ``lower`` pixel of (H, W)
-    arrays in rows [first, last) (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance = its square (unless
-    ``variance`` is empty). A row with many lower pixels (more than one in 8) takes the bounds of its window's rows
-    (each row's once), their maximum over rows, then over columns, as whole-row loops; a row with few computes the
-    bounds of its pixels' windows alone (the same expression, :func:`_bound`)."""
+    arrays in rows [first, last) (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance =
+    its square (unless ``variance`` is empty). A row with many lower pixels (more than one in 8) takes the bounds
+    of its window's rows (each row's once), their maximum over rows, then over columns, as whole-row loops; a row
+    with few computes the bounds of its pixels' windows alone (the same expression, :func:`_bound`)."""
     h, width = lower.shape
     bound = np.empty((h, width), np.float32)
     ready = np.zeros(h, np.bool_)

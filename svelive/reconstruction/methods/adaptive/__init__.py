@@ -105,7 +105,7 @@ from concurrent.futures import Executor
 
 import numpy as np
 
-from svelive.reconstruction.methods.adaptive.censoring import censored_pixels
+from svelive.reconstruction.methods.adaptive.censoring import censored_pixels, censored_way
 from svelive.reconstruction.methods.adaptive.evidence import noise_model
 from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, joined, wide_fallback
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, kernels
@@ -274,8 +274,9 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     lower, candidates = np.empty(shape, bool), np.empty(shape, bool)
     variance = np.empty(shape if want_variance else (0, 0), f32)
     kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
+    every_row = flagged and censored_way(inp, ky, kx) == "levels"  # its sums read w and x on every row
     count, lowered = fused_pass(
-        PassReadings(inp.signal, e, censored, flagged, exposure_sum), first, last,
+        PassReadings(inp.signal, e, censored, flagged, every_row, exposure_sum), first, last,
         PassNoise(f32(noise[0]), f32(noise[1])),
         PassSettings(ky, kx, f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
                      f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(), -f32(inp.sensor.black_level),

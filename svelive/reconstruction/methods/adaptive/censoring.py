@@ -52,11 +52,12 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
     f32 = np.float32
     censor = inp.sensor.censor_level
     first, last, _ = (rows or slice(0, inp.shape[0])).indices(inp.shape[0])
-    if inp.folded or (inp.pattern.pixel_map is None and ky.size * kx.size <= DIRECT_TAPS):
+    way = censored_way(inp, ky, kx)
+    if way == "each":
         bound_only = np.zeros(inp.shape, bool)
         _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor), first, last)
         return bound_only
-    if inp.pattern.pixel_map is None and kx.size == 3 and ky.size == 5:  # OpenCV's sums, computed per pixel
+    if way == "separable":  # OpenCV's sums, computed per pixel
         bound_only = np.zeros(inp.shape, bool)
         _censored_separable(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx,
                             *_level_bounds_of(inp.pattern, censor), first, last)
@@ -84,6 +85,17 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
         _fill_censored(*flat(inp.censored, key, x, image, bound_only, count, sum_x), width, value, r0, c0, c1 - c0,
                        top, bottom + 1, left, right + 1)
     return bound_only
+
+
+def censored_way(inp: SveInput, ky: np.ndarray, kx: np.ndarray) -> str:
+    """Which way :func:`censored_pixels` takes to its sums: "each" (:func:`_censored_each`) and "separable"
+    (:func:`_censored_separable`) visit the censored pixels of the rows asked for, reading w and x only within a
+    window of them; "levels" (per-level window sums over each level's box) reads w and x on every row."""
+    if inp.folded or (inp.pattern.pixel_map is None and ky.size * kx.size <= DIRECT_TAPS):
+        return "each"
+    if inp.pattern.pixel_map is None and kx.size == 3 and ky.size == 5:
+        return "separable"
+    return "levels"
 
 
 @lru_cache(maxsize=16)
@@ -229,9 +241,10 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     their sum) at each censored pixel of (H, W) arrays, with OpenCV's arithmetic: a 3-tap row filter (centre tap
     + the pair around it), then a 3- or 5-tap column filter (centre, then the pairs outwards), borders
     reflect-101, each censored pixel's neighbours tested against its own level's bound (``bounds``, of the
-    levels ``values``), in rows [first, last). Bit for bit the sums ``smooth`` gives there, at a cost that follows the censored pixels,
-    not the number of levels: a row with few of them visits each one's window, a row with many (more than one in
-    DENSE_ROW) sums every pixel's window at once, a loop over the row per window row (vectorised)."""
+    levels ``values``), in rows [first, last). Bit for bit the sums ``smooth`` gives there, at a cost that follows
+    the censored pixels, not the number of levels: a row with few of them visits each one's window, a row with many
+    (more than one in DENSE_ROW) sums every pixel's window at once, a loop over the row per window row
+    (vectorised)."""
     h, width = censored.shape
     zero, tiny = np.float32(0.0), np.float32(TINY)
     reach = np.empty((h, width), np.float32)
