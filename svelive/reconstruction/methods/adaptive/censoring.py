@@ -24,8 +24,7 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
     """Set ``image`` at censored pixels, in place; returns the pixels left as bounds only, bool (H, W).
 
     ``rows``: the rows whose censored pixels are wanted (a strip's kept rows; their windows read the rows
-    around them), default all; where a way's cost follows the censored pixels (the first two below), others
-    are left alone, and none of them is returned as a bound.
+    around them), default all; ``image`` and the pixels returned are set in those rows alone.
 
     A censored pixel takes the plain (equal-weight) window mean of the
     uncensored neighbours consistent with its bound (x_i + 2 sigma_i >= bound),
@@ -83,7 +82,7 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
         _consistent(*flat(w, x, consistent, consistent_x), width, r0, c0, c1 - c0, f32(censor / level))
         count, sum_x = smooth(consistent, ky, kx), smooth(consistent_x, ky, kx)
         _fill_censored(*flat(inp.censored, key, x, image, bound_only, count, sum_x), width, value, r0, c0, c1 - c0,
-                       top, bottom + 1, left, right + 1)
+                       max(top, first), min(bottom + 1, last), left, right + 1)
     return bound_only
 
 
