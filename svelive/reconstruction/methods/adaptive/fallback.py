@@ -86,8 +86,10 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
 
     Cost: only strips holding such pixels, over their rows and as far as the
     widest blocks reach. Where they are many, each scale's block sums are two
-    box filters over those rows; where few (fewer than one in WIDE_DIRECT times
-    a block's pixels), each pixel sums its blocks' readings itself.
+    box filters over those rows (a row's pixels then computed whole, or, where
+    few of the row's are active, gathered first: :func:`_wide_boxes`); where
+    few (fewer than one in WIDE_DIRECT times a block's pixels), each pixel sums
+    its blocks' readings itself.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
