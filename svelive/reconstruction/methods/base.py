@@ -172,43 +172,46 @@ def censored_lower_bound(inp: SveInput, window: tuple[int, int]) -> np.ndarray:
 
 
 def fill_lower_bounds(inp: SveInput, lower: np.ndarray, window: tuple[int, int], image: np.ndarray,
-                      variance: np.ndarray | None = None) -> None:
+                      variance: np.ndarray | None = None, rows: slice | None = None) -> None:
     """Set ``image`` to :func:`censored_lower_bound` at the ``lower`` pixels (bool (H, W)), in place.
 
     ``variance``, if given, becomes bound^2 there: a bound is known to within
     itself (relative error 1). The bound is taken only at the ``lower`` pixels,
     from the censored bounds of the rows their windows reach (:func:`_fill_bounds`),
     so the cost follows the rows holding them; the values are the whole frame's.
+    ``rows``: only the lower pixels of these rows (a strip's kept rows), default all.
     """
-    if not lower.any():
+    first, last, _ = (rows or slice(0, lower.shape[0])).indices(lower.shape[0])
+    if not lower[first:last].any():
         return
     _fill_bounds(inp.signal, inp.exposure, inp.censored, lower, window[0] // 2, window[1] // 2, image,
-                 np.empty((0, 0), np.float32) if variance is None else variance)
+                 np.empty((0, 0), np.float32) if variance is None else variance, first, last)
 
 
 @kernel
-def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance):
+def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance, first, last):
     """image = the largest censored bound s / e within (2 ry + 1, 2 rx + 1) around each ``lower`` pixel of (H, W)
-    arrays (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance = its square (unless
-    ``variance`` is empty). A row with many lower pixels (more than one in 8) takes the window's maximum over
-    rows, then over columns, as whole-row loops; a row with few visits their windows."""
+    arrays in rows [first, last) (borders reflect-101, as cv2.dilate in :func:`censored_lower_bound`), variance =
+    its square (unless ``variance`` is empty). A row with many lower pixels (more than one in 8) takes the bounds
+    of its window's rows (each row's once), their maximum over rows, then over columns, as whole-row loops; a row
+    with few computes the bounds of its pixels' windows alone (the same expression, :func:`_bound`)."""
     h, width = lower.shape
     bound = np.empty((h, width), np.float32)
     ready = np.zeros(h, np.bool_)
     rows = np.empty(2 * ry + 1, np.int64)
     column_max = np.empty(width, np.float32)
-    for r in range(h):
+    for r in range(first, last):
         n = count_true(lower[r])
         if n == 0:
             continue
         for dy in range(2 * ry + 1):
-            rr = reflect_101(r + dy - ry, h)
-            rows[dy] = rr
-            if not ready[rr]:
-                _bound_row(signal[rr], exposure[rr], censored[rr], bound[rr])
-                ready[rr] = True
+            rows[dy] = reflect_101(r + dy - ry, h)
         dense = n * 8 > width
         if dense:
+            for rr in rows:
+                if not ready[rr]:
+                    _bound_row(signal[rr], exposure[rr], censored[rr], bound[rr])
+                    ready[rr] = True
             _rows_max(bound, rows, column_max)
         for c in range(width):
             if not lower[r, c]:
@@ -220,17 +223,25 @@ def _fill_bounds(signal, exposure, censored, lower, ry, rx, image, variance):
                     m = max(m, column_max[cc])
                 else:
                     for dy in range(2 * ry + 1):
-                        m = max(m, bound[rows[dy], cc])
+                        rr = rows[dy]
+                        m = max(m, _bound(signal[rr, cc], exposure[rr, cc], censored[rr, cc]))
             image[r, c] = m
             if variance.size:
                 variance[r, c] = m * m
 
 
 @kernel
+def _bound(signal, exposure, censored):
+    """A reading's censored bound: s / e at a censored reading, 0 elsewhere (s / e times 0, as numpy's product with
+    the mask)."""
+    return signal / exposure * np.float32(censored)
+
+
+@kernel
 def _bound_row(signal, exposure, censored, bound):
-    """bound = s / e at censored readings, 0 elsewhere (s / e times 0, as numpy's product with the mask)."""
+    """bound = :func:`_bound` of a row's readings."""
     for k in range(signal.size):
-        bound[k] = signal[k] / exposure[k] * np.float32(censored[k])
+        bound[k] = _bound(signal[k], exposure[k], censored[k])
 
 
 @kernel

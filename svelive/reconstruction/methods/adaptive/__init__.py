@@ -105,7 +105,7 @@ from concurrent.futures import Executor
 
 import numpy as np
 
-from svelive.reconstruction.methods.adaptive.censoring import censored_pixels
+from svelive.reconstruction.methods.adaptive.censoring import censored_pixels, censored_way
 from svelive.reconstruction.methods.adaptive.evidence import noise_model
 from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, joined, wide_fallback
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, kernels
@@ -213,9 +213,10 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         start, top, bottom, stop = span
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
         keep = slice(top - start, bottom - start)
-        # the window's rows are written only in the kept rows: a view of the frame's array
-        pieces = _solve(crop, noise, want_variance, want_share, keep, window[:, start:stop] if want_window else window)
-        for whole, piece in zip((image, lower, variance, own), pieces[:4]):
+        # the image's, the variance's and the window's rows are written only in the kept rows: views of the frame's
+        pieces = _solve(crop, noise, want_variance, want_share, keep, window[:, start:stop] if want_window else window,
+                        image[start:stop], None if variance is None else variance[start:stop])
+        for whole, piece in zip((lower, own), (pieces[1], pieces[3])):
             if whole is not None:
                 whole[top:bottom] = piece[keep]
         dark = pieces[4].rows(keep)
@@ -249,10 +250,13 @@ def _spans(inp: SveInput, halo: int, rows: int) -> list[tuple[int, int, int, int
 
 
 def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = False, want_share: bool = False,
-           keep: slice | None = None, window: np.ndarray | None = None):
+           keep: slice | None = None, window: np.ndarray | None = None, image: np.ndarray | None = None,
+           variance: np.ndarray | None = None):
     """Steps 1-4 on a whole frame or strip: (image, lower_bound, variance or None, w or None, Dark), (H, W)
     arrays whose rows ``keep`` (default all) hold the results; other rows are not set. ``window``: (2, H, W)
     float32 into whose rows ``keep`` the motion tests' window mean and variance go (:func:`fused_pass`), or None.
+    ``image`` and ``variance`` (with ``want_variance``): float32 (H, W) to write the results into (only their rows
+    ``keep``: views of a frame's rows, which other strips write around them), or None: new arrays.
 
     ``noise``: (1 / gain, floor variance) of the noise model (:func:`noise_model`). The window sums and the
     per-pixel arithmetic between them run as one compiled pass (:func:`fused_pass`), then the censored pixels."""
@@ -267,15 +271,18 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
         cached, first_tile = pattern_exposure_sum(inp.pattern, shape)
         if np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):  # the pattern's phase
             exposure_sum = cached
-    w, image, estimate, total = (np.empty(shape, f32) for _ in range(4))
+    w, estimate, total = (np.empty(shape, f32) for _ in range(3))
+    image = np.empty(shape, f32) if image is None else image
     # with censored pixels, the neighbours' weights wn differ from w, and the censored step reads x
     wn, x = (np.empty(shape, f32), np.empty(shape, f32)) if flagged else (w, np.empty((2 * (len(ky) // 2) + 1,
                                                                                         shape[1]), f32))
     lower, candidates = np.empty(shape, bool), np.empty(shape, bool)
-    variance = np.empty(shape if want_variance else (0, 0), f32)
+    if variance is None or not want_variance:
+        variance = np.empty(shape if want_variance else (0, 0), f32)
     kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
+    every_row = flagged and censored_way(inp, ky, kx) == "levels"  # its sums read w and x on every row
     count, lowered = fused_pass(
-        PassReadings(inp.signal, e, censored, flagged, exposure_sum), first, last,
+        PassReadings(inp.signal, e, censored, flagged, every_row, exposure_sum), first, last,
         PassNoise(f32(noise[0]), f32(noise[1])),
         PassSettings(ky, kx, f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
                      f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(), -f32(inp.sensor.black_level),
@@ -283,11 +290,11 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
         PassOutputs(w, wn, x, image, estimate, total, lower, candidates, variance),
         PassWindow(np.empty((2, 0, 0), f32) if window is None else window,
                    np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32)))
-    if flagged:
-        bound_only = censored_pixels(inp, image, w, x, ky, kx)
+    if flagged:  # the pixels of the rows kept alone: the strip's others are its neighbours' to compute
+        bound_only = censored_pixels(inp, image, w, x, ky, kx, keep)
         lowered = lowered or bool(bound_only.any())
         lower |= bound_only
     if lowered:
-        fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance if want_variance else None)
+        fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance if want_variance else None, keep)
     return (image, lower, variance if want_variance else None, w if want_share else None,
             Dark(wn, estimate, total, candidates, count))

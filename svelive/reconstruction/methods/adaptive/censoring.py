@@ -20,8 +20,11 @@ DIRECT_TAPS = 9
 
 
 def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarray, ky: np.ndarray,
-                     kx: np.ndarray) -> np.ndarray:
+                     kx: np.ndarray, rows: slice | None = None) -> np.ndarray:
     """Set ``image`` at censored pixels, in place; returns the pixels left as bounds only, bool (H, W).
+
+    ``rows``: the rows whose censored pixels are wanted (a strip's kept rows; their windows read the rows
+    around them), default all; ``image`` and the pixels returned are set in those rows alone.
 
     A censored pixel takes the plain (equal-weight) window mean of the
     uncensored neighbours consistent with its bound (x_i + 2 sigma_i >= bound),
@@ -47,14 +50,16 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
     """
     f32 = np.float32
     censor = inp.sensor.censor_level
-    if inp.folded or (inp.pattern.pixel_map is None and ky.size * kx.size <= DIRECT_TAPS):
+    first, last, _ = (rows or slice(0, inp.shape[0])).indices(inp.shape[0])
+    way = censored_way(inp, ky, kx)
+    if way == "each":
         bound_only = np.zeros(inp.shape, bool)
-        _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor))
+        _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor), first, last)
         return bound_only
-    if inp.pattern.pixel_map is None and kx.size == 3 and ky.size == 5:  # OpenCV's sums, computed per pixel
+    if way == "separable":  # OpenCV's sums, computed per pixel
         bound_only = np.zeros(inp.shape, bool)
         _censored_separable(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx,
-                            *_level_bounds_of(inp.pattern, censor))
+                            *_level_bounds_of(inp.pattern, censor), first, last)
         return bound_only
     levels = inp.pattern.levels.tolist()
     if inp.pattern.pixel_map is None:
@@ -77,8 +82,19 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
         _consistent(*flat(w, x, consistent, consistent_x), width, r0, c0, c1 - c0, f32(censor / level))
         count, sum_x = smooth(consistent, ky, kx), smooth(consistent_x, ky, kx)
         _fill_censored(*flat(inp.censored, key, x, image, bound_only, count, sum_x), width, value, r0, c0, c1 - c0,
-                       top, bottom + 1, left, right + 1)
+                       max(top, first), min(bottom + 1, last), left, right + 1)
     return bound_only
+
+
+def censored_way(inp: SveInput, ky: np.ndarray, kx: np.ndarray) -> str:
+    """Which way :func:`censored_pixels` takes to its sums: "each" (:func:`_censored_each`) and "separable"
+    (:func:`_censored_separable`) visit the censored pixels of the rows asked for, reading w and x only within a
+    window of them; "levels" (per-level window sums over each level's box) reads w and x on every row."""
+    if inp.folded or (inp.pattern.pixel_map is None and ky.size * kx.size <= DIRECT_TAPS):
+        return "each"
+    if inp.pattern.pixel_map is None and kx.size == 3 and ky.size == 5:
+        return "separable"
+    return "levels"
 
 
 @lru_cache(maxsize=16)
@@ -93,10 +109,11 @@ def _level_bounds_of(pattern: Pattern, censor: float) -> tuple[np.ndarray, np.nd
 
 
 @kernel
-def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
+def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor, first, last):
     """At each censored pixel p of (H, W) arrays: image = max(window mean (binomial weights, borders reflect-101
     as the window sums elsewhere) of the readings consistent with p's own bound censor / e_p, x_p); ``bound_only``
-    where none is. Consistent (:func:`_consistent_row`): w > 0 and x + 2 / sqrt(w) >= bound, tested squared.
+    where none is; in rows [first, last). Consistent (:func:`_consistent_row`): w > 0 and x + 2 / sqrt(w) >= bound,
+    tested squared.
 
     Its cost follows the number of censored pixels, not the levels they are at: a row with few of them visits
     each one's window (:func:`_censored_pixel`); a row with many (more than one in DENSE_ROW) sums every
@@ -108,7 +125,7 @@ def _censored_each(censored, exposure, w, x, image, bound_only, ky, kx, censor):
     rows = np.empty(ky.size, np.int64)
     cols = np.empty(kx.size, np.int64)
     count, total, bound = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
-    for r in range(h):
+    for r in range(first, last):
         n = count_true(censored[r])
         if n == 0:
             continue
@@ -218,14 +235,15 @@ def _censored_tap(w, x, bound, g, count, total):
 
 
 @kernel
-def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, values, bounds):
+def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, values, bounds, first, last):
     """The per-level window sums of :func:`censored_pixels` (consistent readings, :func:`_consistent_row`, and
     their sum) at each censored pixel of (H, W) arrays, with OpenCV's arithmetic: a 3-tap row filter (centre tap
     + the pair around it), then a 3- or 5-tap column filter (centre, then the pairs outwards), borders
     reflect-101, each censored pixel's neighbours tested against its own level's bound (``bounds``, of the
-    levels ``values``). Bit for bit the sums ``smooth`` gives there, at a cost that follows the censored pixels,
-    not the number of levels: a row with few of them visits each one's window, a row with many (more than one in
-    DENSE_ROW) sums every pixel's window at once, a loop over the row per window row (vectorised)."""
+    levels ``values``), in rows [first, last). Bit for bit the sums ``smooth`` gives there, at a cost that follows
+    the censored pixels, not the number of levels: a row with few of them visits each one's window, a row with many
+    (more than one in DENSE_ROW) sums every pixel's window at once, a loop over the row per window row
+    (vectorised)."""
     h, width = censored.shape
     zero, tiny = np.float32(0.0), np.float32(TINY)
     reach = np.empty((h, width), np.float32)
@@ -236,7 +254,7 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     count, total = np.empty(width, np.float32), np.empty(width, np.float32)
     leveled = np.empty(width, np.bool_)
     window_rows = np.arange(ky.size)
-    for r in range(h):
+    for r in range(first, last):
         n = count_true(censored[r])
         if n == 0:
             continue

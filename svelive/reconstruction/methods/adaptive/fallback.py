@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from svelive.jit import flat, kernel
-from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, DENSE_ROW, TINY
+from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, TINY
 from svelive.reconstruction.methods.adaptive.posterior import posterior_at, posterior_polynomial
 from svelive.reconstruction.methods.base import SveInput, count_true, map_on, reflect_101
 
@@ -86,8 +86,10 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
 
     Cost: only strips holding such pixels, over their rows and as far as the
     widest blocks reach. Where they are many, each scale's block sums are two
-    box filters over those rows; where few (fewer than one in WIDE_DIRECT times
-    a block's pixels), each pixel sums its blocks' readings itself.
+    box filters over those rows (a row's pixels then computed whole, or, where
+    few of the row's are active, gathered first: :func:`_wide_boxes`); where
+    few (fewer than one in WIDE_DIRECT times a block's pixels), each pixel sums
+    its blocks' readings itself.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
@@ -230,11 +232,15 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
     """One scale of :func:`wide_fallback` at the ``active`` pixels of a strip's rows (bool (R, W); row r of the
     strip is row r + offset of the band's block sums ``box_w`` and levels ``means`` (:func:`_block_means`), blocks
     by x bx); the number of pixels the next scale follows at. A row with many active pixels (more than one in
-    DENSE_ROW) is computed whole away from its ends (:func:`_wide_row`, vectorised), others pixel by pixel;
-    both alike bit for bit."""
+    WIDE_DENSE_ROW) is computed whole away from its ends (:func:`_wide_row`, vectorised) and its ends pixel by
+    pixel; a row with fewer has its active pixels' blocks gathered into short arrays first (:func:`_wide_packed`);
+    all alike bit for bit."""
     h, width = box_w.shape
     rows, cols = np.empty(3, np.int64), np.empty(3, np.int64)
     block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    index, blocks = np.empty(width, np.int64), np.empty((16, width), np.float32)
+    packed_active, packed_changed = np.empty(width, np.bool_), np.empty(width, np.bool_)
+    packed_estimate, packed_information = np.empty(width, np.float32), np.empty(width, np.float32)
     inner = width - 2 * bx
     kept = 0
     for r in range(active.shape[0]):
@@ -244,12 +250,14 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
             continue
         for i in range(3):
             rows[i] = reflect_101(br + (i - 1) * by, h)
-        whole = n * DENSE_ROW > width and inner > 0
-        if whole:
-            kept += _wide_row(box_w, means, rows, bx, active[r, bx:bx + inner], changed[r, bx:bx + inner],
-                              estimate[r, bx:bx + inner], information[r, bx:bx + inner])
-        for k in range(2 * bx if whole else width):  # a whole row: its ends alone are left
-            c = k if k < bx or not whole else k + inner
+        if not (n * WIDE_DENSE_ROW > width and inner > 0):
+            kept += _wide_packed(box_w, means, rows, bx, active[r], changed[r], estimate[r], information[r], index,
+                                 blocks, packed_active, packed_changed, packed_estimate, packed_information)
+            continue
+        kept += _wide_row(box_w, means, rows, bx, active[r, bx:bx + inner], changed[r, bx:bx + inner],
+                          estimate[r, bx:bx + inner], information[r, bx:bx + inner])
+        for k in range(2 * bx):  # the row's ends
+            c = k if k < bx else k + inner
             if not active[r, c]:
                 continue
             for i in range(3):
@@ -265,18 +273,70 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
     return kept
 
 
+#: :func:`_wide_boxes` computes a row whole (every pixel, vectorised) where more than one pixel in this many is
+#: active, else gathers the active pixels' blocks first (:func:`_wide_packed`).
+WIDE_DENSE_ROW = 32
+
+
+@kernel
+def _wide_packed(box_w, means, rows, bx, active, changed, estimate, information, index, blocks, packed_active,
+                 packed_changed, packed_estimate, packed_information):
+    """:func:`_wide_row` at the active pixels of a whole row (``active``, ``changed``, ``estimate`` and
+    ``information``: the row, in place; ``rows``: the band rows of its blocks) packed: their columns into
+    ``index`` (without branches), their eight blocks' W and levels into ``blocks`` (float32 (16, W): W of blocks
+    0-7, then their levels) and their values into the ``packed_*`` scratch rows, :func:`_wide_lanes` on those,
+    then scattered back; the number kept active."""
+    width = active.size
+    n = 0
+    for c in range(width):
+        index[n] = c
+        n += active[c]
+    for j in range(n):
+        c = index[j]
+        cols = (reflect_101(c - bx, width), c, reflect_101(c + bx, width))
+        b = 0
+        for i in range(3):
+            for k in range(3):
+                if i == 1 and k == 1:
+                    continue
+                blocks[b, j], blocks[8 + b, j] = box_w[rows[i], cols[k]], means[rows[i], cols[k]]
+                b += 1
+        packed_active[j], packed_changed[j] = True, changed[c]
+        packed_estimate[j], packed_information[j] = estimate[c], information[c]
+    kept = _wide_lanes(blocks[0, :n], blocks[1, :n], blocks[2, :n], blocks[3, :n], blocks[4, :n], blocks[5, :n],
+                       blocks[6, :n], blocks[7, :n], blocks[8, :n], blocks[9, :n], blocks[10, :n], blocks[11, :n],
+                       blocks[12, :n], blocks[13, :n], blocks[14, :n], blocks[15, :n], packed_active[:n],
+                       packed_changed[:n], packed_estimate[:n], packed_information[:n])
+    for j in range(n):
+        c = index[j]
+        active[c], changed[c] = packed_active[j], packed_changed[j]
+        estimate[c], information[c] = packed_estimate[j], packed_information[j]
+    return kept
+
+
 @kernel
 def _wide_row(box_w, means, rows, bx, active, changed, estimate, information):
     """:func:`_wide_blend` at every pixel of a row away from its ends (columns bx .. W - bx: ``active``,
-    ``changed``, ``estimate`` and ``information`` are that part of the row), in one loop over the row that LLVM
-    vectorises; the number of pixels kept active."""
+    ``changed``, ``estimate`` and ``information`` are that part of the row): :func:`_wide_lanes` on the blocks'
+    rows of ``box_w`` and ``means`` shifted by a block; the number of pixels kept active."""
     n = active.size
     two = 2 * bx
     r0, r1, r2 = rows[0], rows[1], rows[2]
-    w0, w1, w2, w3 = box_w[r0, :n], box_w[r0, bx:bx + n], box_w[r0, two:two + n], box_w[r1, :n]
-    w4, w5, w6, w7 = box_w[r1, two:two + n], box_w[r2, :n], box_w[r2, bx:bx + n], box_w[r2, two:two + n]
-    m0, m1, m2, m3 = means[r0, :n], means[r0, bx:bx + n], means[r0, two:two + n], means[r1, :n]
-    m4, m5, m6, m7 = means[r1, two:two + n], means[r2, :n], means[r2, bx:bx + n], means[r2, two:two + n]
+    return _wide_lanes(box_w[r0, :n], box_w[r0, bx:bx + n], box_w[r0, two:two + n], box_w[r1, :n],
+                       box_w[r1, two:two + n], box_w[r2, :n], box_w[r2, bx:bx + n], box_w[r2, two:two + n],
+                       means[r0, :n], means[r0, bx:bx + n], means[r0, two:two + n], means[r1, :n],
+                       means[r1, two:two + n], means[r2, :n], means[r2, bx:bx + n], means[r2, two:two + n],
+                       active, changed, estimate, information)
+
+
+@kernel
+def _wide_lanes(w0, w1, w2, w3, w4, w5, w6, w7, m0, m1, m2, m3, m4, m5, m6, m7, active, changed, estimate,
+                information):
+    """:func:`_wide_blend` at N pixels at once from their eight blocks' W (``w0`` .. ``w7``) and levels (``m0`` ..
+    ``m7``, NaN where flagged; float32 (N,), the blocks in :func:`_wide_blend`'s order), in one loop that LLVM
+    vectorises, with the same arithmetic in the same order; ``active``, ``changed``, ``estimate`` and
+    ``information`` (N,) in place; the number of pixels kept active."""
+    n = active.size
     zero, tiny, two_blocks = np.float32(0.0), np.float32(TINY), np.float32(2.0)
     for c in range(n):
         a0, b0, n0 = _block(w0[c], m0[c])

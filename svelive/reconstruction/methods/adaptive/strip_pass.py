@@ -23,6 +23,8 @@ class PassReadings(NamedTuple):
         signal, exposure: float32 (H, W), the readings s and their exposures e.
         censored: bool (H, W), the censored readings.
         flagged: bool, the strip holds censored pixels: the chain takes :func:`_weights_censored`.
+        every_row: bool, w, wn and x on every row of the strip (the censored step's per-level sums read them
+            all, censoring.censored_way), else on the rows the stages after step 1 read.
         exposure_sum: float32 (H, W), the window sums of ``exposure`` (the pattern's, cached), or of
             no rows: computed (of the uncensored exposures) in the pass.
     """
@@ -31,6 +33,7 @@ class PassReadings(NamedTuple):
     exposure: np.ndarray
     censored: np.ndarray
     flagged: bool
+    every_row: bool
     exposure_sum: np.ndarray
 
 
@@ -69,7 +72,7 @@ class PassOutputs(NamedTuple):
     Attributes:
         w: the weights; wn: the neighbours' weights (``w`` itself unless ``flagged``).
         x: s / e, (H, W) where ``flagged`` (the censored step reads it; then x, w and wn are set on every
-            row), else a ring of the window's height.
+            row if ``every_row``, else where w is), else a ring of the window's height.
         image, estimate, total: in rows [first, last) the result, L^ and its information.
         lower: bool, exposure sum <= 0 where w is set, False elsewhere.
         candidates: bool, the wide fallback's, in rows [first, last).
@@ -118,7 +121,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     ``motion_window`` (:class:`PassWindow`): also the motion tests' window mean and its variance (the window
     sums of the uncensored readings are the pilot's, and those of G^2 e and G^2 two more row and column
     filters)."""
-    s, e, censored, flagged, exposure_sum = readings
+    s, e, censored, flagged, every_row, exposure_sum = readings
     gain_inv, floor = noise
     ky, kx, centre, kernel_square, threshold, coefficients, bottom, z2 = settings
     w, wn, x, image, estimate, total, lower, candidates, variance = outputs
@@ -147,8 +150,9 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         for slot in range(depth):
             _row_filter(b, kx2, square_rows[1, slot])
     rows = np.empty(ky.size, np.int64)
-    # rows each stage computes: those the next one's windows read (with the censored step, step 1 everywhere)
-    first1, last1 = (0, h) if flagged else (max(first - 2 * ry, 0), min(last + 2 * ry, h))
+    # rows each stage computes: those the next one's windows read (with the censored step's per-level sums, step 1
+    # everywhere; its other ways read w and x a window's half height around the rows [first, last))
+    first1, last1 = (0, h) if every_row else (max(first - 2 * ry, 0), min(last + 2 * ry, h))
     first0, last0 = max(first1 - ry, 0), min(last1 + ry, h)
     first2, last2 = max(first - ry, 0), min(last + ry, h)
     lower[:first1] = False
