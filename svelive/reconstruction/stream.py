@@ -717,6 +717,9 @@ class Reconstructor:
 
         inp = prepare(getattr(raw, "raw", raw), camera, workers=self._threads) if prepared is None else prepared
         h, w = inp.shape
+        # (a monochrome frame's noise model, from the frame alone, on the pool while this thread makes the selection;
+        # a colour frame's reads its folded luminance, made after the selection)
+        pending = self._pool.submit(noise_model, inp) if self._pool is not None and inp.cfa is None else None
         with self._lock:
             if ahead is None:
                 hint, tick = self._history, self._fused_partials + len(self._in_flight)
@@ -742,12 +745,8 @@ class Reconstructor:
             chroma_of = source, selected.copy(), rows
             ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True,
                                                             ch=ch)
-        # (the method's noise model, from the frame alone, on the pool while this thread makes the partial frame)
-        pending = self._pool.submit(noise_model, inp) if self._pool is not None else None
-        noise = noise_model(inp) if pending is None else None
+        noise = noise_model(inp) if pending is None else pending.result()
         with self._lock:
-            if pending is not None:
-                noise = pending.result()
             partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
                                      None if selected.all() else weakref.ref(hint), tick,
                                      dict(bands=len(selected), computed=int(np.count_nonzero(selected))))
