@@ -112,7 +112,8 @@ def test_one_pass_is_the_whole_plane_chain_bit_for_bit(layout, stops, shape):
 def test_partial_chroma_is_the_whole_frames_on_its_cell_rows_and_the_history_elsewhere(layout, stops):
     """colour.partial_chroma (a still colour stream's band refresh): on the cell rows it makes, the whole frame's
     chroma with the same white balance, bit for bit (its crops' CHROMA_HALO cell rows are what the passes read:
-    one fewer differs on a bright frame); elsewhere the history's planes, exactly; runs at the frame's edges, apart and of one row."""
+    one fewer differs on a bright frame); elsewhere the history's planes, exactly; runs at the frame's edges, apart
+    and of one row."""
     pattern, cfa = COLOUR_LAYOUTS[layout]
     rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:150, :120]
     scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=stops - 2))

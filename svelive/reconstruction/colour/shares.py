@@ -105,8 +105,9 @@ def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
 def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarray, white: np.ndarray) -> Chroma:
     """A colour frame's chroma on some cell rows only, a stream's ``history`` elsewhere (the band refresh of a
     still view, svelive.reconstruction.settle): :func:`chroma` with the white balance ``white`` (float32 (3,)) on
-    the cell rows of ``runs`` ([start, stop) cell rows, apart), each run made from a crop of the frame with CHROMA_HALO cell
-    rows around it (which its passes read; the same values as the whole frame's chroma with that white); the
+    the cell rows of ``runs`` ([start, stop) cell rows, apart), each run made from a crop of the frame with
+    CHROMA_HALO cell rows around it (which its passes read; the same values as the whole frame's chroma with that
+    white); the
     shares and coarse luminance of the other cell rows are ``history``'s (float32 (5, Hc, Wc), a stream's fused
     chroma: svelive.reconstruction.stream.fuse_chroma)."""
     layout = cell_layout(inp.pattern, inp.cfa)
