@@ -1244,12 +1244,11 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
     box = np.ones((3, 3), np.uint8)
+    cells = np.empty((hc, wc), np.float32)  # (with ``rows``, the rows not made are not read)
     if rows is None:
-        cells = np.empty((hc, wc), np.float32)
         _cell_maximum(weight, cy, cx, cells)
         cells = cv2.dilate(cells, box, borderType=cv2.BORDER_REFLECT_101)
     else:  # the cell rows made, each run from a crop of one more cell row each way (the 3x3's reach)
-        cells = np.empty((hc, wc), np.float32)  # (rows not made: not read)
         for a, b in settle.runs(rows):
             lo, hi = max(a - 1, 0), min(b + 1, hc)
             crop = np.empty((hi - lo, wc), np.float32)

@@ -107,9 +107,8 @@ def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarr
     still view, svelive.reconstruction.settle): :func:`chroma` with the white balance ``white`` (float32 (3,)) on
     the cell rows of ``runs`` ([start, stop) cell rows, apart), each run made from a crop of the frame with
     CHROMA_HALO cell rows around it (which its passes read; the same values as the whole frame's chroma with that
-    white); the
-    shares and coarse luminance of the other cell rows are ``history``'s (float32 (5, Hc, Wc), a stream's fused
-    chroma: svelive.reconstruction.stream.fuse_chroma)."""
+    white); the shares and coarse luminance of the other cell rows are ``history``'s (float32 (5, Hc, Wc), a
+    stream's fused chroma: svelive.reconstruction.stream.fuse_chroma)."""
     layout = cell_layout(inp.pattern, inp.cfa)
     cy, h = layout.cell[0], inp.shape[0]
     hc = history.shape[1]
