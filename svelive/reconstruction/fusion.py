@@ -571,7 +571,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     history = state.tested
     threads = executor if executor is not None else workers
     # the ratio's pass also tells whether the camera moved, where the ratio is then 1 (most frames): its
-    # subsample's rows read once (x0.7 CPU for the two, 1920x1200 mono)
+    # subsample's rows read once (x0.85-0.87 CPU for the two passes, from memory; 1920x1200 demo, mono and RGGB)
     ratio, moved = (_illumination(state, tested, tested_variance, bound, 8, threads, (frame, config))
                     if config.compensate_illumination else (1.0, None))
     # mean * 1 is exact: one kernel with and without a brightness correction
@@ -1141,12 +1141,13 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
     ``settings`` (:class:`_FuseSettings`) and ``step`` (:class:`_DetailStep`). Writes weight (1/n ->
     1/(n + 1), at least ``floor_weight``, 1 where reset), the fused image and own readings; with
     ``separate`` the running mean of the tested estimate with its history (``fused_test``); with an own
-    variance (:class:`TemporalState`) its running mean; with the detail step the evidence: (own - fused)^2 over the fused own reading's variance (one reading's,
-    from the row-phase tables, times the weight and ``noisier``), summed along its row with the
-    symmetric kernel ``along``; with a ``share_error`` its share of the fused value squared adds to
-    that variance (:class:`FrameEstimate`). Row by row, while the row's results are still in cache: the running
-    means in one loop (the tested estimate's and the own variance's in loops of their own took x1.09 CPU colour,
-    re-reading the row's weights, estimates and per-pixel exposures), the evidence in one of its own.
+    variance (:class:`TemporalState`) its running mean; with the detail step the evidence: (own - fused)^2
+    over the fused own reading's variance (one reading's, from the row-phase tables, times the weight and
+    ``noisier``), summed along its row with the symmetric kernel ``along``; with a ``share_error`` its share
+    of the fused value squared adds to that variance (:class:`FrameEstimate`). Row by row, while the row's
+    results are still in cache: the running means in one loop (the tested estimate's and the own variance's
+    in loops of their own took x1.1 CPU colour, re-reading the row's weights, estimates and per-pixel
+    exposures), the evidence in one of its own.
     """
     old_weight, old_mean, old_own, old_test, old_own_variance = history
     image, signal, censored, tested, share_error = frame
