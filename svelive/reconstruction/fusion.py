@@ -241,8 +241,12 @@ class SkippedResets:
     counts: np.ndarray
 
 
+#: :func:`illumination_ratio`'s step by default (a multiple of camera_moved's, whose pass it can share).
+_RATIO_STEP = 8
+
+
 def illumination_ratio(state: TemporalState, image: np.ndarray, variance: np.ndarray, bound: np.ndarray,
-                       step: int = 8, workers: int | Executor = 1) -> float:
+                       step: int = _RATIO_STEP, workers: int | Executor = 1) -> float:
     """Robust global brightness ratio frame / history: the median of image / the history's tested
     estimate (:attr:`TemporalState.tested`) over well-measured pixels; ``image`` and ``variance``
     are the frame's tested estimate (:attr:`FrameEstimate.tested`).
@@ -572,7 +576,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     threads = executor if executor is not None else workers
     # the ratio's pass also tells whether the camera moved, where the ratio is then 1 (most frames): its
     # subsample's rows read once (x0.85-0.87 CPU for the two passes, from memory; 1920x1200 demo, mono and RGGB)
-    ratio, moved = (_illumination(state, tested, tested_variance, bound, 8, threads, (frame, config))
+    ratio, moved = (_illumination(state, tested, tested_variance, bound, _RATIO_STEP, threads, (frame, config))
                     if config.compensate_illumination else (1.0, None))
     # mean * 1 is exact: one kernel with and without a brightness correction
     scale = np.float32(ratio) if abs(ratio - 1.0) > RATIO_TOLERANCE else np.float32(1)
