@@ -528,12 +528,13 @@ def _passes(inp, noise):
     strip_pass._weights_censored(*flat(smooth(np.where(censored, f32(0), s), ky, kx), exposure_sum, s, e, censored,
                                      lowest, w, x, wn, wx), gain_inv, floor, centre)
     var_m, m = smooth(wn, ky, kx), smooth(wx, ky, kx)
-    excess_q, q = wx, np.empty(inp.shape, f32)
-    strip_pass._residuals(*flat(var_m, m, wn, w, x, excess_q, q), centre, kernel_square)
+    excess_q, q, var_r = wx, np.empty(inp.shape, f32), np.empty(inp.shape, f32)
+    strip_pass._residuals(*flat(var_m, m, wn, w, x, excess_q, q, var_r), centre, kernel_square)
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    strip_pass._blend(*flat(image, total, var_m, m, w, x, e), gain_inv, floor,
+    strip_pass._blend(*flat(image, total, var_m, m, var_r, w, x, e), gain_inv, floor,
                       f32(parameters.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
-                      posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32))
+                      posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32),
+                      np.empty(image.size, bool))
     zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
     lower = exposure_sum <= 0
     if censored.any():

@@ -369,16 +369,24 @@ def _wide_lanes(w0, w1, w2, w3, w4, w5, w6, w7, m0, m1, m2, m3, m4, m5, m6, m7, 
 @kernel
 def _wide_direct(weights, signal, exposure, censored, offset, by, bx, active, changed, estimate, information):
     """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
-    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them)."""
+    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them). A row's
+    active pixels are found without branches (rows without any skipped at a count)."""
     h, width = weights.shape
     tiny = np.float32(TINY)
     block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    index = np.empty(width, np.int64)
     kept = 0
     for r in range(active.shape[0]):
-        br = r + offset
+        row = active[r]
+        if count_true(row) == 0:
+            continue
+        n = 0
         for c in range(width):
-            if not active[r, c]:
-                continue
+            index[n] = c
+            n += row[c]
+        br = r + offset
+        for j in range(n):  # a pixel changes only its own flags: the columns found first are those visited
+            c = index[j]
             for i in range(9):
                 if i == 4:
                     continue

@@ -138,12 +138,14 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
     weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
-    neighbours = np.empty((ry + 1, width), np.float32)  # m from step 2 until step 3 reads it, ry rows later
+    # m and v_r = v_p + v_m from step 2 until step 3 reads them, ry rows later
+    neighbours, residual_variances = np.empty((ry + 1, width), np.float32), np.empty((ry + 1, width), np.float32)
     sums, exposure_row, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32))
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
-    index, packed = np.empty(width, np.int64), np.empty((3, width), np.float32)  # _blend's scratch
+    index, packed, raised = (np.empty(width, np.int64), np.empty((3, width), np.float32),
+                             np.empty(width, np.bool_))  # _blend's scratch
     at_bottom = np.zeros(h, np.int64)
     if windowed and not flagged:  # every reading kept: each row's sums of G^2 are the same, made once
         b[:] = np.float32(1.0)
@@ -206,7 +208,8 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
             m = neighbours[r % (ry + 1)]
             _column_filter(weight_rows, rows, ky, estimate[r])
             _column_filter(weighted_rows, rows, ky, m)
-            _residuals(estimate[r], m, wn[r], w[r], x[r % x.shape[0]], a, b, centre, kernel_square)
+            _residuals(estimate[r], m, wn[r], w[r], x[r % x.shape[0]], a, b, residual_variances[r % (ry + 1)], centre,
+                       kernel_square)
             _row_filter(a, kx, excess_rows[r % depth])
             _row_filter(b, kx, q_rows[r % depth])
         r = i - 3 * ry
@@ -214,8 +217,8 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
             _window_rows(r, h, depth, rows)
             _column_filter(excess_rows, rows, ky, image[r])
             _column_filter(q_rows, rows, ky, total[r])
-            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], w[r], x[r % x.shape[0]], e[r], gain_inv,
-                   floor, threshold, coefficients, index, packed)
+            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
+                   x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, index, packed, raised)
             _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
             if variance.size > 0:
                 _reciprocal(total[r], variance[r])
@@ -442,8 +445,9 @@ def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn
 
 
 @kernel
-def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
-    """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r).
+def _residuals(var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square):
+    """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r);
+    ``var_r`` = v_r (:func:`_blend` reads it).
 
     ``var_m`` and ``m`` come in holding the window sums of wn and wn x, and
     leave holding v_m and m (the sums without the centre pixel).
@@ -453,12 +457,13 @@ def _residuals(var_m, m, wn, w, x, excess_q, q, centre, kernel_square):
         sum_w = max(var_m[k] - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
         mk = (m[k] - centre * (wn[k] * x[k])) / sum_w
         var_mk = kernel_square / sum_w
-        var_r = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
+        var_rk = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
         d = x[k] - mk
-        qk = one / (var_r * var_r)
+        qk = one / (var_rk * var_rk)
         m[k] = mk
         var_m[k] = var_mk
-        excess_q[k] = (d * d - var_r) * qk
+        var_r[k] = var_rk
+        excess_q[k] = (d * d - var_rk) * qk
         q[k] = qk
 
 
@@ -472,7 +477,7 @@ OWN_SIGMA = 5.0
 
 
 @kernel
-def _blend(image, total, var_m, m, w, x, e, gain_inv, floor, threshold, coefficients, index, packed):
+def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index, packed, raised):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0), and at least
     the pixel's own excess (x - m)^2 - OWN_SIGMA^2 (v_p + v_m) where that is positive.
@@ -489,26 +494,36 @@ def _blend(image, total, var_m, m, w, x, e, gain_inv, floor, threshold, coeffici
     residual's squared excess has variance 2 v_r^2 = 2 / q). ``threshold``:
     CONTRAST_SIGMA^2 * 2 kernel_square, so b^2 = max(B - sqrt(threshold / sum q), 0).
     ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
-    ``index`` (int64) and ``packed`` (float32 (3, N)): scratch of at least the arrays' size N.
+    ``var_r``: v_p + v_m, as :func:`_residuals` made it (1 / max(w, TINY) + v_m).
+    ``index`` (int64), ``packed`` (float32 (3, N)) and ``raised`` (bool): scratch of at least the arrays' size N.
+    The information at L^ (a division) is computed only in rows holding a pixel that takes it.
     """
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
     high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
     own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
-    dark = 0
+    dark, lifted = 0, 0
     for k in range(w.size):  # a loop without branches, which LLVM vectorises
         weight = max(total[k], tiny)
         d = x[k] - m[k]
-        own = d * d - own_z2 * (one / max(w[k], tiny) + var_m[k])  # the pixel's own evidence of m's bias
+        own = d * d - own_z2 * var_r[k]  # the pixel's own evidence of m's bias
         excess = max(max(image[k] / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
         t = one / excess + w[k]
         estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
-        ek = e[k]
-        at_level = ek * ek / (max(estimate, zero) * ek * gain_inv + floor)  # the reading's information at L^
-        t += max(at_level - w[k], zero) if (own > zero) & (w[k] > zero) else zero
+        lift = (own > zero) & (w[k] > zero)
         image[k] = estimate
         var_m[k] = estimate  # kept for the pixels near 0, below
         total[k] = t
+        raised[k] = lift
+        lifted += lift
         dark += (estimate <= zero) | (estimate * estimate * t < high)
+    if lifted > 0:  # a row holding such pixels: their reading's information at L^ (the counts again, of the new t)
+        dark = 0
+        for k in range(w.size):
+            ek, estimate = e[k], var_m[k]
+            at_level = ek * ek / (max(estimate, zero) * ek * gain_inv + floor)
+            t = total[k] + (max(at_level - w[k], zero) if raised[k] else zero)
+            total[k] = t
+            dark += (estimate <= zero) | (estimate * estimate * t < high)
     if dark == 0:
         return
     if dark * FEW_NEAR_ZERO >= w.size:
