@@ -168,6 +168,36 @@ def test_the_pass_filters_match_opencv_on_random_planes():
         np.testing.assert_array_equal(out, cv2.medianBlur(plane, 3))
 
 
+def test_the_cells_values_follow_the_highlight_rules_on_random_planes():
+    """highlights._cell_values_row against the rules as whole-plane numpy (the pass's reference above calls it):
+    cells with censored readings, clipped channels raised to the measured ones' white level, cells whose every
+    channel is only a bound, edge cells without a channel's pixels."""
+    rng = np.random.default_rng(8)
+    f32 = np.float32
+    for wc in (1, 7, 64):
+        numerator, denominator, mean, info, bound = (rng.uniform(-1, 5, (3, 4, wc)).astype(f32) for _ in range(5))
+        for plane in (denominator, info, bound):
+            plane[rng.random(plane.shape) < 0.4] = 0
+        numerator[:, 0, 0] = np.inf
+        info[:, 1, -1], bound[:, 1, -1] = 0, 2  # every channel only a bound: neutral white
+        info[:, 2, 0], bound[:, 2, 0] = 1, 0  # every channel measured ...
+        info[1, 2, 0], bound[1, 2, 0] = 0, 3  # ... but green, clipped: raised to the others' white level
+        white = np.array([1.7, 1.0, 0.6], f32)
+        out, brightest = np.empty((3, 2, wc), f32), np.empty(wc, f32)
+        smoothed = np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1), f32(0))
+        value = np.maximum(np.where(bound > 0, np.maximum(mean, bound), smoothed), f32(0))
+        measured = (info > 0) | ((bound <= 0) & (denominator > 0))
+        inverse = (f32(1) / white)[:, None, None]
+        top = np.max(np.where(measured, value * inverse, f32(-1)), axis=0)
+        expected = np.where(measured, value, np.maximum(value, white[:, None, None] * top))
+        neutral = white[:, None, None] * np.max(expected / white[:, None, None], axis=0)
+        expected = np.where(top < 0, neutral, expected)
+        assert top[1, -1] < 0 and not measured[1, 2, 0] and measured[[0, 2], 2, 0].all()
+        for i in range(4):
+            _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i, i % 2)
+            np.testing.assert_array_equal(out[:, i % 2], expected[:, i])
+
+
 @pytest.mark.parametrize("layout", ["dual-iso", "quad-bayer"])
 def test_refine_colours_its_result_as_colourise_does(layout):
     """``refine(..., rgb=)`` (a stream's fused luminance coloured in the refinement's pass) is bit for bit

@@ -311,6 +311,35 @@ def test_the_frames_spread_does_not_depend_on_the_threads():
     assert np.all(one[0][:, ::7] == 0)
 
 
+@pytest.mark.parametrize("cell", [(4, 2), (4, 4), (2, 1)])
+@pytest.mark.parametrize("width", [45, 46])
+def test_the_refinements_floor_is_each_cells_mean_evidence(cell, width):
+    # per cell row and column: the evidence summed down the cell's rows, then over the cell's columns in order,
+    # over the count of its pixels with a history (the cells of two columns take a loop of their own)
+    rng = np.random.default_rng(7)
+    shape = (11, width)
+
+    def f() -> np.ndarray:
+        return rng.uniform(0, 1, shape).astype(np.float32)
+
+    weight = f()
+    weight[:, ::5] = 1
+    weight[:4, :6] = 1  # a cell without evidence
+    state = TemporalState(f(), f(), f(), np.zeros(shape, bool), np.zeros(shape, bool))
+    spread, floor = stream_module.luminance_noise(f(), state, f(), weight, weight, cell, 1.2)
+    cy, cx = cell
+    for i in range(floor.shape[0]):
+        total, count = np.zeros(width, np.float32), np.zeros(width, np.float32)
+        for r in range(i * cy, min(i * cy + cy, shape[0])):
+            total += spread[r]
+            count += (weight[r] < 1).astype(np.float32)
+        for j in range(-(-width // cx)):
+            t, n = np.float32(0), np.float32(0)
+            for x in range(j * cx, min(j * cx + cx, width)):
+                t, n = t + total[x], n + count[x]
+            assert np.all(floor[i, j * cx:j * cx + cx] == t / max(n, np.float32(1)))
+
+
 @pytest.mark.parametrize("layout, gain", [("dual-iso", 3.0), ("quad-bayer", 3.0), (LAYOUT, 1.5)])
 def test_dim_colour_stream_gains_where_the_folded_luminance_is_noisier_than_its_model(layout, gain):
     # 0.6 DN read noise, 5 stops under: a folded frame's luminance scatters from frame to frame far

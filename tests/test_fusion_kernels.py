@@ -47,7 +47,8 @@ def _input(shape, pattern="1,4/16,64", cfa=None, seed=0, bright=1.0):
 
 
 @pytest.mark.parametrize("shape", [(1, 5), (3, 4), (7, 9), (37, 61), (130, 97)])
-@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,8", "1/4/16", "1,2,4,8/16,32,64,128", "1/2/4/8/16/32"])
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1,8", "1/4/16", "1/1/8/8", "1,2,4,8/16,32,64,128",
+                                     "1/2/4/8/16/32"])
 def test_window_estimate_inline_is_the_opencv_one(shape, pattern, monkeypatch):
     inp = _input(shape, pattern, seed=shape[0])
     image = np.full(shape, 7.0, np.float32)
@@ -77,8 +78,9 @@ def test_window_estimate_inline_is_the_opencv_one_colour(layout, monkeypatch):
         assert np.array_equal(a, b)
 
 
-def test_window_estimate_without_uncensored_readings_takes_the_method():
-    inp = _input((12, 12), bright=1e6)  # every reading censored
+@pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])  # (the second: numerics._window_strip_column)
+def test_window_estimate_without_uncensored_readings_takes_the_method(pattern):
+    inp = _input((12, 12), pattern, bright=1e6)  # every reading censored
     assert inp.censored.all()
     image = np.full(inp.shape, 5.0, np.float32)
     variance = np.full(inp.shape, 2.0, np.float32)

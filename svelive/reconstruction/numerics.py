@@ -318,6 +318,10 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
     sums along the frame's rows max(first - a, 0) on (a: the window's rows // 2), as
     :func:`_row_sums` makes them, or (4, 0, W) to make them here.
     """
+    if ky.size == 5 and kx.size == 1 and not row_sums.shape[1]:
+        _window_strip_column(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv_gain, floor, image,
+                             variance, out, out_var)
+        return
     rows, cols = signal.shape
     period = exposure.shape[0]
     size = ky.size
@@ -347,6 +351,45 @@ def _window_strip(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv
         _symmetric_column(ring, 3, slots, ky2, sums[3])
         level_row, noise_row = out[r], out_var[r]
         lost = window_level_row(sums[0], sums[1], sums[2], sums[3], inv_gain, floor, level_row, noise_row)
+        for c in range(cols if lost else 0):
+            if np.isinf(noise_row[c]):
+                level_row[c], noise_row[c] = image[r, c], variance[r, c]
+
+
+@kernel
+def _window_strip_column(signal, exposure, censored, first, stop, ky, kx, ky2, kx2, inv_gain, floor, image, variance,
+                         out, out_var):
+    """:func:`_window_strip` of a window 5 rows tall and 1 column wide (tiles of 4 rows and 1 column: dual-ISO,
+    whose motion window is 5x1), bit for bit: each pixel's four window sums made in one loop from its 5 rows'
+    readings, each term the ring's value (uncensored s, e, e, 1 times the one tap along the row) and summed down
+    in :func:`_symmetric_column`'s order, instead of the ring's row sums written and summed down in a dozen passes
+    over the row (x0.3-0.4 of the time)."""
+    rows, cols = signal.shape
+    period = exposure.shape[0]
+    zero, one = np.float32(0), np.float32(1)
+    g, g2 = kx[0], kx2[0]
+    k0, k1, k2 = ky[2], ky[3], ky[4]
+    q0, q1, q2 = ky2[2], ky2[3], ky2[4]
+    sums = np.empty((4, cols), np.float32)
+    gs, ge, ge2, gg = sums[0], sums[1], sums[2], sums[3]
+    for r in range(first, stop):
+        i0, i1, i3, i4 = reflect_101(r - 2, rows), reflect_101(r - 1, rows), reflect_101(r + 1, rows), \
+            reflect_101(r + 2, rows)
+        s0, s1, s2, s3, s4 = signal[i0], signal[i1], signal[r], signal[i3], signal[i4]
+        e0, e1, e2, e3, e4 = (exposure[i0 % period], exposure[i1 % period], exposure[r % period],
+                              exposure[i3 % period], exposure[i4 % period])
+        c0, c1, c2, c3, c4 = censored[i0], censored[i1], censored[r], censored[i3], censored[i4]
+        for x in range(cols):
+            u0, u1, u2 = zero if c0[x] else one, zero if c1[x] else one, zero if c2[x] else one
+            u3, u4 = zero if c3[x] else one, zero if c4[x] else one
+            a0, a1, a2, a3, a4 = e0[x] * u0, e1[x] * u1, e2[x] * u2, e3[x] * u3, e4[x] * u4
+            gs[x] = ((s2[x] * u2 * g) * k0 + ((s1[x] * u1) * g + (s3[x] * u3) * g) * k1
+                     + ((s0[x] * u0) * g + (s4[x] * u4) * g) * k2)
+            ge[x] = (a2 * g) * k0 + (a1 * g + a3 * g) * k1 + (a0 * g + a4 * g) * k2
+            ge2[x] = (a2 * g2) * q0 + (a1 * g2 + a3 * g2) * q1 + (a0 * g2 + a4 * g2) * q2
+            gg[x] = (u2 * g2) * q0 + (u1 * g2 + u3 * g2) * q1 + (u0 * g2 + u4 * g2) * q2
+        level_row, noise_row = out[r], out_var[r]
+        lost = window_level_row(gs, ge, ge2, gg, inv_gain, floor, level_row, noise_row)
         for c in range(cols if lost else 0):
             if np.isinf(noise_row[c]):
                 level_row[c], noise_row[c] = image[r, c], variance[r, c]

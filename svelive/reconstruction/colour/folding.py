@@ -72,6 +72,7 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse, paired):
     first (every value loaded before the choice), then one interpolation per pixel.
     ``inverse``: 1 / out where it is not empty."""
     period, last = channel_rows.shape[0], rows.shape[1] - 1
+    one = np.float32(1.0)
     for r in range(out.shape[0]):
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
@@ -79,6 +80,15 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse, paired):
         if paired:
             c0, c1 = ch[0], ch[1]
             a0, b0, a1, b1 = rows[c0, t0], rows[c0, t1], rows[c1, t0], rows[c1, t1]
+            if inverse.size > 0:  # 1 / e' in the same loop (a second pass over the row cost 20 % more)
+                v = inverse[r]
+                for x in range(o.size):
+                    k0 = a0[x] + (b0[x] - a0[x]) * f
+                    k1 = a1[x] + (b1[x] - a1[x]) * f
+                    folded = e[x] * (k0 if x % 2 == 0 else k1)
+                    o[x] = folded
+                    v[x] = one / folded
+                continue
             for x in range(o.size):
                 k0 = a0[x] + (b0[x] - a0[x]) * f
                 k1 = a1[x] + (b1[x] - a1[x]) * f
@@ -91,7 +101,7 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse, paired):
                 b = q0 if c == 0 else (q1 if c == 1 else q2)
                 o[x] = e[x] * (a + (b - a) * f)
         if inverse.size > 0:
-            v, one = inverse[r], np.float32(1.0)
+            v = inverse[r]
             for x in range(o.size):
                 v[x] = one / o[x]
 
@@ -116,10 +126,15 @@ def _colour_row(y, a0, b0, a1, b1, a2, b2, f, o):
     """o (3 W,) = one row of (W, 3) RGB = ``y`` (W,) times each channel's share interpolated at ``f``
     between its two cell rows (``a``, ``b``; (W,) each)."""
     for x in range(y.size):
-        v = y[x]
-        o[3 * x] = v * (a0[x] + (b0[x] - a0[x]) * f)
-        o[3 * x + 1] = v * (a1[x] + (b1[x] - a1[x]) * f)
-        o[3 * x + 2] = v * (a2[x] + (b2[x] - a2[x]) * f)
+        _colour_pixel(y[x], a0, b0, a1, b1, a2, b2, f, o, x)
+
+
+@kernel(inline="always")
+def _colour_pixel(v, a0, b0, a1, b1, a2, b2, f, o, x):
+    """o[3 x:3 x + 3] = RGB of pixel ``x`` of a row of :func:`_colour_row`, its luminance ``v``."""
+    o[3 * x] = v * (a0[x] + (b0[x] - a0[x]) * f)
+    o[3 * x + 1] = v * (a1[x] + (b1[x] - a1[x]) * f)
+    o[3 * x + 2] = v * (a2[x] + (b2[x] - a2[x]) * f)
 
 
 def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True,

@@ -9,7 +9,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from svelive.jit import kernel
-from svelive.reconstruction.colour.folding import _colour_row
+from svelive.reconstruction.colour.folding import _colour_pixel
 from svelive.reconstruction.colour.interpolate import Interpolation, _full_width, _pieces
 from svelive.reconstruction.methods.base import map_on
 
@@ -170,7 +170,7 @@ def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_v
     the same arithmetic per pixel, stored in the loop; ``floor`` (Hc, W), unless empty: :func:`refine`'s,
     for rows from frame row ``first`` on, cells of ``cy`` rows. ``rgb`` (R, 3 W), unless empty: each
     row's result times the shares ``planes[0:3]`` (P, Hc, W) interpolated between its two cell rows,
-    as folding._colourise, from the row just written (in cache)."""
+    as folding._colourise, in the same loop."""
     weighted, with_variance, floored = weight.size > 0, out_variance.size > 0, floor.size > 0
     last = coarse.shape[0] - 1
     one = np.float32(1.0)
@@ -182,11 +182,20 @@ def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_v
         y, vy, o = luminance[r], variance[r], out[r]
         wy = weight[r] if weighted else vy  # (not read without a weight)
         low = floor[(first + r) // cy] if floored else vy  # (max(v, v) is v: one loop for both)
+        if rgb.size > 0:  # coloured in the same loop (a second loop over the row, reading it back, cost 10 % more)
+            a0, b0, a1, b1, a2, b2 = planes[0, t0], planes[0, t1], planes[1, t0], planes[1, t1], planes[2, t0], \
+                planes[2, t1]
+            c = rgb[r]
+            for x in range(y.size):
+                v = max(vy[x], low[x]) if wy[x] < one else vy[x]
+                value, ov = _garrote(y[x], v * wy[x] if weighted else v, l0[x], l1[x], v0[x], v1[x], e0[x], e1[x], f)
+                o[x] = value
+                if with_variance:
+                    out_variance[r, x] = ov
+                _colour_pixel(value, a0, b0, a1, b1, a2, b2, f, c, x)
+            continue
         for x in range(y.size):
             v = max(vy[x], low[x]) if wy[x] < one else vy[x]
             o[x], ov = _garrote(y[x], v * wy[x] if weighted else v, l0[x], l1[x], v0[x], v1[x], e0[x], e1[x], f)
             if with_variance:
                 out_variance[r, x] = ov
-        if rgb.size > 0:
-            _colour_row(o, planes[0, t0], planes[0, t1], planes[1, t0], planes[1, t1], planes[2, t0], planes[2, t1],
-                        f, rgb[r])
