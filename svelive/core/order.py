@@ -36,6 +36,13 @@ def percentile(values: np.ndarray, q: float) -> float:
     return quantile(values, q / 100.0)
 
 
+def order_statistic(values: np.ndarray, k: int) -> np.generic:
+    """``np.partition(values, k)[k]``, the k-th smallest (0-based) of a non-empty 1-D array, in its dtype; a rank in
+    the top TAIL_SHARE of a long array partitions only the top few per cent (:func:`_upper_part`)."""
+    part, rank = _upper_part(values, k)
+    return part[rank]
+
+
 def median(values: np.ndarray) -> np.generic:
     """``np.median(values)`` of a non-empty 1-D array, bit for bit and in its dtype (for an even count
     numpy's mean of the two middle values, in the array's dtype)."""
