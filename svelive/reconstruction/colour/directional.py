@@ -40,8 +40,20 @@ channels is the lattice stage's blend turned round: 0 where the smallest share o
 the brightest one, f, over the pixel's 3x3 is below F_LOW, 1 above F_HIGH, linear between; times the
 mean over 5x5 of each site's m^2 / (m^2 + v), its reading's signal-to-noise weight (v from the noise
 model at its own exposure, m its value): noise-dominated readings leave the cells' chroma. Pixels within
-one pixel of a censored reading keep today's channels (the highlight rules stay: no magenta). The
-logarithm's floor is the longest exposure's read-noise floor, as the lattice stage's.
+one pixel of a clipped reading (censored, with no uncensored reading of its channel in its 5x5: the channel
+clipped there) keep today's channels (the highlight rules stay: no magenta); a censored long reading beside
+uncensored short ones of its channel holds the fill, a value, and is demosaiced (docs/peers.md: Cannon and
+MtTamWest bright +0.3 and +0.1 dB over the gate on every censored reading). The logarithm's floor is the
+longest exposure's read-noise floor, as the lattice stage's.
+
+Only where there is colour texture. In tiles (CHUNK plane rows by TILE plane columns: 64 x 32 pixels) whose
+mean of 2 |U - M| / (U + M) is at most TEXTURE (U a pixel's value of its row neighbours' channel from the
+cells, M the mean of those neighbours' own values, both plus the floor: the cells' colour against the
+readings beside it), the demosaicing would only repeat the cells' chroma, and the stage does nothing there.
+It demosaics the runs of the other tiles, each on a block of their columns with MARGIN more on each side
+(bit for bit the whole frame's demosaicing inside the tiles). On the peer frames this keeps 0.98 of the
+stage's gain (mean PU21 over all channels 27.271 -> 27.258) and runs on 26-100 % of their tiles; on the
+1920x1200 demo frame (a photograph enlarged: smooth at the pixel scale) on 12 %.
 
 2x2 Bayer CFAs only (others untouched). Each pixel keeps its own channel; the luminance becomes
 sum_c n_c RGB_c where a pixel changed.
@@ -136,9 +148,12 @@ LAG = 3
 RING = 16
 #: Plane rows exponentiated and blended at a time (the streamed output's ring, (CHUNK, 8, wq)).
 CHUNK = 32
-#: Plane rows of a piece of the stage when it runs on several threads (each piece streams its own rows and
-#: recomputes the stages' reach beyond them).
-STREAM_ROWS = 160
+#: Plane columns of a tile of the colour texture test (module docstring, Where); a tile is CHUNK plane rows high.
+TILE = 16
+#: Plane columns computed beyond a piece's tiles: the stages' reach (one column each) with room to spare.
+MARGIN = 16
+#: A tile's least mean colour texture (2 |U - M| / (U + M), :func:`_texture_row`) for the stage to run there.
+TEXTURE = 0.03
 #: Stages of the demosaicing: green along rows and columns, gradients, decision, red and blue at the greens,
 #: at the opposite sites; with the refinement, green refined, red and blue at the greens and at the opposite
 #: sites again.
@@ -165,14 +180,14 @@ def _mirror_cols(row, pads, sources, count):
 
 
 @kernel
-def _green_row(m, i, gh, gv, s):
+def _green_row(m, i, gh, gv, s, n):
     """Step 1 at plane row ``i`` (columns 1 to wq - 2) into ring slot ``s``: green along the rows (``gh``) and
     the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the planes ``m`` (4, hq,
-    wq): half the site plus half the two greens beside it minus a quarter of the two own sites two pixels
+    wq), columns 1 to ``n`` - 1: half the site plus half the two greens beside it minus a quarter of the two own sites two pixels
     away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
     half, quarter = np.float32(0.5), np.float32(-0.25)
     r, gr, gb, b = m[0], m[1], m[2], m[3]
-    for j in range(1, m.shape[2] - 1):
+    for j in range(1, n):
         gh[0, s, j] = r[i, j] * half + (gr[i, j - 1] + gr[i, j]) * half + (r[i, j - 1] + r[i, j + 1]) * quarter
         gv[0, s, j] = r[i, j] * half + (gb[i - 1, j] + gb[i, j]) * half + (r[i - 1, j] + r[i + 1, j]) * quarter
         gh[1, s, j] = b[i, j] * half + (gb[i, j] + gb[i, j + 1]) * half + (b[i, j - 1] + b[i, j + 1]) * quarter
@@ -180,20 +195,20 @@ def _green_row(m, i, gh, gv, s):
 
 
 @kernel
-def _gradients_row(m, i, gh, gv, r0, r1, b0, b1, d, s):
+def _gradients_row(m, i, gh, gv, r0, r1, b0, b1, d, s, n):
     """Step 2's gradients at plane row ``i`` into slot ``s`` of ``d`` (4, RING + 1, wq): |C(x) - C(x + 2)| of
     C = X - G along the rows at red (d[0]) and blue (d[2]) sites, along the columns (d[1], d[3]); ``r0``,
     ``r1`` the slots of rows i, i + 1 of the red planes of ``gh``, ``gv``; ``b0``, ``b1`` of the blue ones."""
     for k in range(2):
         x = m[3 * k]
         s0, s1 = (r0, r1) if k == 0 else (b0, b1)
-        for j in range(1, m.shape[2] - 1):
+        for j in range(1, n):
             d[2 * k, s, j] = abs((x[i, j] - gh[k, s0, j]) - (x[i, j + 1] - gh[k, s0, j + 1]))
             d[2 * k + 1, s, j] = abs((x[i, j] - gv[k, s0, j]) - (x[i + 1, j] - gv[k, s1, j]))
 
 
 @kernel(fastmath={"contract"})
-def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sums):
+def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sums, n):
     """Step 2's decision at one plane row: the window sums of the gradients ``d`` (module docstring; slots
     ``ru``, ``rm``, ``rd`` of the red planes' rows i - 1, i, i + 1, ``bu``, ``bm``, ``bd`` of the blue ones;
     summed in the order of OpenCV's filter2D over the full-resolution window); into slot ``s`` of ``g``
@@ -203,7 +218,7 @@ def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sum
     hr0, hr1, hr2, hb0, hb1, hb2 = d[0, ru], d[0, rm], d[0, rd], d[2, bu], d[2, bm], d[2, bd]
     vr0, vr1, vb0, vb1 = d[1, ru], d[1, rm], d[3, bu], d[3, bm]
     rows_r, cols_r, rows_b, cols_b = sums[0], sums[1], sums[2], sums[3]
-    for j in range(1, d.shape[2] - 1):  # (the window sums first, a loop with few arrays: it vectorises)
+    for j in range(1, n):  # (the window sums first, a loop with few arrays: it vectorises)
         t = hr0[j - 1] + hr0[j] + hb0[j - 1]
         t = three * hr1[j] + (three * hr1[j - 1] + t)
         rows_r[j] = t + hb1[j - 1] + hr2[j - 1] + hr2[j]
@@ -216,27 +231,27 @@ def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sum
         cols_b[j] = three * vb1[j] + t + vb1[j + 1]
     for k in range(2):
         _choose(sums[2 * k], sums[2 * k + 1], gh[k, r0 if k == 0 else b0], gv[k, r0 if k == 0 else b0],
-                g[k, s], horizontal[k, s])
+                g[k, s], horizontal[k, s], n)
 
 
 @kernel(inline="always")
-def _choose(rows, cols, gh, gv, g, horizontal):
+def _choose(rows, cols, gh, gv, g, horizontal, n):
     """Green along the rows (``gh``; ``horizontal`` 1) where ``cols`` >= ``rows``, else ``gv``, into ``g``."""
-    for j in range(1, g.size - 1):
+    for j in range(1, n):
         along = cols[j] >= rows[j]
         horizontal[j] = along
         g[j] = gh[j] if along else gv[j]
 
 
 @kernel
-def _at_green_row(m, i, g, r0, r1, bu, b0, out, s):
+def _at_green_row(m, i, g, r0, r1, bu, b0, out, s, n):
     """Step 3 at the green sites of plane row ``i``, into slot ``s`` of ``out`` (4, RING, wq): red and blue
     at the greens of red rows (out[0], out[1]) and of blue rows (out[2], out[3]): green plus the mean of
     X - G (``g``: green at the red sites, slots ``r0``, ``r1`` of rows i, i + 1, and at the blue ones, ``bu``,
     ``b0`` of rows i - 1, i) over the two X sites beside it."""
     half = np.float32(0.5)
     r, gr, gb, b, gre, gbl = m[0], m[1], m[2], m[3], g[0], g[1]
-    for j in range(1, m.shape[2] - 1):
+    for j in range(1, n):
         out[0, s, j] = gr[i, j] + half * ((r[i, j] - gre[r0, j]) + (r[i, j + 1] - gre[r0, j + 1]))
         out[1, s, j] = gr[i, j] + half * ((b[i - 1, j] - gbl[bu, j]) + (b[i, j] - gbl[b0, j]))
         out[2, s, j] = gb[i, j] + half * ((r[i, j] - gre[r0, j]) + (r[i + 1, j] - gre[r1, j]))
@@ -244,7 +259,7 @@ def _at_green_row(m, i, g, r0, r1, bu, b0, out, s):
 
 
 @kernel
-def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1, centre, other):
+def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1, centre, other, n):
     """Step 3 (``centre`` 0) and the refinement (1) at the red and blue sites of plane row ``i``: ``other``
     (2, wq), blue at the red sites and red at the blue ones: the site's value minus (plus) the mean of R - B
     over its two green neighbours along the chosen direction (``greens``: :func:`_at_green_row`'s ring; slots
@@ -253,7 +268,7 @@ def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1
     (2, ., wq), slots ``c0`` and ``c1``: its value from step 3; finite)."""
     r, b, rgr, bgr, rgb, bgb = m[0], m[3], greens[0], greens[1], greens[2], greens[3]
     scale = np.float32(2.0) + centre
-    for j in range(1, m.shape[2] - 1):
+    for j in range(1, n):
         rows = (rgr[p0, j - 1] - bgr[p0, j - 1]) + (rgr[p0, j] - bgr[p0, j])
         cols = (rgb[qu, j] - bgb[qu, j]) + (rgb[q0, j] - bgb[q0, j])
         diff = (rows if horizontal[0, h, j] else cols) + centre * (r[i, j] - before[0, c0, j])
@@ -265,13 +280,13 @@ def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1
 
 
 @kernel
-def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s):
+def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s, n):
     """The refinement of green at the red and blue sites of plane row ``i`` into slot ``s`` of ``out``: the
     site's value minus the three-pixel mean of X - G along the chosen direction (``g``: green before, slots
     ``g0`` red, ``g1`` blue; other slots as :func:`_at_opposite_row`'s)."""
     third = np.float32(1.0 / 3.0)
     r, gr, gb, b, rgr, bgr, rgb, bgb = m[0], m[1], m[2], m[3], greens[0], greens[1], greens[2], greens[3]
-    for j in range(1, m.shape[2] - 1):
+    for j in range(1, n):
         rows = (rgr[p0, j - 1] - gr[i, j - 1]) + (rgr[p0, j] - gr[i, j])
         cols = (rgb[qu, j] - gb[i - 1, j]) + (rgb[q0, j] - gb[i, j])
         out[0, s, j] = r[i, j] - third * ((rows if horizontal[0, h, j] else cols) + (r[i, j] - g[0, g0, j]))
@@ -284,7 +299,8 @@ def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s):
 def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, lo, hi, t0, t1):
     """The demosaicing's stages (:data:`STAGES`; :data:`STAGES_UNREFINED` without ``refine``) from time
     ``t0`` to ``t1``: at time t stage k computes plane row t - k LAG where that is in its rows lo[k] to
-    hi[k] (plane rows), into its ring (``rings`` float32 (18, RING, wq): green along rows 0-1, along columns
+    hi[k] (plane rows), columns 1 to wq - 2 of ``m`` (4, hq, wq; a whole frame's planes or a block of their
+    columns), into its ring (``rings`` float32 (18, RING, wq): green along rows 0-1, along columns
     2-3, decided 4-5, red and blue at the greens 6-9, the opposite sites 10-11, refined green 12-13, red and
     blue at the greens again 14-17; ``hz`` uint8 (2, RING, wq) the decision; ``d`` (4, RING + 1, wq) the
     gradients, row RING zero). Rows of a plane outside the frame are read from their mirror sources
@@ -298,6 +314,7 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
     sums = np.empty((4, m.shape[2]), np.float32)
     other = np.empty((2, m.shape[2]), np.float32)
     n = out.shape[0]
+    width = m.shape[2] - 1  # (the kernels' loops run from the constant 1: from a variable they did not vectorise)
     for t in range(t0, t1):
         for k in range(last + 1):
             r = t - k * LAG
@@ -307,12 +324,12 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
             p0, p1 = _slot(rowsrc, 0, r), _slot(rowsrc, 0, r + 1)
             q0, q1, qu = _slot(rowsrc, 1, r), _slot(rowsrc, 1, r + 1), _slot(rowsrc, 1, r - 1)
             if k == 0:
-                _green_row(m, r, gh, gv, s)
+                _green_row(m, r, gh, gv, s, width)
                 for c in range(2):  # (plane 0 of each: red sites, column parity 0; plane 1: blue, 1)
                     _mirror_cols(gh[c, s], colpad[c], colsrc[c], ncol[c])
                     _mirror_cols(gv[c, s], colpad[c], colsrc[c], ncol[c])
             elif k == 1:
-                _gradients_row(m, r, gh, gv, p0, p1, q0, q1, d, s)
+                _gradients_row(m, r, gh, gv, p0, p1, q0, q1, d, s, width)
                 for c in range(4):
                     pads = colpad[c // 2]
                     for x in range(ncol[c // 2]):
@@ -320,23 +337,23 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
             elif k == 2:
                 _decide_row(d, _dslot(rowin, 0, r - 1), _dslot(rowin, 0, r), _dslot(rowin, 0, r + 1),
                             _dslot(rowin, 1, r - 1), _dslot(rowin, 1, r), _dslot(rowin, 1, r + 1),
-                            gh, gv, p0, q0, g0, hz, s, sums)
+                            gh, gv, p0, q0, g0, hz, s, sums, width)
                 for c in range(2):
                     _mirror_cols(g0[c, s], colpad[c], colsrc[c], ncol[c])
             elif k == 3 or k == 6:
                 g, gn = (g0, gn0) if k == 3 else (g1, gn1)
-                _at_green_row(m, r, g, p0, p1, qu, q0, gn, s)
+                _at_green_row(m, r, g, p0, p1, qu, q0, gn, s, width)
                 for c in range(4):  # (greens of red rows: column parity 1; of blue rows: 0)
                     _mirror_cols(gn[c, s], colpad[1 - c // 2], colsrc[1 - c // 2], ncol[1 - c // 2])
             elif k == 4:
-                _at_opposite_row(m, r, gn0, p0, p1, q0, qu, hz, r % RING, gv, p0, q0, np.float32(0.0), other)
+                _at_opposite_row(m, r, gn0, p0, p1, q0, qu, hz, r % RING, gv, p0, q0, np.float32(0.0), other, width)
                 o0[:, s] = other
             elif k == 5:
-                _refine_row(m, r, gn0, p0, p1, q0, qu, hz, s, g0, p0, q0, g1, s)
+                _refine_row(m, r, gn0, p0, p1, q0, qu, hz, s, g0, p0, q0, g1, s, width)
                 for c in range(2):
                     _mirror_cols(g1[c, s], colpad[c], colsrc[c], ncol[c])
             else:
-                _at_opposite_row(m, r, gn1, p0, p1, q0, qu, hz, r % RING, o0, s, s, np.float32(1.0), other)
+                _at_opposite_row(m, r, gn1, p0, p1, q0, qu, hz, r % RING, o0, s, s, np.float32(1.0), other, width)
             if k == last:
                 g, gn = (g1, gn1) if refine else (g0, gn0)
                 row = out[r % n]
@@ -357,24 +374,46 @@ def _stage_rows(grid: Grid, first: int, last: int, stages: int) -> tuple[np.ndar
     return lo, hi
 
 
-def _stream(grid: Grid, m: np.ndarray, refine: bool, first: int, last: int, out: np.ndarray, chunk) -> None:
+def _scratch(width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The streamed stages' rings for planes ``width`` columns wide (:func:`_advance`'s ``rings``, ``d`` with its
+    zero row, ``hz``)."""
+    d = np.empty((4, RING + 1, width), np.float32)
+    d[:, RING] = 0
+    return np.empty((18, RING, width), np.float32), d, np.empty((2, RING, width), np.uint8)
+
+
+def _stream(grid: Grid, m: np.ndarray, refine: bool, first: int, last: int, out: np.ndarray, chunk,
+            columns: tuple[int, int] | None = None) -> None:
     """The demosaicing of plane rows ``first`` to ``last`` (of 1 .. hq - 2) of the planes ``m`` (4, hq, wq,
-    float32, mirrored padding), in chunks of ``out``'s rows (n, 8, wq): after each, ``chunk(a, b)`` with plane
-    rows a to b in ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap)."""
+    float32, mirrored padding), in chunks of ``out``'s rows (n, 8, width): after each, ``chunk(a, b)`` with plane
+    rows a to b in ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap). ``columns``: (c0, c1), the plane
+    columns computed (default 1 to wq - 1, width wq); else they run on a copy of columns c0 - 1 to c1 (width
+    c1 - c0 + 2; ``out``'s column j is the planes' c0 - 1 + j), and those within MARGIN of a c0 > 1 or a
+    c1 < wq - 1 are not the whole frame's."""
     stages = STAGES if refine else STAGES_UNREFINED
     lo, hi = _stage_rows(grid, first, last, stages)
-    rings = np.empty((18, RING, grid.wq), np.float32)
-    d = np.empty((4, RING + 1, grid.wq), np.float32)
-    d[:, RING] = 0
-    hz = np.empty((2, RING, grid.wq), np.uint8)
+    c0, c1 = (1, grid.wq - 1) if columns is None else columns
+    colpad, colsrc, ncol = grid.colpad, grid.colsrc, grid.ncol
+    if (c0, c1) != (1, grid.wq - 1):
+        o, width = c0 - 1, c1 - c0 + 2
+        r0, r1 = max(int(lo.min()) - 1, 0), min(int(hi.max()) + 1, grid.hq)
+        block = np.empty((4, grid.hq, width), np.float32)  # (rows outside r0 to r1 never read)
+        block[:, r0:r1] = m[:, r0:r1, o:o + width]
+        m = block
+        colpad, colsrc, ncol = np.zeros_like(colpad), np.zeros_like(colsrc), np.zeros_like(ncol)
+        for p in range(2):  # (the padding columns inside the block: where it reaches an edge of the frame)
+            pads, sources = grid.colpad[p, :grid.ncol[p]] - o, grid.colsrc[p, :grid.ncol[p]] - o
+            keep = (pads >= 0) & (pads < width) & (sources >= 0) & (sources < width)
+            ncol[p] = keep.sum()
+            colpad[p, :ncol[p]], colsrc[p, :ncol[p]] = pads[keep], sources[keep]
+    rings, d, hz = _scratch(m.shape[2])
     n = out.shape[0]
     t = int(min(lo[k] + k * LAG for k in range(stages)))
     a = first
     while a < last:
         b = min((a // n + 1) * n, last)
         end = b - 1 + (stages - 1) * LAG + 1
-        _advance(m, grid.rowsrc, grid.rowin, grid.colpad, grid.colsrc, grid.ncol, rings, hz, d, out, refine, lo,
-                 hi, t, end)
+        _advance(m, grid.rowsrc, grid.rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, lo, hi, t, end)
         t = end
         chunk(a, b)
         a = b
@@ -412,12 +451,14 @@ def _run(y, x0, top, left, w):
 
 
 @kernel(inline="always")  # (called from a kernel: inlined, its loops vectorise)
-def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
+def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level,
+              across):
     """Frame row ``y``: each pixel's share of its brightest channel of its own channel's value V (of ``rgb``,
     float32 (H, W, 3); 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
     floor variance) / e^2 the noise model's variance at its exposure e), and, if ``write``, max(V, 0) +
     ``floor`` (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``,
-    ``left``. (A flat row and selects between the channels, so that the loop vectorises.)"""
+    ``left``, and max(U, 0) + ``floor`` into ``across`` (W,), U the pixel's value (of ``rgb``) of the channel of
+    its left and right neighbours. (A flat row and selects between the channels, so that the loop vectorises.)"""
     zero, one = np.float32(0.0), np.float32(1.0)
     w = share.size
     row, ex = rgb[y].reshape(-1), exposure[y]
@@ -433,6 +474,8 @@ def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, 
         variance = (e * positive * inverse_gain + floor_variance) / (e * e)
         snr[x] = positive * positive / (positive * positive + variance)
         level[x] = positive + floor
+        u = (r if odd else g) if red_row else (g if odd else b)
+        across[x] = max(u, zero) + floor
     if write:
         for x0 in range(2):
             kind, i, j0, n = _run(y, x0, top, left, w)
@@ -489,16 +532,59 @@ def _any(a, b, c, out):
         out[x] = a[x] | b[x] | c[x]
 
 
+@kernel(inline="always")
+def _texture_row(level, across, left, texture, sums):
+    """One row's colour texture (module docstring, Where) summed by tile into ``sums`` (k,): at each pixel but the
+    row's ends, 2 |U - M| / (U + M), U its ``across`` (the cells' value of its neighbours' channel), M the mean
+    of its two neighbours' ``level`` (their own readings' values), both plus the logarithm's floor. ``texture``
+    (W,): scratch."""
+    zero, two, half = np.float32(0.0), np.float32(2.0), np.float32(0.5)
+    w = level.size
+    texture[0], texture[w - 1] = zero, zero
+    for x in range(1, w - 1):
+        u, mid = across[x], half * (level[x - 1] + level[x + 1])
+        texture[x] = two * abs(u - mid) / (u + mid)
+    for t in range(sums.size):  # (tile t: frame columns 2 TILE t - left to 2 TILE (t + 1) - left)
+        total = zero
+        for x in range(max(2 * TILE * t - left, 0), min(2 * TILE * (t + 1) - left, w)):
+            total += texture[x]
+        sums[t] = total
+
+
+@kernel(inline="always")
+def _clipped_row(censored, y, top, left, out):
+    """Frame row ``y``'s clipped readings into ``out`` (W,): censored (``censored``, bool (H, W)) with no uncensored
+    reading of their own channel in their 5x5, the channel clipped there (a censored long reading beside
+    uncensored short ones of its channel holds a value, the fill, not a bound; grid padding ``top``, ``left``)."""
+    h, w = censored.shape
+    green_parity = (y + top + 1) % 2  # (x + left) % 2 of the greens in this row
+    for x in range(w):
+        clipped = censored[y, x]
+        if clipped:
+            green = (x + left) % 2 == green_parity
+            for dy in range(-2, 3):
+                for dx in range(-2, 3):
+                    yy, xx = y + dy, x + dx
+                    same = (dy % 2 == 0 and dx % 2 == 0) or (green and abs(dy) == 1 and abs(dx) == 1)
+                    if same and 0 <= yy < h and 0 <= xx < w and not censored[yy, xx]:
+                        clipped = False
+        out[x] = clipped
+
+
 @kernel
 def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, floor, low, scale, top, left, m,
-                       weight, first, last):
+                       weight, activity, first, last):
     """Rows ``first`` to ``last`` of the weight (module docstring, Where; float32 (H, W)) in one pass over
     rings of five rows: the lattice blend of the 3x3's smallest share times the 5x5 mean of the sites'
-    signal-to-noise weights, 0 within a pixel of a censored reading (``censored``, bool (H, W)). The planes
-    ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`). Returns the count of nonzero weights."""
+    signal-to-noise weights, 0 within a pixel of a clipped reading (:func:`_clipped_row` of ``censored``, bool
+    (H, W)).
+    The planes ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`), and ``activity`` (H, k) each
+    row's sums, over the columns of each tile (TILE plane columns), of the colour texture (module docstring,
+    Where). Returns the count of nonzero weights."""
     h, w = weight.shape
     zero, one, fifth = np.float32(0.0), np.float32(1.0), np.float32(1.0 / 25.0)
     share, snr, level = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    across, texture, clipped = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.bool_)
     smallest, total = np.empty((5, w), np.float32), np.empty((5, w), np.float32)
     near = np.empty((5, w), np.bool_)
     least, mean, close = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.bool_)
@@ -506,9 +592,13 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
     count = 0
     for y in range(first, last):
         while done <= min(y + 2, h - 1):
-            _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, done,
-                      first <= done < last, share, snr, level)
-            _row_windows(share, snr, censored[done], smallest[done % 5], total[done % 5], near[done % 5])
+            inside = first <= done < last
+            _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, done, inside, share, snr,
+                      level, across)
+            if inside:
+                _texture_row(level, across, left, texture, activity[done])
+            _clipped_row(censored, done, top, left, clipped)
+            _row_windows(share, snr, clipped, smallest[done % 5], total[done % 5], near[done % 5])
             done += 1
         up, down = max(y - 1, 0) % 5, min(y + 1, h - 1) % 5
         # (the columns' parts one after the other: few arrays a loop, so that each vectorises)
@@ -526,10 +616,11 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
 
 
 @kernel
-def _blend(rgb, luminance, weight, exps, floor, share, top, left, first, last):
-    """Frame rows ``first`` to ``last``: at each pixel of nonzero ``weight``, its other two channels move by the
+def _blend(rgb, luminance, weight, exps, offset, floor, share, top, left, first, last, x0, x1):
+    """Frame rows ``first`` to ``last``, columns ``x0`` to ``x1``: at each pixel of nonzero ``weight``, its other two channels move by the
     weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq),
-    plane row i of :func:`_advance`'s output exponentiated at row i % n), and the luminance becomes
+    plane row i of :func:`_advance`'s output exponentiated at row i % n, its column j the planes' j + ``offset``),
+    and the luminance becomes
     sum_c n_c RGB_c (``share``)."""
     zero = np.float32(0.0)
     w = luminance.shape[1]
@@ -538,23 +629,23 @@ def _blend(rgb, luminance, weight, exps, floor, share, top, left, first, last):
     n0, n1, n2 = share[0], share[1], share[2]
     for y in range(first, last):
         red_row, odd_left = (y + top) % 2 == 0, left % 2
-        for x0 in range(2):  # each pixel's other channels (R before G before B) into rows of the frame
-            kind, i, j0, count = _run(y, x0, top, left, w)
+        for xs in range(2):  # each pixel's other channels (R before G before B) into rows of the frame
+            kind, i, j0, count = _run(y, xs, top, left, w)
             e = exps[i % n]
             a, b = (e[0], e[6]) if kind == R else (e[7], e[1]) if kind == B else \
                 (e[2], e[3]) if kind == GR else (e[4], e[5])
-            for k in range(count):
-                first_other[x0 + 2 * k] = max(a[j0 + k] - floor, zero)
-                second_other[x0 + 2 * k] = max(b[j0 + k] - floor, zero)
+            for k in range(max((x0 - xs + 1) // 2, 0), min((x1 - xs + 1) // 2, count)):
+                first_other[xs + 2 * k] = max(a[j0 + k - offset] - floor, zero)
+                second_other[xs + 2 * k] = max(b[j0 + k - offset] - floor, zero)
         _blend_row(rgb[y].reshape(-1), luminance[y], weight[y], first_other, second_other, red_row, odd_left,
-                   n0, n1, n2)
+                   n0, n1, n2, x0, x1)
 
 
 @kernel(inline="always")
-def _blend_row(row, lum, weight, first_other, second_other, red_row, odd_left, n0, n1, n2):
+def _blend_row(row, lum, weight, first_other, second_other, red_row, odd_left, n0, n1, n2, x0, x1):
     """One row of :func:`_blend` (``row``: the flat RGB row; selects, so that it vectorises)."""
     zero = np.float32(0.0)
-    for x in range(lum.size):
+    for x in range(x0, x1):
         wt = weight[x]
         r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
         odd = (x + odd_left) & 1 == 1
@@ -586,11 +677,13 @@ def red_site(inp: SveInput) -> tuple[int, int] | None:
 
 
 def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, share: np.ndarray,
-                         floor: float, refine: bool = True, workers: int | Executor = 1) -> bool:
+                         floor: float, refine: bool = True, workers: int | Executor = 1,
+                         texture: float | None = TEXTURE) -> bool:
     """The stage (module docstring) into ``rgb`` (float32 (H, W, 3), linear, DN at exposure 1) and
     ``luminance`` (float32 (H, W), Y), in place. ``share``: n_c of the CFA. ``floor``: the logarithm's
     floor (DN at exposure 1; the longest exposure's read-noise floor). Each pixel keeps its own channel.
-    ``workers``: threads for its pieces of rows (base.map_on); the result does not depend on it.
+    ``texture``: the tiles' least mean colour texture (module docstring, Where; None: every tile).
+    ``workers``: threads for its pieces (base.map_on); the result does not depend on it.
     Returns False (nothing done) where it does not apply (not a 2x2 Bayer CFA, a frame under 5x5)."""
     h, w = luminance.shape
     red = red_site(inp)
@@ -599,42 +692,88 @@ def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, 
     f32 = np.float32
     grid = Grid((h, w), red)
     m = grid.planes(4)
-    weight = _site_weights(inp, rgb, grid, m, f32(floor), workers)
-    if weight is None:
+    found = _site_weights(inp, rgb, grid, m, f32(floor), workers)
+    if found is None:
         return True
+    weight, activity = found
     n = np.asarray(share, f32)
 
-    def piece(part: slice) -> None:
-        exps = np.empty((CHUNK, 8, grid.wq), f32)
+    def piece(items: list[tuple[int, int, int, int]]) -> None:
+        for first, last, j0, j1 in items:
+            c0, c1 = max(j0 - MARGIN, 1), min(j1 + MARGIN, grid.wq - 1)
+            c0, c1 = 1 if c0 <= MARGIN else c0, grid.wq - 1 if c1 >= grid.wq - 1 - MARGIN else c1  # (edges: mirrored)
+            whole = (c0, c1) == (1, grid.wq - 1)
+            o, width = (0, grid.wq) if whole else (c0 - 1, c1 - c0 + 2)
+            x0, x1 = max(2 * j0 - grid.left, 0), min(2 * j1 - grid.left, w)
+            exps = np.empty((CHUNK, 8, width), f32)
 
-        def chunk(a: int, b: int) -> None:  # plane rows a to b: exp, then the frame rows they hold
-            rows = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, grid.wq)
-            cv2.exp(rows, rows)
-            _blend(rgb, luminance, weight, exps, f32(floor), n, grid.top, grid.left,
-                   max(2 * a - grid.top, 0), min(2 * b - grid.top, h))
+            def chunk(a: int, b: int) -> None:  # plane rows a to b: exp, then the frame rows they hold
+                rows = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, width)
+                cv2.exp(rows, rows)
+                _blend(rgb, luminance, weight, exps, o, f32(floor), n, grid.top, grid.left,
+                       max(2 * a - grid.top, 0), min(2 * b - grid.top, h), x0, x1)
 
-        _stream(grid, m, refine, part.start, part.stop, exps, chunk)
+            _stream(grid, m, refine, first, last, exps, chunk, (c0, c1))
 
-    rows = grid.hq - 2
-    count = 1 if workers == 1 else max(2, -(-rows // STREAM_ROWS))
-    step = -(-rows // count)
-    map_on(workers, piece, [slice(1 + r, 1 + min(r + step, rows)) for r in range(0, rows, step)])
+    items = _spans(grid, activity, texture)
+    count = 1 if workers == 1 else min(len(items), 4)
+    map_on(workers, piece, [items[k::count] for k in range(count)])
     return True
 
 
+def _spans(grid: Grid, activity: np.ndarray, texture: float | None) -> list[tuple[int, int, int, int]]:
+    """The pieces of the demosaicing: (first, last, j0, j1), plane rows of one chunk (CHUNK rows) and plane columns
+    of a run of its tiles (TILE columns) whose mean colour texture (``activity``, (H, k) :func:`_texture_row`'s
+    sums) is above ``texture`` (None: every tile), runs less than two margins apart merged, and a run with the same
+    columns as one in the chunk above joined to it."""
+    h, w = grid.h, grid.w
+    band = (np.arange(h) + grid.top) // 2 // CHUNK
+    starts = np.flatnonzero(np.r_[True, band[1:] != band[:-1]])
+    tile = (np.arange(w) + grid.left) // 2 // TILE
+    sums = np.add.reduceat(activity, starts, axis=0)
+    counts = np.diff(np.r_[starts, h])[:, None] * np.bincount(tile, minlength=activity.shape[1])[None, :]
+    active = np.ones(sums.shape, bool) if texture is None else sums > texture * np.maximum(counts, 1)
+    items: list[tuple[int, int, int, int]] = []
+    above: dict[tuple[int, int], int] = {}  # the chunk above's runs: their item
+    for b, row in zip(band[starts], active):
+        first, last = max(b * CHUNK, 1), min((b + 1) * CHUNK, grid.hq - 1)
+        edges = np.flatnonzero(np.diff(np.r_[False, row, False]))
+        runs = list(zip(edges[::2], edges[1::2]))
+        merged: list[list[int]] = []
+        for t0, t1 in runs:
+            if merged and (t0 - merged[-1][1]) * TILE < 2 * MARGIN:
+                merged[-1][1] = t1
+            else:
+                merged.append([t0, t1])
+        here = {}
+        for t0, t1 in merged:
+            span = (max(t0 * TILE, 1), min(t1 * TILE, grid.wq - 1))
+            k = above.get(span, -1)
+            if k >= 0:  # (the same columns as the chunk above: one stream, its rows not computed twice)
+                items[k] = (items[k][0], last, *span)
+            else:
+                k = len(items)
+                items.append((first, last, *span))
+            here[span] = k
+        above = here
+    return items
+
+
 def _site_weights(inp: SveInput, rgb: np.ndarray, grid: Grid, m: np.ndarray, floor: np.float32,
-                  workers: int | Executor) -> np.ndarray | None:
-    """float32 (H, W): the demosaiced channels' weight (module docstring, Where), or None where it is 0
-    everywhere; ``m`` (4, hq, wq) filled with the logarithms of the sites' values plus ``floor``."""
+                  workers: int | Executor) -> tuple[np.ndarray, np.ndarray] | None:
+    """float32 (H, W): the demosaiced channels' weight (module docstring, Where) and float32 (H, k) the colour
+    texture's sums by row and tile (:func:`_texture_row`), or None where the weight is 0 everywhere; ``m``
+    (4, hq, wq) filled with the logarithms of the sites' values plus ``floor``."""
     f32 = np.float32
     sensor = inp.sensor
     exposure = np.asarray(inp.exposure, f32)
     weight = np.empty((grid.h, grid.w), f32)
+    activity = np.empty((grid.h, (grid.left + grid.w) // 2 // TILE + 1), f32)
 
     def piece(part: slice) -> int:
         return _site_weights_rows(rgb, exposure, inp.censored, f32(1.0 / sensor.effective_gain),
                                   f32(sensor.floor_variance), floor, f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)),
-                                  grid.top, grid.left, m, weight, part.start, part.stop)
+                                  grid.top, grid.left, m, weight, activity, part.start, part.stop)
 
     if sum(map_on(workers, piece, _pieces(grid.h))) == 0:
         return None
@@ -642,4 +781,4 @@ def _site_weights(inp: SveInput, rgb: np.ndarray, grid: Grid, m: np.ndarray, flo
     cv2.log(planes, planes)
     for kind in range(4):
         grid.mirror(m[kind], kind)
-    return weight
+    return weight, activity
