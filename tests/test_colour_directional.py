@@ -170,12 +170,12 @@ def test_stage_independent_of_workers():
 
 
 def test_weights_match_opencv_windows():
-    """_site_weights' rings of rows against the windows done with OpenCV: the lattice blend of the 3x3's
-    smallest share (edge replicated) times the 5x5 mean of m^2 / (m^2 + v) (cv2.BORDER_REFLECT), 0 within a
-    pixel of a censored reading; and the planes get ln(max(m, 0) + floor) of each site."""
+    """_block's rings of rows against the windows done with OpenCV: the lattice blend of the 3x3's smallest
+    share (edge replicated) times the 5x5 mean of m^2 / (m^2 + v) (cv2.BORDER_REFLECT), 0 within a pixel of a
+    clipped reading; the planes get ln(max(m, 0) + floor) of each site; and the colour texture by row and tile."""
     import cv2
 
-    from svelive.reconstruction.colour.directional import _site_weights, red_site
+    from svelive.reconstruction.colour.directional import _block, _texture_rows, red_site
     from svelive.reconstruction.colour.lattice import F_HIGH, F_LOW
 
     inp = _frame("dual-iso", seed=6, shape=(150, 70))
@@ -201,14 +201,20 @@ def test_weights_match_opencv_windows():
     texture[:, [0, -1]] = 0
     tiles = (np.arange(inp.shape[1]) + grid.left) // 2 // TILE
     sums = np.stack([texture[:, tiles == t].sum(axis=1) for t in range(tiles.max() + 1)], axis=1)
-    planes = grid.planes(4)
-    for workers in (1, 2):
-        weight, activity = _site_weights(inp, rgb, grid, planes, floor, workers)
-        np.testing.assert_allclose(weight, expected, atol=1e-6)
-        np.testing.assert_allclose(activity[:, :sums.shape[1]], sums, rtol=1e-5, atol=1e-5)
-        logs = grid.planes(4)
-        grid.split(np.log(level + floor).astype(np.float32), logs)
-        np.testing.assert_allclose(planes, logs, rtol=1e-6, atol=1e-6)
+    activity = np.empty((inp.shape[0], sums.shape[1]), np.float32)
+    _texture_rows(rgb, floor, grid.top, grid.left, activity, 0, inp.shape[0])
+    np.testing.assert_allclose(activity, sums, rtol=1e-5, atol=1e-5)
+    planes, weight, corner = _block(inp, rgb, inp.exposure.astype(np.float32), grid, floor, (0, grid.hq),
+                                    (1, grid.wq - 1))
+    assert corner == (0, 0)
+    np.testing.assert_allclose(weight, expected, atol=1e-6)
+    logs = grid.planes(4)
+    grid.split(np.log(level + floor).astype(np.float32), logs)
+    np.testing.assert_allclose(planes, logs, rtol=1e-6, atol=1e-6)
+    # a block's weight is the frame's more than 3 pixels inside its edges
+    rows, columns = (10, 40), (9, 25)
+    _, part, (y0, x0) = _block(inp, rgb, inp.exposure.astype(np.float32), grid, floor, rows, columns)
+    np.testing.assert_array_equal(part[3:-3, 3:-3], weight[y0 + 3:y0 + part.shape[0] - 3, x0 + 3:x0 + part.shape[1] - 3])
 
 
 @pytest.mark.parametrize("pattern", sorted(PATTERNS))
@@ -256,14 +262,15 @@ def test_streamed_columns_match_the_whole_frame(pattern):
                            (50, grid.wq - 1, slice(50 + MARGIN, grid.wq - 1))):
         width = c1 - c0 + 2
         block = np.empty((grid.hq, 8, width), np.float32)
-        _stream(grid, planes, True, rows.start, rows.stop, block, lambda a, b: None, (c0, c1))
+        _stream(grid, np.ascontiguousarray(planes[:, :, c0 - 1:c1 + 1]), True, rows.start, rows.stop, block,
+                lambda a, b: None, (c0, c1))
         np.testing.assert_array_equal(block[rows, :, inside.start - c0 + 1:inside.stop - c0 + 1], whole[rows, :, inside])
 
 
 def test_stage_only_on_tiles_with_colour_texture():
     """With the texture test, the stage's result is the whole frame's (texture None) in the tiles it runs on
     and the input elsewhere; a frame of one colour gets no tile."""
-    from svelive.reconstruction.colour.directional import _site_weights, _spans, red_site
+    from svelive.reconstruction.colour.directional import _spans, _texture_rows, red_site
 
     inp = _frame("dual-iso", seed=8, shape=(200, 160))
     j = joint(inp, METHODS["adaptive"])
@@ -274,7 +281,8 @@ def test_stage_only_on_tiles_with_colour_texture():
         directional_channels(inp, luminance, image, share, floor, texture=texture)
         results[texture] = image
     grid = Grid(inp.shape, red_site(inp))
-    _, activity = _site_weights(inp, j.estimate.image, grid, grid.planes(4), np.float32(floor), 1)
+    activity = np.empty((inp.shape[0], (grid.left + inp.shape[1]) // 2 // TILE + 1), np.float32)
+    _texture_rows(j.estimate.image, np.float32(floor), grid.top, grid.left, activity, 0, inp.shape[0])
     spans = _spans(grid, activity, 0.03)
     assert 0 < len(spans) < len(_spans(grid, activity, None)) * (grid.wq // TILE)
     run = np.zeros(inp.shape, bool)
@@ -285,5 +293,5 @@ def test_stage_only_on_tiles_with_colour_texture():
     assert (results[0.03] != j.estimate.image).any() and run.mean() < 1
     flat = j.estimate.image.copy()
     flat[:] = flat.reshape(-1, 3).mean(axis=0)
-    _, activity = _site_weights(inp, flat, grid, grid.planes(4), np.float32(floor), 1)
+    _texture_rows(flat, np.float32(floor), grid.top, grid.left, activity, 0, inp.shape[0])
     assert _spans(grid, activity, 0.03) == []

@@ -50,8 +50,10 @@ Only where there is colour texture. In tiles (CHUNK plane rows by TILE plane col
 mean of 2 |U - M| / (U + M) is at most TEXTURE (U a pixel's value of its row neighbours' channel from the
 cells, M the mean of those neighbours' own values, both plus the floor: the cells' colour against the
 readings beside it), the demosaicing would only repeat the cells' chroma, and the stage does nothing there.
-It demosaics the runs of the other tiles, each on a block of their columns with MARGIN more on each side
-(bit for bit the whole frame's demosaicing inside the tiles). On the peer frames this keeps 0.98 of the
+A first pass over the frame sums the texture by row and tile (:func:`_texture_rows`); then each run of the
+other tiles gets a block of the planes and its weight, computed on its columns with MARGIN more on each side
+and the stages' rows (:func:`_block`: bit for bit the whole frame's inside the tiles; every block is made
+before any pixel changes), and is demosaiced, exponentiated and blended. On the peer frames this keeps 0.98 of the
 stage's gain (mean PU21 over all channels 27.271 -> 27.258) and runs on 26-100 % of their tiles; on the
 1920x1200 demo frame (a photograph enlarged: smooth at the pixel scale) on 12 %.
 
@@ -100,6 +102,7 @@ class Grid:
         self.rowin = np.ones((2, self.hq), bool)
         for p, (pad, source) in enumerate(self._rows):
             self.rowsrc[p, pad], self.rowin[p, pad] = source, False
+        self.sources = self.rowsrc.tolist()  # (the same as lists, for the stages' rows: :func:`_stage_rows`)
         #: intp (2, k): the padding columns and their mirror sources by column parity (``ncol`` of each)
         self.ncol = np.array([len(c[0]) for c in self._cols], np.intp)
         self.colpad, self.colsrc = np.zeros((2, self.ncol.max()), np.intp), np.zeros((2, self.ncol.max()), np.intp)
@@ -151,7 +154,7 @@ CHUNK = 32
 #: Plane columns of a tile of the colour texture test (module docstring, Where); a tile is CHUNK plane rows high.
 TILE = 16
 #: Plane columns computed beyond a piece's tiles: the stages' reach (one column each) with room to spare.
-MARGIN = 16
+MARGIN = 10
 #: A tile's least mean colour texture (2 |U - M| / (U + M), :func:`_texture_row`) for the stage to run there.
 TEXTURE = 0.03
 #: Stages of the demosaicing: green along rows and columns, gradients, decision, red and blue at the greens,
@@ -365,13 +368,28 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
 def _stage_rows(grid: Grid, first: int, last: int, stages: int) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (stages,) intp: the plane rows each stage computes so that the last one gives rows ``first``
     to ``last``: each stage's rows' neighbours (r - 1 to r + 1) read through their mirror sources."""
-    lo, hi = np.empty(stages, np.intp), np.empty(stages, np.intp)
+    lo, hi = [0] * stages, [0] * stages
     lo[-1], hi[-1] = first, last
     for k in range(stages - 2, -1, -1):
-        rows = np.arange(max(lo[k + 1] - 1, 0), min(hi[k + 1] + 1, grid.hq))
-        sources = grid.rowsrc[:, rows]
-        lo[k], hi[k] = max(int(sources.min()), 1), min(int(sources.max()) + 1, grid.hq - 1)
-    return lo, hi
+        a, b = max(lo[k + 1] - 1, 0), min(hi[k + 1] + 1, grid.hq)
+        # (a row's source is itself but in the padding, within LAG of the ends: the extremes are near a and b)
+        ends = [grid.sources[p][r] for p in (0, 1) for r in range(a, b) if r < a + LAG + 1 or r >= b - LAG - 1]
+        lo[k], hi[k] = max(min(ends), 1), min(max(ends) + 1, grid.hq - 1)
+    return np.array(lo, np.intp), np.array(hi, np.intp)
+
+
+def _block_columns(grid: Grid, offset: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The padding columns (colpad, colsrc, ncol as Grid's) of a block of the planes' columns ``offset`` to
+    ``offset + width``, in its own columns: those inside it (where it reaches an edge of the frame)."""
+    colpad, colsrc, ncol = np.zeros_like(grid.colpad), np.zeros_like(grid.colsrc), np.zeros_like(grid.ncol)
+    if LAG < offset and offset + width < grid.wq - LAG:  # (the padding is within LAG columns of the ends)
+        return colpad, colsrc, ncol
+    for p in range(2):
+        pads, sources = grid.colpad[p, :grid.ncol[p]] - offset, grid.colsrc[p, :grid.ncol[p]] - offset
+        keep = (pads >= 0) & (pads < width) & (sources >= 0) & (sources < width)
+        ncol[p] = keep.sum()
+        colpad[p, :ncol[p]], colsrc[p, :ncol[p]] = pads[keep], sources[keep]
+    return colpad, colsrc, ncol
 
 
 def _scratch(width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -383,29 +401,19 @@ def _scratch(width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _stream(grid: Grid, m: np.ndarray, refine: bool, first: int, last: int, out: np.ndarray, chunk,
-            columns: tuple[int, int] | None = None) -> None:
-    """The demosaicing of plane rows ``first`` to ``last`` (of 1 .. hq - 2) of the planes ``m`` (4, hq, wq,
-    float32, mirrored padding), in chunks of ``out``'s rows (n, 8, width): after each, ``chunk(a, b)`` with plane
-    rows a to b in ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap). ``columns``: (c0, c1), the plane
-    columns computed (default 1 to wq - 1, width wq); else they run on a copy of columns c0 - 1 to c1 (width
-    c1 - c0 + 2; ``out``'s column j is the planes' c0 - 1 + j), and those within MARGIN of a c0 > 1 or a
-    c1 < wq - 1 are not the whole frame's."""
+            columns: tuple[int, int] | None = None, rows: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """The demosaicing of plane rows ``first`` to ``last`` (of 1 .. hq - 2) of the planes ``m`` (float32, mirrored
+    padding), in chunks of ``out``'s rows (n, 8, width): after each, ``chunk(a, b)`` with plane rows a to b in
+    ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap). ``columns``: (c0, c1), the plane columns
+    computed, ``m`` then a block of the planes' columns c0 - 1 to c1 ((4, hq, width), width c1 - c0 + 2; its column
+    j and ``out``'s the planes' c0 - 1 + j; at least rows lo - 1 to hi + 1 of :func:`_stage_rows` filled); by
+    default 1 to wq - 1 of the whole planes (4, hq, wq). Columns within MARGIN of a c0 > 1 or a c1 < wq - 1 are
+    not the whole frame's. ``rows``: :func:`_stage_rows`' (lo, hi) where the caller has them."""
     stages = STAGES if refine else STAGES_UNREFINED
-    lo, hi = _stage_rows(grid, first, last, stages)
-    c0, c1 = (1, grid.wq - 1) if columns is None else columns
+    lo, hi = _stage_rows(grid, first, last, stages) if rows is None else rows
     colpad, colsrc, ncol = grid.colpad, grid.colsrc, grid.ncol
-    if (c0, c1) != (1, grid.wq - 1):
-        o, width = c0 - 1, c1 - c0 + 2
-        r0, r1 = max(int(lo.min()) - 1, 0), min(int(hi.max()) + 1, grid.hq)
-        block = np.empty((4, grid.hq, width), np.float32)  # (rows outside r0 to r1 never read)
-        block[:, r0:r1] = m[:, r0:r1, o:o + width]
-        m = block
-        colpad, colsrc, ncol = np.zeros_like(colpad), np.zeros_like(colsrc), np.zeros_like(ncol)
-        for p in range(2):  # (the padding columns inside the block: where it reaches an edge of the frame)
-            pads, sources = grid.colpad[p, :grid.ncol[p]] - o, grid.colsrc[p, :grid.ncol[p]] - o
-            keep = (pads >= 0) & (pads < width) & (sources >= 0) & (sources < width)
-            ncol[p] = keep.sum()
-            colpad[p, :ncol[p]], colsrc[p, :ncol[p]] = pads[keep], sources[keep]
+    if columns is not None:
+        colpad, colsrc, ncol = _block_columns(grid, columns[0] - 1, m.shape[2])
     rings, d, hz = _scratch(m.shape[2])
     n = out.shape[0]
     t = int(min(lo[k] + k * LAG for k in range(stages)))
@@ -451,17 +459,14 @@ def _run(y, x0, top, left, w):
 
 
 @kernel(inline="always")  # (called from a kernel: inlined, its loops vectorise)
-def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level,
-              across):
-    """Frame row ``y``: each pixel's share of its brightest channel of its own channel's value V (of ``rgb``,
-    float32 (H, W, 3); 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
-    floor variance) / e^2 the noise model's variance at its exposure e), and, if ``write``, max(V, 0) +
+def _site_row(row, ex, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
+    """Row ``y`` of a rectangle of the frame: each pixel's share of its brightest channel of its own channel's value V
+    (of ``row``, float32 (3 W,), its R, G, B; 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
+    floor variance) / e^2 the noise model's variance at its exposure e, of ``ex`` (W,)), and, if ``write``, max(V, 0) +
     ``floor`` (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``,
-    ``left``, and max(U, 0) + ``floor`` into ``across`` (W,), U the pixel's value (of ``rgb``) of the channel of
-    its left and right neighbours. (A flat row and selects between the channels, so that the loop vectorises.)"""
+    ``left``. (A flat row and selects between the channels, so that the loop vectorises.)"""
     zero, one = np.float32(0.0), np.float32(1.0)
     w = share.size
-    row, ex = rgb[y].reshape(-1), exposure[y]
     red_row, odd_left = (y + top) % 2 == 0, left % 2
     for x in range(w):
         r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
@@ -474,8 +479,6 @@ def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, 
         variance = (e * positive * inverse_gain + floor_variance) / (e * e)
         snr[x] = positive * positive / (positive * positive + variance)
         level[x] = positive + floor
-        u = (r if odd else g) if red_row else (g if odd else b)
-        across[x] = max(u, zero) + floor
     if write:
         for x0 in range(2):
             kind, i, j0, n = _run(y, x0, top, left, w)
@@ -551,40 +554,62 @@ def _texture_row(level, across, left, texture, sums):
         sums[t] = total
 
 
+@kernel
+def _texture_rows(rgb, floor, top, left, activity, first, last):
+    """Rows ``first`` to ``last`` of ``activity`` (H, k): each row's colour texture summed by tile
+    (:func:`_texture_row`) of ``rgb`` (float32 (H, W, 3)), the pixels' own channels and their row neighbours'
+    channels plus ``floor`` (grid padding ``top``, ``left``)."""
+    zero = np.float32(0.0)
+    w = rgb.shape[1]
+    level, across, texture = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    for y in range(first, last):
+        row, red_row, odd_left = rgb[y].reshape(-1), (y + top) % 2 == 0, left % 2
+        for x in range(w):
+            r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
+            odd = (x + odd_left) & 1 == 1
+            v = (g if odd else r) if red_row else (b if odd else g)
+            u = (r if odd else g) if red_row else (g if odd else b)
+            level[x] = max(v, zero) + floor
+            across[x] = max(u, zero) + floor
+        _texture_row(level, across, left, texture, activity[y])
+
+
 @kernel(inline="always")
-def _clipped_row(censored, y, top, left, out):
-    """Frame row ``y``'s clipped readings into ``out`` (W,): censored (``censored``, bool (H, W)) with no uncensored
-    reading of their own channel in their 5x5, the channel clipped there (a censored long reading beside
-    uncensored short ones of its channel holds a value, the fill, not a bound; grid padding ``top``, ``left``)."""
+def _clipped_row(censored, y, x0, top, left, out):
+    """The clipped readings of frame row ``y``, columns x0 to x0 + n, into ``out`` (n,): censored (``censored``, bool
+    (H, W)) with no uncensored reading of their own channel in their 5x5, the channel clipped there (a censored long
+    reading beside uncensored short ones of its channel holds a value, the fill, not a bound). ``top``, ``left``:
+    the parities of the grid's padding at (y, x0)."""
     h, w = censored.shape
-    green_parity = (y + top + 1) % 2  # (x + left) % 2 of the greens in this row
-    for x in range(w):
+    green_parity = (top + 1) % 2  # (k + left) % 2 of the greens in this row
+    for k in range(out.size):
+        x = x0 + k
         clipped = censored[y, x]
         if clipped:
-            green = (x + left) % 2 == green_parity
+            green = (k + left) % 2 == green_parity
             for dy in range(-2, 3):
                 for dx in range(-2, 3):
                     yy, xx = y + dy, x + dx
                     same = (dy % 2 == 0 and dx % 2 == 0) or (green and abs(dy) == 1 and abs(dx) == 1)
                     if same and 0 <= yy < h and 0 <= xx < w and not censored[yy, xx]:
                         clipped = False
-        out[x] = clipped
+        out[k] = clipped
 
 
 @kernel
-def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, floor, low, scale, top, left, m,
-                       weight, activity, first, last):
-    """Rows ``first`` to ``last`` of the weight (module docstring, Where; float32 (H, W)) in one pass over
+def _site_weights_rows(rgb, exposure, censored, y0, x0, inverse_gain, floor_variance, floor, low, scale, top, left,
+                       m, weight, first, last):
+    """Rows ``first`` to ``last`` of the weight (module docstring, Where; float32 (h, w)) of the rectangle of the
+    frame at (``y0``, ``x0``) (``rgb``, ``exposure``, ``censored``: the frame's; ``top``, ``left``: the padding of
+    the grid of ``m`` about the rectangle), its windows inside the rectangle, in one pass over
     rings of five rows: the lattice blend of the 3x3's smallest share times the 5x5 mean of the sites'
     signal-to-noise weights, 0 within a pixel of a clipped reading (:func:`_clipped_row` of ``censored``, bool
-    (H, W)).
-    The planes ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`), and ``activity`` (H, k) each
-    row's sums, over the columns of each tile (TILE plane columns), of the colour texture (module docstring,
-    Where). Returns the count of nonzero weights."""
+    (H, W)). The planes ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`). Returns the count of
+    nonzero weights."""
     h, w = weight.shape
     zero, one, fifth = np.float32(0.0), np.float32(1.0), np.float32(1.0 / 25.0)
     share, snr, level = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
-    across, texture, clipped = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.bool_)
+    clipped = np.empty(w, np.bool_)
     smallest, total = np.empty((5, w), np.float32), np.empty((5, w), np.float32)
     near = np.empty((5, w), np.bool_)
     least, mean, close = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.bool_)
@@ -592,12 +617,9 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
     count = 0
     for y in range(first, last):
         while done <= min(y + 2, h - 1):
-            inside = first <= done < last
-            _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, done, inside, share, snr,
-                      level, across)
-            if inside:
-                _texture_row(level, across, left, texture, activity[done])
-            _clipped_row(censored, done, top, left, clipped)
+            _site_row(rgb[y0 + done].reshape(-1)[3 * x0:3 * (x0 + w)], exposure[y0 + done, x0:x0 + w], inverse_gain,
+                      floor_variance, floor, top, left, m, done, first <= done < last, share, snr, level)
+            _clipped_row(censored, y0 + done, x0, (done + top) % 2, left % 2, clipped)
             _row_windows(share, snr, clipped, smallest[done % 5], total[done % 5], near[done % 5])
             done += 1
         up, down = max(y - 1, 0) % 5, min(y + 1, h - 1) % 5
@@ -616,9 +638,9 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
 
 
 @kernel
-def _blend(rgb, luminance, weight, exps, offset, floor, share, top, left, first, last, x0, x1):
-    """Frame rows ``first`` to ``last``, columns ``x0`` to ``x1``: at each pixel of nonzero ``weight``, its other two channels move by the
-    weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq),
+def _blend(rgb, luminance, weight, wy, wx, exps, offset, floor, share, top, left, first, last, x0, x1):
+    """Frame rows ``first`` to ``last``, columns ``x0`` to ``x1``: at each pixel of nonzero ``weight`` (its frame
+    pixel (y, x) at (y - ``wy``, x - ``wx``)), its other two channels move by the weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq),
     plane row i of :func:`_advance`'s output exponentiated at row i % n, its column j the planes' j + ``offset``),
     and the luminance becomes
     sum_c n_c RGB_c (``share``)."""
@@ -637,15 +659,16 @@ def _blend(rgb, luminance, weight, exps, offset, floor, share, top, left, first,
             for k in range(max((x0 - xs + 1) // 2, 0), min((x1 - xs + 1) // 2, count)):
                 first_other[xs + 2 * k] = max(a[j0 + k - offset] - floor, zero)
                 second_other[xs + 2 * k] = max(b[j0 + k - offset] - floor, zero)
-        _blend_row(rgb[y].reshape(-1), luminance[y], weight[y], first_other, second_other, red_row, odd_left,
-                   n0, n1, n2, x0, x1)
+        # (rows sliced to the columns, C-contiguous: the loop from 0 vectorises)
+        _blend_row(rgb[y].reshape(-1)[3 * x0:3 * x1], luminance[y, x0:x1], weight[y - wy, x0 - wx:x1 - wx],
+                   first_other[x0:x1], second_other[x0:x1], red_row, (odd_left + x0) % 2, n0, n1, n2)
 
 
 @kernel(inline="always")
-def _blend_row(row, lum, weight, first_other, second_other, red_row, odd_left, n0, n1, n2, x0, x1):
+def _blend_row(row, lum, weight, first_other, second_other, red_row, odd_left, n0, n1, n2):
     """One row of :func:`_blend` (``row``: the flat RGB row; selects, so that it vectorises)."""
     zero = np.float32(0.0)
-    for x in range(x0, x1):
+    for x in range(lum.size):
         wt = weight[x]
         r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
         odd = (x + odd_left) & 1 == 1
@@ -691,34 +714,77 @@ def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, 
         return False
     f32 = np.float32
     grid = Grid((h, w), red)
-    m = grid.planes(4)
-    found = _site_weights(inp, rgb, grid, m, f32(floor), workers)
-    if found is None:
-        return True
-    weight, activity = found
-    n = np.asarray(share, f32)
+    activity = np.empty((h, (grid.left + w) // 2 // TILE + 1), f32)
+    map_on(workers, lambda part: _texture_rows(rgb, f32(floor), grid.top, grid.left, activity, part.start, part.stop),
+           _pieces(h))
+    n, exposure = np.asarray(share, f32), np.asarray(inp.exposure, f32)
+    stages = STAGES if refine else STAGES_UNREFINED
 
-    def piece(items: list[tuple[int, int, int, int]]) -> None:
-        for first, last, j0, j1 in items:
-            c0, c1 = max(j0 - MARGIN, 1), min(j1 + MARGIN, grid.wq - 1)
-            c0, c1 = 1 if c0 <= MARGIN else c0, grid.wq - 1 if c1 >= grid.wq - 1 - MARGIN else c1  # (edges: mirrored)
-            whole = (c0, c1) == (1, grid.wq - 1)
-            o, width = (0, grid.wq) if whole else (c0 - 1, c1 - c0 + 2)
-            x0, x1 = max(2 * j0 - grid.left, 0), min(2 * j1 - grid.left, w)
-            exps = np.empty((CHUNK, 8, width), f32)
+    def columns(item: tuple[int, int, int, int]) -> tuple[int, int]:  # computed: MARGIN more, to an edge near one
+        c0, c1 = max(item[2] - MARGIN, 1), min(item[3] + MARGIN, grid.wq - 1)
+        return 1 if c0 <= MARGIN else c0, grid.wq - 1 if c1 >= grid.wq - 1 - MARGIN else c1
+
+    def prepare(items: list[tuple[int, int, int, int]]) -> list:
+        out = []
+        for item in items:
+            lo, hi = _stage_rows(grid, item[0], item[1], stages)
+            rows = (max(int(lo.min()) - 1, 0), min(int(hi.max()) + 1, grid.hq))
+            out.append((_block(inp, rgb, exposure, grid, f32(floor), rows, columns(item)), (lo, hi)))
+        return out
+
+    def run(pieces: list) -> None:
+        for (first, last, j0, j1), ((m, weight, (y0, x0)), stage_rows) in pieces:
+            c0, c1 = columns((first, last, j0, j1))
+            ya, yb = max(2 * first - grid.top, 0), min(2 * last - grid.top, h)  # (the frame's pixels of the tiles)
+            xa, xb = max(2 * j0 - grid.left, 0), min(2 * j1 - grid.left, w)
+            if not weight[ya - y0:yb - y0, xa - x0:xb - x0].any():
+                continue
+            exps = np.empty((CHUNK, 8, m.shape[2]), f32)
 
             def chunk(a: int, b: int) -> None:  # plane rows a to b: exp, then the frame rows they hold
-                rows = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, width)
-                cv2.exp(rows, rows)
-                _blend(rgb, luminance, weight, exps, o, f32(floor), n, grid.top, grid.left,
-                       max(2 * a - grid.top, 0), min(2 * b - grid.top, h), x0, x1)
+                part = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, m.shape[2])
+                cv2.exp(part, part)
+                _blend(rgb, luminance, weight, y0, x0, exps, c0 - 1, f32(floor), n, grid.top, grid.left,
+                       max(2 * a - grid.top, 0), min(2 * b - grid.top, h), xa, xb)
 
-            _stream(grid, m, refine, first, last, exps, chunk, (c0, c1))
+            _stream(grid, m, refine, first, last, exps, chunk, (c0, c1), stage_rows)
 
     items = _spans(grid, activity, texture)
     count = 1 if workers == 1 else min(len(items), 4)
-    map_on(workers, piece, [items[k::count] for k in range(count)])
+    groups = [items[k::count] for k in range(count)]
+    # every block read before any pixel changes (a block's margins are other tiles' pixels)
+    blocks = map_on(workers, prepare, groups)
+    map_on(workers, run, [list(zip(group, made)) for group, made in zip(groups, blocks)])
     return True
+
+
+def _block(inp: SveInput, rgb: np.ndarray, exposure: np.ndarray, grid: Grid, floor: np.float32,
+           rows: tuple[int, int], columns: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """A block of the demosaicing's input and the weight (module docstring, Where) about it: ``m`` (4, hq, width)
+    float32, width c1 - c0 + 2, plane rows ``rows`` (r0, r1) and columns c0 - 1 to c1 (``columns`` (c0, c1)) of
+    the planes of ln(max(V, 0) + ``floor``) (``exposure``: float32 (H, W), the readings') with mirrored padding (other rows not filled); the weight of the frame's
+    pixels of those rows and columns (float32 (Y1 - Y0, X1 - X0)) and its corner (Y0, X0). The weight's windows
+    read only that rectangle: within 3 pixels of an edge of it that is not the frame's, it is not the frame's."""
+    f32 = np.float32
+    (r0, r1), (c0, c1) = rows, columns
+    offset, width = c0 - 1, c1 - c0 + 2
+    y0, y1 = max(2 * r0 - grid.top, 0), min(2 * r1 - grid.top, grid.h)
+    x0, x1 = max(2 * offset - grid.left, 0), min(2 * (offset + width) - grid.left, grid.w)
+    m = np.empty((4, grid.hq, width), f32)
+    weight = np.empty((y1 - y0, x1 - x0), f32)
+    sensor = inp.sensor
+    _site_weights_rows(rgb, exposure, inp.censored, y0, x0, f32(1.0 / sensor.effective_gain),
+                       f32(sensor.floor_variance), floor, f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)),
+                       grid.top + y0, grid.left + x0 - 2 * offset, m, weight, 0, y1 - y0)
+    colpad, colsrc, ncol = _block_columns(grid, offset, width)
+    for kind, (py, px) in enumerate(PARITY):
+        plane = m[kind]
+        pads, sources = grid._rows[py]
+        keep = (pads >= r0) & (pads < r1)
+        plane[pads[keep]] = plane[sources[keep]]
+        plane[r0:r1, colpad[px, :ncol[px]]] = plane[r0:r1, colsrc[px, :ncol[px]]]
+        cv2.log(plane[r0:r1], plane[r0:r1])
+    return m, weight, (y0, x0)
 
 
 def _spans(grid: Grid, activity: np.ndarray, texture: float | None) -> list[tuple[int, int, int, int]]:
@@ -757,28 +823,3 @@ def _spans(grid: Grid, activity: np.ndarray, texture: float | None) -> list[tupl
             here[span] = k
         above = here
     return items
-
-
-def _site_weights(inp: SveInput, rgb: np.ndarray, grid: Grid, m: np.ndarray, floor: np.float32,
-                  workers: int | Executor) -> tuple[np.ndarray, np.ndarray] | None:
-    """float32 (H, W): the demosaiced channels' weight (module docstring, Where) and float32 (H, k) the colour
-    texture's sums by row and tile (:func:`_texture_row`), or None where the weight is 0 everywhere; ``m``
-    (4, hq, wq) filled with the logarithms of the sites' values plus ``floor``."""
-    f32 = np.float32
-    sensor = inp.sensor
-    exposure = np.asarray(inp.exposure, f32)
-    weight = np.empty((grid.h, grid.w), f32)
-    activity = np.empty((grid.h, (grid.left + grid.w) // 2 // TILE + 1), f32)
-
-    def piece(part: slice) -> int:
-        return _site_weights_rows(rgb, exposure, inp.censored, f32(1.0 / sensor.effective_gain),
-                                  f32(sensor.floor_variance), floor, f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)),
-                                  grid.top, grid.left, m, weight, activity, part.start, part.stop)
-
-    if sum(map_on(workers, piece, _pieces(grid.h))) == 0:
-        return None
-    planes = m.reshape(-1, grid.wq)
-    cv2.log(planes, planes)
-    for kind in range(4):
-        grid.mirror(m[kind], kind)
-    return weight, activity
