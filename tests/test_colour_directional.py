@@ -186,7 +186,7 @@ def test_weights_match_opencv_windows():
     share = np.where(top > 0, own / np.where(top > 0, top, 1), 1).astype(np.float32)
     e, level = inp.exposure.astype(np.float32), np.maximum(own, 0)
     variance = (e * level / inp.sensor.effective_gain + inp.sensor.floor_variance) / (e * e)
-    snr = (level ** 2 / (level ** 2 + variance)).astype(np.float32)
+    snr = np.where(inp.censored, 0, level ** 2 / (level ** 2 + variance)).astype(np.float32)  # (a fill: 0)
     smallest = cv2.erode(share, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
     expected = np.clip((smallest - F_LOW) / (F_HIGH - F_LOW), 0, 1) * cv2.blur(snr, (5, 5), borderType=cv2.BORDER_REFLECT)
     gate = _clipped(inp)

@@ -39,7 +39,8 @@ demosaicer's green-guided differences fail where green reads noise. So the weigh
 channels is the lattice stage's blend turned round: 0 where the smallest share of its own channel of
 the brightest one, f, over the pixel's 3x3 is below F_LOW, 1 above F_HIGH, linear between; times the
 mean over 5x5 of each site's m^2 / (m^2 + v), its reading's signal-to-noise weight (v from the noise
-model at its own exposure, m its value): noise-dominated readings leave the cells' chroma. Pixels within
+model at its own exposure, m its value; 0 at a censored reading, whose value is a fill: nothing is measured
+there): noise-dominated readings and fills leave the cells' chroma in proportion. Pixels within
 one pixel of a clipped reading (censored, with no uncensored reading of its channel in its 5x5: the channel
 clipped there) keep today's channels (the highlight rules stay: no magenta); a censored long reading beside
 uncensored short ones of its channel holds the fill, a value, and is demosaiced (docs/peers.md: Cannon and
@@ -459,10 +460,11 @@ def _run(y, x0, top, left, w):
 
 
 @kernel(inline="always")  # (called from a kernel: inlined, its loops vectorise)
-def _site_row(row, ex, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
+def _site_row(row, ex, cen, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
     """Row ``y`` of a rectangle of the frame: each pixel's share of its brightest channel of its own channel's value V
     (of ``row``, float32 (3 W,), its R, G, B; 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
-    floor variance) / e^2 the noise model's variance at its exposure e, of ``ex`` (W,)), and, if ``write``, max(V, 0) +
+    floor variance) / e^2 the noise model's variance at its exposure e, of ``ex`` (W,); 0 where ``cen`` (W,), a
+    censored reading: its value is a fill, nothing measured there), and, if ``write``, max(V, 0) +
     ``floor`` (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``,
     ``left``. (A flat row and selects between the channels, so that the loop vectorises.)"""
     zero, one = np.float32(0.0), np.float32(1.0)
@@ -477,7 +479,7 @@ def _site_row(row, ex, inverse_gain, floor_variance, floor, top, left, m, y, wri
         positive = max(v, zero)
         e = ex[x]
         variance = (e * positive * inverse_gain + floor_variance) / (e * e)
-        snr[x] = positive * positive / (positive * positive + variance)
+        snr[x] = zero if cen[x] else positive * positive / (positive * positive + variance)
         level[x] = positive + floor
     if write:
         for x0 in range(2):
@@ -617,8 +619,9 @@ def _site_weights_rows(rgb, exposure, censored, y0, x0, inverse_gain, floor_vari
     count = 0
     for y in range(first, last):
         while done <= min(y + 2, h - 1):
-            _site_row(rgb[y0 + done].reshape(-1)[3 * x0:3 * (x0 + w)], exposure[y0 + done, x0:x0 + w], inverse_gain,
-                      floor_variance, floor, top, left, m, done, first <= done < last, share, snr, level)
+            _site_row(rgb[y0 + done].reshape(-1)[3 * x0:3 * (x0 + w)], exposure[y0 + done, x0:x0 + w],
+                      censored[y0 + done, x0:x0 + w], inverse_gain, floor_variance, floor, top, left, m, done,
+                      first <= done < last, share, snr, level)
             _clipped_row(censored, y0 + done, x0, (done + top) % 2, left % 2, clipped)
             _row_windows(share, snr, clipped, smallest[done % 5], total[done % 5], near[done % 5])
             done += 1
