@@ -374,7 +374,8 @@ def _stage_rows(grid: Grid, first: int, last: int, stages: int) -> tuple[np.ndar
     for k in range(stages - 2, -1, -1):
         a, b = max(lo[k + 1] - 1, 0), min(hi[k + 1] + 1, grid.hq)
         # (a row's source is itself but in the padding, within LAG of the ends: the extremes are near a and b)
-        ends = [grid.sources[p][r] for p in (0, 1) for r in range(a, b) if r < a + LAG + 1 or r >= b - LAG - 1]
+        near = set(range(a, min(a + LAG + 1, b))) | set(range(max(b - LAG - 1, a), b))
+        ends = [grid.sources[p][r] for p in (0, 1) for r in near]
         lo[k], hi[k] = max(min(ends), 1), min(max(ends) + 1, grid.hq - 1)
     return np.array(lo, np.intp), np.array(hi, np.intp)
 
