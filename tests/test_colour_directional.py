@@ -79,7 +79,7 @@ def _frame(layout: str, seed: int = 4, shape: tuple[int, int] = (64, 96), light:
     tint = np.stack([1.0 + 0.5 * (xx > 40), np.ones(shape), 1.2 - 0.4 * (yy > 30)], axis=-1)
     full = BENCH_SENSOR.censor_level / float(Camera.build(layout, sensor=BENCH_SENSOR).require_pattern().levels[0])
     truth = (base[..., None] * tint * rng.uniform(0.9, 1.1, (1, 1, 3)) * 0.02 * full).astype(np.float32)
-    truth[10:10 + size, 10:10 + size] *= light  # a clipped light (in the long readings; above 400 in the short ones too)
+    truth[10:10 + size, 10:10 + size] *= light  # a clipped light (in the long readings; over 400: the short too)
     return prepare(_simulated_rgb(truth, layout, seed), Camera.build(layout, sensor=BENCH_SENSOR))
 
 
@@ -214,7 +214,8 @@ def test_weights_match_opencv_windows():
     # a block's weight is the frame's more than 3 pixels inside its edges
     rows, columns = (10, 40), (9, 25)
     _, part, (y0, x0) = _block(inp, rgb, inp.exposure.astype(np.float32), grid, floor, rows, columns)
-    np.testing.assert_array_equal(part[3:-3, 3:-3], weight[y0 + 3:y0 + part.shape[0] - 3, x0 + 3:x0 + part.shape[1] - 3])
+    inner = (slice(y0 + 3, y0 + part.shape[0] - 3), slice(x0 + 3, x0 + part.shape[1] - 3))
+    np.testing.assert_array_equal(part[3:-3, 3:-3], weight[inner])
 
 
 @pytest.mark.parametrize("pattern", sorted(PATTERNS))
@@ -264,7 +265,8 @@ def test_streamed_columns_match_the_whole_frame(pattern):
         block = np.empty((grid.hq, 8, width), np.float32)
         _stream(grid, np.ascontiguousarray(planes[:, :, c0 - 1:c1 + 1]), True, rows.start, rows.stop, block,
                 lambda a, b: None, (c0, c1))
-        np.testing.assert_array_equal(block[rows, :, inside.start - c0 + 1:inside.stop - c0 + 1], whole[rows, :, inside])
+        got = block[rows, :, inside.start - c0 + 1:inside.stop - c0 + 1]
+        np.testing.assert_array_equal(got, whole[rows, :, inside])
 
 
 def test_stage_only_on_tiles_with_colour_texture():

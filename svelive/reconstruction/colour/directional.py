@@ -54,8 +54,8 @@ readings beside it), the demosaicing would only repeat the cells' chroma, and th
 A first pass over the frame sums the texture by row and tile (:func:`_texture_rows`); then each run of the
 other tiles gets a block of the planes and its weight, computed on its columns with MARGIN more on each side
 and the stages' rows (:func:`_block`: bit for bit the whole frame's inside the tiles; every block is made
-before any pixel changes), and is demosaiced, exponentiated and blended. On the peer frames this keeps 0.98 of the
-stage's gain (mean PU21 over all channels 27.271 -> 27.258) and runs on 26-100 % of their tiles; on the
+before any pixel changes), and is demosaiced, exponentiated and blended. On the peer frames this keeps 0.97 of the
+stage's gain (mean PU21 over all channels 27.273 -> 27.261) and runs on 26-100 % of their tiles; on the
 1920x1200 demo frame (a photograph enlarged: smooth at the pixel scale) on 12 %.
 
 2x2 Bayer CFAs only (others untouched). Each pixel keeps its own channel; the luminance becomes
@@ -185,10 +185,10 @@ def _mirror_cols(row, pads, sources, count):
 
 @kernel
 def _green_row(m, i, gh, gv, s, n):
-    """Step 1 at plane row ``i`` (columns 1 to wq - 2) into ring slot ``s``: green along the rows (``gh``) and
-    the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the planes ``m`` (4, hq,
-    wq), columns 1 to ``n`` - 1: half the site plus half the two greens beside it minus a quarter of the two own sites two pixels
-    away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
+    """Step 1 at plane row ``i`` (columns 1 to ``n`` - 1; n is wq - 1 in every step) into ring slot ``s``: green
+    along the rows (``gh``) and the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the
+    planes ``m`` (4, hq, wq): half the site plus half the two greens beside it minus a quarter of the two own sites
+    two pixels away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
     half, quarter = np.float32(0.5), np.float32(-0.25)
     r, gr, gb, b = m[0], m[1], m[2], m[3]
     for j in range(1, n):
@@ -463,11 +463,11 @@ def _run(y, x0, top, left, w):
 @kernel(inline="always")  # (called from a kernel: inlined, its loops vectorise)
 def _site_row(row, ex, cen, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
     """Row ``y`` of a rectangle of the frame: each pixel's share of its brightest channel of its own channel's value V
-    (of ``row``, float32 (3 W,), its R, G, B; 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
-    floor variance) / e^2 the noise model's variance at its exposure e, of ``ex`` (W,); 0 where ``cen`` (W,), a
-    censored reading: its value is a fill, nothing measured there), and, if ``write``, max(V, 0) +
-    ``floor`` (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``,
-    ``left``. (A flat row and selects between the channels, so that the loop vectorises.)"""
+    (of ``row``, float32 (3 W,), its R, G, B; 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,;
+    v = (e V / g + floor variance) / e^2 the noise model's variance at its exposure e, of ``ex`` (W,); 0 where ``cen``
+    (W,), a censored reading: its value is a fill, nothing measured there), and, if ``write``, max(V, 0) + ``floor``
+    (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``, ``left``. (A flat row
+    and selects between the channels, so that the loop vectorises.)"""
     zero, one = np.float32(0.0), np.float32(1.0)
     w = share.size
     red_row, odd_left = (y + top) % 2 == 0, left % 2
@@ -643,11 +643,10 @@ def _site_weights_rows(rgb, exposure, censored, y0, x0, inverse_gain, floor_vari
 
 @kernel
 def _blend(rgb, luminance, weight, wy, wx, exps, offset, floor, share, top, left, first, last, x0, x1):
-    """Frame rows ``first`` to ``last``, columns ``x0`` to ``x1``: at each pixel of nonzero ``weight`` (its frame
-    pixel (y, x) at (y - ``wy``, x - ``wx``)), its other two channels move by the weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq),
-    plane row i of :func:`_advance`'s output exponentiated at row i % n, its column j the planes' j + ``offset``),
-    and the luminance becomes
-    sum_c n_c RGB_c (``share``)."""
+    """Frame rows ``first`` to ``last``, columns ``x0`` to ``x1``: at each pixel of nonzero ``weight`` (its frame pixel
+    (y, x) at (y - ``wy``, x - ``wx``)), its other two channels move by the weight towards exp of their demosaiced
+    logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq), plane row i of :func:`_advance`'s output exponentiated
+    at row i % n, its column j the planes' j + ``offset``), and the luminance becomes sum_c n_c RGB_c (``share``)."""
     zero = np.float32(0.0)
     w = luminance.shape[1]
     n = exps.shape[0]
@@ -765,10 +764,11 @@ def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, 
 def _block(inp: SveInput, rgb: np.ndarray, exposure: np.ndarray, grid: Grid, floor: np.float32,
            rows: tuple[int, int], columns: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """A block of the demosaicing's input and the weight (module docstring, Where) about it: ``m`` (4, hq, width)
-    float32, width c1 - c0 + 2, plane rows ``rows`` (r0, r1) and columns c0 - 1 to c1 (``columns`` (c0, c1)) of
-    the planes of ln(max(V, 0) + ``floor``) (``exposure``: float32 (H, W), the readings') with mirrored padding (other rows not filled); the weight of the frame's
-    pixels of those rows and columns (float32 (Y1 - Y0, X1 - X0)) and its corner (Y0, X0). The weight's windows
-    read only that rectangle: within 3 pixels of an edge of it that is not the frame's, it is not the frame's."""
+    float32, width c1 - c0 + 2, plane rows ``rows`` (r0, r1) and columns c0 - 1 to c1 (``columns`` (c0, c1)) of the
+    planes of ln(max(V, 0) + ``floor``) (``exposure``: float32 (H, W), the readings') with mirrored padding (other rows
+    not filled); the weight of the frame's pixels of those rows and columns (float32 (Y1 - Y0, X1 - X0)) and its corner
+    (Y0, X0). The weight's windows read only that rectangle: within 3 pixels of an edge of it that is not the frame's,
+    it is not the frame's."""
     f32 = np.float32
     (r0, r1), (c0, c1) = rows, columns
     offset, width = c0 - 1, c1 - c0 + 2
