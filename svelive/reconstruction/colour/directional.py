@@ -184,14 +184,14 @@ def _mirror_cols(row, pads, sources, count):
 
 
 @kernel
-def _green_row(m, i, gh, gv, s, n):
-    """Step 1 at plane row ``i`` (columns 1 to ``n`` - 1; n is wq - 1 in every step) into ring slot ``s``: green
-    along the rows (``gh``) and the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the
-    planes ``m`` (4, hq, wq): half the site plus half the two greens beside it minus a quarter of the two own sites
-    two pixels away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
+def _green_row(m, i, gh, gv, s):
+    """Step 1 at plane row ``i`` (columns 1 to wq - 2) into ring slot ``s``: green along the rows (``gh``) and
+    the columns (``gv``) at the red (gh[0], gv[0]) and blue (gh[1], gv[1]) sites of the planes ``m`` (4, hq,
+    wq): half the site plus half the two greens beside it minus a quarter of the two own sites two pixels
+    away (OpenCV's order of the sums, so that the decision's ties fall as before)."""
     half, quarter = np.float32(0.5), np.float32(-0.25)
     r, gr, gb, b = m[0], m[1], m[2], m[3]
-    for j in range(1, n):
+    for j in range(1, m.shape[2] - 1):
         gh[0, s, j] = r[i, j] * half + (gr[i, j - 1] + gr[i, j]) * half + (r[i, j - 1] + r[i, j + 1]) * quarter
         gv[0, s, j] = r[i, j] * half + (gb[i - 1, j] + gb[i, j]) * half + (r[i - 1, j] + r[i + 1, j]) * quarter
         gh[1, s, j] = b[i, j] * half + (gb[i, j] + gb[i, j + 1]) * half + (b[i, j - 1] + b[i, j + 1]) * quarter
@@ -199,20 +199,20 @@ def _green_row(m, i, gh, gv, s, n):
 
 
 @kernel
-def _gradients_row(m, i, gh, gv, r0, r1, b0, b1, d, s, n):
+def _gradients_row(m, i, gh, gv, r0, r1, b0, b1, d, s):
     """Step 2's gradients at plane row ``i`` into slot ``s`` of ``d`` (4, RING + 1, wq): |C(x) - C(x + 2)| of
     C = X - G along the rows at red (d[0]) and blue (d[2]) sites, along the columns (d[1], d[3]); ``r0``,
     ``r1`` the slots of rows i, i + 1 of the red planes of ``gh``, ``gv``; ``b0``, ``b1`` of the blue ones."""
     for k in range(2):
         x = m[3 * k]
         s0, s1 = (r0, r1) if k == 0 else (b0, b1)
-        for j in range(1, n):
+        for j in range(1, m.shape[2] - 1):
             d[2 * k, s, j] = abs((x[i, j] - gh[k, s0, j]) - (x[i, j + 1] - gh[k, s0, j + 1]))
             d[2 * k + 1, s, j] = abs((x[i, j] - gv[k, s0, j]) - (x[i + 1, j] - gv[k, s1, j]))
 
 
 @kernel(fastmath={"contract"})
-def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sums, n):
+def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sums):
     """Step 2's decision at one plane row: the window sums of the gradients ``d`` (module docstring; slots
     ``ru``, ``rm``, ``rd`` of the red planes' rows i - 1, i, i + 1, ``bu``, ``bm``, ``bd`` of the blue ones;
     summed in the order of OpenCV's filter2D over the full-resolution window); into slot ``s`` of ``g``
@@ -222,7 +222,7 @@ def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sum
     hr0, hr1, hr2, hb0, hb1, hb2 = d[0, ru], d[0, rm], d[0, rd], d[2, bu], d[2, bm], d[2, bd]
     vr0, vr1, vb0, vb1 = d[1, ru], d[1, rm], d[3, bu], d[3, bm]
     rows_r, cols_r, rows_b, cols_b = sums[0], sums[1], sums[2], sums[3]
-    for j in range(1, n):  # (the window sums first, a loop with few arrays: it vectorises)
+    for j in range(1, d.shape[2] - 1):  # (the window sums first, a loop with few arrays: it vectorises)
         t = hr0[j - 1] + hr0[j] + hb0[j - 1]
         t = three * hr1[j] + (three * hr1[j - 1] + t)
         rows_r[j] = t + hb1[j - 1] + hr2[j - 1] + hr2[j]
@@ -235,27 +235,27 @@ def _decide_row(d, ru, rm, rd, bu, bm, bd, gh, gv, r0, b0, g, horizontal, s, sum
         cols_b[j] = three * vb1[j] + t + vb1[j + 1]
     for k in range(2):
         _choose(sums[2 * k], sums[2 * k + 1], gh[k, r0 if k == 0 else b0], gv[k, r0 if k == 0 else b0],
-                g[k, s], horizontal[k, s], n)
+                g[k, s], horizontal[k, s])
 
 
 @kernel(inline="always")
-def _choose(rows, cols, gh, gv, g, horizontal, n):
+def _choose(rows, cols, gh, gv, g, horizontal):
     """Green along the rows (``gh``; ``horizontal`` 1) where ``cols`` >= ``rows``, else ``gv``, into ``g``."""
-    for j in range(1, n):
+    for j in range(1, g.size - 1):
         along = cols[j] >= rows[j]
         horizontal[j] = along
         g[j] = gh[j] if along else gv[j]
 
 
 @kernel
-def _at_green_row(m, i, g, r0, r1, bu, b0, out, s, n):
+def _at_green_row(m, i, g, r0, r1, bu, b0, out, s):
     """Step 3 at the green sites of plane row ``i``, into slot ``s`` of ``out`` (4, RING, wq): red and blue
     at the greens of red rows (out[0], out[1]) and of blue rows (out[2], out[3]): green plus the mean of
     X - G (``g``: green at the red sites, slots ``r0``, ``r1`` of rows i, i + 1, and at the blue ones, ``bu``,
     ``b0`` of rows i - 1, i) over the two X sites beside it."""
     half = np.float32(0.5)
     r, gr, gb, b, gre, gbl = m[0], m[1], m[2], m[3], g[0], g[1]
-    for j in range(1, n):
+    for j in range(1, m.shape[2] - 1):
         out[0, s, j] = gr[i, j] + half * ((r[i, j] - gre[r0, j]) + (r[i, j + 1] - gre[r0, j + 1]))
         out[1, s, j] = gr[i, j] + half * ((b[i - 1, j] - gbl[bu, j]) + (b[i, j] - gbl[b0, j]))
         out[2, s, j] = gb[i, j] + half * ((r[i, j] - gre[r0, j]) + (r[i + 1, j] - gre[r1, j]))
@@ -263,7 +263,7 @@ def _at_green_row(m, i, g, r0, r1, bu, b0, out, s, n):
 
 
 @kernel
-def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1, centre, other, n):
+def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1, centre, other):
     """Step 3 (``centre`` 0) and the refinement (1) at the red and blue sites of plane row ``i``: ``other``
     (2, wq), blue at the red sites and red at the blue ones: the site's value minus (plus) the mean of R - B
     over its two green neighbours along the chosen direction (``greens``: :func:`_at_green_row`'s ring; slots
@@ -272,7 +272,7 @@ def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1
     (2, ., wq), slots ``c0`` and ``c1``: its value from step 3; finite)."""
     r, b, rgr, bgr, rgb, bgb = m[0], m[3], greens[0], greens[1], greens[2], greens[3]
     scale = np.float32(2.0) + centre
-    for j in range(1, n):
+    for j in range(1, m.shape[2] - 1):
         rows = (rgr[p0, j - 1] - bgr[p0, j - 1]) + (rgr[p0, j] - bgr[p0, j])
         cols = (rgb[qu, j] - bgb[qu, j]) + (rgb[q0, j] - bgb[q0, j])
         diff = (rows if horizontal[0, h, j] else cols) + centre * (r[i, j] - before[0, c0, j])
@@ -284,13 +284,13 @@ def _at_opposite_row(m, i, greens, p0, p1, q0, qu, horizontal, h, before, c0, c1
 
 
 @kernel
-def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s, n):
+def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s):
     """The refinement of green at the red and blue sites of plane row ``i`` into slot ``s`` of ``out``: the
     site's value minus the three-pixel mean of X - G along the chosen direction (``g``: green before, slots
     ``g0`` red, ``g1`` blue; other slots as :func:`_at_opposite_row`'s)."""
     third = np.float32(1.0 / 3.0)
     r, gr, gb, b, rgr, bgr, rgb, bgb = m[0], m[1], m[2], m[3], greens[0], greens[1], greens[2], greens[3]
-    for j in range(1, n):
+    for j in range(1, m.shape[2] - 1):
         rows = (rgr[p0, j - 1] - gr[i, j - 1]) + (rgr[p0, j] - gr[i, j])
         cols = (rgb[qu, j] - gb[i - 1, j]) + (rgb[q0, j] - gb[i, j])
         out[0, s, j] = r[i, j] - third * ((rows if horizontal[0, h, j] else cols) + (r[i, j] - g[0, g0, j]))
@@ -318,7 +318,6 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
     sums = np.empty((4, m.shape[2]), np.float32)
     other = np.empty((2, m.shape[2]), np.float32)
     n = out.shape[0]
-    width = m.shape[2] - 1  # (the kernels' loops run from the constant 1: from a variable they did not vectorise)
     for t in range(t0, t1):
         for k in range(last + 1):
             r = t - k * LAG
@@ -328,12 +327,12 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
             p0, p1 = _slot(rowsrc, 0, r), _slot(rowsrc, 0, r + 1)
             q0, q1, qu = _slot(rowsrc, 1, r), _slot(rowsrc, 1, r + 1), _slot(rowsrc, 1, r - 1)
             if k == 0:
-                _green_row(m, r, gh, gv, s, width)
+                _green_row(m, r, gh, gv, s)
                 for c in range(2):  # (plane 0 of each: red sites, column parity 0; plane 1: blue, 1)
                     _mirror_cols(gh[c, s], colpad[c], colsrc[c], ncol[c])
                     _mirror_cols(gv[c, s], colpad[c], colsrc[c], ncol[c])
             elif k == 1:
-                _gradients_row(m, r, gh, gv, p0, p1, q0, q1, d, s, width)
+                _gradients_row(m, r, gh, gv, p0, p1, q0, q1, d, s)
                 for c in range(4):
                     pads = colpad[c // 2]
                     for x in range(ncol[c // 2]):
@@ -341,23 +340,23 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
             elif k == 2:
                 _decide_row(d, _dslot(rowin, 0, r - 1), _dslot(rowin, 0, r), _dslot(rowin, 0, r + 1),
                             _dslot(rowin, 1, r - 1), _dslot(rowin, 1, r), _dslot(rowin, 1, r + 1),
-                            gh, gv, p0, q0, g0, hz, s, sums, width)
+                            gh, gv, p0, q0, g0, hz, s, sums)
                 for c in range(2):
                     _mirror_cols(g0[c, s], colpad[c], colsrc[c], ncol[c])
             elif k == 3 or k == 6:
                 g, gn = (g0, gn0) if k == 3 else (g1, gn1)
-                _at_green_row(m, r, g, p0, p1, qu, q0, gn, s, width)
+                _at_green_row(m, r, g, p0, p1, qu, q0, gn, s)
                 for c in range(4):  # (greens of red rows: column parity 1; of blue rows: 0)
                     _mirror_cols(gn[c, s], colpad[1 - c // 2], colsrc[1 - c // 2], ncol[1 - c // 2])
             elif k == 4:
-                _at_opposite_row(m, r, gn0, p0, p1, q0, qu, hz, r % RING, gv, p0, q0, np.float32(0.0), other, width)
+                _at_opposite_row(m, r, gn0, p0, p1, q0, qu, hz, r % RING, gv, p0, q0, np.float32(0.0), other)
                 o0[:, s] = other
             elif k == 5:
-                _refine_row(m, r, gn0, p0, p1, q0, qu, hz, s, g0, p0, q0, g1, s, width)
+                _refine_row(m, r, gn0, p0, p1, q0, qu, hz, s, g0, p0, q0, g1, s)
                 for c in range(2):
                     _mirror_cols(g1[c, s], colpad[c], colsrc[c], ncol[c])
             else:
-                _at_opposite_row(m, r, gn1, p0, p1, q0, qu, hz, r % RING, o0, s, s, np.float32(1.0), other, width)
+                _at_opposite_row(m, r, gn1, p0, p1, q0, qu, hz, r % RING, o0, s, s, np.float32(1.0), other)
             if k == last:
                 g, gn = (g1, gn1) if refine else (g0, gn0)
                 row = out[r % n]
