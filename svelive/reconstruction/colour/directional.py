@@ -39,9 +39,24 @@ demosaicer's green-guided differences fail where green reads noise. So the weigh
 channels is the lattice stage's blend turned round: 0 where the smallest share of its own channel of
 the brightest one, f, over the pixel's 3x3 is below F_LOW, 1 above F_HIGH, linear between; times the
 mean over 5x5 of each site's m^2 / (m^2 + v), its reading's signal-to-noise weight (v from the noise
-model at its own exposure, m its value): noise-dominated readings leave the cells' chroma. Pixels within
-one pixel of a censored reading keep today's channels (the highlight rules stay: no magenta). The
-logarithm's floor is the longest exposure's read-noise floor, as the lattice stage's.
+model at its own exposure, m its value; 0 at a censored reading, whose value is a fill: nothing is measured
+there): noise-dominated readings and fills leave the cells' chroma in proportion. Pixels within
+one pixel of a clipped reading (censored, with no uncensored reading of its channel in its 5x5: the channel
+clipped there) keep today's channels (the highlight rules stay: no magenta); a censored long reading beside
+uncensored short ones of its channel holds the fill, a value, and is demosaiced (docs/peers.md: Cannon and
+MtTamWest bright +0.3 and +0.1 dB over the gate on every censored reading). The logarithm's floor is the
+longest exposure's read-noise floor, as the lattice stage's.
+
+Only where there is colour texture. In tiles (CHUNK plane rows by TILE plane columns: 64 x 32 pixels) whose
+mean of 2 |U - M| / (U + M) is at most TEXTURE (U a pixel's value of its row neighbours' channel from the
+cells, M the mean of those neighbours' own values, both plus the floor: the cells' colour against the
+readings beside it), the demosaicing would only repeat the cells' chroma, and the stage does nothing there.
+A first pass over the frame sums the texture by row and tile (:func:`_texture_rows`); then each run of the
+other tiles gets a block of the planes and its weight, computed on its columns with MARGIN more on each side
+and the stages' rows (:func:`_block`: bit for bit the whole frame's inside the tiles; every block is made
+before any pixel changes), and is demosaiced, exponentiated and blended. On the peer frames this keeps 0.97 of the
+stage's gain (mean PU21 over all channels 27.273 -> 27.261) and runs on 26-100 % of their tiles; on the
+1920x1200 demo frame (a photograph enlarged: smooth at the pixel scale) on 12 %.
 
 2x2 Bayer CFAs only (others untouched). Each pixel keeps its own channel; the luminance becomes
 sum_c n_c RGB_c where a pixel changed.
@@ -88,6 +103,7 @@ class Grid:
         self.rowin = np.ones((2, self.hq), bool)
         for p, (pad, source) in enumerate(self._rows):
             self.rowsrc[p, pad], self.rowin[p, pad] = source, False
+        self.sources = self.rowsrc.tolist()  # (the same as lists, for the stages' rows: :func:`_stage_rows`)
         #: intp (2, k): the padding columns and their mirror sources by column parity (``ncol`` of each)
         self.ncol = np.array([len(c[0]) for c in self._cols], np.intp)
         self.colpad, self.colsrc = np.zeros((2, self.ncol.max()), np.intp), np.zeros((2, self.ncol.max()), np.intp)
@@ -136,9 +152,12 @@ LAG = 3
 RING = 16
 #: Plane rows exponentiated and blended at a time (the streamed output's ring, (CHUNK, 8, wq)).
 CHUNK = 32
-#: Plane rows of a piece of the stage when it runs on several threads (each piece streams its own rows and
-#: recomputes the stages' reach beyond them).
-STREAM_ROWS = 160
+#: Plane columns of a tile of the colour texture test (module docstring, Where); a tile is CHUNK plane rows high.
+TILE = 16
+#: Plane columns computed beyond a piece's tiles: the stages' reach (one column each) with room to spare.
+MARGIN = 10
+#: A tile's least mean colour texture (2 |U - M| / (U + M), :func:`_texture_row`) for the stage to run there.
+TEXTURE = 0.03
 #: Stages of the demosaicing: green along rows and columns, gradients, decision, red and blue at the greens,
 #: at the opposite sites; with the refinement, green refined, red and blue at the greens and at the opposite
 #: sites again.
@@ -284,7 +303,8 @@ def _refine_row(m, i, greens, p0, p1, q0, qu, horizontal, h, g, g0, g1, out, s):
 def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, lo, hi, t0, t1):
     """The demosaicing's stages (:data:`STAGES`; :data:`STAGES_UNREFINED` without ``refine``) from time
     ``t0`` to ``t1``: at time t stage k computes plane row t - k LAG where that is in its rows lo[k] to
-    hi[k] (plane rows), into its ring (``rings`` float32 (18, RING, wq): green along rows 0-1, along columns
+    hi[k] (plane rows), columns 1 to wq - 2 of ``m`` (4, hq, wq; a whole frame's planes or a block of their
+    columns), into its ring (``rings`` float32 (18, RING, wq): green along rows 0-1, along columns
     2-3, decided 4-5, red and blue at the greens 6-9, the opposite sites 10-11, refined green 12-13, red and
     blue at the greens again 14-17; ``hz`` uint8 (2, RING, wq) the decision; ``d`` (4, RING + 1, wq) the
     gradients, row RING zero). Rows of a plane outside the frame are read from their mirror sources
@@ -348,33 +368,61 @@ def _advance(m, rowsrc, rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, 
 def _stage_rows(grid: Grid, first: int, last: int, stages: int) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (stages,) intp: the plane rows each stage computes so that the last one gives rows ``first``
     to ``last``: each stage's rows' neighbours (r - 1 to r + 1) read through their mirror sources."""
-    lo, hi = np.empty(stages, np.intp), np.empty(stages, np.intp)
+    lo, hi = [0] * stages, [0] * stages
     lo[-1], hi[-1] = first, last
     for k in range(stages - 2, -1, -1):
-        rows = np.arange(max(lo[k + 1] - 1, 0), min(hi[k + 1] + 1, grid.hq))
-        sources = grid.rowsrc[:, rows]
-        lo[k], hi[k] = max(int(sources.min()), 1), min(int(sources.max()) + 1, grid.hq - 1)
-    return lo, hi
+        a, b = max(lo[k + 1] - 1, 0), min(hi[k + 1] + 1, grid.hq)
+        # (a row's source is itself but in the padding, within LAG of the ends: the extremes are near a and b)
+        near = set(range(a, min(a + LAG + 1, b))) | set(range(max(b - LAG - 1, a), b))
+        ends = [grid.sources[p][r] for p in (0, 1) for r in near]
+        lo[k], hi[k] = max(min(ends), 1), min(max(ends) + 1, grid.hq - 1)
+    return np.array(lo, np.intp), np.array(hi, np.intp)
 
 
-def _stream(grid: Grid, m: np.ndarray, refine: bool, first: int, last: int, out: np.ndarray, chunk) -> None:
-    """The demosaicing of plane rows ``first`` to ``last`` (of 1 .. hq - 2) of the planes ``m`` (4, hq, wq,
-    float32, mirrored padding), in chunks of ``out``'s rows (n, 8, wq): after each, ``chunk(a, b)`` with plane
-    rows a to b in ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap)."""
-    stages = STAGES if refine else STAGES_UNREFINED
-    lo, hi = _stage_rows(grid, first, last, stages)
-    rings = np.empty((18, RING, grid.wq), np.float32)
-    d = np.empty((4, RING + 1, grid.wq), np.float32)
+def _block_columns(grid: Grid, offset: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The padding columns (colpad, colsrc, ncol as Grid's) of a block of the planes' columns ``offset`` to
+    ``offset + width``, in its own columns: those inside it (where it reaches an edge of the frame)."""
+    colpad, colsrc, ncol = np.zeros_like(grid.colpad), np.zeros_like(grid.colsrc), np.zeros_like(grid.ncol)
+    if LAG < offset and offset + width < grid.wq - LAG:  # (the padding is within LAG columns of the ends)
+        return colpad, colsrc, ncol
+    for p in range(2):
+        pads, sources = grid.colpad[p, :grid.ncol[p]] - offset, grid.colsrc[p, :grid.ncol[p]] - offset
+        keep = (pads >= 0) & (pads < width) & (sources >= 0) & (sources < width)
+        ncol[p] = keep.sum()
+        colpad[p, :ncol[p]], colsrc[p, :ncol[p]] = pads[keep], sources[keep]
+    return colpad, colsrc, ncol
+
+
+def _scratch(width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The streamed stages' rings for planes ``width`` columns wide (:func:`_advance`'s ``rings``, ``d`` with its
+    zero row, ``hz``)."""
+    d = np.empty((4, RING + 1, width), np.float32)
     d[:, RING] = 0
-    hz = np.empty((2, RING, grid.wq), np.uint8)
+    return np.empty((18, RING, width), np.float32), d, np.empty((2, RING, width), np.uint8)
+
+
+def _stream(grid: Grid, m: np.ndarray, refine: bool, first: int, last: int, out: np.ndarray, chunk,
+            columns: tuple[int, int] | None = None, rows: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """The demosaicing of plane rows ``first`` to ``last`` (of 1 .. hq - 2) of the planes ``m`` (float32, mirrored
+    padding), in chunks of ``out``'s rows (n, 8, width): after each, ``chunk(a, b)`` with plane rows a to b in
+    ``out`` rows a % n to (b - 1) % n (a run: chunks never wrap). ``columns``: (c0, c1), the plane columns
+    computed, ``m`` then a block of the planes' columns c0 - 1 to c1 ((4, hq, width), width c1 - c0 + 2; its column
+    j and ``out``'s the planes' c0 - 1 + j; at least rows lo - 1 to hi + 1 of :func:`_stage_rows` filled); by
+    default 1 to wq - 1 of the whole planes (4, hq, wq). Columns within MARGIN of a c0 > 1 or a c1 < wq - 1 are
+    not the whole frame's. ``rows``: :func:`_stage_rows`' (lo, hi) where the caller has them."""
+    stages = STAGES if refine else STAGES_UNREFINED
+    lo, hi = _stage_rows(grid, first, last, stages) if rows is None else rows
+    colpad, colsrc, ncol = grid.colpad, grid.colsrc, grid.ncol
+    if columns is not None:
+        colpad, colsrc, ncol = _block_columns(grid, columns[0] - 1, m.shape[2])
+    rings, d, hz = _scratch(m.shape[2])
     n = out.shape[0]
     t = int(min(lo[k] + k * LAG for k in range(stages)))
     a = first
     while a < last:
         b = min((a // n + 1) * n, last)
         end = b - 1 + (stages - 1) * LAG + 1
-        _advance(m, grid.rowsrc, grid.rowin, grid.colpad, grid.colsrc, grid.ncol, rings, hz, d, out, refine, lo,
-                 hi, t, end)
+        _advance(m, grid.rowsrc, grid.rowin, colpad, colsrc, ncol, rings, hz, d, out, refine, lo, hi, t, end)
         t = end
         chunk(a, b)
         a = b
@@ -412,15 +460,15 @@ def _run(y, x0, top, left, w):
 
 
 @kernel(inline="always")  # (called from a kernel: inlined, its loops vectorise)
-def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
-    """Frame row ``y``: each pixel's share of its brightest channel of its own channel's value V (of ``rgb``,
-    float32 (H, W, 3); 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,; v = (e V / g +
-    floor variance) / e^2 the noise model's variance at its exposure e), and, if ``write``, max(V, 0) +
-    ``floor`` (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``,
-    ``left``. (A flat row and selects between the channels, so that the loop vectorises.)"""
+def _site_row(row, ex, cen, inverse_gain, floor_variance, floor, top, left, m, y, write, share, snr, level):
+    """Row ``y`` of a rectangle of the frame: each pixel's share of its brightest channel of its own channel's value V
+    (of ``row``, float32 (3 W,), its R, G, B; 1 where all are 0) into ``share`` (W,), V^2 / (V^2 + v) into ``snr`` (W,;
+    v = (e V / g + floor variance) / e^2 the noise model's variance at its exposure e, of ``ex`` (W,); 0 where ``cen``
+    (W,), a censored reading: its value is a fill, nothing measured there), and, if ``write``, max(V, 0) + ``floor``
+    (through ``level``, (W,)) into the planes ``m`` (4, hq, wq) of the grid with padding ``top``, ``left``. (A flat row
+    and selects between the channels, so that the loop vectorises.)"""
     zero, one = np.float32(0.0), np.float32(1.0)
     w = share.size
-    row, ex = rgb[y].reshape(-1), exposure[y]
     red_row, odd_left = (y + top) % 2 == 0, left % 2
     for x in range(w):
         r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
@@ -431,7 +479,7 @@ def _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, 
         positive = max(v, zero)
         e = ex[x]
         variance = (e * positive * inverse_gain + floor_variance) / (e * e)
-        snr[x] = positive * positive / (positive * positive + variance)
+        snr[x] = zero if cen[x] else positive * positive / (positive * positive + variance)
         level[x] = positive + floor
     if write:
         for x0 in range(2):
@@ -489,16 +537,81 @@ def _any(a, b, c, out):
         out[x] = a[x] | b[x] | c[x]
 
 
+@kernel(inline="always")
+def _texture_row(level, across, left, texture, sums):
+    """One row's colour texture (module docstring, Where) summed by tile into ``sums`` (k,): at each pixel but the
+    row's ends, 2 |U - M| / (U + M), U its ``across`` (the cells' value of its neighbours' channel), M the mean
+    of its two neighbours' ``level`` (their own readings' values), both plus the logarithm's floor. ``texture``
+    (W,): scratch."""
+    zero, two, half = np.float32(0.0), np.float32(2.0), np.float32(0.5)
+    w = level.size
+    texture[0], texture[w - 1] = zero, zero
+    for x in range(1, w - 1):
+        u, mid = across[x], half * (level[x - 1] + level[x + 1])
+        texture[x] = two * abs(u - mid) / (u + mid)
+    for t in range(sums.size):  # (tile t: frame columns 2 TILE t - left to 2 TILE (t + 1) - left)
+        total = zero
+        for x in range(max(2 * TILE * t - left, 0), min(2 * TILE * (t + 1) - left, w)):
+            total += texture[x]
+        sums[t] = total
+
+
 @kernel
-def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, floor, low, scale, top, left, m,
-                       weight, first, last):
-    """Rows ``first`` to ``last`` of the weight (module docstring, Where; float32 (H, W)) in one pass over
+def _texture_rows(rgb, floor, top, left, activity, first, last):
+    """Rows ``first`` to ``last`` of ``activity`` (H, k): each row's colour texture summed by tile
+    (:func:`_texture_row`) of ``rgb`` (float32 (H, W, 3)), the pixels' own channels and their row neighbours'
+    channels plus ``floor`` (grid padding ``top``, ``left``)."""
+    zero = np.float32(0.0)
+    w = rgb.shape[1]
+    level, across, texture = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    for y in range(first, last):
+        row, red_row, odd_left = rgb[y].reshape(-1), (y + top) % 2 == 0, left % 2
+        for x in range(w):
+            r, g, b = row[3 * x], row[3 * x + 1], row[3 * x + 2]
+            odd = (x + odd_left) & 1 == 1
+            v = (g if odd else r) if red_row else (b if odd else g)
+            u = (r if odd else g) if red_row else (g if odd else b)
+            level[x] = max(v, zero) + floor
+            across[x] = max(u, zero) + floor
+        _texture_row(level, across, left, texture, activity[y])
+
+
+@kernel(inline="always")
+def _clipped_row(censored, y, x0, top, left, out):
+    """The clipped readings of frame row ``y``, columns x0 to x0 + n, into ``out`` (n,): censored (``censored``, bool
+    (H, W)) with no uncensored reading of their own channel in their 5x5, the channel clipped there (a censored long
+    reading beside uncensored short ones of its channel holds a value, the fill, not a bound). ``top``, ``left``:
+    the parities of the grid's padding at (y, x0)."""
+    h, w = censored.shape
+    green_parity = (top + 1) % 2  # (k + left) % 2 of the greens in this row
+    for k in range(out.size):
+        x = x0 + k
+        clipped = censored[y, x]
+        if clipped:
+            green = (k + left) % 2 == green_parity
+            for dy in range(-2, 3):
+                for dx in range(-2, 3):
+                    yy, xx = y + dy, x + dx
+                    same = (dy % 2 == 0 and dx % 2 == 0) or (green and abs(dy) == 1 and abs(dx) == 1)
+                    if same and 0 <= yy < h and 0 <= xx < w and not censored[yy, xx]:
+                        clipped = False
+        out[k] = clipped
+
+
+@kernel
+def _site_weights_rows(rgb, exposure, censored, y0, x0, inverse_gain, floor_variance, floor, low, scale, top, left,
+                       m, weight, first, last):
+    """Rows ``first`` to ``last`` of the weight (module docstring, Where; float32 (h, w)) of the rectangle of the
+    frame at (``y0``, ``x0``) (``rgb``, ``exposure``, ``censored``: the frame's; ``top``, ``left``: the padding of
+    the grid of ``m`` about the rectangle), its windows inside the rectangle, in one pass over
     rings of five rows: the lattice blend of the 3x3's smallest share times the 5x5 mean of the sites'
-    signal-to-noise weights, 0 within a pixel of a censored reading (``censored``, bool (H, W)). The planes
-    ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`). Returns the count of nonzero weights."""
+    signal-to-noise weights, 0 within a pixel of a clipped reading (:func:`_clipped_row` of ``censored``, bool
+    (H, W)). The planes ``m`` get those rows' max(V, 0) + ``floor`` (:func:`_site_row`). Returns the count of
+    nonzero weights."""
     h, w = weight.shape
     zero, one, fifth = np.float32(0.0), np.float32(1.0), np.float32(1.0 / 25.0)
     share, snr, level = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.float32)
+    clipped = np.empty(w, np.bool_)
     smallest, total = np.empty((5, w), np.float32), np.empty((5, w), np.float32)
     near = np.empty((5, w), np.bool_)
     least, mean, close = np.empty(w, np.float32), np.empty(w, np.float32), np.empty(w, np.bool_)
@@ -506,9 +619,11 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
     count = 0
     for y in range(first, last):
         while done <= min(y + 2, h - 1):
-            _site_row(rgb, exposure, inverse_gain, floor_variance, floor, top, left, m, done,
+            _site_row(rgb[y0 + done].reshape(-1)[3 * x0:3 * (x0 + w)], exposure[y0 + done, x0:x0 + w],
+                      censored[y0 + done, x0:x0 + w], inverse_gain, floor_variance, floor, top, left, m, done,
                       first <= done < last, share, snr, level)
-            _row_windows(share, snr, censored[done], smallest[done % 5], total[done % 5], near[done % 5])
+            _clipped_row(censored, y0 + done, x0, (done + top) % 2, left % 2, clipped)
+            _row_windows(share, snr, clipped, smallest[done % 5], total[done % 5], near[done % 5])
             done += 1
         up, down = max(y - 1, 0) % 5, min(y + 1, h - 1) % 5
         # (the columns' parts one after the other: few arrays a loop, so that each vectorises)
@@ -526,11 +641,11 @@ def _site_weights_rows(rgb, exposure, censored, inverse_gain, floor_variance, fl
 
 
 @kernel
-def _blend(rgb, luminance, weight, exps, floor, share, top, left, first, last):
-    """Frame rows ``first`` to ``last``: at each pixel of nonzero ``weight``, its other two channels move by the
-    weight towards exp of their demosaiced logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq),
-    plane row i of :func:`_advance`'s output exponentiated at row i % n), and the luminance becomes
-    sum_c n_c RGB_c (``share``)."""
+def _blend(rgb, luminance, weight, wy, wx, exps, offset, floor, share, top, left, first, last, x0, x1):
+    """Frame rows ``first`` to ``last``, columns ``x0`` to ``x1``: at each pixel of nonzero ``weight`` (its frame pixel
+    (y, x) at (y - ``wy``, x - ``wx``)), its other two channels move by the weight towards exp of their demosaiced
+    logarithms minus ``floor`` (at least 0; ``exps``: (n, 8, wq), plane row i of :func:`_advance`'s output exponentiated
+    at row i % n, its column j the planes' j + ``offset``), and the luminance becomes sum_c n_c RGB_c (``share``)."""
     zero = np.float32(0.0)
     w = luminance.shape[1]
     n = exps.shape[0]
@@ -538,16 +653,17 @@ def _blend(rgb, luminance, weight, exps, floor, share, top, left, first, last):
     n0, n1, n2 = share[0], share[1], share[2]
     for y in range(first, last):
         red_row, odd_left = (y + top) % 2 == 0, left % 2
-        for x0 in range(2):  # each pixel's other channels (R before G before B) into rows of the frame
-            kind, i, j0, count = _run(y, x0, top, left, w)
+        for xs in range(2):  # each pixel's other channels (R before G before B) into rows of the frame
+            kind, i, j0, count = _run(y, xs, top, left, w)
             e = exps[i % n]
             a, b = (e[0], e[6]) if kind == R else (e[7], e[1]) if kind == B else \
                 (e[2], e[3]) if kind == GR else (e[4], e[5])
-            for k in range(count):
-                first_other[x0 + 2 * k] = max(a[j0 + k] - floor, zero)
-                second_other[x0 + 2 * k] = max(b[j0 + k] - floor, zero)
-        _blend_row(rgb[y].reshape(-1), luminance[y], weight[y], first_other, second_other, red_row, odd_left,
-                   n0, n1, n2)
+            for k in range(max((x0 - xs + 1) // 2, 0), min((x1 - xs + 1) // 2, count)):
+                first_other[xs + 2 * k] = max(a[j0 + k - offset] - floor, zero)
+                second_other[xs + 2 * k] = max(b[j0 + k - offset] - floor, zero)
+        # (rows sliced to the columns, C-contiguous: the loop from 0 vectorises)
+        _blend_row(rgb[y].reshape(-1)[3 * x0:3 * x1], luminance[y, x0:x1], weight[y - wy, x0 - wx:x1 - wx],
+                   first_other[x0:x1], second_other[x0:x1], red_row, (odd_left + x0) % 2, n0, n1, n2)
 
 
 @kernel(inline="always")
@@ -586,11 +702,13 @@ def red_site(inp: SveInput) -> tuple[int, int] | None:
 
 
 def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, share: np.ndarray,
-                         floor: float, refine: bool = True, workers: int | Executor = 1) -> bool:
+                         floor: float, refine: bool = True, workers: int | Executor = 1,
+                         texture: float | None = TEXTURE) -> bool:
     """The stage (module docstring) into ``rgb`` (float32 (H, W, 3), linear, DN at exposure 1) and
     ``luminance`` (float32 (H, W), Y), in place. ``share``: n_c of the CFA. ``floor``: the logarithm's
     floor (DN at exposure 1; the longest exposure's read-noise floor). Each pixel keeps its own channel.
-    ``workers``: threads for its pieces of rows (base.map_on); the result does not depend on it.
+    ``texture``: the tiles' least mean colour texture (module docstring, Where; None: every tile).
+    ``workers``: threads for its pieces (base.map_on); the result does not depend on it.
     Returns False (nothing done) where it does not apply (not a 2x2 Bayer CFA, a frame under 5x5)."""
     h, w = luminance.shape
     red = red_site(inp)
@@ -598,48 +716,113 @@ def directional_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, 
         return False
     f32 = np.float32
     grid = Grid((h, w), red)
-    m = grid.planes(4)
-    weight = _site_weights(inp, rgb, grid, m, f32(floor), workers)
-    if weight is None:
-        return True
-    n = np.asarray(share, f32)
+    activity = np.empty((h, (grid.left + w) // 2 // TILE + 1), f32)
+    map_on(workers, lambda part: _texture_rows(rgb, f32(floor), grid.top, grid.left, activity, part.start, part.stop),
+           _pieces(h))
+    n, exposure = np.asarray(share, f32), np.asarray(inp.exposure, f32)
+    stages = STAGES if refine else STAGES_UNREFINED
 
-    def piece(part: slice) -> None:
-        exps = np.empty((CHUNK, 8, grid.wq), f32)
+    def columns(item: tuple[int, int, int, int]) -> tuple[int, int]:  # computed: MARGIN more, to an edge near one
+        c0, c1 = max(item[2] - MARGIN, 1), min(item[3] + MARGIN, grid.wq - 1)
+        return 1 if c0 <= MARGIN else c0, grid.wq - 1 if c1 >= grid.wq - 1 - MARGIN else c1
 
-        def chunk(a: int, b: int) -> None:  # plane rows a to b: exp, then the frame rows they hold
-            rows = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, grid.wq)
-            cv2.exp(rows, rows)
-            _blend(rgb, luminance, weight, exps, f32(floor), n, grid.top, grid.left,
-                   max(2 * a - grid.top, 0), min(2 * b - grid.top, h))
+    def prepare(items: list[tuple[int, int, int, int]]) -> list:
+        out = []
+        for item in items:
+            lo, hi = _stage_rows(grid, item[0], item[1], stages)
+            rows = (max(int(lo.min()) - 1, 0), min(int(hi.max()) + 1, grid.hq))
+            out.append((_block(inp, rgb, exposure, grid, f32(floor), rows, columns(item)), (lo, hi)))
+        return out
 
-        _stream(grid, m, refine, part.start, part.stop, exps, chunk)
+    def run(pieces: list) -> None:
+        for (first, last, j0, j1), ((m, weight, (y0, x0)), stage_rows) in pieces:
+            c0, c1 = columns((first, last, j0, j1))
+            ya, yb = max(2 * first - grid.top, 0), min(2 * last - grid.top, h)  # (the frame's pixels of the tiles)
+            xa, xb = max(2 * j0 - grid.left, 0), min(2 * j1 - grid.left, w)
+            if not weight[ya - y0:yb - y0, xa - x0:xb - x0].any():
+                continue
+            exps = np.empty((CHUNK, 8, m.shape[2]), f32)
 
-    rows = grid.hq - 2
-    count = 1 if workers == 1 else max(2, -(-rows // STREAM_ROWS))
-    step = -(-rows // count)
-    map_on(workers, piece, [slice(1 + r, 1 + min(r + step, rows)) for r in range(0, rows, step)])
+            def chunk(a: int, b: int) -> None:  # plane rows a to b: exp, then the frame rows they hold
+                part = exps[a % CHUNK:(b - 1) % CHUNK + 1].reshape(-1, m.shape[2])
+                cv2.exp(part, part)
+                _blend(rgb, luminance, weight, y0, x0, exps, c0 - 1, f32(floor), n, grid.top, grid.left,
+                       max(2 * a - grid.top, 0), min(2 * b - grid.top, h), xa, xb)
+
+            _stream(grid, m, refine, first, last, exps, chunk, (c0, c1), stage_rows)
+
+    items = _spans(grid, activity, texture)
+    count = 1 if workers == 1 else min(len(items), 4)
+    groups = [items[k::count] for k in range(count)]
+    # every block read before any pixel changes (a block's margins are other tiles' pixels)
+    blocks = map_on(workers, prepare, groups)
+    map_on(workers, run, [list(zip(group, made)) for group, made in zip(groups, blocks)])
     return True
 
 
-def _site_weights(inp: SveInput, rgb: np.ndarray, grid: Grid, m: np.ndarray, floor: np.float32,
-                  workers: int | Executor) -> np.ndarray | None:
-    """float32 (H, W): the demosaiced channels' weight (module docstring, Where), or None where it is 0
-    everywhere; ``m`` (4, hq, wq) filled with the logarithms of the sites' values plus ``floor``."""
+def _block(inp: SveInput, rgb: np.ndarray, exposure: np.ndarray, grid: Grid, floor: np.float32,
+           rows: tuple[int, int], columns: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """A block of the demosaicing's input and the weight (module docstring, Where) about it: ``m`` (4, hq, width)
+    float32, width c1 - c0 + 2, plane rows ``rows`` (r0, r1) and columns c0 - 1 to c1 (``columns`` (c0, c1)) of the
+    planes of ln(max(V, 0) + ``floor``) (``exposure``: float32 (H, W), the readings') with mirrored padding (other rows
+    not filled); the weight of the frame's pixels of those rows and columns (float32 (Y1 - Y0, X1 - X0)) and its corner
+    (Y0, X0). The weight's windows read only that rectangle: within 3 pixels of an edge of it that is not the frame's,
+    it is not the frame's."""
     f32 = np.float32
+    (r0, r1), (c0, c1) = rows, columns
+    offset, width = c0 - 1, c1 - c0 + 2
+    y0, y1 = max(2 * r0 - grid.top, 0), min(2 * r1 - grid.top, grid.h)
+    x0, x1 = max(2 * offset - grid.left, 0), min(2 * (offset + width) - grid.left, grid.w)
+    m = np.empty((4, grid.hq, width), f32)
+    weight = np.empty((y1 - y0, x1 - x0), f32)
     sensor = inp.sensor
-    exposure = np.asarray(inp.exposure, f32)
-    weight = np.empty((grid.h, grid.w), f32)
+    _site_weights_rows(rgb, exposure, inp.censored, y0, x0, f32(1.0 / sensor.effective_gain),
+                       f32(sensor.floor_variance), floor, f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)),
+                       grid.top + y0, grid.left + x0 - 2 * offset, m, weight, 0, y1 - y0)
+    colpad, colsrc, ncol = _block_columns(grid, offset, width)
+    for kind, (py, px) in enumerate(PARITY):
+        plane = m[kind]
+        pads, sources = grid._rows[py]
+        keep = (pads >= r0) & (pads < r1)
+        plane[pads[keep]] = plane[sources[keep]]
+        plane[r0:r1, colpad[px, :ncol[px]]] = plane[r0:r1, colsrc[px, :ncol[px]]]
+        cv2.log(plane[r0:r1], plane[r0:r1])
+    return m, weight, (y0, x0)
 
-    def piece(part: slice) -> int:
-        return _site_weights_rows(rgb, exposure, inp.censored, f32(1.0 / sensor.effective_gain),
-                                  f32(sensor.floor_variance), floor, f32(F_LOW), f32(1.0 / (F_HIGH - F_LOW)),
-                                  grid.top, grid.left, m, weight, part.start, part.stop)
 
-    if sum(map_on(workers, piece, _pieces(grid.h))) == 0:
-        return None
-    planes = m.reshape(-1, grid.wq)
-    cv2.log(planes, planes)
-    for kind in range(4):
-        grid.mirror(m[kind], kind)
-    return weight
+def _spans(grid: Grid, activity: np.ndarray, texture: float | None) -> list[tuple[int, int, int, int]]:
+    """The pieces of the demosaicing: (first, last, j0, j1), plane rows of one chunk (CHUNK rows) and plane columns
+    of a run of its tiles (TILE columns) whose mean colour texture (``activity``, (H, k) :func:`_texture_row`'s
+    sums) is above ``texture`` (None: every tile), runs less than two margins apart merged, and a run with the same
+    columns as one in the chunk above joined to it."""
+    h, w = grid.h, grid.w
+    band = (np.arange(h) + grid.top) // 2 // CHUNK
+    starts = np.flatnonzero(np.r_[True, band[1:] != band[:-1]])
+    tile = (np.arange(w) + grid.left) // 2 // TILE
+    sums = np.add.reduceat(activity, starts, axis=0)
+    counts = np.diff(np.r_[starts, h])[:, None] * np.bincount(tile, minlength=activity.shape[1])[None, :]
+    active = np.ones(sums.shape, bool) if texture is None else sums > texture * np.maximum(counts, 1)
+    items: list[tuple[int, int, int, int]] = []
+    above: dict[tuple[int, int], int] = {}  # the chunk above's runs: their item
+    for b, row in zip(band[starts], active):
+        first, last = max(b * CHUNK, 1), min((b + 1) * CHUNK, grid.hq - 1)
+        edges = np.flatnonzero(np.diff(np.r_[False, row, False]))
+        runs = list(zip(edges[::2], edges[1::2]))
+        merged: list[list[int]] = []
+        for t0, t1 in runs:
+            if merged and (t0 - merged[-1][1]) * TILE < 2 * MARGIN:
+                merged[-1][1] = t1
+            else:
+                merged.append([t0, t1])
+        here = {}
+        for t0, t1 in merged:
+            span = (max(t0 * TILE, 1), min(t1 * TILE, grid.wq - 1))
+            k = above.get(span, -1)
+            if k >= 0:  # (the same columns as the chunk above: one stream, its rows not computed twice)
+                items[k] = (items[k][0], last, *span)
+            else:
+                k = len(items)
+                items.append((first, last, *span))
+            here[span] = k
+        above = here
+    return items
