@@ -49,7 +49,6 @@ def frames(bias: float, n: int = 8, shape=(24, 24), seed: int = 0):
     rng = np.random.default_rng(seed)
     exposure = np.full(shape, 4.0, np.float32)
     exposure[:, 1::2] *= 2
-    inverse = (1 / exposure).astype(np.float32)
     truth = np.full(shape, 100.0, np.float32)
     reading = truth * np.where(np.arange(shape[1]) % 2 == 1, 1 + bias, 1).astype(np.float32)
     out = []
@@ -57,8 +56,8 @@ def frames(bias: float, n: int = 8, shape=(24, 24), seed: int = 0):
         signal = (reading * exposure + rng.normal(0, 0.5, shape)).astype(np.float32)
         image = (truth + rng.normal(0, 0.05, shape)).astype(np.float32)
         no = np.zeros(shape, bool)
-        out.append(FrameEstimate(image, np.full(shape, 0.01, np.float32), no, no, signal, inverse,
-                                 np.float32(0.01), np.float32(0.25)))
+        out.append(FrameEstimate(image, np.full(shape, 0.01, np.float32), no, no, signal, None,
+                                 np.float32(0.01), np.float32(0.25), exposure=exposure))
     return out
 
 
@@ -68,7 +67,7 @@ def run(stream, error=None):
         if error is not None:
             frame = FrameEstimate(*(getattr(frame, f) for f in ("image", "variance", "bound", "censored", "signal",
                                                                "inverse", "own_slope", "own_floor")),
-                                  share_error=np.full(frame.image.shape, error, np.float32))
+                                  share_error=np.full(frame.image.shape, error, np.float32), exposure=frame.exposure)
         result = fuse(state, frame, MotionConfig(), (2, 1))
         state = result.state
     return result
@@ -81,12 +80,12 @@ def test_a_reading_over_a_small_share_in_one_frame_is_not_taken_in_the_next():
     step took that reading: the trail of a bright coloured disc on a dark ground, quad-bayer)."""
     first, second = frames(0.0, n=2)
     patch = (slice(8, 16), slice(8, 16))
-    inverse = first.inverse.copy()
-    inverse[patch] *= 1000  # a share of 1/1000
+    exposure = first.exposure.copy()
+    exposure[patch] /= 1000  # a share of 1/1000
     signal = first.signal.copy()
     signal[patch] = signal[patch] / 1000 + np.random.default_rng(1).normal(0, 0.5, (8, 8)).astype(np.float32)
-    first = FrameEstimate(first.image, first.variance, first.bound, first.censored, signal, inverse,
-                          first.own_slope, first.own_floor)
+    first = FrameEstimate(first.image, first.variance, first.bound, first.censored, signal, None,
+                          first.own_slope, first.own_floor, exposure=exposure)
     stream = [first, second]
     old = run(stream).image[patch]
     assert np.abs(old - 100).mean() > 20  # the first frame's reading, its noise 250x the second's: taken

@@ -43,7 +43,7 @@ from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
-from svelive.jit import flat, kernel
+from svelive.jit import kernel
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour, settle
 from svelive.reconstruction.colour.interpolate import _pieces
@@ -512,7 +512,7 @@ class Reconstructor:
             estimate = run_method(inp, method, **options)
             return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
         spec.check_options(options)
-        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal, inverse_exposure=self.temporal,
+        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal,
                              **options)
         estimate = parts.estimate
         return inp, replace(estimate, variance=estimate_variance(estimate, parts.luminance_input)), parts
@@ -569,9 +569,12 @@ class Reconstructor:
                                                  executor=self._pool)
         frame = None
         if self.temporal:
-            rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor) if parts is None
-                    else own_reading_scales(lum.exposure, inp.sensor, parts.inverse_exposure))
-            frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
+            if parts is None:
+                frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal,
+                                      *own_reading_rows(self.pattern, inp.shape, inp.sensor), *window)
+            else:
+                frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, None,
+                                      *own_reading_scales(inp.sensor), *window, exposure=lum.exposure)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model,
                          None if parts is None else inp, partial, chroma_of)
@@ -635,7 +638,8 @@ class Reconstructor:
         for target, value in ((frame.image, img), (frame.variance, var), (frame.bound, low), (state.mean, img),
                               (fused.image, img)):
             target[ys, xs] = value
-        inverse = frame.inverse[ys % frame.inverse.shape[0], xs]
+        inverse = (np.float32(1) / frame.exposure[ys, xs] if frame.exposure is not None
+                   else frame.inverse[ys % frame.inverse.shape[0], xs])
         state.own[ys, xs] = np.where(frame.censored[ys, xs], img, frame.signal[ys, xs] * inverse)
         lost = np.isinf(tested_variance[ys, xs])  # the window mean is the method's estimate there
         if lost.any():
@@ -743,8 +747,7 @@ class Reconstructor:
                 rows = _chroma_rows(selected, h, cell[0], source.shape[1], settle.halo_for(inp.pattern)[0])
                 ch = colour.partial_chroma(inp, settle.runs(rows), source, white)
             chroma_of = source, selected.copy(), rows
-            ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True,
-                                                            ch=ch)
+            ch, inter, inp = colour.fold_luminance(inp, False, True, self._threads, ch=ch)
         noise = noise_model(inp) if pending is None else pending.result()
         with self._lock:
             partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
@@ -771,7 +774,7 @@ class Reconstructor:
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
         if colour_input is None:
             return inp, est, partial, None, None
-        return colour_input, est, partial, colour.Joint(est, inp, ch, inter, inverse), chroma_of
+        return colour_input, est, partial, colour.Joint(est, inp, ch, inter), chroma_of
 
     def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
         """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
@@ -1020,43 +1023,12 @@ def _held(est: Estimate, inconsistency: Inconsistency | None) -> tuple[np.ndarra
     return image, OutputVariance(est.variance, None, inconsistency), np.ones(est.image.shape, np.float32)
 
 
-def own_reading_scales(exposure: np.ndarray, sensor: Sensor,
-                       inverse: np.ndarray | None = None) -> tuple[np.ndarray, np.float32, np.float32]:
-    """(inverse, slope, floor) for per-pixel exposures (a colour frame's e', which no tile repeats):
-    1 / e, float32 (H, W), and the numbers the fusion multiplies it (and its square) with for the
-    own reading's variance (svelive.reconstruction.fusion.FrameEstimate); the same values as
-    :func:`own_reading_map`'s tables, without writing and reading two more whole frames.
-    ``inverse``: 1 / e made already (the colour fold writes it beside e'), or None."""
-    if inverse is None:
-        inverse = np.empty(exposure.shape, np.float32)
-        _inverse_pass(*flat(np.ascontiguousarray(exposure, np.float32), inverse))
-    return inverse, np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
-
-
-@kernel
-def _inverse_pass(exposure, inverse):
-    one = np.float32(1.0)
-    for k in range(exposure.size):
-        inverse[k] = one / exposure[k]
-
-
-def own_reading_map(exposure: np.ndarray, sensor: Sensor, scale: float = 1.0) -> tuple[np.ndarray, ...]:
-    """(inverse, slope, floor), float32 (H, W) each, as :func:`own_reading_rows` for per-pixel exposures
-    (a colour frame's e', which no tile repeats): one row phase per frame row."""
-    out = tuple(np.empty(exposure.shape, np.float32) for _ in range(3))
-    _own_reading_pass(*flat(np.ascontiguousarray(exposure, np.float32), *out),
-                      np.float32(scale / sensor.effective_gain), np.float32(scale * sensor.floor_variance))
-    return out
-
-
-@kernel
-def _own_reading_pass(exposure, inverse, slope, floor, slope_scale, floor_scale):
-    one = np.float32(1.0)
-    for k in range(exposure.size):
-        i = one / exposure[k]
-        inverse[k] = i
-        slope[k] = i * slope_scale
-        floor[k] = i * i * floor_scale
+def own_reading_scales(sensor: Sensor) -> tuple[np.float32, np.float32]:
+    """(slope, floor), float32 numbers, for per-pixel exposures (a colour frame's e', which no tile repeats):
+    what the fusion multiplies 1 / e (and its square) with for the own reading's variance, 1 / (e g) and
+    sigma^2 / e^2 (svelive.reconstruction.fusion.FrameEstimate, with its ``exposure``): no tables of whole
+    frames written and read."""
+    return np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
 
 
 def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
