@@ -635,17 +635,18 @@ class Reconstructor:
         partial.stats.update(stats, kept_px=kept)
         if not ys.size:
             return fused
+        at = ys * frame.image.shape[1] + xs  # (flat indices: np.put and np.take, x0.5 of (ys, xs) indexing's time)
         for target, value in ((frame.image, img), (frame.variance, var), (frame.bound, low), (state.mean, img),
                               (fused.image, img)):
-            target[ys, xs] = value
-        inverse = (np.float32(1) / frame.exposure[ys, xs] if frame.exposure is not None
+            np.put(target, at, value)
+        inverse = (np.float32(1) / np.take(frame.exposure, at) if frame.exposure is not None
                    else frame.inverse[ys % frame.inverse.shape[0], xs])
-        state.own[ys, xs] = np.where(frame.censored[ys, xs], img, frame.signal[ys, xs] * inverse)
-        lost = np.isinf(tested_variance[ys, xs])  # the window mean is the method's estimate there
+        np.put(state.own, at, np.where(np.take(frame.censored, at), img, np.take(frame.signal, at) * inverse))
+        lost = np.isinf(np.take(tested_variance, at))  # the window mean is the method's estimate there
         if lost.any():
-            ly, lx = ys[lost], xs[lost]
-            tested[ly, lx], tested_variance[ly, lx] = img[lost], var[lost]
-            state.tested[ly, lx] = img[lost]
+            there = at[lost]
+            for target, value in ((tested, img), (tested_variance, var), (state.tested, img)):
+                np.put(target, there, value[lost])
         return fused
 
     def _settles(self, method: str, camera: Camera) -> bool:
