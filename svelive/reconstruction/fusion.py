@@ -82,6 +82,37 @@ class TemporalState:
         return self.mean if self.test is None else self.test
 
 
+class ShareError(NamedTuple):
+    """:attr:`FrameEstimate.share_error` by cell: pixel (r, c) has ``cells[channels[r % cy, c % cx], r // cy,
+    c // cx]``.
+
+    Attributes:
+        cells: float32 (n, Hc, Wc), each plane's value per cell (a colour frame's: per channel).
+        channels: uint8 (cy, cx), the plane of each pixel of a cell.
+    """
+
+    cells: np.ndarray
+    channels: np.ndarray
+
+
+@kernel(inline="always")
+def _share_row(cells, channels, g, row):
+    """row (W,) = frame row ``g`` of a :class:`ShareError` (``cells``, ``channels``)."""
+    cy, cx = channels.shape
+    w = row.size
+    i, phase = g // cy, channels[g % cy]
+    start = 0
+    if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
+        left, right, start = cells[phase[0], i], cells[phase[1], i], w // 2
+        for j in range(start):
+            row[2 * j] = left[j]
+            row[2 * j + 1] = right[j]
+    for t in range(cx):
+        plane = cells[phase[t], i]
+        for j in range(start, (w - t + cx - 1) // cx):
+            row[j * cx + t] = plane[j]
+
+
 @dataclass(frozen=True)
 class FrameEstimate:
     """What one frame contributes to the history.
@@ -107,7 +138,8 @@ class FrameEstimate:
             (svelive.reconstruction.numerics.window_estimate), so that the test does not depend
             on how sharp the method's ``image`` is. None: ``image`` and ``variance`` themselves.
         share_error: float32 (H, W), the relative variance of an error of each pixel's own reading
-            that frames do not average, or None (none: a monochrome frame). A colour frame's own
+            that frames do not average, or the same by cell (:class:`ShareError`: no plane written
+            and read), or None (none: a monochrome frame). A colour frame's own
             reading is s / (e k), k its cell's share of its channel, which colour within the cells
             moves: the detail step's variance of the fused own reading is then its noise's plus
             ``share_error`` times the fused value squared, so that it does not sharpen towards that bias.
@@ -130,7 +162,7 @@ class FrameEstimate:
     own_floor: np.ndarray | float
     test: np.ndarray | None = None
     test_variance: np.ndarray | None = None
-    share_error: np.ndarray | None = None
+    share_error: np.ndarray | ShareError | None = None
     exposure: np.ndarray | None = None
 
     @property
@@ -458,6 +490,13 @@ def _exceeding_row(i, image, mean, weight, variance, bound, old_bound, censored,
 _NO_TABLE = np.empty((0, 0), np.float32)
 _NO_TABLE.setflags(write=False)
 
+#: :class:`_Frame`'s share error without one, and the cells of a share error given as a plane (H, W): one plane
+#: of cells of 1 x 1 px.
+_NO_SHARES = ShareError(np.empty((0, 0, 0), np.float32), np.zeros((1, 1), np.uint8))
+_ONE_PLANE = np.zeros((1, 1), np.uint8)
+for _array in (*_NO_SHARES, _ONE_PLANE):
+    _array.setflags(write=False)
+
 #: An output of no rows (:class:`_Outputs`' own variance without one): never written, but writable, as the
 #: arrays it stands for are.
 _NO_ROWS = np.empty((0, 0), np.float32)
@@ -654,6 +693,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # the shortest exposure's estimate, kept from the test of a strip to the detail pass
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
+    share = (_NO_SHARES if frame.share_error is None else frame.share_error
+             if isinstance(frame.share_error, ShareError) else ShareError(frame.share_error[None], _ONE_PLANE))
     if frame.exposure is not None:  # the tables' scales: the kernel computes them from 1 / e
         tables = _Tables(frame.exposure, _NO_TABLE, _NO_TABLE, np.float32(frame.own_slope), np.float32(frame.own_floor))
     else:
@@ -710,7 +751,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
                             _History(state.weight[core], state.mean[core], state.own[core], history[core],
                                      _NO_TABLE if own_var is None else state.own_variance[core]),
                             _Frame(frame_image, frame.signal[core], frame.censored[core], tested[core],
-                                   _NO_TABLE if frame.share_error is None else frame.share_error[core]), tables,
+                                   share.cells, share.channels), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
                                      fused_test[core], evidence[core], out[core],
                                      _NO_ROWS if own_var is None else own_var[core]), settings, step,
@@ -944,14 +985,15 @@ class _History(NamedTuple):
 class _Frame(NamedTuple):
     """The new frame's rows of a strip, which :func:`_update_row` reads: (R, W) rows of
     :class:`FrameEstimate`'s image (float32), signal s (float32), censored (bool), tested estimate
-    (float32, read where ``separate``) and share error (float32; of no rows, :data:`_NO_TABLE`, without
-    one)."""
+    (float32, read where ``separate``); and its share error by cell, the whole frame's (:class:`ShareError`'s
+    cells and channels; cells of no planes without one)."""
 
     image: np.ndarray
     signal: np.ndarray
     censored: np.ndarray
     tested: np.ndarray
-    share_error: np.ndarray
+    share_cells: np.ndarray
+    share_channels: np.ndarray
 
 
 class _Tables(NamedTuple):
@@ -1172,7 +1214,7 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
     exposures), the evidence in one of its own.
     """
     old_weight, old_mean, old_own, old_test, old_own_variance = history
-    image, signal, censored, tested, share_error = frame
+    image, signal, censored, tested, share_cells, share_channels = frame
     exposures, own_slope, own_floor, slope_scale, floor_scale = tables
     motion, reset, weight, fused, own = outputs.motion, outputs.reset, outputs.weight, outputs.fused, outputs.own
     fused_test = outputs.fused_test
@@ -1202,11 +1244,12 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
             v = _own_reading_variance(inverse, x, slope_scale, floor_scale)
             own_variance[r, c] = _running_mean(old_own_variance[r, c], v, w, one)
     if detail:
-        if share_error.shape[0]:  # and an error of the own readings that no frame count averages
+        if share_cells.shape[0]:  # and an error of the own readings that no frame count averages
+            _share_row(share_cells, share_channels, first_row + r, row)  # (the row's share errors, then its terms)
             for c in range(image.shape[1]):
                 f = _maximum(fused[r, c], zero)
                 d = own[r, c] - fused[r, c]
-                row[c] = d * d / (own_variance[r, c] * weight[r, c] * noisier + share_error[r, c] * f * f)
+                row[c] = d * d / (own_variance[r, c] * weight[r, c] * noisier + row[c] * f * f)
         elif table_rows:
             q = (first_row + r) % table_rows
             for c in range(image.shape[1]):

@@ -49,8 +49,8 @@ from svelive.reconstruction import colour, settle
 from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, TemporalState,
-                                          fuse)
+from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, ShareError,
+                                          TemporalState, _share_row, fuse)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
@@ -852,7 +852,7 @@ class Reconstructor:
             if parts is not None and self.detail:
                 planes = (chroma_history[:3] if chroma_history is not None
                           and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
-                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
+                frame = replace(frame, share_error=share_error_cells(planes, parts.chroma.layout))
             partial = estimated.partial
             predicted = complete = None
             if partial is not None:
@@ -1033,7 +1033,17 @@ def own_reading_scales(sensor: Sensor) -> tuple[np.float32, np.float32]:
 
 
 def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
-    """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error).
+    """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error): the
+    plane of :func:`share_error_cells`."""
+    out = np.empty(shape, np.float32)
+    cells, channels = share_error_cells(shares, layout)
+    _share_gather(cells, channels, out)
+    return out
+
+
+def share_error_cells(shares: np.ndarray, layout: colour.CellLayout) -> ShareError:
+    """The relative variance of each pixel's share error by cell (fusion.ShareError: the fusion reads it so, no
+    plane of it written and read).
 
     A colour pixel's own reading is s / (e k), k its channel's share interpolated from the cells'
     centres (``shares``, float32 (3, Hc, Wc): a stream's fused shares, else the frame's); colour that
@@ -1045,9 +1055,7 @@ def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int,
     planes = np.ascontiguousarray(shares, np.float32)
     cells = np.empty_like(planes)
     _share_spread(planes, cells)
-    out = np.empty(shape, np.float32)
-    _share_gather(cells, layout.channels, out)
-    return out
+    return ShareError(cells, layout.channels)
 
 
 @kernel
@@ -1085,20 +1093,8 @@ def _spread_of(above, middle, below, left, j, right):
 @kernel
 def _share_gather(cells, channels, out):
     """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell."""
-    cy, cx = channels.shape
-    w = out.shape[1]
     for r in range(out.shape[0]):
-        i, phase, row = r // cy, channels[r % cy], out[r]
-        start = 0
-        if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
-            left, right, start = cells[phase[0], i], cells[phase[1], i], w // 2
-            for j in range(start):
-                row[2 * j] = left[j]
-                row[2 * j + 1] = right[j]
-        for t in range(cx):
-            plane = cells[phase[t], i]
-            for j in range(start, (w - t + cx - 1) // cx):
-                row[j * cx + t] = plane[j]
+        _share_row(cells, channels, r, out[r])
 
 
 def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
