@@ -165,6 +165,11 @@ class FrameEstimate:
     share_error: np.ndarray | ShareError | None = None
     exposure: np.ndarray | None = None
 
+    def __post_init__(self) -> None:
+        if (self.exposure is None) != (self.inverse is not None and np.ndim(self.own_slope) > 0):
+            raise ValueError("FrameEstimate: row-phase tables (inverse, own_slope, own_floor arrays) or per-pixel "
+                             "exposures (exposure, own_slope and own_floor numbers, no inverse)")
+
     @property
     def tested(self) -> tuple[np.ndarray, np.ndarray]:
         """(estimate, variance) the temporal test compares with the history."""
