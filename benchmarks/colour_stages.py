@@ -62,7 +62,8 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("estimate_variance", "reconstruction.stream", "estimate_variance"),
     ("window_estimate", "reconstruction.stream", "window_estimate"),
     ("own_reading_scales", "reconstruction.stream", "own_reading_scales"),
-    ("share_error", "reconstruction.stream", "share_error"),
+    ("share_error", "reconstruction.stream", "share_error"),  # (the plane; the stream's fusion reads it by cell:)
+    ("share_error_cells", "reconstruction.stream", "share_error_cells"),
     ("fuse", "reconstruction.stream", "fuse"),
     ("fuse_chroma", "reconstruction.stream", "fuse_chroma"),
     ("luminance_noise", "reconstruction.stream", "luminance_noise"),

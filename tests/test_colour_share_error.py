@@ -9,15 +9,18 @@ shares from frame to frame: TemporalState.own_variance). Monochrome frames have 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
+import pytest
 
 from svelive import Pattern
 from svelive.core.camera import COLOUR_LAYOUTS
 from svelive.core.cfa import ColourFilter
 from svelive.reconstruction.colour import cell_layout
 from svelive.reconstruction.config import MotionConfig
-from svelive.reconstruction.fusion import FrameEstimate, fuse
-from svelive.reconstruction.stream import share_error
+from svelive.reconstruction.fusion import FrameEstimate, ShareError, fuse
+from svelive.reconstruction.stream import share_error, share_error_cells
 
 
 def layout_of(name: str):
@@ -49,7 +52,6 @@ def frames(bias: float, n: int = 8, shape=(24, 24), seed: int = 0):
     rng = np.random.default_rng(seed)
     exposure = np.full(shape, 4.0, np.float32)
     exposure[:, 1::2] *= 2
-    inverse = (1 / exposure).astype(np.float32)
     truth = np.full(shape, 100.0, np.float32)
     reading = truth * np.where(np.arange(shape[1]) % 2 == 1, 1 + bias, 1).astype(np.float32)
     out = []
@@ -57,8 +59,8 @@ def frames(bias: float, n: int = 8, shape=(24, 24), seed: int = 0):
         signal = (reading * exposure + rng.normal(0, 0.5, shape)).astype(np.float32)
         image = (truth + rng.normal(0, 0.05, shape)).astype(np.float32)
         no = np.zeros(shape, bool)
-        out.append(FrameEstimate(image, np.full(shape, 0.01, np.float32), no, no, signal, inverse,
-                                 np.float32(0.01), np.float32(0.25)))
+        out.append(FrameEstimate(image, np.full(shape, 0.01, np.float32), no, no, signal, None,
+                                 np.float32(0.01), np.float32(0.25), exposure=exposure))
     return out
 
 
@@ -68,7 +70,7 @@ def run(stream, error=None):
         if error is not None:
             frame = FrameEstimate(*(getattr(frame, f) for f in ("image", "variance", "bound", "censored", "signal",
                                                                "inverse", "own_slope", "own_floor")),
-                                  share_error=np.full(frame.image.shape, error, np.float32))
+                                  share_error=np.full(frame.image.shape, error, np.float32), exposure=frame.exposure)
         result = fuse(state, frame, MotionConfig(), (2, 1))
         state = result.state
     return result
@@ -81,12 +83,12 @@ def test_a_reading_over_a_small_share_in_one_frame_is_not_taken_in_the_next():
     step took that reading: the trail of a bright coloured disc on a dark ground, quad-bayer)."""
     first, second = frames(0.0, n=2)
     patch = (slice(8, 16), slice(8, 16))
-    inverse = first.inverse.copy()
-    inverse[patch] *= 1000  # a share of 1/1000
+    exposure = first.exposure.copy()
+    exposure[patch] /= 1000  # a share of 1/1000
     signal = first.signal.copy()
     signal[patch] = signal[patch] / 1000 + np.random.default_rng(1).normal(0, 0.5, (8, 8)).astype(np.float32)
-    first = FrameEstimate(first.image, first.variance, first.bound, first.censored, signal, inverse,
-                          first.own_slope, first.own_floor)
+    first = FrameEstimate(first.image, first.variance, first.bound, first.censored, signal, None,
+                          first.own_slope, first.own_floor, exposure=exposure)
     stream = [first, second]
     old = run(stream).image[patch]
     assert np.abs(old - 100).mean() > 20  # the first frame's reading, its noise 250x the second's: taken
@@ -101,3 +103,34 @@ def test_the_detail_step_does_not_chase_a_bias_within_the_share_error():
     assert np.mean(without) > 115  # the detail step takes the biased own readings
     within = run(frames(0.2), 0.2 ** 2).image[:, biased]
     assert abs(np.mean(within) - 100) < 3  # their bias is within the share's error: the estimate stays
+
+
+@pytest.mark.parametrize("name", ["dual-iso", "quad-bayer"])
+def test_the_fusion_reads_the_share_error_by_cell_as_its_plane_bit_for_bit(name):
+    """The stream gives the fusion its share error by cell (no plane written and read): the same fusion as with
+    the plane, strip by strip (strips of one cell row; a width that cuts the last cells). The error lies around two
+    cells only, so that the output shows where it is: the plane moved by one row gives another."""
+    layout = layout_of(name)
+    cy, cx = layout.cell
+    shape = (6 * cy, 5 * cx - 1)
+    shares = np.ones((3, 6, 5), np.float32)
+    shares[:, 2, 2], shares[0, 4, 1] = 3.0, 0.3
+    cells = share_error_cells(shares, layout)
+    assert isinstance(cells, ShareError)
+    plane = share_error(shares, layout, shape)
+    results = []
+    for error in (plane, cells, np.roll(plane, 1, axis=0)):
+        state = None
+        for frame in frames(0.2, n=4, shape=shape):
+            result = fuse(state, replace(frame, share_error=error), MotionConfig(), (2, 1), strip_rows=cy)
+            state = result.state
+        results.append(result.image)
+    np.testing.assert_array_equal(results[0], results[1])
+    assert not np.array_equal(results[0], results[2])
+
+
+def test_a_frame_takes_tables_or_per_pixel_exposures():
+    frame = frames(0.0, n=1)[0]
+    with pytest.raises(ValueError):  # numbers for the variance need the exposures they scale
+        FrameEstimate(frame.image, frame.variance, frame.bound, frame.censored, frame.signal,
+                      1 / frame.exposure, frame.own_slope, frame.own_floor)

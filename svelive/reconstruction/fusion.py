@@ -82,6 +82,37 @@ class TemporalState:
         return self.mean if self.test is None else self.test
 
 
+class ShareError(NamedTuple):
+    """:attr:`FrameEstimate.share_error` by cell: pixel (r, c) has ``cells[channels[r % cy, c % cx], r // cy,
+    c // cx]``.
+
+    Attributes:
+        cells: float32 (n, Hc, Wc), each plane's value per cell (a colour frame's: per channel).
+        channels: uint8 (cy, cx), the plane of each pixel of a cell.
+    """
+
+    cells: np.ndarray
+    channels: np.ndarray
+
+
+@kernel(inline="always")
+def _share_row(cells, channels, g, row):
+    """row (W,) = frame row ``g`` of a :class:`ShareError` (``cells``, ``channels``)."""
+    cy, cx = channels.shape
+    w = row.size
+    i, phase = g // cy, channels[g % cy]
+    start = 0
+    if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
+        left, right, start = cells[phase[0], i], cells[phase[1], i], w // 2
+        for j in range(start):
+            row[2 * j] = left[j]
+            row[2 * j + 1] = right[j]
+    for t in range(cx):
+        plane = cells[phase[t], i]
+        for j in range(start, (w - t + cx - 1) // cx):
+            row[j * cx + t] = plane[j]
+
+
 @dataclass(frozen=True)
 class FrameEstimate:
     """What one frame contributes to the history.
@@ -93,26 +124,32 @@ class FrameEstimate:
         signal: float32 (H, W), the readings s (DN above black).
         inverse: float32 (P, W), 1 / e by row phase: pixel (r, c) has ``inverse[r % P, c]``
             (P: the tile's rows, or H for a per-pixel exposure map). Rows rather than a
-            whole map, so that the per-pixel pass reads a few rows that stay in cache.
+            whole map, so that the per-pixel pass reads a few rows that stay in cache. None
+            with ``exposure`` instead.
         own_slope, own_floor: float32 (P, W), by row phase likewise, the variance of one frame's
             own reading, ``own_slope * L + own_floor`` at radiance L (1 / (e g) and sigma^2 / e^2),
-            which the detail step compares the fused own readings' differences with; or two
-            numbers a and b standing for the tables ``inverse * a`` and ``inverse * inverse * b``
-            (float32 products), which the kernels then compute instead of reading them (a
-            per-pixel exposure map's tables are whole frames).
+            which the detail step compares the fused own readings' differences with; or, with
+            ``exposure``, two numbers a and b standing for the tables ``a / e`` and ``b / e^2``
+            (float32: (1 / e) * a and (1 / e) * (1 / e) * b), which the kernels then compute
+            instead of reading them (a per-pixel exposure map's tables are whole frames).
         test, test_variance: float32 (H, W), the estimate the temporal test compares with the
             history, and its noise variance (DN, DN^2): a window mean whose loss of resolution
             is the same in every frame of a static scene
             (svelive.reconstruction.numerics.window_estimate), so that the test does not depend
             on how sharp the method's ``image`` is. None: ``image`` and ``variance`` themselves.
         share_error: float32 (H, W), the relative variance of an error of each pixel's own reading
-            that frames do not average, or None (none: a monochrome frame). A colour frame's own
+            that frames do not average, or the same by cell (:class:`ShareError`: no plane written
+            and read), or None (none: a monochrome frame). A colour frame's own
             reading is s / (e k), k its cell's share of its channel, which colour within the cells
             moves: the detail step's variance of the fused own reading is then its noise's plus
             ``share_error`` times the fused value squared, so that it does not sharpen towards that bias.
-            Given only with per-pixel exposures (``own_slope`` and ``own_floor`` numbers, no tables);
+            Given only with per-pixel exposures (``exposure``);
             the fused own readings' noise variance is then tracked in the history
             (:attr:`TemporalState.own_variance`), since e' changes with the shares from frame to frame.
+        exposure: float32 (H, W), each pixel's own exposure e (a colour frame's e' = e k, which no tile
+            repeats and which changes from frame to frame), with ``own_slope`` and ``own_floor`` numbers
+            and no ``inverse``: the kernels take 1 / e as they read it (bit-identical to a plane of
+            1 / e, which is then neither written nor read: a frame's 4 bytes a pixel each way). None else.
     """
 
     image: np.ndarray
@@ -120,12 +157,18 @@ class FrameEstimate:
     bound: np.ndarray
     censored: np.ndarray
     signal: np.ndarray
-    inverse: np.ndarray
+    inverse: np.ndarray | None
     own_slope: np.ndarray | float
     own_floor: np.ndarray | float
     test: np.ndarray | None = None
     test_variance: np.ndarray | None = None
-    share_error: np.ndarray | None = None
+    share_error: np.ndarray | ShareError | None = None
+    exposure: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if (self.exposure is None) != (self.inverse is not None and np.ndim(self.own_slope) > 0):
+            raise ValueError("FrameEstimate: row-phase tables (inverse, own_slope, own_floor arrays) or per-pixel "
+                             "exposures (exposure, own_slope and own_floor numbers, no inverse)")
 
     @property
     def tested(self) -> tuple[np.ndarray, np.ndarray]:
@@ -136,7 +179,9 @@ class FrameEstimate:
     def own(self) -> np.ndarray:
         """float32 (H, W), each pixel's own reading s / e (``image`` where censored), computed on first use."""
         own = np.empty(self.image.shape, np.float32)
-        _own_rows(self.signal, self.inverse, self.censored, self.image, own)
+        per_pixel = self.exposure is not None
+        _own_rows(self.signal, self.exposure if per_pixel else self.inverse, per_pixel, self.censored, self.image,
+                  own)
         return own
 
 
@@ -146,14 +191,23 @@ def _own_reading(signal, inverse, censored, image):
     return image if censored else signal * inverse
 
 
+@kernel(inline="always")
+def _inverse_at(exposures, p, c, per_pixel):
+    """1 / e of pixel (row phase ``p``, column ``c``): ``exposures[p, c]`` holds it (a table of 1 / e by row
+    phase), or holds e itself where ``per_pixel`` (:attr:`FrameEstimate.exposure`)."""
+    return np.float32(1) / exposures[p, c] if per_pixel else exposures[p, c]
+
+
 @kernel
-def _own_rows(signal, inverse, censored, image, out):
-    """out = own readings, (H, W) arrays with ``inverse`` by row phase (P, W)."""
-    period = inverse.shape[0]
+def _own_rows(signal, exposures, per_pixel, censored, image, out):
+    """out = own readings, (H, W) arrays with ``exposures`` by row phase (P, W): 1 / e, or e where
+    ``per_pixel`` (:func:`_inverse_at`)."""
+    period = exposures.shape[0]
     for r in range(out.shape[0]):
         p = r % period
         for c in range(out.shape[1]):
-            out[r, c] = _own_reading(signal[r, c], inverse[p, c], censored[r, c], image[r, c])
+            out[r, c] = _own_reading(signal[r, c], _inverse_at(exposures, p, c, per_pixel), censored[r, c],
+                                     image[r, c])
 
 
 @dataclass(frozen=True)
@@ -441,6 +495,13 @@ def _exceeding_row(i, image, mean, weight, variance, bound, old_bound, censored,
 _NO_TABLE = np.empty((0, 0), np.float32)
 _NO_TABLE.setflags(write=False)
 
+#: :class:`_Frame`'s share error without one, and the cells of a share error given as a plane (H, W): one plane
+#: of cells of 1 x 1 px.
+_NO_SHARES = ShareError(np.empty((0, 0, 0), np.float32), np.zeros((1, 1), np.uint8))
+_ONE_PLANE = np.zeros((1, 1), np.uint8)
+for _array in (*_NO_SHARES, _ONE_PLANE):
+    _array.setflags(write=False)
+
 #: An output of no rows (:class:`_Outputs`' own variance without one): never written, but writable, as the
 #: arrays it stands for are.
 _NO_ROWS = np.empty((0, 0), np.float32)
@@ -474,18 +535,18 @@ def start(frame: FrameEstimate) -> TemporalState:
 
 def own_variance(frame: FrameEstimate) -> np.ndarray:
     """float32 (H, W), the variance of each pixel's own reading at the frame's estimate (a frame without
-    row-phase tables: :class:`FrameEstimate`), as :func:`_update_row` computes it."""
+    row-phase tables, its per-pixel exposures: :class:`FrameEstimate`), as :func:`_update_row` computes it."""
     out = np.empty(frame.image.shape, np.float32)
-    _own_variance_rows(frame.image, frame.inverse, np.float32(frame.own_slope), np.float32(frame.own_floor), out)
+    _own_variance_rows(frame.image, frame.exposure, np.float32(frame.own_slope), np.float32(frame.own_floor), out)
     return out
 
 
 @kernel
-def _own_variance_rows(image, inverse, slope_scale, floor_scale, out):
+def _own_variance_rows(image, exposure, slope_scale, floor_scale, out):
+    one = np.float32(1)
     for r in range(out.shape[0]):
-        p = r % inverse.shape[0]
         for c in range(out.shape[1]):
-            out[r, c] = _own_reading_variance(inverse[p, c], image[r, c], slope_scale, floor_scale)
+            out[r, c] = _own_reading_variance(one / exposure[r, c], image[r, c], slope_scale, floor_scale)
 
 
 @kernel(inline="always")
@@ -637,8 +698,10 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     # the shortest exposure's estimate, kept from the test of a strip to the detail pass
     shortest = np.empty_like(image) if detail and inconsistency is not None else None
 
-    if np.ndim(frame.own_slope) == 0:  # the tables' scales: the kernel computes them from ``inverse``
-        tables = _Tables(frame.inverse, _NO_TABLE, _NO_TABLE, np.float32(frame.own_slope), np.float32(frame.own_floor))
+    share = (_NO_SHARES if frame.share_error is None else frame.share_error
+             if isinstance(frame.share_error, ShareError) else ShareError(frame.share_error[None], _ONE_PLANE))
+    if frame.exposure is not None:  # the tables' scales: the kernel computes them from 1 / e
+        tables = _Tables(frame.exposure, _NO_TABLE, _NO_TABLE, np.float32(frame.own_slope), np.float32(frame.own_floor))
     else:
         tables = _Tables(frame.inverse, frame.own_slope, frame.own_floor, np.float32(0), np.float32(0))
 
@@ -693,7 +756,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
                             _History(state.weight[core], state.mean[core], state.own[core], history[core],
                                      _NO_TABLE if own_var is None else state.own_variance[core]),
                             _Frame(frame_image, frame.signal[core], frame.censored[core], tested[core],
-                                   _NO_TABLE if frame.share_error is None else frame.share_error[core]), tables,
+                                   share.cells, share.channels), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
                                      fused_test[core], evidence[core], out[core],
                                      _NO_ROWS if own_var is None else own_var[core]), settings, step,
@@ -927,27 +990,29 @@ class _History(NamedTuple):
 class _Frame(NamedTuple):
     """The new frame's rows of a strip, which :func:`_update_row` reads: (R, W) rows of
     :class:`FrameEstimate`'s image (float32), signal s (float32), censored (bool), tested estimate
-    (float32, read where ``separate``) and share error (float32; of no rows, :data:`_NO_TABLE`, without
-    one)."""
+    (float32, read where ``separate``); and its share error by cell, the whole frame's (:class:`ShareError`'s
+    cells and channels; cells of no planes without one)."""
 
     image: np.ndarray
     signal: np.ndarray
     censored: np.ndarray
     tested: np.ndarray
-    share_error: np.ndarray
+    share_cells: np.ndarray
+    share_channels: np.ndarray
 
 
 class _Tables(NamedTuple):
     """The frame's row-phase tables (:class:`FrameEstimate`), which :func:`_update_row` reads.
 
     Attributes:
-        inverse: float32 (P, W), 1 / e by row phase.
+        exposures: float32 (P, W), 1 / e by row phase; or, without tables, (H, W) e of each pixel
+            (:attr:`FrameEstimate.exposure`), inverted as read (:func:`_inverse_at`).
         own_slope, own_floor: float32 (P, W) by row phase, one own reading's variance ``own_slope * L +
-            own_floor``; or of no rows (:data:`_NO_TABLE`): ``inverse`` times ``slope_scale``, and squared
+            own_floor``; or of no rows (:data:`_NO_TABLE`): 1 / e times ``slope_scale``, and squared
             times ``floor_scale`` (float32 scalars, 0 with tables).
     """
 
-    inverse: np.ndarray
+    exposures: np.ndarray
     own_slope: np.ndarray
     own_floor: np.ndarray
     slope_scale: np.float32
@@ -1154,15 +1219,16 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
     exposures), the evidence in one of its own.
     """
     old_weight, old_mean, old_own, old_test, old_own_variance = history
-    image, signal, censored, tested, share_error = frame
-    inverse, own_slope, own_floor, slope_scale, floor_scale = tables
+    image, signal, censored, tested, share_cells, share_channels = frame
+    exposures, own_slope, own_floor, slope_scale, floor_scale = tables
     motion, reset, weight, fused, own = outputs.motion, outputs.reset, outputs.weight, outputs.fused, outputs.own
     fused_test = outputs.fused_test
     floor_weight, scale, separate, noisier = settings.floor_weight, settings.scale, settings.separate, settings.noisier
     detail, along = step.enabled, step.along
     one, zero = np.float32(1), np.float32(0)
-    period = inverse.shape[0]
+    period = exposures.shape[0]
     table_rows = own_slope.shape[0]
+    per_pixel = table_rows == 0  # (:class:`_Tables`: ``exposures`` holds e)
     p = (first_row + r) % period
     own_variance = outputs.own_variance
     tracked = own_variance.shape[0] > 0
@@ -1173,21 +1239,22 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
         weight[r, c] = w
         x = image[r, c]
         fused[r, c] = _running_mean(old_mean[r, c], x, w, scale)
-        own[r, c] = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse[p, c], censored[r, c], x),
-                                  w, scale)
+        inverse = _inverse_at(exposures, p, c, per_pixel)
+        own[r, c] = _running_mean(old_own[r, c], _own_reading(signal[r, c], inverse, censored[r, c], x), w, scale)
         if separate:
             fused_test[r, c] = _running_mean(old_test[r, c], tested[r, c], w, scale)
         if tracked:
             # exposures that change from frame to frame (a colour frame's e' = e k): the fused own readings'
             # variance is the running mean of each frame's, at its estimate; no row-phase tables
-            v = _own_reading_variance(inverse[p, c], x, slope_scale, floor_scale)
+            v = _own_reading_variance(inverse, x, slope_scale, floor_scale)
             own_variance[r, c] = _running_mean(old_own_variance[r, c], v, w, one)
     if detail:
-        if share_error.shape[0]:  # and an error of the own readings that no frame count averages
+        if share_cells.shape[0]:  # and an error of the own readings that no frame count averages
+            _share_row(share_cells, share_channels, first_row + r, row)  # (the row's share errors, then its terms)
             for c in range(image.shape[1]):
                 f = _maximum(fused[r, c], zero)
                 d = own[r, c] - fused[r, c]
-                row[c] = d * d / (own_variance[r, c] * weight[r, c] * noisier + share_error[r, c] * f * f)
+                row[c] = d * d / (own_variance[r, c] * weight[r, c] * noisier + row[c] * f * f)
         elif table_rows:
             q = (first_row + r) % table_rows
             for c in range(image.shape[1]):
@@ -1199,7 +1266,7 @@ def _update_row(r, first_row, history, frame, tables, outputs, settings, step, e
             for c in range(image.shape[1]):
                 f = fused[r, c]
                 d = own[r, c] - f
-                i = inverse[p, c]
+                i = _inverse_at(exposures, p, c, per_pixel)
                 row[c] = d * d / ((i * slope_scale * _maximum(f, zero) + i * i * floor_scale) * weight[r, c]
                                   * noisier)
         _symmetric_row(row, along, evidence)

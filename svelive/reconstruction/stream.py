@@ -43,14 +43,14 @@ from svelive.core.errors import SveliveError
 from svelive.core.frame import Frame
 from svelive.core.pattern import Pattern
 from svelive.core.sensor import Sensor
-from svelive.jit import flat, kernel
+from svelive.jit import kernel
 from svelive.noise import NoiseEstimate, NoiseSchedule, StreamNoise
 from svelive.reconstruction import colour, settle
 from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, TemporalState,
-                                          fuse)
+from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, ShareError,
+                                          TemporalState, _share_row, fuse)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
@@ -512,7 +512,7 @@ class Reconstructor:
             estimate = run_method(inp, method, **options)
             return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
         spec.check_options(options)
-        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal, inverse_exposure=self.temporal,
+        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal,
                              **options)
         estimate = parts.estimate
         return inp, replace(estimate, variance=estimate_variance(estimate, parts.luminance_input)), parts
@@ -569,9 +569,12 @@ class Reconstructor:
                                                  executor=self._pool)
         frame = None
         if self.temporal:
-            rows = (own_reading_rows(self.pattern, inp.shape, inp.sensor) if parts is None
-                    else own_reading_scales(lum.exposure, inp.sensor, parts.inverse_exposure))
-            frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, *rows, *window)
+            if parts is None:
+                frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal,
+                                      *own_reading_rows(self.pattern, inp.shape, inp.sensor), *window)
+            else:
+                frame = FrameEstimate(est.image, est.variance, est.lower_bound, lum.censored, lum.signal, None,
+                                      *own_reading_scales(inp.sensor), *window, exposure=lum.exposure)
         return Estimated(est, parts, frame, inconsistency, method, generation, (t1 - t0) * 1e3,
                          (time.perf_counter() - t1) * 1e3, array, base, trusted, signal, camera, model,
                          None if parts is None else inp, partial, chroma_of)
@@ -632,16 +635,18 @@ class Reconstructor:
         partial.stats.update(stats, kept_px=kept)
         if not ys.size:
             return fused
+        at = ys * frame.image.shape[1] + xs  # (flat indices: np.put and np.take, x0.5 of (ys, xs) indexing's time)
         for target, value in ((frame.image, img), (frame.variance, var), (frame.bound, low), (state.mean, img),
                               (fused.image, img)):
-            target[ys, xs] = value
-        inverse = frame.inverse[ys % frame.inverse.shape[0], xs]
-        state.own[ys, xs] = np.where(frame.censored[ys, xs], img, frame.signal[ys, xs] * inverse)
-        lost = np.isinf(tested_variance[ys, xs])  # the window mean is the method's estimate there
+            np.put(target, at, value)
+        inverse = (np.float32(1) / np.take(frame.exposure, at) if frame.exposure is not None
+                   else frame.inverse[ys % frame.inverse.shape[0], xs])
+        np.put(state.own, at, np.where(np.take(frame.censored, at), img, np.take(frame.signal, at) * inverse))
+        lost = np.isinf(np.take(tested_variance, at))  # the window mean is the method's estimate there
         if lost.any():
-            ly, lx = ys[lost], xs[lost]
-            tested[ly, lx], tested_variance[ly, lx] = img[lost], var[lost]
-            state.tested[ly, lx] = img[lost]
+            there = at[lost]
+            for target, value in ((tested, img), (tested_variance, var), (state.tested, img)):
+                np.put(target, there, value[lost])
         return fused
 
     def _settles(self, method: str, camera: Camera) -> bool:
@@ -743,8 +748,7 @@ class Reconstructor:
                 rows = _chroma_rows(selected, h, cell[0], source.shape[1], settle.halo_for(inp.pattern)[0])
                 ch = colour.partial_chroma(inp, settle.runs(rows), source, white)
             chroma_of = source, selected.copy(), rows
-            ch, inter, inp, inverse = colour.fold_luminance(inp, False, True, self._threads, inverse_exposure=True,
-                                                            ch=ch)
+            ch, inter, inp = colour.fold_luminance(inp, False, True, self._threads, ch=ch)
         noise = noise_model(inp) if pending is None else pending.result()
         with self._lock:
             partial = settle.Partial(inp, noise, selected, settle.band_mask(selected, h),
@@ -771,7 +775,7 @@ class Reconstructor:
         est = Estimate(image, lower, variance, window=(window[0], window[1]))
         if colour_input is None:
             return inp, est, partial, None, None
-        return colour_input, est, partial, colour.Joint(est, inp, ch, inter, inverse), chroma_of
+        return colour_input, est, partial, colour.Joint(est, inp, ch, inter), chroma_of
 
     def _settle_at_fuse(self, partial, frame: FrameEstimate, history: TemporalState | None) -> None:
         """Make a partial frame's bands those the stream selects for the history it is fused into (``history``),
@@ -848,7 +852,7 @@ class Reconstructor:
             if parts is not None and self.detail:
                 planes = (chroma_history[:3] if chroma_history is not None
                           and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
-                frame = replace(frame, share_error=share_error(planes, parts.chroma.layout, frame.image.shape))
+                frame = replace(frame, share_error=share_error_cells(planes, parts.chroma.layout))
             partial = estimated.partial
             predicted = complete = None
             if partial is not None:
@@ -1020,47 +1024,26 @@ def _held(est: Estimate, inconsistency: Inconsistency | None) -> tuple[np.ndarra
     return image, OutputVariance(est.variance, None, inconsistency), np.ones(est.image.shape, np.float32)
 
 
-def own_reading_scales(exposure: np.ndarray, sensor: Sensor,
-                       inverse: np.ndarray | None = None) -> tuple[np.ndarray, np.float32, np.float32]:
-    """(inverse, slope, floor) for per-pixel exposures (a colour frame's e', which no tile repeats):
-    1 / e, float32 (H, W), and the numbers the fusion multiplies it (and its square) with for the
-    own reading's variance (svelive.reconstruction.fusion.FrameEstimate); the same values as
-    :func:`own_reading_map`'s tables, without writing and reading two more whole frames.
-    ``inverse``: 1 / e made already (the colour fold writes it beside e'), or None."""
-    if inverse is None:
-        inverse = np.empty(exposure.shape, np.float32)
-        _inverse_pass(*flat(np.ascontiguousarray(exposure, np.float32), inverse))
-    return inverse, np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
-
-
-@kernel
-def _inverse_pass(exposure, inverse):
-    one = np.float32(1.0)
-    for k in range(exposure.size):
-        inverse[k] = one / exposure[k]
-
-
-def own_reading_map(exposure: np.ndarray, sensor: Sensor, scale: float = 1.0) -> tuple[np.ndarray, ...]:
-    """(inverse, slope, floor), float32 (H, W) each, as :func:`own_reading_rows` for per-pixel exposures
-    (a colour frame's e', which no tile repeats): one row phase per frame row."""
-    out = tuple(np.empty(exposure.shape, np.float32) for _ in range(3))
-    _own_reading_pass(*flat(np.ascontiguousarray(exposure, np.float32), *out),
-                      np.float32(scale / sensor.effective_gain), np.float32(scale * sensor.floor_variance))
-    return out
-
-
-@kernel
-def _own_reading_pass(exposure, inverse, slope, floor, slope_scale, floor_scale):
-    one = np.float32(1.0)
-    for k in range(exposure.size):
-        i = one / exposure[k]
-        inverse[k] = i
-        slope[k] = i * slope_scale
-        floor[k] = i * i * floor_scale
+def own_reading_scales(sensor: Sensor) -> tuple[np.float32, np.float32]:
+    """(slope, floor), float32 numbers, for per-pixel exposures (a colour frame's e', which no tile repeats):
+    what the fusion multiplies 1 / e (and its square) with for the own reading's variance, 1 / (e g) and
+    sigma^2 / e^2 (svelive.reconstruction.fusion.FrameEstimate, with its ``exposure``): no tables of whole
+    frames written and read."""
+    return np.float32(1.0 / sensor.effective_gain), np.float32(sensor.floor_variance)
 
 
 def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
-    """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error).
+    """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error): the
+    plane of :func:`share_error_cells`."""
+    out = np.empty(shape, np.float32)
+    cells, channels = share_error_cells(shares, layout)
+    _share_gather(cells, channels, out)
+    return out
+
+
+def share_error_cells(shares: np.ndarray, layout: colour.CellLayout) -> ShareError:
+    """The relative variance of each pixel's share error by cell (fusion.ShareError: the fusion reads it so, no
+    plane of it written and read).
 
     A colour pixel's own reading is s / (e k), k its channel's share interpolated from the cells'
     centres (``shares``, float32 (3, Hc, Wc): a stream's fused shares, else the frame's); colour that
@@ -1072,9 +1055,7 @@ def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int,
     planes = np.ascontiguousarray(shares, np.float32)
     cells = np.empty_like(planes)
     _share_spread(planes, cells)
-    out = np.empty(shape, np.float32)
-    _share_gather(cells, layout.channels, out)
-    return out
+    return ShareError(cells, layout.channels)
 
 
 @kernel
@@ -1112,20 +1093,8 @@ def _spread_of(above, middle, below, left, j, right):
 @kernel
 def _share_gather(cells, channels, out):
     """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell."""
-    cy, cx = channels.shape
-    w = out.shape[1]
     for r in range(out.shape[0]):
-        i, phase, row = r // cy, channels[r % cy], out[r]
-        start = 0
-        if cx == 2:  # cells of two columns spelt out: one loop writing both, that vectorises
-            left, right, start = cells[phase[0], i], cells[phase[1], i], w // 2
-            for j in range(start):
-                row[2 * j] = left[j]
-                row[2 * j + 1] = right[j]
-        for t in range(cx):
-            plane = cells[phase[t], i]
-            for j in range(start, (w - t + cx - 1) // cx):
-                row[j * cx + t] = plane[j]
+        _share_row(cells, channels, r, out[r])
 
 
 def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,

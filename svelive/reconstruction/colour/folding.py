@@ -16,20 +16,16 @@ from svelive.reconstruction.colour.interpolate import Interpolation, _pieces
 from svelive.reconstruction.methods.base import SveInput, map_on
 
 
-def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor = 1,
-                    inverse: np.ndarray | None = None) -> np.ndarray:
-    """e' = e k_c of every pixel, float32 (H, W) (package docstring, step b); ``workers``: base.map_on.
-    With ``inverse`` (float32 (H, W)), 1 / e' is written there in the same pass."""
+def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor = 1) -> np.ndarray:
+    """e' = e k_c of every pixel, float32 (H, W) (package docstring, step b); ``workers``: base.map_on."""
     out = np.empty(inp.shape, np.float32)
     channel_rows = _channel_rows(inp.cfa, inp.shape[1])
-    none = np.empty((0, 0), np.float32)
     # a nominal pattern's exposures repeat with its tile's rows: the kernel reads those rows, not a whole frame
     exposure = inp.exposure if inp.pattern.pixel_map is not None else inp.exposure[:inp.pattern.shape[0]]
     paired = inp.cfa.shape[1] <= 2 <= inp.shape[1]  # each row's channels alternate (or are one)
 
     def piece(rows: slice) -> None:
-        _fold(exposure, channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows],
-              none if inverse is None else inverse[rows], paired)
+        _fold(exposure, channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows], paired)
 
     map_on(workers, piece, _pieces(inp.shape[0]))
     return out
@@ -62,17 +58,15 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
 
 
 @kernel
-def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse, paired):
+def _fold(exposure, channel_rows, first, rows, top, frac, out, paired):
     """out = e k_c of each pixel's channel c (``channel_rows``: the CFA's rows; the arrays' row r is
     frame row ``first`` + r, whose exposures are ``exposure``'s row (``first`` + r) modulo its rows: the
     whole frame's, or a nominal pattern's tile rows), k_c interpolated between the pixel's two cell
     rows. ``paired`` (a CFA of one or two columns, a row of two pixels or more): the row's two channels
     interpolated at every pixel, the pixel's chosen by its column's parity (a loop that vectorises: 3.5
     times faster than a choice by the loaded channel); else the two values of each pixel's channel chosen
-    first (every value loaded before the choice), then one interpolation per pixel.
-    ``inverse``: 1 / out where it is not empty."""
+    first (every value loaded before the choice), then one interpolation per pixel."""
     period, last = channel_rows.shape[0], rows.shape[1] - 1
-    one = np.float32(1.0)
     for r in range(out.shape[0]):
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
@@ -80,15 +74,6 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse, paired):
         if paired:
             c0, c1 = ch[0], ch[1]
             a0, b0, a1, b1 = rows[c0, t0], rows[c0, t1], rows[c1, t0], rows[c1, t1]
-            if inverse.size > 0:  # 1 / e' in the same loop (a second pass over the row cost 20 % more)
-                v = inverse[r]
-                for x in range(o.size):
-                    k0 = a0[x] + (b0[x] - a0[x]) * f
-                    k1 = a1[x] + (b1[x] - a1[x]) * f
-                    folded = e[x] * (k0 if x % 2 == 0 else k1)
-                    o[x] = folded
-                    v[x] = one / folded
-                continue
             for x in range(o.size):
                 k0 = a0[x] + (b0[x] - a0[x]) * f
                 k1 = a1[x] + (b1[x] - a1[x]) * f
@@ -100,10 +85,6 @@ def _fold(exposure, channel_rows, first, rows, top, frac, out, inverse, paired):
                 a = p0 if c == 0 else (p1 if c == 1 else p2)
                 b = q0 if c == 0 else (q1 if c == 1 else q2)
                 o[x] = e[x] * (a + (b - a) * f)
-        if inverse.size > 0:
-            v = inverse[r]
-            for x in range(o.size):
-                v[x] = one / o[x]
 
 
 @kernel
@@ -138,11 +119,10 @@ def _colour_pixel(v, a0, b0, a1, b1, a2, b2, f, o, x):
 
 
 def luminance_input(inp: SveInput, inter: Interpolation, exposures: bool = True,
-                    workers: int | Executor = 1, inverse: np.ndarray | None = None) -> SveInput:
+                    workers: int | Executor = 1) -> SveInput:
     """The monochrome SVE frame of the luminance: exposures e' (``exposures``, folded) or, for a
-    method that reads only the pattern's tile, readings s e / e' with the nominal exposures.
-    ``inverse`` (float32 (H, W)): where 1 / e' is written, with the folding (folded_exposure)."""
-    folded = folded_exposure(inp, inter, workers, inverse)
+    method that reads only the pattern's tile, readings s e / e' with the nominal exposures."""
+    folded = folded_exposure(inp, inter, workers)
     if exposures:  # a calibrated map is in e' already: the nominal tile keeps the method's strips
         pattern = inp.pattern if inp.pattern.pixel_map is None else Pattern(inp.pattern.tile)
         return SveInput(inp.signal, folded, inp.censored, pattern, inp.sensor, inp.integral, folded=True)

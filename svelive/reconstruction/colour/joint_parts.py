@@ -30,40 +30,34 @@ class Joint:
         chroma: the frame's chroma.
         interpolation: its interpolation (shares, and the coarse luminance after them when the
             luminance was refined).
-        inverse_exposure: float32 (H, W), 1 / e' of ``luminance_input`` where it was asked for
-            with folded exposures (a stream's fusion reads it), else None.
     """
 
     estimate: Estimate
     luminance_input: SveInput
     chroma: Chroma
     interpolation: Interpolation
-    inverse_exposure: np.ndarray | None = None
 
 
-def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1, inverse_exposure: bool = False,
-                   ch: Chroma | None = None) -> tuple[Chroma, Interpolation, SveInput, np.ndarray | None]:
+def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1,
+                   ch: Chroma | None = None) -> tuple[Chroma, Interpolation, SveInput]:
     """The steps before the mono method (:func:`joint`'s, and a stream's band refresh's): the frame's chroma (``ch``
     where given: a stream's, colour.partial_chroma), its interpolation (with the coarse luminance where ``coarse``)
     and the monochrome input of the luminance (folded exposures e' with ``exposures``,
-    svelive.reconstruction.colour.folding.luminance_input), and 1 / e' (float32 (H, W)) where ``inverse_exposure``
-    asks for it, else None."""
+    svelive.reconstruction.colour.folding.luminance_input)."""
     ch = chroma(inp) if ch is None else ch
     inter = interpolation(ch, coarse=coarse)
-    inverse = np.empty(inp.shape, np.float32) if inverse_exposure else None
-    return ch, inter, luminance_input(inp, inter, exposures, workers, inverse), inverse
+    return ch, inter, luminance_input(inp, inter, exposures, workers)
 
 
-def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, inverse_exposure: bool = False,
-          site_chroma: bool = False, lattice: bool = True, directional: bool = False, **options) -> Joint:
+def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, site_chroma: bool = False,
+          lattice: bool = True, directional: bool = False, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
     chroma's scale (:func:`refine`); the estimate's variance is then the refined one's.
     ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
-    ``inverse_exposure``: also 1 / e' (Joint.inverse_exposure), made while e' is (a method that
-    reads per-pixel exposures only). ``site_chroma`` (opt-in, docs/peers.md): with ``rgb``, each
+    ``site_chroma`` (opt-in, docs/peers.md): with ``rgb``, each
     pixel's colour ratios from its own 3x3 neighbourhood where the noise model supports them
     (svelive.reconstruction.colour.sites; 2x2 Bayer CFAs), the cells' elsewhere. ``lattice`` (default on):
     with ``rgb``, a strongly saturated colour's other channels from their own lattices where a pixel's own
@@ -73,8 +67,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     and the readings are above their noise (svelive.reconstruction.colour.directional; 2x2 Bayer CFAs).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
-    ch, inter, lum, inverse = fold_luminance(inp, spec.variance and refined, spec.exposures, workers,
-                                             inverse_exposure and spec.exposures)
+    ch, inter, lum = fold_luminance(inp, spec.variance and refined, spec.exposures, workers)
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
@@ -93,4 +86,4 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
             directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout), workers=workers)
         if site_chroma:
             site_chroma_into(inp, luminance, image, ch.layout.share, workers)
-    return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter, inverse)
+    return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter)
