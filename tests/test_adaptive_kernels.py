@@ -511,6 +511,24 @@ def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
         np.testing.assert_array_equal(fallback._held(censored, by, bx), flags > 0.5)
 
 
+@pytest.mark.parametrize("block", [(3, 3), (5, 3), (3, 1), (1, 3), (9, 9)])
+@pytest.mark.parametrize("shape", [(290, 1920), (27, 27), (30, 9), (100, 45), (45, 31)])
+def test_threefold_box_sums_are_the_box_filters_three_times_larger(block, shape):
+    """The wide fallback's next scale's block sums, made from the last scale's (3 x 3 of them around each pixel),
+    are OpenCV's box filter three times as large, borders reflect-101 included, within float32 rounding (OpenCV
+    sums in float64); sparse weights with empty blocks give exact zeros."""
+    by, bx = block
+    if 3 * by > shape[0] or 3 * bx > shape[1]:
+        pytest.skip("blocks larger than the array")
+    rng = np.random.default_rng(shape[0] + by)
+    for values in (rng.uniform(0, 10, shape), rng.uniform(-5, 10, shape) * (rng.random(shape) < 0.05)):
+        values = values.astype(np.float32)
+        expected = fallback._box(values, 3 * by, 3 * bx)
+        got = fallback._box(values, by, bx)
+        fallback._threefold(got, by, bx, np.empty_like(got))
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * float(np.abs(expected).max()))
+        np.testing.assert_array_equal(got == 0, expected == 0)
+
 def _passes(inp, noise):
     """Steps 1-4 of adaptive._solve as separate passes over whole arrays, OpenCV's window sums between the
     kernels (the method before they were fused into one pass): dict of (H, W) arrays."""

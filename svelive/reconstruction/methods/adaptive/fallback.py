@@ -87,9 +87,11 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
     Cost: only strips holding such pixels, over their rows and as far as the
     widest blocks reach. Where they are many, each scale's block sums are two
     box filters over those rows (a row's pixels then computed whole, or, where
-    few of the row's are active, gathered first: :func:`_wide_boxes`); where
-    few (fewer than one in WIDE_DIRECT times a block's pixels), each pixel sums
-    its blocks' readings itself.
+    few of the row's are active, gathered first: :func:`_wide_boxes`), the
+    larger scales' made from the last scale's (:func:`_threefold`: a block is
+    the 3 x 3 blocks of the scale before, added in float32); where few (fewer
+    than one in WIDE_DIRECT times a block's pixels), each pixel sums its blocks'
+    readings itself, in the same order.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
@@ -107,8 +109,9 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         active = {i: darks[i].candidates.copy() for i in members}
         changed = {i: np.zeros_like(active[i]) for i in members}
         count, by, bx = sum(darks[i].count for i in members), len(ky), len(kx)
-        weighted = None
-        for _ in range(WIDE_SCALES):
+        # sums: block sums of w and w x made by box filters, of the scale `level`; means, scratch: their buffers
+        weighted, sums, level, means, scratch = None, None, 0, None, None
+        for scale in range(WIDE_SCALES):
             if 3 * by > h or 3 * bx > width:
                 break
             boxes = count * by * bx * WIDE_DIRECT > weights.size  # many: box filters over the rows
@@ -116,16 +119,24 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
                 if weighted is None:
                     weighted = np.empty_like(weights)
                     flagged = _wide_prepare(*flat(weights, signal, exposure, censored, weighted))
-                box_w, means = _box(weights, by, bx), _box(weighted, by, bx)
+                means = np.empty_like(weights) if means is None else means
+                if sums is None:
+                    sums, level = (_box(weights, len(ky), len(kx)), _box(weighted, len(ky), len(kx))), 0
+                for level in range(level, scale):  # a block three times as large: the 3 x 3 of the last scale
+                    scratch = np.empty_like(weights) if scratch is None else scratch
+                    for a in sums:
+                        _threefold(a, len(ky) * 3**level, len(kx) * 3**level, scratch)
+                level = scale
+                box_w = sums[0]
                 held = _held(censored, by, bx) if flagged else censored  # unused when none is censored
-                _block_means(*flat(box_w, means, held), flagged)
+                _block_means(*flat(box_w, sums[1], held, means), flagged)
             count = 0
             for i in members:
                 d, offset = darks[i], spans[i][1] - r0
                 count += (_wide_boxes(box_w, means, offset, by, bx, active[i], changed[i], d.estimate,
                                       d.information) if boxes else
-                          _wide_direct(weights, signal, exposure, censored, offset, by, bx, active[i], changed[i],
-                                       d.estimate, d.information))
+                          _wide_direct(weights, signal, exposure, censored, offset, len(ky), len(kx), 3**scale,
+                                       active[i], changed[i], d.estimate, d.information))
             if count == 0:
                 break
             by, bx = 3 * by, 3 * bx
@@ -141,6 +152,44 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
 def _box(a: np.ndarray, by: int, bx: int) -> np.ndarray:
     """Sums of ``a`` (float32 (H, W)) over the by x bx box around each pixel, borders reflect-101."""
     return cv2.boxFilter(a, cv2.CV_32F, (bx, by), normalize=False, borderType=cv2.BORDER_REFLECT_101)
+
+
+def _threefold(a: np.ndarray, oy: int, ox: int, scratch: np.ndarray) -> None:
+    """``a`` (float32 (H, W): a box filter's sums, borders reflect-101) in place = its sums at the 3 x 3 pixels
+    ``oy`` rows and ``ox`` columns apart around each pixel, reflect-101 (``scratch``: an array like ``a``). Where
+    ``a`` holds the sums of oy x ox boxes, those of the 3 oy x 3 ox boxes (:func:`_box`): the same readings (a
+    box's sums over the reflected array are even about its ends, as the array is), in float32 rounding instead of
+    OpenCV's float64 sums (a relative difference of a few 1e-7)."""
+    _threefold_rows(a, ox, scratch)
+    _threefold_columns(scratch, oy, a)
+
+
+@kernel
+def _threefold_rows(a, ox, out):
+    """out[:, c] = a[:, c - ox] + a[:, c] + a[:, c + ox], columns reflect-101; the middle as vectorised loops."""
+    h, width = a.shape
+    inner = width - 2 * ox
+    for r in range(h):
+        row, target = a[r], out[r]
+        for c in range(min(ox, width)):
+            target[c] = row[reflect_101(c - ox, width)] + row[c] + row[reflect_101(c + ox, width)]
+        for c in range(max(width - ox, ox), width):
+            target[c] = row[reflect_101(c - ox, width)] + row[c] + row[reflect_101(c + ox, width)]
+        if inner > 0:
+            left, centre, right = row[:inner], row[ox:ox + inner], row[2 * ox:2 * ox + inner]
+            middle = target[ox:ox + inner]
+            for i in range(inner):
+                middle[i] = left[i] + centre[i] + right[i]
+
+
+@kernel
+def _threefold_columns(a, oy, out):
+    """out[r] = a[r - oy] + a[r] + a[r + oy], rows reflect-101, as vectorised loops."""
+    h, width = a.shape
+    for r in range(h):
+        above, centre, below, target = a[reflect_101(r - oy, h)], a[r], a[reflect_101(r + oy, h)], out[r]
+        for c in range(width):
+            target[c] = above[c] + centre[c] + below[c]
 
 
 def _held(censored: np.ndarray, by: int, bx: int) -> np.ndarray:
@@ -159,14 +208,14 @@ def _wide_prepare(weights, signal, exposure, censored, weighted):
 
 
 @kernel
-def _block_means(box_w, box_wx, held, flagged):
-    """box_wx = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
-    censored reading (``held``, if ``flagged``); flat arrays, in place."""
+def _block_means(box_w, box_wx, held, levels, flagged):
+    """levels = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
+    censored reading (``held``, if ``flagged``); flat arrays."""
     tiny, nan = np.float32(TINY), np.float32(np.nan)
     for k in range(box_w.size):
         w = box_w[k]
         level = box_wx[k] / max(w, tiny) if w > tiny else np.float32(0.0)
-        box_wx[k] = nan if flagged and held[k] else level
+        levels[k] = nan if flagged and held[k] else level
 
 
 @kernel
@@ -367,13 +416,17 @@ def _wide_lanes(w0, w1, w2, w3, w4, w5, w6, w7, m0, m1, m2, m3, m4, m5, m6, m7, 
 
 
 @kernel
-def _wide_direct(weights, signal, exposure, censored, offset, by, bx, active, changed, estimate, information):
+def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, active, changed, estimate, information):
     """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
-    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them). A row's
+    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them). The scale's
+    blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each, whose sums are added three by three
+    along rows, then down columns, in float32, as :func:`_threefold` adds the box filters' (bit for bit). A row's
     active pixels are found without branches (rows without any skipped at a count)."""
     h, width = weights.shape
     tiny = np.float32(TINY)
+    by, bx = ky * blocks, kx * blocks
     block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    sums_w, sums_x = np.empty((blocks, blocks), np.float32), np.empty((blocks, blocks), np.float32)
     index = np.empty(width, np.int64)
     kept = 0
     for r in range(active.shape[0]):
@@ -390,20 +443,42 @@ def _wide_direct(weights, signal, exposure, censored, offset, by, bx, active, ch
             for i in range(9):
                 if i == 4:
                     continue
-                top, left = br + (i // 3 - 1) * by - by // 2, c + (i % 3 - 1) * bx - bx // 2
-                wb, xb, bad = 0.0, 0.0, False
-                for dy in range(by):
-                    rr = reflect_101(top + dy, h)
-                    for dx in range(bx):
-                        cc = reflect_101(left + dx, width)
-                        bad |= censored[rr, cc]
-                        w = weights[rr, cc]
-                        wb += w
-                        xb += w * (signal[rr, cc] / exposure[rr, cc])
+                bad = False
+                for a in range(blocks):
+                    top = br + (i // 3 - 1) * by + (a - blocks // 2) * ky - ky // 2
+                    for b in range(blocks):
+                        left = c + (i % 3 - 1) * bx + (b - blocks // 2) * kx - kx // 2
+                        wb, xb = 0.0, 0.0
+                        for dy in range(ky):
+                            rr = reflect_101(top + dy, h)
+                            for dx in range(kx):
+                                cc = reflect_101(left + dx, width)
+                                bad |= censored[rr, cc]
+                                w = weights[rr, cc]
+                                wb += w
+                                xb += w * (signal[rr, cc] / exposure[rr, cc])
+                        sums_w[a, b], sums_x[a, b] = np.float32(wb), np.float32(xb)
+                _threefold_block(sums_w)
+                _threefold_block(sums_x)
                 b = i if i < 4 else i - 1
-                w32 = np.float32(wb)
+                w32 = sums_w[0, 0]
                 block_w[b] = w32
-                block_m[b] = np.float32(np.nan) if bad else (np.float32(xb) / max(w32, tiny) if w32 > tiny
+                block_m[b] = np.float32(np.nan) if bad else (sums_x[0, 0] / max(w32, tiny) if w32 > tiny
                                                              else np.float32(0.0))
             kept += _wide_blend(block_w, block_m, r, c, active, changed, estimate, information)
     return kept
+
+
+@kernel
+def _threefold_block(sums):
+    """sums[0, 0] = the sum of the square float32 ``sums`` (3^k x 3^k), three by three along rows, then down
+    columns, level by level, in :func:`_threefold`'s order; ``sums`` is scratch."""
+    n = sums.shape[0]
+    while n > 1:
+        for a in range(n):
+            for b in range(n // 3):
+                sums[a, b] = sums[a, 3 * b] + sums[a, 3 * b + 1] + sums[a, 3 * b + 2]
+        for a in range(n // 3):
+            for b in range(n // 3):
+                sums[a, b] = sums[3 * a, b] + sums[3 * a + 1, b] + sums[3 * a + 2, b]
+        n //= 3
