@@ -109,8 +109,9 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         active = {i: darks[i].candidates.copy() for i in members}
         changed = {i: np.zeros_like(active[i]) for i in members}
         count, by, bx = sum(darks[i].count for i in members), len(ky), len(kx)
-        # sums: block sums of w and w x made by box filters, of the scale `level`; means, scratch: their buffers
-        weighted, sums, level, means, scratch = None, None, 0, None, None
+        # box_w: the blocks' sums of w, of the scale `level`; the sums of w x are made again at each scale that
+        # takes box filters (the levels replace them); a larger scale's from the smallest's, three by three
+        weighted, box_w, level, scratch = None, None, 0, None
         for scale in range(WIDE_SCALES):
             if 3 * by > h or 3 * bx > width:
                 break
@@ -119,17 +120,19 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
                 if weighted is None:
                     weighted = np.empty_like(weights)
                     flagged = _wide_prepare(*flat(weights, signal, exposure, censored, weighted))
-                means = np.empty_like(weights) if means is None else means
-                if sums is None:
-                    sums, level = (_box(weights, len(ky), len(kx)), _box(weighted, len(ky), len(kx))), 0
-                for level in range(level, scale):  # a block three times as large: the 3 x 3 of the last scale
+                if box_w is None:
+                    box_w, level = _box(weights, len(ky), len(kx)), 0
+                means = _box(weighted, len(ky), len(kx))
+                if scale > 0:
                     scratch = np.empty_like(weights) if scratch is None else scratch
-                    for a in sums:
-                        _threefold(a, len(ky) * 3**level, len(kx) * 3**level, scratch)
+                for smaller in range(scale):  # a block three times as large: the 3 x 3 of the last scale
+                    steps = (len(ky) * 3**smaller, len(kx) * 3**smaller)
+                    _threefold(means, *steps, scratch)
+                    if smaller >= level:
+                        _threefold(box_w, *steps, scratch)
                 level = scale
-                box_w = sums[0]
                 held = _held(censored, by, bx) if flagged else censored  # unused when none is censored
-                _block_means(*flat(box_w, sums[1], held, means), flagged)
+                _block_means(*flat(box_w, means, held), flagged)
             count = 0
             for i in members:
                 d, offset = darks[i], spans[i][1] - r0
@@ -208,14 +211,14 @@ def _wide_prepare(weights, signal, exposure, censored, weighted):
 
 
 @kernel
-def _block_means(box_w, box_wx, held, levels, flagged):
-    """levels = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
-    censored reading (``held``, if ``flagged``); flat arrays."""
+def _block_means(box_w, box_wx, held, flagged):
+    """box_wx = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
+    censored reading (``held``, if ``flagged``); flat arrays, in place."""
     tiny, nan = np.float32(TINY), np.float32(np.nan)
     for k in range(box_w.size):
         w = box_w[k]
         level = box_wx[k] / max(w, tiny) if w > tiny else np.float32(0.0)
-        levels[k] = nan if flagged and held[k] else level
+        box_wx[k] = nan if flagged and held[k] else level
 
 
 @kernel
