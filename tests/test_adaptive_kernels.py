@@ -11,7 +11,7 @@ from svelive import Pattern, Sensor, simulate
 from svelive.jit import flat
 from svelive.reconstruction.methods import adaptive
 from svelive.reconstruction.methods.adaptive import censoring, evidence, fallback, parameters, posterior, strip_pass
-from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
+from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth, true_positions
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 
@@ -510,6 +510,18 @@ def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
                               borderType=cv2.BORDER_REFLECT_101)
         np.testing.assert_array_equal(fallback._held(censored, by, bx), flags > 0.5)
 
+
+def test_true_positions_are_numpys_at_any_density():
+    """base.true_positions (words of eight flags skipped where a row has few, else one position a flag) gives
+    np.flatnonzero, on rows of any length (not whole words too) and rows of a 2-D array."""
+    rng = np.random.default_rng(11)
+    for size in (1, 7, 8, 9, 64, 1920, 1923):
+        for share in (0.0, 0.01, 0.06, 0.3, 1.0):
+            flags = np.zeros((3, size), bool)
+            flags[1] = rng.random(size) < share
+            index = np.full(size, -1, np.int64)
+            n = true_positions(flags[1], int(flags[1].sum()), index)
+            np.testing.assert_array_equal(index[:n], np.flatnonzero(flags[1]))
 
 @pytest.mark.parametrize("block", [(3, 3), (5, 3), (3, 1), (1, 3), (9, 9)])
 @pytest.mark.parametrize("shape", [(290, 1920), (27, 27), (30, 9), (100, 45), (45, 31)])

@@ -12,7 +12,7 @@ import numpy as np
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, TINY
 from svelive.reconstruction.methods.adaptive.posterior import posterior_at, posterior_polynomial
-from svelive.reconstruction.methods.base import SveInput, count_true, map_on, reflect_101
+from svelive.reconstruction.methods.base import SveInput, count_true, map_on, reflect_101, true_positions
 
 
 #: Scales of the wide fallback (:func:`wide_fallback`): blocks of the window's size, then 3 times it, ...
@@ -303,8 +303,8 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
         for i in range(3):
             rows[i] = reflect_101(br + (i - 1) * by, h)
         if not (n * WIDE_DENSE_ROW > width and inner > 0):
-            kept += _wide_packed(box_w, means, rows, bx, active[r], changed[r], estimate[r], information[r], index,
-                                 blocks, packed_active, packed_changed, packed_estimate, packed_information)
+            kept += _wide_packed(box_w, means, rows, bx, n, active[r], changed[r], estimate[r], information[r],
+                                 index, blocks, packed_active, packed_changed, packed_estimate, packed_information)
             continue
         kept += _wide_row(box_w, means, rows, bx, active[r, bx:bx + inner], changed[r, bx:bx + inner],
                           estimate[r, bx:bx + inner], information[r, bx:bx + inner])
@@ -331,18 +331,15 @@ WIDE_DENSE_ROW = 32
 
 
 @kernel
-def _wide_packed(box_w, means, rows, bx, active, changed, estimate, information, index, blocks, packed_active,
-                 packed_changed, packed_estimate, packed_information):
+def _wide_packed(box_w, means, rows, bx, count, active, changed, estimate, information, index, blocks,
+                 packed_active, packed_changed, packed_estimate, packed_information):
     """:func:`_wide_row` at the active pixels of a whole row (``active``, ``changed``, ``estimate`` and
-    ``information``: the row, in place; ``rows``: the band rows of its blocks) packed: their columns into
-    ``index`` (without branches), their eight blocks' W and levels into ``blocks`` (float32 (16, W): W of blocks
-    0-7, then their levels) and their values into the ``packed_*`` scratch rows, :func:`_wide_lanes` on those,
-    then scattered back; the number kept active."""
+    ``information``: the row, in place; ``rows``: the band rows of its blocks; ``count``: its active pixels) packed:
+    their columns into ``index`` (base.true_positions), their eight blocks' W and levels into ``blocks`` (float32
+    (16, W): W of blocks 0-7, then their levels) and their values into the ``packed_*`` scratch rows,
+    :func:`_wide_lanes` on those, then scattered back; the number kept active."""
     width = active.size
-    n = 0
-    for c in range(width):
-        index[n] = c
-        n += active[c]
+    n = true_positions(active, count, index)
     for j in range(n):
         c = index[j]
         cols = (reflect_101(c - bx, width), c, reflect_101(c + bx, width))
@@ -424,7 +421,7 @@ def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, ac
     band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them). The scale's
     blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each, whose sums are added three by three
     along rows, then down columns, in float32, as :func:`_threefold` adds the box filters' (bit for bit). A row's
-    active pixels are found without branches (rows without any skipped at a count)."""
+    active pixels are found by base.true_positions (rows without any skipped at a count)."""
     h, width = weights.shape
     tiny = np.float32(TINY)
     by, bx = ky * blocks, kx * blocks
@@ -434,12 +431,10 @@ def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, ac
     kept = 0
     for r in range(active.shape[0]):
         row = active[r]
-        if count_true(row) == 0:
+        n = count_true(row)
+        if n == 0:
             continue
-        n = 0
-        for c in range(width):
-            index[n] = c
-            n += row[c]
+        n = true_positions(row, n, index)
         br = r + offset
         for j in range(n):  # a pixel changes only its own flags: the columns found first are those visited
             c = index[j]
