@@ -11,7 +11,8 @@ from svelive import Pattern, Sensor, simulate
 from svelive.jit import flat
 from svelive.reconstruction.methods import adaptive
 from svelive.reconstruction.methods.adaptive import censoring, evidence, fallback, parameters, posterior, strip_pass
-from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth, true_positions
+from svelive.reconstruction.methods.base import (censored_lower_bound, fill_lower_bounds, reflect_101, smooth,
+                                                  true_positions)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 
@@ -510,6 +511,23 @@ def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
                               borderType=cv2.BORDER_REFLECT_101)
         np.testing.assert_array_equal(fallback._held(censored, by, bx), flags > 0.5)
 
+
+@pytest.mark.parametrize("shape, offset, block", [((290, 1920), 30, (3, 3)), ((40, 13), 5, (5, 3)),
+                                                  ((12, 7), 2, (3, 3)), ((50, 4), 10, (3, 1)), ((9, 5), 0, (3, 3))])
+def test_unheld_leaves_out_the_pixels_whose_blocks_hold_a_censored_reading(shape, offset, block):
+    """fallback._unheld clears exactly the active pixels one of whose eight blocks (one block away, reflect-101)
+    holds a censored reading, the pixels the wide fallback's first scale leaves unchanged (its bad blocks)."""
+    by, bx = block
+    rng = np.random.default_rng(shape[0] * 7 + shape[1])
+    held = rng.random(shape) < 0.05
+    active = rng.random((min(20, shape[0] - offset), shape[1])) < 0.5
+    expected = active.copy()
+    for r, c in zip(*np.nonzero(active)):
+        expected[r, c] = not any(held[reflect_101(r + offset + i * by, shape[0]), reflect_101(c + j * bx, shape[1])]
+                                 for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0))
+    got = active.copy()
+    assert fallback._unheld(held, offset, by, bx, got) == np.count_nonzero(expected)
+    np.testing.assert_array_equal(got, expected)
 
 def test_true_positions_are_numpys_at_any_density():
     """base.true_positions (words of eight flags skipped where a row has few, else one position a flag) gives

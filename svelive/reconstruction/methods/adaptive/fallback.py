@@ -91,7 +91,11 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
     larger scales' made from the last scale's (:func:`_threefold`: a block is
     the 3 x 3 blocks of the scale before, added in float32); where few (fewer
     than one in WIDE_DIRECT times a block's pixels), each pixel sums its blocks'
-    readings itself, in the same order.
+    readings itself, in the same order. Where the first scale takes box filters
+    and the band holds censored readings, the pixels one of whose blocks holds
+    one (which that scale leaves unchanged) are left out first
+    (:func:`_unheld`), so that a band whose pixels all lie beside saturation
+    takes no block sums at all.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
@@ -109,6 +113,15 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         active = {i: darks[i].candidates.copy() for i in members}
         changed = {i: np.zeros_like(active[i]) for i in members}
         count, by, bx = sum(darks[i].count for i in members), len(ky), len(kx)
+        # a pixel one of whose blocks holds a censored reading stops at the first scale unchanged: where that scale
+        # takes box filters (and so makes these flags anyway), left out before any block sums (a band whose pixels
+        # all lie beside saturation ends here)
+        held_first = None
+        if count * by * bx * WIDE_DIRECT > weights.size and censored.any():
+            held_first = _held(censored, by, bx)
+            count = sum(_unheld(held_first, spans[i][1] - r0, by, bx, active[i]) for i in members)
+            if count == 0:
+                return
         # box_w: the blocks' sums of w, of the scale `level`; the sums of w x are made again at each scale that
         # takes box filters (the levels replace them); a larger scale's from the smallest's, three by three
         weighted, box_w, level, scratch = None, None, 0, None
@@ -131,7 +144,9 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
                     if smaller >= level:
                         _threefold(box_w, *steps, scratch)
                 level = scale
-                held = _held(censored, by, bx) if flagged else censored  # unused when none is censored
+                held = censored  # unused when none is censored
+                if flagged:
+                    held = held_first if scale == 0 else _held(censored, by, bx)
                 _block_means(*flat(box_w, means, held), flagged)
             count = 0
             for i in members:
@@ -200,6 +215,39 @@ def _held(censored: np.ndarray, by: int, bx: int) -> np.ndarray:
     borders reflect-101 (the boxes of :func:`_box`)."""
     return cv2.dilate(censored.view(np.uint8), np.ones((by, bx), np.uint8),
                       borderType=cv2.BORDER_REFLECT_101).view(bool)
+
+
+@kernel
+def _unheld(held, offset, by, bx, active):
+    """active = False, in place, where one of a pixel's eight blocks (by x bx, one block away; reflect-101) holds a
+    censored reading (``held``: :func:`_held` of the band; row r of ``active``, bool (R, W), is row r + offset of
+    it), as :func:`_wide_blend` stops such a pixel; the number left active. A row's middle as vectorised loops."""
+    h, width = held.shape
+    inner = width - 2 * bx
+    ends = min(bx, width)  # the row's ends, whose blocks reflect: [0, ends) and [max(width - bx, ends), width)
+    left_active = 0
+    for r in range(active.shape[0]):
+        row = active[r]
+        if count_true(row) == 0:
+            continue
+        br = r + offset
+        above, centre, below = held[reflect_101(br - by, h)], held[br], held[reflect_101(br + by, h)]
+        for i in range(ends + width - max(width - bx, ends)):
+            c = i if i < ends else max(width - bx, ends) + i - ends
+            left, right = reflect_101(c - bx, width), reflect_101(c + bx, width)
+            bad = (above[left] or above[c] or above[right] or centre[left] or centre[right] or below[left]
+                   or below[c] or below[right])
+            row[c] = row[c] and not bad
+        if inner > 0:  # as bytes, the blocks' rows shifted, which LLVM vectorises
+            middle, two = row[bx:bx + inner].view(np.uint8), 2 * bx
+            up, mid, down = above.view(np.uint8), centre.view(np.uint8), below.view(np.uint8)
+            a0, a1, a2 = up[:inner], up[bx:bx + inner], up[two:two + inner]
+            b0, b2 = mid[:inner], mid[two:two + inner]
+            c0, c1, c2 = down[:inner], down[bx:bx + inner], down[two:two + inner]
+            for i in range(inner):
+                middle[i] = middle[i] & ~(a0[i] | a1[i] | a2[i] | b0[i] | b2[i] | c0[i] | c1[i] | c2[i])
+        left_active += count_true(row)
+    return left_active
 
 
 @kernel
