@@ -529,6 +529,24 @@ def test_unheld_leaves_out_the_pixels_whose_blocks_hold_a_censored_reading(shape
     assert fallback._unheld(held, offset, by, bx, got) == np.count_nonzero(expected)
     np.testing.assert_array_equal(got, expected)
 
+@pytest.mark.parametrize("block", [(3, 3), (5, 3), (9, 9)])
+def test_a_pixels_censored_blocks_found_in_the_readings_or_the_dilation(block):
+    """The direct wide step's test of a pixel's eight blocks for a censored reading, in the readings
+    (fallback._censored_near) and in the dilation (fallback._held_near of fallback._held), is the blocks' own
+    (reflect-101 at every edge)."""
+    by, bx = block
+    rng = np.random.default_rng(by * 10 + bx)
+    shape = (3 * by + 7, 3 * bx + 5)
+    censored = rng.random(shape) < 0.01
+    held = fallback._held(censored, by, bx)
+    for r in range(shape[0]):
+        for c in range(shape[1]):
+            expected = any(censored[reflect_101(r + i * by + dy, shape[0]), reflect_101(c + j * bx + dx, shape[1])]
+                           for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)
+                           for dy in range(-(by // 2), by // 2 + 1) for dx in range(-(bx // 2), bx // 2 + 1))
+            assert fallback._censored_near(censored, r, c, by, bx) == expected
+            assert fallback._held_near(held, r, c, by, bx) == expected
+
 def test_true_positions_are_numpys_at_any_density():
     """base.true_positions (words of eight flags skipped where a row has few, else one position a flag) gives
     np.flatnonzero, on rows of any length (not whole words too) and rows of a 2-D array."""

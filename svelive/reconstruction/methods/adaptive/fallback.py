@@ -95,11 +95,12 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
     and the band holds censored readings, the pixels one of whose blocks holds
     one (which that scale leaves unchanged) are left out first
     (:func:`_unheld`), so that a band whose pixels all lie beside saturation
-    takes no block sums at all.
+    takes no block sums at all; the direct sums test a pixel's blocks for a
+    censored reading before they sum them.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
-    none = np.empty((0, 0), np.float32)
+    none, none_held = np.empty((0, 0), np.float32), np.empty((0, 0), bool)
 
     def band(group: range) -> None:
         members = [i for i in group if darks[i].count]
@@ -116,12 +117,23 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         # a pixel one of whose blocks holds a censored reading stops at the first scale unchanged: where that scale
         # takes box filters (and so makes these flags anyway), left out before any block sums (a band whose pixels
         # all lie beside saturation ends here)
-        held_first = None
-        if count * by * bx * WIDE_DIRECT > weights.size and censored.any():
+        held_first, flagged = None, bool(censored.any())
+        if count * by * bx * WIDE_DIRECT > weights.size and flagged:
             held_first = _held(censored, by, bx)
             count = sum(_unheld(held_first, spans[i][1] - r0, by, bx, active[i]) for i in members)
             if count == 0:
                 return
+        helds = {0: held_first} if held_first is not None else {}
+
+        def held_of(scale: int) -> np.ndarray:
+            """The scale's blocks holding a censored reading (:func:`_held`; the censoring itself, unused, where the
+            band holds none)."""
+            if not flagged:
+                return censored
+            if scale not in helds:
+                helds[scale] = _held(censored, len(ky) * 3**scale, len(kx) * 3**scale)
+            return helds[scale]
+
         # box_w: the blocks' sums of w, of the scale `level`; the sums of w x are made again at each scale that
         # takes box filters (the levels replace them); a larger scale's from the smallest's, three by three
         weighted, box_w, level, scratch = None, None, 0, None
@@ -132,7 +144,7 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
             if boxes:
                 if weighted is None:
                     weighted = np.empty_like(weights)
-                    flagged = _wide_prepare(*flat(weights, signal, exposure, censored, weighted))
+                    _wide_prepare(*flat(weights, signal, exposure, weighted))
                 if box_w is None:
                     box_w, level = _box(weights, len(ky), len(kx)), 0
                 means = _box(weighted, len(ky), len(kx))
@@ -144,17 +156,15 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
                     if smaller >= level:
                         _threefold(box_w, *steps, scratch)
                 level = scale
-                held = censored  # unused when none is censored
-                if flagged:
-                    held = held_first if scale == 0 else _held(censored, by, bx)
-                _block_means(*flat(box_w, means, held), flagged)
+                _block_means(*flat(box_w, means, held_of(scale)), flagged)
             count = 0
             for i in members:
                 d, offset = darks[i], spans[i][1] - r0
                 count += (_wide_boxes(box_w, means, offset, by, bx, active[i], changed[i], d.estimate,
                                       d.information) if boxes else
-                          _wide_direct(weights, signal, exposure, censored, offset, len(ky), len(kx), 3**scale,
-                                       active[i], changed[i], d.estimate, d.information))
+                          _wide_direct(weights, signal, exposure, censored if flagged else none_held,
+                                       helds.get(scale, none_held), offset, len(ky), len(kx), 3**scale, active[i],
+                                       changed[i], d.estimate, d.information))
             if count == 0:
                 break
             by, bx = 3 * by, 3 * bx
@@ -251,11 +261,10 @@ def _unheld(held, offset, by, bx, active):
 
 
 @kernel
-def _wide_prepare(weights, signal, exposure, censored, weighted):
-    """weighted = w x (x = s / e); flat arrays; whether any reading is censored."""
+def _wide_prepare(weights, signal, exposure, weighted):
+    """weighted = w x (x = s / e); flat arrays."""
     for k in range(weights.size):
         weighted[k] = weights[k] * (signal[k] / exposure[k])
-    return count_true(censored) > 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
 
 
 @kernel
@@ -464,12 +473,17 @@ def _wide_lanes(w0, w1, w2, w3, w4, w5, w6, w7, m0, m1, m2, m3, m4, m5, m6, m7, 
 
 
 @kernel
-def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, active, changed, estimate, information):
+def _wide_direct(weights, signal, exposure, censored, held, offset, ky, kx, blocks, active, changed, estimate,
+                 information):
     """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
-    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them). The scale's
+    band's weights, signals, exposures and censoring (of no rows where none is censored), and the scale's blocks
+    holding a censored reading (``held``, :func:`_held`) where made, else of no rows (row r of ``active`` is row
+    r + offset of them). The scale's
     blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each, whose sums are added three by three
-    along rows, then down columns, in float32, as :func:`_threefold` adds the box filters' (bit for bit). A row's
-    active pixels are found by base.true_positions (rows without any skipped at a count)."""
+    along rows, then down columns, in float32, as :func:`_threefold` adds the box filters' (bit for bit); a pixel
+    one of whose blocks holds a censored reading stops before any sums (found in ``held``, else in its blocks'
+    readings). A row's active
+    pixels are found by base.true_positions (rows without any skipped at a count)."""
     h, width = weights.shape
     tiny = np.float32(TINY)
     by, bx = ky * blocks, kx * blocks
@@ -486,10 +500,13 @@ def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, ac
         br = r + offset
         for j in range(n):  # a pixel changes only its own flags: the columns found first are those visited
             c = index[j]
+            if (_held_near(held, br, c, by, bx) if held.shape[0] > 0 else
+                    censored.shape[0] > 0 and _censored_near(censored, br, c, by, bx)):
+                active[r, c] = False  # it stops unchanged, as _wide_blend stops it
+                continue
             for i in range(9):
                 if i == 4:
                     continue
-                bad = False
                 for a in range(blocks):
                     top = br + (i // 3 - 1) * by + (a - blocks // 2) * ky - ky // 2
                     for b in range(blocks):
@@ -499,7 +516,6 @@ def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, ac
                             rr = reflect_101(top + dy, h)
                             for dx in range(kx):
                                 cc = reflect_101(left + dx, width)
-                                bad |= censored[rr, cc]
                                 w = weights[rr, cc]
                                 wb += w
                                 xb += w * (signal[rr, cc] / exposure[rr, cc])
@@ -509,10 +525,37 @@ def _wide_direct(weights, signal, exposure, censored, offset, ky, kx, blocks, ac
                 b = i if i < 4 else i - 1
                 w32 = sums_w[0, 0]
                 block_w[b] = w32
-                block_m[b] = np.float32(np.nan) if bad else (sums_x[0, 0] / max(w32, tiny) if w32 > tiny
-                                                             else np.float32(0.0))
+                block_m[b] = sums_x[0, 0] / max(w32, tiny) if w32 > tiny else np.float32(0.0)
             kept += _wide_blend(block_w, block_m, r, c, active, changed, estimate, information)
     return kept
+
+
+@kernel
+def _censored_near(censored, r, c, by, bx):
+    """Whether one of the eight by x bx blocks one block away from pixel (r, c) of ``censored`` (bool (H, W))
+    holds a censored reading, borders reflect-101 (the first one found ends the search)."""
+    h, width = censored.shape
+    for i in range(9):
+        if i == 4:
+            continue
+        top, left = r + (i // 3 - 1) * by - by // 2, c + (i % 3 - 1) * bx - bx // 2
+        for dy in range(by):
+            row = censored[reflect_101(top + dy, h)]
+            for dx in range(bx):
+                if row[reflect_101(left + dx, width)]:
+                    return True
+    return False
+
+
+@kernel
+def _held_near(held, r, c, by, bx):
+    """Whether one of the eight blocks one block (by x bx) away from pixel (r, c) holds a censored reading
+    (``held``: :func:`_held`), borders reflect-101."""
+    h, width = held.shape
+    rows = (reflect_101(r - by, h), r, reflect_101(r + by, h))
+    cols = (reflect_101(c - bx, width), c, reflect_101(c + bx, width))
+    return (held[rows[0], cols[0]] or held[rows[0], cols[1]] or held[rows[0], cols[2]] or held[rows[1], cols[0]]
+            or held[rows[1], cols[2]] or held[rows[2], cols[0]] or held[rows[2], cols[1]] or held[rows[2], cols[2]])
 
 
 @kernel
