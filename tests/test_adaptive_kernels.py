@@ -11,7 +11,8 @@ from svelive import Pattern, Sensor, simulate
 from svelive.jit import flat
 from svelive.reconstruction.methods import adaptive
 from svelive.reconstruction.methods.adaptive import censoring, evidence, fallback, parameters, posterior, strip_pass
-from svelive.reconstruction.methods.base import censored_lower_bound, fill_lower_bounds, smooth
+from svelive.reconstruction.methods.base import (censored_lower_bound, fill_lower_bounds, reflect_101, smooth,
+                                                  true_positions)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 
@@ -510,6 +511,71 @@ def test_blocks_holding_a_censored_reading_are_the_box_filters(block):
                               borderType=cv2.BORDER_REFLECT_101)
         np.testing.assert_array_equal(fallback._held(censored, by, bx), flags > 0.5)
 
+
+@pytest.mark.parametrize("shape, offset, block", [((290, 1920), 30, (3, 3)), ((40, 13), 5, (5, 3)),
+                                                  ((12, 7), 2, (3, 3)), ((50, 4), 10, (3, 1)), ((9, 5), 0, (3, 3))])
+def test_unheld_leaves_out_the_pixels_whose_blocks_hold_a_censored_reading(shape, offset, block):
+    """fallback._unheld clears exactly the active pixels one of whose eight blocks (one block away, reflect-101)
+    holds a censored reading, the pixels the wide fallback's first scale leaves unchanged (its bad blocks)."""
+    by, bx = block
+    rng = np.random.default_rng(shape[0] * 7 + shape[1])
+    held = rng.random(shape) < 0.05
+    active = rng.random((min(20, shape[0] - offset), shape[1])) < 0.5
+    expected = active.copy()
+    for r, c in zip(*np.nonzero(active)):
+        expected[r, c] = not any(held[reflect_101(r + offset + i * by, shape[0]), reflect_101(c + j * bx, shape[1])]
+                                 for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0))
+    got = active.copy()
+    assert fallback._unheld(held, offset, by, bx, got) == np.count_nonzero(expected)
+    np.testing.assert_array_equal(got, expected)
+
+@pytest.mark.parametrize("block", [(3, 3), (5, 3), (9, 9)])
+def test_a_pixels_censored_blocks_found_in_the_readings_or_the_dilation(block):
+    """The direct wide step's test of a pixel's eight blocks for a censored reading, in the readings
+    (fallback._censored_near) and in the dilation (fallback._held_near of fallback._held), is the blocks' own
+    (reflect-101 at every edge)."""
+    by, bx = block
+    rng = np.random.default_rng(by * 10 + bx)
+    shape = (3 * by + 7, 3 * bx + 5)
+    censored = rng.random(shape) < 0.01
+    held = fallback._held(censored, by, bx)
+    for r in range(shape[0]):
+        for c in range(shape[1]):
+            expected = any(censored[reflect_101(r + i * by + dy, shape[0]), reflect_101(c + j * bx + dx, shape[1])]
+                           for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)
+                           for dy in range(-(by // 2), by // 2 + 1) for dx in range(-(bx // 2), bx // 2 + 1))
+            assert fallback._censored_near(censored, r, c, by, bx) == expected
+            assert fallback._held_near(held, r, c, by, bx) == expected
+
+def test_true_positions_are_numpys_at_any_density():
+    """base.true_positions (words of eight flags skipped where a row has few, else one position a flag) gives
+    np.flatnonzero, on rows of any length (not whole words too) and rows of a 2-D array."""
+    rng = np.random.default_rng(11)
+    for size in (1, 7, 8, 9, 64, 1920, 1923):
+        for share in (0.0, 0.01, 0.06, 0.3, 1.0):
+            flags = np.zeros((3, size), bool)
+            flags[1] = rng.random(size) < share
+            index = np.full(size, -1, np.int64)
+            n = true_positions(flags[1], int(flags[1].sum()), index)
+            np.testing.assert_array_equal(index[:n], np.flatnonzero(flags[1]))
+
+@pytest.mark.parametrize("block", [(3, 3), (5, 3), (3, 1), (1, 3), (9, 9)])
+@pytest.mark.parametrize("shape", [(290, 1920), (27, 27), (30, 9), (100, 45), (45, 31)])
+def test_threefold_box_sums_are_the_box_filters_three_times_larger(block, shape):
+    """The wide fallback's next scale's block sums, made from the last scale's (3 x 3 of them around each pixel),
+    are OpenCV's box filter three times as large, borders reflect-101 included, within float32 rounding (OpenCV
+    sums in float64); sparse weights with empty blocks give exact zeros."""
+    by, bx = block
+    if 3 * by > shape[0] or 3 * bx > shape[1]:
+        pytest.skip("blocks larger than the array")
+    rng = np.random.default_rng(shape[0] + by)
+    for values in (rng.uniform(0, 10, shape), rng.uniform(-5, 10, shape) * (rng.random(shape) < 0.05)):
+        values = values.astype(np.float32)
+        expected = fallback._box(values, 3 * by, 3 * bx)
+        got = fallback._box(values, by, bx)
+        fallback._threefold(got, by, bx, np.empty_like(got))
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * float(np.abs(expected).max()))
+        np.testing.assert_array_equal(got == 0, expected == 0)
 
 def _passes(inp, noise):
     """Steps 1-4 of adaptive._solve as separate passes over whole arrays, OpenCV's window sums between the

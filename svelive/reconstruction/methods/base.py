@@ -313,6 +313,27 @@ def count_true(flags):
     return n
 
 
+@kernel
+def true_positions(flags, count, index):
+    """The positions of the ``count`` True of the bool array ``flags`` (1-D, C-contiguous), in order, into the front
+    of ``index`` (int64): without branches (a position written at every flag, the count advanced by it), or, where
+    they are few (one in 16 or fewer), eight flags at a time as a 64-bit word, skipping the words without any."""
+    size = flags.size
+    n, c = 0, 0
+    if count * 16 <= size:
+        words = flags[:size // 8 * 8].view(np.uint64)
+        for word in range(words.size):
+            if words[word] != 0:
+                for c in range(8 * word, 8 * word + 8):
+                    index[n] = c
+                    n += flags[c]
+        c = words.size * 8
+    for c in range(c, size):
+        index[n] = c
+        n += flags[c]
+    return n
+
+
 def pad_same_phase(image: np.ndarray, period: tuple[int, int], before: tuple[int, int],
                    after: tuple[int, int]) -> np.ndarray:
     """Pad (H, W) by ``before``/``after`` (rows, cols) with pixels of the same tile phase.

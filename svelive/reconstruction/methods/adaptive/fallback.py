@@ -12,7 +12,7 @@ import numpy as np
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, TINY
 from svelive.reconstruction.methods.adaptive.posterior import posterior_at, posterior_polynomial
-from svelive.reconstruction.methods.base import SveInput, count_true, map_on, reflect_101
+from svelive.reconstruction.methods.base import SveInput, count_true, map_on, reflect_101, true_positions
 
 
 #: Scales of the wide fallback (:func:`wide_fallback`): blocks of the window's size, then 3 times it, ...
@@ -87,13 +87,20 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
     Cost: only strips holding such pixels, over their rows and as far as the
     widest blocks reach. Where they are many, each scale's block sums are two
     box filters over those rows (a row's pixels then computed whole, or, where
-    few of the row's are active, gathered first: :func:`_wide_boxes`); where
-    few (fewer than one in WIDE_DIRECT times a block's pixels), each pixel sums
-    its blocks' readings itself.
+    few of the row's are active, gathered first: :func:`_wide_boxes`), the
+    larger scales' made from the last scale's (:func:`_threefold`: a block is
+    the 3 x 3 blocks of the scale before, added in float32); where few (fewer
+    than one in WIDE_DIRECT times a block's pixels), each pixel sums its blocks'
+    readings itself, in the same order. Where the first scale takes box filters
+    and the band holds censored readings, the pixels one of whose blocks holds
+    one (which that scale leaves unchanged) are left out first
+    (:func:`_unheld`), so that a band whose pixels all lie beside saturation
+    takes no block sums at all; the direct sums test a pixel's blocks for a
+    censored reading before they sum them.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
-    none = np.empty((0, 0), np.float32)
+    none, none_held = np.empty((0, 0), np.float32), np.empty((0, 0), bool)
 
     def band(group: range) -> None:
         members = [i for i in group if darks[i].count]
@@ -107,25 +114,57 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         active = {i: darks[i].candidates.copy() for i in members}
         changed = {i: np.zeros_like(active[i]) for i in members}
         count, by, bx = sum(darks[i].count for i in members), len(ky), len(kx)
-        weighted = None
-        for _ in range(WIDE_SCALES):
+        # a pixel one of whose blocks holds a censored reading stops at the first scale unchanged: where that scale
+        # takes box filters (and so makes these flags anyway), left out before any block sums (a band whose pixels
+        # all lie beside saturation ends here)
+        held_first, flagged = None, bool(censored.any())
+        if count * by * bx * WIDE_DIRECT > weights.size and flagged:
+            held_first = _held(censored, by, bx)
+            count = sum(_unheld(held_first, spans[i][1] - r0, by, bx, active[i]) for i in members)
+            if count == 0:
+                return
+        helds = {0: held_first} if held_first is not None else {}
+
+        def held_of(scale: int) -> np.ndarray:
+            """The scale's blocks holding a censored reading (:func:`_held`; the censoring itself, unused, where the
+            band holds none)."""
+            if not flagged:
+                return censored
+            if scale not in helds:
+                helds[scale] = _held(censored, len(ky) * 3**scale, len(kx) * 3**scale)
+            return helds[scale]
+
+        # box_w: the blocks' sums of w, of the scale `level`; the sums of w x are made again at each scale that
+        # takes box filters (the levels replace them); a larger scale's from the smallest's, three by three
+        weighted, box_w, level, scratch = None, None, 0, None
+        for scale in range(WIDE_SCALES):
             if 3 * by > h or 3 * bx > width:
                 break
             boxes = count * by * bx * WIDE_DIRECT > weights.size  # many: box filters over the rows
             if boxes:
                 if weighted is None:
                     weighted = np.empty_like(weights)
-                    flagged = _wide_prepare(*flat(weights, signal, exposure, censored, weighted))
-                box_w, means = _box(weights, by, bx), _box(weighted, by, bx)
-                held = _held(censored, by, bx) if flagged else censored  # unused when none is censored
-                _block_means(*flat(box_w, means, held), flagged)
+                    _wide_prepare(*flat(weights, signal, exposure, weighted))
+                if box_w is None:
+                    box_w, level = _box(weights, len(ky), len(kx)), 0
+                means = _box(weighted, len(ky), len(kx))
+                if scale > 0:
+                    scratch = np.empty_like(weights) if scratch is None else scratch
+                for smaller in range(scale):  # a block three times as large: the 3 x 3 of the last scale
+                    steps = (len(ky) * 3**smaller, len(kx) * 3**smaller)
+                    _threefold(means, *steps, scratch)
+                    if smaller >= level:
+                        _threefold(box_w, *steps, scratch)
+                level = scale
+                _block_means(*flat(box_w, means, held_of(scale)), flagged)
             count = 0
             for i in members:
                 d, offset = darks[i], spans[i][1] - r0
                 count += (_wide_boxes(box_w, means, offset, by, bx, active[i], changed[i], d.estimate,
                                       d.information) if boxes else
-                          _wide_direct(weights, signal, exposure, censored, offset, by, bx, active[i], changed[i],
-                                       d.estimate, d.information))
+                          _wide_direct(weights, signal, exposure, censored if flagged else none_held,
+                                       helds.get(scale, none_held), offset, len(ky), len(kx), 3**scale, active[i],
+                                       changed[i], d.estimate, d.information))
             if count == 0:
                 break
             by, bx = 3 * by, 3 * bx
@@ -143,6 +182,44 @@ def _box(a: np.ndarray, by: int, bx: int) -> np.ndarray:
     return cv2.boxFilter(a, cv2.CV_32F, (bx, by), normalize=False, borderType=cv2.BORDER_REFLECT_101)
 
 
+def _threefold(a: np.ndarray, oy: int, ox: int, scratch: np.ndarray) -> None:
+    """``a`` (float32 (H, W): a box filter's sums, borders reflect-101) in place = its sums at the 3 x 3 pixels
+    ``oy`` rows and ``ox`` columns apart around each pixel, reflect-101 (``scratch``: an array like ``a``). Where
+    ``a`` holds the sums of oy x ox boxes, those of the 3 oy x 3 ox boxes (:func:`_box`): the same readings (a
+    box's sums over the reflected array are even about its ends, as the array is), in float32 rounding instead of
+    OpenCV's float64 sums (a relative difference of a few 1e-7)."""
+    _threefold_rows(a, ox, scratch)
+    _threefold_columns(scratch, oy, a)
+
+
+@kernel
+def _threefold_rows(a, ox, out):
+    """out[:, c] = a[:, c - ox] + a[:, c] + a[:, c + ox], columns reflect-101; the middle as vectorised loops."""
+    h, width = a.shape
+    inner = width - 2 * ox
+    for r in range(h):
+        row, target = a[r], out[r]
+        for c in range(min(ox, width)):
+            target[c] = row[reflect_101(c - ox, width)] + row[c] + row[reflect_101(c + ox, width)]
+        for c in range(max(width - ox, ox), width):
+            target[c] = row[reflect_101(c - ox, width)] + row[c] + row[reflect_101(c + ox, width)]
+        if inner > 0:
+            left, centre, right = row[:inner], row[ox:ox + inner], row[2 * ox:2 * ox + inner]
+            middle = target[ox:ox + inner]
+            for i in range(inner):
+                middle[i] = left[i] + centre[i] + right[i]
+
+
+@kernel
+def _threefold_columns(a, oy, out):
+    """out[r] = a[r - oy] + a[r] + a[r + oy], rows reflect-101, as vectorised loops."""
+    h, width = a.shape
+    for r in range(h):
+        above, centre, below, target = a[reflect_101(r - oy, h)], a[r], a[reflect_101(r + oy, h)], out[r]
+        for c in range(width):
+            target[c] = above[c] + centre[c] + below[c]
+
+
 def _held(censored: np.ndarray, by: int, bx: int) -> np.ndarray:
     """Where the by x bx box around a pixel holds a censored reading: bool (H, W) of ``censored`` (bool (H, W)),
     borders reflect-101 (the boxes of :func:`_box`)."""
@@ -151,11 +228,43 @@ def _held(censored: np.ndarray, by: int, bx: int) -> np.ndarray:
 
 
 @kernel
-def _wide_prepare(weights, signal, exposure, censored, weighted):
-    """weighted = w x (x = s / e); flat arrays; whether any reading is censored."""
+def _unheld(held, offset, by, bx, active):
+    """active = False, in place, where one of a pixel's eight blocks (by x bx, one block away; reflect-101) holds a
+    censored reading (``held``: :func:`_held` of the band; row r of ``active``, bool (R, W), is row r + offset of
+    it), as :func:`_wide_blend` stops such a pixel; the number left active. A row's middle as vectorised loops."""
+    h, width = held.shape
+    inner = width - 2 * bx
+    ends = min(bx, width)  # the row's ends, whose blocks reflect: [0, ends) and [max(width - bx, ends), width)
+    left_active = 0
+    for r in range(active.shape[0]):
+        row = active[r]
+        if count_true(row) == 0:
+            continue
+        br = r + offset
+        above, centre, below = held[reflect_101(br - by, h)], held[br], held[reflect_101(br + by, h)]
+        for i in range(ends + width - max(width - bx, ends)):
+            c = i if i < ends else max(width - bx, ends) + i - ends
+            left, right = reflect_101(c - bx, width), reflect_101(c + bx, width)
+            bad = (above[left] or above[c] or above[right] or centre[left] or centre[right] or below[left]
+                   or below[c] or below[right])
+            row[c] = row[c] and not bad
+        if inner > 0:  # as bytes, the blocks' rows shifted, which LLVM vectorises
+            middle, two = row[bx:bx + inner].view(np.uint8), 2 * bx
+            up, mid, down = above.view(np.uint8), centre.view(np.uint8), below.view(np.uint8)
+            a0, a1, a2 = up[:inner], up[bx:bx + inner], up[two:two + inner]
+            b0, b2 = mid[:inner], mid[two:two + inner]
+            c0, c1, c2 = down[:inner], down[bx:bx + inner], down[two:two + inner]
+            for i in range(inner):
+                middle[i] = middle[i] & ~(a0[i] | a1[i] | a2[i] | b0[i] | b2[i] | c0[i] | c1[i] | c2[i])
+        left_active += count_true(row)
+    return left_active
+
+
+@kernel
+def _wide_prepare(weights, signal, exposure, weighted):
+    """weighted = w x (x = s / e); flat arrays."""
     for k in range(weights.size):
         weighted[k] = weights[k] * (signal[k] / exposure[k])
-    return count_true(censored) > 0  # counted apart: a count inside the loop above keeps LLVM from vectorising it
 
 
 @kernel
@@ -251,8 +360,8 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
         for i in range(3):
             rows[i] = reflect_101(br + (i - 1) * by, h)
         if not (n * WIDE_DENSE_ROW > width and inner > 0):
-            kept += _wide_packed(box_w, means, rows, bx, active[r], changed[r], estimate[r], information[r], index,
-                                 blocks, packed_active, packed_changed, packed_estimate, packed_information)
+            kept += _wide_packed(box_w, means, rows, bx, n, active[r], changed[r], estimate[r], information[r],
+                                 index, blocks, packed_active, packed_changed, packed_estimate, packed_information)
             continue
         kept += _wide_row(box_w, means, rows, bx, active[r, bx:bx + inner], changed[r, bx:bx + inner],
                           estimate[r, bx:bx + inner], information[r, bx:bx + inner])
@@ -279,18 +388,15 @@ WIDE_DENSE_ROW = 32
 
 
 @kernel
-def _wide_packed(box_w, means, rows, bx, active, changed, estimate, information, index, blocks, packed_active,
-                 packed_changed, packed_estimate, packed_information):
+def _wide_packed(box_w, means, rows, bx, count, active, changed, estimate, information, index, blocks,
+                 packed_active, packed_changed, packed_estimate, packed_information):
     """:func:`_wide_row` at the active pixels of a whole row (``active``, ``changed``, ``estimate`` and
-    ``information``: the row, in place; ``rows``: the band rows of its blocks) packed: their columns into
-    ``index`` (without branches), their eight blocks' W and levels into ``blocks`` (float32 (16, W): W of blocks
-    0-7, then their levels) and their values into the ``packed_*`` scratch rows, :func:`_wide_lanes` on those,
-    then scattered back; the number kept active."""
+    ``information``: the row, in place; ``rows``: the band rows of its blocks; ``count``: its active pixels) packed:
+    their columns into ``index`` (base.true_positions), their eight blocks' W and levels into ``blocks`` (float32
+    (16, W): W of blocks 0-7, then their levels) and their values into the ``packed_*`` scratch rows,
+    :func:`_wide_lanes` on those, then scattered back; the number kept active."""
     width = active.size
-    n = 0
-    for c in range(width):
-        index[n] = c
-        n += active[c]
+    n = true_positions(active, count, index)
     for j in range(n):
         c = index[j]
         cols = (reflect_101(c - bx, width), c, reflect_101(c + bx, width))
@@ -367,43 +473,101 @@ def _wide_lanes(w0, w1, w2, w3, w4, w5, w6, w7, m0, m1, m2, m3, m4, m5, m6, m7, 
 
 
 @kernel
-def _wide_direct(weights, signal, exposure, censored, offset, by, bx, active, changed, estimate, information):
+def _wide_direct(weights, signal, exposure, censored, held, offset, ky, kx, blocks, active, changed, estimate,
+                 information):
     """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
-    band's weights, signals, exposures and censoring (row r of ``active`` is row r + offset of them). A row's
-    active pixels are found without branches (rows without any skipped at a count)."""
+    band's weights, signals, exposures and censoring (of no rows where none is censored), and the scale's blocks
+    holding a censored reading (``held``, :func:`_held`) where made, else of no rows (row r of ``active`` is row
+    r + offset of them). The scale's
+    blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each, whose sums are added three by three
+    along rows, then down columns, in float32, as :func:`_threefold` adds the box filters' (bit for bit); a pixel
+    one of whose blocks holds a censored reading stops before any sums (found in ``held``, else in its blocks'
+    readings). A row's active
+    pixels are found by base.true_positions (rows without any skipped at a count)."""
     h, width = weights.shape
     tiny = np.float32(TINY)
+    by, bx = ky * blocks, kx * blocks
     block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    sums_w, sums_x = np.empty((blocks, blocks), np.float32), np.empty((blocks, blocks), np.float32)
     index = np.empty(width, np.int64)
     kept = 0
     for r in range(active.shape[0]):
         row = active[r]
-        if count_true(row) == 0:
+        n = count_true(row)
+        if n == 0:
             continue
-        n = 0
-        for c in range(width):
-            index[n] = c
-            n += row[c]
+        n = true_positions(row, n, index)
         br = r + offset
         for j in range(n):  # a pixel changes only its own flags: the columns found first are those visited
             c = index[j]
+            if (_held_near(held, br, c, by, bx) if held.shape[0] > 0 else
+                    censored.shape[0] > 0 and _censored_near(censored, br, c, by, bx)):
+                active[r, c] = False  # it stops unchanged, as _wide_blend stops it
+                continue
             for i in range(9):
                 if i == 4:
                     continue
-                top, left = br + (i // 3 - 1) * by - by // 2, c + (i % 3 - 1) * bx - bx // 2
-                wb, xb, bad = 0.0, 0.0, False
-                for dy in range(by):
-                    rr = reflect_101(top + dy, h)
-                    for dx in range(bx):
-                        cc = reflect_101(left + dx, width)
-                        bad |= censored[rr, cc]
-                        w = weights[rr, cc]
-                        wb += w
-                        xb += w * (signal[rr, cc] / exposure[rr, cc])
+                for a in range(blocks):
+                    top = br + (i // 3 - 1) * by + (a - blocks // 2) * ky - ky // 2
+                    for b in range(blocks):
+                        left = c + (i % 3 - 1) * bx + (b - blocks // 2) * kx - kx // 2
+                        wb, xb = 0.0, 0.0
+                        for dy in range(ky):
+                            rr = reflect_101(top + dy, h)
+                            for dx in range(kx):
+                                cc = reflect_101(left + dx, width)
+                                w = weights[rr, cc]
+                                wb += w
+                                xb += w * (signal[rr, cc] / exposure[rr, cc])
+                        sums_w[a, b], sums_x[a, b] = np.float32(wb), np.float32(xb)
+                _threefold_block(sums_w)
+                _threefold_block(sums_x)
                 b = i if i < 4 else i - 1
-                w32 = np.float32(wb)
+                w32 = sums_w[0, 0]
                 block_w[b] = w32
-                block_m[b] = np.float32(np.nan) if bad else (np.float32(xb) / max(w32, tiny) if w32 > tiny
-                                                             else np.float32(0.0))
+                block_m[b] = sums_x[0, 0] / max(w32, tiny) if w32 > tiny else np.float32(0.0)
             kept += _wide_blend(block_w, block_m, r, c, active, changed, estimate, information)
     return kept
+
+
+@kernel
+def _censored_near(censored, r, c, by, bx):
+    """Whether one of the eight by x bx blocks one block away from pixel (r, c) of ``censored`` (bool (H, W))
+    holds a censored reading, borders reflect-101 (the first one found ends the search)."""
+    h, width = censored.shape
+    for i in range(9):
+        if i == 4:
+            continue
+        top, left = r + (i // 3 - 1) * by - by // 2, c + (i % 3 - 1) * bx - bx // 2
+        for dy in range(by):
+            row = censored[reflect_101(top + dy, h)]
+            for dx in range(bx):
+                if row[reflect_101(left + dx, width)]:
+                    return True
+    return False
+
+
+@kernel
+def _held_near(held, r, c, by, bx):
+    """Whether one of the eight blocks one block (by x bx) away from pixel (r, c) holds a censored reading
+    (``held``: :func:`_held`), borders reflect-101."""
+    h, width = held.shape
+    rows = (reflect_101(r - by, h), r, reflect_101(r + by, h))
+    cols = (reflect_101(c - bx, width), c, reflect_101(c + bx, width))
+    return (held[rows[0], cols[0]] or held[rows[0], cols[1]] or held[rows[0], cols[2]] or held[rows[1], cols[0]]
+            or held[rows[1], cols[2]] or held[rows[2], cols[0]] or held[rows[2], cols[1]] or held[rows[2], cols[2]])
+
+
+@kernel
+def _threefold_block(sums):
+    """sums[0, 0] = the sum of the square float32 ``sums`` (3^k x 3^k), three by three along rows, then down
+    columns, level by level, in :func:`_threefold`'s order; ``sums`` is scratch."""
+    n = sums.shape[0]
+    while n > 1:
+        for a in range(n):
+            for b in range(n // 3):
+                sums[a, b] = sums[a, 3 * b] + sums[a, 3 * b + 1] + sums[a, 3 * b + 2]
+        for a in range(n // 3):
+            for b in range(n // 3):
+                sums[a, b] = sums[3 * a, b] + sums[3 * a + 1, b] + sums[3 * a + 2, b]
+        n //= 3

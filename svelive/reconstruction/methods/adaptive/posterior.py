@@ -11,7 +11,7 @@ import numpy as np
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive.parameters import TINY
-from svelive.reconstruction.methods.base import count_true
+from svelive.reconstruction.methods.base import count_true, true_positions
 
 
 @kernel
@@ -19,8 +19,8 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
     """image = step 4's result of (estimate, information) at the ``changed`` pixels of (R, W) arrays, variance =
     1 / information there unless ``variance`` is empty. Row by row: a row with many (DENSE_CHANGED or more of
     its pixels) through :func:`nonnegative` whole, then chosen pixel by pixel without branches; a row with
-    fewer packed into short arrays first, also without branches (an index written at every pixel, the count
-    advanced by the flag: the wide fallback's pixels lie scattered, and a branch per pixel mispredicts)."""
+    fewer packed into short arrays first (base.true_positions: without a branch per pixel, since the wide
+    fallback's pixels lie scattered and such a branch mispredicts)."""
     width = changed.shape[1]
     out, packed_image = np.empty(width, np.float32), np.empty(width, np.float32)
     packed_estimate, packed_information = np.empty(width, np.float32), np.empty(width, np.float32)
@@ -44,10 +44,7 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
                     kept, new = row_variance[c], one / row_information[c]
                     row_variance[c] = new if row[c] else kept
             continue
-        n = 0
-        for c in range(width):
-            index[n] = c
-            n += row[c]
+        n = true_positions(row, n, index)
         for j in range(n):
             packed_estimate[j], packed_information[j] = row_estimate[index[j]], row_information[index[j]]
         packed_image[:n] = packed_estimate[:n]
