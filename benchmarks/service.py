@@ -4,7 +4,7 @@
                                  [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
                                  [--size 1920x1200]
                                  [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held]
-                                 [--refresh K]
+                                 [--refresh K] [--publisher-nice N]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process, its kernels prepared as
 ``svelive serve`` prepares them (``warm_up_kernels``: compiled into numba's cache by a process
@@ -195,10 +195,11 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
           size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1,
-          live_quality: str = "fixed", fed: bool = True, refresh: int | None = None) -> None:
+          live_quality: str = "fixed", fed: bool = True, refresh: int | None = None,
+          publisher_nice: int | None = None) -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
     ``/bench/rtsp``); ``fed``: its frames from a feeder process (:func:`replay_source_factory`); ``refresh``:
-    ``PipelineConfig.refresh``, None: the checkout's default."""
+    ``PipelineConfig.refresh`` and ``publisher_nice``: ``PipelineConfig.publisher_nice``, None: the checkout's default."""
     import uvicorn
 
     from service.app import create_app, listen_socket
@@ -211,7 +212,8 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     except ImportError:
         pass
     factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa, fed=fed)
-    extra = {} if refresh is None else {"refresh": refresh}
+    extra = {name: value for name, value in (("refresh", refresh), ("publisher_nice", publisher_nice))
+             if value is not None}
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers,
                                        parallel_frames=parallel_frames, live_quality=live_quality, **extra), factory)
     settings = ServerSettings(port=port, log_level="warning")
@@ -608,6 +610,9 @@ def main() -> None:
     parser.add_argument("--refresh", type=int, default=None, metavar="K",
                         help="the service's refresh setting (monochrome streams with fusion run the method on the "
                              "bands that need it and 1/K of the settled ones; 0: off); default: the checkout's")
+    parser.add_argument("--publisher-nice", type=int, default=None, metavar="N",
+                        help="nice levels the publishers' threads run below the reconstruction (0: the same); "
+                             "default: the checkout's")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--feed", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rtsp-port", type=int, default=0, help=argparse.SUPPRESS)
@@ -622,7 +627,8 @@ def main() -> None:
         return
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
-              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality, args.replay == "fed", args.refresh)
+              args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality, args.replay == "fed", args.refresh,
+              args.publisher_nice)
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
@@ -634,6 +640,8 @@ def main() -> None:
         cmd.append("--no-temporal")
     if args.refresh is not None:
         cmd += ["--refresh", str(args.refresh)]
+    if args.publisher_nice is not None:
+        cmd += ["--publisher-nice", str(args.publisher_nice)]
     rtsp_port = free_port() if args.rtsp else 0
     if rtsp_port:
         cmd += ["--rtsp-port", str(rtsp_port)]
@@ -675,7 +683,8 @@ def main() -> None:
           f"{load_before}; {args.size} 12-bit "
           f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, parallel frames {args.parallel_frames}, {args.scene} scene, "
-          f"live quality {args.live_quality}, replay {args.replay}, {args.clients} clients, {args.minutes:g} min per phase")
+          f"live quality {args.live_quality}, replay {args.replay}, {args.clients} clients, {args.minutes:g} min per phase"
+          f"{'' if args.publisher_nice is None else f', publishers {args.publisher_nice} nice levels lower'}")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
           f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "
           f"fps {idle['fps']}")

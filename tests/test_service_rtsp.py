@@ -7,7 +7,10 @@ with bounded waits.
 
 from __future__ import annotations
 
+import os
 import socket
+import sys
+import threading
 import time
 
 import cv2
@@ -196,6 +199,41 @@ def test_a_late_joiner_gets_a_keyframe_at_once(mono_pipeline):
         with RtspClient(publisher.url, publisher=publisher) as second:
             assert second.frames(2, timeout=20)[0].shape == SHAPE
         assert publisher.medias == 1
+
+
+def _threads_nice() -> dict[int, tuple[str, int]]:
+    """Every thread of this process: native id -> (its kernel name, its nice value)."""
+    out = {}
+    for tid in map(int, os.listdir("/proc/self/task")):
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                out[tid] = (f.read().strip(), os.getpriority(os.PRIO_PROCESS, tid))
+        except OSError:  # the thread ended meanwhile
+            pass
+    return out
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="threads have nice values of their own on Linux only")
+def test_the_publishers_threads_run_below_the_reconstruction(mono_pipeline):
+    base, steps = os.getpriority(os.PRIO_PROCESS, os.getpid()), mono_pipeline.config.publisher_nice
+    assert steps > 0 and base + steps <= 19  # the default lowers them
+    mono_pipeline.watch(+1)  # an MJPEG client: the encoder thread makes JPEGs too
+    try:
+        # two x264 threads asked for: they must inherit the streaming thread's priority
+        with RtspPublisher(mono_pipeline, host="127.0.0.1", port=0, settings=H264Settings(threads=2)) as publisher, \
+                RtspClient(publisher.url, publisher=publisher) as client:
+            client.frames(3)
+            threads = _threads_nice()
+            python = {t.name: t.native_id for t in threading.enumerate()}
+    finally:
+        mono_pipeline.watch(-1)
+    for name in ("svelive-capture", "svelive-reconstruct"):
+        assert threads[python[name]][1] == base, name
+    for name in ("svelive-encode", "svelive-rtsp-push"):
+        assert threads[python[name]][1] == base + steps, name
+    # the media's streaming thread and x264's threads: GStreamer names them after the appsrc's pad
+    streaming = [nice for name, nice in threads.values() if name == "src:src"]
+    assert len(streaming) >= 3 and set(streaming) == {base + steps}
 
 
 def test_colour_preview_is_served_in_colour():

@@ -37,6 +37,7 @@ def test_precedence_cli_over_env_over_file_over_defaults(tmp_path):
     ({"host": "example.com"}, {}, "host"),
     ({"method": "magic"}, {}, "unknown method"),
     ({"jpeg_quality": 101}, {}, "JPEG quality"),
+    ({}, {"SVELIVE_PUBLISHER_NICE": "20"}, "publisher_nice"),
     ({"pattern": "1,0/2,4"}, {}, "pattern"),
     ({"key": 5.0}, {}, "key"),
     ({"token": "has space"}, {}, "token"),

@@ -57,6 +57,8 @@ class PipelineConfig:
             balance, camera -> Rec.709 matrix, the space EXR snapshots are in); unused for mono.
         jpeg_quality: preview JPEG quality, 10..100.
         preview_width: downscale previews wider than this (pixels); 0 keeps full size.
+        publisher_nice: nice levels the publishers' threads (tone map and JPEG, RTSP conversion and H.264) run below
+            the capture and reconstruction (service.pipeline.priority); 0: the same priority.
         offline_after_s: no frame for this long means the source is offline.
         retry_s: wait before reopening a source that failed or went away.
         no_signal_fps: rate of "no signal" frames sent while the source is offline.
@@ -81,6 +83,7 @@ class PipelineConfig:
     colour: ColourSettings = field(default_factory=ColourSettings)
     jpeg_quality: int = 80
     preview_width: int = 0
+    publisher_nice: int = 5
     offline_after_s: float = 2.0
     retry_s: float = 1.0
     no_signal_fps: float = 2.0
@@ -104,6 +107,9 @@ class PipelineConfig:
             raise SveliveError(f"queue must hold 1..8 frames, got {self.queue}")
         if not 0 <= self.preview_width <= 16384:
             raise SveliveError(f"preview width must be 0..16384 pixels, got {self.preview_width}")
+        if isinstance(self.publisher_nice, bool) or not isinstance(self.publisher_nice, int) \
+                or not 0 <= self.publisher_nice <= 19:
+            raise SveliveError(f"publisher_nice must be 0..19 nice levels, got {self.publisher_nice!r}")
         for name in ("offline_after_s", "retry_s", "no_signal_fps"):
             if not 0 < getattr(self, name) <= 3600:
                 raise SveliveError(f"{name} must be in (0, 3600], got {getattr(self, name)}")

@@ -19,6 +19,8 @@ shared media:
 - Grey and colour previews alike become I420 (BT.601, limited range) in the
   publisher: grey through a look-up table and neutral chroma, BGR through
   OpenCV (2-7 ms per 1920x1200 frame, against 10-14 ms in GStreamer's videoconvert).
+- The pusher thread and the media's streaming thread (and with it x264's own threads) run
+  ``publisher_nice`` levels below the reconstruction (service.pipeline.priority).
 - Every client's first picture is a keyframe with its SPS/PPS: a client that starts playing is
   held (its transports inactive) until a keyframe reaches the payloader, and a key unit is
   forced for it (without x264's separate header buffer, which went out as a picture of its
@@ -67,6 +69,7 @@ import cv2
 import numpy as np
 
 from service.pipeline import LatencyWindow, Pipeline, PreviewFrame, RateMeter
+from service.pipeline.priority import publisher_nice
 from svelive.core.errors import SveliveError
 
 #: What to install when the GStreamer RTSP server or its plugins are missing.
@@ -707,6 +710,7 @@ class RtspPublisher:
         while the one before was still being pushed is skipped), until :meth:`detach`."""
         port = self.pipeline.preview_port
         seen = port.seq
+        publisher_nice(self.pipeline.config.publisher_nice)
         while not self._detached.is_set():
             got = port.get_newest(seen, 0.25)
             if got is not None:
@@ -762,6 +766,7 @@ class RtspPublisher:
         caps = src.get_property("caps").get_structure(0)
         self.medias += 1
         encoder.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, self._on_encoded)
+        encoder.get_static_pad("sink").add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM, self._on_stream_start)
         media.connect("unprepared", self._on_media_unprepared)
         record = _Media(media, src, encoder, caps.get_value("width"), caps.get_value("height"))
         record.pay_sink = element.get_by_name("pay0").get_static_pad("sink")
@@ -777,6 +782,16 @@ class RtspPublisher:
         preview, latest = self.pipeline.latest_preview(), self.pipeline.latest()
         if preview is not None and latest is not None and preview.hdr_seq == latest.seq and self.pipeline.online():
             self._on_preview(preview)
+
+    def _on_stream_start(self, pad: Any, info: Any) -> Any:
+        """The media's streaming thread, at its first event: lower it below the reconstruction before x264 (at
+        the caps that follow) starts the threads that inherit its priority (service.pipeline.priority)."""
+        from gi.repository import Gst
+
+        if info.get_event().type != Gst.EventType.STREAM_START:
+            return Gst.PadProbeReturn.OK
+        publisher_nice(self.pipeline.config.publisher_nice)
+        return Gst.PadProbeReturn.REMOVE
 
     def _on_media_unprepared(self, media: Any) -> None:
         with self._lock:

@@ -81,6 +81,7 @@ def pipeline_state(pipeline: Pipeline) -> dict[str, Any]:
         **{name: value for name, value in colour.public().items() if name != "white_balance"},
         "jpeg_quality": encoder.jpeg_quality,
         "preview_width": config.preview_width,
+        "publisher_nice": config.publisher_nice,
         "watchers": encoder.watchers,
         "preview_watchers": encoder.preview_watchers,
         "opencv_threads": cv2.getNumThreads(),
