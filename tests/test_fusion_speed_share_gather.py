@@ -1,4 +1,4 @@
-"""The share error's gather (svelive.reconstruction.stream._share_gather): each pixel takes its channel's
+"""The share error's gather (svelive.reconstruction.fusion._share_gather): each pixel takes its channel's
 value of its cell, whichever loop writes it (cells two columns wide take one of their own)."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from svelive.reconstruction.stream import _share_gather
+from svelive.reconstruction.fusion import _share_gather
 
 
 @pytest.mark.parametrize("channels", [[[0, 1], [1, 2]], [[0, 1], [1, 2], [0, 1], [1, 2]], [[0, 1, 2]], [[2]]])

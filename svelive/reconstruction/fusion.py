@@ -94,6 +94,20 @@ class ShareError(NamedTuple):
     cells: np.ndarray
     channels: np.ndarray
 
+    def plane(self, shape: tuple[int, int]) -> np.ndarray:
+        """float32 ``shape`` (H, W): each pixel's value, the plane :attr:`FrameEstimate.share_error` may take
+        instead."""
+        out = np.empty(shape, np.float32)
+        _share_gather(self.cells, self.channels, out)
+        return out
+
+
+@kernel
+def _share_gather(cells, channels, out):
+    """out (H, W) = ``cells`` (n, Hc, Wc) of each pixel's plane (``channels``: a cell's, (cy, cx)) and cell."""
+    for r in range(out.shape[0]):
+        _share_row(cells, channels, r, out[r])
+
 
 @kernel(inline="always")
 def _share_row(cells, channels, g, row):
@@ -497,9 +511,9 @@ _NO_TABLE.setflags(write=False)
 
 #: :class:`_Frame`'s share error without one, and the cells of a share error given as a plane (H, W): one plane
 #: of cells of 1 x 1 px.
-_NO_SHARES = ShareError(np.empty((0, 0, 0), np.float32), np.zeros((1, 1), np.uint8))
 _ONE_PLANE = np.zeros((1, 1), np.uint8)
-for _array in (*_NO_SHARES, _ONE_PLANE):
+_NO_SHARES = ShareError(np.empty((0, 0, 0), np.float32), _ONE_PLANE)
+for _array in _NO_SHARES:
     _array.setflags(write=False)
 
 #: An output of no rows (:class:`_Outputs`' own variance without one): never written, but writable, as the

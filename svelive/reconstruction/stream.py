@@ -50,7 +50,7 @@ from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
 from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, ShareError,
-                                          TemporalState, _share_row, fuse)
+                                          TemporalState, fuse)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
@@ -1035,10 +1035,7 @@ def own_reading_scales(sensor: Sensor) -> tuple[np.float32, np.float32]:
 def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int, int]) -> np.ndarray:
     """The relative variance of each pixel's share error, float32 (H, W) (fusion.FrameEstimate.share_error): the
     plane of :func:`share_error_cells`."""
-    out = np.empty(shape, np.float32)
-    cells, channels = share_error_cells(shares, layout)
-    _share_gather(cells, channels, out)
-    return out
+    return share_error_cells(shares, layout).plane(shape)
 
 
 def share_error_cells(shares: np.ndarray, layout: colour.CellLayout) -> ShareError:
@@ -1088,13 +1085,6 @@ def _spread_of(above, middle, below, left, j, right):
     centre = quarter * (a * a + d * d) + half * b * b
     a, b, d = below[left] * inv - one, below[j] * inv - one, below[right] * inv - one
     return quarter * (top + quarter * (a * a + d * d) + half * b * b) + half * centre
-
-
-@kernel
-def _share_gather(cells, channels, out):
-    """out (H, W) = ``cells`` (3, Hc, Wc) of each pixel's channel (``channels``: a cell's, (cy, cx)) and cell."""
-    for r in range(out.shape[0]):
-        _share_row(cells, channels, r, out[r])
 
 
 def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, image: np.ndarray,
