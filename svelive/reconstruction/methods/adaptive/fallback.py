@@ -244,10 +244,7 @@ def _unheld(held, offset, by, bx, active):
         above, centre, below = held[reflect_101(br - by, h)], held[br], held[reflect_101(br + by, h)]
         for i in range(ends + width - max(width - bx, ends)):
             c = i if i < ends else max(width - bx, ends) + i - ends
-            left, right = reflect_101(c - bx, width), reflect_101(c + bx, width)
-            bad = (above[left] or above[c] or above[right] or centre[left] or centre[right] or below[left]
-                   or below[c] or below[right])
-            row[c] = row[c] and not bad
+            row[c] = row[c] and not _held_near(held, br, c, by, bx)
         if inner > 0:  # as bytes, the blocks' rows shifted, which LLVM vectorises
             middle, two = row[bx:bx + inner].view(np.uint8), 2 * bx
             up, mid, down = above.view(np.uint8), centre.view(np.uint8), below.view(np.uint8)
