@@ -252,12 +252,14 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
 
     @app.get("/healthz")
     async def healthz() -> Any:
-        if any(cam.pipeline.warming_up for cam in cameras):  # a readiness probe: not ready yet
-            return JSONResponse({"status": "warming up", "source": "warming_up",
-                                 "cameras": {cam.name: "warming_up" for cam in cameras}}, status_code=503)
-        online = {cam.name: cam.pipeline.online() for cam in cameras}
-        return {"status": "ok", "source": "online" if online[cameras[0].name] else "offline",
-                "cameras": {name: "online" if up else "offline" for name, up in online.items()}}
+        cams = {cam.name: cam.pipeline.readiness() for cam in cameras}
+        first = cams[cameras[0].name]
+        # a readiness probe: not ready while any camera warms up, or has frames coming and none reconstructed yet
+        # (a snapshot asked for then would be refused); a camera that is offline does not hold the others back
+        for waiting, status in (("warming_up", "warming up"), ("starting", "starting")):
+            if waiting in cams.values():
+                return JSONResponse({"status": status, "source": first, "cameras": cams}, status_code=503)
+        return {"status": "ok", "source": first, "cameras": cams}
 
     app.include_router(metrics.router(cameras, settings))
     for index, cam in enumerate(cameras):

@@ -237,6 +237,7 @@ def closed_within(sock: socket.socket, seconds: float) -> bool:
 
 def test_half_sent_headers_are_cut_off_and_connections_bounded():
     with MultiServer({"a": make_camera()}, protocol=bounded_protocol(0.5, 8)) as srv:
+        wait_state(f"{srv.url}/api/state", lambda s: s["frames"]["reconstructed"] > 0)  # /healthz ready from then on
         slow = socket.create_connection(("127.0.0.1", srv.port))
         slow.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # and never the blank line
         assert closed_within(slow, 5.0)

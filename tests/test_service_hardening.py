@@ -60,6 +60,8 @@ def send_chunked(port: int, path: str, total: int, headers: str = "", chunk: int
 @pytest.mark.parametrize("token", [None, "tok3n"])
 def test_a_chunked_body_past_the_bound_is_refused_while_it_streams(token):
     with ServerThread(make_camera(fps=5.0, n=2), token=token) as srv:
+        srv.wait_for(lambda s: s["frames"]["reconstructed"] > 0,  # /healthz ready from then on
+                     headers={"Authorization": f"Bearer {token}"} if token else {})
         auth = f"Authorization: Bearer {token}\r\n" if token else ""
         total = 64 * 2**20
         sent, answer = send_chunked(srv.port, "/api/settings", total, auth)

@@ -203,6 +203,7 @@ def test_token_guards_every_endpoint_but_healthz():
     token = "s3cret-token"
     with ServerThread(camera, token=token) as srv:
         auth = {"Authorization": f"Bearer {token}"}
+        srv.wait_for(lambda s: s["frames"]["reconstructed"] > 0, headers=auth)  # /healthz is ready from then on
         assert httpx.get(srv.url + "/healthz", timeout=5).status_code == 200
         for path in ("/", "/api/state", "/api/settings", "/snapshot.jpg", "/snapshot.exr", "/stream.mjpg"):
             for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {token}"}):
@@ -234,3 +235,41 @@ def test_an_mjpeg_part_is_made_once_per_frame_for_every_client():
     assert part == part_bytes(first) and b"X-Frame-Id: 7" in part and part.endswith(first.jpeg + b"\r\n")
     assert hub.part(first) is part  # the second client sends the same bytes, not a copy
     assert hub.part(second) == part_bytes(second) and hub.part(second) is not part
+
+
+def test_healthz_is_ready_once_a_snapshot_can_be_served(monkeypatch):
+    """/healthz answers 503 "starting" while frames come and none is reconstructed yet (before: 200, and a snapshot
+    asked for then was refused "no frame yet"); a snapshot asked for meanwhile waits for the first frame."""
+    import dataclasses
+
+    from svelive.reconstruction.methods import METHODS
+
+    spec, release = METHODS["adaptive"], threading.Event()
+
+    def held(inp, **options):  # the first frame's reconstruction held until the test has seen it starting
+        release.wait(20)
+        return spec.run(inp, **options)
+
+    monkeypatch.setitem(METHODS, "adaptive", dataclasses.replace(spec, run=held))
+    with ServerThread(make_camera(fps=10.0, n=2), method="adaptive") as srv:
+        srv.wait_for(lambda s: s["source"]["online"])
+        health = httpx.get(srv.url + "/healthz", timeout=5)
+        assert health.status_code == 503 and health.json()["status"] == "starting", health.text
+        assert set(health.json()["cameras"].values()) == {"starting"}
+        assert srv.state()["frames"]["reconstructed"] == 0
+        result: dict[str, httpx.Response] = {}
+        asked = [threading.Thread(target=lambda p=p: result.__setitem__(p, httpx.get(srv.url + p, timeout=10)))
+                 for p in ("/snapshot.exr", "/snapshot.jpg")]
+        for thread in asked:
+            thread.start()
+        time.sleep(0.3)
+        release.set()  # the frame comes while the snapshots wait for it
+        for thread in asked:
+            thread.join(10)
+        assert {p: r.status_code for p, r in result.items()} == {"/snapshot.exr": 200, "/snapshot.jpg": 200}, result
+        assert result["/snapshot.jpg"].content[:2] == b"\xff\xd8"
+        channels, _ = read_exr(result["/snapshot.exr"].content)
+        assert channels and all(c.shape == (192, 224) for c in channels.values()), {k: c.shape for k, c in
+                                                                                       channels.items()}
+        health = httpx.get(srv.url + "/healthz", timeout=5)
+        assert health.status_code == 200 and set(health.json()["cameras"].values()) == {"online"}, health.text

@@ -136,9 +136,25 @@ class Pipeline:
         """True while a source is connected and delivered a frame within ``offline_after_s``."""
         return self.capture.online()
 
-    def latest(self) -> Published | None:
-        """The newest reconstructed frame (an immutable record), or None before the first."""
-        return self.hdr_port.latest()
+    def latest(self, wait_s: float = 0.0) -> Published | None:
+        """The newest reconstructed frame (an immutable record), or None before the first; before the first, while
+        the source delivers frames, waits up to ``wait_s`` s for it (the first frame after start-up loads the kernels
+        it needs and takes a second or two)."""
+        latest = self.hdr_port.latest()
+        if latest is None and wait_s > 0 and self.online():
+            newest = self.hdr_port.get_newest(0, wait_s)
+            latest = None if newest is None else newest[1]
+        return latest
+
+    def readiness(self) -> str:
+        """What /healthz says of this camera: "warming_up" (the kernels are being prepared), "offline" (no source
+        delivers frames), "starting" (frames come, none reconstructed yet: a snapshot would be refused) or
+        "online"."""
+        if self.warming_up:
+            return "warming_up"
+        if not self.online():
+            return "offline"
+        return "starting" if self.hdr_port.latest() is None else "online"
 
     def latest_raw(self) -> Frame | None:
         """The newest captured raw frame (with its camera), or None before the first."""

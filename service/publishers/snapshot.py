@@ -11,6 +11,7 @@ off the event loop.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from service.pipeline import ColourStage, Pipeline, Published
@@ -60,9 +61,11 @@ def exr_bytes(published: Published, colour: ColourStage, *, half: bool = False, 
                            planes, half=half)
 
 
-def exr_snapshot(pipeline: Pipeline, *, half: bool = False, confidence: bool = False) -> Snapshot | None:
-    """The newest reconstructed frame of ``pipeline`` as OpenEXR; None before the first."""
-    published = pipeline.latest()
+def exr_snapshot(pipeline: Pipeline, *, half: bool = False, confidence: bool = False,
+                 timeout: float = 2.0) -> Snapshot | None:
+    """The newest reconstructed frame of ``pipeline`` as OpenEXR (waiting up to ``timeout`` s for the first while
+    the source delivers frames); None if there is none."""
+    published = pipeline.latest(timeout)
     if published is None:
         return None
     frame_id = published.hdr.frame_id
@@ -71,9 +74,12 @@ def exr_snapshot(pipeline: Pipeline, *, half: bool = False, confidence: bool = F
 
 
 def jpeg_snapshot(pipeline: Pipeline, timeout: float = 2.0) -> Snapshot | None:
-    """A JPEG of the newest reconstructed frame of ``pipeline`` (waiting up to ``timeout`` s for the encoder);
-    None if there is none."""
-    item = pipeline.snapshot_jpeg(timeout)
+    """A JPEG of the newest reconstructed frame of ``pipeline`` (waiting up to ``timeout`` s in all for the first
+    frame while the source delivers frames, and for the encoder); None if there is none."""
+    deadline = time.monotonic() + timeout
+    if pipeline.latest(timeout) is None:
+        return None
+    item = pipeline.snapshot_jpeg(max(deadline - time.monotonic(), 0.0))
     if item is None:
         return None
     return Snapshot(item.jpeg, "image/jpeg", item.frame_id, item.wall_time)
