@@ -140,7 +140,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     # m and v_r = v_p + v_m from step 2 until step 3 reads them, ry rows later
     neighbours, residual_variances = np.empty((ry + 1, width), np.float32), np.empty((ry + 1, width), np.float32)
-    sums, exposure_row, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
+    sums, exposure_scratch, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32))
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
@@ -183,19 +183,26 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i - ry
         if first1 <= r < last1:  # step 1: w (wn), and the row filters of wn and wn x
             _window_rows(r, h, depth, rows)
-            _column_filter(signal_rows, rows, ky, sums)
-            if given:
-                exposure_row[:] = exposure_sum[r]
+            in_window = windowed and first <= r < last
+            if in_window:  # the motion tests' window mean, below, reads the sums too
+                _column_filter(signal_rows, rows, ky, sums)
+                signal_column = _summed(sums)
             else:
-                _column_filter(exposure_rows, rows, ky, exposure_row)
+                signal_column = _column(signal_rows, rows, ky, sums)
+            if given:
+                exposure_row = exposure_sum[r]
+            else:
+                _column_filter(exposure_rows, rows, ky, exposure_scratch)
+                exposure_row = exposure_scratch
             if flagged:
                 rows_min(lowest_rows, rows, lowest)
-                _weights_censored(sums, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
+                _weights_censored(signal_column, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
                                   gain_inv, floor, centre)
             else:
-                _weights(sums, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor, centre)
+                _weights(signal_column, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor,
+                         centre)
             lowered |= _at_most_zero(exposure_row, lower[r])
-            if windowed and first <= r < last:  # the motion tests' window mean, from the same sums
+            if in_window:  # the motion tests' window mean, from the same sums
                 _column_filter(square_rows[0], rows, ky2, square_sums[0])
                 _column_filter(square_rows[1], rows, ky2, square_sums[1])
                 window_level_row(sums, exposure_row, square_sums[0], square_sums[1], window_noise[0],
@@ -205,19 +212,16 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i - 2 * ry
         if first2 <= r < last2:  # step 2: m and v_m (into `estimate` until step 3), the row filters of b^2's terms
             _window_rows(r, h, depth, rows)
-            m = neighbours[r % (ry + 1)]
-            _column_filter(weight_rows, rows, ky, estimate[r])
-            _column_filter(weighted_rows, rows, ky, m)
-            _residuals(estimate[r], m, wn[r], w[r], x[r % x.shape[0]], a, b, residual_variances[r % (ry + 1)], centre,
-                       kernel_square)
+            _residuals(_column(weight_rows, rows, ky, sums), _column(weighted_rows, rows, ky, exposure_scratch),
+                       estimate[r], neighbours[r % (ry + 1)], wn[r], w[r], x[r % x.shape[0]], a, b,
+                       residual_variances[r % (ry + 1)], centre, kernel_square)
             _row_filter(a, kx, excess_rows[r % depth])
             _row_filter(b, kx, q_rows[r % depth])
         r = i - 3 * ry
         if first <= r < last:  # steps 3 and 4, 0 at the bottom of the raw range, the wide fallback's candidates
             _window_rows(r, h, depth, rows)
-            _column_filter(excess_rows, rows, ky, image[r])
-            _column_filter(q_rows, rows, ky, total[r])
-            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
+            _blend(_column(excess_rows, rows, ky, sums), _column(q_rows, rows, ky, exposure_scratch), image[r],
+                   total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
                    x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, index, packed, raised)
             _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
             if variance.size > 0:
@@ -322,6 +326,39 @@ def _column_filter(values, rows, k, out):
 
 
 @kernel
+def _column(values, rows, k, scratch):
+    """The column filter ``k`` down ``values``' rows ``rows`` as :func:`_column_value` reads it pixel by pixel, in
+    the loop of the stage that reads the sums (no row of sums written and read back): the window's rows as views
+    where ``k`` has 3 or 5 taps, else the sums made into ``scratch`` (a row) by :func:`_column_filter`."""
+    if k.size == 3:
+        return (values[rows[0]], values[rows[1]], values[rows[2]], values[rows[2]], values[rows[2]], k[0], k[1],
+                k[1], 3)
+    if k.size == 5:
+        return (values[rows[0]], values[rows[1]], values[rows[2]], values[rows[3]], values[rows[4]], k[0], k[1],
+                k[2], 5)
+    _column_filter(values, rows, k, scratch)
+    return _summed(scratch)
+
+
+@kernel
+def _summed(sums):
+    """Sums made already (a row), as :func:`_column_value` reads them."""
+    one = np.float32(1.0)
+    return sums, sums, sums, sums, sums, one, one, one, 1
+
+
+@kernel
+def _column_value(column, i):
+    """Pixel ``i`` of a :func:`_column`: :func:`column_sums`' arithmetic of 3 or 5 taps, or the sums made."""
+    a, b, c, d, f, k0, k1, k2, taps = column
+    if taps == 3:
+        return k1 * b[i] + k0 * (a[i] + c[i])
+    if taps == 5:
+        return k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + f[i])
+    return a[i]
+
+
+@kernel
 def _count_at_most(values, level):
     """How many of ``values`` are <= ``level``."""
     n = 0
@@ -419,9 +456,9 @@ def _inverse_variance(signal_sum, exposure_sum, s_valid, e, e_valid, gain_inv, f
 
 @kernel
 def _weights(signal_sum, exposure_sum, s, e, w, x, wx, gain_inv, floor, centre):
-    """Frame without censored pixels: w of every reading, x = s / e, and w x."""
+    """Frame without censored pixels: w of every reading, x = s / e, and w x. ``signal_sum``: a :func:`_column`."""
     for k in range(w.size):
-        wk = _inverse_variance(signal_sum[k], exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
+        wk = _inverse_variance(_column_value(signal_sum, k), exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
         xk = s[k] / e[k]
         w[k] = wk
         x[k] = xk
@@ -430,11 +467,12 @@ def _weights(signal_sum, exposure_sum, s, e, w, x, wx, gain_inv, floor, centre):
 
 @kernel
 def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre):
-    """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x."""
+    """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x.
+    ``signal_sum``: a :func:`_column`."""
     zero = np.float32(0.0)
     for k in range(w.size):
         c = censored[k]
-        wk = _inverse_variance(signal_sum[k], exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k],
+        wk = _inverse_variance(_column_value(signal_sum, k), exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k],
                                gain_inv, floor, centre)
         xk = s[k] / e[k]
         w[k] = wk
@@ -445,17 +483,17 @@ def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn
 
 
 @kernel
-def _residuals(var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square):
+def _residuals(weight_sum, weighted_sum, var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square):
     """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r);
     ``var_r`` = v_r (:func:`_blend` reads it).
 
-    ``var_m`` and ``m`` come in holding the window sums of wn and wn x, and
-    leave holding v_m and m (the sums without the centre pixel).
+    ``weight_sum`` and ``weighted_sum`` (each a :func:`_column`): the window sums of wn and wn x; ``var_m`` and
+    ``m`` are set to v_m and m (the sums without the centre pixel).
     """
     one, tiny = np.float32(1.0), np.float32(TINY)
     for k in range(w.size):
-        sum_w = max(var_m[k] - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
-        mk = (m[k] - centre * (wn[k] * x[k])) / sum_w
+        sum_w = max(_column_value(weight_sum, k) - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
+        mk = (_column_value(weighted_sum, k) - centre * (wn[k] * x[k])) / sum_w
         var_mk = kernel_square / sum_w
         var_rk = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
         d = x[k] - mk
@@ -477,7 +515,8 @@ OWN_SIGMA = 5.0
 
 
 @kernel
-def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index, packed, raised):
+def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index,
+           packed, raised):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0), and at least
     the pixel's own excess (x - m)^2 - OWN_SIGMA^2 (v_p + v_m) where that is positive.
@@ -493,7 +532,8 @@ def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, c
     standard error under a flat scene, sqrt(2 kernel_square / sum q) (each
     residual's squared excess has variance 2 v_r^2 = 2 / q). ``threshold``:
     CONTRAST_SIGMA^2 * 2 kernel_square, so b^2 = max(B - sqrt(threshold / sum q), 0).
-    ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
+    ``excess_sum`` and ``q_sum`` (each a :func:`_column`): the window sums of excess_q and q; ``image`` and
+    ``total`` are set to the result and the information, and ``var_m`` to L^.
     ``var_r``: v_p + v_m, as :func:`_residuals` made it (1 / max(w, TINY) + v_m).
     ``index`` (int64), ``packed`` (float32 (3, N)) and ``raised`` (bool): scratch of at least the arrays' size N.
     The information at L^ (a division) is computed only in rows holding a pixel that takes it.
@@ -503,10 +543,10 @@ def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, c
     own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
     dark, lifted = 0, 0
     for k in range(w.size):  # a loop without branches, which LLVM vectorises
-        weight = max(total[k], tiny)
+        weight = max(_column_value(q_sum, k), tiny)
         d = x[k] - m[k]
         own = d * d - own_z2 * var_r[k]  # the pixel's own evidence of m's bias
-        excess = max(max(image[k] / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
+        excess = max(max(_column_value(excess_sum, k) / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
         t = one / excess + w[k]
         estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
         lift = (own > zero) & (w[k] > zero)
