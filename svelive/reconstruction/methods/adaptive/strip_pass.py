@@ -327,7 +327,7 @@ def _column_filter(values, rows, k, out):
 
 @kernel
 def _column(values, rows, k, scratch):
-    """The column filter ``k`` down ``values``' rows ``rows`` as :func:`_column_value` reads it pixel by pixel, in
+    """The column filter ``k`` down ``values``' rows ``rows`` as :func:`_three` and :func:`_five` read it pixel by pixel, in
     the loop of the stage that reads the sums (no row of sums written and read back): the window's rows as views
     where ``k`` has 3 or 5 taps, else the sums made into ``scratch`` (a row) by :func:`_column_filter`."""
     if k.size == 3:
@@ -342,20 +342,23 @@ def _column(values, rows, k, scratch):
 
 @kernel
 def _summed(sums):
-    """Sums made already (a row), as :func:`_column_value` reads them."""
+    """Sums made already (a row), as a :func:`_column`: the stages read them as they are."""
     one = np.float32(1.0)
     return sums, sums, sums, sums, sums, one, one, one, 1
 
 
 @kernel
-def _column_value(column, i):
-    """Pixel ``i`` of a :func:`_column`: :func:`column_sums`' arithmetic of 3 or 5 taps, or the sums made."""
-    a, b, c, d, f, k0, k1, k2, taps = column
-    if taps == 3:
-        return k1 * b[i] + k0 * (a[i] + c[i])
-    if taps == 5:
-        return k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + f[i])
-    return a[i]
+def _three(column, i):
+    """Pixel ``i`` of a :func:`_column` of 3 taps: :func:`column_sums`' arithmetic."""
+    a, b, c, _, _, k0, k1, _, _ = column
+    return k1 * b[i] + k0 * (a[i] + c[i])
+
+
+@kernel
+def _five(column, i):
+    """Pixel ``i`` of a :func:`_column` of 5 taps: :func:`column_sums`' arithmetic."""
+    a, b, c, d, f, k0, k1, k2, _ = column
+    return k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + f[i])
 
 
 @kernel
@@ -457,29 +460,53 @@ def _inverse_variance(signal_sum, exposure_sum, s_valid, e, e_valid, gain_inv, f
 @kernel
 def _weights(signal_sum, exposure_sum, s, e, w, x, wx, gain_inv, floor, centre):
     """Frame without censored pixels: w of every reading, x = s / e, and w x. ``signal_sum``: a :func:`_column`."""
-    for k in range(w.size):
-        wk = _inverse_variance(_column_value(signal_sum, k), exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
-        xk = s[k] / e[k]
-        w[k] = wk
-        x[k] = xk
-        wx[k] = wk * xk
+    arrays, n, taps = (exposure_sum, s, e, w, x, wx, gain_inv, floor, centre), w.size, signal_sum[8]
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        _weight(k, _three(signal_sum, k), arrays)
+    for k in range(n if taps == 5 else 0):
+        _weight(k, _five(signal_sum, k), arrays)
+    for k in range(n if taps == 1 else 0):
+        _weight(k, signal_sum[0][k], arrays)
+
+
+@kernel
+def _weight(k, signal_sum, arrays):
+    """Pixel k of :func:`_weights`."""
+    exposure_sum, s, e, w, x, wx, gain_inv, floor, centre = arrays
+    wk = _inverse_variance(signal_sum, exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
+    xk = s[k] / e[k]
+    w[k] = wk
+    x[k] = xk
+    wx[k] = wk * xk
 
 
 @kernel
 def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre):
     """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x.
     ``signal_sum``: a :func:`_column`."""
+    arrays, n, taps = (exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre), w.size, signal_sum[8]
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        _weight_censored(k, _three(signal_sum, k), arrays)
+    for k in range(n if taps == 5 else 0):
+        _weight_censored(k, _five(signal_sum, k), arrays)
+    for k in range(n if taps == 1 else 0):
+        _weight_censored(k, signal_sum[0][k], arrays)
+
+
+@kernel
+def _weight_censored(k, signal_sum, arrays):
+    """Pixel k of :func:`_weights_censored`."""
+    exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre = arrays
     zero = np.float32(0.0)
-    for k in range(w.size):
-        c = censored[k]
-        wk = _inverse_variance(_column_value(signal_sum, k), exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k],
-                               gain_inv, floor, centre)
-        xk = s[k] / e[k]
-        w[k] = wk
-        x[k] = xk
-        wnk = zero if lowest[k] <= e[k] else wk
-        wn[k] = wnk
-        wx[k] = wnk * xk
+    c = censored[k]
+    wk = _inverse_variance(signal_sum, exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k], gain_inv, floor,
+                           centre)
+    xk = s[k] / e[k]
+    w[k] = wk
+    x[k] = xk
+    wnk = zero if lowest[k] <= e[k] else wk
+    wn[k] = wnk
+    wx[k] = wnk * xk
 
 
 @kernel
@@ -490,19 +517,31 @@ def _residuals(weight_sum, weighted_sum, var_m, m, wn, w, x, excess_q, q, var_r,
     ``weight_sum`` and ``weighted_sum`` (each a :func:`_column`): the window sums of wn and wn x; ``var_m`` and
     ``m`` are set to v_m and m (the sums without the centre pixel).
     """
+    arrays, n, taps = (var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square), w.size, weight_sum[8]
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        _residual(k, _three(weight_sum, k), _three(weighted_sum, k), arrays)
+    for k in range(n if taps == 5 else 0):
+        _residual(k, _five(weight_sum, k), _five(weighted_sum, k), arrays)
+    for k in range(n if taps == 1 else 0):
+        _residual(k, weight_sum[0][k], weighted_sum[0][k], arrays)
+
+
+@kernel
+def _residual(k, weight_sum, weighted_sum, arrays):
+    """Pixel k of :func:`_residuals`."""
+    var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square = arrays
     one, tiny = np.float32(1.0), np.float32(TINY)
-    for k in range(w.size):
-        sum_w = max(_column_value(weight_sum, k) - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
-        mk = (_column_value(weighted_sum, k) - centre * (wn[k] * x[k])) / sum_w
-        var_mk = kernel_square / sum_w
-        var_rk = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
-        d = x[k] - mk
-        qk = one / (var_rk * var_rk)
-        m[k] = mk
-        var_m[k] = var_mk
-        var_r[k] = var_rk
-        excess_q[k] = (d * d - var_rk) * qk
-        q[k] = qk
+    sum_w = max(weight_sum - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
+    mk = (weighted_sum - centre * (wn[k] * x[k])) / sum_w
+    var_mk = kernel_square / sum_w
+    var_rk = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
+    d = x[k] - mk
+    qk = one / (var_rk * var_rk)
+    m[k] = mk
+    var_m[k] = var_mk
+    var_r[k] = var_rk
+    excess_q[k] = (d * d - var_rk) * qk
+    q[k] = qk
 
 
 #: Significance, in standard deviations of the pixel's own residual x - m (variance v_p + v_m), of "m is biased
@@ -538,24 +577,19 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     ``index`` (int64), ``packed`` (float32 (3, N)) and ``raised`` (bool): scratch of at least the arrays' size N.
     The information at L^ (a division) is computed only in rows holding a pixel that takes it.
     """
-    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    zero = np.float32(0.0)
     high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
-    own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
-    dark, lifted = 0, 0
-    for k in range(w.size):  # a loop without branches, which LLVM vectorises
-        weight = max(_column_value(q_sum, k), tiny)
-        d = x[k] - m[k]
-        own = d * d - own_z2 * var_r[k]  # the pixel's own evidence of m's bias
-        excess = max(max(_column_value(excess_sum, k) / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
-        t = one / excess + w[k]
-        estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
-        lift = (own > zero) & (w[k] > zero)
-        image[k] = estimate
-        var_m[k] = estimate  # kept for the pixels near 0, below
-        total[k] = t
-        raised[k] = lift
-        lifted += lift
-        dark += (estimate <= zero) | (estimate * estimate * t < high)
+    arrays, n, taps = (image, total, var_m, m, var_r, w, x, raised, threshold), w.size, q_sum[8]
+    lifted, dark = 0, 0
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        lift, near = _blended(k, _three(q_sum, k), _three(excess_sum, k), arrays)
+        lifted, dark = lifted + lift, dark + near
+    for k in range(n if taps == 5 else 0):
+        lift, near = _blended(k, _five(q_sum, k), _five(excess_sum, k), arrays)
+        lifted, dark = lifted + lift, dark + near
+    for k in range(n if taps == 1 else 0):
+        lift, near = _blended(k, q_sum[0][k], excess_sum[0][k], arrays)
+        lifted, dark = lifted + lift, dark + near
     if lifted > 0:  # a row holding such pixels: their reading's information at L^ (the counts again, of the new t)
         dark = 0
         for k in range(w.size):
@@ -578,6 +612,28 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     nonnegative(near_image, near_estimate, near_information, coefficients)
     for j in range(n):
         image[index[j]] = near_image[j]
+
+
+@kernel
+def _blended(k, q_sum, excess_sum, arrays):
+    """Pixel k of :func:`_blend`'s first loop (without branches, which LLVM vectorises): whether it is lifted,
+    whether it is near 0."""
+    image, total, var_m, m, var_r, w, x, raised, threshold = arrays
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
+    own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
+    weight = max(q_sum, tiny)
+    d = x[k] - m[k]
+    own = d * d - own_z2 * var_r[k]  # the pixel's own evidence of m's bias
+    excess = max(max(excess_sum / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
+    t = one / excess + w[k]
+    estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
+    lift = (own > zero) & (w[k] > zero)
+    image[k] = estimate
+    var_m[k] = estimate  # kept for the pixels near 0, below
+    total[k] = t
+    raised[k] = lift
+    return lift, (estimate <= zero) | (estimate * estimate * t < high)
 
 
 @kernel
