@@ -136,6 +136,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     square_sums = np.empty((2, width if windowed else 0), np.float32)
     signal_rows, exposure_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
+    held_rows = np.zeros(depth, np.int64)  # the censored readings of each row in the rings
     weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     # m and v_r = v_p + v_m from step 2 until step 3 reads them, ry rows later
@@ -164,15 +165,19 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i
         if first0 <= r < last0:  # row filters of the readings and exposures (uncensored ones)
             if flagged:
-                _uncensored(s[r], censored[r], a)
-                _row_filter(a, kx, signal_rows[r % depth])
-                _uncensored(e[r], censored[r], a)
-                _row_filter(a, kx, exposure_rows[r % depth])
+                held = count_true(censored[r])  # the row's censored readings: without any, the row as it is
+                held_rows[r % depth] = held
+                _row_filter(_uncensored(s[r], censored[r], held, a), kx, signal_rows[r % depth])
+                kept = _uncensored(e[r], censored[r], held, a)
+                _row_filter(kept, kx, exposure_rows[r % depth])
                 if windowed:
-                    _row_filter(a, kx2, square_rows[0, r % depth])
+                    _row_filter(kept, kx2, square_rows[0, r % depth])
                     _kept(censored[r], b)
                     _row_filter(b, kx2, square_rows[1, r % depth])
-                _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
+                if held > 0:
+                    _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
+                else:
+                    lowest_rows[r % depth] = np.float32(BIG)
             else:
                 _row_filter(s[r], kx, signal_rows[r % depth])
                 if not given:
@@ -195,7 +200,10 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
                 _column_filter(exposure_rows, rows, ky, exposure_scratch)
                 exposure_row = exposure_scratch
             if flagged:
-                rows_min(lowest_rows, rows, lowest)
+                if _held_in(held_rows, rows):
+                    rows_min(lowest_rows, rows, lowest)
+                else:  # no censored reading in the window's rows
+                    lowest[:] = np.float32(BIG)
                 _weights_censored(signal_column, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
                                   gain_inv, floor, centre)
             else:
@@ -231,10 +239,23 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
 
 
 @kernel
-def _uncensored(values, censored, out):
-    """out = values, 0 where censored."""
+def _uncensored(values, censored, held, out):
+    """``values`` with 0 where ``censored``: ``values`` itself where none of them is (``held``: their count), else
+    made into ``out``."""
+    if held == 0:
+        return values
     for c in range(out.size):
         out[c] = np.float32(0.0) if censored[c] else values[c]
+    return out
+
+
+@kernel
+def _held_in(held_rows, rows):
+    """Whether any of the ring slots ``rows`` holds a row with a censored reading (``held_rows``: their counts)."""
+    for slot in rows:
+        if held_rows[slot] > 0:
+            return True
+    return False
 
 
 @kernel
