@@ -114,7 +114,8 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     Each window sum is a row filter into a ring of the window's height of filtered rows, then a column filter
     of the ring's rows (:func:`_row_filter`, :func:`_column_filter`: ``smooth``'s arithmetic and borders,
     reflect-101 at the array's ends), so a stage reads rows the one before has just written, in cache,
-    instead of whole arrays. ``readings``: :class:`PassReadings`; ``noise``: :class:`PassNoise`;
+    instead of whole arrays; the stage that reads a column filter's sums makes them pixel by pixel in its own
+    loop (:func:`_column`), so they are never written to a row and read back. ``readings``: :class:`PassReadings`; ``noise``: :class:`PassNoise`;
     ``settings``: :class:`PassSettings`; ``outputs``: :class:`PassOutputs`. Returns (the candidates' count,
     whether any pixel is ``lower``): the caller fills the lower bounds.
 
