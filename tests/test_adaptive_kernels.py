@@ -591,13 +591,19 @@ def _passes(inp, noise):
     exposure_sum = smooth(np.where(censored, f32(0), e), ky, kx)
     lowest = cv2.erode(np.where(censored, e, f32(parameters.BIG)), np.ones(window, np.uint8),
                        borderType=cv2.BORDER_REFLECT_101)
-    strip_pass._weights_censored(*flat(smooth(np.where(censored, f32(0), s), ky, kx), exposure_sum, s, e, censored,
-                                     lowest, w, x, wn, wx), gain_inv, floor, centre)
+    signal_sum, *arrays = flat(smooth(np.where(censored, f32(0), s), ky, kx), exposure_sum, s, e, censored, lowest, w,
+                               x, wn, wx)
+    strip_pass._weights_censored(strip_pass._summed(signal_sum), *arrays, gain_inv, floor, centre)
     var_m, m = smooth(wn, ky, kx), smooth(wx, ky, kx)
     excess_q, q, var_r = wx, np.empty(inp.shape, f32), np.empty(inp.shape, f32)
-    strip_pass._residuals(*flat(var_m, m, wn, w, x, excess_q, q, var_r), centre, kernel_square)
+    # the sums as made sums (strip_pass._summed), read and then overwritten pixel by pixel
+    var_m_flat, m_flat, *arrays = flat(var_m, m, wn, w, x, excess_q, q, var_r)
+    strip_pass._residuals(strip_pass._summed(var_m_flat), strip_pass._summed(m_flat), var_m_flat, m_flat, *arrays,
+                          centre, kernel_square)
     image, total = smooth(excess_q, ky, kx), smooth(q, ky, kx)
-    strip_pass._blend(*flat(image, total, var_m, m, var_r, w, x, e), gain_inv, floor,
+    image_flat, total_flat, *arrays = flat(image, total, var_m, m, var_r, w, x, e)
+    strip_pass._blend(strip_pass._summed(image_flat), strip_pass._summed(total_flat), image_flat, total_flat, *arrays,
+                      gain_inv, floor,
                       f32(parameters.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
                       posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32),
                       np.empty(image.size, bool))

@@ -114,7 +114,8 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     Each window sum is a row filter into a ring of the window's height of filtered rows, then a column filter
     of the ring's rows (:func:`_row_filter`, :func:`_column_filter`: ``smooth``'s arithmetic and borders,
     reflect-101 at the array's ends), so a stage reads rows the one before has just written, in cache,
-    instead of whole arrays. ``readings``: :class:`PassReadings`; ``noise``: :class:`PassNoise`;
+    instead of whole arrays; the stage that reads a column filter's sums makes them pixel by pixel in its own
+    loop (:func:`_column`), so they are never written to a row and read back. ``readings``: :class:`PassReadings`; ``noise``: :class:`PassNoise`;
     ``settings``: :class:`PassSettings`; ``outputs``: :class:`PassOutputs`. Returns (the candidates' count,
     whether any pixel is ``lower``): the caller fills the lower bounds.
 
@@ -136,11 +137,12 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     square_sums = np.empty((2, width if windowed else 0), np.float32)
     signal_rows, exposure_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
+    held_rows = np.zeros(depth, np.int64)  # the censored readings of each row in the rings
     weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     # m and v_r = v_p + v_m from step 2 until step 3 reads them, ry rows later
     neighbours, residual_variances = np.empty((ry + 1, width), np.float32), np.empty((ry + 1, width), np.float32)
-    sums, exposure_row, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
+    sums, exposure_scratch, lowest, a, b = (np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32))
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
@@ -164,15 +166,19 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i
         if first0 <= r < last0:  # row filters of the readings and exposures (uncensored ones)
             if flagged:
-                _uncensored(s[r], censored[r], a)
-                _row_filter(a, kx, signal_rows[r % depth])
-                _uncensored(e[r], censored[r], a)
-                _row_filter(a, kx, exposure_rows[r % depth])
+                held = count_true(censored[r])  # the row's censored readings: without any, the row as it is
+                held_rows[r % depth] = held
+                _row_filter(_uncensored(s[r], censored[r], held, a), kx, signal_rows[r % depth])
+                kept = _uncensored(e[r], censored[r], held, a)
+                _row_filter(kept, kx, exposure_rows[r % depth])
                 if windowed:
-                    _row_filter(a, kx2, square_rows[0, r % depth])
+                    _row_filter(kept, kx2, square_rows[0, r % depth])
                     _kept(censored[r], b)
                     _row_filter(b, kx2, square_rows[1, r % depth])
-                _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
+                if held > 0:
+                    _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
+                else:
+                    lowest_rows[r % depth] = np.float32(BIG)
             else:
                 _row_filter(s[r], kx, signal_rows[r % depth])
                 if not given:
@@ -183,19 +189,29 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i - ry
         if first1 <= r < last1:  # step 1: w (wn), and the row filters of wn and wn x
             _window_rows(r, h, depth, rows)
-            _column_filter(signal_rows, rows, ky, sums)
-            if given:
-                exposure_row[:] = exposure_sum[r]
+            in_window = windowed and first <= r < last
+            if in_window:  # the motion tests' window mean, below, reads the sums too
+                _column_filter(signal_rows, rows, ky, sums)
+                signal_column = _summed(sums)
             else:
-                _column_filter(exposure_rows, rows, ky, exposure_row)
+                signal_column = _column(signal_rows, rows, ky, sums)
+            if given:
+                exposure_row = exposure_sum[r]
+            else:
+                _column_filter(exposure_rows, rows, ky, exposure_scratch)
+                exposure_row = exposure_scratch
             if flagged:
-                rows_min(lowest_rows, rows, lowest)
-                _weights_censored(sums, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
+                if _held_in(held_rows, rows):
+                    rows_min(lowest_rows, rows, lowest)
+                else:  # no censored reading in the window's rows
+                    lowest[:] = np.float32(BIG)
+                _weights_censored(signal_column, exposure_row, s[r], e[r], censored[r], lowest, w[r], x[r], wn[r], a,
                                   gain_inv, floor, centre)
             else:
-                _weights(sums, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor, centre)
+                _weights(signal_column, exposure_row, s[r], e[r], w[r], x[r % x.shape[0]], a, gain_inv, floor,
+                         centre)
             lowered |= _at_most_zero(exposure_row, lower[r])
-            if windowed and first <= r < last:  # the motion tests' window mean, from the same sums
+            if in_window:  # the motion tests' window mean, from the same sums
                 _column_filter(square_rows[0], rows, ky2, square_sums[0])
                 _column_filter(square_rows[1], rows, ky2, square_sums[1])
                 window_level_row(sums, exposure_row, square_sums[0], square_sums[1], window_noise[0],
@@ -205,19 +221,16 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i - 2 * ry
         if first2 <= r < last2:  # step 2: m and v_m (into `estimate` until step 3), the row filters of b^2's terms
             _window_rows(r, h, depth, rows)
-            m = neighbours[r % (ry + 1)]
-            _column_filter(weight_rows, rows, ky, estimate[r])
-            _column_filter(weighted_rows, rows, ky, m)
-            _residuals(estimate[r], m, wn[r], w[r], x[r % x.shape[0]], a, b, residual_variances[r % (ry + 1)], centre,
-                       kernel_square)
+            _residuals(_column(weight_rows, rows, ky, sums), _column(weighted_rows, rows, ky, exposure_scratch),
+                       estimate[r], neighbours[r % (ry + 1)], wn[r], w[r], x[r % x.shape[0]], a, b,
+                       residual_variances[r % (ry + 1)], centre, kernel_square)
             _row_filter(a, kx, excess_rows[r % depth])
             _row_filter(b, kx, q_rows[r % depth])
         r = i - 3 * ry
         if first <= r < last:  # steps 3 and 4, 0 at the bottom of the raw range, the wide fallback's candidates
             _window_rows(r, h, depth, rows)
-            _column_filter(excess_rows, rows, ky, image[r])
-            _column_filter(q_rows, rows, ky, total[r])
-            _blend(image[r], total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
+            _blend(_column(excess_rows, rows, ky, sums), _column(q_rows, rows, ky, exposure_scratch), image[r],
+                   total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
                    x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, index, packed, raised)
             _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
             if variance.size > 0:
@@ -227,10 +240,23 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
 
 
 @kernel
-def _uncensored(values, censored, out):
-    """out = values, 0 where censored."""
+def _uncensored(values, censored, held, out):
+    """``values`` with 0 where ``censored``: ``values`` itself where none of them is (``held``: their count), else
+    made into ``out``."""
+    if held == 0:
+        return values
     for c in range(out.size):
         out[c] = np.float32(0.0) if censored[c] else values[c]
+    return out
+
+
+@kernel
+def _held_in(held_rows, rows):
+    """Whether any of the ring slots ``rows`` holds a row with a censored reading (``held_rows``: their counts)."""
+    for slot in rows:
+        if held_rows[slot] > 0:
+            return True
+    return False
 
 
 @kernel
@@ -319,6 +345,42 @@ def _column_filter(values, rows, k, out):
         above, below, kd = values[rows[rk - d]], values[rows[rk + d]], k[rk - d]
         for i in range(out.size):
             out[i] += kd * (above[i] + below[i])
+
+
+@kernel
+def _column(values, rows, k, scratch):
+    """The column filter ``k`` down ``values``' rows ``rows`` as :func:`_three` and :func:`_five` read it pixel by pixel, in
+    the loop of the stage that reads the sums (no row of sums written and read back): the window's rows as views
+    where ``k`` has 3 or 5 taps, else the sums made into ``scratch`` (a row) by :func:`_column_filter`."""
+    if k.size == 3:
+        return (values[rows[0]], values[rows[1]], values[rows[2]], values[rows[2]], values[rows[2]], k[0], k[1],
+                k[1], 3)
+    if k.size == 5:
+        return (values[rows[0]], values[rows[1]], values[rows[2]], values[rows[3]], values[rows[4]], k[0], k[1],
+                k[2], 5)
+    _column_filter(values, rows, k, scratch)
+    return _summed(scratch)
+
+
+@kernel
+def _summed(sums):
+    """Sums made already (a row), as a :func:`_column`: the stages read them as they are."""
+    one = np.float32(1.0)
+    return sums, sums, sums, sums, sums, one, one, one, 1
+
+
+@kernel
+def _three(column, i):
+    """Pixel ``i`` of a :func:`_column` of 3 taps: :func:`column_sums`' arithmetic."""
+    a, b, c, _, _, k0, k1, _, _ = column
+    return k1 * b[i] + k0 * (a[i] + c[i])
+
+
+@kernel
+def _five(column, i):
+    """Pixel ``i`` of a :func:`_column` of 5 taps: :func:`column_sums`' arithmetic."""
+    a, b, c, d, f, k0, k1, k2, _ = column
+    return k2 * c[i] + k1 * (b[i] + d[i]) + k0 * (a[i] + f[i])
 
 
 @kernel
@@ -419,52 +481,89 @@ def _inverse_variance(signal_sum, exposure_sum, s_valid, e, e_valid, gain_inv, f
 
 @kernel
 def _weights(signal_sum, exposure_sum, s, e, w, x, wx, gain_inv, floor, centre):
-    """Frame without censored pixels: w of every reading, x = s / e, and w x."""
-    for k in range(w.size):
-        wk = _inverse_variance(signal_sum[k], exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
-        xk = s[k] / e[k]
-        w[k] = wk
-        x[k] = xk
-        wx[k] = wk * xk
+    """Frame without censored pixels: w of every reading, x = s / e, and w x. ``signal_sum``: a :func:`_column`."""
+    arrays, n, taps = (exposure_sum, s, e, w, x, wx, gain_inv, floor, centre), w.size, signal_sum[8]
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        _weight(k, _three(signal_sum, k), arrays)
+    for k in range(n if taps == 5 else 0):
+        _weight(k, _five(signal_sum, k), arrays)
+    for k in range(n if taps == 1 else 0):
+        _weight(k, signal_sum[0][k], arrays)
+
+
+@kernel
+def _weight(k, signal_sum, arrays):
+    """Pixel k of :func:`_weights`."""
+    exposure_sum, s, e, w, x, wx, gain_inv, floor, centre = arrays
+    wk = _inverse_variance(signal_sum, exposure_sum[k], s[k], e[k], e[k], gain_inv, floor, centre)
+    xk = s[k] / e[k]
+    w[k] = wk
+    x[k] = xk
+    wx[k] = wk * xk
 
 
 @kernel
 def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre):
-    """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x."""
-    zero = np.float32(0.0)
-    for k in range(w.size):
-        c = censored[k]
-        wk = _inverse_variance(signal_sum[k], exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k],
-                               gain_inv, floor, centre)
-        xk = s[k] / e[k]
-        w[k] = wk
-        x[k] = xk
-        wnk = zero if lowest[k] <= e[k] else wk
-        wn[k] = wnk
-        wx[k] = wnk * xk
+    """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x.
+    ``signal_sum``: a :func:`_column`."""
+    arrays, n, taps = (exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre), w.size, signal_sum[8]
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        _weight_censored(k, _three(signal_sum, k), arrays)
+    for k in range(n if taps == 5 else 0):
+        _weight_censored(k, _five(signal_sum, k), arrays)
+    for k in range(n if taps == 1 else 0):
+        _weight_censored(k, signal_sum[0][k], arrays)
 
 
 @kernel
-def _residuals(var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square):
+def _weight_censored(k, signal_sum, arrays):
+    """Pixel k of :func:`_weights_censored`."""
+    exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre = arrays
+    zero = np.float32(0.0)
+    c = censored[k]
+    wk = _inverse_variance(signal_sum, exposure_sum[k], zero if c else s[k], e[k], zero if c else e[k], gain_inv, floor,
+                           centre)
+    xk = s[k] / e[k]
+    w[k] = wk
+    x[k] = xk
+    wnk = zero if lowest[k] <= e[k] else wk
+    wn[k] = wnk
+    wx[k] = wnk * xk
+
+
+@kernel
+def _residuals(weight_sum, weighted_sum, var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square):
     """Neighbour estimate and the terms of b^2, with v_r = v_p + v_m: q = 1 / v_r^2, excess_q = q ((x - m)^2 - v_r);
     ``var_r`` = v_r (:func:`_blend` reads it).
 
-    ``var_m`` and ``m`` come in holding the window sums of wn and wn x, and
-    leave holding v_m and m (the sums without the centre pixel).
+    ``weight_sum`` and ``weighted_sum`` (each a :func:`_column`): the window sums of wn and wn x; ``var_m`` and
+    ``m`` are set to v_m and m (the sums without the centre pixel).
     """
+    arrays, n, taps = (var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square), w.size, weight_sum[8]
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        _residual(k, _three(weight_sum, k), _three(weighted_sum, k), arrays)
+    for k in range(n if taps == 5 else 0):
+        _residual(k, _five(weight_sum, k), _five(weighted_sum, k), arrays)
+    for k in range(n if taps == 1 else 0):
+        _residual(k, weight_sum[0][k], weighted_sum[0][k], arrays)
+
+
+@kernel
+def _residual(k, weight_sum, weighted_sum, arrays):
+    """Pixel k of :func:`_residuals`."""
+    var_m, m, wn, w, x, excess_q, q, var_r, centre, kernel_square = arrays
     one, tiny = np.float32(1.0), np.float32(TINY)
-    for k in range(w.size):
-        sum_w = max(var_m[k] - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
-        mk = (m[k] - centre * (wn[k] * x[k])) / sum_w
-        var_mk = kernel_square / sum_w
-        var_rk = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
-        d = x[k] - mk
-        qk = one / (var_rk * var_rk)
-        m[k] = mk
-        var_m[k] = var_mk
-        var_r[k] = var_rk
-        excess_q[k] = (d * d - var_rk) * qk
-        q[k] = qk
+    sum_w = max(weight_sum - centre * wn[k], tiny)  # no neighbours: m = 0 with a huge variance
+    mk = (weighted_sum - centre * (wn[k] * x[k])) / sum_w
+    var_mk = kernel_square / sum_w
+    var_rk = one / max(w[k], tiny) + var_mk  # censored: v_p ~ 1 / tiny, so no evidence
+    d = x[k] - mk
+    qk = one / (var_rk * var_rk)
+    m[k] = mk
+    var_m[k] = var_mk
+    var_r[k] = var_rk
+    excess_q[k] = (d * d - var_rk) * qk
+    q[k] = qk
 
 
 #: Significance, in standard deviations of the pixel's own residual x - m (variance v_p + v_m), of "m is biased
@@ -477,7 +576,8 @@ OWN_SIGMA = 5.0
 
 
 @kernel
-def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index, packed, raised):
+def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index,
+           packed, raised):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0), and at least
     the pixel's own excess (x - m)^2 - OWN_SIGMA^2 (v_p + v_m) where that is positive.
@@ -493,29 +593,25 @@ def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, c
     standard error under a flat scene, sqrt(2 kernel_square / sum q) (each
     residual's squared excess has variance 2 v_r^2 = 2 / q). ``threshold``:
     CONTRAST_SIGMA^2 * 2 kernel_square, so b^2 = max(B - sqrt(threshold / sum q), 0).
-    ``image`` and ``total`` come in holding the window sums of excess_q and q; ``var_m`` leaves holding L^.
+    ``excess_sum`` and ``q_sum`` (each a :func:`_column`): the window sums of excess_q and q; ``image`` and
+    ``total`` are set to the result and the information, and ``var_m`` to L^.
     ``var_r``: v_p + v_m, as :func:`_residuals` made it (1 / max(w, TINY) + v_m).
     ``index`` (int64), ``packed`` (float32 (3, N)) and ``raised`` (bool): scratch of at least the arrays' size N.
     The information at L^ (a division) is computed only in rows holding a pixel that takes it.
     """
-    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    zero = np.float32(0.0)
     high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
-    own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
-    dark, lifted = 0, 0
-    for k in range(w.size):  # a loop without branches, which LLVM vectorises
-        weight = max(total[k], tiny)
-        d = x[k] - m[k]
-        own = d * d - own_z2 * var_r[k]  # the pixel's own evidence of m's bias
-        excess = max(max(image[k] / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
-        t = one / excess + w[k]
-        estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
-        lift = (own > zero) & (w[k] > zero)
-        image[k] = estimate
-        var_m[k] = estimate  # kept for the pixels near 0, below
-        total[k] = t
-        raised[k] = lift
-        lifted += lift
-        dark += (estimate <= zero) | (estimate * estimate * t < high)
+    arrays, n, taps = (image, total, var_m, m, var_r, w, x, raised, threshold), w.size, q_sum[8]
+    lifted, dark = 0, 0
+    for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
+        lift, near = _blended(k, _three(q_sum, k), _three(excess_sum, k), arrays)
+        lifted, dark = lifted + lift, dark + near
+    for k in range(n if taps == 5 else 0):
+        lift, near = _blended(k, _five(q_sum, k), _five(excess_sum, k), arrays)
+        lifted, dark = lifted + lift, dark + near
+    for k in range(n if taps == 1 else 0):
+        lift, near = _blended(k, q_sum[0][k], excess_sum[0][k], arrays)
+        lifted, dark = lifted + lift, dark + near
     if lifted > 0:  # a row holding such pixels: their reading's information at L^ (the counts again, of the new t)
         dark = 0
         for k in range(w.size):
@@ -538,6 +634,28 @@ def _blend(image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, c
     nonnegative(near_image, near_estimate, near_information, coefficients)
     for j in range(n):
         image[index[j]] = near_image[j]
+
+
+@kernel
+def _blended(k, q_sum, excess_sum, arrays):
+    """Pixel k of :func:`_blend`'s first loop (without branches, which LLVM vectorises): whether it is lifted,
+    whether it is near 0."""
+    image, total, var_m, m, var_r, w, x, raised, threshold = arrays
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
+    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
+    own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
+    weight = max(q_sum, tiny)
+    d = x[k] - m[k]
+    own = d * d - own_z2 * var_r[k]  # the pixel's own evidence of m's bias
+    excess = max(max(excess_sum / weight - np.sqrt(threshold / weight), zero), own) + var_m[k]
+    t = one / excess + w[k]
+    estimate = m[k] + (x[k] - m[k]) * (w[k] / t)
+    lift = (own > zero) & (w[k] > zero)
+    image[k] = estimate
+    var_m[k] = estimate  # kept for the pixels near 0, below
+    total[k] = t
+    raised[k] = lift
+    return lift, (estimate <= zero) | (estimate * estimate * t < high)
 
 
 @kernel
