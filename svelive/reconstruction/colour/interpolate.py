@@ -47,7 +47,7 @@ class Interpolation:
         some frame rows widens the cell rows it reads (:meth:`cell_rows`) into an array small enough to stay in
         cache, rather than read them from whole planes written before it (which cost a stream's colour frame
         about 0.3 ms in the refinement alone)."""
-        return _full_width(tuple(plane[:, first:stop] for plane in self.cells), self.cx, self.width)
+        return _full_width(self.cells, self.cx, self.width, first, stop)
 
 
 def interpolation(ch: Chroma, coarse: bool = False) -> Interpolation:
@@ -56,52 +56,58 @@ def interpolation(ch: Chroma, coarse: bool = False) -> Interpolation:
                          *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
 
 
-def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int) -> np.ndarray:
+def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int, first: int = 0, stop: int | None = None) -> np.ndarray:
     """Cell planes (P, Hc, Wc), given as stacks of them that add up to P, interpolated bilinearly
-    along rows from the cells' centres to every column, float32 (P, Hc, W): as OpenCV's linear
-    resize (which puts cell j at column j cx + (cx - 1) / 2)."""
+    along rows from the cells' centres to every column, float32 (P, stop - first, W) on the cell rows
+    ``first`` to ``stop`` (every one by default): as OpenCV's linear resize (which puts cell j at column
+    j cx + (cx - 1) / 2)."""
     hc, wc = planes[0].shape[1:]
+    stop = hc if stop is None else stop
     p = sum(stack.shape[0] for stack in planes)
     if cx in (2, 4):  # OpenCV's own arithmetic, in one pass without its row buffers, and no stacking copy
-        rows = np.empty((p, hc, wc * cx), np.float32)
-        for i, plane in enumerate(plane for stack in planes for plane in stack):  # (a plane's rows: contiguous)
-            _widen(np.ascontiguousarray(plane), cx, rows[i])
+        rows = np.empty((p, stop - first, wc * cx), np.float32)
+        done = 0
+        for stack in planes:
+            _widen(np.ascontiguousarray(stack), first, cx, rows[done:done + stack.shape[0]])
+            done += stack.shape[0]
     else:
-        stacked = np.ascontiguousarray(np.concatenate(planes) if len(planes) > 1 else planes[0])
-        rows = cv2.resize(stacked.reshape(p * hc, wc), (wc * cx, p * hc),
-                          interpolation=cv2.INTER_LINEAR).reshape(p, hc, wc * cx)
+        stacked = np.ascontiguousarray(np.concatenate([stack[:, first:stop] for stack in planes]))
+        rows = cv2.resize(stacked.reshape(p * (stop - first), wc), (wc * cx, p * (stop - first)),
+                          interpolation=cv2.INTER_LINEAR).reshape(p, stop - first, wc * cx)
     return rows[:, :, :w]
 
 
 @kernel
-def _widen(planes, cx, out):
-    """out (N, cx Wc) = ``planes`` (N, Wc) float32 interpolated linearly along rows, cell j at column
-    j cx + (cx - 1) / 2, the ends held (cx 2 or 4): bit for bit OpenCV's INTER_LINEAR resize, each
-    value a + (b - a) f with one rounding of the product and sum, f = (k + 1/2) / cx."""
-    wc = planes.shape[1]
+def _widen(planes, first, cx, out):
+    """out (P, N, cx Wc) = rows ``first`` to ``first`` + N of ``planes`` (P, Hc, Wc) float32 interpolated
+    linearly along rows, cell j at column j cx + (cx - 1) / 2, the ends held (cx 2 or 4): bit for bit
+    OpenCV's INTER_LINEAR resize, each value a + (b - a) f with one rounding of the product and sum,
+    f = (k + 1/2) / cx."""
+    wc = planes.shape[2]
     c0 = cx // 2  # the first column past cell 0's centre
-    for i in range(planes.shape[0]):
-        p, o = planes[i], out[i]
-        for x in range(c0):
-            o[x] = p[0]
-        if cx == 2:
-            q, t = np.float32(0.25), np.float32(0.75)
-            for j in range(wc - 1):
-                a = p[j]
-                d = p[j + 1] - a
-                o[2 * j + 1] = fma32(d, q, a)
-                o[2 * j + 2] = fma32(d, t, a)
-        else:
-            f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
-            for j in range(wc - 1):
-                a = p[j]
-                d = p[j + 1] - a
-                o[4 * j + 2] = fma32(d, f0, a)
-                o[4 * j + 3] = fma32(d, f1, a)
-                o[4 * j + 4] = fma32(d, f2, a)
-                o[4 * j + 5] = fma32(d, f3, a)
-        for x in range(cx * (wc - 1) + c0, o.size):
-            o[x] = p[wc - 1]
+    for k in range(out.shape[0]):
+        for i in range(out.shape[1]):
+            p, o = planes[k, first + i], out[k, i]
+            for x in range(c0):
+                o[x] = p[0]
+            if cx == 2:
+                q, t = np.float32(0.25), np.float32(0.75)
+                for j in range(wc - 1):
+                    a = p[j]
+                    d = p[j + 1] - a
+                    o[2 * j + 1] = fma32(d, q, a)
+                    o[2 * j + 2] = fma32(d, t, a)
+            else:
+                f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
+                for j in range(wc - 1):
+                    a = p[j]
+                    d = p[j + 1] - a
+                    o[4 * j + 2] = fma32(d, f0, a)
+                    o[4 * j + 3] = fma32(d, f1, a)
+                    o[4 * j + 4] = fma32(d, f2, a)
+                    o[4 * j + 5] = fma32(d, f3, a)
+            for x in range(cx * (wc - 1) + c0, o.size):
+                o[x] = p[wc - 1]
 
 
 @lru_cache(maxsize=16)
