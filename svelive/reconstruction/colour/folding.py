@@ -24,10 +24,9 @@ def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor
     exposure = inp.exposure if inp.pattern.pixel_map is not None else inp.exposure[:inp.pattern.shape[0]]
     paired = inp.cfa.shape[1] <= 2 <= inp.shape[1]  # each row's channels alternate (or are one)
 
-    def piece(rows: slice) -> None:  # (the shares at every column on the cell rows these rows read, made here)
-        first, stop = inter.cell_rows(rows)
-        _fold(exposure, channel_rows, rows.start, inter.rows_of(first, stop), inter.top[rows] - first,
-              inter.frac[rows], out[rows], paired)
+    def piece(rows: slice) -> None:
+        planes, first = inter.piece_rows(rows)
+        _fold(exposure, channel_rows, rows.start, planes, inter.top[rows] - first, inter.frac[rows], out[rows], paired)
 
     map_on(workers, piece, _pieces(inp.shape[0]))
     return out
@@ -51,10 +50,10 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
 
     interleaved = out.reshape(luminance.shape[0], -1)  # (H, 3 W): the kernel's stores, one flat row each
 
-    def piece(rows: slice) -> None:  # (as folded_exposure's)
-        first, stop = inter.cell_rows(rows)
-        _colourise(luminance[rows], inter.rows_of(first, stop), inter.top[rows] - first, inter.frac[rows],
-                   interleaved[rows], none if copy is None else copy[rows])
+    def piece(rows: slice) -> None:
+        planes, first = inter.piece_rows(rows)
+        _colourise(luminance[rows], planes, inter.top[rows] - first, inter.frac[rows], interleaved[rows],
+                   none if copy is None else copy[rows])
 
     map_on(workers, piece, _pieces(luminance.shape[0]))
     return out

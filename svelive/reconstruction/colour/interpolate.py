@@ -38,22 +38,31 @@ class Interpolation:
         """float32 (P, Hc, W): the planes on the cell rows at every column (made on first use)."""
         return _full_width(self.cells, self.cx, self.width)
 
+    def piece_rows(self, rows: slice) -> tuple[np.ndarray, int]:
+        """The planes at every column on the cell rows that frame rows ``rows`` (a non-empty slice) lie
+        between, float32 (P, N, W), and the cell row of the first: :attr:`rows` and 0 where made
+        (``interpolation(..., whole=True)``), else those cell rows alone, made here into an array that stays in
+        cache for the pass over ``rows`` (whole planes written before a pass and read back by it cost a
+        stream's refinement about 0.5 ms a colour frame)."""
+        if "rows" in self.__dict__:
+            return self.rows, 0
+        first, stop = self.cell_rows(rows)
+        return _full_width(self.cells, self.cx, self.width, first, stop), first
+
     def cell_rows(self, rows: slice) -> tuple[int, int]:
         """[first, stop): the cell rows that frame rows ``rows`` (a non-empty slice) lie between."""
         return int(self.top[rows.start]), min(int(self.top[rows.stop - 1]) + 1, self.cells[0].shape[1] - 1) + 1
 
-    def rows_of(self, first: int, stop: int) -> np.ndarray:
-        """float32 (P, stop - first, W): cell rows ``first`` to ``stop`` of :attr:`rows`, made alone: a pass over
-        some frame rows widens the cell rows it reads (:meth:`cell_rows`) into an array small enough to stay in
-        cache, rather than read them from whole planes written before it (which cost a stream's colour frame
-        about 0.3 ms in the refinement alone)."""
-        return _full_width(self.cells, self.cx, self.width, first, stop)
 
-
-def interpolation(ch: Chroma, coarse: bool = False) -> Interpolation:
-    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance."""
-    return Interpolation((ch.shares, ch.coarse) if coarse else (ch.shares,), ch.layout.cell[1], ch.shape[1],
-                         *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
+def interpolation(ch: Chroma, coarse: bool = False, whole: bool = False) -> Interpolation:
+    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance; ``whole``: its
+    :attr:`~Interpolation.rows` made now, for several passes over the frame (else each pass's pieces make the
+    cell rows they read, :meth:`~Interpolation.piece_rows`)."""
+    inter = Interpolation((ch.shares, ch.coarse) if coarse else (ch.shares,), ch.layout.cell[1], ch.shape[1],
+                          *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
+    if whole:
+        inter.rows  # noqa: B018 (made and kept)
+    return inter
 
 
 def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int, first: int = 0, stop: int | None = None) -> np.ndarray:

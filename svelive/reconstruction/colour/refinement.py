@@ -76,10 +76,9 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
 
         def fresh(rows: slice) -> None:
             # what these rows read, made here and read while in cache: the residual of the cell rows [a, b) they
-            # lie between, and the planes at every column on the cell rows [c, d) that residual reads
+            # lie between, and (unless made whole) the planes at every column on the cell rows that residual reads
             a, b = inter.cell_rows(rows)
-            c, d = inter.cell_rows(slice(a * cy, min(b * cy, h)))
-            planes = inter.rows_of(c, d)
+            planes, c = inter.piece_rows(slice(a * cy, min(b * cy, h)))
             residual = np.empty((1, b - a, wc), np.float32)
             residual_cells(a, b, planes[3], c, residual[0])
             _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows],
