@@ -131,6 +131,46 @@ def test_folded_exposure_is_e_times_its_channels_interpolated_share_bit_for_bit(
     np.testing.assert_array_equal(colour.folded_exposure(inp, inter), expected)
 
 
+@pytest.mark.parametrize("shape", [(150, 200), (131, 197), (9, 7)])
+@pytest.mark.parametrize("layout", [*COLOUR_LAYOUTS, "1,4,16"])
+def test_passes_widen_their_pieces_cell_rows_as_the_whole_interpolation(layout, shape):
+    """Interpolation.piece_rows (each piece of a pass widening only the cell rows it lies between) gives the whole
+    rows' values, and the fold, the refinement (its residual cells made per piece too) and the colour are bit for bit
+    those from whole rows made first (``whole``), over pieces of rows and two threads. "1,4,16" with RGGB: cells of
+    6 columns (OpenCV's resize)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from svelive.reconstruction.colour.interpolate import _pieces
+    pattern, cfa = COLOUR_LAYOUTS.get(layout, (layout, "RGGB"))
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:shape[0], :shape[1]]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=2).raw, Camera.build(pattern, cfa, SENSOR))
+    ch = colour.chroma(inp)
+    whole, pieces = colour.interpolation(ch, coarse=True, whole=True), colour.interpolation(ch, coarse=True)
+    h = shape[0]
+    for rows in [*_pieces(h), slice(0, h), slice(h - 1, h), slice(h // 3, h // 2 + 1)]:
+        planes, first = pieces.piece_rows(rows)
+        assert first == pieces.top[rows.start] and planes.shape[1] >= 1
+        np.testing.assert_array_equal(planes, whole.rows[:, first:first + planes.shape[1]])
+        np.testing.assert_array_equal(pieces.top[rows] - first >= 0, True)
+        assert np.minimum(pieces.top[rows] + 1, whole.rows.shape[1] - 1).max() < first + planes.shape[1]
+    luminance = (rgb @ np.array([0.25, 0.5, 0.25], np.float32) * scale).astype(np.float32)
+    variance = (luminance / 10 + 4).astype(np.float32)
+    weight = np.random.default_rng(0).random(luminance.shape, np.float32)
+    with ThreadPoolExecutor(2) as pool:
+        for workers in (1, pool):
+            got, expected = (np.empty((*shape, 3), np.float32) for _ in range(2))
+            np.testing.assert_array_equal(
+                colour.refine(luminance, variance, pieces, ch.layout.cell, weight=weight, rgb=got, workers=workers),
+                colour.refine(luminance, variance, whole, ch.layout.cell, weight=weight, rgb=expected, workers=workers))
+            np.testing.assert_array_equal(got, expected)
+            np.testing.assert_array_equal(colour.folded_exposure(inp, colour.interpolation(ch), workers),
+                                          colour.folded_exposure(inp, colour.interpolation(ch, whole=True), workers))
+            np.testing.assert_array_equal(colour.colourise(luminance, colour.interpolation(ch), workers),
+                                          colour.colourise(luminance, whole, workers))
+    assert "rows" not in pieces.__dict__  # (the passes above made their pieces' rows, not the whole ones)
+
+
 @pytest.mark.parametrize("stops", BRIGHTNESS.values(), ids=BRIGHTNESS.keys())
 @pytest.mark.parametrize("layout", list(COLOUR_LAYOUTS))
 def test_every_colour_layout_reconstructs_finite_and_to_scale_per_channel(layout, stops):

@@ -1241,11 +1241,9 @@ def _refined(luminance: np.ndarray, variance: np.ndarray, floor: np.ndarray, wei
 
     def refined_variance() -> np.ndarray:
         out = np.empty(luminance.shape, np.float32)
-        # the interpolation made again (a few ms) rather than kept: a published frame holds this closure, and
-        # the interpolation (float32 (5, Hc, W)) is twice the fused cells it is made from, for a variance
-        # that is seldom asked for
-        colour.refine(luminance, variance_of(), colour.interpolation(fused, coarse=True), cell, out_variance=out,
-                      new_variance=True)
+        # (``inter`` holds the fused cells and makes their rows at every column as the refinement's pieces read
+        # them: a published frame that holds this closure holds no (5, Hc, W) planes)
+        colour.refine(luminance, variance_of(), inter, cell, out_variance=out, new_variance=True)
         return out
 
     return refined, refined_variance, rgb

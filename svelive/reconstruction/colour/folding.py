@@ -25,7 +25,8 @@ def folded_exposure(inp: SveInput, inter: Interpolation, workers: int | Executor
     paired = inp.cfa.shape[1] <= 2 <= inp.shape[1]  # each row's channels alternate (or are one)
 
     def piece(rows: slice) -> None:
-        _fold(exposure, channel_rows, rows.start, inter.rows, inter.top[rows], inter.frac[rows], out[rows], paired)
+        planes, first = inter.piece_rows(rows)
+        _fold(exposure, channel_rows, rows.start, planes, inter.top[rows] - first, inter.frac[rows], out[rows], paired)
 
     map_on(workers, piece, _pieces(inp.shape[0]))
     return out
@@ -50,7 +51,8 @@ def colourise(luminance: np.ndarray, inter: Interpolation, workers: int | Execut
     interleaved = out.reshape(luminance.shape[0], -1)  # (H, 3 W): the kernel's stores, one flat row each
 
     def piece(rows: slice) -> None:
-        _colourise(luminance[rows], inter.rows, inter.top[rows], inter.frac[rows], interleaved[rows],
+        planes, first = inter.piece_rows(rows)
+        _colourise(luminance[rows], planes, inter.top[rows] - first, inter.frac[rows], interleaved[rows],
                    none if copy is None else copy[rows])
 
     map_on(workers, piece, _pieces(luminance.shape[0]))

@@ -5,7 +5,7 @@ every column (bit for bit OpenCV's linear resize) and, per frame row, between th
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
@@ -19,73 +19,104 @@ class Interpolation:
     column, and for each frame row the two cell rows around it.
 
     Attributes:
-        rows: float32 (P, Hc, W), on the cell rows at every column: k_R, k_G, k_B, then (with the
-            coarse luminance) L and its variance.
+        cells: the planes at the cells' centres, float32 (P_i, Hc, Wc) each, P in all: k_R, k_G, k_B,
+            then (with the coarse luminance) L and its variance.
+        cx: the cells' columns.
+        width: W, the frame's columns.
         top: intp (H,), the cell row at or above each frame row, clamped.
         frac: float32 (H,), the weight of the cell row below (``top`` + 1), 0 at the edges.
     """
 
-    rows: np.ndarray
+    cells: tuple[np.ndarray, ...]
+    cx: int
+    width: int
     top: np.ndarray
     frac: np.ndarray
 
+    @cached_property
+    def rows(self) -> np.ndarray:
+        """float32 (P, Hc, W): the planes on the cell rows at every column (made on first use)."""
+        return _full_width(self.cells, self.cx, self.width)
 
-def interpolation(ch: Chroma, coarse: bool = False) -> Interpolation:
-    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance."""
-    planes = (ch.shares, ch.coarse) if coarse else (ch.shares,)
-    return Interpolation(_full_width(planes, ch.layout.cell[1], ch.shape[1]),
-                         *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
+    def piece_rows(self, rows: slice) -> tuple[np.ndarray, int]:
+        """The planes at every column on the cell rows that frame rows ``rows`` (a non-empty slice) lie
+        between, float32 (P, N, W), and the cell row of the first: :attr:`rows` and 0 where made
+        (``interpolation(..., whole=True)``), else those cell rows alone, made here into an array that stays in
+        cache for the pass over ``rows`` (whole planes written before a pass and read back by it cost a
+        stream's refinement about 0.5 ms a colour frame)."""
+        if "rows" in self.__dict__:
+            return self.rows, 0
+        first, stop = self.cell_rows(rows)
+        return _full_width(self.cells, self.cx, self.width, first, stop), first
+
+    def cell_rows(self, rows: slice) -> tuple[int, int]:
+        """[first, stop): the cell rows that frame rows ``rows`` (a non-empty slice) lie between."""
+        return int(self.top[rows.start]), min(int(self.top[rows.stop - 1]) + 1, self.cells[0].shape[1] - 1) + 1
 
 
-def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int) -> np.ndarray:
+def interpolation(ch: Chroma, coarse: bool = False, whole: bool = False) -> Interpolation:
+    """The :class:`Interpolation` of a chroma's shares and, with ``coarse``, its coarse luminance; ``whole``: its
+    :attr:`~Interpolation.rows` made now, for several passes over the frame (else each pass's pieces make the
+    cell rows they read, :meth:`~Interpolation.piece_rows`)."""
+    inter = Interpolation((ch.shares, ch.coarse) if coarse else (ch.shares,), ch.layout.cell[1], ch.shape[1],
+                          *_row_tables(ch.shape[0], ch.shares.shape[1], ch.layout.cell[0]))
+    if whole:
+        inter.rows  # noqa: B018 (made and kept)
+    return inter
+
+
+def _full_width(planes: tuple[np.ndarray, ...], cx: int, w: int, first: int = 0, stop: int | None = None) -> np.ndarray:
     """Cell planes (P, Hc, Wc), given as stacks of them that add up to P, interpolated bilinearly
-    along rows from the cells' centres to every column, float32 (P, Hc, W): as OpenCV's linear
-    resize (which puts cell j at column j cx + (cx - 1) / 2)."""
+    along rows from the cells' centres to every column, float32 (P, stop - first, W) on the cell rows
+    ``first`` to ``stop`` (every one by default): as OpenCV's linear resize (which puts cell j at column
+    j cx + (cx - 1) / 2)."""
     hc, wc = planes[0].shape[1:]
+    stop = hc if stop is None else stop
     p = sum(stack.shape[0] for stack in planes)
     if cx in (2, 4):  # OpenCV's own arithmetic, in one pass without its row buffers, and no stacking copy
-        rows = np.empty((p, hc, wc * cx), np.float32)
-        first = 0
+        rows = np.empty((p, stop - first, wc * cx), np.float32)
+        done = 0
         for stack in planes:
-            last = first + stack.shape[0]
-            _widen(np.ascontiguousarray(stack).reshape(-1, wc), cx, rows[first:last].reshape(-1, wc * cx))
-            first = last
+            _widen(np.ascontiguousarray(stack), first, cx, rows[done:done + stack.shape[0]])
+            done += stack.shape[0]
     else:
-        stacked = np.ascontiguousarray(np.concatenate(planes) if len(planes) > 1 else planes[0])
-        rows = cv2.resize(stacked.reshape(p * hc, wc), (wc * cx, p * hc),
-                          interpolation=cv2.INTER_LINEAR).reshape(p, hc, wc * cx)
+        stacked = np.ascontiguousarray(np.concatenate([stack[:, first:stop] for stack in planes]))
+        rows = cv2.resize(stacked.reshape(p * (stop - first), wc), (wc * cx, p * (stop - first)),
+                          interpolation=cv2.INTER_LINEAR).reshape(p, stop - first, wc * cx)
     return rows[:, :, :w]
 
 
 @kernel
-def _widen(planes, cx, out):
-    """out (N, cx Wc) = ``planes`` (N, Wc) float32 interpolated linearly along rows, cell j at column
-    j cx + (cx - 1) / 2, the ends held (cx 2 or 4): bit for bit OpenCV's INTER_LINEAR resize, each
-    value a + (b - a) f with one rounding of the product and sum, f = (k + 1/2) / cx."""
-    wc = planes.shape[1]
+def _widen(planes, first, cx, out):
+    """out (P, N, cx Wc) = rows ``first`` to ``first`` + N of ``planes`` (P, Hc, Wc) float32 interpolated
+    linearly along rows, cell j at column j cx + (cx - 1) / 2, the ends held (cx 2 or 4): bit for bit
+    OpenCV's INTER_LINEAR resize, each value a + (b - a) f with one rounding of the product and sum,
+    f = (k + 1/2) / cx."""
+    wc = planes.shape[2]
     c0 = cx // 2  # the first column past cell 0's centre
-    for i in range(planes.shape[0]):
-        p, o = planes[i], out[i]
-        for x in range(c0):
-            o[x] = p[0]
-        if cx == 2:
-            q, t = np.float32(0.25), np.float32(0.75)
-            for j in range(wc - 1):
-                a = p[j]
-                d = p[j + 1] - a
-                o[2 * j + 1] = fma32(d, q, a)
-                o[2 * j + 2] = fma32(d, t, a)
-        else:
-            f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
-            for j in range(wc - 1):
-                a = p[j]
-                d = p[j + 1] - a
-                o[4 * j + 2] = fma32(d, f0, a)
-                o[4 * j + 3] = fma32(d, f1, a)
-                o[4 * j + 4] = fma32(d, f2, a)
-                o[4 * j + 5] = fma32(d, f3, a)
-        for x in range(cx * (wc - 1) + c0, o.size):
-            o[x] = p[wc - 1]
+    for k in range(out.shape[0]):
+        for i in range(out.shape[1]):
+            p, o = planes[k, first + i], out[k, i]
+            for x in range(c0):
+                o[x] = p[0]
+            if cx == 2:
+                q, t = np.float32(0.25), np.float32(0.75)
+                for j in range(wc - 1):
+                    a = p[j]
+                    d = p[j + 1] - a
+                    o[2 * j + 1] = fma32(d, q, a)
+                    o[2 * j + 2] = fma32(d, t, a)
+            else:
+                f0, f1, f2, f3 = np.float32(0.125), np.float32(0.375), np.float32(0.625), np.float32(0.875)
+                for j in range(wc - 1):
+                    a = p[j]
+                    d = p[j + 1] - a
+                    o[4 * j + 2] = fma32(d, f0, a)
+                    o[4 * j + 3] = fma32(d, f1, a)
+                    o[4 * j + 4] = fma32(d, f2, a)
+                    o[4 * j + 5] = fma32(d, f3, a)
+            for x in range(cx * (wc - 1) + c0, o.size):
+                o[x] = p[wc - 1]
 
 
 @lru_cache(maxsize=16)

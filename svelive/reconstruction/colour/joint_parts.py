@@ -39,13 +39,13 @@ class Joint:
 
 
 def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1,
-                   ch: Chroma | None = None) -> tuple[Chroma, Interpolation, SveInput]:
+                   ch: Chroma | None = None, whole: bool = False) -> tuple[Chroma, Interpolation, SveInput]:
     """The steps before the mono method (:func:`joint`'s, and a stream's band refresh's): the frame's chroma (``ch``
-    where given: a stream's, colour.partial_chroma), its interpolation (with the coarse luminance where ``coarse``)
-    and the monochrome input of the luminance (folded exposures e' with ``exposures``,
-    svelive.reconstruction.colour.folding.luminance_input)."""
+    where given: a stream's, colour.partial_chroma), its interpolation (with the coarse luminance where ``coarse``;
+    ``whole``: interpolation's, where passes after the fold read it too) and the monochrome input of the luminance
+    (folded exposures e' with ``exposures``, svelive.reconstruction.colour.folding.luminance_input)."""
     ch = chroma(inp) if ch is None else ch
-    inter = interpolation(ch, coarse=coarse)
+    inter = interpolation(ch, coarse=coarse, whole=whole)
     return ch, inter, luminance_input(inp, inter, exposures, workers)
 
 
@@ -67,7 +67,8 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     and the readings are above their noise (svelive.reconstruction.colour.directional; 2x2 Bayer CFAs).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
-    ch, inter, lum = fold_luminance(inp, spec.variance and refined, spec.exposures, workers)
+    ch, inter, lum = fold_luminance(inp, spec.variance and refined, spec.exposures, workers,
+                                    whole=rgb or (spec.variance and refined))
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)

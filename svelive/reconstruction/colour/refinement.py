@@ -54,15 +54,16 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
         ``out``, float32 (H, W).
     """
     (cy, cx), (h, w) = cell, luminance.shape
-    hc, wc = inter.rows.shape[1], -(-w // cx)
-    residual = np.empty((1, hc, wc), np.float32)
+    hc, wc = inter.cells[0].shape[1], -(-w // cx)
+    top, frac = inter.top, inter.frac
 
-    def cells(rows: slice) -> None:  # whole cells: pieces aligned on the cells' rows
-        _residual_cells(luminance[rows], inter.rows[3], inter.top[rows], inter.frac[rows], cy, cx,
-                        residual[0, rows.start // cy:-(-rows.stop // cy)], np.empty((2, w), np.float32))
+    def residual_cells(first: int, stop: int, coarse: np.ndarray, base: int, into: np.ndarray) -> None:
+        # cell rows [first, stop) into ``into`` (rows, Wc), from ``coarse``: the coarse luminance's cell rows
+        # from ``base`` on at every column
+        rows = slice(first * cy, min(stop * cy, h))
+        _residual_cells(luminance[rows], coarse, top[rows] - base, frac[rows], cy, cx, into,
+                        np.empty((2, w), np.float32))
 
-    map_on(workers, cells, _pieces(h, cy))
-    residual_rows = _full_width((residual,), cx, w)[0]
     none = np.empty((0, 0), np.float32)
     fresh_out = out is None and (out_variance is None or new_variance)
     if (rgb is not None or floor is not None) and not fresh_out:
@@ -74,19 +75,29 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
         interleaved = none if rgb is None else rgb.reshape(h, 3 * w)  # (H, 3 W): flat rows, as colourise's
 
         def fresh(rows: slice) -> None:
+            # what these rows read, made here and read while in cache: the residual of the cell rows [a, b) they
+            # lie between, and (unless made whole) the planes at every column on the cell rows that residual reads
+            a, b = inter.cell_rows(rows)
+            planes, c = inter.piece_rows(slice(a * cy, min(b * cy, h)))
+            residual = np.empty((1, b - a, wc), np.float32)
+            residual_cells(a, b, planes[3], c, residual[0])
             _refine_into(luminance[rows], variance[rows], none if weight is None else weight[rows],
-                         none if floor is None else floor, rows.start, cy, inter.rows[3], inter.rows[4],
-                         residual_rows, inter.top[rows], inter.frac[rows], out[rows],
-                         none if out_variance is None else out_variance[rows], inter.rows,
+                         none if floor is None else floor, rows.start, cy, planes[3], planes[4],
+                         _full_width((residual,), cx, w)[0], a - c, top[rows] - c, frac[rows], out[rows],
+                         none if out_variance is None else out_variance[rows], planes,
                          none if rgb is None else interleaved[rows])
 
         map_on(workers, fresh, _pieces(h))
         return out
     out = np.empty((h, w), np.float32) if out is None else out
+    residual = np.empty((1, hc, wc), np.float32)  # every cell first: ``out`` may be the luminance
+    map_on(workers, lambda rows: residual_cells(rows.start // cy, -(-rows.stop // cy), inter.rows[3], 0,
+                                                residual[0, rows.start // cy:-(-rows.stop // cy)]), _pieces(h, cy))
+    residual_rows = _full_width((residual,), cx, w)[0]
 
     def piece(rows: slice) -> None:
         _refine(luminance[rows], variance[rows], none if weight is None else weight[rows], inter.rows[3],
-                inter.rows[4], residual_rows, inter.top[rows], inter.frac[rows], out[rows],
+                inter.rows[4], residual_rows, top[rows], frac[rows], out[rows],
                 none if out_variance is None else out_variance[rows], np.empty((2, w), np.float32))
 
     map_on(workers, piece, _pieces(h))
@@ -164,11 +175,12 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 
 
 @kernel
-def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_variance, residual, top, frac, out,
-                 out_variance, planes, rgb):
+def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_variance, residual, residual_first, top,
+                 frac, out, out_variance, planes, rgb):
     """:func:`_refine` into ``out`` and ``out_variance`` (may be empty) that are none of the inputs:
-    the same arithmetic per pixel, stored in the loop; ``floor`` (Hc, W), unless empty: :func:`refine`'s,
-    for rows from frame row ``first`` on, cells of ``cy`` rows. ``rgb`` (R, 3 W), unless empty: each
+    the same arithmetic per pixel, stored in the loop; ``residual``'s rows are those of the other planes
+    from ``residual_first`` on; ``floor`` (Hc, W), unless empty: :func:`refine`'s, for rows from frame row
+    ``first`` on, cells of ``cy`` rows. ``rgb`` (R, 3 W), unless empty: each
     row's result times the shares ``planes[0:3]`` (P, Hc, W) interpolated between its two cell rows,
     as folding._colourise, in the same loop."""
     weighted, with_variance, floored = weight.size > 0, out_variance.size > 0, floor.size > 0
@@ -178,7 +190,7 @@ def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_v
         t0, f = top[r], frac[r]
         t1 = min(t0 + 1, last)
         l0, l1, v0, v1, e0, e1 = (coarse[t0], coarse[t1], coarse_variance[t0], coarse_variance[t1],
-                                  residual[t0], residual[t1])
+                                  residual[t0 - residual_first], residual[t1 - residual_first])
         y, vy, o = luminance[r], variance[r], out[r]
         wy = weight[r] if weighted else vy  # (not read without a weight)
         low = floor[(first + r) // cy] if floored else vy  # (max(v, v) is v: one loop for both)
