@@ -1214,11 +1214,11 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, sk
     a = kernel_y.size // 2
     # the evidence of the last rows, the detail window's: frame row x in ring[(x - first_row) % len(ring)]
     ring = np.empty((2 * a + 1, cols), np.float32)
-    # the luminance noise floor's sums (spread, pixels below weight 1), made for a cell row that changed; its cell
-    # row so far: made anew (``whole``), or the cells (``cells``, ``marked[:n_marked]``) whose pixels changed
-    total, counted = np.empty(cols, np.float32), np.empty(cols, np.float32)
+    # the luminance noise floor's sums (spread, pixels below weight 1) of the cell row's rows made so far (``made``
+    # of them); its cells (``cells``, ``marked[:n_marked]``) whose pixels changed in the rows kept
+    total, counted = np.zeros(cols, np.float32), np.zeros(cols, np.float32)
     cells, marked = np.zeros(cols, np.bool_), np.empty(cols, np.intp)
-    whole, n_marked = False, 0
+    made, n_marked = 0, 0
     motion[:] = False
     count = 0
     known = 0  # rows whose censoring change is known
@@ -1258,12 +1258,12 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, sk
                 if skipped.rows.size > 0 and skipped.rows[g]:
                     n_marked = _kept_spread_row(following, history, outputs, settings.cx, cells, marked, n_marked)
                 else:
-                    _spread_row(following, history, frame, outputs, settings.scale)
-                    whole = True
+                    _spread_row(following, history, frame, outputs, settings.scale, total, counted)
+                    made += 1
                 if (g + 1) % settings.cy == 0 or g + 1 == frame_rows:  # the cell row's last
-                    _floor_cells(g // settings.cy, first_row, outputs, settings, whole or not settings.kept, cells,
-                                 marked[:n_marked], total, counted)
-                    whole, n_marked = False, 0
+                    _floor_cells(g // settings.cy, first_row, outputs, settings, made, cells, marked[:n_marked], total,
+                                 counted)
+                    made, n_marked = 0, 0
             g = first_row + following
             if detail and (sharp_stop <= sharp_first or g < sharp_first + a or g >= sharp_stop - a):
                 evidence[following] = slot  # read by the detail step of rows it does not sharpen
@@ -1392,13 +1392,19 @@ def _skipped_row(r, first_row, history, frame, outputs, settings, skipped):
 
 
 @kernel(inline="always")
-def _spread_row(r, history, frame, outputs, scale):
+def _spread_row(r, history, frame, outputs, scale, total, counted):
     """Row ``r`` of :class:`LuminanceNoise`'s spread (:class:`_Outputs`), in place: :func:`noise_evidence` of the
-    row's estimate, history and weights (the brightness ratio ``scale``)."""
+    row's estimate, history and weights (the brightness ratio ``scale``); added to the floor's sums ``total`` (the
+    spread) and ``counted`` (pixels of weight below 1), (W,) each."""
     spread, weight = outputs.spread[r], outputs.weight[r]
     image, mean, old_weight = frame.image[r], history.mean[r], history.weight[r]
+    one, zero = np.float32(1), np.float32(0)
     for c in range(spread.size):
-        spread[c] = noise_evidence(image[c], mean[c], old_weight[c], weight[c], spread[c], scale)
+        w = weight[c]
+        value = noise_evidence(image[c], mean[c], old_weight[c], w, spread[c], scale)
+        spread[c] = value
+        total[c] += value
+        counted[c] += one if w < one else zero
 
 
 #: Columns :func:`_kept_spread_row` looks at together: a loop that vectorises finds the few that changed.
@@ -1436,11 +1442,12 @@ def _kept_spread_row(r, history, outputs, cx, cells, marked, n):
 
 
 @kernel(inline="always")
-def _floor_cells(i, first_row, outputs, settings, whole, cells, marked, total, counted):
+def _floor_cells(i, first_row, outputs, settings, made, cells, marked, total, counted):
     """Cell row ``i`` of :class:`LuminanceNoise`'s floor (:class:`_Outputs`: the strip's, from frame row
-    ``first_row``, a cell row's first): made anew where ``whole`` (:func:`cell_means` of its rows' spread and their
-    pixels of weight below 1 summed per column in row order into ``total`` and ``counted``, (W,) scratch), else
-    its cells ``marked`` made again alone (the same sums); ``cells`` unmarked."""
+    ``first_row``, a cell row's first), of which ``made`` rows were made (:func:`_spread_row`, summed into ``total``
+    and ``counted``, (W,) each, set to 0 again here): made anew where any was or the floor was not kept
+    (:func:`cell_means` of its rows' spread and their pixels of weight below 1 summed per column in row order),
+    else its cells ``marked`` made again alone (the same sums); ``cells`` unmarked."""
     one, zero = np.float32(1), np.float32(0)
     spread, weight, cy, cx = outputs.spread, outputs.weight, settings.cy, settings.cx
     top, stop = i * cy - first_row, min(i * cy + cy - first_row, spread.shape[0])
@@ -1448,7 +1455,7 @@ def _floor_cells(i, first_row, outputs, settings, whole, cells, marked, total, c
     cols = floor.size
     for j in marked:
         cells[j] = False
-    if whole:
+    if made < stop - top and (made or not settings.kept):  # (rows kept too: summed again, in row order)
         total[:] = zero
         counted[:] = zero
         for r in range(top, stop):
@@ -1456,7 +1463,10 @@ def _floor_cells(i, first_row, outputs, settings, whole, cells, marked, total, c
             for c in range(cols):
                 total[c] += s[c]
                 counted[c] += one if w[c] < one else zero
+    if made or not settings.kept:
         cell_means(total, counted, cx, floor)
+        total[:] = zero
+        counted[:] = zero
         return
     for j in marked:
         t, n = zero, zero
