@@ -5,6 +5,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from svelive import Camera
 from svelive.capture.demo import DemoSource
 from svelive.reconstruction import Reconstructor, settle
 from svelive.reconstruction.input import prepare
@@ -492,13 +493,9 @@ def test_a_colour_refresh_stream_skips_luminance_bands_and_stays_close():
     assert float(np.sqrt(np.mean(rel ** 2))) < 0.03
 
 
-def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
-    """``colour_refresh``: colour frames (a still dual-ISO scene, the sensor given) estimated one and two frames
-    ahead of their fusion give the sequential stream's output, motion and weights bit for bit, ``fuse`` estimating
-    again the frames whose chroma kept the cells of an older history (or whose selection differs from the one of
-    the history they are fused into), or estimating those that ``estimate`` left to it (behind frames in flight)."""
-    from collections import deque
-
+def _moving_square_frames() -> tuple[Camera, list[np.ndarray]]:
+    """The dual-ISO colour camera and 16 raw frames of a still bright view (mttamwest, 400 x 328) in which a bright
+    square moves down 24 px a frame over frames 6-11, then stays."""
     from svelive.bench.live import case_camera, case_radiance, resized, static_frames
     from svelive.simulation import load_sample_scene, simulate
 
@@ -506,13 +503,24 @@ def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
     scene = resized(load_sample_scene("mttamwest", rgb=True), (400, 328))
     radiance = case_radiance("dual-iso", "bright", scene)
     raws, _ = static_frames(radiance, camera, 16, 1)
-    # a bright square moving down 24 px a frame over frames 6-11, then still: hints made from a history a frame or
-    # two old miss the bands it enters and take bands the newer history no longer selects
     for k in range(6, 16):
         moved = radiance.copy()
         top = 60 + 24 * min(k - 6, 5)
         moved[top:top + 40, 120:160] = 4 * radiance.max()
         raws[k] = simulate(moved, camera.require_pattern(), camera.sensor, cfa=camera.cfa, seed=100 + k).raw
+    return camera, raws
+
+
+def test_colour_frames_estimated_ahead_fuse_as_the_sequential_colour_stream():
+    """``colour_refresh``: colour frames (a still dual-ISO scene, the sensor given) estimated one and two frames
+    ahead of their fusion give the sequential stream's output, motion and weights bit for bit, ``fuse`` estimating
+    again the frames whose chroma kept the cells of an older history (or whose selection differs from the one of
+    the history they are fused into), or estimating those that ``estimate`` left to it (behind frames in flight)."""
+    from collections import deque
+
+    # hints made from a history a frame or two old miss the bands the square enters and take bands the newer
+    # history no longer selects
+    camera, raws = _moving_square_frames()
     for lag in (1, 2):
         sequential = Reconstructor(camera, refresh=4, colour_refresh=True)
         ahead = Reconstructor(camera, refresh=4, colour_refresh=True)
@@ -645,3 +653,41 @@ def test_a_still_colour_stream_makes_its_whole_chroma_every_so_many_frames_and_f
     before, after = whites[10], whites[20]
     assert after[0] / after[1] > 1.02 * before[0] / before[1]  # red up against green
     assert after[2] / after[1] < 0.98 * before[2] / before[1]  # blue down
+
+
+def test_the_fusions_pass_makes_a_colour_streams_luminance_noise_as_luminance_noise_does(monkeypatch):
+    """A colour band refresh stream (a still dual-ISO view, then a bright square moving, then still): the fusion's
+    pass updates the luminance noise's evidence and its floor in place (fusion.LuminanceNoise, keeping the floor's
+    cells whose weights stay on their side of 1), and the stream's output, evidence and floor are bit for bit those
+    of stream.luminance_noise's own pass (taken where the cells' rows do not divide the fusion's strips), also where
+    pixels of skipped rows take weight 1 back after the pass (settle.skipped_resets' ``given``)."""
+    from svelive.reconstruction import stream as stream_module
+
+    camera, raws = _moving_square_frames()
+    given = []
+    skipped_resets = settle.skipped_resets
+
+    def counted(*args):
+        found = skipped_resets(*args)
+        given.append(found[3].size)
+        return found
+
+    monkeypatch.setattr(settle, "skipped_resets", counted)
+
+    def run() -> list[tuple[np.ndarray, ...]]:
+        stream = Reconstructor(camera, refresh=4, colour_refresh=True, workers=2)
+        out = []
+        for raw in raws:
+            result = stream.process(raw)
+            out.append((result.image, result.weight, stream._spread.spread.copy(), stream._spread.floor.copy()))
+        stream.close()
+        return out
+
+    in_pass = run()
+    assert sum(given) > 0
+    with monkeypatch.context() as patch:
+        patch.setattr(stream_module, "FUSE_ROWS", 127)  # (cells of 2 rows: luminance_noise's own pass)
+        alone = run()
+    for k, (a, b) in enumerate(zip(in_pass, alone)):
+        for name, x, y in zip(("image", "weight", "spread", "floor"), a, b):
+            np.testing.assert_array_equal(x, y, err_msg=f"frame {k}: {name}")

@@ -270,6 +270,9 @@ class Fused:
             the tests found still, the only ones whose frame differences are noise alone.
         skipped: what the pass found of the pixels it reset in the rows the method skipped (:func:`fuse`'s
             ``predicted``), or None (no such rows, or a restart).
+        noise: a colour stream's evidence of its luminance noise after this frame and its floor
+            (:class:`LuminanceNoise`, :func:`fuse`'s ``noise`` updated), made in the pass from its weights (``history``
+            as the pass left it); None where not asked for, or on a restart.
     """
 
     image: np.ndarray
@@ -280,11 +283,33 @@ class Fused:
     variance_of: OutputVariance
     reset: np.ndarray
     skipped: SkippedResets | None = None
+    noise: LuminanceNoise | None = None
 
     @cached_property
     def variance(self) -> np.ndarray:
         """float32 (H, W), the output's variance (:class:`OutputVariance`)."""
         return self.variance_of()
+
+
+class LuminanceNoise(NamedTuple):
+    """A colour stream's evidence of its luminance noise (svelive.reconstruction.stream.luminance_noise), which
+    :func:`fuse`'s pass updates.
+
+    Attributes:
+        spread: float32 (H, W), DN^2, per pixel: the last frame's evidence, updated in place (:func:`noise_evidence`);
+            0 where the history's weight is 1 (as the pass leaves it).
+        floor: float32 (Hc, W), DN^2, per cell row and column: the mean of ``spread`` over the pixels of the column's
+            cell whose weight is below 1 (:func:`cell_means`), updated in place.
+        cell: (cy, cx), the cells' rows and columns.
+        kept: bool, ``floor`` holds the last frame's, of ``spread`` and the history's weights as they are: a cell row
+            whose weights are each below 1 where they were (so its evidence stays as it was) then keeps its row,
+            which is what it would be made again, bit for bit; else every row is made.
+    """
+
+    spread: np.ndarray
+    floor: np.ndarray
+    cell: tuple[int, int]
+    kept: bool
 
 
 @dataclass(frozen=True)
@@ -575,7 +600,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
          strip_rows: int = FUSE_ROWS, executor: Executor | None = None,
          predicted: list[tuple[int, int]] | None = None,
          complete: Callable[[], FrameEstimate] | None = None,
-         unstable_sigmas: float | None = None) -> Fused:
+         unstable_sigmas: float | None = None, noise: LuminanceNoise | None = None) -> Fused:
     """Fuse one frame into the per-pixel history.
 
     Args:
@@ -607,6 +632,11 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
             (:attr:`Fused.skipped`) for the caller to give their estimate
             (svelive.reconstruction.settle.skipped_resets). Needs ``complete``: called before any restart
             (every pixel then takes the frame's own estimate), it returns the frame with every row estimated.
+        noise: a colour stream's evidence of its luminance noise (:class:`LuminanceNoise`; its ``spread`` the
+            last frame's, zeros where there is none yet), or None: the pass updates ``spread`` in place
+            (:func:`noise_evidence`; in ``predicted`` rows it stays, 0 where the new weight is 1) and ``floor``
+            of the new weights, while the row's estimate, history and weights are in cache (:attr:`Fused.noise`).
+            Its cells' rows must divide ``strip_rows``. On a restart both may be written in part.
 
     With w = 1 / n the history's weight state, a pixel is reset to the frame's
     estimate where the noise test ``(x - mean)^2 > k^2 v (1 + w)`` flags it (x, v: the
@@ -724,8 +754,11 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     step = _DetailStep(detail, along, ky, threshold, sharpens)
     # a history scaled up by the brightness ratio carries up to ratio times the (shot)
     # noise variance the model gives at its new level
+    cy, cx = (1, 1) if noise is None else noise.cell
+    if strip_rows % cy:
+        raise ValueError(f"fuse: cells of {cy} rows do not divide strips of {strip_rows}")
     settings = _FuseSettings(window[0] // 2, window[1] // 2, int(config.widen), inv_k2, scale, floor_weight, separate,
-                             max(scale, np.float32(1)))
+                             max(scale, np.float32(1)), cy, cx, noise is not None and noise.kept)
 
     def inner(core: slice) -> slice:
         """The strip's rows whose detail window lies within it (mirrored at the frame's ends): the
@@ -773,7 +806,10 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
                                    share.cells, share.channels), tables,
                             _Outputs(motion[core], reset[core], weight[core], fused[core], own[core],
                                      fused_test[core], evidence[core], out[core],
-                                     _NO_ROWS if own_var is None else own_var[core]), settings, step,
+                                     _NO_ROWS if own_var is None else own_var[core],
+                                     _NO_ROWS if noise is None else noise.spread[core],
+                                     _NO_ROWS if noise is None else noise.floor[core.start // cy:-(-core.stop // cy)]),
+                            settings, step,
                             _NO_SKIPPED if found is None else _skipped(core, strip_index[core.start]))
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
             out[core] = fused[core]
@@ -838,7 +874,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     state = TemporalState(fused, own, weight, bound, new_censored, fused_test if separate else None, own_var)
     # the update applied the within-frame test's finding to the output where it reset the history
     return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset), reset,
-                 found)
+                 found, noise)
 
 
 def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: float, motion: np.ndarray) -> Fused:
@@ -1047,6 +1083,8 @@ class _Outputs(NamedTuple):
         out: float32, the output, in the rows the pass sharpens.
         own_variance: float32, the running mean of the own readings' variance (:class:`TemporalState`;
             of no rows without one).
+        spread, floor: float32, :class:`LuminanceNoise`'s (``spread`` updated in place; ``floor``: the strip's
+            cell rows), or of no rows without one.
     """
 
     motion: np.ndarray
@@ -1058,6 +1096,8 @@ class _Outputs(NamedTuple):
     evidence: np.ndarray
     out: np.ndarray
     own_variance: np.ndarray
+    spread: np.ndarray
+    floor: np.ndarray
 
 
 class _FuseSettings(NamedTuple):
@@ -1070,6 +1110,7 @@ class _FuseSettings(NamedTuple):
         floor_weight: float32, 1 / max_history; separate: bool, the test has a history of its own.
         noisier: float32, max(scale, 1): a history scaled up by the brightness ratio carries up to
             ratio times the (shot) noise variance the model gives at its new level.
+        cy, cx: int, the cells of :class:`LuminanceNoise`'s floor (1 without one); kept: bool, its ``kept``.
     """
 
     wy: int
@@ -1080,6 +1121,9 @@ class _FuseSettings(NamedTuple):
     floor_weight: np.float32
     separate: bool
     noisier: np.float32
+    cy: int
+    cx: int
+    kept: bool
 
 
 class _Skipped(NamedTuple):
@@ -1170,6 +1214,11 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, sk
     a = kernel_y.size // 2
     # the evidence of the last rows, the detail window's: frame row x in ring[(x - first_row) % len(ring)]
     ring = np.empty((2 * a + 1, cols), np.float32)
+    # the luminance noise floor's sums (spread, pixels below weight 1) of the cell row's rows made so far (``made``
+    # of them); its cells (``cells``, ``marked[:n_marked]``) whose pixels changed in the rows kept
+    total, counted = np.zeros(cols, np.float32), np.zeros(cols, np.float32)
+    cells, marked = np.zeros(cols, np.bool_), np.empty(cols, np.intp)
+    made, n_marked = 0, 0
     motion[:] = False
     count = 0
     known = 0  # rows whose censoring change is known
@@ -1204,6 +1253,17 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, sk
             _update_row(following, first_row, history, frame, tables, outputs, settings, step, slot, row)
             if skipped.rows.size:  # (after the update's every read of the row's weight, own readings and test)
                 _skipped_row(following, first_row, history, frame, outputs, settings, skipped)
+            if outputs.spread.shape[0]:  # (after the skipped row's kept weights)
+                g = first_row + following
+                if skipped.rows.size > 0 and skipped.rows[g]:
+                    n_marked = _kept_spread_row(following, history, outputs, settings.cx, cells, marked, n_marked)
+                else:
+                    _spread_row(following, history, frame, outputs, settings.scale, total, counted)
+                    made += 1
+                if (g + 1) % settings.cy == 0 or g + 1 == frame_rows:  # the cell row's last
+                    _floor_cells(g // settings.cy, first_row, outputs, settings, made, cells, marked[:n_marked], total,
+                                 counted)
+                    made, n_marked = 0, 0
             g = first_row + following
             if detail and (sharp_stop <= sharp_first or g < sharp_first + a or g >= sharp_stop - a):
                 evidence[following] = slot  # read by the detail step of rows it does not sharpen
@@ -1329,6 +1389,134 @@ def _skipped_row(r, first_row, history, frame, outputs, settings, skipped):
             if separate:
                 fused_test[c] = old_test[c] * scale
             censored[c] = old_censored[c]
+
+
+@kernel(inline="always")
+def _spread_row(r, history, frame, outputs, scale, total, counted):
+    """Row ``r`` of :class:`LuminanceNoise`'s spread (:class:`_Outputs`), in place: :func:`noise_evidence` of the
+    row's estimate, history and weights (the brightness ratio ``scale``); added to the floor's sums ``total`` (the
+    spread) and ``counted`` (pixels of weight below 1), (W,) each."""
+    spread, weight = outputs.spread[r], outputs.weight[r]
+    image, mean, old_weight = frame.image[r], history.mean[r], history.weight[r]
+    one, zero = np.float32(1), np.float32(0)
+    for c in range(spread.size):
+        w = weight[c]
+        value = noise_evidence(image[c], mean[c], old_weight[c], w, spread[c], scale)
+        spread[c] = value
+        total[c] += value
+        counted[c] += one if w < one else zero
+
+
+#: Columns :func:`_kept_spread_row` looks at together: a loop that vectorises finds the few that changed.
+_CHUNK = 64
+
+
+@kernel(inline="always")
+def _kept_spread_row(r, history, outputs, cx, cells, marked, n):
+    """Row ``r`` of :class:`LuminanceNoise`'s spread where the method skipped the row: the last frame's evidence,
+    in place, 0 where the row's updated weight is 1, which it is where the history's was already (so only a pixel
+    whose weight crossed 1 either way changes its floor's terms). The cells (``cx`` columns) of those pixels are
+    marked in ``cells`` (bool (W,)) and listed in ``marked`` (intp (W,)) from ``n`` on; returns the new count."""
+    spread, weight, old_weight = outputs.spread[r], outputs.weight[r], history.weight[r]
+    one, zero = np.float32(1), np.float32(0)
+    cols = spread.size
+    for c0 in range(0, cols, _CHUNK):
+        if c0 + _CHUNK <= cols:  # (a loop of a constant count, over slices: one that vectorises)
+            now, before = weight[c0:c0 + _CHUNK], old_weight[c0:c0 + _CHUNK]
+            differ = 0
+            for k in range(_CHUNK):
+                differ += (now[k] < one) != (before[k] < one)
+            if differ == 0:
+                continue
+        for c in range(c0, min(c0 + _CHUNK, cols)):
+            fused = weight[c] < one
+            if fused != (old_weight[c] < one):
+                if not fused:
+                    spread[c] = zero
+                j = c // cx
+                if not cells[j]:
+                    cells[j] = True
+                    marked[n] = j
+                    n += 1
+    return n
+
+
+@kernel(inline="always")
+def _floor_cells(i, first_row, outputs, settings, made, cells, marked, total, counted):
+    """Cell row ``i`` of :class:`LuminanceNoise`'s floor (:class:`_Outputs`: the strip's, from frame row
+    ``first_row``, a cell row's first), of which ``made`` rows were made (:func:`_spread_row`, summed into ``total``
+    and ``counted``, (W,) each, set to 0 again here): made anew where any was or the floor was not kept
+    (:func:`cell_means` of its rows' spread and their pixels of weight below 1 summed per column in row order),
+    else its cells ``marked`` made again alone (the same sums); ``cells`` unmarked."""
+    one, zero = np.float32(1), np.float32(0)
+    spread, weight, cy, cx = outputs.spread, outputs.weight, settings.cy, settings.cx
+    top, stop = i * cy - first_row, min(i * cy + cy - first_row, spread.shape[0])
+    floor = outputs.floor[i - first_row // cy]
+    cols = floor.size
+    for j in marked:
+        cells[j] = False
+    if made < stop - top and (made or not settings.kept):  # (rows kept too: summed again, in row order)
+        total[:] = zero
+        counted[:] = zero
+        for r in range(top, stop):
+            s, w = spread[r], weight[r]
+            for c in range(cols):
+                total[c] += s[c]
+                counted[c] += one if w[c] < one else zero
+    if made or not settings.kept:
+        cell_means(total, counted, cx, floor)
+        total[:] = zero
+        counted[:] = zero
+        return
+    for j in marked:
+        t, n = zero, zero
+        for c in range(j * cx, min(j * cx + cx, cols)):
+            tc, nc = zero, zero
+            for r in range(top, stop):
+                tc += spread[r, c]
+                nc += one if weight[r, c] < one else zero
+            t += tc
+            n += nc
+        t = t / max(n, one)
+        for c in range(j * cx, min(j * cx + cx, cols)):
+            floor[c] = t
+
+
+@kernel(inline="always")
+def noise_evidence(x, mean, old_weight, weight, old, scale):
+    """A pixel's evidence of its luminance noise after this frame (svelive.reconstruction.stream.luminance_noise),
+    float32 DN^2: ``old`` (the last frame's) moved towards (x - scale mean)^2 / (1 + old_weight) with the frame's
+    weight as a deviation's (the n-th frame's deviation is the pixel's (n - 1)-th: 1 / (n - 1) = w / (1 - w), 1 at
+    most; ``weight``: w, the fused weight), 0 where ``weight`` is 1 (no evidence yet)."""
+    one = np.float32(1)
+    d = x - scale * mean
+    term = d * d / (one + old_weight)
+    step = min(weight / max(one - weight, np.float32(1e-6)), one)
+    return old + step * (term - old) if weight < one else np.float32(0)
+
+
+@kernel(inline="always")
+def cell_means(total, count, cx, out):
+    """out (W,) = per cell of ``cx`` columns, the sum of ``total`` over its columns over the sum of ``count``
+    (at least 1), float32 (W,) each, summed from 0 in column order (:class:`LuminanceNoise`'s floor)."""
+    one, zero = np.float32(1), np.float32(0)
+    w, start = out.size, 0
+    if cx == 2:  # cells of two columns spelt out: a loop that vectorises (the same sums; a loop of two
+        start = w // 2  # per cell left scalar was half of the floor's time)
+        for j in range(start):
+            t = (zero + total[2 * j]) + total[2 * j + 1]
+            n = (zero + count[2 * j]) + count[2 * j + 1]
+            t = t / max(n, one)
+            out[2 * j] = t
+            out[2 * j + 1] = t
+    for j in range(start, -(-w // cx)):
+        t, n = zero, zero
+        for x in range(j * cx, min(j * cx + cx, w)):
+            t += total[x]
+            n += count[x]
+        t = t / max(n, one)
+        for x in range(j * cx, min(j * cx + cx, w)):
+            out[x] = t
 
 
 @kernel

@@ -720,7 +720,7 @@ def _edge_stack(inp: SveInput, boxes: np.ndarray, halo: tuple[int, int] | None =
 def skipped_resets(found: SkippedResets, skipped: np.ndarray, reset: np.ndarray, new_censored: np.ndarray,
                    old_censored: np.ndarray, old_test: np.ndarray, tested: np.ndarray, scale: np.float32, wy: int,
                    wx: int, weight: np.ndarray, test: np.ndarray, censored: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, int]:
+                   ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """The pixels the fusion reset in the frame rows the method skipped (``skipped``, bool (H,)) that take this
     frame's estimate on demand, the others keeping their history as it was: the fusion's pass judged each by itself
     (fusion._skipped_row: ``found``, and the kept pixels' history written into the new state), and here, since a
@@ -733,9 +733,10 @@ def skipped_resets(found: SkippedResets, skipped: np.ndarray, reset: np.ndarray,
     its own readings and mean are the on-demand estimate's, which the caller writes. ``reset``: bool (H, W), the
     fusion's; ``old_censored``: bool (H, W), the history's censoring. Float arrays float32 (H, W).
 
-    Returns (ys, xs, kept): the on-demand pixels' coordinates, intp (n,), in reverse raster order; how many kept
-    their history. Each pixel's outcome is a closure that does not depend on the order of the pixels (nor on the
-    fusion's strips)."""
+    Returns (ys, xs, kept, given): the on-demand pixels' coordinates, intp (n,), in reverse raster order; how many
+    kept their history; the flat indices (intp, ascending) of the pixels the fusion's pass let keep their history
+    that take weight 1 back here (among ``ys``, ``xs``). Each pixel's outcome is a closure that does not depend on
+    the order of the pixels (nor on the fusion's strips)."""
     h, w = reset.shape
     # the stack starts with the listed pixels and the reset ones of the rows within 2 wy of a skipped row, and takes
     # each kept pixel (marked 1) at most once more: arrays of that size, not of the frame's (four maps a frame)
@@ -750,9 +751,10 @@ def skipped_resets(found: SkippedResets, skipped: np.ndarray, reset: np.ndarray,
                                found.starts, found.counts, stack_y, stack_x, old_test, tested, scale, weight, test,
                                censored, taken_y, taken_x)
     listed = [found.ys[a:a + n] * w + found.xs[a:a + n] for a, n in zip(found.starts, found.counts[:, 0])]
-    flat = -np.sort(-np.concatenate([*listed, taken_y[:spread] * w + taken_x[:spread]]))  # reverse raster order
+    given = np.sort(taken_y[:spread] * w + taken_x[:spread])
+    flat = -np.sort(-np.concatenate([*listed, given]))  # reverse raster order
     ys, xs = np.divmod(flat, w)
-    return ys, xs, kept - spread
+    return ys, xs, kept - spread, given
 
 
 @kernel

@@ -49,8 +49,8 @@ from svelive.reconstruction import colour, settle
 from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import (RATIO_TOLERANCE, FrameEstimate, Fused, OutputVariance, ShareError,
-                                          TemporalState, fuse)
+from svelive.reconstruction.fusion import (FUSE_ROWS, RATIO_TOLERANCE, FrameEstimate, Fused, LuminanceNoise,
+                                          OutputVariance, ShareError, TemporalState, cell_means, fuse, noise_evidence)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
@@ -285,7 +285,8 @@ class Reconstructor:
         self._history: TemporalState | None = None
         self._chroma: np.ndarray | None = None  # a colour stream's fused chroma cells (5, Hc, Wc), fuse_chroma
         self._white: np.ndarray | None = None  # the white balance of the last fused colour frame (its chroma's)
-        self._spread: np.ndarray | None = None  # a colour stream's evidence of its luminance's noise, luminance_noise
+        # a colour stream's evidence of its luminance's noise and its floor (luminance_noise)
+        self._spread: LuminanceNoise | None = None
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
@@ -625,7 +626,7 @@ class Reconstructor:
         # (the pass judged each pixel: fusion._skipped_row; here the taking spreads through crossed readings)
         wy, wx = (support_size(n) // 2 for n in self.pattern.shape)  # the fusion's censoring window
         no_rows = np.empty((0, 0), np.float32)
-        ys, xs, kept = settle.skipped_resets(
+        ys, xs, kept, given = settle.skipped_resets(
             fused.skipped, ~partial.rows, fused.reset, frame.censored, history.censored, history.tested, tested,
             scale, wy, wx, state.weight, no_rows if state.test is None else state.test, state.censored)
         # (the pass's halo first unless most of the last frame's were the wide fallback's, which reads farther)
@@ -633,6 +634,10 @@ class Reconstructor:
         narrow = last is None or 2 * last.get("demand_wide", 0) <= last.get("demand_px", 0)
         ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads, narrow)
         partial.stats.update(stats, kept_px=kept)
+        if fused.noise is not None and given.size:  # the pass's luminance noise evidence where weight 1 came back
+            np.put(fused.noise.spread, given, np.float32(0))
+            noise_floor(fused.noise.spread, state.weight, fused.noise.cell, fused.noise.floor,
+                        rows=np.unique(given // (frame.image.shape[1] * fused.noise.cell[0])))
         if not ys.size:
             return fused
         at = ys * frame.image.shape[1] + xs  # (flat indices: np.put and np.take, x0.5 of (ys, xs) indexing's time)
@@ -869,9 +874,19 @@ class Reconstructor:
 
                 complete = completed
                 predicted = settle.band_rows(~partial.computed, frame.image.shape[0])
+            noise = None
+            if parts is not None and FUSE_ROWS % parts.chroma.layout.cell[0] == 0:
+                # the pass updates the luminance noise's evidence and floor in place (luminance_noise)
+                (h, w), cell = frame.image.shape, parts.chroma.layout.cell
+                fits = spread is not None and spread.spread.shape == (h, w)
+                kept = fits and spread.kept and spread.cell == cell
+                noise = LuminanceNoise(spread.spread if fits else np.zeros((h, w), np.float32),
+                                       spread.floor if kept else np.empty((-(-h // cell[0]), w), np.float32), cell,
+                                       kept)
             fused = fuse(history, frame, self.motion_config, self.pattern.shape, inconsistency,
                          detail=self.detail, workers=self.workers, executor=self._pool,
-                         predicted=predicted, complete=complete, unstable_sigmas=settle.UNSTABLE_SIGMAS)
+                         predicted=predicted, complete=complete, unstable_sigmas=settle.UNSTABLE_SIGMAS,
+                         noise=noise)
             if partial is not None:
                 if not partial.rows.all():
                     fused = self._on_demand(partial, fused, frame, predicted, history)
@@ -907,8 +922,17 @@ class Reconstructor:
                 # (rows the band refresh skipped hold no estimate of this frame: their evidence stays as it was)
                 skipped = (~partial.rows if partial is not None and not partial.rows.all()
                            else np.empty(0, bool))
-                spread, floor = luminance_noise(spread, previous, est.image, fused.history, weight,
-                                                parts.chroma.layout.cell, ratio, self._threads, skipped)
+                cell = parts.chroma.layout.cell
+                if fused.noise is None:
+                    evidence, floor = luminance_noise(None if spread is None else spread.spread, previous, est.image,
+                                                      fused.history, weight, cell, ratio, self._threads, skipped)
+                    # (a floor of the fusion's weights: the next frame's pass keeps its rows that stay)
+                    spread = LuminanceNoise(evidence, floor, cell, weight is fused.history)
+                else:  # made in the fusion's pass, of its weights
+                    spread, floor = fused.noise._replace(kept=True), fused.noise.floor
+                    if weight is not fused.history:  # the output's are others
+                        floor = np.empty_like(floor)
+                        noise_floor(spread.spread, weight, cell, floor, self._threads)
                 luminance, variance_of, image = _refined(image, variance, floor, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
@@ -1111,6 +1135,8 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
 
     ``skipped``: bool (H,), rows whose ``image`` is not this frame's estimate (the band refresh kept the history's
     mean there), or of no rows: there a pixel's evidence stays the last frame's (0 where ``weight`` is 1).
+    (A stream's fusion makes the two in its pass instead, in place and bit for bit:
+    svelive.reconstruction.fusion.LuminanceNoise.)
     """
     evidence = history is not None and history.mean.shape == image.shape
     out = np.empty(image.shape, np.float32)
@@ -1128,7 +1154,7 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
     rows_skipped = np.zeros(image.shape[0], bool) if skipped is None or not skipped.size else skipped
 
     def piece(rows: slice) -> None:
-        _noise_rows(*(a[rows] for a in arrays), scale, evidence, cy, cx, out[rows],
+        _noise_rows(*(a[rows] for a in arrays), scale, evidence, False, cy, cx, out[rows],
                     floor[rows.start // cy:-(-rows.stop // cy)], rows_skipped[rows])
 
     map_on(workers, piece, _pieces(image.shape[0], cy))
@@ -1136,11 +1162,12 @@ def luminance_noise(spread: np.ndarray | None, history: TemporalState | None, im
 
 
 @kernel
-def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evidence, cy, cx, spread, floor,
+def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evidence, made, cy, cx, spread, floor,
                 skipped):
     """spread, floor = :func:`luminance_noise`'s of whole cell rows (row 0 a cell row's first; ``old`` may be
-    ``spread``), each cell row's spread summed per column while its rows are in cache, then its cells' means
-    spread over the cell row's row of ``floor`` (loops that vectorise)."""
+    ``spread``; with ``made``, ``spread`` holds the evidence already, and only ``output_weight`` is read beside it),
+    each cell row's spread summed per column while its rows are in cache, then its cells' means spread over the
+    cell row's row of ``floor`` (loops that vectorise)."""
     one, zero = np.float32(1), np.float32(0)
     h, w = spread.shape
     total, count = np.empty(w, np.float32), np.empty(w, np.float32)
@@ -1150,7 +1177,11 @@ def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evid
         count[:] = zero
         for r in range(r0, r1):
             s, wo = spread[r], output_weight[r]
-            if evidence and skipped[r]:  # (the band refresh's kept rows: no new evidence)
+            if made:
+                for x in range(w):
+                    total[x] += s[x]
+                    count[x] += one if wo[x] < one else zero
+            elif evidence and skipped[r]:  # (the band refresh's kept rows: no new evidence)
                 wt, o = weight[r], old[r]
                 for x in range(w):
                     value = o[x] if wt[x] < one else zero
@@ -1160,13 +1191,7 @@ def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evid
             elif evidence:
                 x_, m, ow, wt, o = image[r], mean[r], old_weight[r], weight[r], old[r]
                 for x in range(w):
-                    w1 = wt[x]
-                    d = x_[x] - scale * m[x]
-                    term = d * d / (one + ow[x])
-                    # the n-th frame's deviation is the pixel's (n - 1)-th: weight 1 / (n - 1) = w / (1 - w),
-                    # 1 at most
-                    step = min(w1 / max(one - w1, np.float32(1e-6)), one)
-                    value = o[x] + step * (term - o[x]) if w1 < one else zero
+                    value = noise_evidence(x_[x], m[x], ow[x], wt[x], o[x], scale)
                     s[x] = value
                     total[x] += value
                     count[x] += one if wo[x] < one else zero
@@ -1174,23 +1199,27 @@ def _noise_rows(image, mean, old_weight, weight, old, output_weight, scale, evid
                 for x in range(w):
                     s[x] = zero
                     count[x] += one if wo[x] < one else zero
-        cell_mean, start = floor[r0 // cy], 0
-        if cx == 2:  # cells of two columns spelt out: a loop that vectorises (the same sums; a loop of two
-            start = w // 2  # per cell left scalar was half of this kernel's time)
-            for j in range(start):
-                t = (zero + total[2 * j]) + total[2 * j + 1]
-                n = (zero + count[2 * j]) + count[2 * j + 1]
-                t = t / max(n, one)
-                cell_mean[2 * j] = t
-                cell_mean[2 * j + 1] = t
-        for j in range(start, -(-w // cx)):
-            t, n = zero, zero
-            for x in range(j * cx, min(j * cx + cx, w)):
-                t += total[x]
-                n += count[x]
-            t = t / max(n, one)
-            for x in range(j * cx, min(j * cx + cx, w)):
-                cell_mean[x] = t
+        cell_means(total, count, cx, floor[r0 // cy])
+
+
+def noise_floor(spread: np.ndarray, output_weight: np.ndarray, cell: tuple[int, int], floor: np.ndarray,
+                workers: int | Executor = 1, rows: np.ndarray | None = None) -> None:
+    """floor = :func:`luminance_noise`'s of its evidence ``spread`` (float32 (H, W), DN^2, made already) and
+    ``output_weight`` (float32 (H, W)), float32 (Hc, W), in place: every cell row (pieces over ``workers``), or
+    the cell rows ``rows`` (intp) alone."""
+    (h, _), (cy, cx) = spread.shape, cell
+    no_rows = np.empty(0, bool)
+
+    def piece(part: slice) -> None:
+        s, wo = spread[part], output_weight[part]  # (the evidence's own inputs: not read)
+        _noise_rows(s, s, s, wo, s, wo, np.float32(1), True, True, cy, cx, s,
+                    floor[part.start // cy:-(-part.stop // cy)], no_rows)
+
+    if rows is None:
+        map_on(workers, piece, _pieces(h, cy))
+    else:
+        for i in rows.tolist():
+            piece(slice(i * cy, min(i * cy + cy, h)))
 
 
 def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.ndarray,
