@@ -134,29 +134,25 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
                 helds[scale] = _held(censored, len(ky) * 3**scale, len(kx) * 3**scale)
             return helds[scale]
 
-        # box_w: the blocks' sums of w, of the scale `level`; the sums of w x are made again at each scale that
-        # takes box filters (the levels replace them); a larger scale's from the smallest's, three by three
-        weighted, box_w, level, scratch = None, None, 0, None
+        # box_w, box_wx: the blocks' sums of w and w x, of the scale `level` (made at the first scale that takes
+        # box filters); a larger scale's from the last one's, three by three; `means` the scale's levels
+        box_w, box_wx, means, level, scratch = None, None, None, 0, None
         for scale in range(WIDE_SCALES):
             if 3 * by > h or 3 * bx > width:
                 break
             boxes = count * by * bx * WIDE_DIRECT > weights.size  # many: box filters over the rows
             if boxes:
-                if weighted is None:
-                    weighted = np.empty_like(weights)
-                    _wide_prepare(*flat(weights, signal, exposure, weighted))
-                if box_w is None:
-                    box_w, level = _box(weights, len(ky), len(kx)), 0
-                means = _box(weighted, len(ky), len(kx))
-                if scale > 0:
-                    scratch = np.empty_like(weights) if scratch is None else scratch
-                for smaller in range(scale):  # a block three times as large: the 3 x 3 of the last scale
+                if box_w is None:  # `means` holds w x until its sums are made
+                    means = np.empty_like(weights)
+                    _wide_prepare(*flat(weights, signal, exposure, means))
+                    box_w, box_wx, level = _box(weights, len(ky), len(kx)), _box(means, len(ky), len(kx)), 0
+                scratch = np.empty_like(weights) if scratch is None and scale > level else scratch
+                for smaller in range(level, scale):  # a block three times as large: the 3 x 3 of the last scale
                     steps = (len(ky) * 3**smaller, len(kx) * 3**smaller)
-                    _threefold(means, *steps, scratch)
-                    if smaller >= level:
-                        _threefold(box_w, *steps, scratch)
+                    _threefold(box_wx, *steps, scratch)
+                    _threefold(box_w, *steps, scratch)
                 level = scale
-                _block_means(*flat(box_w, means, held_of(scale)), flagged)
+                _block_means(*flat(box_w, box_wx, held_of(scale), means), flagged)
             count = 0
             for i in members:
                 d, offset = darks[i], spans[i][1] - r0
@@ -265,14 +261,14 @@ def _wide_prepare(weights, signal, exposure, weighted):
 
 
 @kernel
-def _block_means(box_w, box_wx, held, flagged):
-    """box_wx = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
-    censored reading (``held``, if ``flagged``); flat arrays, in place."""
+def _block_means(box_w, box_wx, held, means, flagged):
+    """means = the blocks' levels X / W (0 where a block holds no reading: W <= TINY), NaN where a block holds a
+    censored reading (``held``, if ``flagged``); flat float32 arrays (``held`` bool)."""
     tiny, nan = np.float32(TINY), np.float32(np.nan)
     for k in range(box_w.size):
         w = box_w[k]
         level = box_wx[k] / max(w, tiny) if w > tiny else np.float32(0.0)
-        box_wx[k] = nan if flagged and held[k] else level
+        means[k] = nan if flagged and held[k] else level
 
 
 @kernel

@@ -58,9 +58,10 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
 
 
 #: :func:`posterior_at` takes a row whole where at least this share of its pixels changed, else packs them: a
-#: packed pixel (gathered, computed, scattered) costs about twice a pixel of a whole row (measured, 1920-pixel
-#: rows of scattered pixels: whole rows 7 ms a frame at any share; packed 2 ms at 1 %, 5.5 at 18 %, 10.5 at 78 %).
-DENSE_CHANGED = 0.5
+#: packed pixel (gathered, computed, scattered) costs about five pixels of a whole row (the wide fallback's calls
+#: on five dim bench frames, 1920x1200, summed: whole rows 3.8 ms a frame at any share; 0.5 -> 0.2 took Desk
+#: 1,2/4,8 (55 % changed) 4.6 -> 3.8 ms, StarField 1,2/4,8 (30 %) 5.0 -> 3.8, 1/1/8/8 (18 %) 3.8 -> 3.7).
+DENSE_CHANGED = 0.2
 
 
 #: :func:`_blend` runs :func:`nonnegative` on the pixels near 0 alone when fewer than one in this many are.
