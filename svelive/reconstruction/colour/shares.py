@@ -112,7 +112,11 @@ def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarr
     layout = cell_layout(inp.pattern, inp.cfa)
     cy, h = layout.cell[0], inp.shape[0]
     hc = history.shape[1]
-    shares, coarse = history[:3].copy(), history[3:5].copy()
+    shares, coarse = np.empty_like(history[:3]), np.empty_like(history[3:5])
+    kept = 0  # (only the cell rows kept are copied: the runs' are written below)
+    for a, b in [*runs, (hc, hc)]:
+        shares[:, kept:a], coarse[:, kept:a] = history[:3, kept:a], history[3:5, kept:a]
+        kept = b
     for a, b in runs:
         lo, hi = max(a - CHROMA_HALO, 0), min(b + CHROMA_HALO, hc)
         part = chroma(inp.crop(slice(lo * cy, min(hi * cy, h))), white)
