@@ -273,3 +273,27 @@ def test_healthz_is_ready_once_a_snapshot_can_be_served(monkeypatch):
                                                                                        channels.items()}
         health = httpx.get(srv.url + "/healthz", timeout=5)
         assert health.status_code == 200 and set(health.json()["cameras"].values()) == {"online"}, health.text
+
+
+def test_healthz_says_starting_until_a_source_that_delivers_nothing_is_offline():
+    """A source that opens and delivers nothing (a stalled camera) is "starting" (503) for ``offline_after_s`` after
+    the capture starts, then "offline" (200: the service is up, the camera is not); once it delivers, "online"
+    (before: "offline" and 200 from the end of the warm-up, before the source's first frame, so that a snapshot
+    asked for on the 200 of a fresh start was refused)."""
+    camera = make_camera(fps=10.0, n=2)
+    camera.paused = True
+    with ServerThread(camera, offline_after_s=3.0) as srv:
+        deadline = time.monotonic() + 30
+        while (health := httpx.get(srv.url + "/healthz", timeout=5)).json()["status"] == "warming up":
+            assert time.monotonic() < deadline, "still warming up"
+            time.sleep(0.05)
+        assert health.status_code == 503 and health.json()["cameras"] == {"main": "starting"}, health.text
+        while (health := httpx.get(srv.url + "/healthz", timeout=5)).status_code == 503:
+            assert time.monotonic() < deadline, "starting for ever"
+            time.sleep(0.1)
+        assert health.json() == {"status": "ok", "source": "offline", "cameras": {"main": "offline"}}, health.text
+        assert httpx.get(srv.url + "/snapshot.exr", timeout=5).status_code == 503  # offline: refused at once
+        camera.paused = False
+        srv.wait_for(lambda s: s["frames"]["reconstructed"] > 0)
+        health = httpx.get(srv.url + "/healthz", timeout=5)
+        assert health.status_code == 200 and health.json()["cameras"] == {"main": "online"}, health.text

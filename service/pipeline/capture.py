@@ -44,6 +44,7 @@ class CaptureStage:
         #: the camera of the open source's frames, None before the first
         self.camera: Camera | None = None
         self._started_ns = time.monotonic_ns()
+        self._run_ns: int | None = None  # when the capture thread started (after the kernels' warm-up)
         self._last_frame_ns: int | None = None
         self._online_since_ns: int | None = None
         self._newest_raw: Frame | None = None
@@ -51,6 +52,7 @@ class CaptureStage:
 
     def run(self) -> None:
         """The capture thread: until ``stop`` is set."""
+        self._run_ns = time.monotonic_ns()
         opened = 0
         gap_ns = int(self.config.offline_after_s * 1e9)
         while not self._stop.is_set():
@@ -181,6 +183,13 @@ class CaptureStage:
             return False
         stats = self.stats if stats is None else stats
         return stats.get("online") is not False
+
+    def awaiting_first_frame(self) -> bool:
+        """True from the capture thread's start until its source delivers a first frame, fails, or
+        ``offline_after_s`` passes without one (then it is offline)."""
+        if self._run_ns is None or self._last_frame_ns is not None or self.state not in ("starting", "online"):
+            return False
+        return (time.monotonic_ns() - self._run_ns) / 1e9 <= self.config.offline_after_s
 
     def latest_raw(self) -> Frame | None:
         """The newest captured raw frame (with its camera), or None before the first."""

@@ -138,22 +138,22 @@ class Pipeline:
 
     def latest(self, wait_s: float = 0.0) -> Published | None:
         """The newest reconstructed frame (an immutable record), or None before the first; before the first, while
-        the source delivers frames, waits up to ``wait_s`` s for it (the first frame after start-up loads the kernels
+        the source opens or delivers frames, waits up to ``wait_s`` s for it (the first frame after start-up loads the kernels
         it needs and takes a second or two)."""
         latest = self.hdr_port.latest()
-        if latest is None and wait_s > 0 and self.online():
+        if latest is None and wait_s > 0 and (self.online() or self.capture.awaiting_first_frame()):
             newest = self.hdr_port.get_newest(0, wait_s)
             latest = None if newest is None else newest[1]
         return latest
 
     def readiness(self) -> str:
-        """What /healthz says of this camera: "warming_up" (the kernels are being prepared), "offline" (no source
-        delivers frames), "starting" (frames come, none reconstructed yet: a snapshot would be refused) or
-        "online"."""
+        """What /healthz says of this camera: "warming_up" (the kernels are being prepared), "starting" (the source
+        is opening and has not failed, for up to ``offline_after_s``, or frames come and none is reconstructed yet:
+        a snapshot would be refused), "offline" (no source delivers frames) or "online"."""
         if self.warming_up:
             return "warming_up"
         if not self.online():
-            return "offline"
+            return "starting" if self.capture.awaiting_first_frame() else "offline"
         return "starting" if self.hdr_port.latest() is None else "online"
 
     def latest_raw(self) -> Frame | None:
