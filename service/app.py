@@ -254,8 +254,8 @@ def create_app(pipelines: Pipeline | Mapping[str, Pipeline], settings: ServerSet
     async def healthz() -> Any:
         cams = {cam.name: cam.pipeline.readiness() for cam in cameras}
         first = cams[cameras[0].name]
-        # a readiness probe: not ready while any camera warms up, or has frames coming and none reconstructed yet
-        # (a snapshot asked for then would be refused); a camera that is offline does not hold the others back
+        # a readiness probe: not ready while any camera warms up or starts (Pipeline.readiness: a snapshot asked for
+        # then would be refused); a camera that is offline does not hold the others back
         for waiting, status in (("warming_up", "warming up"), ("starting", "starting")):
             if waiting in cams.values():
                 return JSONResponse({"status": status, "source": first, "cameras": cams}, status_code=503)

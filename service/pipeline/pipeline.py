@@ -138,10 +138,10 @@ class Pipeline:
 
     def latest(self, wait_s: float = 0.0) -> Published | None:
         """The newest reconstructed frame (an immutable record), or None before the first; before the first, while
-        the source opens or delivers frames, waits up to ``wait_s`` s for it (the first frame after start-up loads the kernels
-        it needs and takes a second or two)."""
+        the camera is starting (:meth:`readiness`), waits up to ``wait_s`` s for it (the first frame after start-up
+        loads the kernels it needs and takes a second or two)."""
         latest = self.hdr_port.latest()
-        if latest is None and wait_s > 0 and (self.online() or self.capture.awaiting_first_frame()):
+        if latest is None and wait_s > 0 and self.readiness() == "starting":
             newest = self.hdr_port.get_newest(0, wait_s)
             latest = None if newest is None else newest[1]
         return latest

@@ -64,7 +64,7 @@ def exr_bytes(published: Published, colour: ColourStage, *, half: bool = False, 
 def exr_snapshot(pipeline: Pipeline, *, half: bool = False, confidence: bool = False,
                  timeout: float = 2.0) -> Snapshot | None:
     """The newest reconstructed frame of ``pipeline`` as OpenEXR (waiting up to ``timeout`` s for the first while
-    the source delivers frames); None if there is none."""
+    the camera is starting: ``Pipeline.latest``); None if there is none."""
     published = pipeline.latest(timeout)
     if published is None:
         return None
@@ -75,7 +75,7 @@ def exr_snapshot(pipeline: Pipeline, *, half: bool = False, confidence: bool = F
 
 def jpeg_snapshot(pipeline: Pipeline, timeout: float = 2.0) -> Snapshot | None:
     """A JPEG of the newest reconstructed frame of ``pipeline`` (waiting up to ``timeout`` s in all for the first
-    frame while the source delivers frames, and for the encoder); None if there is none."""
+    frame while the camera is starting, and for the encoder); None if there is none."""
     deadline = time.monotonic() + timeout
     if pipeline.latest(timeout) is None:
         return None
