@@ -115,9 +115,9 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     of the ring's rows (:func:`_row_filter`, :func:`_column_filter`: ``smooth``'s arithmetic and borders,
     reflect-101 at the array's ends), so a stage reads rows the one before has just written, in cache,
     instead of whole arrays; the stage that reads a column filter's sums makes them pixel by pixel in its own
-    loop (:func:`_column`), so they are never written to a row and read back. ``readings``: :class:`PassReadings`; ``noise``: :class:`PassNoise`;
-    ``settings``: :class:`PassSettings`; ``outputs``: :class:`PassOutputs`. Returns (the candidates' count,
-    whether any pixel is ``lower``): the caller fills the lower bounds.
+    loop (:func:`_column`), so they are never written to a row and read back. ``readings``: :class:`PassReadings`;
+    ``noise``: :class:`PassNoise`; ``settings``: :class:`PassSettings`; ``outputs``: :class:`PassOutputs`. Returns
+    (the candidates' count, whether any pixel is ``lower``): the caller fills the lower bounds.
 
     ``motion_window`` (:class:`PassWindow`): also the motion tests' window mean and its variance (the window
     sums of the uncensored readings are the pilot's, and those of G^2 e and G^2 two more row and column
@@ -349,9 +349,9 @@ def _column_filter(values, rows, k, out):
 
 @kernel
 def _column(values, rows, k, scratch):
-    """The column filter ``k`` down ``values``' rows ``rows`` as :func:`_three` and :func:`_five` read it pixel by pixel, in
-    the loop of the stage that reads the sums (no row of sums written and read back): the window's rows as views
-    where ``k`` has 3 or 5 taps, else the sums made into ``scratch`` (a row) by :func:`_column_filter`."""
+    """The column filter ``k`` down ``values``' rows ``rows`` as :func:`_three` and :func:`_five` read it pixel by
+    pixel, in the loop of the stage that reads the sums (no row of sums written and read back): the window's rows as
+    views where ``k`` has 3 or 5 taps, else the sums made into ``scratch`` (a row) by :func:`_column_filter`."""
     if k.size == 3:
         return (values[rows[0]], values[rows[1]], values[rows[2]], values[rows[2]], values[rows[2]], k[0], k[1],
                 k[1], 3)
@@ -506,7 +506,8 @@ def _weight(k, signal_sum, arrays):
 def _weights_censored(signal_sum, exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre):
     """w (0 at censored pixels), x = s / e; wn = w but 0 next to a censored pixel of lower or equal exposure; wn x.
     ``signal_sum``: a :func:`_column`."""
-    arrays, n, taps = (exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre), w.size, signal_sum[8]
+    arrays = (exposure_sum, s, e, censored, lowest, w, x, wn, wx, gain_inv, floor, centre)
+    n, taps = w.size, signal_sum[8]
     for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
         _weight_censored(k, _three(signal_sum, k), arrays)
     for k in range(n if taps == 5 else 0):
