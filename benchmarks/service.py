@@ -4,7 +4,7 @@
                                  [--no-temporal] [--workers N] [--parallel-frames N] [--scene pan|static]
                                  [--size 1920x1200]
                                  [--cfa none|RGGB] [--rtsp] [--live-quality fixed|adaptive] [--replay fed|held]
-                                 [--refresh K] [--publisher-nice N]
+                                 [--refresh K] [--publisher-nice N] [--publisher-idle on|off]
 
 Runs ``svelive serve``'s app (real uvicorn) in a child process, its kernels prepared as
 ``svelive serve`` prepares them (``warm_up_kernels``: compiled into numba's cache by a process
@@ -196,10 +196,11 @@ def replay_source_factory(fps: float, width: int, height: int, n: int = 24, stat
 def serve(port: int, fps: float, method: str | None, temporal: bool, workers: int, static: bool,
           size: tuple[int, int], cfa: str, rtsp_port: int = 0, parallel_frames: int = 1,
           live_quality: str = "fixed", fed: bool = True, refresh: int | None = None,
-          publisher_nice: int | None = None) -> None:
+          publisher_nice: int | None = None, publisher_idle: bool | None = None) -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
     ``/bench/rtsp``); ``fed``: its frames from a feeder process (:func:`replay_source_factory`); ``refresh``:
-    ``PipelineConfig.refresh`` and ``publisher_nice``: ``PipelineConfig.publisher_nice``, None: the checkout's default."""
+    ``PipelineConfig.refresh``, ``publisher_nice`` and ``publisher_idle``: the same settings of ``PipelineConfig``, None:
+    the checkout's default."""
     import uvicorn
 
     from service.app import create_app, listen_socket
@@ -212,8 +213,8 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
     except ImportError:
         pass
     factory = replay_source_factory(fps, size[0], size[1], static=static, cfa=cfa, fed=fed)
-    extra = {name: value for name, value in (("refresh", refresh), ("publisher_nice", publisher_nice))
-             if value is not None}
+    extra = {name: value for name, value in (("refresh", refresh), ("publisher_nice", publisher_nice),
+                                             ("publisher_idle", publisher_idle)) if value is not None}
     pipeline = Pipeline(PipelineConfig(source="bench-replay", method=method, temporal=temporal, workers=workers,
                                        parallel_frames=parallel_frames, live_quality=live_quality, **extra), factory)
     settings = ServerSettings(port=port, log_level="warning")
@@ -613,6 +614,9 @@ def main() -> None:
     parser.add_argument("--publisher-nice", type=int, default=None, metavar="N",
                         help="nice levels the publishers' threads run below the reconstruction (0: the same); "
                              "default: the checkout's")
+    parser.add_argument("--publisher-idle", choices=("on", "off"), default=None,
+                        help="on: the publishers' threads run under SCHED_IDLE, only on a core the reconstruction "
+                             "leaves idle; off: their nice levels alone; default: the checkout's")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--feed", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rtsp-port", type=int, default=0, help=argparse.SUPPRESS)
@@ -628,7 +632,7 @@ def main() -> None:
     if args.serve_port:
         serve(args.serve_port, args.fps, args.method, not args.no_temporal, args.workers, args.scene == "static", size,
               args.cfa, args.rtsp_port, args.parallel_frames, args.live_quality, args.replay == "fed", args.refresh,
-              args.publisher_nice)
+              args.publisher_nice, None if args.publisher_idle is None else args.publisher_idle == "on")
         return
     port = free_port()
     cmd = [sys.executable, __file__, "--serve-port", str(port), "--fps", str(args.fps), "--workers", str(args.workers),
@@ -642,6 +646,8 @@ def main() -> None:
         cmd += ["--refresh", str(args.refresh)]
     if args.publisher_nice is not None:
         cmd += ["--publisher-nice", str(args.publisher_nice)]
+    if args.publisher_idle is not None:
+        cmd += ["--publisher-idle", args.publisher_idle]
     rtsp_port = free_port() if args.rtsp else 0
     if rtsp_port:
         cmd += ["--rtsp-port", str(rtsp_port)]
@@ -684,7 +690,8 @@ def main() -> None:
           f"{'monochrome' if args.cfa == 'none' else args.cfa + ' colour'} replay at "
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, parallel frames {args.parallel_frames}, {args.scene} scene, "
           f"live quality {args.live_quality}, replay {args.replay}, {args.clients} clients, {args.minutes:g} min per phase"
-          f"{'' if args.publisher_nice is None else f', publishers {args.publisher_nice} nice levels lower'}")
+          f"{'' if args.publisher_nice is None else f', publishers {args.publisher_nice} nice levels lower'}"
+          f"{'' if args.publisher_idle is None else f', publishers SCHED_IDLE {args.publisher_idle}'}")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
           f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "
           f"fps {idle['fps']}")

@@ -38,6 +38,7 @@ def test_precedence_cli_over_env_over_file_over_defaults(tmp_path):
     ({"method": "magic"}, {}, "unknown method"),
     ({"jpeg_quality": 101}, {}, "JPEG quality"),
     ({}, {"SVELIVE_PUBLISHER_NICE": "20"}, "publisher_nice"),
+    ({}, {"SVELIVE_PUBLISHER_IDLE": "sometimes"}, "SVELIVE_PUBLISHER_IDLE"),
     ({"pattern": "1,0/2,4"}, {}, "pattern"),
     ({"key": 5.0}, {}, "key"),
     ({"token": "has space"}, {}, "token"),

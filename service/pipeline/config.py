@@ -59,6 +59,8 @@ class PipelineConfig:
         preview_width: downscale previews wider than this (pixels); 0 keeps full size.
         publisher_nice: nice levels the publishers' threads (tone map and JPEG, RTSP conversion and H.264) run below
             the capture and reconstruction (service.pipeline.priority); 0: the same priority.
+        publisher_idle: run the publishers' threads under Linux's ``SCHED_IDLE`` policy as well: only on a core
+            the capture and reconstruction leave idle (service.pipeline.priority); False: nice levels alone.
         offline_after_s: no frame for this long means the source is offline.
         retry_s: wait before reopening a source that failed or went away.
         no_signal_fps: rate of "no signal" frames sent while the source is offline.
@@ -84,6 +86,7 @@ class PipelineConfig:
     jpeg_quality: int = 80
     preview_width: int = 0
     publisher_nice: int = 5
+    publisher_idle: bool = True
     offline_after_s: float = 2.0
     retry_s: float = 1.0
     no_signal_fps: float = 2.0
@@ -110,6 +113,8 @@ class PipelineConfig:
         if isinstance(self.publisher_nice, bool) or not isinstance(self.publisher_nice, int) \
                 or not 0 <= self.publisher_nice <= 19:
             raise SveliveError(f"publisher_nice must be 0..19 nice levels, got {self.publisher_nice!r}")
+        if not isinstance(self.publisher_idle, bool):
+            raise SveliveError(f"publisher_idle must be true or false, got {self.publisher_idle!r}")
         for name in ("offline_after_s", "retry_s", "no_signal_fps"):
             if not 0 < getattr(self, name) <= 3600:
                 raise SveliveError(f"{name} must be in (0, 3600], got {getattr(self, name)}")

@@ -22,7 +22,7 @@ from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
 from service.pipeline.handoff import Newest
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
-from service.pipeline.priority import publisher_nice
+from service.pipeline.priority import lower_publisher
 from svelive.core.errors import SveliveError
 from svelive.tonemap import ToneMapper, ToneSettings
 from svelive.whitebalance import ColourSettings
@@ -94,7 +94,7 @@ class EncoderStage:
 
     def run(self) -> None:
         """The encoder thread: until ``stop`` is set."""
-        publisher_nice(self.config.publisher_nice)
+        lower_publisher(self.config.publisher_nice, self.config.publisher_idle)
         mapper = ToneMapper(self.tone)
         last_no_signal = 0
         seq = preview_seq = 0
