@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 
 from service.pipeline import Pipeline, PipelineConfig, no_signal_image
-from service.pipeline.priority import lower_publisher
+from service.pipeline.priority import may_leave_idle
 from service.publishers import rtsp
 from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
 from svelive.core.errors import SveliveError
 from tests.test_service_colour import ColourSimSource, make_colour_camera
 from tests.test_service_helpers import PortReader, ServerThread, SimSource, free_port, make_camera
+from tests.test_service_priority import threads_priority
 
 
 def _missing() -> str | None:
@@ -202,60 +203,30 @@ def test_a_late_joiner_gets_a_keyframe_at_once(mono_pipeline):
         assert publisher.medias == 1
 
 
-def _threads_priority() -> dict[int, tuple[str, int, bool]]:
-    """Every thread of this process: native id -> (its kernel name, its nice value, whether it runs under
-    ``SCHED_IDLE``)."""
-    out = {}
-    for tid in map(int, os.listdir("/proc/self/task")):
-        try:
-            with open(f"/proc/self/task/{tid}/comm") as f:
-                out[tid] = (f.read().strip(), os.getpriority(os.PRIO_PROCESS, tid),
-                            os.sched_getscheduler(tid) == os.SCHED_IDLE)
-        except OSError:  # the thread ended meanwhile
-            pass
-    return out
-
-
 @pytest.mark.skipif(sys.platform != "linux", reason="threads have priorities of their own on Linux only")
 def test_the_publishers_threads_run_below_the_reconstruction(mono_pipeline):
     base, steps = os.getpriority(os.PRIO_PROCESS, os.getpid()), mono_pipeline.config.publisher_nice
     assert steps > 0 and base + steps <= 19 and mono_pipeline.config.publisher_idle  # the defaults lower them
+    idle = may_leave_idle(base + steps)  # the encoder's SCHED_IDLE where it may leave it again (root here)
     mono_pipeline.watch(+1)  # an MJPEG client: the encoder thread makes JPEGs too
     try:
         # two x264 threads asked for: they must inherit the streaming thread's priority
         with RtspPublisher(mono_pipeline, host="127.0.0.1", port=0, settings=H264Settings(threads=2)) as publisher, \
                 RtspClient(publisher.url, publisher=publisher) as client:
             client.frames(3)
-            threads = _threads_priority()
+            threads = threads_priority()
             python = {t.name: t.native_id for t in threading.enumerate()}
     finally:
         mono_pipeline.watch(-1)
     for name in ("svelive-capture", "svelive-reconstruct"):
         assert threads[python[name]][1:] == (base, False), name
-    for name in ("svelive-encode", "svelive-rtsp-push"):
-        assert threads[python[name]][1:] == (base + steps, True), name
+    assert threads[python["svelive-encode"]][1:] == (base + steps, idle)
+    assert mono_pipeline.encoder.priority.public() == {"nice": base + steps, "idle_asked": True, "idle": idle,
+                                                       "idle_fallbacks": 0}
+    assert threads[python["svelive-rtsp-push"]][1:] == (base + steps, False)
     # the media's streaming thread and x264's threads: GStreamer names them after the appsrc's pad
     streaming = [priority for name, *priority in threads.values() if name == "src:src"]
-    assert len(streaming) >= 3 and set(map(tuple, streaming)) == {(base + steps, True)}
-
-
-@pytest.mark.skipif(sys.platform != "linux", reason="threads have priorities of their own on Linux only")
-@pytest.mark.parametrize("steps, idle", [(0, False), (3, False), (0, True), (2, True)])
-def test_a_publisher_is_lowered_as_configured_and_only_once(steps, idle):
-    base = os.getpriority(os.PRIO_PROCESS, os.getpid())
-    seen = []
-
-    def publisher() -> None:
-        seen.append(lower_publisher(steps, idle))
-        seen.append(lower_publisher(steps, idle))  # idempotent: a reused thread is not lowered twice
-        seen.append(_threads_priority()[threading.get_native_id()][1:])
-
-    thread = threading.Thread(target=publisher)
-    thread.start()
-    thread.join(10)
-    want = (min(19, base + steps), idle)
-    assert seen == [want, want, want]
-    assert _threads_priority()[threading.get_native_id()][1:] == (base, False)  # the caller's own thread: untouched
+    assert len(streaming) >= 3 and set(map(tuple, streaming)) == {(base + steps, False)}
 
 
 def test_colour_preview_is_served_in_colour():

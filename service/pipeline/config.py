@@ -59,8 +59,9 @@ class PipelineConfig:
         preview_width: downscale previews wider than this (pixels); 0 keeps full size.
         publisher_nice: nice levels the publishers' threads (tone map and JPEG, RTSP conversion and H.264) run below
             the capture and reconstruction (service.pipeline.priority); 0: the same priority.
-        publisher_idle: run the publishers' threads under Linux's ``SCHED_IDLE`` policy as well: only on a core
-            the capture and reconstruction leave idle (service.pipeline.priority); False: nice levels alone.
+        publisher_idle: run the preview encoder's thread under Linux's ``SCHED_IDLE`` policy as well: only on a
+            core the capture and reconstruction leave idle, where the thread may leave the policy again and for as
+            long as it gets a core in time (service.pipeline.priority.EncoderPriority); False: nice levels alone.
         offline_after_s: no frame for this long means the source is offline.
         retry_s: wait before reopening a source that failed or went away.
         no_signal_fps: rate of "no signal" frames sent while the source is offline.

@@ -22,7 +22,7 @@ from service.pipeline.config import PipelineConfig
 from service.pipeline.frames import EncodedFrame, PreviewFrame, Published, monotonic_to_wall
 from service.pipeline.handoff import Newest
 from service.pipeline.meters import DropCounter, LatencyWindow, RateMeter
-from service.pipeline.priority import lower_publisher
+from service.pipeline.priority import EncoderPriority
 from svelive.core.errors import SveliveError
 from svelive.tonemap import ToneMapper, ToneSettings
 from svelive.whitebalance import ColourSettings
@@ -90,11 +90,13 @@ class EncoderStage:
         self._accounted = 0
         self.encoded = RateMeter()
         self.previews = RateMeter()
+        #: the encoder thread's priority (service.pipeline.priority)
+        self.priority = EncoderPriority(config.publisher_nice, config.publisher_idle)
         self.latency = {name: LatencyWindow() for name in ("tone_map", "encode", "arrival_to_jpeg")}
 
     def run(self) -> None:
         """The encoder thread: until ``stop`` is set."""
-        lower_publisher(self.config.publisher_nice, self.config.publisher_idle)
+        self.priority.enter()
         mapper = ToneMapper(self.tone)
         last_no_signal = 0
         seq = preview_seq = 0
@@ -130,7 +132,7 @@ class EncoderStage:
                     self._accounted = max(self._accounted, latest.seq)
             item: EncodedFrame | None = None
             if new_jpeg or new_preview:
-                start = time.monotonic_ns()
+                start, start_cpu = time.monotonic_ns(), time.thread_time_ns()
                 if latest.seq > mapped_seq:
                     mapper.configure(tone)
                     display = self._resize(self._tone_map(mapper, latest, colour))
@@ -149,6 +151,8 @@ class EncoderStage:
                     self.latency["encode"].add((done - start) / 1e6)
                     self.latency["arrival_to_jpeg"].add((done - latest.hdr.host_time_ns) / 1e6)
                 preview = mapped if new_preview else None
+                self.priority.after_frame((time.monotonic_ns() - start) / 1e9,
+                                          (time.thread_time_ns() - start_cpu) / 1e9)
             else:
                 last_no_signal = now
                 width, height = (latest.hdr.image.shape[1], latest.hdr.image.shape[0]) if latest else (640, 360)

@@ -20,7 +20,7 @@ shared media:
   publisher: grey through a look-up table and neutral chroma, BGR through
   OpenCV (2-7 ms per 1920x1200 frame, against 10-14 ms in GStreamer's videoconvert).
 - The pusher thread and the media's streaming thread (and with it x264's own threads) run
-  below the reconstruction: ``SCHED_IDLE`` and ``publisher_nice`` levels lower (service.pipeline.priority).
+  ``publisher_nice`` levels below the reconstruction (service.pipeline.priority).
 - Every client's first picture is a keyframe with its SPS/PPS: a client that starts playing is
   held (its transports inactive) until a keyframe reaches the payloader, and a key unit is
   forced for it (without x264's separate header buffer, which went out as a picture of its
@@ -710,7 +710,7 @@ class RtspPublisher:
         while the one before was still being pushed is skipped), until :meth:`detach`."""
         port = self.pipeline.preview_port
         seen = port.seq
-        lower_publisher(self.pipeline.config.publisher_nice, self.pipeline.config.publisher_idle)
+        lower_publisher(self.pipeline.config.publisher_nice)
         while not self._detached.is_set():
             got = port.get_newest(seen, 0.25)
             if got is not None:
@@ -790,7 +790,7 @@ class RtspPublisher:
 
         if info.get_event().type != Gst.EventType.STREAM_START:
             return Gst.PadProbeReturn.OK
-        lower_publisher(self.pipeline.config.publisher_nice, self.pipeline.config.publisher_idle)
+        lower_publisher(self.pipeline.config.publisher_nice)
         return Gst.PadProbeReturn.REMOVE
 
     def _on_media_unprepared(self, media: Any) -> None:

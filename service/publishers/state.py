@@ -82,7 +82,7 @@ def pipeline_state(pipeline: Pipeline) -> dict[str, Any]:
         "jpeg_quality": encoder.jpeg_quality,
         "preview_width": config.preview_width,
         "publisher_nice": config.publisher_nice,
-        "publisher_idle": config.publisher_idle,
+        "publisher_priority": encoder.priority.public(),
         "watchers": encoder.watchers,
         "preview_watchers": encoder.preview_watchers,
         "opencv_threads": cv2.getNumThreads(),
