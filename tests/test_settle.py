@@ -691,3 +691,27 @@ def test_the_fusions_pass_makes_a_colour_streams_luminance_noise_as_luminance_no
     for k, (a, b) in enumerate(zip(in_pass, alone)):
         for name, x, y in zip(("image", "weight", "spread", "floor"), a, b):
             np.testing.assert_array_equal(x, y, err_msg=f"frame {k}: {name}")
+
+
+def test_the_fusions_pass_counts_each_bands_moving_and_unsettled_pixels_as_the_selection_counts_them():
+    """The moving pixels and the unsettled ones (weight above 1 / max_history) per band on every 4th row, counted in
+    the fusion's pass (fusion.Fused.row_counts) and made again on the rows where the on-demand pixels take weight 1
+    back (Reconstructor._on_demand), are the counts of the fused frame's motion and its new history's weights, which
+    the next selection reads (a still demo stream, whose skipped rows give weight 1 back, and the moving disc)."""
+    raws, sensor = _moving_disc_raws(20)
+    disc = Reconstructor("1,4/16,64", black_level=64, white_level=4095, gain=sensor.gain, read_noise=sensor.read_noise,
+                         refresh=4)
+    still = _frames(16, 328, 400)
+    demo = Reconstructor(still[0].camera, refresh=4)
+    checked = 0
+    for stream, frames in ((disc, raws), (demo, still)):
+        for frame in frames:
+            result = stream.process(frame)
+            history, unsettled = stream._history, stream._unsettled
+            if unsettled is None or unsettled[0]() is not history:  # (a restart: counted when selected)
+                continue
+            weights = history.weight[::4] > np.float32(1.0 / stream.motion_config.max_history)
+            np.testing.assert_array_equal(unsettled[1], settle.band_counts(weights))
+            np.testing.assert_array_equal(stream._band_motion[-1], settle.band_counts(result.motion[::4]))
+            checked += 1
+    assert checked >= 20

@@ -273,6 +273,9 @@ class Fused:
         noise: a colour stream's evidence of its luminance noise after this frame and its floor
             (:class:`LuminanceNoise`, :func:`fuse`'s ``noise`` updated), made in the pass from its weights (``history``
             as the pass left it); None where not asked for, or on a restart.
+        row_counts: int64 (H, 2), made in the pass: in its rows of frame rows that are multiples of
+            :data:`COUNTED_STEP` (the others not written), the row's pixels of ``motion`` and its pixels of
+            ``history`` (as the pass left it) above 1 / max_history; None on a restart or with a within-frame test.
     """
 
     image: np.ndarray
@@ -284,6 +287,7 @@ class Fused:
     reset: np.ndarray
     skipped: SkippedResets | None = None
     noise: LuminanceNoise | None = None
+    row_counts: np.ndarray | None = None
 
     @cached_property
     def variance(self) -> np.ndarray:
@@ -541,6 +545,13 @@ _NO_SHARES = ShareError(np.empty((0, 0, 0), np.float32), _ONE_PLANE)
 for _array in _NO_SHARES:
     _array.setflags(write=False)
 
+#: The pass counts the moving and the unsettled pixels (weight above 1 / max_history) of every ``COUNTED_STEP``-th
+#: frame row (rows 0, 4, 8, ...: :attr:`Fused.row_counts`), the rows by which the band refresh judges its bands
+#: (svelive.reconstruction.settle.band_counts).
+COUNTED_STEP = 4
+#: :class:`_Outputs`' counts without them (a restart's, or with a within-frame test, which flags more after the pass).
+_NO_COUNTS = np.empty((0, 2), np.int64)
+
 #: An output of no rows (:class:`_Outputs`' own variance without one): never written, but writable, as the
 #: arrays it stands for are.
 _NO_ROWS = np.empty((0, 0), np.float32)
@@ -721,6 +732,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     inv_k2 = np.float32(1.0 / config.temporal_sigmas ** 2)
     motion = np.empty(image.shape, bool)
     reset = np.empty(image.shape, bool)
+    # (a within-frame test flags more pixels as moving after the pass: none counted then)
+    row_counts = np.empty((h, 2), np.int64) if inconsistency is None else None
 
     fused, own, weight = np.empty_like(image), np.empty_like(image), np.empty_like(image)
     own_var = None if state.own_variance is None else np.empty_like(image)
@@ -810,7 +823,8 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
                                     fused_test[core], evidence[core], out[core],
                                     _NO_ROWS if own_var is None else own_var[core],
                                     _NO_ROWS if noise is None else noise.spread[core],
-                                    _NO_ROWS if noise is None else noise.floor[core.start // cy:-(-core.stop // cy)]),
+                                    _NO_ROWS if noise is None else noise.floor[core.start // cy:-(-core.stop // cy)],
+                                    _NO_COUNTS if row_counts is None else row_counts[core]),
                                    frame_fields[1], frame_fields[2],
                                    frame_fields[3] if found is None else _skipped(core, strip_index[core.start]))
         if inconsistency is not None and not detail:  # output only: the history keeps estimates of one kind
@@ -876,7 +890,7 @@ def fuse(state: TemporalState | None, frame: FrameEstimate, config: MotionConfig
     state = TemporalState(fused, own, weight, bound, new_censored, fused_test if separate else None, own_var)
     # the update applied the within-frame test's finding to the output where it reset the history
     return Fused(out, motion, weight, ratio, state, OutputVariance(variance, weight, inconsistency, reset), reset,
-                 found, noise)
+                 found, noise, row_counts)
 
 
 def _restart(frame: FrameEstimate, inconsistency: Inconsistency | None, ratio: float, motion: np.ndarray) -> Fused:
@@ -1087,6 +1101,9 @@ class _Outputs(NamedTuple):
             of no rows without one).
         spread, floor: float32, :class:`LuminanceNoise`'s (``spread`` updated in place; ``floor``: the strip's
             cell rows), or of no rows without one.
+        row_counts: int64 (R, 2), in the rows of frame rows that are multiples of :data:`COUNTED_STEP`: the row's
+            moving pixels and its pixels whose new weight is above ``floor_weight`` (other rows not written); of no
+            rows: not counted.
     """
 
     motion: np.ndarray
@@ -1100,6 +1117,7 @@ class _Outputs(NamedTuple):
     own_variance: np.ndarray
     spread: np.ndarray
     floor: np.ndarray
+    row_counts: np.ndarray
 
 
 class _FuseSettings(NamedTuple):
@@ -1267,6 +1285,9 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, sk
                                  counted)
                     made, n_marked = 0, 0
             g = first_row + following
+            if outputs.row_counts.shape[0] and g % COUNTED_STEP == 0:  # (the row's motion is painted, its weight final)
+                _count_row(motion[following], outputs.weight[following], settings.floor_weight,
+                           outputs.row_counts[following])
             if detail and (sharp_stop <= sharp_first or g < sharp_first + a or g >= sharp_stop - a):
                 evidence[following] = slot  # read by the detail step of rows it does not sharpen
             if sharp_first <= g - a < sharp_stop:  # the rows below it are in
@@ -1275,6 +1296,17 @@ def _fuse_strip(strip, halo, history, frame, tables, outputs, settings, step, sk
     for g in range(max(sharp_first, first_row + rows - a), sharp_stop):  # at the frame's bottom
         _sharpen_row(ring, g, first_row, frame_rows, step, fused, own, reset, out, local)
     return count
+
+
+@kernel
+def _count_row(motion, weight, floor_weight, out):
+    """out[0] = the moving pixels of a row (``motion``, bool (W,)), out[1] = its pixels of ``weight`` (float32 (W,))
+    above ``floor_weight`` (its unsettled pixels, n < max_history)."""
+    moving, unsettled = 0, 0
+    for c in range(motion.size):
+        moving += motion[c]
+        unsettled += weight[c] > floor_weight
+    out[0], out[1] = moving, unsettled
 
 
 @kernel

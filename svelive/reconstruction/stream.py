@@ -49,8 +49,9 @@ from svelive.reconstruction import colour, settle
 from svelive.reconstruction.colour.interpolate import _pieces
 from svelive.reconstruction.config import MotionConfig
 from svelive.reconstruction.consistency import Inconsistency, exposure_consistency
-from svelive.reconstruction.fusion import (FUSE_ROWS, RATIO_TOLERANCE, FrameEstimate, Fused, LuminanceNoise,
-                                          OutputVariance, ShareError, TemporalState, cell_means, fuse, noise_evidence)
+from svelive.reconstruction.fusion import (COUNTED_STEP, FUSE_ROWS, RATIO_TOLERANCE, FrameEstimate, Fused,
+                                          LuminanceNoise, OutputVariance, ShareError, TemporalState, cell_means, fuse,
+                                          noise_evidence)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.methods import DEFAULT_METHOD, METHODS
 from svelive.reconstruction.methods.adaptive import _shares_window, noise_model
@@ -310,6 +311,11 @@ class Reconstructor:
     def _threads(self) -> int | Executor:
         """What spreads a frame's pieces over this stream's threads (base.map_on)."""
         return self._pool if self._pool is not None else self.workers
+
+    @property
+    def _floor_weight(self) -> np.float32:
+        """1 / max_history: a history's weight above it is unsettled (fewer than max_history frames)."""
+        return np.float32(1.0 / self.motion_config.max_history)
 
     @property
     def method(self) -> str:
@@ -634,6 +640,10 @@ class Reconstructor:
         narrow = last is None or 2 * last.get("demand_wide", 0) <= last.get("demand_px", 0)
         ys, xs, (img, low, var), stats = settle.on_demand(partial, ys, xs, self._threads, narrow)
         partial.stats.update(stats, kept_px=kept)
+        if fused.row_counts is not None and given.size:  # (the pass's unsettled counts of the rows given weight 1)
+            rows = np.unique(given // frame.image.shape[1])
+            rows = rows[rows % COUNTED_STEP == 0]
+            fused.row_counts[rows, 1] = np.count_nonzero(state.weight[rows] > self._floor_weight, axis=1)
         if fused.noise is not None and given.size:  # the pass's luminance noise evidence where weight 1 came back
             np.put(fused.noise.spread, given, np.float32(0))
             noise_floor(fused.noise.spread, state.weight, fused.noise.cell, fused.noise.floor,
@@ -684,7 +694,8 @@ class Reconstructor:
         moving = self._moving
         if (moving is None or moving[0] != shape or len(moving[1]) != len(band_motion)
                 or any(a is not b for a, b in zip(moving[1], band_motion))):
-            sampled = np.array([-(-(b.stop - b.start) // 4) for b in spans]) * w  # (the counts' pixels: every 4th row)
+            # (the counts' pixels: every COUNTED_STEP-th row)
+            sampled = np.array([-(-(b.stop - b.start) // COUNTED_STEP) for b in spans]) * w
             moving = self._moving = (shape, band_motion, sampled,
                                      settle.moving_bands(band_motion, sampled, 2 * int(self.motion_config.widen) + 1))
         _, _, sampled, selected = moving
@@ -693,7 +704,7 @@ class Reconstructor:
         if cached is not None and cached[0]() is history:
             unsettled = cached[1]
         else:
-            unsettled = settle.band_counts(history.weight[::4] > np.float32(1.0 / self.motion_config.max_history))
+            unsettled = settle.band_counts(history.weight[::COUNTED_STEP] > self._floor_weight)
             self._unsettled = weakref.ref(history), unsettled
         selected |= unsettled > settle.UNSETTLED_SHARE * sampled
         # the round-robin in K runs of bands (a run's halo rows are computed for nothing)
@@ -890,9 +901,14 @@ class Reconstructor:
             if partial is not None:
                 if not partial.rows.all():
                     fused = self._on_demand(partial, fused, frame, predicted, history)
-                band_motion = settle.band_counts(fused.motion[::4])
+                # (the pass's counts where it made them: the motion and weights not read again)
+                counts = fused.row_counts
+                band_motion = (settle.band_counts(fused.motion[::COUNTED_STEP]) if counts is None
+                               else settle.band_sums(counts[:, 0]))
                 with self._lock:  # (what the next frames' selection reads, estimate's hints too)
                     self._band_motion = [*self._band_motion, band_motion][-self.motion_config.max_history:]
+                    if counts is not None:
+                        self._unsettled = weakref.ref(fused.state), settle.band_sums(counts[:, 1])
                     self._last_ratio = fused.illumination_ratio
                     self._last_variance = frame.variance
                     self._in_flight.discard(partial)

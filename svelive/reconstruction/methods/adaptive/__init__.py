@@ -102,6 +102,7 @@ tests each censored pixel against its own bound in one compiled pass.
 from __future__ import annotations
 
 from concurrent.futures import Executor
+from functools import lru_cache
 
 import numpy as np
 
@@ -137,8 +138,14 @@ INLINE_WINDOW = (5, 3)
 def _shares_window(inp: SveInput) -> bool:
     """Whether this method's window is the motion tests' (numerics.window_estimate): the same kernels, short enough
     for the same order of sums."""
-    ky, kx = kernels(inp.pattern.shape)
-    wy, wx = window_kernels(inp.period)[:2]
+    return _same_window(inp.pattern.shape, inp.period)
+
+
+@lru_cache(maxsize=16)
+def _same_window(pattern_shape: tuple[int, int], period: tuple[int, int]) -> bool:
+    """:func:`_shares_window` of an input of this exposure tile and tile ``period`` (asked a few times a live frame)."""
+    ky, kx = kernels(pattern_shape)
+    wy, wx = window_kernels(period)[:2]
     return (ky.size <= INLINE_WINDOW[0] and kx.size <= INLINE_WINDOW[1] and np.array_equal(ky, wy)
             and np.array_equal(kx, wx))
 

@@ -212,19 +212,26 @@ def _pairs(s, e, c, tw, gain_inv, floor, lowest, pairs):
     model's v_i + v_j is larger than its shot part: (x_i - x_j)^2, the shot part S and k = 1 / e_i^2 + 1 / e_j^2,
     packed into the front of the rows of ``pairs`` (3, N); their count."""
     zero, one = np.float32(0.0), np.float32(1.0)
+    m = s.shape[1] - tw
+    # a row's every pair first, in a loop without branches (its divisions vectorise), then the chosen ones packed
+    square, shots, ks, chosen = np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32), \
+        np.empty(m, np.bool_)
     n = 0
     for r in range(s.shape[0]):
-        for i in range(s.shape[1] - tw):
+        for i in range(m):
             ei, ej = e[r, i], e[r, i + tw]
             si, sj = s[r, i], s[r, i + tw]
             radiance = max((si + sj) / (ei + ej), zero)
             shot = radiance * gain_inv * (one / ei + one / ej)
             k = one / (ei * ei) + one / (ej * ej)
-            if floor * k > shot and not (c[r, i] or c[r, i + tw]) and si > lowest and sj > lowest:
-                d = si / ei - sj / ej
-                pairs[0, n] = d * d
-                pairs[1, n] = shot
-                pairs[2, n] = k
+            d = si / ei - sj / ej
+            square[i], shots[i], ks[i] = d * d, shot, k
+            chosen[i] = (floor * k > shot) & ~(c[r, i] | c[r, i + tw]) & (si > lowest) & (sj > lowest)
+        for i in range(m):
+            if chosen[i]:
+                pairs[0, n] = square[i]
+                pairs[1, n] = shots[i]
+                pairs[2, n] = ks[i]
                 n += 1
     return n
 
