@@ -12,7 +12,7 @@ import numpy as np
 from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.reconstruction.methods.adaptive.parameters import BIG, TINY, kernels
-from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, POSTERIOR_HIGH, near_zero, nonnegative
+from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, NEAR_MARGIN, POSTERIOR_HIGH, nonnegative
 from svelive.reconstruction.methods.base import count_true, reflect_101, rows_min, smooth, window_level_row
 
 
@@ -146,8 +146,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
                                         np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32))
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
-    index, packed, raised = (np.empty(width, np.int64), np.empty((3, width), np.float32),
-                             np.empty(width, np.bool_))  # _blend's scratch
+    flags, raised = np.empty(width, np.bool_), np.empty(width, np.bool_)  # _blend's scratch
     at_bottom = np.zeros(h, np.int64)
     if windowed and not flagged:  # every reading kept: each row's sums of G^2 are the same, made once
         b[:] = np.float32(1.0)
@@ -231,7 +230,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
             _window_rows(r, h, depth, rows)
             _blend(_column(excess_rows, rows, ky, sums), _column(q_rows, rows, ky, exposure_scratch), image[r],
                    total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
-                   x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, index, packed, raised)
+                   x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, flags, raised)
             _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
             if variance.size > 0:
                 _reciprocal(total[r], variance[r])
@@ -577,8 +576,8 @@ OWN_SIGMA = 5.0
 
 
 @kernel
-def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index,
-           packed, raised):
+def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, flags,
+           raised):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0), and at least
     the pixel's own excess (x - m)^2 - OWN_SIGMA^2 (v_p + v_m) where that is positive.
@@ -597,7 +596,7 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     ``excess_sum`` and ``q_sum`` (each a :func:`_column`): the window sums of excess_q and q; ``image`` and
     ``total`` are set to the result and the information, and ``var_m`` to L^.
     ``var_r``: v_p + v_m, as :func:`_residuals` made it (1 / max(w, TINY) + v_m).
-    ``index`` (int64), ``packed`` (float32 (3, N)) and ``raised`` (bool): scratch of at least the arrays' size N.
+    ``flags`` and ``raised``: bool scratch of the arrays' size N.
     The information at L^ (a division) is computed only in rows holding a pixel that takes it.
     """
     zero = np.float32(0.0)
@@ -626,15 +625,41 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     if dark * FEW_NEAR_ZERO >= w.size:
         nonnegative(image, var_m, total, coefficients)
         return
-    # Few pixels near 0 (a bright scene): packed into short arrays, the same pass on them alone.
-    n = near_zero(var_m, total, index)
-    near_image, near_estimate, near_information = packed[0, :n], packed[1, :n], packed[2, :n]
-    for j in range(n):
-        k = index[j]
-        near_image[j], near_estimate[j], near_information[j] = image[k], var_m[k], total[k]
-    nonnegative(near_image, near_estimate, near_information, coefficients)
-    for j in range(n):
-        image[index[j]] = near_image[j]
+    _nonnegative_runs(image, var_m, total, coefficients, flags)  # few pixels near 0 (a bright scene)
+
+
+#: :func:`_nonnegative_runs`' columns tested at once: a multiple of 8 (a word of flags).
+NEAR_RUN = 64
+
+
+@kernel
+def _nonnegative_runs(image, estimate, information, coefficients, near):
+    """:func:`nonnegative` on the runs of NEAR_RUN columns that hold a pixel it may change (L^ <= 0 or within a
+    little more than POSTERIOR_HIGH deviations of 0: posterior.near_zero's test), on flat arrays; it leaves the
+    others' values as they are, so the result is that of the whole row's. ``near``: bool scratch of their size.
+
+    Packing those pixels into short arrays (posterior.near_zero) cost about as much as the whole row: the packing
+    is a scalar loop (each position depends on the count before it), here the test is a vectorised one."""
+    zero, loose = np.float32(0.0), np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH * NEAR_MARGIN)
+    n = image.size
+    for k in range(n):
+        value = estimate[k]
+        near[k] = (value <= zero) | (value * value * information[k] < loose)
+    words, per = near[:n // 8 * 8].view(np.uint64), NEAR_RUN // 8
+    run = -1  # the first column of the run being gathered, -1 outside one
+    for start in range(0, n, NEAR_RUN):
+        held = False
+        for word in range(start // 8, min(start // 8 + per, words.size)):
+            held |= words[word] != 0
+        for k in range(max(start, words.size * 8), min(start + NEAR_RUN, n)):  # the columns past the whole words
+            held |= near[k]
+        if held and run < 0:
+            run = start
+        elif not held and run >= 0:
+            nonnegative(image[run:start], estimate[run:start], information[run:start], coefficients)
+            run = -1
+    if run >= 0:
+        nonnegative(image[run:], estimate[run:], information[run:], coefficients)
 
 
 @kernel
