@@ -602,18 +602,19 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     zero = np.float32(0.0)
     high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
     arrays, n, taps = (image, total, var_m, m, var_r, w, x, raised, threshold), w.size, q_sum[8]
-    lifted, dark = 0, 0
+    lifted = False  # only whether any is: a count (int64 lanes) made LLVM take 8 float lanes, not 16
     for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
-        lift, near = _blended(k, _three(q_sum, k), _three(excess_sum, k), arrays)
-        lifted, dark = lifted + lift, dark + near
+        lifted |= _blended(k, _three(q_sum, k), _three(excess_sum, k), arrays)
     for k in range(n if taps == 5 else 0):
-        lift, near = _blended(k, _five(q_sum, k), _five(excess_sum, k), arrays)
-        lifted, dark = lifted + lift, dark + near
+        lifted |= _blended(k, _five(q_sum, k), _five(excess_sum, k), arrays)
     for k in range(n if taps == 1 else 0):
-        lift, near = _blended(k, q_sum[0][k], excess_sum[0][k], arrays)
-        lifted, dark = lifted + lift, dark + near
-    if lifted > 0:  # a row holding such pixels: their reading's information at L^ (the counts again, of the new t)
-        dark = 0
+        lifted |= _blended(k, q_sum[0][k], excess_sum[0][k], arrays)
+    dark = 0
+    if not lifted:  # the pixels near 0, counted apart
+        for k in range(w.size):
+            estimate = var_m[k]
+            dark += (estimate <= zero) | (estimate * estimate * total[k] < high)
+    else:  # a row holding such pixels: their reading's information at L^ (the counts of the new t)
         for k in range(w.size):
             ek, estimate = e[k], var_m[k]
             at_level = ek * ek / (max(estimate, zero) * ek * gain_inv + floor)
@@ -664,11 +665,9 @@ def _nonnegative_runs(image, estimate, information, coefficients, near):
 
 @kernel
 def _blended(k, q_sum, excess_sum, arrays):
-    """Pixel k of :func:`_blend`'s first loop (without branches, which LLVM vectorises): whether it is lifted,
-    whether it is near 0."""
+    """Pixel k of :func:`_blend`'s first loop (without branches, which LLVM vectorises): whether it is lifted."""
     image, total, var_m, m, var_r, w, x, raised, threshold = arrays
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
-    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
     own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
     weight = max(q_sum, tiny)
     d = x[k] - m[k]
@@ -681,7 +680,7 @@ def _blended(k, q_sum, excess_sum, arrays):
     var_m[k] = estimate  # kept for the pixels near 0, below
     total[k] = t
     raised[k] = lift
-    return lift, (estimate <= zero) | (estimate * estimate * t < high)
+    return lift
 
 
 @kernel
