@@ -216,6 +216,23 @@ def test_posterior_at_is_the_posterior_of_the_whole_array_where_changed(share):
                                                          np.float32(-2)))
 
 
+@pytest.mark.parametrize("rx", [0, 1, 2, 3])
+@pytest.mark.parametrize("size", [1, 2, 3, 6, 7, 301])
+def test_row_least_is_the_least_censored_exposure_around(rx, size):
+    """strip_pass._row_least: the least exposure of the censored readings within rx columns (BIG where none), borders
+    reflect-101, as OpenCV's erosion gives it, on rows shorter and longer than the window."""
+    rng = np.random.default_rng(10 * size + rx)
+    exposure = rng.uniform(1, 64, size).astype(np.float32)
+    for share in (0.0, 0.1, 0.5, 1.0):
+        censored = rng.random(size) < share
+        out = np.empty(size, np.float32)
+        strip_pass._row_least(exposure, censored, rx, np.empty(size, np.float32), out)
+        values = np.where(censored, exposure, np.float32(parameters.BIG))[None]
+        expected = values[0] if size < 2 else cv2.erode(values, np.ones((1, 2 * rx + 1), np.uint8),
+                                                         borderType=cv2.BORDER_REFLECT_101)[0]
+        np.testing.assert_array_equal(out, expected)
+
+
 @pytest.mark.parametrize("share", [0.0, 0.002, 0.02, 0.2, 1.0])
 @pytest.mark.parametrize("size", [1, 7, 64, 301, 1920])
 def test_nonnegative_on_runs_is_the_whole_row(share, size):

@@ -282,9 +282,15 @@ def _row_least(e, censored, rx, scratch, out):
     inner = n - 2 * rx
     if inner <= 0:
         return
-    middle = out[rx:rx + inner]
-    middle[:] = scratch[:inner]
-    for dx in range(1, 2 * rx + 1):
+    middle, first = out[rx:rx + inner], scratch[:inner]
+    if rx == 0:
+        for i in range(inner):  # a loop: numba's slice assignment of an array copies one element at a time
+            middle[i] = first[i]
+        return
+    second = scratch[1:1 + inner]
+    for i in range(inner):
+        middle[i] = min(first[i], second[i])
+    for dx in range(2, 2 * rx + 1):
         shifted = scratch[dx:dx + inner]
         for i in range(inner):
             middle[i] = min(middle[i], shifted[i])
