@@ -216,6 +216,48 @@ def test_posterior_at_is_the_posterior_of_the_whole_array_where_changed(share):
                                                          np.float32(-2)))
 
 
+@pytest.mark.parametrize("rx", [0, 1, 2, 3])
+@pytest.mark.parametrize("size", [1, 2, 3, 6, 7, 301])
+def test_row_least_is_the_least_censored_exposure_around(rx, size):
+    """strip_pass._row_least: the least exposure of the censored readings within rx columns (BIG where none), borders
+    reflect-101, as OpenCV's erosion gives it, on rows shorter and longer than the window."""
+    rng = np.random.default_rng(10 * size + rx)
+    exposure = rng.uniform(1, 64, size).astype(np.float32)
+    for share in (0.0, 0.1, 0.5, 1.0):
+        censored = rng.random(size) < share
+        out = np.empty(size, np.float32)
+        strip_pass._row_least(exposure, censored, rx, np.empty(size, np.float32), out)
+        values = np.where(censored, exposure, np.float32(parameters.BIG))[None]
+        expected = values[0] if size < 2 else cv2.erode(values, np.ones((1, 2 * rx + 1), np.uint8),
+                                                         borderType=cv2.BORDER_REFLECT_101)[0]
+        np.testing.assert_array_equal(out, expected)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.002, 0.02, 0.2, 1.0])
+@pytest.mark.parametrize("size", [1, 7, 64, 301, 1920])
+def test_nonnegative_on_runs_is_the_whole_row(share, size):
+    """strip_pass._nonnegative_runs (nonnegative on the runs of columns holding a pixel near 0) gives bit for bit
+    what nonnegative gives on the whole row: pixels near 0 scattered, in clumps, at the row's ends, none; rows of
+    whole words of flags, of whole runs, and neither."""
+    rng = np.random.default_rng(size + int(share * 1000))
+    coefficients = posterior.posterior_polynomial()
+    for clumped in (False, True):
+        estimate = rng.uniform(50, 500, size).astype(np.float32)  # beyond POSTERIOR_HIGH deviations (information >= 1)
+        near = rng.random(size) < share
+        if clumped:
+            near = np.convolve(near, np.ones(9), "same")[:size] > 0
+        if share > 0:
+            near[[0, -1]] = True
+        estimate[near] = rng.normal(0, 5, np.count_nonzero(near))
+        information = rng.uniform(1, 20, size).astype(np.float32)
+        whole, runs = estimate.copy(), estimate.copy()
+        posterior.nonnegative(whole, estimate, information, coefficients)
+        strip_pass._nonnegative_runs(runs, estimate, information, coefficients, np.empty(size, bool))
+        np.testing.assert_array_equal(runs, whole)
+        assert np.array_equal(whole != estimate, near & (whole != estimate))  # it changes only pixels near 0
+        assert share == 0 or not np.array_equal(whole, estimate)
+
+
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8"])
 def test_noise_floor_from_the_frame(pattern):
     """The floor variance the method uses follows the frame's read noise whatever the sensor says, and the
@@ -605,8 +647,7 @@ def _passes(inp, noise):
     strip_pass._blend(strip_pass._summed(image_flat), strip_pass._summed(total_flat), image_flat, total_flat, *arrays,
                       gain_inv, floor,
                       f32(parameters.CONTRAST_SIGMA**2 * 2.0) * kernel_square,
-                      posterior.posterior_polynomial(), np.empty(image.size, np.int64), np.empty((3, image.size), f32),
-                      np.empty(image.size, bool))
+                      posterior.posterior_polynomial(), np.empty(image.size, bool), np.empty(image.size, bool))
     zero_at_the_bottom(s, -f32(inp.sensor.black_level), window, image)
     lower = exposure_sum <= 0
     if censored.any():

@@ -12,7 +12,7 @@ import numpy as np
 from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.reconstruction.methods.adaptive.parameters import BIG, TINY, kernels
-from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, POSTERIOR_HIGH, near_zero, nonnegative
+from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, NEAR_MARGIN, POSTERIOR_HIGH, nonnegative
 from svelive.reconstruction.methods.base import count_true, reflect_101, rows_min, smooth, window_level_row
 
 
@@ -146,8 +146,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
                                         np.empty(width, np.float32), np.empty(width, np.float32),
                                         np.empty(width, np.float32))
     low, everywhere = np.empty(width, np.bool_), np.empty(width, np.bool_)
-    index, packed, raised = (np.empty(width, np.int64), np.empty((3, width), np.float32),
-                             np.empty(width, np.bool_))  # _blend's scratch
+    flags, raised = np.empty(width, np.bool_), np.empty(width, np.bool_)  # _blend's scratch
     at_bottom = np.zeros(h, np.int64)
     if windowed and not flagged:  # every reading kept: each row's sums of G^2 are the same, made once
         b[:] = np.float32(1.0)
@@ -231,7 +230,7 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
             _window_rows(r, h, depth, rows)
             _blend(_column(excess_rows, rows, ky, sums), _column(q_rows, rows, ky, exposure_scratch), image[r],
                    total[r], estimate[r], neighbours[r % (ry + 1)], residual_variances[r % (ry + 1)], w[r],
-                   x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, index, packed, raised)
+                   x[r % x.shape[0]], e[r], gain_inv, floor, threshold, coefficients, flags, raised)
             _zero_bottom_row(s, at_bottom, r, bottom, ry, kx.size // 2, low, everywhere, image[r])
             if variance.size > 0:
                 _reciprocal(total[r], variance[r])
@@ -283,9 +282,15 @@ def _row_least(e, censored, rx, scratch, out):
     inner = n - 2 * rx
     if inner <= 0:
         return
-    middle = out[rx:rx + inner]
-    middle[:] = scratch[:inner]
-    for dx in range(1, 2 * rx + 1):
+    middle, first = out[rx:rx + inner], scratch[:inner]
+    if rx == 0:
+        for i in range(inner):  # a loop: numba's slice assignment of an array copies one element at a time
+            middle[i] = first[i]
+        return
+    second = scratch[1:1 + inner]
+    for i in range(inner):
+        middle[i] = min(first[i], second[i])
+    for dx in range(2, 2 * rx + 1):
         shifted = scratch[dx:dx + inner]
         for i in range(inner):
             middle[i] = min(middle[i], shifted[i])
@@ -577,8 +582,8 @@ OWN_SIGMA = 5.0
 
 
 @kernel
-def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, index,
-           packed, raised):
+def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, floor, threshold, coefficients, flags,
+           raised):
     """The result: exp(E[log L]) of L ~ N(L^, 1 / total) restricted to L >= 0 (:func:`nonnegative`), with
     L^ = m + (x - m) w / total, total = w + 1 / (b^2 + v_m), b^2 = max(B - threshold SE, 0), and at least
     the pixel's own excess (x - m)^2 - OWN_SIGMA^2 (v_p + v_m) where that is positive.
@@ -597,24 +602,25 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     ``excess_sum`` and ``q_sum`` (each a :func:`_column`): the window sums of excess_q and q; ``image`` and
     ``total`` are set to the result and the information, and ``var_m`` to L^.
     ``var_r``: v_p + v_m, as :func:`_residuals` made it (1 / max(w, TINY) + v_m).
-    ``index`` (int64), ``packed`` (float32 (3, N)) and ``raised`` (bool): scratch of at least the arrays' size N.
+    ``flags`` and ``raised``: bool scratch of the arrays' size N.
     The information at L^ (a division) is computed only in rows holding a pixel that takes it.
     """
     zero = np.float32(0.0)
     high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
     arrays, n, taps = (image, total, var_m, m, var_r, w, x, raised, threshold), w.size, q_sum[8]
-    lifted, dark = 0, 0
+    lifted = False  # only whether any is: a count (int64 lanes) made LLVM take 8 float lanes, not 16
     for k in range(n if taps == 3 else 0):  # a loop for each way of summing (_column), which LLVM vectorises
-        lift, near = _blended(k, _three(q_sum, k), _three(excess_sum, k), arrays)
-        lifted, dark = lifted + lift, dark + near
+        lifted |= _blended(k, _three(q_sum, k), _three(excess_sum, k), arrays)
     for k in range(n if taps == 5 else 0):
-        lift, near = _blended(k, _five(q_sum, k), _five(excess_sum, k), arrays)
-        lifted, dark = lifted + lift, dark + near
+        lifted |= _blended(k, _five(q_sum, k), _five(excess_sum, k), arrays)
     for k in range(n if taps == 1 else 0):
-        lift, near = _blended(k, q_sum[0][k], excess_sum[0][k], arrays)
-        lifted, dark = lifted + lift, dark + near
-    if lifted > 0:  # a row holding such pixels: their reading's information at L^ (the counts again, of the new t)
-        dark = 0
+        lifted |= _blended(k, q_sum[0][k], excess_sum[0][k], arrays)
+    dark = 0
+    if not lifted:  # the pixels near 0, counted apart
+        for k in range(w.size):
+            estimate = var_m[k]
+            dark += (estimate <= zero) | (estimate * estimate * total[k] < high)
+    else:  # a row holding such pixels: their reading's information at L^ (the counts of the new t)
         for k in range(w.size):
             ek, estimate = e[k], var_m[k]
             at_level = ek * ek / (max(estimate, zero) * ek * gain_inv + floor)
@@ -626,24 +632,48 @@ def _blend(excess_sum, q_sum, image, total, var_m, m, var_r, w, x, e, gain_inv, 
     if dark * FEW_NEAR_ZERO >= w.size:
         nonnegative(image, var_m, total, coefficients)
         return
-    # Few pixels near 0 (a bright scene): packed into short arrays, the same pass on them alone.
-    n = near_zero(var_m, total, index)
-    near_image, near_estimate, near_information = packed[0, :n], packed[1, :n], packed[2, :n]
-    for j in range(n):
-        k = index[j]
-        near_image[j], near_estimate[j], near_information[j] = image[k], var_m[k], total[k]
-    nonnegative(near_image, near_estimate, near_information, coefficients)
-    for j in range(n):
-        image[index[j]] = near_image[j]
+    _nonnegative_runs(image, var_m, total, coefficients, flags)  # few pixels near 0 (a bright scene)
+
+
+#: :func:`_nonnegative_runs`' columns tested at once: a multiple of 8 (a word of flags).
+NEAR_RUN = 64
+
+
+@kernel
+def _nonnegative_runs(image, estimate, information, coefficients, near):
+    """:func:`nonnegative` on the runs of NEAR_RUN columns that hold a pixel it may change (L^ <= 0 or within a
+    little more than POSTERIOR_HIGH deviations of 0: posterior.near_zero's test), on flat arrays; it leaves the
+    others' values as they are, so the result is that of the whole row's. ``near``: bool scratch of their size.
+
+    Packing those pixels into short arrays (posterior.near_zero) cost about as much as the whole row: the packing
+    is a scalar loop (each position depends on the count before it), here the test is a vectorised one."""
+    zero, loose = np.float32(0.0), np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH * NEAR_MARGIN)
+    n = image.size
+    for k in range(n):
+        value = estimate[k]
+        near[k] = (value <= zero) | (value * value * information[k] < loose)
+    words, per = near[:n // 8 * 8].view(np.uint64), NEAR_RUN // 8
+    run = -1  # the first column of the run being gathered, -1 outside one
+    for start in range(0, n, NEAR_RUN):
+        held = False
+        for word in range(start // 8, min(start // 8 + per, words.size)):
+            held |= words[word] != 0
+        for k in range(max(start, words.size * 8), min(start + NEAR_RUN, n)):  # the columns past the whole words
+            held |= near[k]
+        if held and run < 0:
+            run = start
+        elif not held and run >= 0:
+            nonnegative(image[run:start], estimate[run:start], information[run:start], coefficients)
+            run = -1
+    if run >= 0:
+        nonnegative(image[run:], estimate[run:], information[run:], coefficients)
 
 
 @kernel
 def _blended(k, q_sum, excess_sum, arrays):
-    """Pixel k of :func:`_blend`'s first loop (without branches, which LLVM vectorises): whether it is lifted,
-    whether it is near 0."""
+    """Pixel k of :func:`_blend`'s first loop (without branches, which LLVM vectorises): whether it is lifted."""
     image, total, var_m, m, var_r, w, x, raised, threshold = arrays
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(TINY)
-    high = np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH)
     own_z2 = np.float32(OWN_SIGMA * OWN_SIGMA)
     weight = max(q_sum, tiny)
     d = x[k] - m[k]
@@ -656,7 +686,7 @@ def _blended(k, q_sum, excess_sum, arrays):
     var_m[k] = estimate  # kept for the pixels near 0, below
     total[k] = t
     raised[k] = lift
-    return lift, (estimate <= zero) | (estimate * estimate * t < high)
+    return lift
 
 
 @kernel
