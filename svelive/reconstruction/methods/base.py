@@ -247,7 +247,9 @@ def _bound_row(signal, exposure, censored, bound):
 @kernel
 def _rows_max(values, rows, out):
     """out = the largest of ``values``' rows ``rows``, column by column."""
-    out[:] = values[rows[0]]
+    first = values[rows[0]]
+    for c in range(out.size):  # numba's slice assignment between arrays copies one element a step
+        out[c] = first[c]
     for i in range(1, rows.size):
         row = values[rows[i]]
         for c in range(out.size):
@@ -257,7 +259,9 @@ def _rows_max(values, rows, out):
 @kernel
 def rows_min(values, rows, out):
     """out = the least of ``values``' rows ``rows``, column by column."""
-    out[:] = values[rows[0]]
+    first = values[rows[0]]
+    for c in range(out.size):  # numba's slice assignment between arrays copies one element a step
+        out[c] = first[c]
     for i in range(1, rows.size):
         row = values[rows[i]]
         for c in range(out.size):

@@ -33,7 +33,8 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
             continue
         row_estimate, row_information, target = estimate[r], information[r], image[r]
         if n >= DENSE_CHANGED * width:
-            out[:] = row_estimate
+            for c in range(width):  # numba's slice assignment between arrays copies one element a step
+                out[c] = row_estimate[c]
             nonnegative(out, row_estimate, row_information, coefficients)
             for c in range(width):
                 kept, new = target[c], out[c]  # both loaded before the choice: LLVM vectorises it
