@@ -107,10 +107,24 @@ def test_the_encoder_leaves_sched_idle_while_it_waits_for_a_core_and_comes_back(
         clock.now += 0.2
         priority.after_frame(0.01, 0.01)  # after it: SCHED_IDLE again
         seen.append((_own(), priority.active, priority.fallbacks))
+        clock.now += 5.0
+        priority.after_frame(1.0, 0.01)  # starved again soon after: the next hold is twice as long
+        clock.now += 19.9
+        priority.after_frame(0.01, 0.01)
+        seen.append((_own(), priority.active, priority.fallbacks))
+        clock.now += 0.2
+        priority.after_frame(0.01, 0.01)
+        seen.append((_own(), priority.active))
+        clock.now += 60.0
+        priority.after_frame(1.0, 0.01)  # starved long after its return: back to a hold of 10 s
+        clock.now += 10.1
+        priority.after_frame(0.01, 0.01)
+        seen.append((_own(), priority.active, priority.fallbacks))
 
     assert _on_a_thread(body) == [((nice, True), True), ((nice, True), True), ((nice, False), False, 1),
-                                  ((nice, False), False), ((nice, True), True, 1)]
-    assert priority.public() == {"nice": nice, "idle_asked": True, "idle": True, "idle_fallbacks": 1}
+                                  ((nice, False), False), ((nice, True), True, 1), ((nice, False), False, 2),
+                                  ((nice, True), True), ((nice, True), True, 3)]
+    assert priority.public() == {"nice": nice, "idle_asked": True, "idle": True, "idle_fallbacks": 3}
 
 
 def test_without_idle_asked_the_encoder_keeps_the_normal_policy():

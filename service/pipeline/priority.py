@@ -98,7 +98,9 @@ class EncoderPriority:
     Call :meth:`enter` on the thread once, then :meth:`after_frame` after each frame with its encoding's wall
     and thread CPU time: a frame whose wall exceeded its CPU by ``starved_s`` (the thread waited that long for a
     core: other processes keep the cores busy) moves the thread to the normal policy (at its nice value) for
-    ``hold_s``, after which it tries ``SCHED_IDLE`` again.
+    ``hold_s``, after which it tries ``SCHED_IDLE`` again. A fallback within ``hold_s`` of that return doubles the
+    next hold (up to ``hold_s`` x 2^``max_doublings``): under a lasting load the previews are not stalled every
+    ``hold_s`` (each stall lasts until a frame is encoded, a few seconds with every core taken).
 
     Attributes (read by the state): ``active``, the thread runs under ``SCHED_IDLE`` now; ``fallbacks``, how many
     times it left it for ``hold_s``; ``nice``, its nice value (None where unknown).
@@ -108,12 +110,14 @@ class EncoderPriority:
     idle: bool
     starved_s: float = 0.25
     hold_s: float = 10.0
+    max_doublings: int = 5
     clock: Callable[[], float] = time.monotonic
     active: bool = field(default=False, init=False)
     fallbacks: int = field(default=0, init=False)
     nice: int | None = field(default=None, init=False)
     _allowed: bool = field(default=False, init=False)
     _normal_until: float = field(default=0.0, init=False)
+    _doublings: int = field(default=0, init=False)
 
     def enter(self) -> None:
         """On the encoder thread: lower it."""
@@ -129,9 +133,11 @@ class EncoderPriority:
         now = self.clock()
         if self.active and wall_s - cpu_s > self.starved_s:
             if _set_policy(False):
+                recent = self.fallbacks > 0 and now - self._normal_until < self.hold_s
+                self._doublings = min(self._doublings + 1, self.max_doublings) if recent else 0
                 self.active = False
                 self.fallbacks += 1
-                self._normal_until = now + self.hold_s
+                self._normal_until = now + self.hold_s * 2 ** self._doublings
         elif not self.active and now >= self._normal_until:
             self.active = _set_policy(True)
 
