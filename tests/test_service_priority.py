@@ -6,10 +6,13 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 
 import pytest
 
+from service.pipeline import Pipeline, PipelineConfig
 from service.pipeline.priority import EncoderPriority, lower_publisher, may_leave_idle
+from tests.test_service_helpers import SimSource, make_camera
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="threads have priorities of their own on Linux only")
 
@@ -137,3 +140,26 @@ def test_without_idle_asked_the_encoder_keeps_the_normal_policy():
 
     nice = min(19, os.getpriority(os.PRIO_PROCESS, os.getpid()) + 2)
     assert _on_a_thread(body) == [((nice, False), False, 0)]
+
+
+@pytest.mark.skipif(not may_leave_idle(min(19, os.getpriority(os.PRIO_PROCESS, os.getpid()) + 5)),
+                    reason="this process may not leave SCHED_IDLE (no CAP_SYS_NICE, RLIMIT_NICE too low)")
+def test_a_pipeline_asked_for_it_runs_its_encoder_under_sched_idle():
+    camera = make_camera(fps=20.0, n=1, shape=(96, 128))
+    config = PipelineConfig(source="sim", temporal=False, publisher_idle=True)
+    with Pipeline(config, lambda: SimSource(camera)) as pipeline:
+        pipeline.watch(+1)
+        try:
+            start = pipeline.encoded.count
+            deadline = time.monotonic() + 60
+            while pipeline.encoded.count < start + 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            encoder = {t.name: t.native_id for t in threading.enumerate()}["svelive-encode"]
+            priority = threads_priority()[encoder][1:]
+            state = pipeline.encoder.priority.public()
+        finally:
+            pipeline.watch(-1)
+    assert pipeline.encoded.count >= start + 2  # previews made under the policy
+    nice = min(19, os.getpriority(os.PRIO_PROCESS, os.getpid()) + 5)
+    assert priority == (nice, True)
+    assert state == {"nice": nice, "idle_asked": True, "idle": True, "idle_fallbacks": 0}

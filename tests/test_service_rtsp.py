@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 
 from service.pipeline import Pipeline, PipelineConfig, no_signal_image
-from service.pipeline.priority import may_leave_idle
 from service.publishers import rtsp
 from service.publishers.rtsp import H264Settings, RtspPublisher, read_timecode, stamp_timecode, token_matches
 from svelive.core.errors import SveliveError
@@ -206,8 +205,8 @@ def test_a_late_joiner_gets_a_keyframe_at_once(mono_pipeline):
 @pytest.mark.skipif(sys.platform != "linux", reason="threads have priorities of their own on Linux only")
 def test_the_publishers_threads_run_below_the_reconstruction(mono_pipeline):
     base, steps = os.getpriority(os.PRIO_PROCESS, os.getpid()), mono_pipeline.config.publisher_nice
-    assert steps > 0 and base + steps <= 19 and mono_pipeline.config.publisher_idle  # the defaults lower them
-    idle = may_leave_idle(base + steps)  # the encoder's SCHED_IDLE where it may leave it again (root here)
+    assert steps > 0 and base + steps <= 19  # the default lowers them
+    assert not mono_pipeline.config.publisher_idle  # and keeps the normal policy (EncoderPriority: its own tests)
     mono_pipeline.watch(+1)  # an MJPEG client: the encoder thread makes JPEGs too
     try:
         # two x264 threads asked for: they must inherit the streaming thread's priority
@@ -220,8 +219,8 @@ def test_the_publishers_threads_run_below_the_reconstruction(mono_pipeline):
         mono_pipeline.watch(-1)
     for name in ("svelive-capture", "svelive-reconstruct"):
         assert threads[python[name]][1:] == (base, False), name
-    assert threads[python["svelive-encode"]][1:] == (base + steps, idle)
-    assert mono_pipeline.encoder.priority.public() == {"nice": base + steps, "idle_asked": True, "idle": idle,
+    assert threads[python["svelive-encode"]][1:] == (base + steps, False)
+    assert mono_pipeline.encoder.priority.public() == {"nice": base + steps, "idle_asked": False, "idle": False,
                                                        "idle_fallbacks": 0}
     assert threads[python["svelive-rtsp-push"]][1:] == (base + steps, False)
     # the media's streaming thread and x264's threads: GStreamer names them after the appsrc's pad

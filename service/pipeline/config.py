@@ -61,7 +61,8 @@ class PipelineConfig:
             the capture and reconstruction (service.pipeline.priority); 0: the same priority.
         publisher_idle: run the preview encoder's thread under Linux's ``SCHED_IDLE`` policy as well: only on a
             core the capture and reconstruction leave idle, where the thread may leave the policy again and for as
-            long as it gets a core in time (service.pipeline.priority.EncoderPriority); False: nice levels alone.
+            long as it gets a core in time (service.pipeline.priority.EncoderPriority); off by default (measured:
+            the same frame rate a client within the spread, more latency; docs/benchmarks.md).
         offline_after_s: no frame for this long means the source is offline.
         retry_s: wait before reopening a source that failed or went away.
         no_signal_fps: rate of "no signal" frames sent while the source is offline.
@@ -87,7 +88,7 @@ class PipelineConfig:
     jpeg_quality: int = 80
     preview_width: int = 0
     publisher_nice: int = 5
-    publisher_idle: bool = True
+    publisher_idle: bool = False
     offline_after_s: float = 2.0
     retry_s: float = 1.0
     no_signal_fps: float = 2.0
