@@ -199,8 +199,8 @@ def serve(port: int, fps: float, method: str | None, temporal: bool, workers: in
           publisher_nice: int | None = None, publisher_idle: bool | None = None) -> None:
     """Child process: the service over the replay source (and RTSP on ``rtsp_port`` when given, its state at
     ``/bench/rtsp``); ``fed``: its frames from a feeder process (:func:`replay_source_factory`); ``refresh``:
-    ``PipelineConfig.refresh``, ``publisher_nice`` and ``publisher_idle``: the same settings of ``PipelineConfig``, None:
-    the checkout's default."""
+    ``PipelineConfig.refresh``, ``publisher_nice`` and ``publisher_idle``: the same settings of
+    ``PipelineConfig``, None: the checkout's default."""
     import uvicorn
 
     from service.app import create_app, listen_socket
