@@ -65,24 +65,13 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
 DENSE_CHANGED = 0.2
 
 
-#: :func:`_blend` runs :func:`nonnegative` on the pixels near 0 alone when fewer than one in this many are.
+#: The fused pass (strip_pass) runs :func:`nonnegative` only where pixels near 0 are when fewer than one in this
+#: many are.
 FEW_NEAR_ZERO = 4
-#: Margin of :func:`near_zero`'s test over :func:`nonnegative`'s own: z = L^ sqrt(information) < POSTERIOR_HIGH,
-#: rounded to float32, implies L^^2 information < POSTERIOR_HIGH^2 (1 + 1e-6) rounded, so this margin misses none.
+#: Margin of the test for the pixels :func:`nonnegative` may change (L^ <= 0, or L^^2 information below
+#: POSTERIOR_HIGH^2 times it) over its own: z = L^ sqrt(information) < POSTERIOR_HIGH, rounded to float32, implies
+#: L^^2 information < POSTERIOR_HIGH^2 (1 + 1e-6) rounded, so this margin misses none.
 NEAR_MARGIN = 1.0 + 1e-5
-
-
-@kernel
-def near_zero(estimate, information, index):
-    """The indices of the flat arrays' pixels that :func:`nonnegative` may change (L^ <= 0 or within a little
-    more than POSTERIOR_HIGH deviations of 0), packed into the front of ``index``; their count. Without branches."""
-    zero, loose = np.float32(0.0), np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH * NEAR_MARGIN)
-    n = 0
-    for k in range(estimate.size):
-        e = estimate[k]
-        index[n] = k
-        n += (e <= zero) | (e * e * information[k] < loose)
-    return n
 
 
 #: The range of z = estimate / sigma over which :func:`posterior_table` tabulates, and its step. From

@@ -642,11 +642,12 @@ NEAR_RUN = 64
 @kernel
 def _nonnegative_runs(image, estimate, information, coefficients, near):
     """:func:`nonnegative` on the runs of NEAR_RUN columns that hold a pixel it may change (L^ <= 0 or within a
-    little more than POSTERIOR_HIGH deviations of 0: posterior.near_zero's test), on flat arrays; it leaves the
+    little more than POSTERIOR_HIGH deviations of 0: posterior.NEAR_MARGIN), on flat arrays; it leaves the
     others' values as they are, so the result is that of the whole row's. ``near``: bool scratch of their size.
 
-    Packing those pixels into short arrays (posterior.near_zero) cost about as much as the whole row: the packing
-    is a scalar loop (each position depends on the count before it), here the test is a vectorised one."""
+    Packing those pixels into short arrays (a kernel of posterior until single86) cost as much as the whole row:
+    the packing is a scalar loop (each position depends on the count before it), here the test is a vectorised
+    one."""
     zero, loose = np.float32(0.0), np.float32(POSTERIOR_HIGH * POSTERIOR_HIGH * NEAR_MARGIN)
     n = image.size
     for k in range(n):
