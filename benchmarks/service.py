@@ -615,8 +615,9 @@ def main() -> None:
                         help="nice levels the publishers' threads run below the reconstruction (0: the same); "
                              "default: the checkout's")
     parser.add_argument("--publisher-idle", choices=("on", "off"), default=None,
-                        help="on: the publishers' threads run under SCHED_IDLE, only on a core the reconstruction "
-                             "leaves idle; off: their nice levels alone; default: the checkout's")
+                        help="on: the preview encoder's thread runs under SCHED_IDLE, only on a core the "
+                             "reconstruction leaves idle (PipelineConfig.publisher_idle); off: its nice level alone; "
+                             "default: the checkout's")
     parser.add_argument("--serve-port", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--feed", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rtsp-port", type=int, default=0, help=argparse.SUPPRESS)
@@ -691,7 +692,7 @@ def main() -> None:
           f"{args.fps:g} fps, method {args.method or 'default'}{' single-frame' if args.no_temporal else ' + temporal'}, workers {args.workers or os.cpu_count()}, parallel frames {args.parallel_frames}, {args.scene} scene, "
           f"live quality {args.live_quality}, replay {args.replay}, {args.clients} clients, {args.minutes:g} min per phase"
           f"{'' if args.publisher_nice is None else f', publishers {args.publisher_nice} nice levels lower'}"
-          f"{'' if args.publisher_idle is None else f', publishers SCHED_IDLE {args.publisher_idle}'}")
+          f"{'' if args.publisher_idle is None else f', encoder SCHED_IDLE {args.publisher_idle}'}")
     print(f"no client: server CPU {idle['cpu_percent']} % of one core, {idle['encoded_frames']} frames JPEG-encoded"
           f"{'' if idle['h264_frames'] is None else ', ' + str(idle['h264_frames']) + ' H.264-encoded'}, "
           f"fps {idle['fps']}")

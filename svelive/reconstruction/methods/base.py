@@ -247,9 +247,7 @@ def _bound_row(signal, exposure, censored, bound):
 @kernel
 def _rows_max(values, rows, out):
     """out = the largest of ``values``' rows ``rows``, column by column."""
-    first = values[rows[0]]
-    for c in range(out.size):  # numba's slice assignment between arrays copies one element a step
-        out[c] = first[c]
+    copy_row(values[rows[0]], out)
     for i in range(1, rows.size):
         row = values[rows[i]]
         for c in range(out.size):
@@ -259,9 +257,7 @@ def _rows_max(values, rows, out):
 @kernel
 def rows_min(values, rows, out):
     """out = the least of ``values``' rows ``rows``, column by column."""
-    first = values[rows[0]]
-    for c in range(out.size):  # numba's slice assignment between arrays copies one element a step
-        out[c] = first[c]
+    copy_row(values[rows[0]], out)
     for i in range(1, rows.size):
         row = values[rows[i]]
         for c in range(out.size):
@@ -306,6 +302,14 @@ def reflected_rows(r, h, rows):
     ry = rows.size // 2
     for dy in range(rows.size):
         rows[dy] = reflect_101(r + dy - ry, h)
+
+
+@kernel
+def copy_row(source, out):
+    """out[:] = source (1-D arrays of one size) in a loop that LLVM vectorises: numba's slice assignment between
+    arrays copies one element a step (about 8x slower on a 1920-pixel float32 row)."""
+    for c in range(out.size):
+        out[c] = source[c]
 
 
 @kernel

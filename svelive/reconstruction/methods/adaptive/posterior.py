@@ -11,7 +11,7 @@ import numpy as np
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive.parameters import TINY
-from svelive.reconstruction.methods.base import count_true, true_positions
+from svelive.reconstruction.methods.base import copy_row, count_true, true_positions
 
 
 @kernel
@@ -33,8 +33,7 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
             continue
         row_estimate, row_information, target = estimate[r], information[r], image[r]
         if n >= DENSE_CHANGED * width:
-            for c in range(width):  # numba's slice assignment between arrays copies one element a step
-                out[c] = row_estimate[c]
+            copy_row(row_estimate, out)
             nonnegative(out, row_estimate, row_information, coefficients)
             for c in range(width):
                 kept, new = target[c], out[c]  # both loaded before the choice: LLVM vectorises it

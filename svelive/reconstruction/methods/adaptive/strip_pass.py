@@ -13,7 +13,7 @@ from svelive.core.pattern import Pattern
 from svelive.jit import kernel
 from svelive.reconstruction.methods.adaptive.parameters import BIG, TINY, kernels
 from svelive.reconstruction.methods.adaptive.posterior import FEW_NEAR_ZERO, NEAR_MARGIN, POSTERIOR_HIGH, nonnegative
-from svelive.reconstruction.methods.base import count_true, reflect_101, rows_min, smooth, window_level_row
+from svelive.reconstruction.methods.base import copy_row, count_true, reflect_101, rows_min, smooth, window_level_row
 
 
 class PassReadings(NamedTuple):
@@ -284,8 +284,7 @@ def _row_least(e, censored, rx, scratch, out):
         return
     middle, first = out[rx:rx + inner], scratch[:inner]
     if rx == 0:
-        for i in range(inner):  # a loop: numba's slice assignment of an array copies one element at a time
-            middle[i] = first[i]
+        copy_row(first, middle)
         return
     second = scratch[1:1 + inner]
     for i in range(inner):
