@@ -589,6 +589,52 @@ def test_a_pixels_censored_blocks_found_in_the_readings_or_the_dilation(block):
             assert fallback._censored_near(censored, r, c, by, bx) == expected
             assert fallback._held_near(held, r, c, by, bx) == expected
 
+
+@pytest.mark.parametrize("ky, kx, blocks", [(3, 3, 1), (5, 3, 1), (3, 3, 3), (5, 3, 3)])
+def test_wide_direct_is_its_blocks_sums_written_out(ky, kx, blocks):
+    """fallback._wide_direct (three windows' sums at a time) gives at every active pixel the estimate, information
+    and flags of its eight blocks summed window by window, each window's readings in float64 row by row, the
+    windows three by three in float32 (fallback._threefold_block), borders reflect-101 included; weights over
+    twelve decades, readings at four exposures."""
+    rng = np.random.default_rng(ky * 10 + blocks)
+    shape = (3 * ky * blocks + 9, 3 * kx * blocks + 14)
+    weights = (10.0 ** rng.uniform(-6, 6, shape)).astype(np.float32)
+    signal = rng.uniform(0, 4000, shape).astype(np.float32)
+    exposure = rng.choice(np.array([1, 2, 4, 8], np.float32), shape)
+    offset, none = 2, np.empty((0, 0), bool)
+    active = rng.random((shape[0] - 4, shape[1])) < 0.3
+    estimate = rng.normal(0, 1, active.shape).astype(np.float32)
+    information = rng.uniform(0.1, 2, active.shape).astype(np.float32)
+    got = [a.copy() for a in (active, np.zeros_like(active), estimate, information)]
+    kept = fallback._wide_direct(weights, signal, exposure, none, none, offset, ky, kx, blocks, *got)
+    expected = [a.copy() for a in (active, np.zeros_like(active), estimate, information)]
+    by, bx, tiny = ky * blocks, kx * blocks, np.float32(parameters.TINY)
+    block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
+    expected_kept = 0
+    for r, c in zip(*np.nonzero(active)):
+        for i in [i for i in range(9) if i != 4]:
+            sums = np.empty((2, blocks, blocks), np.float32)
+            for a in range(blocks):
+                top = r + offset + (i // 3 - 1) * by + (a - blocks // 2) * ky - ky // 2
+                for b in range(blocks):
+                    left = c + (i % 3 - 1) * bx + (b - blocks // 2) * kx - kx // 2
+                    sum_w, sum_x = 0.0, 0.0
+                    for dy in range(ky):
+                        for dx in range(kx):
+                            q = reflect_101(top + dy, shape[0]), reflect_101(left + dx, shape[1])
+                            sum_w += float(weights[q])
+                            sum_x += float(weights[q] * (signal[q] / exposure[q]))
+                    sums[:, a, b] = sum_w, sum_x
+            fallback._threefold_block(sums[0])
+            fallback._threefold_block(sums[1])
+            w, x = sums[0, 0, 0], sums[1, 0, 0]
+            block_w[i - (i > 4)], block_m[i - (i > 4)] = w, (x / max(w, tiny) if w > tiny else np.float32(0.0))
+        expected_kept += fallback._wide_blend(block_w, block_m, r, c, *expected)
+    assert kept == expected_kept
+    for g, e in zip(got, expected):
+        np.testing.assert_array_equal(g, e)
+
+
 def test_true_positions_are_numpys_at_any_density():
     """base.true_positions (words of eight flags skipped where a row has few, else one position a flag) gives
     np.flatnonzero, on rows of any length (not whole words too) and rows of a 2-D array."""
