@@ -193,7 +193,7 @@ def test_posterior_table_in_chunks_is_the_whole_grid_at_once(monkeypatch):
     assert np.array_equal(chunked, posterior.posterior_table())
 
 
-@pytest.mark.parametrize("share", [0.0, 0.01, 0.19, 0.2, 0.3, 0.49, 0.5, 0.8, 1.0])
+@pytest.mark.parametrize("share", [0.0, 0.01, 0.06, 0.07, 0.19, 0.2, 0.3, 0.49, 0.5, 0.8, 1.0])
 def test_posterior_at_is_the_posterior_of_the_whole_array_where_changed(share):
     """posterior_at (rows packed or taken whole, by the share of their pixels changed) gives, at the changed
     pixels, bit for bit what nonnegative gives on the whole arrays, and 1 / information as the variance; the

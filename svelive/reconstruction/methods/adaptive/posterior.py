@@ -11,18 +11,18 @@ import numpy as np
 from svelive.jit import kernel
 from svelive.memory import outside_heap
 from svelive.reconstruction.methods.adaptive.parameters import TINY
-from svelive.reconstruction.methods.base import copy_row, count_true, true_positions
+from svelive.reconstruction.methods.base import count_true, true_positions
 
 
 @kernel
 def posterior_at(changed, estimate, information, image, coefficients, variance):
     """image = step 4's result of (estimate, information) at the ``changed`` pixels of (R, W) arrays, variance =
     1 / information there unless ``variance`` is empty. Row by row: a row with many (DENSE_CHANGED or more of
-    its pixels) through :func:`nonnegative` whole, then chosen pixel by pixel without branches; a row with
-    fewer packed into short arrays first (base.true_positions: without a branch per pixel, since the wide
+    its pixels) whole, each pixel's result chosen in the same loop without branches (:func:`_nonnegative_where`);
+    a row with fewer packed into short arrays first (base.true_positions: without a branch per pixel, since the wide
     fallback's pixels lie scattered and such a branch mispredicts)."""
     width = changed.shape[1]
-    out, packed_image = np.empty(width, np.float32), np.empty(width, np.float32)
+    packed_image = np.empty(width, np.float32)
     packed_estimate, packed_information = np.empty(width, np.float32), np.empty(width, np.float32)
     index = np.empty(width, np.int64)
     one = np.float32(1.0)
@@ -33,11 +33,7 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
             continue
         row_estimate, row_information, target = estimate[r], information[r], image[r]
         if n >= DENSE_CHANGED * width:
-            copy_row(row_estimate, out)
-            nonnegative(out, row_estimate, row_information, coefficients)
-            for c in range(width):
-                kept, new = target[c], out[c]  # both loaded before the choice: LLVM vectorises it
-                target[c] = new if row[c] else kept
+            _nonnegative_where(target, row_estimate, row_information, row, coefficients)
             if variance.size > 0:
                 row_variance = variance[r]
                 for c in range(width):
@@ -46,8 +42,8 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
             continue
         n = true_positions(row, n, index)
         for j in range(n):
-            packed_estimate[j], packed_information[j] = row_estimate[index[j]], row_information[index[j]]
-        packed_image[:n] = packed_estimate[:n]
+            value = row_estimate[index[j]]
+            packed_estimate[j], packed_information[j], packed_image[j] = value, row_information[index[j]], value
         nonnegative(packed_image[:n], packed_estimate[:n], packed_information[:n], coefficients)
         for j in range(n):
             target[index[j]] = packed_image[j]
@@ -158,20 +154,44 @@ def nonnegative(image, estimate, information, coefficients):
     z = 4, 0.5 % at z = 10); from POSTERIOR_HIGH up, the estimate itself. g = b(z) P(u)
     (:func:`posterior_polynomial`, ``coefficients``); without branches, so that LLVM vectorises it.
     """
+    p = _terms(coefficients)
+    for k in range(image.size):
+        value, near = _posterior(estimate[k], information[k], p)
+        image[k] = value if near else image[k]
+
+
+@kernel
+def _nonnegative_where(image, estimate, information, where, coefficients):
+    """image = :func:`nonnegative`'s result of (estimate, information) where ``where`` (bool), left elsewhere; one
+    row, in one loop (the choice without branches: both values loaded first, so that LLVM vectorises it)."""
+    p = _terms(coefficients)
+    for k in range(image.size):
+        value, near = _posterior(estimate[k], information[k], p)
+        kept, new = image[k], (value if near else estimate[k])
+        image[k] = new if where[k] else kept
+
+
+@kernel
+def _terms(coefficients):
+    """The polynomial's POSTERIOR_DEGREE + 1 coefficients as a tuple of float32 (read once before a loop)."""
+    return (coefficients[0], coefficients[1], coefficients[2], coefficients[3], coefficients[4], coefficients[5],
+            coefficients[6], coefficients[7], coefficients[8], coefficients[9], coefficients[10], coefficients[11],
+            coefficients[12], coefficients[13], coefficients[14], coefficients[15], coefficients[16])
+
+
+@kernel(inline="always")
+def _posterior(estimate, information, p):
+    """(sigma g(z), z < POSTERIOR_HIGH) of one pixel (:func:`nonnegative`); ``p``: :func:`_terms`. Inlined into
+    the loops that call it (a call left in place keeps LLVM from vectorising them)."""
     zero, half, tiny = np.float32(0.0), np.float32(0.5), np.float32(TINY)
     high, c4 = np.float32(POSTERIOR_HIGH), np.float32(4.0 * TAIL)
+    root_t = np.sqrt(max(information, tiny))
+    z = estimate * root_t
+    r = np.sqrt(z * z + c4)
+    base = (z + r) * half if z > zero else c4 * half / (r - z)
+    u = z / r
     # Horner's scheme written out (a loop over the coefficients would not vectorise): degree POSTERIOR_DEGREE = 16
-    p0, p1, p2, p3, p4, p5, p6, p7, p8 = (coefficients[0], coefficients[1], coefficients[2], coefficients[3],
-                                          coefficients[4], coefficients[5], coefficients[6], coefficients[7],
-                                          coefficients[8])
-    p9, p10, p11, p12, p13, p14, p15, p16 = (coefficients[9], coefficients[10], coefficients[11], coefficients[12],
-                                             coefficients[13], coefficients[14], coefficients[15], coefficients[16])
-    for k in range(image.size):
-        root_t = np.sqrt(max(information[k], tiny))
-        z = estimate[k] * root_t
-        r = np.sqrt(z * z + c4)
-        base = (z + r) * half if z > zero else c4 * half / (r - z)
-        u = z / r
-        p = (((((((((((((((p16 * u + p15) * u + p14) * u + p13) * u + p12) * u + p11) * u + p10) * u + p9) * u
-                      + p8) * u + p7) * u + p6) * u + p5) * u + p4) * u + p3) * u + p2) * u + p1) * u + p0
-        image[k] = base * p / root_t if z < high else image[k]
+    q = (((((((((((((((p[16] * u + p[15]) * u + p[14]) * u + p[13]) * u + p[12]) * u + p[11]) * u + p[10]) * u
+                    + p[9]) * u + p[8]) * u + p[7]) * u + p[6]) * u + p[5]) * u + p[4]) * u + p[3]) * u + p[2]) * u
+         + p[1]) * u + p[0]
+    return base * q / root_t, z < high
