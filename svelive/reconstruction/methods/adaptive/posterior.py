@@ -53,11 +53,12 @@ def posterior_at(changed, estimate, information, image, coefficients, variance):
                 row_variance[index[j]] = one / packed_information[j]
 
 
-#: :func:`posterior_at` takes a row whole where at least this share of its pixels changed, else packs them: a
-#: packed pixel (gathered, computed, scattered) costs about five pixels of a whole row (the wide fallback's calls
-#: on five dim bench frames, 1920x1200, summed: whole rows 3.8 ms a frame at any share; 0.5 -> 0.2 took Desk
-#: 1,2/4,8 (55 % changed) 4.6 -> 3.8 ms, StarField 1,2/4,8 (30 %) 5.0 -> 3.8, 1/1/8/8 (18 %) 3.8 -> 3.7).
-DENSE_CHANGED = 0.2
+#: :func:`posterior_at` takes a row whole where at least this share of its pixels changed, else packs them. The
+#: wide fallback's calls on nine dim and bright bench frames, recorded, 1920x1200: a whole row costs about 2.3 us at
+#: any share, a packed row about 1 us and 10 ns a pixel; 0.2 -> 0.07 took the rows at 7-20 %
+#: whole: StarField 1/1/8/8 dim (18 % changed) 3.6 -> 2.8 ms, Garden 1/1/8/8 dim (10 %) 3.8 -> 2.8, Desk 1,4/16,64
+#: dim 3.3 -> 2.7; frames of rows at 1-2 % (StarField 1/1/8/8 bright) unchanged.
+DENSE_CHANGED = 0.07
 
 
 #: The fused pass (strip_pass) runs :func:`nonnegative` only where pixels near 0 are when fewer than one in this
