@@ -12,7 +12,8 @@ from svelive.core.pattern import Pattern
 from svelive.jit import flat, kernel
 from svelive.reconstruction.methods.adaptive.parameters import CONSISTENT_SIGMA, DENSE_ROW, TINY
 from svelive.reconstruction.methods.adaptive.strip_pass import column_sums
-from svelive.reconstruction.methods.base import SveInput, count_true, reflect_101, reflected_rows, smooth
+from svelive.reconstruction.methods.base import (SveInput, count_true, reflect_101, reflected_rows, smooth,
+                                                 true_positions)
 
 #: Largest window (taps) whose censored pixels are visited one by one (:func:`censored_pixels`): measured, a 3x3
 #: window's visits beat the per-level window sums at any share of censored pixels, a 5x3 one's did not.
@@ -241,9 +242,9 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     + the pair around it), then a 3- or 5-tap column filter (centre, then the pairs outwards), borders
     reflect-101, each censored pixel's neighbours tested against its own level's bound (``bounds``, of the
     levels ``values``), in rows [first, last). Bit for bit the sums ``smooth`` gives there, at a cost that follows
-    the censored pixels, not the number of levels: a row with few of them visits each one's window, a row with many
-    (more than one in DENSE_ROW) sums every pixel's window at once, a loop over the row per window row
-    (vectorised)."""
+    the censored pixels, not the number of levels: a row with few of them visits each one's window (its readings'
+    reaches made there), a row with many (more than one in DENSE_ROW) sums every pixel's window at once, a loop
+    over the row per window row (vectorised), from the reaches of the window's rows made whole once."""
     h, width = censored.shape
     zero, tiny = np.float32(0.0), np.float32(TINY)
     reach = np.empty((h, width), np.float32)
@@ -253,20 +254,20 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
     level_count, level_sum = np.empty((ky.size, width), np.float32), np.empty((ky.size, width), np.float32)
     count, total = np.empty(width, np.float32), np.empty(width, np.float32)
     leveled = np.empty(width, np.bool_)
+    index = np.empty(width, np.int64)
     window_rows = np.arange(ky.size)
     for r in range(first, last):
         n = count_true(censored[r])
         if n == 0:
             continue
         reflected_rows(r, h, rows)
-        dense = n * DENSE_ROW > width
-        _level_bounds(exposure[r], values, bounds, bound)
-        for dy in range(ky.size):
-            rr = rows[dy]
-            if not reached[rr]:
-                _reach_row(w[rr], x[rr], reach[rr])
-                reached[rr] = True
-        if dense:
+        if n * DENSE_ROW > width:
+            _level_bounds(exposure[r], values, bounds, bound)
+            for dy in range(ky.size):
+                rr = rows[dy]
+                if not reached[rr]:
+                    _reach_row(w[rr], x[rr], reach[rr])
+                    reached[rr] = True
             for dy in range(ky.size):
                 _consistent_row_sums(reach[rows[dy]], x[rows[dy]], bound, kx[0], kx[1], level_count[dy],
                                      level_sum[dy])
@@ -276,12 +277,15 @@ def _censored_separable(censored, exposure, w, x, image, bound_only, ky, kx, val
                 leveled[c] = censored[r, c] & (bound[c] < np.inf)
             _censored_fill(leveled, x[r], count, total, image[r], bound_only[r])
             continue
-        for c in range(width):
-            if not censored[r, c] or bound[c] == np.inf:
+        n = true_positions(censored[r], n, index)
+        for j in range(n):
+            c = index[j]
+            pixel_bound = _level_bound(exposure[r, c], values, bounds)
+            if pixel_bound == np.inf:
                 continue
             for dy in range(ky.size):
-                level_count[dy, 0], level_sum[dy, 0] = _consistent_pixel_sums(reach[rows[dy]], x[rows[dy]], c,
-                                                                              bound[c], kx[0], kx[1])
+                level_count[dy, 0], level_sum[dy, 0] = _consistent_pixel_sums(w[rows[dy]], x[rows[dy]], c,
+                                                                              pixel_bound, kx[0], kx[1])
             count_c, total_c = _column_sum_pixel(level_count[:, 0], ky), _column_sum_pixel(level_sum[:, 0], ky)
             image[r, c] = max(total_c / max(count_c, tiny), x[r, c])
             if count_c <= zero:
@@ -300,14 +304,24 @@ def _level_bounds(exposure, values, bounds, bound):
 
 
 @kernel
-def _consistent_pixel_sums(reach, x, c, bound, k0, k1):
-    """:func:`_consistent_row_sums` at pixel ``c`` of one row alone."""
-    n = reach.size
+def _level_bound(exposure, values, bounds):
+    """:func:`_level_bounds` of one pixel of exposure ``exposure``."""
+    bound = np.float32(np.inf)
+    for j in range(values.size):
+        bound = bounds[j] if exposure == values[j] else bound
+    return bound
+
+
+@kernel
+def _consistent_pixel_sums(w, x, c, bound, k0, k1):
+    """:func:`_consistent_row_sums` at pixel ``c`` of one row alone, from the row's w and x (its three readings'
+    reaches made here, :func:`_reach`, as :func:`_reach_row` makes a row's)."""
+    n = w.size
     zero, one = np.float32(0.0), np.float32(1.0)
     left, right = reflect_101(c - 1, n), reflect_101(c + 1, n)
-    a = zero if reach[left] < bound else one
-    m = zero if reach[c] < bound else one
-    d = zero if reach[right] < bound else one
+    a = zero if _reach(w[left], x[left]) < bound else one
+    m = zero if _reach(w[c], x[c]) < bound else one
+    d = zero if _reach(w[right], x[right]) < bound else one
     return k1 * m + k0 * (a + d), k1 * (m * x[c]) + k0 * (a * x[left] + d * x[right])
 
 
@@ -321,11 +335,17 @@ def _column_sum_pixel(values, ky):
 
 @kernel
 def _reach_row(w, x, reach):
-    """x + CONSISTENT_SIGMA sqrt(1 / w) of uncensored readings (w > 0), -inf elsewhere, as :func:`_consistent_row`."""
-    one, tiny, sigma = np.float32(1.0), np.float32(TINY), np.float32(CONSISTENT_SIGMA)
-    none = np.float32(-np.inf)
+    """:func:`_reach` of a row's readings."""
     for k in range(w.size):
-        reach[k] = np.sqrt(one / max(w[k], tiny)) * sigma + x[k] if w[k] > 0 else none
+        reach[k] = _reach(w[k], x[k])
+
+
+@kernel(inline="always")
+def _reach(w, x):
+    """x + CONSISTENT_SIGMA sqrt(1 / w) of an uncensored reading (w > 0), -inf else, as :func:`_consistent_row`;
+    float32. Inlined into the loops that call it (a call left in place keeps LLVM from vectorising them)."""
+    one, tiny, sigma = np.float32(1.0), np.float32(TINY), np.float32(CONSISTENT_SIGMA)
+    return np.sqrt(one / max(w, tiny)) * sigma + x if w > 0 else np.float32(-np.inf)
 
 
 @kernel
