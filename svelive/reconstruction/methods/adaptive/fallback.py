@@ -340,7 +340,7 @@ def _wide_boxes(box_w, means, offset, by, bx, active, changed, estimate, informa
     h, width = box_w.shape
     rows, cols = np.empty(3, np.int64), np.empty(3, np.int64)
     block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
-    index, blocks = np.empty(width, np.int64), np.empty((16, width), np.float32)
+    index, blocks = np.empty((3, width), np.int64), np.empty((16, width), np.float32)
     packed_active, packed_changed = np.empty(width, np.bool_), np.empty(width, np.bool_)
     packed_estimate, packed_information = np.empty(width, np.float32), np.empty(width, np.float32)
     inner = width - 2 * bx
@@ -385,29 +385,34 @@ def _wide_packed(box_w, means, rows, bx, count, active, changed, estimate, infor
                  packed_active, packed_changed, packed_estimate, packed_information):
     """:func:`_wide_row` at the active pixels of a whole row (``active``, ``changed``, ``estimate`` and
     ``information``: the row, in place; ``rows``: the band rows of its blocks; ``count``: its active pixels) packed:
-    their columns into ``index`` (base.true_positions), their eight blocks' W and levels into ``blocks`` (float32
-    (16, W): W of blocks 0-7, then their levels) and their values into the ``packed_*`` scratch rows,
+    their columns into ``index[1]`` (base.true_positions; int64 (3, W): their blocks' columns a block left and
+    right into rows 0 and 2), their eight blocks' W and levels into ``blocks`` (float32 (16, W): W of blocks 0-7,
+    then their levels), a block at a time (the pixels' reads from one band row, in order: x0.87 of a pixel's 16 at
+    a time on StarField 1/1/8/8 bright's packed rows), and their values into the ``packed_*`` scratch rows,
     :func:`_wide_lanes` on those, then scattered back; the number kept active."""
     width = active.size
-    n = true_positions(active, count, index)
+    n = true_positions(active, count, index[1])
     for j in range(n):
-        c = index[j]
-        cols = (reflect_101(c - bx, width), c, reflect_101(c + bx, width))
-        b = 0
-        for i in range(3):
-            for k in range(3):
-                if i == 1 and k == 1:
-                    continue
-                blocks[b, j], blocks[8 + b, j] = box_w[rows[i], cols[k]], means[rows[i], cols[k]]
-                b += 1
+        c = index[1, j]
+        index[0, j], index[2, j] = reflect_101(c - bx, width), reflect_101(c + bx, width)
         packed_active[j], packed_changed[j] = True, changed[c]
         packed_estimate[j], packed_information[j] = estimate[c], information[c]
+    b = 0
+    for i in range(3):
+        row_w, row_m = box_w[rows[i]], means[rows[i]]
+        for k in range(3):
+            if i == 1 and k == 1:
+                continue
+            cols, out_w, out_m = index[k], blocks[b], blocks[8 + b]
+            for j in range(n):
+                out_w[j], out_m[j] = row_w[cols[j]], row_m[cols[j]]
+            b += 1
     kept = _wide_lanes(blocks[0, :n], blocks[1, :n], blocks[2, :n], blocks[3, :n], blocks[4, :n], blocks[5, :n],
                        blocks[6, :n], blocks[7, :n], blocks[8, :n], blocks[9, :n], blocks[10, :n], blocks[11, :n],
                        blocks[12, :n], blocks[13, :n], blocks[14, :n], blocks[15, :n], packed_active[:n],
                        packed_changed[:n], packed_estimate[:n], packed_information[:n])
     for j in range(n):
-        c = index[j]
+        c = index[1, j]
         active[c], changed[c] = packed_active[j], packed_changed[j]
         estimate[c], information[c] = packed_estimate[j], packed_information[j]
     return kept
