@@ -16,6 +16,11 @@ image of DIR, default ../shared/data/hdr, under every pattern and noise level,
 resized to 1920x1200), prepare + method as the benchmark times them: one line per
 frame, then the median and the worst over the frames; --clock thread counts this
 thread's CPU time only, which other processes on a shared machine do not inflate.
+
+The process first keeps the memory it frees (svelive.memory.keep_freed_memory), as `svelive serve` and
+`svelive reconstruct-sequence` do: with glibc's defaults the heap's top is trimmed after a run and faulted back
+in by the next, which on some frames cost more than the method's own extra work (4000-4600 page faults a run,
+docs/benchmarks.md, worst89). --default-malloc times with glibc's defaults instead.
 """
 
 from __future__ import annotations
@@ -79,10 +84,18 @@ def main() -> None:
                         help="time on the benchmark's frames of the HDR images in DIR (default ../shared/data/hdr)")
     parser.add_argument("--clock", choices=("wall", "thread"), default="wall",
                         help="with --bench: wall time, or this thread's CPU time (steadier on a shared machine)")
+    parser.add_argument("--default-malloc", action="store_true",
+                        help="leave glibc's heap trimming as it is (by default the process keeps freed memory, as "
+                             "svelive serve does)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
+    kept = False
+    if not args.default_malloc:
+        from svelive.memory import keep_freed_memory
+        kept = keep_freed_memory()
     if args.bench is not None:
-        bench_frames(args.bench, args.methods.split(","), args.repeats, args.clock)
+        bench_frames(args.bench, args.methods.split(","), args.repeats, args.clock,
+                     "freed memory kept" if kept else "malloc's defaults")
         return
     raw, sensor = test_frame(args.pattern)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; "
@@ -102,7 +115,7 @@ def main() -> None:
                 print(f"{mode + ' ' + method:20s} {ms:8.1f} ms", flush=True)
 
 
-def bench_frames(data: str, methods: list[str], repeats: int, clock: str = "wall") -> None:
+def bench_frames(data: str, methods: list[str], repeats: int, clock: str = "wall", malloc: str = "") -> None:
     """Median time (ms) of prepare + method on each benchmark timing frame; then median and worst per method.
     ``clock``: "wall" (perf_counter) or "thread" (this thread's CPU time, which other processes do not add to)."""
     from pathlib import Path
@@ -123,7 +136,8 @@ def bench_frames(data: str, methods: list[str], repeats: int, clock: str = "wall
     now = time.perf_counter if clock == "wall" else time.thread_time
     times: dict[str, list[float]] = {m: [] for m in methods}
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; bench frames "
-          f"1920x1200, median of {repeats}, {clock} clock; load average {os.getloadavg()[0]:.1f} at start")
+          f"1920x1200, median of {repeats}, {clock} clock; load average {os.getloadavg()[0]:.1f} at start; "
+          f"{malloc}")
     for path in find_images(Path(data) if data else default_data_dir()):
         scene = load_scene(path)
         for pattern in PATTERNS:
