@@ -132,6 +132,10 @@ def test_partial_chroma_is_the_whole_frames_on_its_cell_rows_and_the_history_els
         np.testing.assert_array_equal(got.shares[:, ~made], history[:3, ~made])
         np.testing.assert_array_equal(got.coarse[:, ~made], history[3:, ~made])
         np.testing.assert_array_equal(got.white, whole.white)
+        assert got.planes is not None  # (one array of both: the stream's fusion takes it in place)
+        assert np.shares_memory(got.planes, got.shares) and np.shares_memory(got.planes, got.coarse)
+    assert whole.planes is not None  # (a whole frame's too)
+    assert S.Chroma(whole.shares.copy(), whole.coarse.copy(), whole.layout, whole.white, whole.shape).planes is None
     if stops == 0.0:  # (the dim frame's shares are flat enough that a shorter reach may still agree)
         halo, S.CHROMA_HALO = S.CHROMA_HALO, S.CHROMA_HALO - 1
         try:

@@ -930,9 +930,10 @@ class Reconstructor:
         luminance = None
         if parts is not None:
             if self.temporal:
+                own = fuse_chroma(None, parts.chroma, weight) if held else None  # (before the fusion in place)
                 chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio,
                                              None if estimated.chroma_of is None else estimated.chroma_of[2])
-                chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
+                chroma = chroma_history if own is None else own
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
                 # (rows the band refresh skipped hold no estimate of this frame: their evidence stays as it was)
@@ -1250,11 +1251,20 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     alone without a history of that shape.
 
     ``rows``: bool (Hc,), the cell rows of the frame's own chroma (colour.partial_chroma), or None: every one;
-    the others keep the history's cells (its coarse luminance times ``ratio``).
+    the others keep the history's cells (its coarse luminance times ``ratio``): partial_chroma's of this
+    ``history`` holds them there already.
+
+    With a history, the chroma's planes (colour.Chroma.planes) become the fused chroma, in place: the frame's own
+    chroma is not kept (partial_chroma's history cells are not copied a second time, and no array is allocated).
     """
     (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
+    out = chroma.planes
+    if out is None and rows is not None:
+        raise ValueError("a chroma made on some cell rows is partial_chroma's, one (5, Hc, Wc) array")
+    if out is None:  # (a chroma of arrays of their own)
+        out = np.concatenate([chroma.shares, chroma.coarse])
     box = np.ones((3, 3), np.uint8)
     cells = np.empty((hc, wc), np.float32)  # (with ``rows``, the rows not made are not read)
     if rows is None:
@@ -1266,9 +1276,7 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
             crop = np.empty((hi - lo, wc), np.float32)
             _cell_maximum(weight[lo * cy:hi * cy], cy, cx, crop)
             cells[a:b] = cv2.dilate(crop, box, borderType=cv2.BORDER_REFLECT_101)[a - lo:b - lo]
-    out = np.empty_like(history)
-    _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio),
-                    np.ones(hc, bool) if rows is None else rows, out)
+    _running_chroma(history, cells, np.float32(ratio), np.ones(hc, bool) if rows is None else rows, out)
     return out
 
 
@@ -1320,24 +1328,27 @@ def _cell_maximum(weight, cy, cx, out):
 
 
 @kernel
-def _running_chroma(history, shares, coarse, weight, ratio, rows, out):
-    """out = history + weight (new - history) per cell for the shares (planes 0-2), the same with
-    the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4);
-    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc). Cell rows not in ``rows``
-    (bool (Hc,)) keep the history (its coarse luminance times ``ratio``)."""
+def _running_chroma(history, weight, ratio, rows, out):
+    """out (5, Hc, Wc): this frame's chroma in (the shares, the coarse luminance and its variance), the fused out,
+    in place: history + weight (new - history) per cell for the shares (planes 0-2), the same with the history
+    times ``ratio`` for the coarse luminance (3), new times weight for its variance (4). Cell rows not in ``rows``
+    (bool (Hc,)) hold the history already (partial_chroma's): only their coarse luminance is multiplied, by
+    ``ratio`` (not where it is 1). (Each loop reads and writes ``out`` alone: with this frame's planes as views of
+    it read beside, LLVM's alias check fell to scalar loops.)"""
     for c in range(5):
         scale = ratio if c == 3 else np.float32(1.0)
         for i in range(weight.shape[0]):
-            a, b, w, o = history[c, i], shares[c, i] if c < 3 else coarse[c - 3, i], weight[i], out[c, i]
+            a, w, o = history[c, i], weight[i], out[c, i]
             if not rows[i]:
-                for j in range(o.size):
-                    o[j] = a[j] * scale
+                if scale != np.float32(1.0):
+                    for j in range(o.size):
+                        o[j] = a[j] * scale
             elif c == 4:
                 for j in range(o.size):
-                    o[j] = b[j] * w[j]
+                    o[j] = o[j] * w[j]
             else:
                 for j in range(o.size):
-                    o[j] = a[j] * scale + (b[j] - a[j] * scale) * w[j]
+                    o[j] = a[j] * scale + (o[j] - a[j] * scale) * w[j]
 
 
 def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, **kwargs) -> Iterator[SequenceResult]:

@@ -49,6 +49,16 @@ class Chroma:
     white: np.ndarray
     shape: tuple[int, int]
 
+    @property
+    def planes(self) -> np.ndarray | None:
+        """float32 (5, Hc, Wc), the one array whose views ``shares`` and ``coarse`` are (:func:`chroma`'s,
+        :func:`partial_chroma`'s, :meth:`fused`'s), or None where they are arrays of their own."""
+        base = self.shares.base
+        if (base is None or base is not self.coarse.base or base.shape != (5, *self.shares.shape[1:])
+                or self.shares.ctypes.data != base.ctypes.data or self.coarse.ctypes.data != base[3].ctypes.data):
+            return None
+        return base
+
     def fused(self, planes: np.ndarray) -> Chroma:
         """The same chroma with a stream's fused shares and coarse luminance, (5, Hc, Wc) planes."""
         return Chroma(planes[:3], planes[3:5], self.layout, self.white, self.shape)
@@ -92,7 +102,8 @@ def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
     # the rest in one pass over the cell rows (:func:`_share_pass`): every stage's rows are still in cache when
     # the next reads them, instead of a dozen passes over whole (3, Hc, Wc) planes
     neutral = (white / f32(layout.share @ white)).astype(f32)
-    shares, coarse = np.empty((3, hc, wc), f32), np.empty((2, hc, wc), f32)
+    planes = np.empty((5, hc, wc), f32)  # (one array: a stream fuses it in place, Chroma.planes)
+    shares, coarse = planes[:3], planes[3:]
     values, own, smoothed, own_shares, noise, own_noise, residual, deviation = (
         np.empty((3, PASS_ROWS, wc), f32) for _ in range(8))
     _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share, neutral,
@@ -108,21 +119,21 @@ def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarr
     the cell rows of ``runs`` ([start, stop) cell rows, apart), each run made from a crop of the frame with
     CHROMA_HALO cell rows around it (which its passes read; the same values as the whole frame's chroma with that
     white); the shares and coarse luminance of the other cell rows are ``history``'s (float32 (5, Hc, Wc), a
-    stream's fused chroma: svelive.reconstruction.stream.fuse_chroma)."""
+    stream's fused chroma: svelive.reconstruction.stream.fuse_chroma), in one new array (:attr:`Chroma.planes`)."""
     layout = cell_layout(inp.pattern, inp.cfa)
     cy, h = layout.cell[0], inp.shape[0]
     hc = history.shape[1]
-    shares, coarse = np.empty_like(history[:3]), np.empty_like(history[3:5])
+    planes = np.empty_like(history)
     kept = 0  # (only the cell rows kept are copied: the runs' are written below)
     for a, b in [*runs, (hc, hc)]:
-        shares[:, kept:a], coarse[:, kept:a] = history[:3, kept:a], history[3:5, kept:a]
+        planes[:, kept:a] = history[:, kept:a]
         kept = b
     for a, b in runs:
         lo, hi = max(a - CHROMA_HALO, 0), min(b + CHROMA_HALO, hc)
         part = chroma(inp.crop(slice(lo * cy, min(hi * cy, h))), white)
-        shares[:, a:b] = part.shares[:, a - lo:b - lo]
-        coarse[:, a:b] = part.coarse[:, a - lo:b - lo]
-    return Chroma(shares, coarse, layout, np.asarray(white, np.float32), (h, inp.shape[1]))
+        planes[:3, a:b] = part.shares[:, a - lo:b - lo]
+        planes[3:5, a:b] = part.coarse[:, a - lo:b - lo]
+    return Chroma(planes[:3], planes[3:5], layout, np.asarray(white, np.float32), (h, inp.shape[1]))
 
 
 @kernel
