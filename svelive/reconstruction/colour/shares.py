@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from svelive.jit import fma32, kernel
-from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, _cell_stats_row, cell_layout
+from svelive.reconstruction.colour.cells import CellLayout, _cell_stats_row, cell_layout
 from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
 from svelive.reconstruction.methods.base import SveInput, binomial_kernel
 
@@ -73,7 +73,7 @@ def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
 
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
     the share of each cell's information its uncensored readings hold, the smallest over the
-    channels: :func:`_smooth_cells`), the censoring and
+    channels: :func:`_smooth_step`), the censoring and
     highlight rules give C_c, which is moved from the centroid of the channel's samples to the
     cells' centres (bilinearly), and the shares are k_c = C_c / L there. The same from each
     cell's own readings moves them where the two differ beyond noise (:func:`_blend_row`), the
@@ -110,8 +110,8 @@ def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
                      *smooth_scratch, np.empty((rows, wc), np.uint8), np.empty(wc, np.uint8), white, layout.share,
                      neutral, f32(SHARE_FLOOR), spread, _centring_taps(layout), *pass_scratch)
         return Chroma(shares, coarse, layout, white, (h, w))
-    _cell_stats(*stats, mean, info, kept, weighted, bound, flags, *stats_scratch)
-    _smooth_cells(weighted, kept, mean, k, numerator, denominator, *smooth_scratch)
+    _cell_pass(*stats, mean, info, kept, weighted, bound, flags, *stats_scratch, k, numerator, denominator,
+               *smooth_scratch)
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
@@ -147,9 +147,25 @@ def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarr
 
 
 @kernel
-def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
-    """The sums of the cells' 3x3 smoothing (3, Hc, Wc), in place: every channel of a cell weighted
-    alike, by the smallest share of a channel's information its uncensored readings hold in it.
+def _cell_pass(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor, mean, info,
+               kept, weighted, bound, flags, sums, scratch, k, numerator, denominator, rings, row):
+    """svelive.reconstruction.colour.cells._cell_stats and the cells' smoothing (:func:`_smooth_step`; their
+    arguments in turn) in one pass over the cell rows: each cell row's statistics smoothed along the row while they
+    are in cache, into whole planes (which the white balance reads)."""
+    hc = mean.shape[1]
+    for t in range(hc + 1):
+        if t < hc:
+            _cell_stats_row(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor,
+                            mean, info, kept, weighted, bound, flags, sums, scratch, t, t)
+        _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t, hc)
+
+
+@kernel
+def _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t, hc):
+    """Step ``t`` of the cells' 3x3 smoothing over ``hc`` cell rows (the sums (3, Hc, Wc)): cell row ``t`` along
+    the row, cell row t - 1 across, one row behind; the cells' planes are whole (``hc`` rows) or rings of their
+    last rows (cell row i at i % rows). Every channel of a cell is weighted alike, by the smallest share of a
+    channel's information its uncensored readings hold in it.
 
     Per channel (``kept`` of each) a cell beside a light that clipped some channels gave its
     unclipped channels in full and its clipped ones at the share of their unclipped (darker)
@@ -162,19 +178,9 @@ def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
 
     ``numerator`` (out): the smoothing ``k`` (float32 (3,), symmetric) each way, mirrored at the
     edges, of the common weight times ``mean``; ``denominator`` (out): of the common weight (the
-    same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. One pass over the cell
-    rows, the smoothing across rows one row behind the one along them. ``rings`` (4, 3, Wc): the
+    same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. ``rings`` (4, 3, Wc): the
     last three rows of the pass along rows (numerators, then the weight); ``row`` (Wc,): scratch.
     """
-    hc = kept.shape[1]
-    for t in range(hc + 1):
-        _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t, hc)
-
-
-@kernel
-def _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t, hc):
-    """Step ``t`` of :func:`_smooth_cells` over ``hc`` cell rows: cell row ``t`` along the row, cell row t - 1
-    across; the cells' planes are whole (``hc`` rows) or rings of their last rows (cell row i at i % rows)."""
     m, wc = kept.shape[1], kept.shape[2]
     if t < hc:
         ti = t % m
@@ -315,11 +321,12 @@ def _chroma_pass(pixels, lost, channels, levels, exposures, per_pixel, gain_inv,
                  own_noise, residual, deviation, coarse, out, rings, columns, brightest, lum):
     """:func:`chroma` with the white balance given (``white``), in one pass over the cell rows: each step the cells'
     statistics of cell row t (:func:`_cell_stats_row`), their smoothing (:func:`_smooth_step`, row t - 1), the
-    censored cells within 3x3 of row t - 2 (:func:`_dilated_row`, ``column`` its scratch) and :func:`_share_step` t - 1, so that the
-    statistics, the smoothed sums and the censoring are rings of their last :data:`CELL_ROWS` cell rows
-    (``mean`` to ``flags``, ``numerator``, ``denominator``, ``censored``), read while in cache, never planes of
-    the frame. The arguments are those of :func:`_cell_stats` (the first 17), of :func:`_smooth_cells` (``k`` to
-    ``smooth_row``) and of :func:`_share_pass` (``white`` on); bit for bit the chain of the three."""
+    censored cells within 3x3 of row t - 2 (:func:`_dilated_row`, ``column`` its scratch) and :func:`_share_step`
+    t - 1, so that the statistics, the smoothed sums and the censoring are rings of their last :data:`CELL_ROWS`
+    cell rows (``mean`` to ``flags``, ``numerator``, ``denominator``, ``censored``), read while in cache, never
+    planes of the frame. The arguments are those of :func:`_cell_pass` (the first 22), the ring of the censored
+    cells (rows of the censoring's 3x3 dilation) and its scratch, then those of :func:`_share_pass` (``white`` on);
+    bit for bit the chain of the three."""
     hc = out.shape[1]
     for t in range(hc + 5):
         if t < hc:
