@@ -1107,8 +1107,10 @@ def share_error_cells(shares: np.ndarray, layout: colour.CellLayout, cells: np.n
     """
     planes = np.ascontiguousarray(shares, np.float32)
     cells = np.empty_like(planes) if cells is None else cells
-    rows = (np.ones(planes.shape[1], bool) if changed is None
-            else changed | np.r_[changed[1:], False] | np.r_[False, changed[:-1]])
+    rows = np.ones(planes.shape[1], bool) if changed is None else changed.copy()
+    if changed is not None:  # (a cell row reads the rows next to it, mirrored at the edges)
+        rows[1:] |= changed[:-1]
+        rows[:-1] |= changed[1:]
     _share_spread(planes, rows, cells)
     return ShareError(cells, layout.channels)
 
