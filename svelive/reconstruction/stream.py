@@ -851,6 +851,8 @@ class Reconstructor:
             white = self._white if current else None
             spread = self._spread if current else None
             share_cells = self._share_cells if current else None
+            if current:  # (taken: its cells are updated in place below and kept again with the fused chroma)
+                self._share_cells = None
         if estimated.chroma_of is not None:  # (a colour frame of the band refresh)
             source, computed, _ = estimated.chroma_of
             inp = estimated.colour_input
