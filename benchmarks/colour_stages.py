@@ -47,6 +47,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("joint.chroma", "reconstruction.colour.joint_parts", "chroma"),
     ("joint.chroma.cell_stats", "reconstruction.colour.shares", "_cell_stats"),
     ("joint.chroma.smooth_cells", "reconstruction.colour.shares", "_smooth_cells"),
+    ("joint.chroma.cell_pass", "reconstruction.colour.shares", "_cell_pass"),  # the two in one (chroma89)
     ("joint.chroma.white_balance", "reconstruction.colour.shares", "white_balance"),
     ("joint.chroma.cell_values", "reconstruction.colour.shares", "_cell_values"),
     ("joint.chroma.centred", "reconstruction.colour.shares", "_centred"),
@@ -55,6 +56,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("joint.chroma.shrink", "reconstruction.colour.shares", "_shrink"),
     ("joint.chroma.normalise", "reconstruction.colour.shares", "_normalise"),
     ("joint.chroma.share_pass", "reconstruction.colour.shares", "_share_pass"),  # cell_values .. normalise in one
+    ("joint.chroma.chroma_pass", "reconstruction.colour.shares", "_chroma_pass"),  # a given white: all in one
     ("joint.interpolation", "reconstruction.colour.joint_parts", "interpolation"),
     ("joint.fold", "reconstruction.colour.joint_parts", "luminance_input"),
     ("joint.method", "", ""),  # the method's run, wrapped through the stream's method_spec

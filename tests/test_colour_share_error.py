@@ -134,3 +134,29 @@ def test_a_frame_takes_tables_or_per_pixel_exposures():
     with pytest.raises(ValueError):  # numbers for the variance need the exposures they scale
         FrameEstimate(frame.image, frame.variance, frame.bound, frame.censored, frame.signal,
                       1 / frame.exposure, frame.own_slope, frame.own_floor)
+
+
+@pytest.mark.parametrize("hc", [1, 2, 3, 17])
+def test_the_spread_made_again_on_the_changed_cell_rows_is_the_whole_spread(hc):
+    """share_error_cells with the spread of the last shares (``cells``) and the cell rows that changed since: the
+    spread of the new shares, bit for bit, made again in place only where a cell row's 3x3 reads a changed one
+    (the others keep their values: a marker there stays); changes at the edges, next to each other, one, none."""
+    layout = layout_of("dual-iso")
+    rng = np.random.default_rng(7)
+    wc = 9
+    before = rng.uniform(0.2, 2.0, (3, hc, wc)).astype(np.float32)
+    for changes in ([], [0], [hc - 1], [hc // 2], [0, hc - 1], list(range(hc))):
+        changed = np.zeros(hc, bool)
+        changed[changes] = True
+        after = before.copy()
+        after[:, changed] = rng.uniform(0.2, 2.0, (3, np.count_nonzero(changed), wc)).astype(np.float32)
+        cells = share_error_cells(before, layout).cells
+        reads = changed | np.r_[changed[1:], False] | np.r_[False, changed[:-1]]
+        cells[:, ~reads] = -1.0  # (kept, not made again: the marker stays)
+        got = share_error_cells(after, layout, cells, changed)
+        assert got.cells is cells
+        whole = share_error_cells(after, layout).cells
+        np.testing.assert_array_equal(cells[:, reads], whole[:, reads])
+        assert np.all(cells[:, ~reads] == -1.0)
+        if hc > 1 and changes == [hc // 2]:
+            assert np.count_nonzero(reads) == min(3, hc)

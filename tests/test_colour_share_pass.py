@@ -70,7 +70,7 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     noise, own_noise, deviation, residual = (np.empty((3, hc, wc), f32) for _ in range(4))
     for i in range(hc):
         S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse,
-                      noise, i, i)
+                      noise, i, i, i)
         S._own_shares_row(own_shares, info, layout.share, neutral, f32(S.SHARE_FLOOR), shares, own_noise, residual,
                           brightest, i, i)
     for c in range(3):
@@ -103,6 +103,11 @@ def test_one_pass_is_the_whole_plane_chain_bit_for_bit(layout, stops, shape):
     np.testing.assert_array_equal(got.white, white)
     np.testing.assert_array_equal(got.coarse, coarse)
     np.testing.assert_array_equal(got.shares, shares)
+    # with the white balance given (a stream's partial chroma): the statistics, the smoothing and the censoring in
+    # the share pass's own rings of cell rows (_chroma_pass)
+    given = chroma(inp, white)
+    np.testing.assert_array_equal(given.coarse, coarse)
+    np.testing.assert_array_equal(given.shares, shares)
     if stops == 0.0 and min(shape) > 8:
         assert np.count_nonzero(inp.censored) > 0  # the clipped case is the one tested
 
@@ -132,6 +137,10 @@ def test_partial_chroma_is_the_whole_frames_on_its_cell_rows_and_the_history_els
         np.testing.assert_array_equal(got.shares[:, ~made], history[:3, ~made])
         np.testing.assert_array_equal(got.coarse[:, ~made], history[3:, ~made])
         np.testing.assert_array_equal(got.white, whole.white)
+        assert got.planes is not None  # (one array of both: the stream's fusion takes it in place)
+        assert np.shares_memory(got.planes, got.shares) and np.shares_memory(got.planes, got.coarse)
+    assert whole.planes is not None  # (a whole frame's too)
+    assert S.Chroma(whole.shares.copy(), whole.coarse.copy(), whole.layout, whole.white, whole.shape).planes is None
     if stops == 0.0:  # (the dim frame's shares are flat enough that a shorter reach may still agree)
         halo, S.CHROMA_HALO = S.CHROMA_HALO, S.CHROMA_HALO - 1
         try:

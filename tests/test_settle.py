@@ -4,6 +4,7 @@ full frame's results bit for bit; ``refresh=K`` streams skip bands and stay clos
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import pytest
 
 from svelive import Camera
 from svelive.capture.demo import DemoSource
@@ -595,9 +596,11 @@ def test_a_still_colour_streams_chroma_is_made_on_the_selected_bands_cell_rows_o
 
 
 def test_fuse_chroma_on_some_cell_rows_is_the_whole_fusion_there_and_keeps_the_history_elsewhere():
-    """stream.fuse_chroma with ``rows`` (a colour frame whose chroma was made on some cell rows): on those rows the
-    values of the fusion of every row, bit for bit (the cells' weights from crops of one more cell row each way);
-    on the others the history's shares and coarse variance and its coarse luminance times the brightness ratio."""
+    """stream.fuse_chroma with ``rows`` (a colour frame whose chroma was made on some cell rows, colour.partial_chroma:
+    the history's cells elsewhere, all in one (5, Hc, Wc) array): on those rows the values of the fusion of every
+    row, bit for bit (the cells' weights from crops of one more cell row each way); on the others the history's
+    shares and coarse variance and its coarse luminance times the brightness ratio (1: the history's as it is),
+    in the chroma's own array; a chroma of separate arrays is refused."""
     from svelive.core.cfa import ColourFilter
     from svelive.core.pattern import Pattern
     from svelive.reconstruction import colour
@@ -610,15 +613,22 @@ def test_fuse_chroma_on_some_cell_rows_is_the_whole_fusion_there_and_keeps_the_h
     chroma = colour.Chroma(rng.random((3, hc, wc), dtype=np.float32), rng.random((2, hc, wc), dtype=np.float32),
                            layout, np.ones(3, np.float32), (h, w))
     history, weight = rng.random((5, hc, wc), dtype=np.float32), rng.random((h, w), dtype=np.float32)
-    whole = fuse_chroma(history, chroma, weight, 1.1)
-    kept = np.concatenate([history[:3], history[3:4] * np.float32(1.1), history[4:]])
-    for runs in ([(0, 3)], [(5, 9), (20, hc)], [(hc - 1, hc)], [(0, hc)]):
-        rows = np.zeros(hc, bool)
-        for a, b in runs:
-            rows[a:b] = True
-        got = fuse_chroma(history, chroma, weight, 1.1, rows)
-        np.testing.assert_array_equal(got[:, rows], whole[:, rows])
-        np.testing.assert_array_equal(got[:, ~rows], kept[:, ~rows])
+    for ratio in (1.1, 1.0):
+        whole = fuse_chroma(history, chroma, weight, ratio)
+        kept = np.concatenate([history[:3], history[3:4] * np.float32(ratio), history[4:]])
+        for runs in ([(0, 3)], [(5, 9), (20, hc)], [(hc - 1, hc)], [(0, hc)]):
+            rows = np.zeros(hc, bool)
+            for a, b in runs:
+                rows[a:b] = True
+            planes = history.copy()  # (as partial_chroma makes them)
+            planes[:3, rows], planes[3:, rows] = chroma.shares[:, rows], chroma.coarse[:, rows]
+            partial = colour.Chroma(planes[:3], planes[3:], layout, chroma.white, (h, w))
+            got = fuse_chroma(history, partial, weight, ratio, rows)
+            assert got is planes
+            np.testing.assert_array_equal(got[:, rows], whole[:, rows])
+            np.testing.assert_array_equal(got[:, ~rows], kept[:, ~rows])
+    with pytest.raises(ValueError):
+        fuse_chroma(history, chroma, weight, 1.0, rows)
 
 
 def test_a_still_colour_stream_makes_its_whole_chroma_every_so_many_frames_and_follows_the_lights_colour(

@@ -288,6 +288,7 @@ class Reconstructor:
         self._white: np.ndarray | None = None  # the white balance of the last fused colour frame (its chroma's)
         # a colour stream's evidence of its luminance's noise and its floor (luminance_noise)
         self._spread: LuminanceNoise | None = None
+        self._share_cells: ShareError | None = None  # the spread of _chroma's shares where kept (share_error_cells)
         self._generation = 0  # bumped by reset() and method changes: a frame in flight then drops its history
         self._frames = 0
         self._last_moving = 0.0
@@ -328,7 +329,7 @@ class Reconstructor:
         with self._lock:
             if name != self._method:
                 self._method = name
-                self._history = self._chroma = self._spread = self._white = None
+                self._history = self._chroma = self._spread = self._white = self._share_cells = None
                 self._generation += 1
 
     def close(self) -> None:
@@ -405,7 +406,7 @@ class Reconstructor:
     def reset(self) -> None:
         """Forget the history: the next frame is processed as the first of a stream."""
         with self._lock:
-            self._history = self._chroma = self._spread = self._white = None
+            self._history = self._chroma = self._spread = self._white = self._share_cells = None
             self._generation += 1
             self._frames = 0
             self._band_motion = []
@@ -849,6 +850,9 @@ class Reconstructor:
             chroma_history = self._chroma if current else None
             white = self._white if current else None
             spread = self._spread if current else None
+            share_cells = self._share_cells if current else None
+            if current:  # (taken: its cells are updated in place below and kept again with the fused chroma)
+                self._share_cells = None
         if estimated.chroma_of is not None:  # (a colour frame of the band refresh)
             source, computed, _ = estimated.chroma_of
             inp = estimated.colour_input
@@ -866,9 +870,11 @@ class Reconstructor:
         if self.temporal:
             frame = estimated.frame
             if parts is not None and self.detail:
-                planes = (chroma_history[:3] if chroma_history is not None
-                          and chroma_history.shape[1:] == parts.chroma.shares.shape[1:] else parts.chroma.shares)
-                frame = replace(frame, share_error=share_error_cells(planes, parts.chroma.layout))
+                fits = chroma_history is not None and chroma_history.shape[1:] == parts.chroma.shares.shape[1:]
+                if not fits or share_cells is None:
+                    planes = chroma_history[:3] if fits else parts.chroma.shares
+                    share_cells = share_error_cells(planes, parts.chroma.layout)
+                frame = replace(frame, share_error=share_cells)
             partial = estimated.partial
             predicted = complete = None
             if partial is not None:
@@ -930,9 +936,14 @@ class Reconstructor:
         luminance = None
         if parts is not None:
             if self.temporal:
-                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio,
-                                             None if estimated.chroma_of is None else estimated.chroma_of[2])
-                chroma = fuse_chroma(None, parts.chroma, weight) if held else chroma_history
+                own = fuse_chroma(None, parts.chroma, weight) if held else None  # (before the fusion in place)
+                made = None if estimated.chroma_of is None else estimated.chroma_of[2]
+                chroma_history = fuse_chroma(chroma_history, parts.chroma, fused.history, ratio, made)
+                # the fused shares differ from the last ones only on the cell rows made: the spread the fusion took
+                # (of the last ones) is made again around them for the next frame, in place; else made whole then
+                share_cells = (share_error_cells(chroma_history[:3], parts.chroma.layout, share_cells.cells, made)
+                               if self.detail and fits and made is not None else None)
+                chroma = chroma_history if own is None else own
                 # the refinement weighs the fused luminance by its noise as its frames show it: a folded frame's
                 # luminance is noisier than its model says, and a history averages what the model never held
                 # (rows the band refresh skipped hold no estimate of this frame: their evidence stays as it was)
@@ -972,6 +983,7 @@ class Reconstructor:
                 self._chroma = chroma_history if self.temporal and parts is not None else None
                 self._white = parts.chroma.white if self.temporal and parts is not None else None
                 self._spread = spread if self.temporal and parts is not None else None
+                self._share_cells = share_cells if self.temporal and parts is not None else None
                 self._frames = index + 1
             self._last_moving = moving_fraction
         return SequenceResult(image, motion, variance_of, est.lower_bound, weight, moving_fraction, ratio,
@@ -1078,7 +1090,8 @@ def share_error(shares: np.ndarray, layout: colour.CellLayout, shape: tuple[int,
     return share_error_cells(shares, layout).plane(shape)
 
 
-def share_error_cells(shares: np.ndarray, layout: colour.CellLayout) -> ShareError:
+def share_error_cells(shares: np.ndarray, layout: colour.CellLayout, cells: np.ndarray | None = None,
+                      changed: np.ndarray | None = None) -> ShareError:
     """The relative variance of each pixel's share error by cell (fusion.ShareError: the fusion reads it so, no
     plane of it written and read).
 
@@ -1088,21 +1101,32 @@ def share_error_cells(shares: np.ndarray, layout: colour.CellLayout) -> ShareErr
     over frames. Its relative variance is taken as the spread of the channel's share over the 3x3
     cells around the pixel's cell: the mean of (k_j / k_0 - 1)^2 over them with the chroma's
     [1, 2, 1] / 4 weights each way, 0 where the colour is the same over the cells.
+
+    ``cells``: float32 (3, Hc, Wc), where the spread is written (a new array where None). With ``changed`` (bool
+    (Hc,)) it holds the spread of shares equal to ``shares`` on the cell rows not ``changed``, and only the cell
+    rows whose 3x3 reads a changed one are made again (a still stream's fused shares change only on the cell rows
+    its frame's chroma made, colour.partial_chroma).
     """
     planes = np.ascontiguousarray(shares, np.float32)
-    cells = np.empty_like(planes)
-    _share_spread(planes, cells)
+    cells = np.empty_like(planes) if cells is None else cells
+    rows = np.ones(planes.shape[1], bool) if changed is None else changed.copy()
+    if changed is not None:  # (a cell row reads the rows next to it, mirrored at the edges)
+        rows[1:] |= changed[:-1]
+        rows[:-1] |= changed[1:]
+    _share_spread(planes, rows, cells)
     return ShareError(cells, layout.channels)
 
 
 @kernel
-def _share_spread(shares, out):
+def _share_spread(shares, rows, out):
     """out[c, i, j] = sum over the 3x3 cells around (i, j) (mirrored at the edges) of [1, 2, 1] / 4
-    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2."""
+    weights each way times (k_c(neighbour) / k_c(i, j) - 1)^2, on the cell rows ``rows`` (bool (Hc,)) marks."""
     n, hc, wc = shares.shape
     for c in range(n):
         k = shares[c]
         for i in range(hc):
+            if not rows[i]:
+                continue
             up, down = (abs(i - 1), i + 1 if i + 1 < hc else 2 * hc - 3 - i) if hc > 1 else (0, 0)
             above, middle, below, o = k[up], k[i], k[down], out[c, i]
             for j in range(1, wc - 1):  # a loop without branches, that vectorises
@@ -1250,11 +1274,20 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
     alone without a history of that shape.
 
     ``rows``: bool (Hc,), the cell rows of the frame's own chroma (colour.partial_chroma), or None: every one;
-    the others keep the history's cells (its coarse luminance times ``ratio``).
+    the others keep the history's cells (its coarse luminance times ``ratio``): partial_chroma's of this
+    ``history`` holds them there already.
+
+    With a history, the chroma's planes (colour.Chroma.planes) become the fused chroma, in place: the frame's own
+    chroma is not kept (partial_chroma's history cells are not copied a second time, and no array is allocated).
     """
     (cy, cx), (hc, wc) = chroma.layout.cell, chroma.shares.shape[1:]
     if history is None or history.shape != (5, hc, wc):
         return np.concatenate([chroma.shares, chroma.coarse])
+    out = chroma.planes
+    if out is None and rows is not None:
+        raise ValueError("a chroma made on some cell rows is partial_chroma's, one (5, Hc, Wc) array")
+    if out is None:  # (a chroma of arrays of their own)
+        out = np.concatenate([chroma.shares, chroma.coarse])
     box = np.ones((3, 3), np.uint8)
     cells = np.empty((hc, wc), np.float32)  # (with ``rows``, the rows not made are not read)
     if rows is None:
@@ -1266,9 +1299,7 @@ def fuse_chroma(history: np.ndarray | None, chroma: colour.Chroma, weight: np.nd
             crop = np.empty((hi - lo, wc), np.float32)
             _cell_maximum(weight[lo * cy:hi * cy], cy, cx, crop)
             cells[a:b] = cv2.dilate(crop, box, borderType=cv2.BORDER_REFLECT_101)[a - lo:b - lo]
-    out = np.empty_like(history)
-    _running_chroma(history, chroma.shares, chroma.coarse, cells, np.float32(ratio),
-                    np.ones(hc, bool) if rows is None else rows, out)
+    _running_chroma(history, cells, np.float32(ratio), np.ones(hc, bool) if rows is None else rows, out)
     return out
 
 
@@ -1320,24 +1351,27 @@ def _cell_maximum(weight, cy, cx, out):
 
 
 @kernel
-def _running_chroma(history, shares, coarse, weight, ratio, rows, out):
-    """out = history + weight (new - history) per cell for the shares (planes 0-2), the same with
-    the history times ``ratio`` for the coarse luminance (3), new times weight for its variance (4);
-    this frame's planes are ``shares`` (3, Hc, Wc) and ``coarse`` (2, Hc, Wc). Cell rows not in ``rows``
-    (bool (Hc,)) keep the history (its coarse luminance times ``ratio``)."""
+def _running_chroma(history, weight, ratio, rows, out):
+    """out (5, Hc, Wc): this frame's chroma in (the shares, the coarse luminance and its variance), the fused out,
+    in place: history + weight (new - history) per cell for the shares (planes 0-2), the same with the history
+    times ``ratio`` for the coarse luminance (3), new times weight for its variance (4). Cell rows not in ``rows``
+    (bool (Hc,)) hold the history already (partial_chroma's): only their coarse luminance is multiplied, by
+    ``ratio`` (not where it is 1). (Each loop reads and writes ``out`` alone: with this frame's planes as views of
+    it read beside, LLVM's alias check fell to scalar loops.)"""
     for c in range(5):
         scale = ratio if c == 3 else np.float32(1.0)
         for i in range(weight.shape[0]):
-            a, b, w, o = history[c, i], shares[c, i] if c < 3 else coarse[c - 3, i], weight[i], out[c, i]
+            a, w, o = history[c, i], weight[i], out[c, i]
             if not rows[i]:
-                for j in range(o.size):
-                    o[j] = a[j] * scale
+                if scale != np.float32(1.0):
+                    for j in range(o.size):
+                        o[j] = a[j] * scale
             elif c == 4:
                 for j in range(o.size):
-                    o[j] = b[j] * w[j]
+                    o[j] = o[j] * w[j]
             else:
                 for j in range(o.size):
-                    o[j] = a[j] * scale + (b[j] - a[j] * scale) * w[j]
+                    o[j] = a[j] * scale + (o[j] - a[j] * scale) * w[j]
 
 
 def reconstruct_sequence(frames: Iterable[np.ndarray], pattern: Pattern | str, **kwargs) -> Iterator[SequenceResult]:

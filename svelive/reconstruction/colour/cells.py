@@ -77,71 +77,80 @@ def _cell_stats(values, censored, channels, levels, exposures, per_pixel, gain_i
     L0 = max(sum s / sum e, 0) of the channel in the cell. One pass over the pixels, per channel
     and level: the sum of the uncensored values, their count, and the count of all readings.
     """
+    for i in range(mean.shape[1]):
+        _cell_stats_row(values, censored, channels, levels, exposures, per_pixel, gain_inv, floor, censor, mean, info,
+                        kept, weighted_mean, bound, flags, sums, scratch, i, i)
+
+
+@kernel
+def _cell_stats_row(values, censored, channels, levels, exposures, per_pixel, gain_inv, floor, censor,
+                    mean, info, kept, weighted_mean, bound, flags, sums, scratch, i, o):
+    """:func:`_cell_stats` of cell row ``i`` into row ``o`` of its outputs (whole planes, ``o`` = ``i``, or rings of
+    cell rows: svelive.reconstruction.colour.shares._chroma_pass)."""
     h, w = values.shape
     cy, cx = channels.shape
     zero, one = np.float32(0.0), np.float32(1.0)
     x_sum, n_sum, all_sum = sums[0], sums[1], sums[2]
-    for i in range(mean.shape[1]):
-        r0, r1 = i * cy, min(i * cy + cy, h)
-        sums[...] = zero
-        for r in range(r0, r1):
-            ch, k, row, lost = channels[r - r0], levels[r - r0], values[r], censored[r]
-            # the cells of common widths spelt out: loops whose loads LLVM vectorises
-            if cx == 2 and w % 2 == 0:
-                _add_pairs(row, lost, x_sum[ch[0], k[0]], n_sum[ch[0], k[0]], all_sum[ch[0], k[0]],
-                           x_sum[ch[1], k[1]], n_sum[ch[1], k[1]], all_sum[ch[1], k[1]])
-                continue
-            if cx == 4 and w % 4 == 0:
-                for half in range(2):
-                    a, b = 2 * half, 2 * half + 1
-                    _add_pairs_of_four(row, lost, half, x_sum[ch[a], k[a]], n_sum[ch[a], k[a]],
-                                       all_sum[ch[a], k[a]], x_sum[ch[b], k[b]], n_sum[ch[b], k[b]],
-                                       all_sum[ch[b], k[b]])
-                continue
-            for px in range(min(cx, w)):
-                xs, ns, alls = x_sum[ch[px], k[px]], n_sum[ch[px], k[px]], all_sum[ch[px], k[px]]
-                for j in range((w - px + cx - 1) // cx):
-                    keep = zero if lost[j * cx + px] else one
-                    xs[j] += row[j * cx + px] * keep
-                    ns[j] += keep
-                    alls[j] += one
-        flags[:, i, :] = 0
-        for ch in range(3):  # per channel, loops over the cells of the row (which vectorise)
-            s_total, e_total, pilot = scratch[0], scratch[1], scratch[2]
-            weighted, total, full = scratch[3], scratch[4], scratch[5]
-            b = bound[ch, i]
-            scratch[...] = zero
-            b[:] = zero
-            for k in range(exposures.size):
-                e, xs, ns, alls = exposures[k], x_sum[ch, k], n_sum[ch, k], all_sum[ch, k]
-                inverse = one if per_pixel else one / e  # sums of s: x = s / e_k
-                lost_bound = censor / e
-                for j in range(xs.size):
-                    xs[j] *= inverse
-                    s_total[j] += xs[j] * e
-                    e_total[j] += ns[j] * e
-                    b[j] = max(b[j], lost_bound if alls[j] > ns[j] else zero)
-            for j in range(pilot.size):
-                pilot[j] = max(s_total[j] / e_total[j], zero) * gain_inv if e_total[j] > zero else zero
-            for k in range(exposures.size):
-                e, xs, ns, alls = exposures[k], x_sum[ch, k], n_sum[ch, k], all_sum[ch, k]
-                for j in range(xs.size):
-                    weight = e * e / (e * pilot[j] + floor)
-                    weighted[j] += weight * xs[j]
-                    total[j] += weight * ns[j]
-                    full[j] += weight * alls[j]
-            m, n, kp, km = mean[ch, i], info[ch, i], kept[ch, i], weighted_mean[ch, i]
-            for j in range(m.size):
-                ok = total[j] > zero
-                m[j] = weighted[j] / total[j] if ok else zero
-                n[j] = total[j]
-                kp[j] = total[j] / full[j] if ok else zero
-                km[j] = weighted[j] / full[j] if ok else zero
-            clipped, lost = flags[0, i], flags[1, i]
-            for j in range(m.size):
-                some = b[j] > zero
-                clipped[j] |= np.uint8(some and total[j] <= zero)
-                lost[j] |= np.uint8(some)
+    r0, r1 = i * cy, min(i * cy + cy, h)
+    sums[...] = zero
+    for r in range(r0, r1):
+        ch, k, row, lost = channels[r - r0], levels[r - r0], values[r], censored[r]
+        # the cells of common widths spelt out: loops whose loads LLVM vectorises
+        if cx == 2 and w % 2 == 0:
+            _add_pairs(row, lost, x_sum[ch[0], k[0]], n_sum[ch[0], k[0]], all_sum[ch[0], k[0]],
+                       x_sum[ch[1], k[1]], n_sum[ch[1], k[1]], all_sum[ch[1], k[1]])
+            continue
+        if cx == 4 and w % 4 == 0:
+            for half in range(2):
+                a, b = 2 * half, 2 * half + 1
+                _add_pairs_of_four(row, lost, half, x_sum[ch[a], k[a]], n_sum[ch[a], k[a]],
+                                   all_sum[ch[a], k[a]], x_sum[ch[b], k[b]], n_sum[ch[b], k[b]],
+                                   all_sum[ch[b], k[b]])
+            continue
+        for px in range(min(cx, w)):
+            xs, ns, alls = x_sum[ch[px], k[px]], n_sum[ch[px], k[px]], all_sum[ch[px], k[px]]
+            for j in range((w - px + cx - 1) // cx):
+                keep = zero if lost[j * cx + px] else one
+                xs[j] += row[j * cx + px] * keep
+                ns[j] += keep
+                alls[j] += one
+    flags[:, o, :] = 0
+    for ch in range(3):  # per channel, loops over the cells of the row (which vectorise)
+        s_total, e_total, pilot = scratch[0], scratch[1], scratch[2]
+        weighted, total, full = scratch[3], scratch[4], scratch[5]
+        b = bound[ch, o]
+        scratch[...] = zero
+        b[:] = zero
+        for k in range(exposures.size):
+            e, xs, ns, alls = exposures[k], x_sum[ch, k], n_sum[ch, k], all_sum[ch, k]
+            inverse = one if per_pixel else one / e  # sums of s: x = s / e_k
+            lost_bound = censor / e
+            for j in range(xs.size):
+                xs[j] *= inverse
+                s_total[j] += xs[j] * e
+                e_total[j] += ns[j] * e
+                b[j] = max(b[j], lost_bound if alls[j] > ns[j] else zero)
+        for j in range(pilot.size):
+            pilot[j] = max(s_total[j] / e_total[j], zero) * gain_inv if e_total[j] > zero else zero
+        for k in range(exposures.size):
+            e, xs, ns, alls = exposures[k], x_sum[ch, k], n_sum[ch, k], all_sum[ch, k]
+            for j in range(xs.size):
+                weight = e * e / (e * pilot[j] + floor)
+                weighted[j] += weight * xs[j]
+                total[j] += weight * ns[j]
+                full[j] += weight * alls[j]
+        m, n, kp, km = mean[ch, o], info[ch, o], kept[ch, o], weighted_mean[ch, o]
+        for j in range(m.size):
+            ok = total[j] > zero
+            m[j] = weighted[j] / total[j] if ok else zero
+            n[j] = total[j]
+            kp[j] = total[j] / full[j] if ok else zero
+            km[j] = weighted[j] / full[j] if ok else zero
+        clipped, lost = flags[0, o], flags[1, o]
+        for j in range(m.size):
+            some = b[j] > zero
+            clipped[j] |= np.uint8(some and total[j] <= zero)
+            lost[j] |= np.uint8(some)
 
 
 @kernel

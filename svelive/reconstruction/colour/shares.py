@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from svelive.jit import fma32, kernel
-from svelive.reconstruction.colour.cells import CellLayout, _cell_stats, cell_layout
+from svelive.reconstruction.colour.cells import CellLayout, _cell_stats_row, cell_layout
 from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
 from svelive.reconstruction.methods.base import SveInput, binomial_kernel
 
@@ -23,6 +23,9 @@ COARSE_NONE = 1e30
 #: Cell rows of each scratch plane of :func:`_share_pass` (rings: a stage reads rows at most 5 behind the
 #: newest written).
 PASS_ROWS = 8
+#: Cell rows of each ring of the cells' statistics, smoothing and censoring in :func:`_chroma_pass` (at least 4: the
+#: pass reads rows up to 3 behind the newest).
+CELL_ROWS = 4
 #: Cell rows around a cell row that its chroma reads (:func:`partial_chroma`): the smoothing, the centring, the two
 #: 3x3 means and the median read one more each.
 CHROMA_HALO = 5
@@ -49,6 +52,16 @@ class Chroma:
     white: np.ndarray
     shape: tuple[int, int]
 
+    @property
+    def planes(self) -> np.ndarray | None:
+        """float32 (5, Hc, Wc), the one array whose views ``shares`` and ``coarse`` are (:func:`chroma`'s,
+        :func:`partial_chroma`'s, :meth:`fused`'s), or None where they are arrays of their own."""
+        base = self.shares.base
+        if (base is None or base is not self.coarse.base or base.shape != (5, *self.shares.shape[1:])
+                or self.shares.ctypes.data != base.ctypes.data or self.coarse.ctypes.data != base[3].ctypes.data):
+            return None
+        return base
+
     def fused(self, planes: np.ndarray) -> Chroma:
         """The same chroma with a stream's fused shares and coarse luminance, (5, Hc, Wc) planes."""
         return Chroma(planes[:3], planes[3:5], self.layout, self.white, self.shape)
@@ -60,45 +73,53 @@ def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
 
     Each channel's cell means are smoothed over 3x3 cells ([1, 2, 1] / 4 each way, weighted by
     the share of each cell's information its uncensored readings hold, the smallest over the
-    channels: :func:`_smooth_cells`), the censoring and
+    channels: :func:`_smooth_step`), the censoring and
     highlight rules give C_c, which is moved from the centroid of the channel's samples to the
     cells' centres (bilinearly), and the shares are k_c = C_c / L there. The same from each
     cell's own readings moves them where the two differ beyond noise (:func:`_blend_row`), the
     garrote towards the neutral follows (:func:`_shrink_row`), then each channel's median over 3x3
     cells (a cell straddling an edge is an outlier) and the scaling to sum_c n_c k_c = 1: all of
-    it after the white balance in one pass over the cell rows (:func:`_share_pass`).
+    it after the white balance in one pass over the cell rows (:func:`_share_pass`). With ``white`` given, the
+    cells' statistics and smoothing are made in that pass too (:func:`_chroma_pass`), the same values without
+    their planes of the whole frame (which the white balance reads otherwise).
     """
     layout = cell_layout(inp.pattern, inp.cfa)
     (cy, cx), (h, w) = layout.cell, inp.shape
     hc, wc = -(-h // cy), -(-w // cx)
     f32 = np.float32
-    mean, info, kept, weighted, bound = (np.empty((3, hc, wc), f32) for _ in range(5))
-    flags = np.empty((2, hc, wc), np.uint8)
     sensor = inp.sensor
     per_pixel = inp.pattern.pixel_map is not None
-    values = inp.signal / inp.exposure if per_pixel else inp.signal
-    _cell_stats(values, inp.censored, layout.channels, layout.levels, layout.exposures,
-                per_pixel, f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance), f32(sensor.censor_level),
-                mean, info, kept, weighted, bound, flags, np.empty((3, 3, layout.exposures.size, wc), f32),
-                np.empty((6, wc), f32))
+    stats = (inp.signal / inp.exposure if per_pixel else inp.signal, inp.censored, layout.channels, layout.levels,
+             layout.exposures, per_pixel, f32(1.0 / sensor.effective_gain), f32(sensor.floor_variance),
+             f32(sensor.censor_level))
+    stats_scratch = np.empty((3, 3, layout.exposures.size, wc), f32), np.empty((6, wc), f32)
     k = binomial_kernel(3)
     spread = f32(np.sum(k * k) ** 2)  # the sum of the squared weights of the cells' smoothing
-    numerator, denominator = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    _smooth_cells(weighted, kept, mean, k, numerator, denominator, np.empty((4, 3, wc), f32), np.empty(wc, f32))
+    smooth_scratch = np.empty((4, 3, wc), f32), np.empty(wc, f32)
+    planes = np.empty((5, hc, wc), f32)  # (one array: a stream fuses it in place, Chroma.planes)
+    shares, coarse = planes[:3], planes[3:]
+    pass_scratch = (*(np.empty((3, PASS_ROWS, wc), f32) for _ in range(8)), coarse, shares,
+                    np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32), np.empty(wc, f32), np.empty(wc, f32))
+    rows = hc if white is None else CELL_ROWS  # (whole planes, or rings of the last CELL_ROWS cell rows)
+    mean, info, kept, weighted, bound, numerator, denominator = (np.empty((3, rows, wc), f32) for _ in range(7))
+    flags = np.empty((2, rows, wc), np.uint8)
+    if white is not None:  # a stream's partial chroma: the statistics and the smoothing in the share pass's rows
+        white = np.asarray(white, f32)
+        neutral = (white / f32(layout.share @ white)).astype(f32)
+        _chroma_pass(*stats, mean, info, kept, weighted, bound, flags, *stats_scratch, k, numerator, denominator,
+                     *smooth_scratch, np.empty((rows, wc), np.uint8), np.empty(wc, np.uint8), white, layout.share,
+                     neutral, f32(SHARE_FLOOR), spread, _centring_taps(layout), *pass_scratch)
+        return Chroma(shares, coarse, layout, white, (h, w))
+    _cell_pass(*stats, mean, info, kept, weighted, bound, flags, *stats_scratch, k, numerator, denominator,
+               *smooth_scratch)
     box = np.ones((3, 3), np.uint8)  # within 3x3 cells of: a channel with only censored readings, any censored
     clipped, censored = (cv2.dilate(flags[k], box, borderType=cv2.BORDER_REFLECT_101) for k in range(2))
-    if white is None:
-        white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
+    white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
     # the rest in one pass over the cell rows (:func:`_share_pass`): every stage's rows are still in cache when
     # the next reads them, instead of a dozen passes over whole (3, Hc, Wc) planes
     neutral = (white / f32(layout.share @ white)).astype(f32)
-    shares, coarse = np.empty((3, hc, wc), f32), np.empty((2, hc, wc), f32)
-    values, own, smoothed, own_shares, noise, own_noise, residual, deviation = (
-        np.empty((3, PASS_ROWS, wc), f32) for _ in range(8))
     _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, layout.share, neutral,
-                f32(SHARE_FLOOR), spread, _centring_taps(layout), k, values, own, smoothed, own_shares, noise,
-                own_noise, residual, deviation, coarse, shares, np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32),
-                np.empty(wc, f32), np.empty(wc, f32))
+                f32(SHARE_FLOOR), spread, _centring_taps(layout), k, *pass_scratch)
     return Chroma(shares, coarse, layout, white, (h, w))
 
 
@@ -108,27 +129,43 @@ def partial_chroma(inp: SveInput, runs: list[tuple[int, int]], history: np.ndarr
     the cell rows of ``runs`` ([start, stop) cell rows, apart), each run made from a crop of the frame with
     CHROMA_HALO cell rows around it (which its passes read; the same values as the whole frame's chroma with that
     white); the shares and coarse luminance of the other cell rows are ``history``'s (float32 (5, Hc, Wc), a
-    stream's fused chroma: svelive.reconstruction.stream.fuse_chroma)."""
+    stream's fused chroma: svelive.reconstruction.stream.fuse_chroma), in one new array (:attr:`Chroma.planes`)."""
     layout = cell_layout(inp.pattern, inp.cfa)
     cy, h = layout.cell[0], inp.shape[0]
     hc = history.shape[1]
-    shares, coarse = np.empty_like(history[:3]), np.empty_like(history[3:5])
+    planes = np.empty_like(history)
     kept = 0  # (only the cell rows kept are copied: the runs' are written below)
     for a, b in [*runs, (hc, hc)]:
-        shares[:, kept:a], coarse[:, kept:a] = history[:3, kept:a], history[3:5, kept:a]
+        planes[:, kept:a] = history[:, kept:a]
         kept = b
     for a, b in runs:
         lo, hi = max(a - CHROMA_HALO, 0), min(b + CHROMA_HALO, hc)
         part = chroma(inp.crop(slice(lo * cy, min(hi * cy, h))), white)
-        shares[:, a:b] = part.shares[:, a - lo:b - lo]
-        coarse[:, a:b] = part.coarse[:, a - lo:b - lo]
-    return Chroma(shares, coarse, layout, np.asarray(white, np.float32), (h, inp.shape[1]))
+        planes[:3, a:b] = part.shares[:, a - lo:b - lo]
+        planes[3:5, a:b] = part.coarse[:, a - lo:b - lo]
+    return Chroma(planes[:3], planes[3:5], layout, np.asarray(white, np.float32), (h, inp.shape[1]))
 
 
 @kernel
-def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
-    """The sums of the cells' 3x3 smoothing (3, Hc, Wc), in place: every channel of a cell weighted
-    alike, by the smallest share of a channel's information its uncensored readings hold in it.
+def _cell_pass(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor, mean, info,
+               kept, weighted, bound, flags, sums, scratch, k, numerator, denominator, rings, row):
+    """svelive.reconstruction.colour.cells._cell_stats and the cells' smoothing (:func:`_smooth_step`; their
+    arguments in turn) in one pass over the cell rows: each cell row's statistics smoothed along the row while they
+    are in cache, into whole planes (which the white balance reads)."""
+    hc = mean.shape[1]
+    for t in range(hc + 1):
+        if t < hc:
+            _cell_stats_row(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor,
+                            mean, info, kept, weighted, bound, flags, sums, scratch, t, t)
+        _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t, hc)
+
+
+@kernel
+def _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t, hc):
+    """Step ``t`` of the cells' 3x3 smoothing over ``hc`` cell rows (the sums (3, Hc, Wc)): cell row ``t`` along
+    the row, cell row t - 1 across, one row behind; the cells' planes are whole (``hc`` rows) or rings of their
+    last rows (cell row i at i % rows). Every channel of a cell is weighted alike, by the smallest share of a
+    channel's information its uncensored readings hold in it.
 
     Per channel (``kept`` of each) a cell beside a light that clipped some channels gave its
     unclipped channels in full and its clipped ones at the share of their unclipped (darker)
@@ -141,35 +178,34 @@ def _smooth_cells(weighted, kept, mean, k, numerator, denominator, rings, row):
 
     ``numerator`` (out): the smoothing ``k`` (float32 (3,), symmetric) each way, mirrored at the
     edges, of the common weight times ``mean``; ``denominator`` (out): of the common weight (the
-    same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. One pass over the cell
-    rows, the smoothing across rows one row behind the one along them. ``rings`` (4, 3, Wc): the
+    same in each channel's plane), bit for bit OpenCV's ``sepFilter2D``. ``rings`` (4, 3, Wc): the
     last three rows of the pass along rows (numerators, then the weight); ``row`` (Wc,): scratch.
     """
-    hc, wc = kept.shape[1], kept.shape[2]
-    for t in range(hc + 1):
-        if t < hc:
-            common = rings[3, t % 3]  # the weight's row first, smoothed along the row below
+    m, wc = kept.shape[1], kept.shape[2]
+    if t < hc:
+        ti = t % m
+        common = rings[3, t % 3]  # the weight's row first, smoothed along the row below
+        for j in range(wc):
+            row[j] = min(min(kept[0, ti, j], kept[1, ti, j]), kept[2, ti, j])
+        for c in range(3):
+            products, mc = common, mean[c, ti]  # (a scratch row: the ring's slot is written after it)
             for j in range(wc):
-                row[j] = min(min(kept[0, t, j], kept[1, t, j]), kept[2, t, j])
-            for c in range(3):
-                products, m = common, mean[c, t]  # (a scratch row: the ring's slot is written after it)
-                for j in range(wc):
-                    products[j] = row[j] * m[j]
-                _binomial_along(products, k, rings[c, t % 3])
-            _binomial_along(row, k, common)
-        u = t - 1
-        if 0 <= u < hc:
-            up, down = _mirrored(u - 1, hc), _mirrored(u + 1, hc)
-            for c in range(4):
-                _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
-                                 numerator[c, u] if c < 3 else denominator[0, u])
-            d0 = denominator[0, u]
-            denominator[1, u, :] = d0
-            denominator[2, u, :] = d0
-            for j in range(wc):
-                if d0[j] <= 0:  # no weight around: each channel's own readings
-                    for c in range(3):
-                        numerator[c, u, j], denominator[c, u, j] = weighted[c, u, j], kept[c, u, j]
+                products[j] = row[j] * mc[j]
+            _binomial_along(products, k, rings[c, t % 3])
+        _binomial_along(row, k, common)
+    u = t - 1
+    if 0 <= u < hc:
+        up, down, ui = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % m
+        for c in range(4):
+            _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
+                             numerator[c, ui] if c < 3 else denominator[0, ui])
+        d0 = denominator[0, ui]
+        denominator[1, ui, :] = d0
+        denominator[2, ui, :] = d0
+        for j in range(wc):
+            if d0[j] <= 0:  # no weight around: each channel's own readings
+                for c in range(3):
+                    numerator[c, ui, j], denominator[c, ui, j] = weighted[c, ui, j], kept[c, ui, j]
 
 
 @lru_cache(maxsize=16)
@@ -223,48 +259,103 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
     1920x1200, 40 % of the pass); ``rings`` (4, 3, 3, Wc), the last three rows of each filter's pass along
     rows; ``columns`` (3, Wc) (:func:`_median_row`); ``brightest`` and ``lum`` (Wc,).
     """
-    hc, n = out.shape[1], values.shape[1]
-    for t in range(hc + 4):
-        if t < hc:  # the cells' values of row t, and the centring along the row
-            r = t % n
-            _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t, r)
-            _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t, r)
-            for c in range(3):
-                _taps_along(values[c, r], taps[c, 1], rings[0, t % 3, c])
-                _taps_along(own[c, r], taps[c, 1], rings[1, t % 3, c])
-        u = t - 1
-        if 0 <= u < hc:  # centred, the shares of row u, and its residual along the row
-            up, down, r = max(u - 1, 0), min(u + 1, hc - 1), u % n
-            for c in range(3):
-                _taps_across(rings[0, up % 3, c], rings[0, u % 3, c], rings[0, down % 3, c], taps[c, 0],
-                             smoothed[c, r])
-                _taps_across(rings[1, up % 3, c], rings[1, u % 3, c], rings[1, down % 3, c], taps[c, 0],
-                             own_shares[c, r])
-            _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u, r)
-            _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u, r)
-            for c in range(3):
-                _binomial_along(residual[c, r], k, rings[2, u % 3, c])
-        u = t - 2
-        if 0 <= u < hc:  # the residual's 3x3 mean, the blend, and the deviation along the row
-            up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
-            for c in range(3):
-                _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, r])
-            _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, r)
-            for c in range(3):
-                _binomial_along(deviation[c, r], k, rings[3, u % 3, c])
-        u = t - 3
-        if 0 <= u < hc:  # the deviation's 3x3 mean and the garrote
-            up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
-            for c in range(3):
-                _binomial_across(rings[3, up % 3, c], rings[3, u % 3, c], rings[3, down % 3, c], k,
-                                 deviation[c, r])
-            _shrink_row(smoothed, neutral, noise, deviation, r)
-        u = t - 4
-        if 0 <= u < hc:  # the median and the normalisation
-            up, down = max(u - 1, 0), min(u + 1, hc - 1)
-            for c in range(3):
-                _median_row(smoothed[c, up % n], smoothed[c, u % n], smoothed[c, down % n], out[c, u], columns)
-            _normalise_row(out, share, floor, lum, u)
+    for t in range(out.shape[1] + 4):
+        _share_step(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
+                    spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
+                    out, rings, columns, brightest, lum, t)
+
+
+@kernel
+def _share_step(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
+                spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
+                out, rings, columns, brightest, lum, t):
+    """Step ``t`` of :func:`_share_pass` (its stages on cell rows t to t - 4); the cells' statistics, sums and
+    ``censored`` are whole planes or rings of their last rows (cell row i at i % rows: :func:`_chroma_pass`)."""
+    hc, n, m = out.shape[1], values.shape[1], mean.shape[1]
+    if t < hc:  # the cells' values of row t, and the centring along the row
+        r = t % n
+        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t % m, r)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t % m, r)
+        for c in range(3):
+            _taps_along(values[c, r], taps[c, 1], rings[0, t % 3, c])
+            _taps_along(own[c, r], taps[c, 1], rings[1, t % 3, c])
+    u = t - 1
+    if 0 <= u < hc:  # centred, the shares of row u, and its residual along the row
+        up, down, r = max(u - 1, 0), min(u + 1, hc - 1), u % n
+        for c in range(3):
+            _taps_across(rings[0, up % 3, c], rings[0, u % 3, c], rings[0, down % 3, c], taps[c, 0],
+                         smoothed[c, r])
+            _taps_across(rings[1, up % 3, c], rings[1, u % 3, c], rings[1, down % 3, c], taps[c, 0],
+                         own_shares[c, r])
+        _shares_row(smoothed, info, bound, censored, share, neutral, floor, spread, coarse, noise, u, u % m, r)
+        _own_shares_row(own_shares, info, share, neutral, floor, smoothed, own_noise, residual, lum, u % m, r)
+        for c in range(3):
+            _binomial_along(residual[c, r], k, rings[2, u % 3, c])
+    u = t - 2
+    if 0 <= u < hc:  # the residual's 3x3 mean, the blend, and the deviation along the row
+        up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
+        for c in range(3):
+            _binomial_across(rings[2, up % 3, c], rings[2, u % 3, c], rings[2, down % 3, c], k, residual[c, r])
+        _blend_row(smoothed, noise, own_shares, own_noise, residual, neutral, deviation, r)
+        for c in range(3):
+            _binomial_along(deviation[c, r], k, rings[3, u % 3, c])
+    u = t - 3
+    if 0 <= u < hc:  # the deviation's 3x3 mean and the garrote
+        up, down, r = _mirrored(u - 1, hc), _mirrored(u + 1, hc), u % n
+        for c in range(3):
+            _binomial_across(rings[3, up % 3, c], rings[3, u % 3, c], rings[3, down % 3, c], k,
+                             deviation[c, r])
+        _shrink_row(smoothed, neutral, noise, deviation, r)
+    u = t - 4
+    if 0 <= u < hc:  # the median and the normalisation
+        up, down = max(u - 1, 0), min(u + 1, hc - 1)
+        for c in range(3):
+            _median_row(smoothed[c, up % n], smoothed[c, u % n], smoothed[c, down % n], out[c, u], columns)
+        _normalise_row(out, share, floor, lum, u)
+
+
+@kernel
+def _chroma_pass(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor, mean, info,
+                 kept, weighted, bound, flags, sums, scratch, k, numerator, denominator, smooth_rings, smooth_row,
+                 censored, column, white, share, neutral, floor, spread, taps, values, own, smoothed, own_shares, noise,
+                 own_noise, residual, deviation, coarse, out, rings, columns, brightest, lum):
+    """:func:`chroma` with the white balance given (``white``), in one pass over the cell rows: each step the cells'
+    statistics of cell row t (:func:`_cell_stats_row`), their smoothing (:func:`_smooth_step`, row t - 1), the
+    censored cells within 3x3 of row t - 2 (:func:`_dilated_row`, ``column`` its scratch) and :func:`_share_step`
+    t - 1, so that the statistics, the smoothed sums and the censoring are rings of their last :data:`CELL_ROWS`
+    cell rows (``mean`` to ``flags``, ``numerator``, ``denominator``, ``censored``), read while in cache, never
+    planes of the frame. The arguments are those of :func:`_cell_pass` (the first 22), the ring of the censored
+    cells (rows of the censoring's 3x3 dilation) and its scratch, then those of :func:`_share_pass` (``white`` on);
+    bit for bit the chain of the three."""
+    hc = out.shape[1]
+    for t in range(hc + 5):
+        if t < hc:
+            _cell_stats_row(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor,
+                            mean, info, kept, weighted, bound, flags, sums, scratch, t, t % mean.shape[1])
+        _smooth_step(weighted, kept, mean, k, numerator, denominator, smooth_rings, smooth_row, t, hc)
+        if 0 <= t - 2 < hc:
+            _dilated_row(flags[1], t - 2, hc, column, censored[(t - 2) % censored.shape[0]])
+        if t >= 1:
+            _share_step(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral,
+                        floor, spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual,
+                        deviation, coarse, out, rings, columns, brightest, lum, t - 1)
+
+
+@kernel
+def _dilated_row(flags, i, hc, column, out):
+    """out (Wc,) uint8 = the largest of ``flags`` over the 3x3 cells around each cell of cell row ``i`` of ``hc``,
+    mirrored at the edges: row i of OpenCV's ``dilate`` with a 3x3 box and BORDER_REFLECT_101, from a ring of the
+    last cell rows (``flags`` (R, Wc), cell row j at j % R) inside :func:`_chroma_pass`. ``column``: (Wc,) uint8
+    scratch, the largest of each column's three."""
+    m, wc = flags.shape
+    a, b, c = flags[_mirrored(i - 1, hc) % m], flags[i % m], flags[_mirrored(i + 1, hc) % m]
+    for j in range(wc):
+        column[j] = max(max(a[j], b[j]), c[j])
+    for j in range(1, wc - 1):
+        out[j] = max(max(column[j - 1], column[j]), column[j + 1])
+    out[0] = max(column[0], column[_mirrored(1, wc)])
+    if wc > 1:
+        out[wc - 1] = max(column[wc - 1], column[wc - 2])
 
 
 @kernel(inline="always")
@@ -351,10 +442,10 @@ def _sorted3(x, y, z):
 
 
 @kernel
-def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i, r):
+def _shares_row(values, info, bound, censored, share, neutral, floor, spread, coarse, noise, i, g, r):
     """values (3, R, Wc): C_c in, k_c = max(C_c / L, floor) out (a neutral's where L <= 0), in place, for
     cell row ``i``, which is row ``r`` of ``values`` and ``noise`` (rings of cell rows, or whole planes with
-    ``r`` = ``i``) and row ``i`` of the other planes.
+    ``r`` = ``i``), row ``g`` of ``info``, ``bound`` and ``censored`` (the same) and row ``i`` of ``coarse``.
 
     ``coarse`` (2, Hc, Wc): L and its variance sum_c n_c^2 v_c, v_c = spread / info_c the variance
     of C_c (``spread``: the sum of the squared weights of the cells' smoothing; 1 for a cell with
@@ -370,8 +461,8 @@ def _shares_row(values, info, bound, censored, share, neutral, floor, spread, co
         lum_row[j] = share[0] * red[j] + share[1] * green[j] + share[2] * blue[j]
         var[j] = zero
     for c in range(3):
-        k, n, inf, level, weight = values[c, r], noise[c, r], info[c, i], neutral[c], share[c]
-        b = bound[c, i]
+        k, n, inf, level, weight = values[c, r], noise[c, r], info[c, g], neutral[c], share[c]
+        b = bound[c, g]
         for j in range(lum_row.size):
             ok = lum_row[j] > zero
             inverse = one / lum_row[j] if ok else zero
@@ -380,7 +471,7 @@ def _shares_row(values, info, bound, censored, share, neutral, floor, spread, co
             k[j] = kc
             n[j] = min(v * inverse * inverse, none) if ok else none
             var[j] += weight * weight * v
-    lost = censored[i]
+    lost = censored[g]
     for j in range(lum_row.size):
         var[j] = none if lost[j] else min(var[j], none)
 
