@@ -480,9 +480,9 @@ def _wide_direct(weights, signal, exposure, censored, held, offset, ky, kx, bloc
     each window's sums in float64, its readings added row by row (:func:`_window_sums`), then the windows' sums
     added three by three along rows, then down columns, in float32, as :func:`_threefold` adds the box filters'
     (the same additions; yet with WIDE_DIRECT changed, 5 of the 42 bench frames' images change, so the choice of
-    path is part of the result: docs/benchmarks.md, worst89); a pixel one of whose blocks holds a censored reading stops before any sums (found in ``held``,
-    else in its blocks' readings). A row's active pixels are found by base.true_positions (rows without any
-    skipped at a count)."""
+    path is part of the result: docs/benchmarks.md, worst89); a pixel one of whose blocks holds a censored reading
+    stops before any sums (found in ``held``, else in its blocks' readings). A row's active pixels are found by
+    base.true_positions (rows without any skipped at a count)."""
     h, width = weights.shape
     tiny = np.float32(TINY)
     by, bx = ky * blocks, kx * blocks
