@@ -1,7 +1,7 @@
-"""The chroma's one pass over the cell rows (svelive.reconstruction.colour.shares: ``_smooth_cells`` and
-``_share_pass``) against the chain of whole-plane steps with OpenCV's filters it replaced (issue 25, colour
-speed): bit for bit, on every colour layout, bright and dim (clipped and noise-limited), at sizes down to a
-single cell row and column."""
+"""The chroma's passes over the cell rows (svelive.reconstruction.colour.shares: ``_cell_pass`` and ``_share_pass``,
+or ``_chroma_pass`` with the white balance given) against the chain of whole-plane steps with OpenCV's filters
+they replaced (issue 25, colour speed): bit for bit, on every colour layout, bright and dim (clipped and
+noise-limited), at sizes down to a single cell row and column."""
 
 from __future__ import annotations
 
