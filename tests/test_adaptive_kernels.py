@@ -477,7 +477,7 @@ def zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int
         strip_pass._zero_bottom_row(s, at_bottom, r, bottom, window[0] // 2, window[1] // 2, low, everywhere, image[r])
 
 
-@pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5)])
+@pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5), (7, 3)])
 @pytest.mark.parametrize("shape", [(40, 57), (7, 1), (6, 2), (9, 3), (1, 9)])
 def test_zero_where_the_whole_window_sits_at_the_bottom(window, shape):
     """image = 0 exactly where every reading of the window (borders reflect-101) is at the raw range's bottom."""

@@ -430,32 +430,64 @@ def _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, out):
     frame stays black; :func:`nonnegative` would lift it). Row ``r`` of (H, W) ``s``, ``out`` its row of the
     image; tested only if every row of its window holds a reading at the bottom (``at_bottom``: their counts
     per row): the window's rows, then its columns, as vectorised loops (``low`` and ``everywhere``: scratch
-    rows)."""
+    rows), each one pass for windows of 3 or 5 rows and 3 columns; ``out`` is written only if a pixel is 0."""
     h, width = s.shape
     for dy in range(2 * ry + 1):
         if at_bottom[reflect_101(r + dy - ry, h)] == 0:
             return
-    low[:] = True
-    for dy in range(2 * ry + 1):
-        row = s[reflect_101(r + dy - ry, h)]
-        for c in range(width):
-            low[c] &= row[c] <= bottom
+    if ry == 1:  # the window's rows in one loop (a dim frame tests most rows, and few pixels are 0)
+        _low_three(s[reflect_101(r - 1, h)], s[r], s[reflect_101(r + 1, h)], bottom, low)
+    elif ry == 2:
+        _low_five(s[reflect_101(r - 2, h)], s[reflect_101(r - 1, h)], s[r], s[reflect_101(r + 1, h)],
+                  s[reflect_101(r + 2, h)], bottom, low)
+    else:
+        low[:] = True
+        for dy in range(2 * ry + 1):
+            row = s[reflect_101(r + dy - ry, h)]
+            for c in range(width):
+                low[c] &= row[c] <= bottom
+    found = False
     ends = min(rx, width)  # the row's ends, whose windows reflect: [0, ends) and [max(width - rx, ends), width)
     for i in range(ends + width - max(width - rx, ends)):
         c = i if i < ends else max(width - rx, ends) + i - ends
         everywhere[c] = True
         for dx in range(2 * rx + 1):
             everywhere[c] &= low[reflect_101(c + dx - rx, width)]
+        found |= everywhere[c]
     inner = width - 2 * rx
     if inner > 0:
         middle = everywhere[rx:rx + inner]
-        middle[:] = True
-        for dx in range(2 * rx + 1):
-            shifted = low[dx:dx + inner]
+        if rx == 1:
+            left, centre, right = low[:inner], low[1:1 + inner], low[2:2 + inner]
             for i in range(inner):
-                middle[i] &= shifted[i]
+                both = left[i] & centre[i] & right[i]
+                middle[i] = both
+                found |= both
+        else:
+            middle[:] = True
+            for dx in range(2 * rx + 1):
+                shifted = low[dx:dx + inner]
+                for i in range(inner):
+                    middle[i] &= shifted[i]
+            found |= count_true(middle) > 0
+    if not found:
+        return
     for c in range(width):
         out[c] = np.float32(0.0) if everywhere[c] else out[c]
+
+
+@kernel
+def _low_three(a, b, c, bottom, low):
+    """low = a, b and c (rows) all <= ``bottom``."""
+    for i in range(low.size):
+        low[i] = (a[i] <= bottom) & (b[i] <= bottom) & (c[i] <= bottom)
+
+
+@kernel
+def _low_five(a, b, c, d, f, bottom, low):
+    """low = a, b, c, d and f (rows) all <= ``bottom``."""
+    for i in range(low.size):
+        low[i] = (a[i] <= bottom) & (b[i] <= bottom) & (c[i] <= bottom) & (d[i] <= bottom) & (f[i] <= bottom)
 
 
 @lru_cache(maxsize=16)
