@@ -11,8 +11,8 @@ from svelive import Pattern, Sensor, simulate
 from svelive.jit import flat
 from svelive.reconstruction.methods import adaptive
 from svelive.reconstruction.methods.adaptive import censoring, evidence, fallback, parameters, posterior, strip_pass
-from svelive.reconstruction.methods.base import (censored_lower_bound, fill_lower_bounds, reflect_101, smooth,
-                                                  true_positions)
+from svelive.reconstruction.methods.base import (binomial_kernel, censored_lower_bound, fill_lower_bounds, reflect_101,
+                                                  smooth, true_positions)
 from svelive.reconstruction.input import prepare
 from svelive.reconstruction.single import run_method
 
@@ -477,7 +477,7 @@ def zero_at_the_bottom(s: np.ndarray, bottom: np.float32, window: tuple[int, int
         strip_pass._zero_bottom_row(s, at_bottom, r, bottom, window[0] // 2, window[1] // 2, low, everywhere, image[r])
 
 
-@pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5)])
+@pytest.mark.parametrize("window", [(3, 3), (5, 3), (3, 5), (7, 3)])
 @pytest.mark.parametrize("shape", [(40, 57), (7, 1), (6, 2), (9, 3), (1, 9)])
 def test_zero_where_the_whole_window_sits_at_the_bottom(window, shape):
     """image = 0 exactly where every reading of the window (borders reflect-101) is at the raw range's bottom."""
@@ -721,6 +721,23 @@ def _inputs(pattern, shape, seed):
     return inputs
 
 
+@pytest.mark.parametrize("window", strip_pass.SHARED_SUMS)
+@pytest.mark.parametrize("shape", [(40, 67), (5, 1920), (2, 3), (1, 1)])
+def test_shared_sums_are_the_pass_filters_bit_for_bit(window, shape):
+    """On the windows of SHARED_SUMS, OpenCV's sums (base.smooth, which makes the pattern's cached exposure sums)
+    equal the pass's own row and column filters bit for bit on any float32 values, at the borders too."""
+    ky, kx = binomial_kernel(window[0]), binomial_kernel(window[1])
+    values = np.random.default_rng(shape[1]).uniform(0.01, 300, shape).astype(np.float32)
+    rows = np.empty_like(values)
+    for r in range(shape[0]):
+        strip_pass._row_filter(values[r], kx, rows[r])
+    got, taps = np.empty_like(values), np.empty(ky.size, np.int64)
+    for r in range(shape[0]):
+        strip_pass._window_rows(r, shape[0], shape[0], taps)
+        strip_pass._column_filter(rows, taps, ky, got[r])
+    np.testing.assert_array_equal(got, smooth(values, ky, kx))
+
+
 @pytest.mark.parametrize("pattern", ["1,4/16,64", "1/1/8/8", "1,2,4,8/16,32,64,1", "1/2/4/8/16/32"])
 @pytest.mark.parametrize("shape", [(300, 67), (130, 1), (7, 33), (3, 5), (2, 2), (13, 4)])
 def test_fused_pass_equals_the_separate_passes(pattern, shape):
@@ -729,7 +746,7 @@ def test_fused_pass_equals_the_separate_passes(pattern, shape):
     kept, the halo's reflected borders at the strip's ends), odd and tiny widths and heights: bit for bit where
     OpenCV's sums are computed in the same order (3-tap rows, 3- or 5-tap columns), else within float32 rounding."""
     ky, kx = parameters.kernels(Pattern.parse(pattern).shape)
-    exact = len(kx) == 3 and len(ky) in (3, 5)
+    exact = (len(ky), len(kx)) in strip_pass.SHARED_SUMS
     z2 = np.float32(parameters.CONTRAST_SIGMA**2)
     checked = {"strips": 0, "censored": 0, "bottom": 0, "candidates": 0}
     for inp in _inputs(pattern, shape, seed=shape[0] + 7 * shape[1]):

@@ -112,7 +112,7 @@ from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, 
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, kernels
 from svelive.reconstruction.methods.adaptive.posterior import POSTERIOR_HIGH, posterior_polynomial
 from svelive.reconstruction.methods.adaptive.strip_pass import (
-    PassNoise, PassOutputs, PassReadings, PassSettings, PassWindow, fused_pass, pattern_exposure_sum)
+    SHARED_SUMS, PassNoise, PassOutputs, PassReadings, PassSettings, PassWindow, fused_pass, pattern_exposure_sum)
 from svelive.reconstruction.methods.base import Estimate, SveInput, fill_lower_bounds, map_on, window_kernels
 
 
@@ -274,7 +274,9 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     e, censored = inp.exposure, inp.censored
     flagged = bool(censored.any())
     exposure_sum = np.empty((0, 0), f32)  # computed in the pass
-    if not (flagged or inp.folded):  # the pattern's, the same for every strip (a folded input's vary)
+    # the pattern's, the same for every strip (a folded input's vary); with censored readings, where they are the
+    # pass's own sums (it reads them only in windows without one)
+    if not inp.folded and (not flagged or (len(ky), len(kx)) in SHARED_SUMS):
         cached, first_tile = pattern_exposure_sum(inp.pattern, shape)
         if np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):  # the pattern's phase
             exposure_sum = cached

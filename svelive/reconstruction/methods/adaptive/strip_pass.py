@@ -26,7 +26,9 @@ class PassReadings(NamedTuple):
         every_row: bool, w, wn and x on every row of the strip (the censored step's per-level sums read them
             all, censoring.censored_way), else on the rows the stages after step 1 read.
         exposure_sum: float32 (H, W), the window sums of ``exposure`` (the pattern's, cached), or of
-            no rows: computed (of the uncensored exposures) in the pass.
+            no rows: computed (of the uncensored exposures) in the pass. Where ``flagged``, read only at rows whose
+            window holds no censored reading (the others' are computed), and given only where they are the pass's
+            own sums bit for bit (SHARED_SUMS).
     """
 
     signal: np.ndarray
@@ -137,7 +139,9 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
     square_sums = np.empty((2, width if windowed else 0), np.float32)
     signal_rows, exposure_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     lowest_rows = np.empty((depth if flagged else 0, width), np.float32)
-    held_rows = np.zeros(depth, np.int64)  # the censored readings of each row in the rings
+    held_rows = np.zeros(h if flagged else 0, np.int64)  # the censored readings of each row
+    for r in range(h if flagged else 0):
+        held_rows[r] = count_true(censored[r])
     weight_rows, weighted_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     excess_rows, q_rows = np.empty((depth, width), np.float32), np.empty((depth, width), np.float32)
     # m and v_r = v_p + v_m from step 2 until step 3 reads them, ry rows later
@@ -165,18 +169,21 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
         r = i
         if first0 <= r < last0:  # row filters of the readings and exposures (uncensored ones)
             if flagged:
-                held = count_true(censored[r])  # the row's censored readings: without any, the row as it is
-                held_rows[r % depth] = held
+                held = held_rows[r]  # the row's censored readings: without any, the row as it is
+                # the kept exposures' sums and the least exposures are read only by windows holding a censored
+                # reading (step 1; elsewhere the pattern's sums where given): those of the rows 2 ry around
+                near = _held_near(held_rows, r, 2 * ry)
                 _row_filter(_uncensored(s[r], censored[r], held, a), kx, signal_rows[r % depth])
                 kept = _uncensored(e[r], censored[r], held, a)
-                _row_filter(kept, kx, exposure_rows[r % depth])
+                if near or not given:
+                    _row_filter(kept, kx, exposure_rows[r % depth])
                 if windowed:
                     _row_filter(kept, kx2, square_rows[0, r % depth])
                     _kept(censored[r], b)
                     _row_filter(b, kx2, square_rows[1, r % depth])
                 if held > 0:
                     _row_least(e[r], censored[r], kx.size // 2, a, lowest_rows[r % depth])
-                else:
+                elif near:
                     lowest_rows[r % depth] = np.float32(BIG)
             else:
                 _row_filter(s[r], kx, signal_rows[r % depth])
@@ -194,13 +201,14 @@ def fused_pass(readings, first, last, noise, settings, outputs, motion_window):
                 signal_column = _summed(sums)
             else:
                 signal_column = _column(signal_rows, rows, ky, sums)
-            if given:
+            held_in = flagged and _held_near(held_rows, r, ry)  # a censored reading in the window's rows
+            if given and not held_in:  # every exposure of the window kept: the pattern's sums
                 exposure_row = exposure_sum[r]
             else:
                 _column_filter(exposure_rows, rows, ky, exposure_scratch)
                 exposure_row = exposure_scratch
             if flagged:
-                if _held_in(held_rows, rows):
+                if held_in:
                     rows_min(lowest_rows, rows, lowest)
                 else:  # no censored reading in the window's rows
                     lowest[:] = np.float32(BIG)
@@ -250,10 +258,11 @@ def _uncensored(values, censored, held, out):
 
 
 @kernel
-def _held_in(held_rows, rows):
-    """Whether any of the ring slots ``rows`` holds a row with a censored reading (``held_rows``: their counts)."""
-    for slot in rows:
-        if held_rows[slot] > 0:
+def _held_near(held_rows, r, reach):
+    """Whether a row within ``reach`` of row ``r`` holds a censored reading (``held_rows``: each row's count); the
+    rows a window of that half height reads at the array's ends (reflect-101) lie among them."""
+    for row in range(max(r - reach, 0), min(r + reach + 1, held_rows.size)):
+        if held_rows[row] > 0:
             return True
     return False
 
@@ -430,32 +439,71 @@ def _zero_bottom_row(s, at_bottom, r, bottom, ry, rx, low, everywhere, out):
     frame stays black; :func:`nonnegative` would lift it). Row ``r`` of (H, W) ``s``, ``out`` its row of the
     image; tested only if every row of its window holds a reading at the bottom (``at_bottom``: their counts
     per row): the window's rows, then its columns, as vectorised loops (``low`` and ``everywhere``: scratch
-    rows)."""
+    rows), each one pass for windows of 3 or 5 rows and 3 columns; ``out`` is written only if a pixel is 0."""
     h, width = s.shape
     for dy in range(2 * ry + 1):
         if at_bottom[reflect_101(r + dy - ry, h)] == 0:
             return
-    low[:] = True
-    for dy in range(2 * ry + 1):
-        row = s[reflect_101(r + dy - ry, h)]
-        for c in range(width):
-            low[c] &= row[c] <= bottom
+    if ry == 1:  # the window's rows in one loop (a dim frame tests most rows, and few pixels are 0)
+        _low_three(s[reflect_101(r - 1, h)], s[r], s[reflect_101(r + 1, h)], bottom, low)
+    elif ry == 2:
+        _low_five(s[reflect_101(r - 2, h)], s[reflect_101(r - 1, h)], s[r], s[reflect_101(r + 1, h)],
+                  s[reflect_101(r + 2, h)], bottom, low)
+    else:
+        low[:] = True
+        for dy in range(2 * ry + 1):
+            row = s[reflect_101(r + dy - ry, h)]
+            for c in range(width):
+                low[c] &= row[c] <= bottom
+    found = False
     ends = min(rx, width)  # the row's ends, whose windows reflect: [0, ends) and [max(width - rx, ends), width)
     for i in range(ends + width - max(width - rx, ends)):
         c = i if i < ends else max(width - rx, ends) + i - ends
         everywhere[c] = True
         for dx in range(2 * rx + 1):
             everywhere[c] &= low[reflect_101(c + dx - rx, width)]
+        found |= everywhere[c]
     inner = width - 2 * rx
     if inner > 0:
         middle = everywhere[rx:rx + inner]
-        middle[:] = True
-        for dx in range(2 * rx + 1):
-            shifted = low[dx:dx + inner]
+        if rx == 1:
+            left, centre, right = low[:inner], low[1:1 + inner], low[2:2 + inner]
             for i in range(inner):
-                middle[i] &= shifted[i]
+                both = left[i] & centre[i] & right[i]
+                middle[i] = both
+                found |= both
+        else:
+            middle[:] = True
+            for dx in range(2 * rx + 1):
+                shifted = low[dx:dx + inner]
+                for i in range(inner):
+                    middle[i] &= shifted[i]
+            found |= count_true(middle) > 0
+    if not found:
+        return
     for c in range(width):
         out[c] = np.float32(0.0) if everywhere[c] else out[c]
+
+
+@kernel
+def _low_three(a, b, c, bottom, low):
+    """low = a, b and c (rows) all <= ``bottom``."""
+    for i in range(low.size):
+        low[i] = (a[i] <= bottom) & (b[i] <= bottom) & (c[i] <= bottom)
+
+
+@kernel
+def _low_five(a, b, c, d, f, bottom, low):
+    """low = a, b, c, d and f (rows) all <= ``bottom``."""
+    for i in range(low.size):
+        low[i] = (a[i] <= bottom) & (b[i] <= bottom) & (c[i] <= bottom) & (d[i] <= bottom) & (f[i] <= bottom)
+
+
+#: The windows (rows, columns) whose OpenCV sums (base.smooth, which makes :func:`pattern_exposure_sum`) the pass's
+#: own row and column filters repeat bit for bit on any float32 values (tests/test_adaptive_kernels.py), so that a
+#: strip holding censored readings may read the pattern's sums where its window holds none (a 7-row column or a
+#: 5-column row filter of OpenCV's rounds otherwise).
+SHARED_SUMS = ((3, 3), (5, 3))
 
 
 @lru_cache(maxsize=16)
