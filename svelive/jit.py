@@ -15,9 +15,10 @@ Rules for a kernel (what makes LLVM vectorise it, and keeps it thread-safe):
   float64 literal turns the whole chain into float64;
 - no raising: the numpy error model gives inf/nan on division by zero, as numpy does.
 
-The first call of a kernel compiles it (about a second); ``cache=True`` keeps the
-machine code on disk (``__pycache__`` or ``$NUMBA_CACHE_DIR``), so later
-processes load it in milliseconds. Compiling leaves the process holding LLVM's
+The first call of a kernel compiles it (about a second); numba's disk cache keeps the
+machine code (``__pycache__`` or ``$NUMBA_CACHE_DIR``), so later processes load it in
+milliseconds. A kernel's cache entry holds for the sources of the whole package, not its own
+file alone (:func:`kernel`): any change to a svelive source compiles every kernel again. Compiling leaves the process holding LLVM's
 memory for good (the live service's monochrome server: about 130 MB more
 resident after one source file's kernels compiled in it, about 500 MB after it
 compiled every kernel), so a long-running process compiles in a child first
@@ -27,6 +28,7 @@ compiled every kernel), so a long-running process compiles in a child first
 from __future__ import annotations
 
 import functools
+import hashlib
 import importlib
 import os
 import subprocess
@@ -39,10 +41,64 @@ from functools import partial
 import numba
 import numpy as np
 from numba import types
+from numba.core import caching
 from numba.extending import intrinsic
 
-#: Decorator of every compiled kernel: no GIL, cached on disk, numpy's division semantics.
-kernel = partial(numba.njit, nogil=True, cache=True, error_model="numpy")
+@functools.cache
+def package_digest(root: str = os.path.dirname(os.path.abspath(__file__))) -> bytes:
+    """SHA-256 of every ``.py`` file under ``root`` (svelive's package directory), their paths relative to it
+    and their contents, in sorted order: what every kernel's cache entry is valid for (:func:`kernel`)."""
+    digest = hashlib.sha256()
+    for folder, dirs, files in sorted(os.walk(root)):
+        dirs.sort()
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(folder, name)
+                digest.update(os.path.relpath(path, root).encode())
+                with open(path, "rb") as source:
+                    digest.update(hashlib.sha256(source.read()).digest())
+    return digest.digest()
+
+
+class _PackageStamp:
+    """A numba cache locator's mixin: the source stamp of a kernel's cache index is its own file's and
+    :func:`package_digest`'s. numba's own stamp covers only the file that defines the kernel, but a kernel
+    compiles in the kernels it calls from other modules, so a checkout updated in part (``git pull``) would
+    otherwise load a kernel built from the old code of the ones it calls."""
+
+    def get_source_stamp(self) -> tuple:
+        return super().get_source_stamp(), package_digest()
+
+
+class _UserProvidedLocator(_PackageStamp, caching.UserProvidedCacheLocator):
+    pass
+
+
+class _InTreeLocator(_PackageStamp, caching.InTreeCacheLocator):
+    pass
+
+
+class _UserWideLocator(_PackageStamp, caching.UserWideCacheLocator):
+    pass
+
+
+class _KernelCacheImpl(caching.CompileResultCacheImpl):
+    _locator_classes = [_UserProvidedLocator, _InTreeLocator, _UserWideLocator]
+
+
+class _KernelCache(caching.FunctionCache):
+    _impl_class = _KernelCacheImpl
+
+
+def kernel(function: Callable | None = None, **options) -> Callable:
+    """Decorator of every compiled kernel (``@kernel`` or ``@kernel(inline="always")``, options of
+    ``numba.njit``): no GIL, numpy's division semantics, and cached on disk (numba's ``cache=True``, with the
+    index stamped by the whole package: :class:`_PackageStamp`)."""
+    if function is None:
+        return partial(kernel, **options)
+    dispatcher = numba.njit(nogil=True, error_model="numpy", **options)(function)
+    dispatcher._cache = _KernelCache(dispatcher.py_func)  # what numba's enable_caching does, with our locators
+    return dispatcher
 
 
 def compile_elsewhere(warm: Callable[[], None]) -> str | None:
