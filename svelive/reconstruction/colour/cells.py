@@ -115,6 +115,13 @@ def _cell_stats_row(values, censored, channels, levels, exposures, per_pixel, ga
                 ns[j] += keep
                 alls[j] += one
     flags[:, o, :] = 0
+    if exposures.size == 2:  # (dual-ISO, quad- and column-Bayer: one loop a channel, 1.1 ms less a 1920x1200 frame)
+        for ch in range(3):
+            _channel_two_levels(x_sum[ch, 0], n_sum[ch, 0], all_sum[ch, 0], x_sum[ch, 1], n_sum[ch, 1],
+                                all_sum[ch, 1], exposures[0], exposures[1], per_pixel, gain_inv, floor, censor,
+                                mean[ch, o], info[ch, o], kept[ch, o], weighted_mean[ch, o], bound[ch, o], flags[0, o],
+                                flags[1, o])
+        return
     for ch in range(3):  # per channel, loops over the cells of the row (which vectorise)
         s_total, e_total, pilot = scratch[0], scratch[1], scratch[2]
         weighted, total, full = scratch[3], scratch[4], scratch[5]
@@ -151,6 +158,45 @@ def _cell_stats_row(values, censored, channels, levels, exposures, per_pixel, ga
             some = b[j] > zero
             clipped[j] |= np.uint8(some and total[j] <= zero)
             lost[j] |= np.uint8(some)
+
+
+@kernel
+def _channel_two_levels(xs0, ns0, alls0, xs1, ns1, alls1, e0, e1, per_pixel, gain_inv, floor, censor, m, n, kp, km, b,
+                        clipped, lost):
+    """:func:`_cell_stats_row`'s per-cell stage for one channel of a pattern of two exposure levels ``e0`` and ``e1``,
+    from the sums of each level's readings (values ``xs``, uncensored ``ns``, all ``alls``; float32 (Wc,) each) into
+    the cell row's ``m`` (mean), ``n`` (info), ``kp`` (kept), ``km`` (weighted mean), ``b`` (bound) and the flags'
+    rows ``clipped`` and ``lost`` (uint8, or-ed into): the general loops' operations in their order, in one loop
+    whose values stay in registers instead of six scratch rows written and read again per level."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    inverse0 = one if per_pixel else one / e0
+    inverse1 = one if per_pixel else one / e1
+    bound0, bound1 = censor / e0, censor / e1
+    for j in range(m.size):
+        x0, x1 = xs0[j] * inverse0, xs1[j] * inverse1
+        s_total = zero + x0 * e0
+        s_total += x1 * e1
+        e_total = zero + ns0[j] * e0
+        e_total += ns1[j] * e1
+        lb = max(max(zero, bound0 if alls0[j] > ns0[j] else zero), bound1 if alls1[j] > ns1[j] else zero)
+        pilot = max(s_total / e_total, zero) * gain_inv if e_total > zero else zero
+        w0 = e0 * e0 / (e0 * pilot + floor)
+        w1 = e1 * e1 / (e1 * pilot + floor)
+        weighted = zero + w0 * x0
+        weighted += w1 * x1
+        total = zero + w0 * ns0[j]
+        total += w1 * ns1[j]
+        full = zero + w0 * alls0[j]
+        full += w1 * alls1[j]
+        ok = total > zero
+        m[j] = weighted / total if ok else zero
+        n[j] = total
+        kp[j] = total / full if ok else zero
+        km[j] = weighted / full if ok else zero
+        b[j] = lb
+        some = lb > zero
+        clipped[j] |= np.uint8(some and total <= zero)
+        lost[j] |= np.uint8(some)
 
 
 @kernel
