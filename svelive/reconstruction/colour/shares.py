@@ -201,9 +201,10 @@ def _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t,
         for c in range(4):
             _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
                              numerator[c, ui] if c < 3 else denominator[0, ui])
-        d0 = denominator[0, ui]
-        denominator[1, ui, :] = d0
-        denominator[2, ui, :] = d0
+        d0, d1, d2 = denominator[0, ui], denominator[1, ui], denominator[2, ui]
+        for j in range(wc):  # (numba's slice assignment copies one element a step: 5 times this loop's time)
+            d1[j] = d0[j]
+            d2[j] = d0[j]
         for j in range(wc):
             if d0[j] <= 0:  # no weight around: each channel's own readings
                 for c in range(3):
