@@ -53,10 +53,10 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     clipped, censored = (cv2.dilate(flags[i], box, borderType=cv2.BORDER_REFLECT_101) for i in range(2))
     white = white_balance(numerator, denominator, info, clipped, layout.share, spread)
     values, own = np.empty((3, hc, wc), f32), np.empty((3, hc, wc), f32)
-    brightest = np.empty(wc, f32)
+    scratch = np.empty(wc, f32)
     for i in range(hc):
-        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, i, i)
-        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, i, i)
+        _cell_values_row(numerator, denominator, mean, info, bound, white, values, i, i)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, i, i)
 
     def centred(planes: np.ndarray) -> np.ndarray:
         out = np.empty_like(planes)
@@ -72,7 +72,7 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         S._shares_row(shares, info, bound, censored, layout.share, neutral, f32(S.SHARE_FLOOR), spread, coarse,
                       noise, i, i, i)
         S._own_shares_row(own_shares, info, layout.share, neutral, f32(S.SHARE_FLOOR), shares, own_noise, residual,
-                          brightest, i, i)
+                          scratch, i, i)
     for c in range(3):
         cv2.sepFilter2D(residual[c], cv2.CV_32F, k, k, dst=residual[c], borderType=cv2.BORDER_REFLECT_101)
     for i in range(hc):
@@ -84,7 +84,7 @@ def _whole_planes(inp: SveInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     for c in range(3):
         cv2.medianBlur(shares[c], 3, dst=shares[c])
     for i in range(hc):
-        S._normalise_row(shares, layout.share, f32(S.SHARE_FLOOR), brightest, i)
+        S._normalise_row(shares, layout.share, f32(S.SHARE_FLOOR), scratch, i)
     return shares, coarse, white
 
 
@@ -192,7 +192,7 @@ def test_the_cells_values_follow_the_highlight_rules_on_random_planes():
         info[:, 2, 0], bound[:, 2, 0] = 1, 0  # every channel measured ...
         info[1, 2, 0], bound[1, 2, 0] = 0, 3  # ... but green, clipped: raised to the others' white level
         white = np.array([1.7, 1.0, 0.6], f32)
-        out, brightest = np.empty((3, 2, wc), f32), np.empty(wc, f32)
+        out = np.empty((3, 2, wc), f32)
         smoothed = np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1), f32(0))
         value = np.maximum(np.where(bound > 0, np.maximum(mean, bound), smoothed), f32(0))
         measured = (info > 0) | ((bound <= 0) & (denominator > 0))
@@ -203,7 +203,7 @@ def test_the_cells_values_follow_the_highlight_rules_on_random_planes():
         expected = np.where(top < 0, neutral, expected)
         assert top[1, -1] < 0 and not measured[1, 2, 0] and measured[[0, 2], 2, 0].all()
         for i in range(4):
-            _cell_values_row(numerator, denominator, mean, info, bound, white, out, brightest, i, i % 2)
+            _cell_values_row(numerator, denominator, mean, info, bound, white, out, i, i % 2)
             np.testing.assert_array_equal(out[:, i % 2], expected[:, i])
 
 

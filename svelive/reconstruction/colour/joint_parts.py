@@ -73,12 +73,16 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
     luminance, variance = est.image, est.variance
-    if variance is not None and refined:
+    image = None
+    if variance is not None and refined:  # with rgb, coloured in the refinement's pass (folding.colourise's values)
         refined_variance = np.empty_like(variance)
+        image = np.empty((*luminance.shape, 3), np.float32) if rgb else None
         luminance = refine(luminance, variance, inter, ch.layout.cell, out_variance=refined_variance,
-                           new_variance=True, workers=workers)
+                           new_variance=True, rgb=image, workers=workers)
         variance = refined_variance
-    image = colourise(luminance, inter, workers) if rgb else luminance
+    elif rgb:
+        image = colourise(luminance, inter, workers)
+    image = luminance if image is None else image
     if rgb:
         luminance = luminance.copy() if luminance is est.image else luminance  # (the method's own array stays)
         if lattice:

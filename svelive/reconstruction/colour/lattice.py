@@ -76,13 +76,16 @@ def lattice_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, shar
     f32 = np.float32
     flags = flagged_cells(shares)
     (cy, cx), exposures = layout.cell, layout.exposures
-    # frame rows whose cells' row is flagged anywhere (the kernel tests each pixel's cell column)
-    rows = np.repeat(flags.any(axis=1), cy)[:h].astype(np.uint8)
+    wc = flags.shape[1]
+    # the flagged cells' flat indices, row by row: the kernel visits them alone (a scan of every cell of the rows
+    # with one flagged was most of its time where a few cells of most rows are flagged)
+    cells = np.flatnonzero(flags.view(bool))  # (0 or 1: as bool, numpy finds them 7 times faster)
     floor = f32(np.sqrt(inp.sensor.floor_variance) / float(np.max(exposures)))
     weights = np.asarray(layout.share, f32)
 
     def piece(part: slice) -> None:
-        _lattice(rgb, luminance, inp.channels, inp.censored, flags, rows, cy, cx, weights, floor, f32(F_LOW),
+        lo, hi = np.searchsorted(cells, [part.start // cy * wc, -(-part.stop // cy) * wc])
+        _lattice(rgb, luminance, inp.channels, inp.censored, cells[lo:hi], wc, cy, cx, weights, floor, f32(F_LOW),
                  f32(F_HIGH), part.start, part.stop)
 
     map_on(workers, piece, _pieces(h))
@@ -90,27 +93,25 @@ def lattice_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, shar
 
 
 @kernel
-def _lattice(rgb, luminance, channels, censored, flags, rows, cy, cx, share, floor, low, high, first, last):
+def _lattice(rgb, luminance, channels, censored, cells, wc, cy, cx, share, floor, low, high, first, last):
     """Rows ``first`` to ``last`` (the frame's outer rows and columns excepted) of
-    :func:`lattice_channels`, in place: at each pixel of a flagged cell (``flags``, on a row of
-    ``rows``) whose own channel's share of its largest, f, is below ``high``, each other channel c
-    moves by w = min((high - f) / (high - low), 1) towards the geometric mean of V + floor over the
-    pixels of channel c in its 3x3, minus ``floor`` (V their own channel's value; on a Bayer tile a
-    channel's pixels in a 3x3 are all at its sides or all at its corners, so this is the log-bilinear
-    interpolation; products of four HDR values in float64), and the luminance is sum_c n_c RGB_c.
+    :func:`lattice_channels`, in place: at each pixel of a flagged cell (``cells``: their flat indices
+    into the (Hc, ``wc``) cells, in any order) whose own channel's share of its largest, f, is below
+    ``high``, each other channel c moves by w = min((high - f) / (high - low), 1) towards the geometric
+    mean of V + floor over the pixels of channel c in its 3x3, minus ``floor`` (V their own channel's
+    value; on a Bayer tile a channel's pixels in a 3x3 are all at its sides or all at its corners, so
+    this is the log-bilinear interpolation; products of four HDR values in float64), and the luminance
+    is sum_c n_c RGB_c.
     Not where the pixel or one of its 3x3 is ``censored`` (a bound: the cells' highlight rules stay).
     Only the pixels' own channels are read around a pixel, which no pixel writes (rows of other
     threads' pieces included)."""
     h, w = luminance.shape
     zero, one = np.float32(0.0), np.float32(1.0)
     span = high - low
-    for r in range(max(first, 1), min(last, h - 1)):
-        if rows[r] == 0:
-            continue
-        flag, ch, up = flags[r // cy], channels[r], channels[r - 1]
-        for j in range(flag.size):
-            if flag[j] == 0:
-                continue
+    for index in range(cells.size):
+        i, j = cells[index] // wc, cells[index] % wc
+        for r in range(max(i * cy, first, 1), min(i * cy + cy, last, h - 1)):
+            ch, up = channels[r], channels[r - 1]
             for x in range(max(j * cx, 1), min(j * cx + cx, w - 1)):
                 own = ch[x]
                 top = max(rgb[r, x, 0], max(rgb[r, x, 1], rgb[r, x, 2]))

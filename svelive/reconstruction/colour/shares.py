@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 
 from svelive.jit import fma32, kernel
+# (numba's disk cache knows a kernel by its own file: the kernels here that call cells.py's and highlights.py's row
+# kernels keep their old machine code after those files change until this one does, or the cache is cleared)
 from svelive.reconstruction.colour.cells import CellLayout, _cell_stats_row, cell_layout
 from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
 from svelive.reconstruction.methods.base import SveInput, binomial_kernel
@@ -99,7 +101,7 @@ def chroma(inp: SveInput, white: np.ndarray | None = None) -> Chroma:
     planes = np.empty((5, hc, wc), f32)  # (one array: a stream fuses it in place, Chroma.planes)
     shares, coarse = planes[:3], planes[3:]
     pass_scratch = (*(np.empty((3, PASS_ROWS, wc), f32) for _ in range(8)), coarse, shares,
-                    np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32), np.empty(wc, f32), np.empty(wc, f32))
+                    np.empty((4, 3, 3, wc), f32), np.empty((3, wc), f32), np.empty(wc, f32))
     rows = hc if white is None else CELL_ROWS  # (whole planes, or rings of the last CELL_ROWS cell rows)
     mean, info, kept, weighted, bound, numerator, denominator = (np.empty((3, rows, wc), f32) for _ in range(7))
     flags = np.empty((2, rows, wc), np.uint8)
@@ -199,9 +201,10 @@ def _smooth_step(weighted, kept, mean, k, numerator, denominator, rings, row, t,
         for c in range(4):
             _binomial_across(rings[c, up % 3], rings[c, u % 3], rings[c, down % 3], k,
                              numerator[c, ui] if c < 3 else denominator[0, ui])
-        d0 = denominator[0, ui]
-        denominator[1, ui, :] = d0
-        denominator[2, ui, :] = d0
+        d0, d1, d2 = denominator[0, ui], denominator[1, ui], denominator[2, ui]
+        for j in range(wc):  # (numba's slice assignment copies one element a step: 5 times this loop's time)
+            d1[j] = d0[j]
+            d2[j] = d0[j]
         for j in range(wc):
             if d0[j] <= 0:  # no weight around: each channel's own readings
                 for c in range(3):
@@ -238,7 +241,7 @@ def _centring_taps(layout: CellLayout) -> np.ndarray:
 @kernel
 def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
                 spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
-                out, rings, columns, brightest, lum):
+                out, rings, columns, lum):
     """Step (a) after the cells' smoothing and the white balance, in one pass over the cell rows: each
     row's values (:func:`_cell_values_row`, smoothed and own), moved to the cells' centres (``taps``,
     :func:`_centring_taps`), their shares and coarse luminance (:func:`_shares_row`,
@@ -257,25 +260,25 @@ def _share_pass(numerator, denominator, weighted, kept, mean, info, bound, censo
     ``noise``, ``own_noise``, ``residual``, ``deviation`` (3, R, Wc), rings of the last R cell rows (cell
     row u at u % R; R at least 6, :data:`PASS_ROWS`: whole planes of them were 28 MB written and read again at
     1920x1200, 40 % of the pass); ``rings`` (4, 3, 3, Wc), the last three rows of each filter's pass along
-    rows; ``columns`` (3, Wc) (:func:`_median_row`); ``brightest`` and ``lum`` (Wc,).
+    rows; ``columns`` (3, Wc) (:func:`_median_row`); ``lum`` (Wc,).
     """
     for t in range(out.shape[1] + 4):
         _share_step(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
                     spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
-                    out, rings, columns, brightest, lum, t)
+                    out, rings, columns, lum, t)
 
 
 @kernel
 def _share_step(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral, floor,
                 spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual, deviation, coarse,
-                out, rings, columns, brightest, lum, t):
+                out, rings, columns, lum, t):
     """Step ``t`` of :func:`_share_pass` (its stages on cell rows t to t - 4); the cells' statistics, sums and
     ``censored`` are whole planes or rings of their last rows (cell row i at i % rows: :func:`_chroma_pass`)."""
     hc, n, m = out.shape[1], values.shape[1], mean.shape[1]
     if t < hc:  # the cells' values of row t, and the centring along the row
         r = t % n
-        _cell_values_row(numerator, denominator, mean, info, bound, white, values, brightest, t % m, r)
-        _cell_values_row(weighted, kept, mean, info, bound, white, own, brightest, t % m, r)
+        _cell_values_row(numerator, denominator, mean, info, bound, white, values, t % m, r)
+        _cell_values_row(weighted, kept, mean, info, bound, white, own, t % m, r)
         for c in range(3):
             _taps_along(values[c, r], taps[c, 1], rings[0, t % 3, c])
             _taps_along(own[c, r], taps[c, 1], rings[1, t % 3, c])
@@ -318,7 +321,7 @@ def _share_step(numerator, denominator, weighted, kept, mean, info, bound, censo
 def _chroma_pass(pixels, lost, channels, levels, exposures, per_pixel, gain_inv, floor_variance, censor, mean, info,
                  kept, weighted, bound, flags, sums, scratch, k, numerator, denominator, smooth_rings, smooth_row,
                  censored, column, white, share, neutral, floor, spread, taps, values, own, smoothed, own_shares, noise,
-                 own_noise, residual, deviation, coarse, out, rings, columns, brightest, lum):
+                 own_noise, residual, deviation, coarse, out, rings, columns, lum):
     """:func:`chroma` with the white balance given (``white``), in one pass over the cell rows: each step the cells'
     statistics of cell row t (:func:`_cell_stats_row`), their smoothing (:func:`_smooth_step`, row t - 1), the
     censored cells within 3x3 of row t - 2 (:func:`_dilated_row`, ``column`` its scratch) and :func:`_share_step`
@@ -338,7 +341,7 @@ def _chroma_pass(pixels, lost, channels, levels, exposures, per_pixel, gain_inv,
         if t >= 1:
             _share_step(numerator, denominator, weighted, kept, mean, info, bound, censored, white, share, neutral,
                         floor, spread, taps, k, values, own, smoothed, own_shares, noise, own_noise, residual,
-                        deviation, coarse, out, rings, columns, brightest, lum, t - 1)
+                        deviation, coarse, out, rings, columns, lum, t - 1)
 
 
 @kernel
