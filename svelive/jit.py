@@ -83,7 +83,9 @@ class _UserWideLocator(_PackageStamp, caching.UserWideCacheLocator):
 
 
 class _KernelCacheImpl(caching.CompileResultCacheImpl):
-    _locator_classes = [_UserProvidedLocator, _InTreeLocator, _UserWideLocator]
+    # (numba's own for a package imported from a zip, whose stamp is the whole archive's)
+    _locator_classes = [_UserProvidedLocator, _InTreeLocator, _UserWideLocator, caching.IPythonCacheLocator,
+                        caching.ZipCacheLocator]
 
 
 class _KernelCache(caching.FunctionCache):
