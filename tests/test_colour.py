@@ -421,3 +421,15 @@ def test_gaussian_highlight_on_a_dim_ground_stays_white(layout, peak):
     core = profile >= 0.25
     error = np.log2(np.maximum(image[core], 1e-6) / truth[core]).mean(axis=0)  # stops per channel
     assert max(error[0], error[2]) - error[1] <= 0.1
+
+
+def test_a_caller_that_reads_only_the_image_gets_it_without_the_refined_variance():
+    from svelive.reconstruction.single import run_method
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:48, :40]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=4).raw, Camera.build(pattern, cfa, SENSOR))
+    full, image_only = run_method(inp), run_method(inp, variance=False)
+    assert full.variance is not None and full.variance.shape == inp.shape and image_only.variance is None
+    np.testing.assert_array_equal(image_only.image, full.image)
+    np.testing.assert_array_equal(image_only.luminance, full.luminance)

@@ -50,11 +50,12 @@ def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 
 
 
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, site_chroma: bool = False,
-          lattice: bool = True, directional: bool = False, **options) -> Joint:
+          lattice: bool = True, directional: bool = False, variance: bool = True, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
-    chroma's scale (:func:`refine`); the estimate's variance is then the refined one's.
+    chroma's scale (:func:`refine`); the estimate's variance is then the refined one's, or None with
+    ``variance`` False (for a caller that reads only the image: the refined variance is not written).
     ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
     ``site_chroma`` (opt-in, docs/peers.md): with ``rgb``, each
@@ -72,14 +73,14 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
-    luminance, variance = est.image, est.variance
+    luminance, method_variance = est.image, est.variance
     image = None
-    if variance is not None and refined:  # with rgb, coloured in the refinement's pass (folding.colourise's values)
-        refined_variance = np.empty_like(variance)
+    if method_variance is not None and refined:  # with rgb, coloured in the refinement's pass (colourise's values)
+        refined_variance = np.empty_like(method_variance) if variance else None
         image = np.empty((*luminance.shape, 3), np.float32) if rgb else None
-        luminance = refine(luminance, variance, inter, ch.layout.cell, out_variance=refined_variance,
+        luminance = refine(luminance, method_variance, inter, ch.layout.cell, out_variance=refined_variance,
                            new_variance=True, rgb=image, workers=workers)
-        variance = refined_variance
+        method_variance = refined_variance
     elif rgb:
         image = colourise(luminance, inter, workers)
     image = luminance if image is None else image
@@ -91,4 +92,4 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
             directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout), workers=workers)
         if site_chroma:
             site_chroma_into(inp, luminance, image, ch.layout.share, workers)
-    return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter)
+    return Joint(Estimate(image, est.lower_bound, method_variance, luminance, window=est.window), lum, ch, inter)

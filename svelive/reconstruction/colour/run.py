@@ -12,7 +12,7 @@ from svelive.reconstruction.methods.base import Estimate, SveInput
 MODES = ("joint", "split")
 
 
-def run_colour(inp: SveInput, spec: MethodSpec, mode: str, **options) -> Estimate:
+def run_colour(inp: SveInput, spec: MethodSpec, mode: str, variance: bool = True, **options) -> Estimate:
     """Reconstruct a colour frame (``inp.cfa`` set) with the mono method ``spec``.
 
     Args:
@@ -20,6 +20,8 @@ def run_colour(inp: SveInput, spec: MethodSpec, mode: str, **options) -> Estimat
         spec: the monochrome method, with ``options`` (its own, plus ``return_variance``
             and ``workers`` where it has them).
         mode: ``"joint"`` or ``"split"`` (package docstring).
+        variance: False where only the image is read: joint's refined variance is then not written
+            (the estimate's is None; joint_parts.joint).
 
     Returns:
         Estimate with ``image`` float32 (H, W, 3) linear camera RGB (DN at exposure 1 per
@@ -29,7 +31,7 @@ def run_colour(inp: SveInput, spec: MethodSpec, mode: str, **options) -> Estimat
     if inp.cfa is None:
         raise SveliveError("run_colour needs a colour frame: give the colour filter (cfa='RGGB')")
     if mode == "joint":
-        return joint(inp, spec, **options).estimate
+        return joint(inp, spec, variance=variance, **options).estimate
     if mode == "split":
         return split(inp, spec, **options)
     raise SveliveError(f"unknown colour mode {mode!r}; choose from {', '.join(MODES)}")
