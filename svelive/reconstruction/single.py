@@ -131,16 +131,18 @@ def run_method(inp: SveInput, method: str | None = None, *, colour: str = "joint
     reads only the image: the joint estimate's refined variance is then not written, and None)."""
     spec = method_spec(method)
     spec.check_options(options)
+    checked = False
     if inp.cfa is not None:
         from svelive.reconstruction.colour import run_colour
 
-        estimate = run_colour(inp, spec, colour, variance=variance, **options)
+        estimate, checked = run_colour(inp, spec, colour, variance=variance, **options)
     else:
         estimate = spec.run(inp, **options)
     image = estimate.image
     # Methods promise finite, non-negative float32 (the tests hold them to it); one cheap
-    # reduction catches NaN and inf, which propagate into the sum, and repairs them.
-    if image.dtype != np.float32 or not np.isfinite(image.sum()):
+    # reduction catches NaN and inf, which propagate into the sum, and repairs them. The joint
+    # colour's passes check each value as they write it, while in cache (``checked``: every one finite).
+    if image.dtype != np.float32 or not (checked or np.isfinite(image.sum())):
         image = np.nan_to_num(image.astype(np.float32), nan=0.0, posinf=np.finfo(np.float32).max, neginf=0.0)
         np.maximum(image, 0, out=image)
     return replace(estimate, image=image)
