@@ -421,3 +421,69 @@ def test_gaussian_highlight_on_a_dim_ground_stays_white(layout, peak):
     core = profile >= 0.25
     error = np.log2(np.maximum(image[core], 1e-6) / truth[core]).mean(axis=0)  # stops per channel
     assert max(error[0], error[2]) - error[1] <= 0.1
+
+
+def test_the_joint_colour_checks_the_values_it_writes_and_a_bad_one_is_still_repaired(monkeypatch):
+    """single.run_method's guard (finite, >= 0 out) on the joint colour: the refinement's colour pass and the
+    lattice flag each row they write a value that is not finite into (instead of a sum over the RGB after them);
+    a NaN or inf from the method comes out of run_method repaired, as from any path."""
+    from dataclasses import replace
+
+    from svelive.reconstruction.single import run_method
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:48, :40]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=4).raw, Camera.build(pattern, cfa, SENSOR))
+    spec = METHODS["adaptive"]
+    assert colour.joint(inp, spec).finite
+    # the refinement's flags, row by row
+    ch = colour.chroma(inp)
+    inter = colour.interpolation(ch, coarse=True)
+    luminance = (rgb @ np.array([0.25, 0.5, 0.25], np.float32) * scale).astype(np.float32)
+    variance = (luminance / 10 + 4).astype(np.float32)
+    luminance[3, 5], luminance[17, 0], variance[30, 9] = np.nan, np.inf, np.nan
+    image, finite = np.empty((*luminance.shape, 3), np.float32), np.zeros(luminance.shape[0], bool)
+    colour.refine(luminance, variance, inter, ch.layout.cell, rgb=image, finite=finite)
+    np.testing.assert_array_equal(finite, np.isfinite(image).all(axis=(1, 2)))
+    assert not finite[[3, 17, 30]].any() and finite.any()  # (a NaN spreads over its cells' residual)
+
+    def spoilt(inp, **options):
+        est = spec.run(inp, **options)
+        est.image[5, 7], est.image[20, 3] = np.nan, np.inf
+        return est
+
+    monkeypatch.setitem(METHODS, "adaptive", replace(spec, run=spoilt))
+    bad = colour.joint(inp, METHODS["adaptive"])
+    assert not bad.finite and not np.isfinite(bad.estimate.image).all()
+    repaired = np.maximum(np.nan_to_num(bad.estimate.image, nan=0.0, posinf=np.finfo(np.float32).max, neginf=0.0), 0)
+    np.testing.assert_array_equal(run_method(inp, "adaptive").image, repaired)
+
+
+def test_the_lattice_flags_the_rows_it_writes_a_value_that_is_not_finite_into():
+    """A red surface: the green and blue pixels' other channels come from their lattices; an infinite red reading
+    spreads into the blue pixels at its corners and the green ones above and below it, on the rows around it,
+    which the lattice's flags mark (refine's flags, kept valid)."""
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.empty((32, 32, 3), np.float32)
+    rgb[:] = (300.0, 2.0, 2.0)
+    inp = prepare(simulate(rgb, pattern, SENSOR, cfa=cfa, seed=1).raw, Camera.build(pattern, cfa, SENSOR))
+    parts = colour.joint(inp, METHODS["adaptive"], lattice=False)
+    image, luminance = parts.estimate.image, parts.estimate.luminance
+    r, x = 10, next(x for x in range(8, 16) if inp.channels[10, x] == 0)  # a red pixel
+    image[r, x, 0] = np.inf
+    finite = np.isfinite(image).all(axis=(1, 2))
+    assert colour.lattice_channels(inp, luminance, image, parts.chroma.shares, parts.chroma.layout, finite=finite)
+    np.testing.assert_array_equal(finite, np.isfinite(image).all(axis=(1, 2)))
+    assert not finite[[r - 1, r, r + 1]].any() and finite.sum() == image.shape[0] - 3
+
+
+def test_a_caller_that_reads_only_the_image_gets_it_without_the_refined_variance():
+    from svelive.reconstruction.single import run_method
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    rgb = np.maximum(load_sample_scene("desk", rgb=True), 0)[:48, :40]
+    scale = np.float32(exposure_scale(rgb, Pattern.parse(pattern), SENSOR, stops_below_fill=3))
+    inp = prepare(simulate(rgb * scale, pattern, SENSOR, cfa=cfa, seed=4).raw, Camera.build(pattern, cfa, SENSOR))
+    full, image_only = run_method(inp), run_method(inp, variance=False)
+    assert full.variance is not None and full.variance.shape == inp.shape and image_only.variance is None
+    np.testing.assert_array_equal(image_only.image, full.image)
+    np.testing.assert_array_equal(image_only.luminance, full.luminance)

@@ -358,3 +358,22 @@ def test_dim_colour_stream_gains_where_the_folded_luminance_is_noisier_than_its_
     truth = luminance(f.truth)
     assert pu21_psnr(luminance(a.image), truth) > pu21_psnr(luminance(b.image), truth) + gain
     assert_finite(a)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_single_frame_stream_colours_as_the_single_frame_reconstruction(workers):
+    """Without fusion and the within-frame test, a stream's colour frame (coloured in the refinement's pass) is
+    svelive.reconstruct's, bit for bit, and its luminance the joint estimate's."""
+    from svelive.core.camera import camera_for_raw
+    from svelive.reconstruction.input import prepare
+    from svelive.reconstruction.single import run_method
+
+    pattern, cfa = COLOUR_LAYOUTS["dual-iso"]
+    frames = frames_of([scene_rgb("desk", "dual-iso", 3)] * 2, "dual-iso", seed=5)
+    with Reconstructor(pattern, cfa=cfa, temporal=False, workers=workers, **KW) as single:
+        for f in frames:
+            got = single.process(f.raw)
+            expected = run_method(prepare(f.raw, camera_for_raw(f.raw, pattern, cfa=cfa, **KW)))
+            np.testing.assert_array_equal(got.image, svelive.reconstruct(f.raw, pattern, cfa=cfa, **KW))
+            np.testing.assert_array_equal(got.image, expected.image)
+            np.testing.assert_array_equal(got.luminance, expected.luminance)

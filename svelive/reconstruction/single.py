@@ -110,7 +110,7 @@ def reconstruct(raw: np.ndarray, pattern: Pattern | str | Camera, *, cfa: Colour
         camera, inp, _ = with_noise_model(raw, camera, inp, noise if isinstance(noise, NoiseEstimate) else None)
     elif noise != "default":
         raise SveliveError(f"noise must be 'estimate', 'default' or a NoiseEstimate, got {noise!r}")
-    estimate = run_method(inp, method, colour=colour, **options)
+    estimate = run_method(inp, method, colour=colour, variance=return_confidence, **options)
     if return_confidence:
         return estimate.image, confidence_map(estimate, inp)
     return estimate.image
@@ -124,21 +124,25 @@ def method_spec(method: str | None) -> MethodSpec:
     return METHODS[name]
 
 
-def run_method(inp: SveInput, method: str | None = None, *, colour: str = "joint", **options) -> Estimate:
+def run_method(inp: SveInput, method: str | None = None, *, colour: str = "joint", variance: bool = True,
+               **options) -> Estimate:
     """Run a method by name on a prepared input, checking its options; colour inputs go through
-    svelive.reconstruction.colour (``colour``: ``"joint"`` or ``"split"``)."""
+    svelive.reconstruction.colour (``colour``: ``"joint"`` or ``"split"``; ``variance`` False for a caller that
+    reads only the image: the joint estimate's refined variance is then not written, and None)."""
     spec = method_spec(method)
     spec.check_options(options)
+    checked = False
     if inp.cfa is not None:
         from svelive.reconstruction.colour import run_colour
 
-        estimate = run_colour(inp, spec, colour, **options)
+        estimate, checked = run_colour(inp, spec, colour, variance=variance, **options)
     else:
         estimate = spec.run(inp, **options)
     image = estimate.image
     # Methods promise finite, non-negative float32 (the tests hold them to it); one cheap
-    # reduction catches NaN and inf, which propagate into the sum, and repairs them.
-    if image.dtype != np.float32 or not np.isfinite(image.sum()):
+    # reduction catches NaN and inf, which propagate into the sum, and repairs them. The joint
+    # colour's passes check each value as they write it, while in cache (``checked``: every one finite).
+    if image.dtype != np.float32 or not (checked or np.isfinite(image.sum())):
         image = np.nan_to_num(image.astype(np.float32), nan=0.0, posinf=np.finfo(np.float32).max, neginf=0.0)
         np.maximum(image, 0, out=image)
     return replace(estimate, image=image)

@@ -520,9 +520,13 @@ class Reconstructor:
             estimate = run_method(inp, method, **options)
             return inp, replace(estimate, variance=estimate_variance(estimate, inp)), None
         spec.check_options(options)
-        parts = colour.joint(inp, spec, rgb=False, refined=not self.temporal,
-                             **options)
+        # a single frame without the within-frame test (which changes the luminance) is coloured in the
+        # refinement's pass; fuse takes its RGB (parts.estimate.image) and adds the lattice's channels
+        rgb = not self.temporal and not self.consistency and spec.variance
+        parts = colour.joint(inp, spec, rgb=rgb, refined=not self.temporal, lattice=False, **options)
         estimate = parts.estimate
+        if rgb:
+            estimate = replace(estimate, image=estimate.luminance, luminance=None)
         return inp, replace(estimate, variance=estimate_variance(estimate, parts.luminance_input)), parts
 
     def process(self, raw: np.ndarray | Frame) -> SequenceResult:
@@ -963,6 +967,8 @@ class Reconstructor:
                 luminance, variance_of, image = _refined(image, variance, floor, weight, variance_of,
                                                          parts.chroma.fused(chroma), self._threads)
                 shares = chroma[:3]
+            elif parts.estimate.image.ndim == 3:  # coloured in the refinement's pass (_estimate): est.image is Y
+                luminance, shares, image = image, parts.chroma.shares, parts.estimate.image
             else:
                 luminance = np.empty(image.shape, np.float32)  # a copy: the method's own array stays
                 shares = parts.chroma.shares

@@ -30,12 +30,15 @@ class Joint:
         chroma: the frame's chroma.
         interpolation: its interpolation (shares, and the coarse luminance after them when the
             luminance was refined).
+        finite: True where every value of the estimate's image was found finite as the passes that wrote it
+            (the refinement's colour pass, the lattice) wrote it; False: not known.
     """
 
     estimate: Estimate
     luminance_input: SveInput
     chroma: Chroma
     interpolation: Interpolation
+    finite: bool = False
 
 
 def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 1,
@@ -50,11 +53,12 @@ def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 
 
 
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, site_chroma: bool = False,
-          lattice: bool = True, directional: bool = False, **options) -> Joint:
+          lattice: bool = True, directional: bool = False, variance: bool = True, **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
-    chroma's scale (:func:`refine`); the estimate's variance is then the refined one's.
+    chroma's scale (:func:`refine`); the estimate's variance is then the refined one's, or None with
+    ``variance`` False (for a caller that reads only the image: the refined variance is not written).
     ``rgb`` False leaves the colour out (the estimate's image is then the luminance). A stream
     takes neither: it fuses the frames' luminance and chroma, then refines and colours.
     ``site_chroma`` (opt-in, docs/peers.md): with ``rgb``, each
@@ -72,23 +76,26 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     if spec.variance:
         options = {**options, "return_variance": True}
     est = spec.run(lum, **options)
-    luminance, variance = est.image, est.variance
-    image = None
-    if variance is not None and refined:  # with rgb, coloured in the refinement's pass (folding.colourise's values)
-        refined_variance = np.empty_like(variance)
+    luminance, method_variance = est.image, est.variance
+    image = finite = None
+    if method_variance is not None and refined:  # with rgb, coloured in the refinement's pass (colourise's values)
+        refined_variance = np.empty_like(method_variance) if variance else None
         image = np.empty((*luminance.shape, 3), np.float32) if rgb else None
-        luminance = refine(luminance, variance, inter, ch.layout.cell, out_variance=refined_variance,
-                           new_variance=True, rgb=image, workers=workers)
-        variance = refined_variance
+        finite = np.empty(luminance.shape[0], np.bool_) if rgb else None
+        luminance = refine(luminance, method_variance, inter, ch.layout.cell, out_variance=refined_variance,
+                           new_variance=True, rgb=image, finite=finite, workers=workers)
+        method_variance = refined_variance
     elif rgb:
         image = colourise(luminance, inter, workers)
     image = luminance if image is None else image
     if rgb:
         luminance = luminance.copy() if luminance is est.image else luminance  # (the method's own array stays)
         if lattice:
-            lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers)
+            lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers, finite)
         if directional:
             directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout), workers=workers)
         if site_chroma:
             site_chroma_into(inp, luminance, image, ch.layout.share, workers)
-    return Joint(Estimate(image, est.lower_bound, variance, luminance, window=est.window), lum, ch, inter)
+    checked = finite is not None and not directional and not site_chroma and bool(finite.all())
+    return Joint(Estimate(image, est.lower_bound, method_variance, luminance, window=est.window), lum, ch, inter,
+                 checked)

@@ -64,12 +64,13 @@ def _low_cells(shares, high, out):
 
 
 def lattice_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, shares: np.ndarray,
-                     layout: CellLayout, workers: int | Executor = 1) -> bool:
+                     layout: CellLayout, workers: int | Executor = 1, finite: np.ndarray | None = None) -> bool:
     """Saturated colour's channels from their own lattices (module docstring) into ``rgb`` (float32
     (H, W, 3), Y k_c) and ``luminance`` (float32 (H, W), Y), in place. ``shares``: the cells' shares
     (3, Hc, Wc) of ``layout``'s cells (its nominal exposures give the log's floor: the longest
     exposure's noise floor). Returns False (nothing done) where it does not apply (not a 2x2 Bayer
-    CFA, a frame under 3x3)."""
+    CFA, a frame under 3x3). ``finite``: bool (H,) or None: set False on the rows where a value it writes into
+    ``rgb`` is not finite (refine's flags, kept valid for what this changes)."""
     h, w = inp.shape
     if not applies(inp.cfa) or h < 3 or w < 3 or inp.channels is None:
         return False
@@ -82,18 +83,19 @@ def lattice_channels(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, shar
     cells = np.flatnonzero(flags.view(bool))  # (0 or 1: as bool, numpy finds them 7 times faster)
     floor = f32(np.sqrt(inp.sensor.floor_variance) / float(np.max(exposures)))
     weights = np.asarray(layout.share, f32)
+    checked = np.empty(0, np.bool_) if finite is None else finite
 
     def piece(part: slice) -> None:
         lo, hi = np.searchsorted(cells, [part.start // cy * wc, -(-part.stop // cy) * wc])
         _lattice(rgb, luminance, inp.channels, inp.censored, cells[lo:hi], wc, cy, cx, weights, floor, f32(F_LOW),
-                 f32(F_HIGH), part.start, part.stop)
+                 f32(F_HIGH), part.start, part.stop, checked)
 
     map_on(workers, piece, _pieces(h))
     return True
 
 
 @kernel
-def _lattice(rgb, luminance, channels, censored, cells, wc, cy, cx, share, floor, low, high, first, last):
+def _lattice(rgb, luminance, channels, censored, cells, wc, cy, cx, share, floor, low, high, first, last, finite):
     """Rows ``first`` to ``last`` (the frame's outer rows and columns excepted) of
     :func:`lattice_channels`, in place: at each pixel of a flagged cell (``cells``: their flat indices
     into the (Hc, ``wc``) cells, in any order) whose own channel's share of its largest, f, is below
@@ -104,10 +106,12 @@ def _lattice(rgb, luminance, channels, censored, cells, wc, cy, cx, share, floor
     is sum_c n_c RGB_c.
     Not where the pixel or one of its 3x3 is ``censored`` (a bound: the cells' highlight rules stay).
     Only the pixels' own channels are read around a pixel, which no pixel writes (rows of other
-    threads' pieces included)."""
+    threads' pieces included). ``finite`` (H,) bool, unless empty: set False on a row where a value
+    written is not finite."""
     h, w = luminance.shape
     zero, one = np.float32(0.0), np.float32(1.0)
     span = high - low
+    flagged = finite.size > 0
     for index in range(cells.size):
         i, j = cells[index] // wc, cells[index] % wc
         for r in range(max(i * cy, first, 1), min(i * cy + cy, last, h - 1)):
@@ -133,6 +137,8 @@ def _lattice(rgb, luminance, channels, censored, cells, wc, cy, cx, share, floor
                 pa += weight * (max(np.float32(va) - floor, zero) - pa)
                 pb += weight * (max(np.float32(vb) - floor, zero) - pb)
                 rgb[r, x, a], rgb[r, x, b] = pa, pb
+                if flagged and not (np.isfinite(pa) and np.isfinite(pb)):
+                    finite[r] = False
                 luminance[r, x] = share[own] * rgb[r, x, own] + share[a] * pa + share[b] * pb
 
 

@@ -9,7 +9,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from svelive.jit import kernel
-from svelive.reconstruction.colour.folding import _colour_pixel
+from svelive.reconstruction.colour.folding import _colour_pixel, _finite_row
 from svelive.reconstruction.colour.interpolate import Interpolation, _full_width, _pieces
 from svelive.reconstruction.methods.base import map_on
 
@@ -17,7 +17,7 @@ from svelive.reconstruction.methods.base import map_on
 def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, cell: tuple[int, int], *,
            weight: np.ndarray | None = None, floor: np.ndarray | None = None, out: np.ndarray | None = None,
            out_variance: np.ndarray | None = None, new_variance: bool = False, rgb: np.ndarray | None = None,
-           workers: int | Executor = 1) -> np.ndarray:
+           finite: np.ndarray | None = None, workers: int | Executor = 1) -> np.ndarray:
     """Move the luminance Y towards the coarse L where they differ by no more than noise.
 
     Y (the mono method's, variance v_Y) and L (the chroma cells', variance v_L; package
@@ -48,6 +48,8 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
         rgb: float32 (H, W, 3) or None: where to write the refined Y coloured, Y k_c with the shares
             of ``inter`` (bit for bit folding.colourise of the result), each row while it is in cache;
             only with ``out`` None and a new ``out_variance`` (or none).
+        finite: bool (H,) or None: with ``rgb``, each row's flag, set True where every value of its RGB row
+            is finite, else False (checked while the row is in cache: single.run_method's guard).
         workers: threads for its pieces of rows (base.map_on); the result does not depend on it.
 
     Returns:
@@ -68,11 +70,14 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
     fresh_out = out is None and (out_variance is None or new_variance)
     if (rgb is not None or floor is not None) and not fresh_out:
         raise ValueError("refine writes rgb and takes a floor only into a new out (and a new out_variance or none)")
+    if finite is not None and rgb is None:
+        raise ValueError("refine checks the rgb it writes: finite needs rgb")
     if floor is not None and weight is None:
         raise ValueError("refine's floor applies where the weight is below 1: give the weight")
     if fresh_out:  # written in the loop (no scratch row: 40 % faster)
         out = np.empty((h, w), np.float32)
         interleaved = none if rgb is None else rgb.reshape(h, 3 * w)  # (H, 3 W): flat rows, as colourise's
+        no_flags = np.empty(0, np.bool_)
 
         def fresh(rows: slice) -> None:
             # what these rows read, made here and read while in cache: the residual of the cell rows [a, b) they
@@ -85,7 +90,7 @@ def refine(luminance: np.ndarray, variance: np.ndarray, inter: Interpolation, ce
                          none if floor is None else floor, rows.start, cy, planes[3], planes[4],
                          _full_width((residual,), cx, w)[0], a - c, top[rows] - c, frac[rows], out[rows],
                          none if out_variance is None else out_variance[rows], planes,
-                         none if rgb is None else interleaved[rows])
+                         none if rgb is None else interleaved[rows], no_flags if finite is None else finite[rows])
 
         map_on(workers, fresh, _pieces(h))
         return out
@@ -176,13 +181,14 @@ def _refine(luminance, variance, weight, coarse, coarse_variance, residual, top,
 
 @kernel
 def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_variance, residual, residual_first, top,
-                 frac, out, out_variance, planes, rgb):
+                 frac, out, out_variance, planes, rgb, finite):
     """:func:`_refine` into ``out`` and ``out_variance`` (may be empty) that are none of the inputs:
     the same arithmetic per pixel, stored in the loop; ``residual``'s rows are those of the other planes
     from ``residual_first`` on; ``floor`` (Hc, W), unless empty: :func:`refine`'s, for rows from frame row
     ``first`` on, cells of ``cy`` rows. ``rgb`` (R, 3 W), unless empty: each
     row's result times the shares ``planes[0:3]`` (P, Hc, W) interpolated between its two cell rows,
-    as folding._colourise, in the same loop."""
+    as folding._colourise, in the same loop; ``finite`` (R,) bool, unless empty: whether each RGB row is all
+    finite."""
     weighted, with_variance, floored = weight.size > 0, out_variance.size > 0, floor.size > 0
     last = coarse.shape[0] - 1
     one = np.float32(1.0)
@@ -205,6 +211,8 @@ def _refine_into(luminance, variance, weight, floor, first, cy, coarse, coarse_v
                 if with_variance:
                     out_variance[r, x] = ov
                 _colour_pixel(value, a0, b0, a1, b1, a2, b2, f, c, x)
+            if finite.size > 0:
+                finite[r] = _finite_row(c)
             continue
         for x in range(y.size):
             v = max(vy[x], low[x]) if wy[x] < one else vy[x]
