@@ -751,11 +751,12 @@ def test_fused_pass_equals_the_separate_passes(pattern, shape):
     checked = {"strips": 0, "censored": 0, "bottom": 0, "candidates": 0}
     for inp in _inputs(pattern, shape, seed=shape[0] + 7 * shape[1]):
         noise = evidence.noise_model(inp)
+        frame = adaptive._frame_settings(inp, noise, ky, kx)
         for start, top, bottom, stop in adaptive._spans(inp, 3 * (max(len(ky), len(kx)) // 2), 64):
             crop = inp.crop(slice(start, stop))
             keep = slice(top - start, bottom - start)
             expected = {name: a[keep] for name, a in _passes(crop, noise).items()}
-            image, lower, variance, own, dark = adaptive._solve(crop, noise, True, True, keep)
+            image, lower, variance, own, dark = adaptive._solve(crop, frame, True, True, keep)
             got = dict(image=image, lower=lower, variance=variance, w=own, wn=dark.weights, estimate=dark.estimate,
                        information=dark.information, candidates=dark.candidates)
             got = {name: a[keep] for name, a in got.items()}

@@ -40,8 +40,10 @@ class Dark(NamedTuple):
     count: int
 
     def rows(self, keep: slice) -> Dark:
+        """The arrays' rows ``keep``, ``count`` as it is: a strip's Dark (adaptive._solve) counts only the
+        candidates of the rows it keeps, and those are ``keep``."""
         return Dark(self.weights[keep], self.estimate[keep], self.information[keep], self.candidates[keep],
-                     int(np.count_nonzero(self.candidates[keep])) if self.count else 0)
+                    self.count)
 
 
 def joined(pieces: list[np.ndarray | None]) -> np.ndarray | None:
