@@ -109,7 +109,7 @@ import numpy as np
 
 from svelive.reconstruction.methods.adaptive.censoring import censored_pixels, censored_way
 from svelive.reconstruction.methods.adaptive.evidence import noise_model
-from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, joined, wide_fallback
+from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, WeightRows, joined, wide_fallback
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, kernels
 from svelive.reconstruction.methods.adaptive.posterior import POSTERIOR_HIGH, posterior_polynomial
 from svelive.reconstruction.methods.adaptive.strip_pass import (
@@ -216,15 +216,20 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         window = np.empty((2, h, w) if want_window else (2, 0, 0), np.float32)
     own = np.empty((h, w), np.float32) if want_share else None
     frame = _frame_settings(inp, noise, ky, kx)
+    # the strips' weights (the fallback's) as rows of one array, each strip's computed rows after the last one's
+    starts = np.cumsum([0] + [stop - start for start, _, _, stop in spans]).tolist()
+    pool = WeightRows(np.empty((starts[-1], w), np.float32),
+                      [first + top - start for first, (start, top, _, _) in zip(starts, spans)])
 
-    def strip(span: tuple[int, int, int, int]) -> Dark:
+    def strip(i: int) -> Dark:
         # each strip's kept rows copied into the frame's arrays by its own thread (no serial join)
-        start, top, bottom, stop = span
+        start, top, bottom, stop = spans[i]
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
         keep = slice(top - start, bottom - start)
         # the image's, the variance's and the window's rows are written only in the kept rows: views of the frame's
         pieces = _solve(crop, frame, want_variance, want_share, keep, window[:, start:stop] if want_window else window,
-                        image[start:stop], None if variance is None else variance[start:stop])
+                        image[start:stop], None if variance is None else variance[start:stop],
+                        pool.rows[starts[i]:starts[i + 1]])
         for whole, piece in zip((lower, own), (pieces[1], pieces[3])):
             if whole is not None:
                 whole[top:bottom] = piece[keep]
@@ -234,9 +239,9 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         # the fallback reads only the weights of a strip without candidates (its neighbours' blocks reach it)
         return Dark(dark.weights, _NO_ROWS, _NO_ROWS, _NO_ROWS.astype(bool), 0)
 
-    darks = map_on(workers, strip, spans)
+    darks = map_on(workers, strip, range(len(spans)))
     if WIDE_SCALES > 0 and any(d.count for d in darks):
-        wide_fallback(inp, spans, darks, image, variance, ky, kx, workers)
+        wide_fallback(inp, spans, darks, image, variance, ky, kx, workers, pool)
     share = None
     if want_share:
         share = np.divide(own, joined([d.information for d in darks]))
@@ -290,13 +295,14 @@ def _frame_settings(inp: SveInput, noise: tuple[float, float], ky: np.ndarray, k
 
 def _solve(inp: SveInput, frame: _Frame, want_variance: bool = False, want_share: bool = False,
            keep: slice | None = None, window: np.ndarray | None = None, image: np.ndarray | None = None,
-           variance: np.ndarray | None = None):
+           variance: np.ndarray | None = None, weights: np.ndarray | None = None):
     """Steps 1-4 on a whole frame or strip: (image, lower_bound, variance or None, w or None, Dark), (H, W)
     arrays whose rows ``keep`` (default all) hold the results; other rows are not set (the Dark's count is that of
     the rows ``keep``). ``window``: (2, H, W)
     float32 into whose rows ``keep`` the motion tests' window mean and variance go (:func:`fused_pass`), or None.
     ``image`` and ``variance`` (with ``want_variance``): float32 (H, W) to write the results into (only their rows
-    ``keep``: views of a frame's rows, which other strips write around them), or None: new arrays.
+    ``keep``: views of a frame's rows, which other strips write around them), or None: new arrays. ``weights``:
+    float32 (H, W) for the neighbours' weights wn (the Dark's; w itself where no reading is censored), or None: new.
 
     ``frame``: the frame's settings and noise model (:func:`_frame_settings`). The window sums and the
     per-pixel arithmetic between them run as one compiled pass (:func:`fused_pass`), then the censored pixels."""
@@ -315,10 +321,11 @@ def _solve(inp: SveInput, frame: _Frame, want_variance: bool = False, want_share
         cached, first_tile = frame.exposure_sums[shape]
         if np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):  # the pattern's phase
             exposure_sum = cached
-    w, estimate, total = (np.empty(shape, f32) for _ in range(3))
+    wn = np.empty(shape, f32) if weights is None else weights
+    estimate, total = np.empty(shape, f32), np.empty(shape, f32)
     image = np.empty(shape, f32) if image is None else image
-    # with censored pixels, the neighbours' weights wn differ from w, and the censored step reads x
-    wn, x = (np.empty(shape, f32), np.empty(shape, f32)) if flagged else (w, np.empty((2 * (len(ky) // 2) + 1,
+    # with censored pixels, the own weights w differ from wn, and the censored step reads x
+    w, x = (np.empty(shape, f32), np.empty(shape, f32)) if flagged else (wn, np.empty((2 * (len(ky) // 2) + 1,
                                                                                         shape[1]), f32))
     lower, candidates = np.empty(shape, bool), np.empty(shape, bool)
     if variance is None or not want_variance:
