@@ -57,13 +57,13 @@ def before_fallback(inp: SveInput) -> tuple[list, list, np.ndarray, np.ndarray]:
     (float32 (H, W) image and variance)."""
     ky, kx = kernels(inp.pattern.shape)
     spans = adaptive._spans(inp, 3 * (max(len(ky), len(kx)) // 2), 64)
-    noise = adaptive.noise_model(inp)
+    frame = adaptive._frame_settings(inp, adaptive.noise_model(inp), ky, kx)
     image, variance = np.empty(inp.shape, np.float32), np.empty(inp.shape, np.float32)
     darks = []
     for start, top, bottom, stop in spans:
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
         keep = slice(top - start, bottom - start)
-        pieces = adaptive._solve(crop, noise, True, False, keep, None)
+        pieces = adaptive._solve(crop, frame, True, False, keep, None)
         image[top:bottom], variance[top:bottom] = pieces[0][keep], pieces[2][keep]
         darks.append(pieces[4].rows(keep))
     return spans, darks, image, variance

@@ -595,7 +595,8 @@ def test_wide_direct_is_its_blocks_sums_written_out(ky, kx, blocks):
     """fallback._wide_direct (three windows' sums at a time) gives at every active pixel the estimate, information
     and flags of its eight blocks summed window by window, each window's readings in float64 row by row, the
     windows three by three in float32 (fallback._threefold_block), borders reflect-101 included; weights over
-    twelve decades, readings at four exposures."""
+    twelve decades, readings at four exposures; the same with the weights' rows read through an index (the
+    strips' rows of one array, fallback.WeightRows)."""
     rng = np.random.default_rng(ky * 10 + blocks)
     shape = (3 * ky * blocks + 9, 3 * kx * blocks + 14)
     weights = (10.0 ** rng.uniform(-6, 6, shape)).astype(np.float32)
@@ -606,7 +607,16 @@ def test_wide_direct_is_its_blocks_sums_written_out(ky, kx, blocks):
     estimate = rng.normal(0, 1, active.shape).astype(np.float32)
     information = rng.uniform(0.1, 2, active.shape).astype(np.float32)
     got = [a.copy() for a in (active, np.zeros_like(active), estimate, information)]
-    kept = fallback._wide_direct(weights, signal, exposure, none, none, offset, ky, kx, blocks, *got)
+    kept = fallback._wide_direct(weights, np.arange(shape[0]), signal, exposure, none, none, offset, ky, kx, blocks,
+                                 *got)
+    # the weights' rows read through an index from a larger array of them in another order: the same results
+    order = rng.permutation(shape[0] + 5)[:shape[0]]
+    pool = np.full((shape[0] + 5, shape[1]), np.nan, np.float32)
+    pool[order] = weights
+    through = [a.copy() for a in (active, np.zeros_like(active), estimate, information)]
+    assert fallback._wide_direct(pool, order, signal, exposure, none, none, offset, ky, kx, blocks, *through) == kept
+    for g, t in zip(got, through):
+        np.testing.assert_array_equal(g, t)
     expected = [a.copy() for a in (active, np.zeros_like(active), estimate, information)]
     by, bx, tiny = ky * blocks, kx * blocks, np.float32(parameters.TINY)
     block_w, block_m = np.empty(8, np.float32), np.empty(8, np.float32)
@@ -751,11 +761,12 @@ def test_fused_pass_equals_the_separate_passes(pattern, shape):
     checked = {"strips": 0, "censored": 0, "bottom": 0, "candidates": 0}
     for inp in _inputs(pattern, shape, seed=shape[0] + 7 * shape[1]):
         noise = evidence.noise_model(inp)
+        frame = adaptive._frame_settings(inp, noise, ky, kx)
         for start, top, bottom, stop in adaptive._spans(inp, 3 * (max(len(ky), len(kx)) // 2), 64):
             crop = inp.crop(slice(start, stop))
             keep = slice(top - start, bottom - start)
             expected = {name: a[keep] for name, a in _passes(crop, noise).items()}
-            image, lower, variance, own, dark = adaptive._solve(crop, noise, True, True, keep)
+            image, lower, variance, own, dark = adaptive._solve(crop, frame, True, True, keep)
             got = dict(image=image, lower=lower, variance=variance, w=own, wn=dark.weights, estimate=dark.estimate,
                        information=dark.information, candidates=dark.candidates)
             got = {name: a[keep] for name, a in got.items()}

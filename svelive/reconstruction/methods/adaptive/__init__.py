@@ -103,12 +103,13 @@ from __future__ import annotations
 
 from concurrent.futures import Executor
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
 from svelive.reconstruction.methods.adaptive.censoring import censored_pixels, censored_way
 from svelive.reconstruction.methods.adaptive.evidence import noise_model
-from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, joined, wide_fallback
+from svelive.reconstruction.methods.adaptive.fallback import Dark, WIDE_SCALES, WeightRows, joined, wide_fallback
 from svelive.reconstruction.methods.adaptive.parameters import CONTRAST_SIGMA, kernels
 from svelive.reconstruction.methods.adaptive.posterior import POSTERIOR_HIGH, posterior_polynomial
 from svelive.reconstruction.methods.adaptive.strip_pass import (
@@ -214,15 +215,21 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         variance = np.empty((h, w), np.float32) if want_variance else None
         window = np.empty((2, h, w) if want_window else (2, 0, 0), np.float32)
     own = np.empty((h, w), np.float32) if want_share else None
+    frame = _frame_settings(inp, noise, ky, kx)
+    # the strips' weights (the fallback's) as rows of one array, each strip's computed rows after the last one's
+    starts = np.cumsum([0] + [stop - start for start, _, _, stop in spans]).tolist()
+    pool = WeightRows(np.empty((starts[-1], w), np.float32),
+                      [first + top - start for first, (start, top, _, _) in zip(starts, spans)])
 
-    def strip(span: tuple[int, int, int, int]) -> Dark:
+    def strip(i: int) -> Dark:
         # each strip's kept rows copied into the frame's arrays by its own thread (no serial join)
-        start, top, bottom, stop = span
+        start, top, bottom, stop = spans[i]
         crop = inp if (start, stop) == (0, inp.shape[0]) else inp.crop(slice(start, stop))
         keep = slice(top - start, bottom - start)
         # the image's, the variance's and the window's rows are written only in the kept rows: views of the frame's
-        pieces = _solve(crop, noise, want_variance, want_share, keep, window[:, start:stop] if want_window else window,
-                        image[start:stop], None if variance is None else variance[start:stop])
+        pieces = _solve(crop, frame, want_variance, want_share, keep, window[:, start:stop] if want_window else window,
+                        image[start:stop], None if variance is None else variance[start:stop],
+                        pool.rows[starts[i]:starts[i + 1]])
         for whole, piece in zip((lower, own), (pieces[1], pieces[3])):
             if whole is not None:
                 whole[top:bottom] = piece[keep]
@@ -232,9 +239,9 @@ def _estimate(inp: SveInput, noise: tuple[float, float], workers: int | Executor
         # the fallback reads only the weights of a strip without candidates (its neighbours' blocks reach it)
         return Dark(dark.weights, _NO_ROWS, _NO_ROWS, _NO_ROWS.astype(bool), 0)
 
-    darks = map_on(workers, strip, spans)
+    darks = map_on(workers, strip, range(len(spans)))
     if WIDE_SCALES > 0 and any(d.count for d in darks):
-        wide_fallback(inp, spans, darks, image, variance, ky, kx, workers)
+        wide_fallback(inp, spans, darks, image, variance, ky, kx, workers, pool)
     share = None
     if want_share:
         share = np.divide(own, joined([d.information for d in darks]))
@@ -256,18 +263,50 @@ def _spans(inp: SveInput, halo: int, rows: int) -> list[tuple[int, int, int, int
     return [(max(top - halo, 0), top, min(top + rows, h), min(top + rows + halo, h)) for top in range(0, h, rows)]
 
 
-def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = False, want_share: bool = False,
+class _Frame(NamedTuple):
+    """What every strip's :func:`_solve` of one frame shares (made once a frame by :func:`_frame_settings`).
+
+    Attributes:
+        settings, noise: the fused pass's (strip_pass.PassSettings, PassNoise).
+        window_noise: float32 (2,), (1 / g, sigma^2) of the sensor (strip_pass.PassWindow's ``noise``).
+        way: censoring.censored_way of the frame.
+        exposure_sums: the pattern's exposure window sums by strip shape (strip_pass.pattern_exposure_sum), filled
+            as strips ask for them (a frame's strips have two or three shapes).
+    """
+
+    settings: PassSettings
+    noise: PassNoise
+    window_noise: np.ndarray
+    way: str
+    exposure_sums: dict
+
+
+def _frame_settings(inp: SveInput, noise: tuple[float, float], ky: np.ndarray, kx: np.ndarray) -> _Frame:
+    """The :class:`_Frame` of ``inp`` with noise model ``noise`` ((1 / gain, floor variance)) and kernels ky, kx."""
+    f32 = np.float32
+    kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
+    settings = PassSettings(ky, kx, f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
+                            f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(),
+                            -f32(inp.sensor.black_level), f32(CONTRAST_SIGMA**2))
+    return _Frame(settings, PassNoise(f32(noise[0]), f32(noise[1])),
+                  np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32),
+                  censored_way(inp, ky, kx), {})
+
+
+def _solve(inp: SveInput, frame: _Frame, want_variance: bool = False, want_share: bool = False,
            keep: slice | None = None, window: np.ndarray | None = None, image: np.ndarray | None = None,
-           variance: np.ndarray | None = None):
+           variance: np.ndarray | None = None, weights: np.ndarray | None = None):
     """Steps 1-4 on a whole frame or strip: (image, lower_bound, variance or None, w or None, Dark), (H, W)
-    arrays whose rows ``keep`` (default all) hold the results; other rows are not set. ``window``: (2, H, W)
+    arrays whose rows ``keep`` (default all) hold the results; other rows are not set (the Dark's count is that of
+    the rows ``keep``). ``window``: (2, H, W)
     float32 into whose rows ``keep`` the motion tests' window mean and variance go (:func:`fused_pass`), or None.
     ``image`` and ``variance`` (with ``want_variance``): float32 (H, W) to write the results into (only their rows
-    ``keep``: views of a frame's rows, which other strips write around them), or None: new arrays.
+    ``keep``: views of a frame's rows, which other strips write around them), or None: new arrays. ``weights``:
+    float32 (H, W) for the neighbours' weights wn (the Dark's; w itself where no reading is censored), or None: new.
 
-    ``noise``: (1 / gain, floor variance) of the noise model (:func:`noise_model`). The window sums and the
+    ``frame``: the frame's settings and noise model (:func:`_frame_settings`). The window sums and the
     per-pixel arithmetic between them run as one compiled pass (:func:`fused_pass`), then the censored pixels."""
-    ky, kx = kernels(inp.pattern.shape)
+    ky, kx = frame.settings.ky, frame.settings.kx
     f32 = np.float32
     shape = inp.shape
     first, last = (0, shape[0]) if keep is None else (keep.start, keep.stop)
@@ -277,32 +316,28 @@ def _solve(inp: SveInput, noise: tuple[float, float], want_variance: bool = Fals
     # the pattern's, the same for every strip (a folded input's vary); with censored readings, where they are the
     # pass's own sums (it reads them only in windows without one)
     if not inp.folded and (not flagged or (len(ky), len(kx)) in SHARED_SUMS):
-        cached, first_tile = pattern_exposure_sum(inp.pattern, shape)
+        if shape not in frame.exposure_sums:
+            frame.exposure_sums[shape] = pattern_exposure_sum(inp.pattern, shape)
+        cached, first_tile = frame.exposure_sums[shape]
         if np.array_equal(e[:first_tile.shape[0], :first_tile.shape[1]], first_tile):  # the pattern's phase
             exposure_sum = cached
-    w, estimate, total = (np.empty(shape, f32) for _ in range(3))
+    wn = np.empty(shape, f32) if weights is None else weights
+    estimate, total = np.empty(shape, f32), np.empty(shape, f32)
     image = np.empty(shape, f32) if image is None else image
-    # with censored pixels, the neighbours' weights wn differ from w, and the censored step reads x
-    wn, x = (np.empty(shape, f32), np.empty(shape, f32)) if flagged else (w, np.empty((2 * (len(ky) // 2) + 1,
+    # with censored pixels, the own weights w differ from wn, and the censored step reads x
+    w, x = (np.empty(shape, f32), np.empty(shape, f32)) if flagged else (wn, np.empty((2 * (len(ky) // 2) + 1,
                                                                                         shape[1]), f32))
     lower, candidates = np.empty(shape, bool), np.empty(shape, bool)
     if variance is None or not want_variance:
         variance = np.empty(shape if want_variance else (0, 0), f32)
-    kernel_square = f32((ky * ky).sum() * (kx * kx).sum())
-    every_row = flagged and censored_way(inp, ky, kx) == "levels"  # its sums read w and x on every row
+    every_row = flagged and frame.way == "levels"  # its sums read w and x on every row
     count, lowered = fused_pass(
-        PassReadings(inp.signal, e, censored, flagged, every_row, exposure_sum), first, last,
-        PassNoise(f32(noise[0]), f32(noise[1])),
-        PassSettings(ky, kx, f32(ky[len(ky) // 2] * kx[len(kx) // 2]), kernel_square,
-                     f32(CONTRAST_SIGMA**2 * 2.0) * kernel_square, posterior_polynomial(), -f32(inp.sensor.black_level),
-                     f32(CONTRAST_SIGMA**2)),
-        PassOutputs(w, wn, x, image, estimate, total, lower, candidates, variance),
-        PassWindow(np.empty((2, 0, 0), f32) if window is None else window,
-                   np.array([1.0 / inp.sensor.effective_gain, inp.sensor.floor_variance], f32)))
-    if flagged:  # the pixels of the rows kept alone: the strip's others are its neighbours' to compute
-        bound_only = censored_pixels(inp, image, w, x, ky, kx, keep)
-        lowered = lowered or bool(bound_only.any())
-        lower |= bound_only
+        PassReadings(inp.signal, e, censored, flagged, every_row, exposure_sum), first, last, frame.noise,
+        frame.settings, PassOutputs(w, wn, x, image, estimate, total, lower, candidates, variance),
+        PassWindow(np.empty((2, 0, 0), f32) if window is None else window, frame.window_noise))
+    if flagged:  # the pixels of the rows kept alone (OR-ed into lower): the strip's others are its neighbours'
+        censored_pixels(inp, image, w, x, ky, kx, keep, out=lower)
+        lowered = True  # whether any is: fill_lower_bounds looks
     if lowered:
         fill_lower_bounds(inp, lower, (len(ky), len(kx)), image, variance if want_variance else None, keep)
     return (image, lower, variance if want_variance else None, w if want_share else None,

@@ -21,11 +21,14 @@ DIRECT_TAPS = 9
 
 
 def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarray, ky: np.ndarray,
-                     kx: np.ndarray, rows: slice | None = None) -> np.ndarray:
+                     kx: np.ndarray, rows: slice | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """Set ``image`` at censored pixels, in place; returns the pixels left as bounds only, bool (H, W).
 
     ``rows``: the rows whose censored pixels are wanted (a strip's kept rows; their windows read the rows
     around them), default all; ``image`` and the pixels returned are set in those rows alone.
+    ``out``: bool (H, W), C-contiguous, into which those pixels are OR-ed (set True, never cleared) and which is
+    returned (adaptive's ``lower``: no array of the strip's size made, cleared and OR-ed a strip), or None: a
+    new array, False elsewhere.
 
     A censored pixel takes the plain (equal-weight) window mean of the
     uncensored neighbours consistent with its bound (x_i + 2 sigma_i >= bound),
@@ -54,11 +57,11 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
     first, last, _ = (rows or slice(0, inp.shape[0])).indices(inp.shape[0])
     way = censored_way(inp, ky, kx)
     if way == "each":
-        bound_only = np.zeros(inp.shape, bool)
+        bound_only = np.zeros(inp.shape, bool) if out is None else out
         _censored_each(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx, f32(censor), first, last)
         return bound_only
     if way == "separable":  # OpenCV's sums, computed per pixel
-        bound_only = np.zeros(inp.shape, bool)
+        bound_only = np.zeros(inp.shape, bool) if out is None else out
         _censored_separable(inp.censored, inp.exposure, w, x, image, bound_only, ky, kx,
                             *_level_bounds_of(inp.pattern, censor), first, last)
         return bound_only
@@ -74,7 +77,7 @@ def censored_pixels(inp: SveInput, image: np.ndarray, w: np.ndarray, x: np.ndarr
         _level_boxes(*flat(inp.censored, key), values, width, boxes)
     else:  # more levels than bits in a mask: every level's box is the whole frame
         boxes[:] = (0, h - 1, 0, width - 1)
-    bound_only = np.zeros(inp.shape, bool)
+    bound_only = np.zeros(inp.shape, bool) if out is None else out
     for level, value, (top, bottom, left, right) in zip(levels, values, boxes.tolist()):
         if bottom < 0:
             continue  # no censored pixel of this level

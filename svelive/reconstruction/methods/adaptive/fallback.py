@@ -40,8 +40,10 @@ class Dark(NamedTuple):
     count: int
 
     def rows(self, keep: slice) -> Dark:
+        """The arrays' rows ``keep``, ``count`` as it is: a strip's Dark (adaptive._solve) counts only the
+        candidates of the rows it keeps, and those are ``keep``."""
         return Dark(self.weights[keep], self.estimate[keep], self.information[keep], self.candidates[keep],
-                     int(np.count_nonzero(self.candidates[keep])) if self.count else 0)
+                    self.count)
 
 
 def joined(pieces: list[np.ndarray | None]) -> np.ndarray | None:
@@ -58,8 +60,21 @@ def _wide_reach(ky: np.ndarray, kx: np.ndarray) -> tuple[int, int]:
     return by + by // 2, bx + bx // 2
 
 
+class WeightRows(NamedTuple):
+    """The strips' weights (Dark.weights: views of it) as rows of one array, which the direct sums read in place.
+
+    Attributes:
+        rows: float32 (N, W), every strip's computed rows, one strip after the other.
+        first: the row of ``rows`` holding each strip's first kept row (one a strip, in the order of the spans).
+    """
+
+    rows: np.ndarray
+    first: list[int]
+
+
 def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: list[Dark], image: np.ndarray,
-                   variance: np.ndarray | None, ky: np.ndarray, kx: np.ndarray, workers: int | Executor) -> None:
+                   variance: np.ndarray | None, ky: np.ndarray, kx: np.ndarray, workers: int | Executor,
+                   pool: WeightRows | None = None) -> None:
     """Where a pixel's result cannot tell its level from 0, the levels of wider windows that are flat within their
     noise, scale by scale; ``image`` (and ``variance``) in place, float32 (H, W).
 
@@ -97,6 +112,10 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
     (:func:`_unheld`), so that a band whose pixels all lie beside saturation
     takes no block sums at all; the direct sums test a pixel's blocks for a
     censored reading before they sum them.
+
+    ``pool``: where the strips' weights are rows of one array (:class:`WeightRows`), the direct sums read them
+    there (a band's rows by an index) instead of a copy of the band's rows joined (0.1-0.2 ms a band); the box
+    filters take the joined copy either way. None: the band's rows joined.
     """
     h, width = inp.shape
     reach = _wide_reach(ky, kx)
@@ -108,8 +127,16 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
             return
         top, end = spans[members[0]][1], spans[members[-1]][2]
         r0, r1 = max(top - reach[0], 0), min(end + reach[0], h)
-        weights = joined([d.weights[max(r0 - t, 0):max(min(r1, e) - t, 0)]
-                           for (_, t, e, _), d in zip(spans, darks) if t < r1 and e > r0])
+        pieces = [(i, max(r0 - t, 0), max(min(r1, e) - t, 0)) for i, (_, t, e, _) in enumerate(spans)
+                  if t < r1 and e > r0]  # each strip's rows in the band
+        weights = None  # the band's rows joined, made where needed (always without a pool)
+        if pool is None:
+            weights = joined([darks[i].weights[a:b] for i, a, b in pieces])
+            rows_of, row_index = weights, np.arange(r1 - r0)
+        else:  # the direct sums' rows: the band's row r is row row_index[r] of pool.rows
+            rows_of, row_index = pool.rows, np.concatenate([np.arange(pool.first[i] + a, pool.first[i] + b)
+                                                            for i, a, b in pieces])
+        size = (r1 - r0) * width
         signal, exposure, censored = inp.signal[r0:r1], inp.exposure[r0:r1], inp.censored[r0:r1]
         active = {i: darks[i].candidates.copy() for i in members}
         changed = {i: np.zeros_like(active[i]) for i in members}
@@ -118,7 +145,7 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         # takes box filters (and so makes these flags anyway), left out before any block sums (a band whose pixels
         # all lie beside saturation ends here)
         held_first, flagged = None, bool(censored.any())
-        if count * by * bx * WIDE_DIRECT > weights.size and flagged:
+        if count * by * bx * WIDE_DIRECT > size and flagged:
             held_first = _held(censored, by, bx)
             count = sum(_unheld(held_first, spans[i][1] - r0, by, bx, active[i]) for i in members)
             if count == 0:
@@ -140,9 +167,11 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
         for scale in range(WIDE_SCALES):
             if 3 * by > h or 3 * bx > width:
                 break
-            boxes = count * by * bx * WIDE_DIRECT > weights.size  # many: box filters over the rows
+            boxes = count * by * bx * WIDE_DIRECT > size  # many: box filters over the rows
             if boxes:
                 if box_w is None:  # `means` holds w x until its sums are made
+                    if weights is None:
+                        weights = joined([darks[i].weights[a:b] for i, a, b in pieces])
                     means = np.empty_like(weights)
                     _wide_prepare(*flat(weights, signal, exposure, means))
                     box_w, box_wx, level = _box(weights, len(ky), len(kx)), _box(means, len(ky), len(kx)), 0
@@ -158,7 +187,7 @@ def wide_fallback(inp: SveInput, spans: list[tuple[int, int, int, int]], darks: 
                 d, offset = darks[i], spans[i][1] - r0
                 count += (_wide_boxes(box_w, means, offset, by, bx, active[i], changed[i], d.estimate,
                                       d.information) if boxes else
-                          _wide_direct(weights, signal, exposure, censored if flagged else none_held,
+                          _wide_direct(rows_of, row_index, signal, exposure, censored if flagged else none_held,
                                        helds.get(scale, none_held), offset, len(ky), len(kx), 3**scale, active[i],
                                        changed[i], d.estimate, d.information))
             if count == 0:
@@ -471,19 +500,19 @@ def _wide_lanes(w0, w1, w2, w3, w4, w5, w6, w7, m0, m1, m2, m3, m4, m5, m6, m7, 
 
 
 @kernel
-def _wide_direct(weights, signal, exposure, censored, held, offset, ky, kx, blocks, active, changed, estimate,
-                 information):
+def _wide_direct(weights, weight_rows, signal, exposure, censored, held, offset, ky, kx, blocks, active, changed,
+                 estimate, information):
     """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
-    band's weights, signals, exposures and censoring (of no rows where none is censored), and the scale's blocks
-    holding a censored reading (``held``, :func:`_held`) where made, else of no rows (row r of ``active`` is row
-    r + offset of them). The scale's blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each:
+    band's weights (its row r: row ``weight_rows[r]`` of ``weights``, int64 (H,)), signals, exposures and
+    censoring (of no rows where none is censored), and the scale's blocks holding a censored reading (``held``,
+    :func:`_held`) where made, else of no rows (row r of ``active`` is row r + offset of them). The scale's blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each:
     each window's sums in float64, its readings added row by row (:func:`_window_sums`), then the windows' sums
     added three by three along rows, then down columns, in float32, as :func:`_threefold` adds the box filters'
     (the same additions; yet with WIDE_DIRECT changed, 5 of the 42 bench frames' images change, so the choice of
     path is part of the result: docs/benchmarks.md, worst89); a pixel one of whose blocks holds a censored reading
     stops before any sums (found in ``held``, else in its blocks' readings). A row's active pixels are found by
     base.true_positions (rows without any skipped at a count)."""
-    h, width = weights.shape
+    h, width = signal.shape
     tiny = np.float32(TINY)
     by, bx = ky * blocks, kx * blocks
     grid = 3 * blocks  # the windows across (and down) a pixel's eight blocks and itself
@@ -510,7 +539,7 @@ def _wide_direct(weights, signal, exposure, censored, held, offset, ky, kx, bloc
                 for t in range(blocks):  # three windows side by side at a time: a block's row of them at scale > 0
                     if blocks > 1 and gy // blocks == 1 and t == 1:
                         continue  # the pixel's own block
-                    w0, w1, w2, x0, x1, x2 = _window_sums(weights, signal, exposure, top,
+                    w0, w1, w2, x0, x1, x2 = _window_sums(weights, weight_rows, signal, exposure, top,
                                                           c - bx - bx // 2 + 3 * t * kx, ky, kx)
                     k = 3 * t
                     window_w[gy, k], window_w[gy, k + 1], window_w[gy, k + 2] = (np.float32(w0), np.float32(w1),
@@ -538,16 +567,17 @@ def _wide_direct(weights, signal, exposure, censored, held, offset, ky, kx, bloc
 
 
 @kernel
-def _window_sums(weights, signal, exposure, top, left, ky, kx):
+def _window_sums(weights, weight_rows, signal, exposure, top, left, ky, kx):
     """The float64 sums (W0, W1, W2, X0, X1, X2) of w and w x (x = s / e) over three ky x kx windows side by side
     (their first row ``top``, first columns ``left``, ``left + kx``, ``left + 2 kx``) of the band's (H, W)
-    arrays, borders reflect-101; each window's readings added row by row from 0, the three windows' additions
+    arrays (its weights' row r: row ``weight_rows[r]`` of ``weights``), borders reflect-101; each window's readings
+    added row by row from 0, the three windows' additions
     interleaved (the direct calls of the 42 bench frames, recorded: x0.74 of one window summed at a time)."""
-    h, width = weights.shape
+    h, width = signal.shape
     w0, w1, w2, x0, x1, x2 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for dy in range(ky):
         rr = reflect_101(top + dy, h)
-        wr, sr, er = weights[rr], signal[rr], exposure[rr]
+        wr, sr, er = weights[weight_rows[rr]], signal[rr], exposure[rr]
         for dx in range(kx):
             c0 = reflect_101(left + dx, width)
             c1 = reflect_101(left + kx + dx, width)
