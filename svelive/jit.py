@@ -18,8 +18,8 @@ Rules for a kernel (what makes LLVM vectorise it, and keeps it thread-safe):
 The first call of a kernel compiles it (about a second); numba's disk cache keeps the
 machine code (``__pycache__`` or ``$NUMBA_CACHE_DIR``), so later processes load it in
 milliseconds. A kernel's cache entry holds for the sources of the whole package, not its own
-file alone (:func:`kernel`): any change to a svelive source compiles every kernel again. Compiling leaves the process holding LLVM's
-memory for good (the live service's monochrome server: about 130 MB more
+file alone (:func:`kernel`): any change to a svelive source compiles every kernel again.
+Compiling leaves the process holding LLVM's memory for good (the live service's monochrome server: about 130 MB more
 resident after one source file's kernels compiled in it, about 500 MB after it
 compiled every kernel), so a long-running process compiles in a child first
 (:func:`compile_elsewhere`) and only loads.

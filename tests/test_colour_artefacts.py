@@ -69,8 +69,8 @@ def test_small_clipped_lights_no_worse_than_white(layout, level):
 
 
 @pytest.mark.xfail(strict=True, reason="known (issue 27.1): a light seen by part of one to four cells takes each "
-                   "cell's colour of the few sites it lights, in one exposure: two of eight phases come out orange, the "
-                   "others blue, green or red (mean 0.405 on dual-ISO, white 0.43; docs/peers.md)")
+                   "cell's colour of the few sites it lights, in one exposure: two of eight phases come out "
+                   "orange, the others blue, green or red (mean 0.405 on dual-ISO, white 0.43; docs/peers.md)")
 @pytest.mark.parametrize("layout", ["dual-iso", "column-bayer"])
 def test_small_saturated_lights_read_as_their_colour_not_white(layout):
     """The same lights: their chromaticity error is well below what a white light would score (at

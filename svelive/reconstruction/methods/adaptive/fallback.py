@@ -505,7 +505,8 @@ def _wide_direct(weights, weight_rows, signal, exposure, censored, held, offset,
     """:func:`_wide_boxes` with each active pixel summing its blocks' readings itself (few active pixels): the
     band's weights (its row r: row ``weight_rows[r]`` of ``weights``, int64 (H,)), signals, exposures and
     censoring (of no rows where none is censored), and the scale's blocks holding a censored reading (``held``,
-    :func:`_held`) where made, else of no rows (row r of ``active`` is row r + offset of them). The scale's blocks are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each:
+    :func:`_held`) where made, else of no rows (row r of ``active`` is row r + offset of them). The scale's blocks
+    are ``blocks`` x ``blocks`` windows (``ky`` x ``kx`` readings) each:
     each window's sums in float64, its readings added row by row (:func:`_window_sums`), then the windows' sums
     added three by three along rows, then down columns, in float32, as :func:`_threefold` adds the box filters'
     (the same additions; yet with WIDE_DIRECT changed, 5 of the 42 bench frames' images change, so the choice of
