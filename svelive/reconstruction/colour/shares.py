@@ -12,8 +12,6 @@ import cv2
 import numpy as np
 
 from svelive.jit import fma32, kernel
-# (numba's disk cache knows a kernel by its own file: the kernels here that call cells.py's and highlights.py's row
-# kernels keep their old machine code after those files change until this one does, or the cache is cleared)
 from svelive.reconstruction.colour.cells import CellLayout, _cell_stats_row, cell_layout
 from svelive.reconstruction.colour.highlights import _cell_values_row, white_balance
 from svelive.reconstruction.methods.base import SveInput, binomial_kernel
