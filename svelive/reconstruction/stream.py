@@ -523,7 +523,7 @@ class Reconstructor:
         # a single frame without the within-frame test (which changes the luminance) is coloured in the
         # refinement's pass; fuse takes its RGB (parts.estimate.image) and adds the lattice's channels
         rgb = not self.temporal and not self.consistency and spec.variance
-        parts = colour.joint(inp, spec, rgb=rgb, refined=not self.temporal, lattice=False, **options)
+        parts = colour.joint(inp, spec, rgb=rgb, refined=not self.temporal, lattice=False, lights=False, **options)
         estimate = parts.estimate
         if rgb:
             estimate = replace(estimate, image=estimate.luminance, luminance=None)

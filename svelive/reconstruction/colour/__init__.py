@@ -150,6 +150,7 @@ from svelive.reconstruction.colour.highlights import WHITE_CELLS, WHITE_MIN_CELL
 from svelive.reconstruction.colour.interpolate import PIECE_ROWS, Interpolation, interpolation
 from svelive.reconstruction.colour.joint_parts import Joint, fold_luminance, joint
 from svelive.reconstruction.colour.lattice import lattice_channels
+from svelive.reconstruction.colour.lights import light_colours
 from svelive.reconstruction.colour.refinement import refine
 from svelive.reconstruction.colour.run import MODES, run_colour
 from svelive.reconstruction.colour.shares import COARSE_NONE, SHARE_FLOOR, Chroma, chroma, partial_chroma
@@ -157,5 +158,6 @@ from svelive.reconstruction.colour.split_baseline import demosaic, split
 
 __all__ = ["COARSE_NONE", "MODES", "PIECE_ROWS", "SHARE_FLOOR", "WHITE_CELLS", "WHITE_MIN_CELLS", "WHITE_SNR",
            "CellLayout", "Chroma", "Interpolation", "Joint", "cell_layout", "chroma", "colourise", "demosaic",
-           "fold_luminance", "folded_exposure", "interpolation", "joint", "lattice_channels", "luminance_input",
+           "fold_luminance", "folded_exposure", "interpolation", "joint", "lattice_channels", "light_colours",
+           "luminance_input",
            "partial_chroma", "refine", "run_colour", "split", "white_balance"]

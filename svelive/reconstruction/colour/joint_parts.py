@@ -12,6 +12,7 @@ from svelive.reconstruction.colour.directional import directional_channels, log_
 from svelive.reconstruction.colour.folding import colourise, luminance_input
 from svelive.reconstruction.colour.interpolate import Interpolation, interpolation
 from svelive.reconstruction.colour.lattice import lattice_channels
+from svelive.reconstruction.colour.lights import light_colours
 from svelive.reconstruction.colour.refinement import refine
 from svelive.reconstruction.colour.shares import Chroma, chroma
 from svelive.reconstruction.colour.sites import site_chroma as site_chroma_into
@@ -53,7 +54,8 @@ def fold_luminance(inp: SveInput, coarse: bool, exposures: bool, workers: int = 
 
 
 def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = True, site_chroma: bool = False,
-          lattice: bool = True, directional: bool = False, variance: bool = True, **options) -> Joint:
+          lattice: bool = True, directional: bool = False, variance: bool = True, lights: bool = True,
+          **options) -> Joint:
     """The joint reconstruction (package docstring) with the mono method ``spec`` and its ``options``.
 
     With a method that reports its variance and ``refined``, the luminance is refined at the
@@ -69,6 +71,8 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
     ``directional``: with ``rgb``, after the lattice stage, each pixel's other channels from a directional
     demosaicing of every pixel's own channel in the logarithm where the colour is not strongly saturated
     and the readings are above their noise (svelive.reconstruction.colour.directional; 2x2 Bayer CFAs).
+    ``lights`` (default on): with ``rgb``, a small light that clips takes one colour pooled from every site it
+    lights instead of the cells' (svelive.reconstruction.colour.lights; any CFA).
     """
     workers = options.get("workers", 1)  # the method's threads serve the colour passes too
     ch, inter, lum = fold_luminance(inp, spec.variance and refined, spec.exposures, workers,
@@ -92,6 +96,8 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
         luminance = luminance.copy() if luminance is est.image else luminance  # (the method's own array stays)
         if lattice:
             lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers, finite)
+        if lights:
+            light_colours(inp, luminance, image, ch.white, ch.layout.cell)
         if directional:
             directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout), workers=workers)
         if site_chroma:
