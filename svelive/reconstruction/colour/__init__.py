@@ -104,6 +104,14 @@ does, so that fine detail of a saturated colour survives
 (svelive.reconstruction.colour.lattice; docs/peers.md: BrightRings +1.5 to
 +2.1 dB PU21 over all channels, no shared frame lower).
 
+(c''') Small clipped lights (single frames, any CFA): a light under two cells
+on a side that clips the long exposure is found from its readings (sites at
+least 2 stops and 5 noise deviations over their CFA phase's local median,
+joined to a censored reading), and where its readings are flat within their
+noise, it takes one colour pooled from all its sites instead of the cells'
+(which saw a few sites of some colours each: blue, green or red lights), by a
+garrote on that colour's noise (svelive.reconstruction.colour.lights).
+
 Highlights. Where a channel has censored readings in a cell, its uncensored
 neighbours are the darker ones, so the cell keeps its own readings (at least
 their bound); where it has censored readings and no uncensored one, its value
@@ -140,6 +148,7 @@ The modules, one job each: ``run`` (:func:`run_colour`, the public entry), ``spl
 ``cells`` (the cells' layout and per-cell statistics), ``highlights`` (the white balance and the rules for
 censored and clipped channels), ``shares`` (step a), ``interpolate`` (from cells to pixels),
 ``folding`` (steps b and c: e' = e k_c, RGB = Y k_c), ``refinement`` (step b'), ``lattice`` (step c''),
+``lights`` (step c'''),
 ``sites`` (opt-in chroma per site on Bayer CFAs, after step c) and ``joint_parts`` (the joint
 reconstruction and its parts).
 """
