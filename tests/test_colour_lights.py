@@ -30,13 +30,13 @@ def test_every_clipped_light_is_recoloured_and_its_colour_is_right(layout):
     truth, corners = coloured_lights(layout, -1.0)
     inp, off = _joint(truth, layout, lights=False)
     image, luminance = off.estimate.image.copy(), off.estimate.luminance.copy()
-    assert light_colours(inp, luminance, image, off.chroma.white, off.chroma.layout.cell) == len(corners)
+    assert light_colours(inp, luminance, image, off.chroma.white, off.chroma.layout) == len(corners)
     before, after = light_errors(off.estimate.image, truth, corners), light_errors(image, truth, corners)
     assert after.mean() < 0.5 * before.mean(), (after.mean(), before.mean())
     # each pixel keeps its own channel's value, and the luminance is that of its new colour
     own = inp.channels[..., None].astype(np.intp)
     assert np.array_equal(np.take_along_axis(image, own, -1), np.take_along_axis(off.estimate.image, own, -1))
-    share = np.array([np.mean(inp.cfa.tile == c) for c in range(3)])
+    share = off.chroma.layout.share
     changed = np.any(image != off.estimate.image, axis=-1)
     assert changed.any()
     assert np.allclose(luminance[changed], image[changed] @ share, rtol=1e-5)
@@ -90,7 +90,7 @@ def test_peaked_clipped_stars_keep_the_cells_colour(layout):
     inp, off = _joint(truth, layout, lights=False)
     assert inp.censored.sum() > 64
     image, luminance = off.estimate.image.copy(), off.estimate.luminance.copy()
-    assert light_colours(inp, luminance, image, off.chroma.white, off.chroma.layout.cell) == 0
+    assert light_colours(inp, luminance, image, off.chroma.white, off.chroma.layout) == 0
 
 
 def test_a_light_that_samples_one_channel_or_a_large_clipped_area_keeps_the_cells_colour():
@@ -103,5 +103,5 @@ def test_a_light_that_samples_one_channel_or_a_large_clipped_area_keeps_the_cell
     inp, off = _joint(truth, "dual-iso", lights=False)
     assert inp.censored[22, 21] and inp.censored[36:50, 30:50].any()
     image, luminance = off.estimate.image.copy(), off.estimate.luminance.copy()
-    assert light_colours(inp, luminance, image, off.chroma.white, off.chroma.layout.cell) == 0
+    assert light_colours(inp, luminance, image, off.chroma.white, off.chroma.layout) == 0
     assert np.array_equal(image, off.estimate.image)

@@ -32,7 +32,8 @@ class Joint:
         interpolation: its interpolation (shares, and the coarse luminance after them when the
             luminance was refined).
         finite: True where every value of the estimate's image was found finite as the passes that wrote it
-            (the refinement's colour pass, the lattice) wrote it; False: not known.
+            (the refinement's colour pass, the lattice) wrote it, the lights stage writing only finite values;
+            False: not known.
     """
 
     estimate: Estimate
@@ -97,7 +98,7 @@ def joint(inp: SveInput, spec: MethodSpec, rgb: bool = True, refined: bool = Tru
         if lattice:
             lattice_channels(inp, luminance, image, ch.shares, ch.layout, workers, finite)
         if lights:
-            light_colours(inp, luminance, image, ch.white, ch.layout.cell)
+            light_colours(inp, luminance, image, ch.white, ch.layout)
         if directional:
             directional_channels(inp, luminance, image, ch.layout.share, log_floor(inp, ch.layout), workers=workers)
         if site_chroma:

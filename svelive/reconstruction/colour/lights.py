@@ -45,6 +45,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from svelive.reconstruction.colour.cells import CellLayout
 from svelive.reconstruction.methods.base import SveInput
 
 #: A lit site reads at least this many times the background of its CFA phase (2 stops).
@@ -62,7 +63,7 @@ GARROTE_DOF = 3.0
 
 
 def light_colours(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: np.ndarray,
-                  cell: tuple[int, int]) -> int:
+                  layout: CellLayout) -> int:
     """Recolour small clipped lights in place (module docstring).
 
     Args:
@@ -70,7 +71,8 @@ def light_colours(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: 
         luminance: float32 (H, W), Y; updated where a light's pixels change.
         rgb: float32 (H, W, 3), camera RGB (DN at relative exposure 1); updated in place.
         white: float32 (3,), the frame's white balance (camera RGB of a neutral surface).
-        cell: (rows, cols) of the chroma's cells; a light is under two cells on each side.
+        layout: the chroma's cells (a light is under two cells on each side) and each channel's share n_c of the
+            CFA tile.
 
     Returns:
         The number of lights recoloured.
@@ -78,7 +80,7 @@ def light_colours(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: 
     if inp.cfa is None or inp.channels is None or not inp.censored.any():
         return 0
     h, w = inp.shape
-    max_side = 2 * max(cell) - 1
+    max_side = 2 * max(layout.cell) - 1
     # candidates on a grid of BLOCK x BLOCK blocks (any censored reading in a block), whose components are found
     # at a sixteenth of the frame's pixels: a full-resolution labelling cost 12 ms at 1920x1200
     near = cv2.dilate(inp.censored.view(np.uint8), np.ones((BLOCK, BLOCK), np.uint8), anchor=(0, 0))
@@ -86,7 +88,7 @@ def light_colours(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: 
                                                           connectivity=8)
     done = np.zeros((h, w), bool)
     py, px = inp.cfa.shape
-    share = np.array([np.mean(inp.cfa.tile == c) for c in range(3)])
+    share = layout.share.astype(np.float64)
     r = BACKGROUND_RADIUS
     recoloured = 0
     for bx, by, bw, bh, _ in boxes[1:]:
@@ -134,8 +136,8 @@ def _recolour(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: np.n
     box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
     colour, variance = np.zeros(3), np.zeros(3)
     bounded = np.zeros(3, bool)
-    for c in range(3):
-        own = light & (channels == c)
+    lit_by = [light & (channels == c) for c in range(3)]  # each channel's lit sites
+    for c, own in enumerate(lit_by):
         measured = own & ~censored
         if measured.any():
             n = np.count_nonzero(measured)
@@ -149,7 +151,7 @@ def _recolour(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: np.n
                 return 0  # the light samples no site of this channel: its colour is unknown
             n = np.count_nonzero(dark)
             colour[c], variance[c] = max(x[box][dark].mean(), 0.0), np.sum(sd[box][dark] ** 2) / n**2
-    if bounded.all() or colour.max() <= 0 or not _flat(x, sd, censored, channels, light, colour, bounded):
+    if bounded.all() or colour.max() <= 0 or not _flat(x, sd, censored, lit_by, colour, bounded):
         return 0
     measured_level = max(colour[c] / white[c] for c in range(3) if not bounded[c])
     if np.any(colour[bounded] > measured_level * white[bounded]):
@@ -177,8 +179,8 @@ def _recolour(inp: SveInput, luminance: np.ndarray, rgb: np.ndarray, white: np.n
     return 1
 
 
-def _flat(x: np.ndarray, sd: np.ndarray, censored: np.ndarray, channels: np.ndarray, light: np.ndarray,
-          colour: np.ndarray, bounded: np.ndarray) -> bool:
+def _flat(x: np.ndarray, sd: np.ndarray, censored: np.ndarray, lit_by: list[np.ndarray], colour: np.ndarray,
+          bounded: np.ndarray) -> bool:
     """Whether the light's lit readings are those of one level per channel (``colour``) within their noise: the
     sum of their squared z-scores is within the chi-square quantile at FLAT_Z normal deviations (its degrees of
     freedom: each channel's measured lit sites less one; 99.87 % at FLAT_Z = 3), and no censored lit reading's
@@ -187,8 +189,7 @@ def _flat(x: np.ndarray, sd: np.ndarray, censored: np.ndarray, channels: np.ndar
     on the profile, not the light's colour, and the cells' colour stays. With nothing to test it on, it fails
     too."""
     chi2, dof = 0.0, 0
-    for c in range(3):
-        own = light & (channels == c)
+    for c, own in enumerate(lit_by):
         measured = own & ~censored
         n = np.count_nonzero(measured)
         if n == 0 or bounded[c]:
